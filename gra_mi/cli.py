@@ -1,0 +1,233 @@
+"""The ``gra-mi`` command line.
+
+Every subcommand chooses the Mitsuba variant once (``--variant``; automatic by default) and turns bad input
+(:class:`GraMiInputError`) into one line on stderr with exit code 2, never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+from gra_mi.errors import GraMiInputError
+
+logger = logging.getLogger("gra_mi")
+
+REPO_SCENES = Path(__file__).resolve().parent.parent / "scenes"
+
+
+def _add_variant(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--variant",
+        choices=["llvm_ad_rgb", "cuda_ad_rgb", "scalar_rgb"],
+        default=None,
+        help="Mitsuba variant. Default: cuda_ad_rgb where a CUDA GPU works, else llvm_ad_rgb (CPU).",
+    )
+
+
+def _parse_clips(text: str) -> list[str]:
+    from gra_mi.anny_body import MOTION_CLIPS
+
+    clips = [c.strip() for c in text.split(",") if c.strip()]
+    unknown = [c for c in clips if c not in MOTION_CLIPS]
+    if unknown or not clips:
+        raise argparse.ArgumentTypeError(f"unknown clip(s) {unknown}; choose from {sorted(MOTION_CLIPS)}")
+    return clips
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="gra-mi",
+        description="gra-mi: relightable full-body avatars on Mitsuba 3 / Dr.Jit (Generative Relightable Avatars).",
+    )
+    parser.add_argument("-v", "--verbose", action="store_true", help="Log debug messages.")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    # demo ---------------------------------------------------------------------------------------------------
+    p = sub.add_parser("demo", help="Run the whole pipeline (as far as it exists) on a small preset and write a report.")
+    p.add_argument("--preset", choices=["tiny", "small"], default="small", help="tiny: procedural subject, seconds (CI). small: the anny body on the default 331-LED rig, minutes on 2 cores.")
+    p.add_argument("--out", type=Path, default=Path("outputs/demo"), help="Output folder (renders, plots, report.md). Default: outputs/demo.")
+    p.add_argument("--spp", type=int, default=None, help="Samples per pixel for Mitsuba's direct integrator (default: the preset's).")
+    _add_variant(p)
+
+    # rig ----------------------------------------------------------------------------------------------------
+    p = sub.add_parser("rig", help="Write a lightstage rig folder: calibration.json, leds.xml, cameras.xml.")
+    p.add_argument("--out", type=Path, required=True, help="Folder to write the rig into.")
+    p.add_argument("--from-calibration", type=Path, default=None, help="Make the XML from an existing calibration JSON instead of the default layout.")
+    p.add_argument("--num-leds", type=int, default=331, help="LEDs spread evenly over the sphere (Fibonacci spiral). Default: 331.")
+    p.add_argument("--radius", type=float, default=2.0, help="LED sphere radius in metres. Default: 2.0.")
+    p.add_argument("--num-cameras", type=int, default=40, help="Cameras on four rings at several heights. Default: 40.")
+    p.add_argument("--camera-distance", type=float, default=1.8, help="Camera distance from the stage centre in metres. Default: 1.8.")
+    p.add_argument("--width", type=int, default=1024, help="Image width in pixels. Default: 1024.")
+    p.add_argument("--height", type=int, default=540, help="Image height in pixels. Default: 540.")
+    p.add_argument("--max-led-intensity", type=float, default=4.0, help="Radiant intensity (W/sr) of a fully driven LED; envmaps are normalised to it. Default: 4.")
+
+    # envmaps ------------------------------------------------------------------------------------------------
+    p = sub.add_parser("envmaps", help="Write procedural HDR environment maps (skies and rooms) as EXR + PNG, split by seed.")
+    p.add_argument("--out", type=Path, required=True, help="Folder; maps go to OUT/train and OUT/test.")
+    p.add_argument("--train", type=int, default=16, help="Number of training envmaps. Default: 16.")
+    p.add_argument("--test", type=int, default=4, help="Number of held-out test envmaps (disjoint seeds). Default: 4.")
+    p.add_argument("--height", type=int, default=128, help="Lat-long height in pixels (width = 2x). Default: 128.")
+    _add_variant(p)
+
+    # subject ------------------------------------------------------------------------------------------------
+    p = sub.add_parser("subject", help="Write an animated tracked mesh sequence (sequence.npz + per-frame PLYs).")
+    p.add_argument("--out", type=Path, required=True, help="Folder to write the sequence into.")
+    p.add_argument("--kind", choices=["anny", "tiny"], default="anny", help="anny: the MakeHuman-based body; tiny: a ~450-triangle procedural subject for tests.")
+    p.add_argument("--clips", type=_parse_clips, default=["walk", "arm_raise", "turn", "squat"], help="Comma-separated motion clips for anny (walk, arm_raise, turn, squat), played in order.")
+    p.add_argument("--frames-per-clip", type=int, default=None, help="Frames per clip loop (default: each clip's own, 24-48).")
+    p.add_argument("--frames", type=int, default=8, help="Frames for --kind tiny. Default: 8.")
+
+    # scene --------------------------------------------------------------------------------------------------
+    p = sub.add_parser("scene", help="Write a Mitsuba scene file that puts a subject sequence into a rig.")
+    p.add_argument("--out", type=Path, required=True, help="Scene XML file to write.")
+    p.add_argument("--rig", type=Path, required=True, help="Rig folder (from `gra-mi rig`).")
+    p.add_argument("--subject", type=Path, required=True, help="Sequence folder (from `gra-mi subject`).")
+    p.add_argument("--spp", type=int, default=64, help="Default samples per pixel written into the scene. Default: 64.")
+
+    # render -------------------------------------------------------------------------------------------------
+    p = sub.add_parser("render", help="Render a lightstage scene with a stock Mitsuba integrator; writes EXR + PNG.")
+    p.add_argument("scene", type=Path, help="Scene XML (e.g. scenes/tiny_lightstage.xml).")
+    p.add_argument("--frame", type=int, default=0, help="Frame of the subject sequence. Default: 0.")
+    p.add_argument("--camera", default="0", help="Camera index or name. Default: 0.")
+    light = p.add_mutually_exclusive_group(required=True)
+    light.add_argument("--envmap", type=Path, help="Lat-long HDR EXR mapped onto the LEDs.")
+    light.add_argument("--olat", type=int, help="Light one LED (index) at the stage maximum.")
+    light.add_argument("--pattern", type=Path, help="LED drive values: JSON {\"intensities\": [[r,g,b],...]} or .npy of shape (L,) or (L,3).")
+    p.add_argument("--repair-envmap", action="store_true", help="Replace NaN/Inf/negative envmap pixels (with a warning) instead of stopping.")
+    p.add_argument("--integrator", choices=["direct", "path"], default="direct", help="Mitsuba integrator. Default: direct.")
+    p.add_argument("--spp", type=int, default=128, help="Samples per pixel. Default: 128.")
+    p.add_argument("--seed", type=int, default=0, help="Sampler seed. Default: 0.")
+    p.add_argument("--background", action="store_true", help="Also write a preview composited over the envmap's background plate.")
+    p.add_argument("--out", type=Path, default=Path("outputs/render"), help="Output folder. Default: outputs/render.")
+    _add_variant(p)
+    return parser
+
+
+# --------------------------------------------------------------------------------------------------------------
+
+
+def _cmd_rig(args) -> None:
+    from gra_mi.lightstage import default_lightstage, load_calibration
+    from gra_mi.scene import write_rig
+
+    if args.from_calibration:
+        stage = load_calibration(args.from_calibration)
+    else:
+        stage = default_lightstage(args.num_leds, args.radius, args.num_cameras, args.camera_distance, args.width, args.height, max_led_intensity=args.max_led_intensity)
+    folder = write_rig(stage, args.out)
+    print(f"wrote rig with {stage.num_leds} LEDs and {len(stage.cameras)} cameras to {folder}")
+
+
+def _cmd_envmaps(args) -> None:
+    from gra_mi.envmap_library import write_envmap_set
+    from gra_mi.variant import choose_variant
+
+    choose_variant(args.variant)
+    for split, count in (("train", args.train), ("test", args.test)):
+        if count < 0:
+            raise GraMiInputError(f"--{split}", "must be >= 0")
+        paths = write_envmap_set(args.out, split, count, args.height)
+        print(f"{split}: {len(paths)} envmaps in {args.out / split}")
+
+
+def _cmd_subject(args) -> None:
+    from gra_mi.subject import save_sequence, tiny_subject
+
+    if args.kind == "tiny":
+        seq = tiny_subject(args.frames)
+    else:
+        from gra_mi.anny_body import anny_sequence
+
+        seq = anny_sequence(args.clips, args.frames_per_clip)
+    save_sequence(seq, args.out)
+    print(f"wrote {seq.num_frames} frames, {seq.num_vertices} vertices, {len(seq.faces)} triangles to {args.out}")
+
+
+def _cmd_scene(args) -> None:
+    import os
+
+    from gra_mi.imageio import atomic_write_text
+    from gra_mi.scene import subject_scene_xml
+
+    for folder, what in ((args.rig, "calibration.json"), (args.subject, "sequence.npz")):
+        if not (folder / what).is_file():
+            raise GraMiInputError(folder / what, "file not found")
+    base = args.out.resolve().parent
+    rig = os.path.relpath(args.rig.resolve(), base)
+    subject = os.path.relpath(args.subject.resolve(), base)
+    atomic_write_text(args.out, subject_scene_xml(rig, subject, spp=args.spp))
+    print(f"wrote {args.out}")
+
+
+def _cmd_render(args) -> None:
+    from gra_mi.envmap import background_plate, load_envmap
+    from gra_mi.imageio import write_exr, write_png
+    from gra_mi.lightstage import load_pattern, olat_pattern
+    from gra_mi.scene import LightstageScene, composite_over, render
+    from gra_mi.variant import choose_variant
+
+    if args.spp < 1:
+        raise GraMiInputError("--spp", f"must be >= 1, got {args.spp}")
+    envmap = load_envmap(args.envmap, repair=args.repair_envmap) if args.envmap else None
+    choose_variant(args.variant)
+    ls = LightstageScene.load(args.scene, frame=args.frame)
+    camera = ls.stage.camera(args.camera)
+    if envmap is not None:
+        ls.set_envmap(envmap)
+        light = args.envmap.stem
+    elif args.olat is not None:
+        ls.set_pattern(olat_pattern(ls.stage, args.olat))
+        light = f"olat{args.olat:03d}"
+    else:
+        ls.set_pattern(load_pattern(ls.stage, args.pattern))
+        light = args.pattern.stem
+    image = render(ls, camera.name, args.integrator, args.spp, args.seed)
+    stem = args.out / f"{camera.name}_f{args.frame:04d}_{light}"
+    write_exr(stem.with_suffix(".exr"), image)
+    write_png(stem.with_suffix(".png"), image, exposure=None)
+    if args.background and envmap is not None:
+        from gra_mi.envmap import envmap_to_leds
+
+        # The plate in the same units as the render: the LED normalisation scales the whole lighting.
+        scale = envmap_to_leds(envmap, ls.stage).scale
+        composite = composite_over(image, background_plate(envmap, camera) * scale)
+        write_png(stem.with_name(stem.name + "_composite.png"), composite, exposure=None)
+    print(f"wrote {stem}.exr")
+
+
+def _cmd_demo(args) -> None:
+    from gra_mi.demo import run_demo
+
+    report = run_demo(args.preset, args.out, spp=args.spp, variant=args.variant)
+    print(f"done: open {report}")
+
+
+COMMANDS = {
+    "demo": _cmd_demo,
+    "rig": _cmd_rig,
+    "envmaps": _cmd_envmaps,
+    "subject": _cmd_subject,
+    "scene": _cmd_scene,
+    "render": _cmd_render,
+}
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        COMMANDS[args.command](args)
+    except GraMiInputError as exc:
+        print(f"gra-mi {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"gra-mi {args.command}: interrupted (finished files are kept; rerun to resume)", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

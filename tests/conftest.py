@@ -1,0 +1,49 @@
+"""Variant fixtures in Mitsuba's style: llvm_ad_rgb always, cuda_ad_rgb only where a GPU works."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+os.environ.setdefault("GRA_MI_QUIET", "1")
+
+REPO = Path(__file__).resolve().parent.parent
+SCENES = REPO / "scenes"
+
+
+def _variants() -> list:
+    from gra_mi.variant import cuda_available
+
+    params = [pytest.param("llvm_ad_rgb", id="llvm_ad_rgb")]
+    params.append(pytest.param("cuda_ad_rgb", id="cuda_ad_rgb", marks=pytest.mark.skipif(not cuda_available(), reason="no CUDA device")))
+    return params
+
+
+@pytest.fixture(params=_variants())
+def variant(request):
+    """Set a Mitsuba variant for the test; flush Dr.Jit's caches afterwards as Mitsuba's conftest does."""
+    from gra_mi.variant import choose_variant
+
+    name = choose_variant(request.param)
+    yield name
+    import drjit as dr
+
+    dr.flush_malloc_cache()
+    dr.kernel_history_clear()
+
+
+@pytest.fixture
+def llvm_variant():
+    """Only the CPU variant (for tests whose subject is file I/O or numpy, not the backend)."""
+    from gra_mi.variant import choose_variant
+
+    return choose_variant("llvm_ad_rgb")
+
+
+@pytest.fixture(scope="session")
+def default_stage():
+    from gra_mi.lightstage import load_calibration
+
+    return load_calibration(SCENES / "rigs" / "default" / "calibration.json")
