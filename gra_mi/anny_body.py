@@ -47,7 +47,7 @@ def _walk(p: float) -> tuple[Pose, float]:
 
 
 def _arm_raise(p: float) -> tuple[Pose, float]:
-    a = 1.6 * (1 - math.cos(p)) / 2  # sideways, up to above the shoulders
+    a = 2.3 * (1 - math.cos(p)) / 2  # sideways, from the rest A-pose up to above the head
     return {"upperarm01.L": [("y", -a)], "upperarm01.R": [("y", a)]}, 0.0
 
 
@@ -167,7 +167,12 @@ def anny_sequence(clips: list[str], frames_per_clip: int | None = None, fps: flo
             frames.append(world)
             labels.append(name)
     seq = sequence_from_frames(
-        [f[position_index] for f in frames], new_faces, uvs, source="anny", fps=fps, frame_labels=labels,
+        [f[position_index] for f in frames],
+        new_faces,
+        uvs,
+        source="anny",
+        fps=fps,
+        frame_labels=labels,
         vertex_colors=_body_colors(model, position_index),
     )
     # Normals from the welded mesh, so UV seams do not show as shading creases.

@@ -47,22 +47,36 @@ def build_parser() -> argparse.ArgumentParser:
 
     # demo ---------------------------------------------------------------------------------------------------
     p = sub.add_parser("demo", help="Run the whole pipeline (as far as it exists) on a small preset and write a report.")
-    p.add_argument("--preset", choices=["tiny", "small"], default="small", help="tiny: procedural subject, seconds (CI). small: the anny body on the default 331-LED rig, minutes on 2 cores.")
-    p.add_argument("--out", type=Path, default=Path("outputs/demo"), help="Output folder (renders, plots, report.md). Default: outputs/demo.")
+    p.add_argument(
+        "--preset",
+        choices=["tiny", "small"],
+        default="small",
+        help="tiny: procedural subject, seconds (CI). small: the anny body on the default 331-LED rig, minutes on 2 cores.",
+    )
+    p.add_argument(
+        "--out", type=Path, default=Path("outputs/demo"), help="Output folder (renders, plots, report.md). Default: outputs/demo."
+    )
     p.add_argument("--spp", type=int, default=None, help="Samples per pixel for Mitsuba's direct integrator (default: the preset's).")
     _add_variant(p)
 
     # rig ----------------------------------------------------------------------------------------------------
     p = sub.add_parser("rig", help="Write a lightstage rig folder: calibration.json, leds.xml, cameras.xml.")
     p.add_argument("--out", type=Path, required=True, help="Folder to write the rig into.")
-    p.add_argument("--from-calibration", type=Path, default=None, help="Make the XML from an existing calibration JSON instead of the default layout.")
+    p.add_argument(
+        "--from-calibration", type=Path, default=None, help="Make the XML from an existing calibration JSON instead of the default layout."
+    )
     p.add_argument("--num-leds", type=int, default=331, help="LEDs spread evenly over the sphere (Fibonacci spiral). Default: 331.")
     p.add_argument("--radius", type=float, default=2.0, help="LED sphere radius in metres. Default: 2.0.")
     p.add_argument("--num-cameras", type=int, default=40, help="Cameras on four rings at several heights. Default: 40.")
     p.add_argument("--camera-distance", type=float, default=1.8, help="Camera distance from the stage centre in metres. Default: 1.8.")
     p.add_argument("--width", type=int, default=1024, help="Image width in pixels. Default: 1024.")
     p.add_argument("--height", type=int, default=540, help="Image height in pixels. Default: 540.")
-    p.add_argument("--max-led-intensity", type=float, default=4.0, help="Radiant intensity (W/sr) of a fully driven LED; envmaps are normalised to it. Default: 4.")
+    p.add_argument(
+        "--max-led-intensity",
+        type=float,
+        default=4.0,
+        help="Radiant intensity (W/sr) of a fully driven LED; envmaps are normalised to it. Default: 4.",
+    )
 
     # envmaps ------------------------------------------------------------------------------------------------
     p = sub.add_parser("envmaps", help="Write procedural HDR environment maps (skies and rooms) as EXR + PNG, split by seed.")
@@ -75,8 +89,18 @@ def build_parser() -> argparse.ArgumentParser:
     # subject ------------------------------------------------------------------------------------------------
     p = sub.add_parser("subject", help="Write an animated tracked mesh sequence (sequence.npz + per-frame PLYs).")
     p.add_argument("--out", type=Path, required=True, help="Folder to write the sequence into.")
-    p.add_argument("--kind", choices=["anny", "tiny"], default="anny", help="anny: the MakeHuman-based body; tiny: a ~450-triangle procedural subject for tests.")
-    p.add_argument("--clips", type=_parse_clips, default=["walk", "arm_raise", "turn", "squat"], help="Comma-separated motion clips for anny (walk, arm_raise, turn, squat), played in order.")
+    p.add_argument(
+        "--kind",
+        choices=["anny", "tiny"],
+        default="anny",
+        help="anny: the MakeHuman-based body; tiny: a ~450-triangle procedural subject for tests.",
+    )
+    p.add_argument(
+        "--clips",
+        type=_parse_clips,
+        default=["walk", "arm_raise", "turn", "squat"],
+        help="Comma-separated motion clips for anny (walk, arm_raise, turn, squat), played in order.",
+    )
     p.add_argument("--frames-per-clip", type=int, default=None, help="Frames per clip loop (default: each clip's own, 24-48).")
     p.add_argument("--frames", type=int, default=8, help="Frames for --kind tiny. Default: 8.")
 
@@ -95,8 +119,10 @@ def build_parser() -> argparse.ArgumentParser:
     light = p.add_mutually_exclusive_group(required=True)
     light.add_argument("--envmap", type=Path, help="Lat-long HDR EXR mapped onto the LEDs.")
     light.add_argument("--olat", type=int, help="Light one LED (index) at the stage maximum.")
-    light.add_argument("--pattern", type=Path, help="LED drive values: JSON {\"intensities\": [[r,g,b],...]} or .npy of shape (L,) or (L,3).")
-    p.add_argument("--repair-envmap", action="store_true", help="Replace NaN/Inf/negative envmap pixels (with a warning) instead of stopping.")
+    light.add_argument("--pattern", type=Path, help='LED drive values: JSON {"intensities": [[r,g,b],...]} or .npy of shape (L,) or (L,3).')
+    p.add_argument(
+        "--repair-envmap", action="store_true", help="Replace NaN/Inf/negative envmap pixels (with a warning) instead of stopping."
+    )
     p.add_argument("--integrator", choices=["direct", "path"], default="direct", help="Mitsuba integrator. Default: direct.")
     p.add_argument("--spp", type=int, default=128, help="Samples per pixel. Default: 128.")
     p.add_argument("--seed", type=int, default=0, help="Sampler seed. Default: 0.")
@@ -116,7 +142,15 @@ def _cmd_rig(args) -> None:
     if args.from_calibration:
         stage = load_calibration(args.from_calibration)
     else:
-        stage = default_lightstage(args.num_leds, args.radius, args.num_cameras, args.camera_distance, args.width, args.height, max_led_intensity=args.max_led_intensity)
+        stage = default_lightstage(
+            args.num_leds,
+            args.radius,
+            args.num_cameras,
+            args.camera_distance,
+            args.width,
+            args.height,
+            max_led_intensity=args.max_led_intensity,
+        )
     folder = write_rig(stage, args.out)
     print(f"wrote rig with {stage.num_leds} LEDs and {len(stage.cameras)} cameras to {folder}")
 

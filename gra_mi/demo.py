@@ -43,13 +43,20 @@ class DemoPreset:
     video_spp: int
     olat_led: int = 0
     stages_not_built: list[str] = field(
-        default_factory=lambda: ["one-bounce integrator + visibility cache (issue 3)", "material fit (issue 4)", "RelightNet (issue 6)", "video refiner (issue 7)"]
+        default_factory=lambda: [
+            "one-bounce integrator + visibility cache (issue 3)",
+            "material fit (issue 4)",
+            "RelightNet (issue 6)",
+            "video refiner (issue 7)",
+        ]
     )
 
 
 PRESETS = {
     "tiny": DemoPreset("tiny", 64, 4, 96, 64, "tiny", [], 8, 32, 2, 1, [0, 1], [0, 4], 16, 8),
-    "small": DemoPreset("small", 331, 40, 512, 270, "anny", ["walk", "arm_raise", "turn", "squat"], 8, 128, 4, 2, [0, 10, 25], [0, 9, 18, 27], 64, 32),
+    "small": DemoPreset(
+        "small", 331, 40, 512, 270, "anny", ["walk", "arm_raise", "turn", "squat"], 8, 128, 4, 2, [0, 10, 25], [0, 9, 18, 27], 64, 32
+    ),
 }
 
 
@@ -83,7 +90,13 @@ def plot_rig(stage, path: Path) -> None:
     ax.scatter(c[:, 0], c[:, 2], c[:, 1], s=30, marker="^", c="tab:blue", label=f"{len(stage.cameras)} cameras")
     for cam in stage.cameras:
         f = cam.rotation[:, 2] * 0.3
-        ax.plot([cam.position[0], cam.position[0] + f[0]], [cam.position[2], cam.position[2] + f[2]], [cam.position[1], cam.position[1] + f[1]], c="tab:blue", lw=0.8)
+        ax.plot(
+            [cam.position[0], cam.position[0] + f[0]],
+            [cam.position[2], cam.position[2] + f[2]],
+            [cam.position[1], cam.position[1] + f[1]],
+            c="tab:blue",
+            lw=0.8,
+        )
     ax.set_xlabel("x (m)")
     ax.set_ylabel("z (m)")
     ax.set_zlabel("y, up (m)")
@@ -139,7 +152,10 @@ def energy_table(envmap: np.ndarray, stage) -> list[dict]:
     e_env = envmap_irradiance(envmap, normals).mean(axis=1)
     e_led = led_irradiance(stage, lighting.radiant_intensity(stage), normals).mean(axis=1)
     names = ["+X", "-X", "+Y", "-Y", "+Z", "-Z"]
-    return [{"normal": n, "envmap": float(a), "leds": float(b), "rel_error": float(abs(b - a) / max(a, 1e-12))} for n, a, b in zip(names, e_env, e_led)]
+    return [
+        {"normal": n, "envmap": float(a), "leds": float(b), "rel_error": float(abs(b - a) / max(a, 1e-12))}
+        for n, a, b in zip(names, e_env, e_led, strict=True)
+    ]
 
 
 def run_demo(preset_name: str, out: Path, spp: int | None = None, variant: str | None = None) -> Path:
@@ -264,11 +280,23 @@ def _report(preset, variant, stage, ls, energy, timings, sheets, video_path, out
         lines.append(f"| {name} | not built yet | – |")
     lines += ["", "Rig: ![rig](plots/rig.png)", "", "## Envmap → LED energy check (irradiance at the stage centre)", ""]
     for name, rows in energy.items():
-        lines += [f"### {name}", "", f"![LED mapping](plots/leds_{name}.png)", "", "| normal | envmap | LEDs | rel. error |", "|---|---|---|---|"]
+        lines += [
+            f"### {name}",
+            "",
+            f"![LED mapping](plots/leds_{name}.png)",
+            "",
+            "| normal | envmap | LEDs | rel. error |",
+            "|---|---|---|---|",
+        ]
         lines += [f"| {r['normal']} | {r['envmap']:.4g} | {r['leds']:.4g} | {100 * r['rel_error']:.2f} % |" for r in rows]
         lines.append("")
     lines += ["## Renders (Mitsuba `direct`, composited over each camera's background plate)", "", "Rows: frames; columns: cameras.", ""]
     for light in sheets:
         lines += [f"### {light}", "", f"![{light}](contact_{light}.png)", ""]
-    lines += [f"Video: [{video_path.name}]({video_path.relative_to(out)})", "", "Data: `renders/*/*.exr` (linear RGBA), `envmaps/*/*.exr`, `subject/`, `rig/calibration.json`, `scene.xml` (loads in plain Mitsuba).", ""]
+    lines += [
+        f"Video: [{video_path.name}]({video_path.relative_to(out)})",
+        "",
+        "Data: `renders/*/*.exr` (linear RGBA), `envmaps/*/*.exr`, `subject/`, `rig/calibration.json`, `scene.xml` (loads in plain Mitsuba).",
+        "",
+    ]
     return "\n".join(lines)

@@ -262,5 +262,3 @@ def write_envmap_set(out_dir: str | Path, split: str, count: int, height: int = 
         index.append({"file": path.name, **meta})
     atomic_write_text(out_dir / "index.json", json.dumps(index, indent=1) + "\n")
     return paths
-
-

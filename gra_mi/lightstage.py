@@ -152,7 +152,7 @@ def camera_rings(
     per_ring = [count // rings + (1 if r < count % rings else 0) for r in range(rings)]
     fy = (height / 2.0) / math.tan(math.radians(fov_y_deg) / 2.0)
     cameras = []
-    for r, (elev, n) in enumerate(zip(elevations_deg, per_ring)):
+    for r, (elev, n) in enumerate(zip(elevations_deg, per_ring, strict=True)):
         for k in range(n):
             azimuth = 2.0 * math.pi * (k + 0.5 * (r % 2)) / n
             e = math.radians(elev)
@@ -371,7 +371,11 @@ def lightstage_from_dict(data: dict, source: str = "<calibration>") -> Lightstag
         cx = _number(intr, "cx", source, f"{where}.intrinsics.", positive=False)
         cy = _number(intr, "cy", source, f"{where}.intrinsics.", positive=False)
         if abs(fx - fy) > 1e-3 * fx:
-            raise GraMiInputError(source, f"non-square pixels (fx={fx}, fy={fy}) are not supported by Mitsuba's perspective sensor", field=f"{where}.intrinsics")
+            raise GraMiInputError(
+                source,
+                f"non-square pixels (fx={fx}, fy={fy}) are not supported by Mitsuba's perspective sensor",
+                field=f"{where}.intrinsics",
+            )
         try:
             m = np.asarray(cam.get("camera_to_world"), dtype=np.float64)
         except (TypeError, ValueError):
@@ -380,7 +384,9 @@ def lightstage_from_dict(data: dict, source: str = "<calibration>") -> Lightstag
             raise GraMiInputError(source, "expected a finite 4x4 matrix", field=f"{where}.camera_to_world")
         r = m[:3, :3]
         if not np.allclose(r.T @ r, np.eye(3), atol=1e-4) or np.linalg.det(r) < 0 or not np.allclose(m[3], [0, 0, 0, 1]):
-            raise GraMiInputError(source, "rotation part must be orthonormal with det +1 and last row [0,0,0,1]", field=f"{where}.camera_to_world")
+            raise GraMiInputError(
+                source, "rotation part must be orthonormal with det +1 and last row [0,0,0,1]", field=f"{where}.camera_to_world"
+            )
         cameras.append(Camera(str(cam.get("name", f"cam{i:02d}")), size[0], size[1], fx, fy, cx, cy, m))
     names = [c.name for c in cameras]
     if len(set(names)) != len(names):

@@ -53,8 +53,8 @@ def camera_xml(camera: Camera, spp_param: str = f"${keys.PARAM_SPP}") -> str:
     m = camera.mitsuba_to_world()
     # Mitsuba's principal point offsets are fractions of the film size from its centre, with the opposite sign
     # of the OpenCV pixel offset (checked against our background plates in tests/test_conventions.py).
-    off_x = -(camera.cx - camera.width / 2.0) / camera.width
-    off_y = -(camera.cy - camera.height / 2.0) / camera.height
+    off_x = 0.0 - (camera.cx - camera.width / 2.0) / camera.width
+    off_y = 0.0 - (camera.cy - camera.height / 2.0) / camera.height
     return (
         f'    <sensor type="perspective" id="{camera.name}">\n'
         f'        <float name="fov" value="{camera.fov_x_deg:.9g}"/>\n'
@@ -154,7 +154,7 @@ class LightstageScene:
         defaults = scene_defaults(path)
         for name in (keys.PARAM_SUBJECT, keys.PARAM_CALIBRATION):
             if name not in defaults:
-                raise GraMiInputError(path, f"missing <default name=\"{name}\" .../> (not a gra-mi lightstage scene?)")
+                raise GraMiInputError(path, f'missing <default name="{name}" .../> (not a gra-mi lightstage scene?)')
         subject_dir = subject or defaults[keys.PARAM_SUBJECT]
         subject_path = Path(subject_dir) if Path(subject_dir).is_absolute() else path.parent / subject_dir
         sequence = load_sequence(subject_path)
@@ -251,4 +251,3 @@ def composite_over(render_rgba: np.ndarray, plate: np.ndarray) -> np.ndarray:
     """Premultiplied RGBA render over a background plate."""
     alpha = render_rgba[..., 3:4]
     return render_rgba[..., :3] + (1.0 - alpha) * plate
-

@@ -102,7 +102,9 @@ def ply_name(frame: int) -> str:
     return f"frame_{frame:04d}.ply"
 
 
-def write_ply(path: str | Path, positions: np.ndarray, normals: np.ndarray, uvs: np.ndarray, faces: np.ndarray, colors: np.ndarray | None = None) -> None:
+def write_ply(
+    path: str | Path, positions: np.ndarray, normals: np.ndarray, uvs: np.ndarray, faces: np.ndarray, colors: np.ndarray | None = None
+) -> None:
     """Binary little-endian PLY that Mitsuba's ``ply`` shape reads (x y z nx ny nz u v [r g b])."""
     n = positions.shape[0]
     props = ["x", "y", "z", "nx", "ny", "nz", "u", "v"] + (["r", "g", "b"] if colors is not None else [])
@@ -178,9 +180,15 @@ def sequence_from_frames(frames: list[np.ndarray], faces: np.ndarray, uvs: np.nd
     if len(counts) != 1:
         first = np.asarray(frames[0]).shape[0]
         bad = next(i for i, f in enumerate(frames) if np.asarray(f).shape[0] != first)
-        raise GraMiInputError(source, f"vertex count changes across frames ({first} in frame 0, {np.asarray(frames[bad]).shape[0]} in frame {bad})", field="vertices")
+        raise GraMiInputError(
+            source,
+            f"vertex count changes across frames ({first} in frame 0, {np.asarray(frames[bad]).shape[0]} in frame {bad})",
+            field="vertices",
+        )
     vertices = np.stack([np.asarray(f, dtype=np.float32) for f in frames])
-    seq = MeshSequence(faces=np.asarray(faces, np.int32), uvs=np.asarray(uvs, np.float32), vertices=vertices, normals=np.zeros_like(vertices), **kwargs)
+    seq = MeshSequence(
+        faces=np.asarray(faces, np.int32), uvs=np.asarray(uvs, np.float32), vertices=vertices, normals=np.zeros_like(vertices), **kwargs
+    )
     if not np.isfinite(vertices).all():
         validate_sequence(seq, source)
     seq.normals = vertex_normals(vertices, seq.faces)
@@ -235,4 +243,6 @@ def tiny_subject(num_frames: int = 8, fps: float = 24.0) -> MeshSequence:
         rot_x = np.array([[1.0, 0.0, 0.0], [0.0, cx, -sx], [0.0, sx, cx]])
         frames.append(np.concatenate([torso, arm_local @ (rot_x @ rot_z).T + shoulder]))
     colors = np.concatenate([np.tile([0.55, 0.35, 0.25], (len(torso_p), 1)), np.tile([0.2, 0.3, 0.6], (len(arm_p), 1))])
-    return sequence_from_frames(frames, faces, uvs, source="tiny_subject", fps=fps, frame_labels=["tiny"] * num_frames, vertex_colors=colors.astype(np.float32))
+    return sequence_from_frames(
+        frames, faces, uvs, source="tiny_subject", fps=fps, frame_labels=["tiny"] * num_frames, vertex_colors=colors.astype(np.float32)
+    )

@@ -91,7 +91,7 @@ def choose_variant(requested: str | None = None) -> str:
 
     if mi.variant() != variant:
         mi.set_variant(variant)
-    logger.info("Mitsuba variant: %s", variant)
+    logger.debug("Mitsuba variant: %s", variant)
     return variant
 
 

@@ -1,0 +1,144 @@
+"""The gra-mi command line: help for every option, renders, and one-line errors on bad input."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gra_mi.cli import COMMANDS, build_parser
+from gra_mi.imageio import read_exr, write_exr
+
+from .conftest import SCENES
+
+TINY = SCENES / "tiny_lightstage.xml"
+
+
+def run_cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
+    env = {**os.environ, "GRA_MI_QUIET": "1"}
+    return subprocess.run([sys.executable, "-m", "gra_mi.cli", *args], capture_output=True, text=True, env=env, cwd=cwd, timeout=600)
+
+
+def test_every_option_has_help():
+    parser = build_parser()
+    sub = next(a for a in parser._actions if a.dest == "command")
+    assert set(sub.choices) == set(COMMANDS)
+    for name, p in sub.choices.items():
+        for action in p._actions:
+            if action.dest != "help":
+                assert action.help and len(action.help) > 10, f"gra-mi {name} {action.option_strings}: no help"
+
+
+def test_help_runs():
+    out = run_cli("render", "--help")
+    assert out.returncode == 0 and "--envmap" in out.stdout and "--variant" in out.stdout
+
+
+def test_render_envmap_olat_and_pattern(tmp_path, llvm_variant):
+    env = np.ones((16, 32, 3), np.float32)
+    write_exr(tmp_path / "white.exr", env)
+    out = run_cli(
+        "render",
+        str(TINY),
+        "--frame",
+        "2",
+        "--camera",
+        "1",
+        "--envmap",
+        str(tmp_path / "white.exr"),
+        "--spp",
+        "8",
+        "--background",
+        "--out",
+        str(tmp_path / "r"),
+    )
+    assert out.returncode == 0, out.stderr
+    image = read_exr(tmp_path / "r" / "cam01_f0002_white.exr")
+    assert image.shape == (64, 96, 4) and image[..., 3].max() == 1.0 and image[..., :3].max() > 0
+    assert (tmp_path / "r" / "cam01_f0002_white.png").exists() and (tmp_path / "r" / "cam01_f0002_white_composite.png").exists()
+    out = run_cli("render", str(TINY), "--olat", "7", "--spp", "4", "--out", str(tmp_path / "r"))
+    assert out.returncode == 0, out.stderr
+    (tmp_path / "p.json").write_text(json.dumps({"intensities": [0.1] * 64}))
+    out = run_cli(
+        "render", str(TINY), "--pattern", str(tmp_path / "p.json"), "--camera", "cam03", "--spp", "4", "--out", str(tmp_path / "r")
+    )
+    assert out.returncode == 0, out.stderr
+    assert (tmp_path / "r" / "cam03_f0000_p.exr").exists()
+
+
+def _assert_one_line_error(out: subprocess.CompletedProcess, *needles: str) -> None:
+    assert out.returncode == 2, out.stderr
+    lines = [line for line in out.stderr.strip().splitlines() if line.strip()]
+    assert len(lines) == 1 and "Traceback" not in out.stderr, out.stderr
+    for needle in needles:
+        assert needle in lines[0], lines[0]
+
+
+def test_bad_inputs_give_one_line_errors_and_write_nothing(tmp_path):
+    out_dir = tmp_path / "out"
+    nan_env = np.ones((8, 16, 3), np.float32)
+    nan_env[1, 2, 0] = np.nan
+    write_exr(tmp_path / "nan.exr", nan_env)
+    write_exr(tmp_path / "square.exr", np.ones((8, 8, 3), np.float32))
+    (tmp_path / "broken.xml").write_text("<scene version='3.0.0'><shape")
+    cases = [
+        (["render", str(TINY), "--envmap", str(tmp_path / "missing.exr")], ["missing.exr", "not found"]),
+        (["render", str(TINY), "--envmap", str(tmp_path / "nan.exr")], ["nan.exr", "1 NaN"]),
+        (["render", str(TINY), "--envmap", str(tmp_path / "square.exr")], ["square.exr", "twice as wide"]),
+        (["render", str(tmp_path / "broken.xml"), "--olat", "0"], ["broken.xml", "malformed XML"]),
+        (["render", str(TINY), "--olat", "999"], ["LED index 999"]),
+        (["render", str(TINY), "--olat", "0", "--frame", "50"], ["frame 50 out of range"]),
+        (["render", str(TINY), "--olat", "0", "--camera", "nope"], ["no camera named 'nope'"]),
+    ]
+    for args, needles in cases:
+        _assert_one_line_error(run_cli(*args, "--out", str(out_dir)), *needles)
+    (tmp_path / "calib.json").write_text("{ nope")
+    _assert_one_line_error(
+        run_cli("rig", "--out", str(out_dir), "--from-calibration", str(tmp_path / "calib.json")), "calib.json", "malformed JSON"
+    )
+    assert not out_dir.exists(), "nothing partial is written"
+
+
+def test_repair_envmap_option(tmp_path):
+    nan_env = np.ones((8, 16, 3), np.float32)
+    nan_env[1, 2, 0] = np.nan
+    write_exr(tmp_path / "nan.exr", nan_env)
+    out = run_cli("render", str(TINY), "--envmap", str(tmp_path / "nan.exr"), "--repair-envmap", "--spp", "2", "--out", str(tmp_path / "r"))
+    assert out.returncode == 0 and "repaired 1 NaN" in out.stderr
+
+
+def test_rig_scene_subject_commands_compose(tmp_path):
+    assert (
+        run_cli(
+            "rig", "--out", str(tmp_path / "rig"), "--num-leds", "30", "--num-cameras", "2", "--width", "32", "--height", "24"
+        ).returncode
+        == 0
+    )
+    assert run_cli("subject", "--kind", "tiny", "--frames", "3", "--out", str(tmp_path / "subj")).returncode == 0
+    assert (
+        run_cli("scene", "--rig", str(tmp_path / "rig"), "--subject", str(tmp_path / "subj"), "--out", str(tmp_path / "s.xml")).returncode
+        == 0
+    )
+    out = run_cli("render", str(tmp_path / "s.xml"), "--olat", "3", "--frame", "2", "--spp", "2", "--out", str(tmp_path / "r"))
+    assert out.returncode == 0, out.stderr
+
+
+@pytest.mark.parametrize("preset", ["tiny"])
+def test_demo_preset_runs_end_to_end(tmp_path, preset):
+    out = run_cli("demo", "--preset", preset, "--out", str(tmp_path / "demo"))
+    assert out.returncode == 0, out.stderr
+    report = (tmp_path / "demo" / "report.md").read_text()
+    assert "Envmap → LED energy check" in report and "not built yet" in report
+    for rel in ("scene.xml", "rig/calibration.json", "plots/rig.png", "videos/cam00_test_0000.mp4", "contact_olat000.png"):
+        assert (tmp_path / "demo" / rel).exists(), rel
+    renders = sorted((tmp_path / "demo" / "renders").rglob("*.exr"))
+    assert len(renders) == 3 * 2 * 2
+    # Resumable: a second run reuses every finished file.
+    before = {p: p.stat().st_mtime_ns for p in renders}
+    assert run_cli("demo", "--preset", preset, "--out", str(tmp_path / "demo")).returncode == 0
+    assert all(p.stat().st_mtime_ns == t for p, t in before.items())
