@@ -87,12 +87,16 @@ def bake_sunsky(params: SkyParams, height: int = 128, supersample: int = 2) -> n
     """
     import mitsuba as mi
 
-    from gra_mi.envmap import rotate, rotation_y
-
-    # Mitsuba 3.9.1's sunsky returns zeros for some sun azimuths (seen for 90°-180°): bake with the sun toward +Z
-    # (azimuth 0) and turn the result about the up axis, which is exact for a sky.
-    sun = sun_direction(SkyParams(params.sun_elevation_deg, 0.0, params.turbidity, params.ground_albedo))
-    common = {"type": "sunsky", "sun_direction": mi.ScalarVector3f(*sun), "turbidity": params.turbidity, "albedo": params.ground_albedo}
+    # Mitsuba's sunsky is Z-up in its local frame; to_world turns local +Z into our +Y. sun_direction is in world.
+    z_up_to_y_up = mi.ScalarTransform4f([[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]])
+    sun = sun_direction(params)
+    common = {
+        "type": "sunsky",
+        "to_world": z_up_to_y_up,
+        "sun_direction": mi.ScalarVector3f(*sun),
+        "turbidity": params.turbidity,
+        "albedo": params.ground_albedo,
+    }
     sky = mi.load_dict({**common, "sun_scale": 0.0, "sky_scale": params.sky_scale})
     d, weights = pixel_subsamples(height, 2 * height, supersample)
     values = _eval_emitter(sky, d)
@@ -118,10 +122,8 @@ def bake_sunsky(params: SkyParams, height: int = 128, supersample: int = 2) -> n
     irradiance += sun_flux * max(sun[1], 0.0)
     values[d[..., 1] < 0] = params.ground_albedo * irradiance / math.pi
     image = (values * weights[..., None]).sum(axis=2)
-
-    image = rotate(image.astype(np.float32), rotation_y(params.sun_azimuth_deg))
     if sun[1] > -SUN_ANGULAR_RADIUS:
-        splat_flux(image, sun_direction(params), sun_flux)
+        splat_flux(image, sun, sun_flux)
     return image.astype(np.float32)
 
 

@@ -142,3 +142,27 @@ def test_demo_preset_runs_end_to_end(tmp_path, preset):
     before = {p: p.stat().st_mtime_ns for p in renders}
     assert run_cli("demo", "--preset", preset, "--out", str(tmp_path / "demo")).returncode == 0
     assert all(p.stat().st_mtime_ns == t for p, t in before.items())
+
+
+def test_envmap_sweep_pipeline(tmp_path):
+    repo = SCENES.parent
+    assert run_cli("envmaps", "--out", str(tmp_path / "env"), "--train", "0", "--test", "2", "--height", "16").returncode == 0
+    env = {**os.environ, "GRA_MI_QUIET": "1"}
+    out = subprocess.run(
+        [
+            sys.executable,
+            str(repo / "pipelines" / "envmap_sweep.py"),
+            str(TINY),
+            str(tmp_path / "env" / "test"),
+            "--spp",
+            "4",
+            "--out",
+            str(tmp_path / "sweep"),
+        ],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=600,
+    )
+    assert out.returncode == 0, out.stderr
+    assert (tmp_path / "sweep" / "contact_sheet.png").exists() and (tmp_path / "sweep" / "test_0001.exr").exists()

@@ -8,6 +8,8 @@ import pytest
 from gra_mi.errors import GraMiInputError
 from gra_mi.subject import MeshSequence, load_sequence, save_sequence, sequence_from_frames, tiny_subject, vertex_normals
 
+from .conftest import SCENES
+
 
 def check_sequence(seq: MeshSequence) -> None:
     assert seq.vertices.shape[1:] == (seq.num_vertices, 3)
@@ -73,7 +75,7 @@ def test_bad_sequences_are_rejected(tmp_path):
         load_sequence(tmp_path / "nothing")
 
 
-def test_anny_body_sequence():
+def test_anny_body_sequence(tmp_path, llvm_variant):
     # Builds the real anny body (about 1.5 minutes the first time on a fresh machine, then cached).
     from gra_mi.anny_body import MOTION_CLIPS, anny_sequence
 
@@ -99,3 +101,13 @@ def test_anny_body_sequence():
     # The body faces +Z: the toes are in front of the heels.
     feet = seq.vertices[0][seq.vertices[0, :, 1] < 0.03]
     assert feet[:, 2].max() > 0.1 and feet[:, 2].max() > -feet[:, 2].min()
+
+    # The real scene file renders the animated body inside the default lightstage.
+    from gra_mi.lightstage import uniform_pattern
+    from gra_mi.scene import LightstageScene, render
+
+    save_sequence(seq, tmp_path / "anny")
+    ls = LightstageScene.load(SCENES / "body_lightstage.xml", frame=9, spp=1, subject=str(tmp_path / "anny"))
+    ls.set_pattern(uniform_pattern(ls.stage, 0.5))
+    image = render(ls, "cam05", spp=2)
+    assert image.shape == (540, 1024, 4) and 0.02 < (image[..., 3] > 0.5).mean() < 0.5
