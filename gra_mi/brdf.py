@@ -1,0 +1,123 @@
+"""The paper's simplified Cook–Torrance BRDF (Sec. 3.1), written once for every renderer in gra-mi.
+
+    f(ωi, ωo) = a / π · T(ωi) T(ωo)  +  D(h) G(ωi, ωo) F(ωi·h) / (4 cosθi cosθo),
+    T(ω) = (1 − F(cosθ)) / (1 − F0)
+
+- D: GGX / Trowbridge–Reitz with α = r² (r the per-texel "roughness" in [0, 1], perceptual as in Disney/UE4);
+- G: Smith masking-shadowing in its *separable* (uncorrelated) form G = G1(ωi) G1(ωo) with the exact GGX
+  G1(ω) = 2 / (1 + sqrt(1 + α² tan²θ)), as Mitsuba's own microfacet BSDFs use;
+- F: Schlick with F0 = 0.04 (dielectric skin and cloth), F = F0 + (1 − F0)(1 − cos)^5;
+- T: the light the specular interface lets through to the diffuse layer, on the way in and out (Shirley et al.
+  1997 style coupling). T = 1 at normal incidence, so ``a`` is the diffuse albedo seen head-on; toward grazing
+  angles the diffuse part yields to the specular one, which keeps the BRDF energy conserving (white furnace ≤ 1
+  at every roughness and angle, tests/test_brdf.py) where a plain sum would reflect up to ~1.4× the light.
+
+Directions are in the local shading frame (z = normal). α is clamped below at :data:`ALPHA_MIN` so that
+roughness exactly 0 stays finite (docs/accuracy.md). Functions take Dr.Jit arrays (Mitsuba types) and are pure, so
+the BSDF plugin, the image-space integrator and the UV-space texel shader share them and their derivatives.
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+F0 = 0.04
+ALPHA_MIN = 1e-3  # roughness 0 → α = 1e-3: a very sharp but finite GGX lobe (a delta would be invisible to point lights)
+
+
+def alpha_from_roughness(roughness):
+    return dr.maximum(dr.square(roughness), ALPHA_MIN)
+
+
+def ggx_d(cos_h, alpha):
+    """GGX normal distribution D(h) for cos θh = n·h."""
+    a2 = dr.square(alpha)
+    c2 = dr.square(cos_h)
+    denom = c2 * (a2 - 1.0) + 1.0
+    return dr.select(cos_h > 0, a2 / (dr.pi * dr.square(denom)), 0.0)
+
+
+def smith_g1(cos_theta, alpha):
+    """Smith masking for GGX: 2 / (1 + sqrt(1 + α² tan²θ)), written without tan to stay finite at grazing angles."""
+    c2 = dr.square(cos_theta)
+    tan2 = dr.maximum(1.0 - c2, 0.0) / dr.maximum(c2, 1e-12)
+    return dr.select(cos_theta > 0, 2.0 / (1.0 + dr.sqrt(1.0 + dr.square(alpha) * tan2)), 0.0)
+
+
+def fresnel_schlick(cos_d):
+    return F0 + (1.0 - F0) * dr.power(dr.maximum(1.0 - cos_d, 0.0), 5.0)
+
+
+def diffuse_transmission(cos_theta):
+    """T(ω) = (1 − F(cosθ)) / (1 − F0): 1 head-on, 0 at grazing."""
+    return (1.0 - fresnel_schlick(dr.maximum(cos_theta, 0.0))) / (1.0 - F0)
+
+
+def specular(wi, wo, alpha):
+    """The specular term D G F / (4 cosθi cosθo) (scalar, no cosine factor); 0 below either horizon."""
+    cos_i, cos_o = wi.z, wo.z
+    h = dr.normalize(wi + wo)
+    value = ggx_d(h.z, alpha) * smith_g1(cos_i, alpha) * smith_g1(cos_o, alpha) * fresnel_schlick(dr.dot(wi, h))
+    valid = (cos_i > 0) & (cos_o > 0)
+    return dr.select(valid, value / (4.0 * dr.maximum(cos_i * cos_o, 1e-12)), 0.0)
+
+
+def eval_cos(albedo, roughness, wi, wo):
+    """f(ωi, ωo) · cosθo: what Mitsuba's ``BSDF.eval`` returns. ``albedo`` is RGB, ``roughness`` scalar."""
+    cos_o = wo.z
+    valid = (wi.z > 0) & (cos_o > 0)
+    f = albedo * (dr.inv_pi * diffuse_transmission(wi.z) * diffuse_transmission(cos_o)) + specular(wi, wo, alpha_from_roughness(roughness))
+    return dr.select(valid, f * cos_o, 0.0)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Sampling: a mixture of cosine-weighted diffuse and GGX visible normals (Heitz 2018)
+# --------------------------------------------------------------------------------------------------------------
+
+
+def specular_probability(albedo):
+    """Probability of sampling the specular lobe: its share of the normal-incidence reflectance."""
+    diffuse = dr.mean(albedo) * (1.0 - F0)
+    return F0 / (F0 + diffuse + 1e-6) * 0.9 + 0.05  # never 0 or 1: both lobes stay sampled
+
+
+def sample_visible_normal(wi, alpha, sample: mi.Point2f):
+    """A GGX microfacet normal sampled proportionally to its visible projected area from wi (Heitz 2018)."""
+    v = dr.normalize(mi.Vector3f(alpha * wi.x, alpha * wi.y, wi.z))
+    length2 = dr.square(v.x) + dr.square(v.y)
+    t1 = dr.select(length2 > 0, mi.Vector3f(-v.y, v.x, 0.0) * dr.rsqrt(dr.maximum(length2, 1e-20)), mi.Vector3f(1.0, 0.0, 0.0))
+    t2 = dr.cross(v, t1)
+    r = dr.sqrt(sample.x)
+    phi = 2.0 * dr.pi * sample.y
+    p1 = r * dr.cos(phi)
+    p2 = r * dr.sin(phi)
+    s = 0.5 * (1.0 + v.z)
+    p2 = (1.0 - s) * dr.sqrt(dr.maximum(1.0 - dr.square(p1), 0.0)) + s * p2
+    nh = t1 * p1 + t2 * p2 + v * dr.sqrt(dr.maximum(1.0 - dr.square(p1) - dr.square(p2), 0.0))
+    return dr.normalize(mi.Vector3f(alpha * nh.x, alpha * nh.y, dr.maximum(nh.z, 1e-7)))
+
+
+def pdf(albedo, roughness, wi, wo):
+    """Density (solid angle) of :func:`sample` producing wo."""
+    alpha = alpha_from_roughness(roughness)
+    p_spec = specular_probability(albedo)
+    h = dr.normalize(wi + wo)
+    # Visible-normal density: G1(wi) max(0, wi·h) D(h) / cosθi, then the reflection Jacobian 1 / (4 wo·h).
+    d_visible = smith_g1(wi.z, alpha) * dr.maximum(dr.dot(wi, h), 0.0) * ggx_d(h.z, alpha) / dr.maximum(wi.z, 1e-12)
+    spec = d_visible / (4.0 * dr.maximum(dr.dot(wo, h), 1e-12))
+    diff = dr.maximum(wo.z, 0.0) * dr.inv_pi
+    valid = (wi.z > 0) & (wo.z > 0)
+    return dr.select(valid, p_spec * spec + (1.0 - p_spec) * diff, 0.0)
+
+
+def sample(albedo, roughness, wi, sample1, sample2: mi.Point2f):
+    """Sample wo; returns (wo, pdf)."""
+    alpha = alpha_from_roughness(roughness)
+    p_spec = specular_probability(albedo)
+    choose_spec = sample1 < p_spec
+    h = sample_visible_normal(wi, alpha, sample2)
+    wo_spec = mi.reflect(wi, h)
+    wo_diff = mi.warp.square_to_cosine_hemisphere(sample2)
+    wo = dr.select(choose_spec, wo_spec, wo_diff)
+    return wo, pdf(albedo, roughness, wi, wo)
