@@ -132,7 +132,7 @@ class GraOneBounce(RBIntegrator):
         δL = mi.Spectrum(δL if δL is not None else 0.0)  # adjoint radiance
         k = mi.UInt32(0)  # LED index among those that are on
         count = mi.UInt32(leds.count)
-        while dr.hint(valid & (k < count), label="gra_onebounce LEDs (%s)" % mode.name):
+        while dr.hint(valid & (k < count), label=f"gra_onebounce LEDs ({mode.name})"):
             wo, weight, visible = led_contribution(scene, si, leds, k, far_field, valid)
             with dr.resume_grad(when=not primal):
                 contribution = bsdf.eval(ctx, si, wo, visible) * weight
