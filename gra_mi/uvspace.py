@@ -1,0 +1,323 @@
+"""UV-space one-bounce rendering (paper Sec. 3.1 and Supp. "Details about Microfacet Rendering").
+
+The paper shades in the 512² UV space of the tracked mesh. Pieces, in the order they are used:
+
+- :class:`UVAtlas` — once per topology: which triangle and barycentrics each texel centre falls in (Mitsuba's
+  ``eval_parameterization``), and a validity mask. UVs never change across frames, so this is never redone.
+- :class:`TexelGeometry` — per frame: texel positions, shading normals and geometric normals, interpolated from the
+  frame's vertices with the cached barycentrics (~1 ms).
+- :class:`VisibilityCache` — per frame and LED layout: one bit per (texel, LED), "the LED is above the texel's
+  horizon and nothing blocks the segment". It depends only on geometry, so it is reused across envmaps, cameras,
+  materials and fitting iterations, in memory and on disk.
+- :func:`shade_texels` — per view: Σ over LEDs that are on of bit · I/d² · f(ωi, ωk) cosθk, in one Dr.Jit loop
+  over LED arrays. Changing the envmap only changes the intensities: nothing is re-traced.
+- :func:`rasterize_to_camera` — the texture seen by a camera, with alpha: the image-space coarse render.
+
+Texel (row i, column j) of an R×R texture sits at uv = ((j + ½)/R, (i + ½)/R); row 0 is v ≈ 0, as Mitsuba's
+bitmap textures read it (docs/conventions.md).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from gra_mi import brdf
+from gra_mi.imageio import atomic_path
+
+logger = logging.getLogger(__name__)
+
+# Shadow rays start this far (metres) off the surface along the geometric normal, and stop this far short of the
+# LED: enough to clear float32 self-intersection on a 2 m stage, far below a texel's size (~3 mm at 512²).
+RAY_EPSILON = 1e-4
+
+
+def texel_uvs(resolution: int) -> np.ndarray:
+    """Texel-centre UVs, (R·R, 2), row-major (row i = v index)."""
+    c = (np.arange(resolution) + 0.5) / resolution
+    u, v = np.meshgrid(c, c, indexing="xy")
+    return np.stack([u.ravel(), v.ravel()], axis=1)
+
+
+@dataclass
+class UVAtlas:
+    """Texel → (triangle, barycentrics) for the texels the mesh's UV atlas covers."""
+
+    resolution: int
+    texel_index: np.ndarray  # (M,) flat index (row * R + col) of each valid texel
+    faces: np.ndarray  # (M, 3) vertex indices of its triangle
+    barycentrics: np.ndarray  # (M, 3)
+
+    @property
+    def num_texels(self) -> int:
+        return int(self.texel_index.size)
+
+    @property
+    def mask(self) -> np.ndarray:
+        m = np.zeros(self.resolution * self.resolution, bool)
+        m[self.texel_index] = True
+        return m.reshape(self.resolution, self.resolution)
+
+    @classmethod
+    def build(cls, faces: np.ndarray, uvs: np.ndarray, resolution: int = 512) -> UVAtlas:
+        """Rasterise the atlas with Mitsuba's UV-space point location (needs a variant set)."""
+        mesh = mi.Mesh("atlas", uvs.shape[0], faces.shape[0], has_vertex_texcoords=True)
+        params = mi.traverse(mesh)
+        # Geometry is irrelevant for the UV look-up; put the UVs in the plane so the mesh is valid.
+        params["vertex_positions"] = mi.Float(np.concatenate([uvs, np.zeros((uvs.shape[0], 1))], axis=1).ravel().astype(np.float32))
+        params["faces"] = mi.UInt32(faces.ravel().astype(np.uint32))
+        params["vertex_texcoords"] = mi.Float(uvs.ravel().astype(np.float32))
+        params.update()
+        query = texel_uvs(resolution)
+        si = mesh.eval_parameterization(mi.Point2f(*query.T.astype(np.float32)))
+        valid = np.array(si.is_valid())
+        prim = np.array(si.prim_index)[valid]
+        tri = faces[prim]
+        # Barycentrics of the texel centre in the UV triangle (float64: tiny triangles are common).
+        a, b, c = (uvs[tri[:, k]].astype(np.float64) for k in range(3))
+        p = query[valid]
+        v0, v1, v2 = b - a, c - a, p - a
+        d00, d01, d11 = np.sum(v0 * v0, 1), np.sum(v0 * v1, 1), np.sum(v1 * v1, 1)
+        d20, d21 = np.sum(v2 * v0, 1), np.sum(v2 * v1, 1)
+        denom = d00 * d11 - d01 * d01
+        ok = np.abs(denom) > 1e-30  # degenerate UV triangles cannot hold a texel
+        denom = np.where(ok, denom, 1.0)
+        w1 = (d11 * d20 - d01 * d21) / denom
+        w2 = (d00 * d21 - d01 * d20) / denom
+        bary = np.clip(np.stack([1 - w1 - w2, w1, w2], axis=1), 0.0, 1.0)
+        bary /= bary.sum(axis=1, keepdims=True)
+        index = np.flatnonzero(valid)[ok]
+        return cls(resolution, index, tri[ok].astype(np.int64), bary[ok])
+
+    def bake_vertex_attribute(self, values: np.ndarray, fill: float = 0.0) -> np.ndarray:
+        """Interpolate a per-vertex attribute (V, C) into an (R, R, C) texture (``fill`` outside the atlas)."""
+        out = np.full((self.resolution * self.resolution, values.shape[1]), fill, dtype=np.float32)
+        out[self.texel_index] = np.einsum("mk,mkc->mc", self.barycentrics, values[self.faces])
+        return out.reshape(self.resolution, self.resolution, values.shape[1])
+
+    def scatter(self, texel_values: np.ndarray, fill: float = 0.0) -> np.ndarray:
+        """(M, C) values of the valid texels → (R, R, C) texture."""
+        out = np.full((self.resolution * self.resolution, texel_values.shape[1]), fill, dtype=np.float32)
+        out[self.texel_index] = texel_values
+        return out.reshape(self.resolution, self.resolution, texel_values.shape[1])
+
+    def gather(self, texture: np.ndarray) -> np.ndarray:
+        """(R, R, C) texture → (M, C) values at the valid texels."""
+        return texture.reshape(self.resolution * self.resolution, -1)[self.texel_index]
+
+
+@dataclass
+class TexelGeometry:
+    """Per-frame surface at the valid texels (float32 Dr.Jit arrays)."""
+
+    position: mi.Point3f
+    normal: mi.Vector3f  # interpolated shading normal
+    geo_normal: mi.Vector3f  # the triangle's normal
+    digest: str  # hash of the frame's vertices (keys the visibility cache)
+
+    @classmethod
+    def from_frame(cls, atlas: UVAtlas, vertices: np.ndarray, normals: np.ndarray) -> TexelGeometry:
+        b = atlas.barycentrics
+        p = np.einsum("mk,mkc->mc", b, vertices[atlas.faces])
+        n = np.einsum("mk,mkc->mc", b, normals[atlas.faces])
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        v0, v1, v2 = (vertices[atlas.faces[:, k]] for k in range(3))
+        ng = np.cross(v1 - v0, v2 - v0)
+        ng /= np.maximum(np.linalg.norm(ng, axis=1, keepdims=True), 1e-20)
+        # Sliver triangles have no reliable geometric normal: fall back to the shading normal.
+        ng = np.where(np.linalg.norm(ng, axis=1, keepdims=True) > 0.5, ng, n)
+        digest = hashlib.sha1(np.ascontiguousarray(vertices, dtype=np.float32).tobytes()).hexdigest()[:16]
+        as3 = lambda a, t: t(*a.T.astype(np.float32))  # noqa: E731
+        return cls(as3(p, mi.Point3f), as3(n, mi.Vector3f), as3(ng, mi.Vector3f), digest)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Visibility
+# --------------------------------------------------------------------------------------------------------------
+
+
+def led_layout_digest(led_positions: np.ndarray, far_field: bool) -> str:
+    return hashlib.sha1(np.ascontiguousarray(led_positions, np.float32).tobytes() + bytes([far_field])).hexdigest()[:16]
+
+
+def compute_visibility(scene: mi.Scene, geom: TexelGeometry, led_positions: np.ndarray, far_field: bool = False, stage_center: np.ndarray | None = None) -> mi.UInt32:
+    """Bit-packed visibility, word-major: bit (k % 32) of word ``(k // 32) * M + t`` is LED k at texel t.
+
+    Rays are traced LED-major (all texels for one LED, then the next) in groups of 32 LEDs per kernel, which keeps
+    them coherent; pairs below the texel's horizon (shading or geometric) trace nothing.
+    """
+    m = dr.width(geom.position)
+    num_leds = led_positions.shape[0]
+    words = (num_leds + 31) // 32
+    bits = dr.zeros(mi.UInt32, words * m)
+    if far_field:
+        center = np.zeros(3) if stage_center is None else stage_center
+        targets = led_positions - center
+        targets /= np.linalg.norm(targets, axis=1, keepdims=True)
+    else:
+        targets = led_positions
+    target_arr = mi.Point3f(*targets.T.astype(np.float32))
+    for w in range(words):
+        group = min(32, num_leds - 32 * w)
+        i = dr.arange(mi.UInt32, group * m)
+        j = i // m  # LED within the group (m > 0: no division by zero in the masked tail)
+        t = i - j * m
+        k = j + 32 * w
+        target = dr.gather(mi.Point3f, target_arr, k)
+        p = dr.gather(mi.Point3f, geom.position, t)
+        n = dr.gather(mi.Vector3f, geom.normal, t)
+        ng = dr.gather(mi.Vector3f, geom.geo_normal, t)
+        if far_field:
+            d = mi.Vector3f(target)
+            dist = mi.Float(dr.inf)
+        else:
+            offset = target - p
+            dist = dr.norm(offset)
+            d = offset / dist
+        facing = (dr.dot(n, d) > 0) & (dr.dot(ng, d) > 0)
+        origin = p + ng * RAY_EPSILON
+        maxt = dist if far_field else dist * (1.0 - RAY_EPSILON) - RAY_EPSILON
+        ray = mi.Ray3f(origin, d, maxt)
+        blocked = scene.ray_test(ray, coherent=True, active=facing)
+        word = dr.select(facing & ~blocked, mi.UInt32(1) << j, mi.UInt32(0))
+        dr.scatter_reduce(dr.ReduceOp.Add, bits, word, t + w * m)
+        dr.eval(bits)
+    return bits
+
+
+class VisibilityCache:
+    """Visibility bits per (frame geometry, LED layout): in memory, and on disk under ``folder`` if given."""
+
+    def __init__(self, folder: str | Path | None = None):
+        self.folder = None if folder is None else Path(folder)
+        self._memory: dict[str, mi.UInt32] = {}
+        self.hits = 0
+        self.misses = 0
+
+    def get(self, scene: mi.Scene, geom: TexelGeometry, led_positions: np.ndarray, far_field: bool = False, stage_center: np.ndarray | None = None) -> mi.UInt32:
+        key = f"{geom.digest}_{led_layout_digest(led_positions, far_field)}"
+        if key in self._memory:
+            self.hits += 1
+            return self._memory[key]
+        path = None if self.folder is None else self.folder / f"vis_{key}.npy"
+        if path is not None and path.is_file():
+            bits = mi.UInt32(np.load(path))
+            self.hits += 1
+        else:
+            bits = compute_visibility(scene, geom, led_positions, far_field, stage_center)
+            self.misses += 1
+            if path is not None:
+                with atomic_path(path) as tmp:
+                    with open(tmp, "wb") as fh:
+                        np.save(fh, np.array(bits, dtype=np.uint32))
+        self._memory[key] = bits
+        return bits
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Shading
+# --------------------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class TexelShading:
+    radiance: np.ndarray  # (M, 3) outgoing radiance toward the camera
+    view_dir: np.ndarray  # (M, 3) unit direction from texel to camera (world)
+    facing_camera: np.ndarray  # (M,) the camera is above the texel's horizon
+
+
+def shade_texels(
+    geom: TexelGeometry,
+    visibility: mi.UInt32,
+    led_positions: np.ndarray,
+    led_intensities: np.ndarray,
+    albedo: np.ndarray,
+    roughness: np.ndarray,
+    camera_position: np.ndarray,
+    far_field: bool = False,
+    stage_center: np.ndarray | None = None,
+) -> TexelShading:
+    """Outgoing radiance of every valid texel toward ``camera_position`` (paper Eq. 1, one bounce).
+
+    ``albedo`` (M, 3) and ``roughness`` (M,) are per valid texel. LEDs that are off are dropped before the loop.
+    """
+    m = dr.width(geom.position)
+    on = np.flatnonzero(np.max(led_intensities, axis=1) > 0)
+    pos, inten = led_positions[on], led_intensities[on]
+    if far_field:
+        center = np.zeros(3) if stage_center is None else stage_center
+        offset = pos - center
+        r2 = np.sum(offset**2, axis=1, keepdims=True)
+        pos, inten = offset / np.sqrt(r2), inten / r2
+    led_pos = mi.Point3f(*pos.T.astype(np.float32))
+    led_int = mi.Color3f(*inten.T.astype(np.float32))
+    led_idx = mi.UInt32(on.astype(np.uint32))
+
+    p, n = geom.position, geom.normal
+    frame = mi.Frame3f(n)
+    view = dr.normalize(mi.Point3f(*(float(x) for x in camera_position)) - p)
+    wi = frame.to_local(view)
+    a = mi.Color3f(*np.asarray(albedo, np.float32).T)
+    r = mi.Float(np.asarray(roughness, np.float32))
+    radiance = _led_sum(m, visibility, led_pos, led_int, led_idx, int(on.size), p, frame, wi, a, r, far_field)
+    dr.eval(radiance, view, wi)
+    return TexelShading(np.array(radiance).T.reshape(m, 3), np.array(view).T.reshape(m, 3), np.array(wi.z > 0))
+
+
+@dr.syntax
+def _led_sum(m, visibility, led_pos, led_int, led_idx, count, p, frame, wi, albedo, roughness, far_field):
+    radiance = mi.Color3f(0.0)          # accumulated outgoing radiance
+    k = mi.UInt32(0)                    # index into the LEDs that are on
+    n_on = mi.UInt32(count)
+    t = dr.arange(mi.UInt32, m)         # texel index (for the visibility words)
+    while k < n_on:
+        led = dr.gather(mi.UInt32, led_idx, k)
+        word = dr.gather(mi.UInt32, visibility, (led >> 5) * m + t)
+        visible = ((word >> (led & 31)) & 1) == 1
+        lp = dr.gather(mi.Point3f, led_pos, k)
+        intensity = dr.gather(mi.Color3f, led_int, k)
+        if dr.hint(far_field, mode="scalar"):
+            wo_world = mi.Vector3f(lp)
+            inv_d2 = mi.Float(1.0)
+        else:
+            offset = lp - p
+            inv_d2 = dr.rcp(dr.squared_norm(offset))
+            wo_world = offset * dr.sqrt(inv_d2)
+        wo = frame.to_local(wo_world)
+        f = brdf.eval_cos(albedo, roughness, wi, wo)
+        radiance += dr.select(visible, f * intensity * inv_d2, 0.0)
+        k += 1
+    return radiance
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Texture → camera
+# --------------------------------------------------------------------------------------------------------------
+
+
+def rasterize_to_camera(scene: mi.Scene, camera, texture: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """Look the UV texture up through each pixel centre of ``camera``: (H, W, C + 1) with alpha = coverage.
+
+    Bilinear in UV; texels outside ``mask`` do not bleed in (normalised by the mask's own interpolation).
+    """
+    origin, directions = camera.pixel_rays()
+    h, w = directions.shape[:2]
+    d = directions.reshape(-1, 3).astype(np.float32)
+    ray = mi.Ray3f(mi.Point3f(*np.tile(origin.astype(np.float32), (d.shape[0], 1)).T), mi.Vector3f(*d.T))
+    si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.UV, coherent=True)
+    valid = si.is_valid()
+    channels = texture.shape[2]
+    weight = np.ones(texture.shape[:2] + (1,), np.float32) if mask is None else mask[..., None].astype(np.float32)
+    tex = mi.Texture2f(mi.TensorXf(np.concatenate([texture * weight, weight], axis=2).astype(np.float32)), use_accel=False, wrap_mode=dr.WrapMode.Clamp)
+    values = tex.eval(si.uv, valid)
+    out = np.stack([np.array(v) for v in values], axis=-1).reshape(h, w, channels + 1)
+    cov = out[..., channels:]
+    color = np.where(cov > 1e-6, out[..., :channels] / np.maximum(cov, 1e-6), 0.0)
+    alpha = np.array(valid, dtype=np.float32).reshape(h, w, 1)
+    return np.concatenate([color * alpha, alpha], axis=2).astype(np.float32)
