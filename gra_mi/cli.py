@@ -129,7 +129,64 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--background", action="store_true", help="Also write a preview composited over the envmap's background plate.")
     p.add_argument("--out", type=Path, default=Path("outputs/render"), help="Output folder. Default: outputs/render.")
     _add_variant(p)
+
+    # relight ------------------------------------------------------------------------------------------------
+    p = sub.add_parser("relight", help="One-bounce coarse renders (GGX, per-LED visibility) of frames x cameras x lighting: EXR, PNG, MP4.")
+    p.add_argument("scene", type=Path, help="Lightstage scene XML (e.g. scenes/tiny_lightstage.xml).")
+    p.add_argument("--frames", default="all", help="Frames: 'all', 'A:B' (B excluded) or a comma list. Default: all.")
+    p.add_argument("--cameras", default="0", help="Cameras: 'all' or a comma list of indices or names. Default: 0.")
+    p.add_argument("--envmap", type=Path, action="append", default=[], help="Lat-long HDR EXR mapped onto the LEDs (repeatable).")
+    p.add_argument("--olat", type=int, action="append", default=[], help="Light one LED (index) at the stage maximum (repeatable).")
+    p.add_argument(
+        "--pattern", type=Path, action="append", default=[], help="LED drive values, JSON or .npy (repeatable; see docs/data-format.md)."
+    )
+    p.add_argument(
+        "--repair-envmap", action="store_true", help="Replace NaN/Inf/negative envmap pixels (with a warning) instead of stopping."
+    )
+    p.add_argument(
+        "--albedo",
+        type=Path,
+        default=None,
+        help="Albedo UV texture (square RGB EXR in [0,1]). Default: the subject's vertex colours baked to UV.",
+    )
+    p.add_argument(
+        "--roughness", type=Path, default=None, help="Roughness UV texture (square single-channel EXR in [0,1]). Default: 0.5 everywhere."
+    )
+    p.add_argument(
+        "--uv-resolution", type=int, default=512, help="UV texture resolution when no albedo texture is given. Default: 512 (the paper's)."
+    )
+    p.add_argument(
+        "--far-field",
+        action="store_true",
+        help="Treat LEDs as directional lights seen from the stage centre (for comparison with near field).",
+    )
+    p.add_argument(
+        "--save-uv",
+        action="store_true",
+        help="Also write the UV-space radiance and the RelightNet inputs (normal, position, view direction, mask) as EXR.",
+    )
+    p.add_argument(
+        "--background", action="store_true", help="Composite envmap renders over the camera's background plate in the PNG/MP4 previews."
+    )
+    p.add_argument("--exposure", type=float, default=None, help="Preview exposure (default: automatic per light and camera).")
+    p.add_argument(
+        "--vis-cache", type=Path, default=None, help="Folder to keep per-frame visibility in (reused across runs). Default: memory only."
+    )
+    p.add_argument("--out", type=Path, default=Path("outputs/relight"), help="Output folder. Default: outputs/relight.")
+    _add_variant(p)
     return parser
+
+
+def _parse_list(text: str, count: int, what: str) -> list[str]:
+    if text == "all":
+        return [str(i) for i in range(count)]
+    if ":" in text:
+        a, b = text.split(":", 1)
+        try:
+            return [str(i) for i in range(int(a or 0), int(b) if b else count)]
+        except ValueError:
+            raise GraMiInputError(f"--{what}", f"expected A:B with integers, got '{text}'") from None
+    return [t.strip() for t in text.split(",") if t.strip()]
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -232,6 +289,68 @@ def _cmd_render(args) -> None:
     print(f"wrote {stem}.exr")
 
 
+def _cmd_relight(args) -> None:
+    from gra_mi.envmap import background_plate, envmap_to_leds, load_envmap
+    from gra_mi.imageio import auto_exposure, write_exr, write_mp4, write_png
+    from gra_mi.lightstage import load_pattern, olat_pattern
+    from gra_mi.plugins import register_plugins
+    from gra_mi.progress import progress
+    from gra_mi.relight import Relighter, load_texture
+    from gra_mi.scene import LightstageScene, composite_over
+    from gra_mi.variant import choose_variant
+
+    if not (args.envmap or args.olat or args.pattern):
+        raise GraMiInputError("lighting", "give at least one --envmap, --olat or --pattern")
+    envmaps = {p.stem: load_envmap(p, repair=args.repair_envmap) for p in args.envmap}
+    albedo = load_texture(args.albedo, 3, "albedo") if args.albedo else None
+    roughness = load_texture(args.roughness, 1, "roughness") if args.roughness else None
+    choose_variant(args.variant)
+    register_plugins()
+    ls = LightstageScene.load(args.scene)
+    stage = ls.stage
+    frames = [int(f) for f in _parse_list(args.frames, ls.sequence.num_frames, "frames")]
+    for f in frames:
+        if not 0 <= f < ls.sequence.num_frames:
+            raise GraMiInputError("--frames", f"frame {f} out of range [0, {ls.sequence.num_frames})")
+    cameras = [stage.camera(c) for c in _parse_list(args.cameras, len(stage.cameras), "cameras")]
+    lights: dict[str, tuple[object, float]] = {}
+    for name, env in envmaps.items():
+        lighting = envmap_to_leds(env, stage)
+        lights[name] = (lighting.radiant_intensity(stage), lighting.scale)
+    for k in args.olat:
+        lights[f"olat{k:03d}"] = (olat_pattern(stage, k) * stage.gains, 1.0)
+    for path in args.pattern:
+        lights[path.stem] = (load_pattern(stage, path) * stage.gains, 1.0)
+
+    relighter = Relighter(ls, args.uv_resolution, albedo, roughness, args.far_field, args.vis_cache)
+    videos: dict[tuple[str, str], list] = {}
+    exposures: dict[tuple[str, str], float] = {}
+    jobs = [(f, light, cam) for f in frames for light in lights for cam in cameras]  # frame-major: one trace per frame
+    for frame, light, cam in progress(jobs, description="relight"):
+        intensities, scale = lights[light]
+        view = relighter.render(frame, cam.name, intensities)
+        folder = args.out / light / cam.name
+        write_exr(folder / f"frame_{frame:04d}.exr", view.image)
+        shown = view.image[..., :3]
+        if args.background and light in envmaps:
+            shown = composite_over(view.image, background_plate(envmaps[light], cam) * scale)
+        key = (light, cam.name)
+        if key not in exposures:
+            exposures[key] = args.exposure if args.exposure is not None else 0.8 * auto_exposure(view.image)
+        write_png(folder / f"frame_{frame:04d}.png", shown, exposure=exposures[key])
+        videos.setdefault(key, []).append(shown)
+        if args.save_uv:
+            write_exr(folder / f"uv_radiance_{frame:04d}.exr", relighter.atlas.scatter(view.shading.radiance))
+            for name, tex in relighter.texel_inputs(view).items():
+                write_exr(folder / f"uv_{name}_{frame:04d}.exr", tex)
+    if len(frames) > 1:
+        for (light, cam_name), images in videos.items():
+            write_mp4(args.out / light / f"{cam_name}.mp4", images, fps=ls.sequence.fps, exposure=exposures[(light, cam_name)])
+    print(
+        f"wrote {len(jobs)} renders to {args.out} (visibility traced for {relighter.cache.misses} frame(s), reused {relighter.cache.hits} times)"
+    )
+
+
 def _cmd_demo(args) -> None:
     from gra_mi.demo import run_demo
 
@@ -246,6 +365,7 @@ COMMANDS = {
     "subject": _cmd_subject,
     "scene": _cmd_scene,
     "render": _cmd_render,
+    "relight": _cmd_relight,
 }
 
 

@@ -146,7 +146,9 @@ def led_layout_digest(led_positions: np.ndarray, far_field: bool) -> str:
     return hashlib.sha1(np.ascontiguousarray(led_positions, np.float32).tobytes() + bytes([far_field])).hexdigest()[:16]
 
 
-def compute_visibility(scene: mi.Scene, geom: TexelGeometry, led_positions: np.ndarray, far_field: bool = False, stage_center: np.ndarray | None = None) -> mi.UInt32:
+def compute_visibility(
+    scene: mi.Scene, geom: TexelGeometry, led_positions: np.ndarray, far_field: bool = False, stage_center: np.ndarray | None = None
+) -> mi.UInt32:
     """Bit-packed visibility, word-major: bit (k % 32) of word ``(k // 32) * M + t`` is LED k at texel t.
 
     Rays are traced LED-major (all texels for one LED, then the next) in groups of 32 LEDs per kernel, which keeps
@@ -200,7 +202,14 @@ class VisibilityCache:
         self.hits = 0
         self.misses = 0
 
-    def get(self, scene: mi.Scene, geom: TexelGeometry, led_positions: np.ndarray, far_field: bool = False, stage_center: np.ndarray | None = None) -> mi.UInt32:
+    def get(
+        self,
+        scene: mi.Scene,
+        geom: TexelGeometry,
+        led_positions: np.ndarray,
+        far_field: bool = False,
+        stage_center: np.ndarray | None = None,
+    ) -> mi.UInt32:
         key = f"{geom.digest}_{led_layout_digest(led_positions, far_field)}"
         if key in self._memory:
             self.hits += 1
@@ -265,17 +274,20 @@ def shade_texels(
     wi = frame.to_local(view)
     a = mi.Color3f(*np.asarray(albedo, np.float32).T)
     r = mi.Float(np.asarray(roughness, np.float32))
-    radiance = _led_sum(m, visibility, led_pos, led_int, led_idx, int(on.size), p, frame, wi, a, r, far_field)
+    if on.size:
+        radiance = _led_sum(m, visibility, led_pos, led_int, led_idx, int(on.size), p, frame, wi, a, r, far_field)
+    else:  # every LED off: nothing to do
+        radiance = dr.zeros(mi.Color3f, m)
     dr.eval(radiance, view, wi)
     return TexelShading(np.array(radiance).T.reshape(m, 3), np.array(view).T.reshape(m, 3), np.array(wi.z > 0))
 
 
 @dr.syntax
 def _led_sum(m, visibility, led_pos, led_int, led_idx, count, p, frame, wi, albedo, roughness, far_field):
-    radiance = mi.Color3f(0.0)          # accumulated outgoing radiance
-    k = mi.UInt32(0)                    # index into the LEDs that are on
+    radiance = mi.Color3f(0.0)  # accumulated outgoing radiance
+    k = mi.UInt32(0)  # index into the LEDs that are on
     n_on = mi.UInt32(count)
-    t = dr.arange(mi.UInt32, m)         # texel index (for the visibility words)
+    t = dr.arange(mi.UInt32, m)  # texel index (for the visibility words)
     while k < n_on:
         led = dr.gather(mi.UInt32, led_idx, k)
         word = dr.gather(mi.UInt32, visibility, (led >> 5) * m + t)
@@ -314,7 +326,9 @@ def rasterize_to_camera(scene: mi.Scene, camera, texture: np.ndarray, mask: np.n
     valid = si.is_valid()
     channels = texture.shape[2]
     weight = np.ones(texture.shape[:2] + (1,), np.float32) if mask is None else mask[..., None].astype(np.float32)
-    tex = mi.Texture2f(mi.TensorXf(np.concatenate([texture * weight, weight], axis=2).astype(np.float32)), use_accel=False, wrap_mode=dr.WrapMode.Clamp)
+    tex = mi.Texture2f(
+        mi.TensorXf(np.concatenate([texture * weight, weight], axis=2).astype(np.float32)), use_accel=False, wrap_mode=dr.WrapMode.Clamp
+    )
     values = tex.eval(si.uv, valid)
     out = np.stack([np.array(v) for v in values], axis=-1).reshape(h, w, channels + 1)
     cov = out[..., channels:]

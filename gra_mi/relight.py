@@ -1,0 +1,117 @@
+"""Coarse relighting: frames × cameras × lighting → one-bounce renders through UV space (paper Sec. 3.1).
+
+A :class:`Relighter` holds what never changes (the UV atlas, the material textures) and caches what changes only
+with geometry (texel positions and visibility per frame). Rendering a view is then: LED intensities from the
+lighting → :func:`gra_mi.uvspace.shade_texels` → :func:`gra_mi.uvspace.rasterize_to_camera`.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from gra_mi.errors import GraMiInputError
+from gra_mi.imageio import read_exr
+from gra_mi.scene import LightstageScene
+from gra_mi.uvspace import TexelGeometry, TexelShading, UVAtlas, VisibilityCache, rasterize_to_camera, shade_texels
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_ROUGHNESS = 0.5
+
+
+def load_texture(path: str | Path, channels: int, name: str) -> np.ndarray:
+    """A square UV texture from EXR with the given channel count (RGB albedo, single-channel roughness)."""
+    image = read_exr(path)
+    if image.shape[0] != image.shape[1]:
+        raise GraMiInputError(path, f"a UV texture must be square, got {image.shape[1]}x{image.shape[0]}", field=name)
+    if channels == 1:
+        image = image[..., :1] if image.shape[2] in (1, 3, 4) else image
+    else:
+        if image.shape[2] == 1:
+            image = np.repeat(image, 3, axis=2)
+        image = image[..., :3]
+    if not np.isfinite(image).all() or image.min() < 0 or image.max() > 1:
+        raise GraMiInputError(path, "values must be finite and in [0, 1]", field=name)
+    return image.astype(np.float32)
+
+
+@dataclass
+class ViewRender:
+    image: np.ndarray  # (H, W, 4) linear RGB + alpha
+    shading: TexelShading  # per valid texel: radiance, view direction, facing mask
+    geometry: TexelGeometry
+
+
+class Relighter:
+    def __init__(
+        self,
+        ls: LightstageScene,
+        resolution: int = 512,
+        albedo: np.ndarray | None = None,
+        roughness: np.ndarray | None = None,
+        far_field: bool = False,
+        cache_dir: str | Path | None = None,
+    ):
+        self.ls = ls
+        if albedo is not None:
+            resolution = albedo.shape[0]
+        self.atlas = UVAtlas.build(ls.sequence.faces, ls.sequence.uvs, resolution)
+        if albedo is None:
+            colors = (
+                ls.sequence.vertex_colors
+                if ls.sequence.vertex_colors is not None
+                else np.full((ls.sequence.num_vertices, 3), 0.5, np.float32)
+            )
+            albedo = self.atlas.bake_vertex_attribute(colors, fill=0.5)
+        if roughness is None:
+            roughness = np.full((resolution, resolution, 1), DEFAULT_ROUGHNESS, np.float32)
+        if roughness.shape[:2] != albedo.shape[:2]:
+            raise GraMiInputError("--roughness", f"roughness {roughness.shape[:2]} and albedo {albedo.shape[:2]} resolutions differ")
+        self.albedo_tex, self.roughness_tex = albedo, roughness
+        self.albedo = self.atlas.gather(albedo)
+        self.roughness = self.atlas.gather(roughness)[:, 0]
+        self.far_field = far_field
+        self.cache = VisibilityCache(cache_dir)
+        self._geometry: dict[int, TexelGeometry] = {}
+
+    @property
+    def led_positions(self) -> np.ndarray:
+        return self.ls.stage.led_positions
+
+    def geometry(self, frame: int) -> TexelGeometry:
+        if frame not in self._geometry:
+            seq = self.ls.sequence
+            self._geometry = {frame: TexelGeometry.from_frame(self.atlas, seq.vertices[frame], seq.normals[frame])}
+        return self._geometry[frame]
+
+    def visibility(self, frame: int):
+        if self.ls.frame != frame:
+            self.ls.set_frame(frame)  # the scene's mesh must be this frame's to trace against
+        return self.cache.get(self.ls.scene, self.geometry(frame), self.led_positions, self.far_field, self.ls.stage.center)
+
+    def render(self, frame: int, camera: int | str, led_intensities: np.ndarray) -> ViewRender:
+        """One-bounce render of ``camera`` at ``frame`` with LED radiant intensities (L, 3)."""
+        cam = self.ls.stage.camera(camera)
+        vis = self.visibility(frame)
+        geom = self.geometry(frame)
+        shading = shade_texels(
+            geom, vis, self.led_positions, led_intensities, self.albedo, self.roughness, cam.position, self.far_field, self.ls.stage.center
+        )
+        if self.ls.frame != frame:
+            self.ls.set_frame(frame)
+        image = rasterize_to_camera(self.ls.scene, cam, self.atlas.scatter(shading.radiance), self.atlas.mask)
+        return ViewRender(image, shading, geom)
+
+    def texel_inputs(self, view: ViewRender) -> dict[str, np.ndarray]:
+        """The later RelightNet inputs as (R, R, C) textures: normal, position, view direction, mask."""
+        g = view.geometry
+        return {
+            "normal": self.atlas.scatter(np.array(g.normal).T),
+            "position": self.atlas.scatter(np.array(g.position).T),
+            "view_dir": self.atlas.scatter(view.shading.view_dir),
+            "mask": self.atlas.mask[..., None].astype(np.float32),
+        }

@@ -1,0 +1,192 @@
+"""UV-space rendering: atlas, visibility cache, texel shading against the image-space integrator, relight CLI."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gra_mi.lightstage import olat_pattern, uniform_pattern
+
+from .conftest import SCENES
+from .test_cli import run_cli
+
+TINY = SCENES / "tiny_lightstage.xml"
+
+
+@pytest.fixture
+def tiny(variant):
+    from gra_mi.plugins import register_plugins
+    from gra_mi.scene import LightstageScene
+
+    register_plugins()
+    return LightstageScene.load(TINY, frame=2)
+
+
+def test_atlas_covers_the_uv_layout(tiny):
+    from gra_mi.uvspace import UVAtlas
+
+    seq = tiny.sequence
+    atlas = UVAtlas.build(seq.faces, seq.uvs, 64)
+    # The tiny subject's charts fill [0.01, 0.49] and [0.51, 0.99] in u, [0.02, 0.98] in v.
+    assert 0.75 < atlas.mask.mean() < 0.95
+    assert not atlas.mask[:, 32].any(), "the gap between the charts stays empty"
+    np.testing.assert_allclose(atlas.barycentrics.sum(axis=1), 1.0, atol=1e-9)
+    assert atlas.barycentrics.min() >= 0
+    # Baking the UVs themselves reproduces the texel centres.
+    baked = atlas.bake_vertex_attribute(seq.uvs.astype(np.float64))
+    centres = (np.arange(64) + 0.5) / 64
+    np.testing.assert_allclose(baked[atlas.mask][:, 0], np.broadcast_to(centres[None, :], (64, 64))[atlas.mask], atol=1e-5)
+    np.testing.assert_allclose(baked[atlas.mask][:, 1], np.broadcast_to(centres[:, None], (64, 64))[atlas.mask], atol=1e-5)
+
+
+def test_visibility_matches_one_ray_per_pair(tiny):
+    import mitsuba as mi
+
+    from gra_mi.uvspace import RAY_EPSILON, TexelGeometry, UVAtlas, compute_visibility
+
+    seq = tiny.sequence
+    atlas = UVAtlas.build(seq.faces, seq.uvs, 64)
+    geom = TexelGeometry.from_frame(atlas, seq.vertices[2], seq.normals[2])
+    leds = tiny.stage.led_positions
+    bits = np.array(compute_visibility(tiny.scene, geom, leds)).reshape(-1, atlas.num_texels)
+    # Reference: texel-major rays built in NumPy, one scene.ray_test per (texel, LED) pair.
+    rng = np.random.default_rng(0)
+    texels = rng.choice(atlas.num_texels, 300, replace=False)
+    p, n, ng = (np.array(a).T[texels].astype(np.float64) for a in (geom.position, geom.normal, geom.geo_normal))
+    pp = np.repeat(p, len(leds), 0)
+    nn, gg = np.repeat(n, len(leds), 0), np.repeat(ng, len(leds), 0)
+    target = np.tile(leds, (len(texels), 1))
+    d = target - pp
+    dist = np.linalg.norm(d, axis=1)
+    d /= dist[:, None]
+    facing = (np.sum(nn * d, 1) > 0) & (np.sum(gg * d, 1) > 0)
+    origin = pp + gg * RAY_EPSILON
+    ray = mi.Ray3f(
+        mi.Point3f(*origin.T.astype(np.float32)),
+        mi.Vector3f(*d.T.astype(np.float32)),
+        mi.Float((dist * (1 - RAY_EPSILON) - RAY_EPSILON).astype(np.float32)),
+    )
+    blocked = np.array(tiny.scene.ray_test(ray))
+    expected = (facing & ~blocked).reshape(len(texels), len(leds))
+    ours = np.stack([(bits[k // 32, texels] >> (k % 32)) & 1 for k in range(len(leds))], axis=1).astype(bool)
+    assert (ours != expected).mean() < 1e-3
+    assert 0.2 < expected.mean() < 0.8, "some LEDs are hidden, some seen"
+    assert (expected & ~facing.reshape(expected.shape)).sum() == 0
+
+
+def test_cache_reuses_visibility_across_lighting_and_cameras(tiny, tmp_path):
+    from gra_mi.relight import Relighter
+
+    relighter = Relighter(tiny, resolution=64, cache_dir=tmp_path / "vis")
+    a = relighter.render(3, 0, uniform_pattern(tiny.stage, 0.5))
+    relighter.render(3, 1, olat_pattern(tiny.stage, 7))
+    relighter.render(3, 2, uniform_pattern(tiny.stage, 0.2))
+    assert relighter.cache.misses == 1 and relighter.cache.hits == 2
+    # On disk: a new relighter (another process) finds it without tracing.
+    other = Relighter(tiny, resolution=64, cache_dir=tmp_path / "vis")
+    b = other.render(3, 0, uniform_pattern(tiny.stage, 0.5))
+    assert other.cache.misses == 0
+    np.testing.assert_array_equal(a.image, b.image)
+
+
+def test_shading_is_linear_in_led_intensities_and_off_leds_cost_nothing(tiny):
+    from gra_mi.relight import Relighter
+
+    relighter = Relighter(tiny, resolution=64)
+    one = relighter.render(2, 0, olat_pattern(tiny.stage, 3)).shading.radiance
+    two = relighter.render(2, 0, olat_pattern(tiny.stage, 40)).shading.radiance
+    both = relighter.render(2, 0, olat_pattern(tiny.stage, 3) + olat_pattern(tiny.stage, 40)).shading.radiance
+    np.testing.assert_allclose(both, one + two, rtol=1e-5, atol=1e-7)
+    dark = relighter.render(2, 0, np.zeros((tiny.stage.num_leds, 3)))
+    assert dark.shading.radiance.max() == 0 and dark.image[..., :3].max() == 0
+
+
+def test_uv_render_agrees_with_image_space_render(tiny, tmp_path):
+    import mitsuba as mi
+
+    from gra_mi.imageio import write_exr
+    from gra_mi.relight import Relighter
+    from gra_mi.scene import camera_xml
+
+    relighter = Relighter(tiny, resolution=256)
+    u = (np.arange(256) + 0.5) / 256
+    # Spatially varying but smooth: resampling a noisy roughness map would differ through the BRDF's nonlinearity.
+    relighter.roughness_tex = (0.3 + 0.5 * u[None, :, None] * u[:, None, None]).astype(np.float32)
+    relighter.roughness = relighter.atlas.gather(relighter.roughness_tex)[:, 0]
+    intensities = uniform_pattern(tiny.stage, 0.5)
+    cam = tiny.stage.cameras[1]
+    ours = relighter.render(2, 1, intensities).image
+    write_exr(tmp_path / "albedo.exr", relighter.albedo_tex)
+    write_exr(tmp_path / "rough.exr", relighter.roughness_tex)
+    emitters = "".join(
+        f'<emitter type="point"><point name="position" value="{", ".join(map(str, p))}"/><rgb name="intensity" value="{i[0]}"/></emitter>'
+        for p, i in zip(tiny.stage.led_positions, intensities, strict=True)
+    )
+    ply = SCENES / "subjects" / "tiny" / "frames" / "frame_0002.ply"
+    xml = (
+        f'<scene version="3.0.0">{camera_xml(cam, "64")}{emitters}<shape type="ply"><string name="filename" value="{ply}"/>'
+        f'<bsdf type="gra_microfacet"><texture type="bitmap" name="albedo"><string name="filename" value="{tmp_path / "albedo.exr"}"/></texture>'
+        f'<texture type="bitmap" name="roughness"><string name="filename" value="{tmp_path / "rough.exr"}"/></texture></bsdf></shape></scene>'
+    )
+    reference = np.array(mi.render(mi.load_string(xml), integrator=mi.load_dict({"type": "gra_onebounce"}), spp=256))
+    covered = (ours[..., 3] > 0.5) & (reference[..., 3] > 0.999)
+    rel = np.abs(ours[..., :3] - reference[..., :3])[covered] / np.maximum(reference[..., :3][covered], 2e-2)
+    # Resampling error: the UV path interpolates shaded radiance, the image path interpolates the material.
+    assert rel.mean() < 0.01 and np.median(rel) < 5e-3, (rel.mean(), np.median(rel))
+
+
+def test_far_field_converges_to_near_field_for_a_distant_rig(tiny):
+    from gra_mi.relight import Relighter
+
+    relighter_near = Relighter(tiny, resolution=64)
+    relighter_far = Relighter(tiny, resolution=64, far_field=True)
+    pattern = uniform_pattern(tiny.stage, 0.5)
+    near = relighter_near.render(2, 0, pattern).shading.radiance
+    far = relighter_far.render(2, 0, pattern).shading.radiance
+    lit = near.sum(axis=1) > 1e-3
+    error_2m = np.mean(np.abs(far - near)[lit]) / np.mean(near[lit])
+    assert error_2m > 0.01, "a 2 m stage is near field: the approximation shows"
+    # Push the LEDs 100x further away (intensities scaled by 100² to keep the irradiance): the two agree.
+    stage = tiny.stage
+    original = stage.led_positions.copy()
+    stage.led_positions = stage.center + (original - stage.center) * 100.0
+    try:
+        far_rig = Relighter(tiny, resolution=64)
+        near_far = far_rig.render(2, 0, pattern * 100.0**2).shading.radiance
+        far_far = Relighter(tiny, resolution=64, far_field=True).render(2, 0, pattern * 100.0**2).shading.radiance
+    finally:
+        stage.led_positions = original
+    assert np.mean(np.abs(far_far - near_far)[lit]) / np.mean(near_far[lit]) < 0.02
+
+
+def test_relight_cli(tmp_path, llvm_variant):
+    from gra_mi.imageio import read_exr, write_exr
+
+    write_exr(tmp_path / "sky.exr", np.ones((16, 32, 3), np.float32))
+    out = run_cli(
+        "relight",
+        str(TINY),
+        "--frames",
+        "0:3",
+        "--cameras",
+        "0,cam02",
+        "--envmap",
+        str(tmp_path / "sky.exr"),
+        "--olat",
+        "4",
+        "--uv-resolution",
+        "64",
+        "--save-uv",
+        "--background",
+        "--out",
+        str(tmp_path / "r"),
+    )
+    assert out.returncode == 0, out.stderr
+    assert "visibility traced for 3 frame(s)" in out.stdout
+    image = read_exr(tmp_path / "r" / "sky" / "cam02" / "frame_0001.exr")
+    assert image.shape == (64, 96, 4) and image[..., :3].max() > 0
+    for name in ("uv_radiance", "uv_normal", "uv_position", "uv_view_dir", "uv_mask"):
+        assert (tmp_path / "r" / "olat004" / "cam00" / f"{name}_0002.exr").exists()
+    assert (tmp_path / "r" / "sky" / "cam00.mp4").exists()
+    bad = run_cli("relight", str(TINY), "--out", str(tmp_path / "x"))
+    assert bad.returncode == 2 and "at least one --envmap" in bad.stderr
