@@ -46,7 +46,9 @@ def smith_g1(cos_theta, alpha):
 
 
 def fresnel_schlick(cos_d):
-    return F0 + (1.0 - F0) * dr.power(dr.maximum(1.0 - cos_d, 0.0), 5.0)
+    x = dr.maximum(1.0 - cos_d, 0.0)
+    x2 = dr.square(x)
+    return F0 + (1.0 - F0) * (dr.square(x2) * x)  # x⁵ by multiplication: dr.power would go through exp/log
 
 
 def diffuse_transmission(cos_theta):
@@ -54,21 +56,37 @@ def diffuse_transmission(cos_theta):
     return (1.0 - fresnel_schlick(dr.maximum(cos_theta, 0.0))) / (1.0 - F0)
 
 
-def specular(wi, wo, alpha):
-    """The specular term D G F / (4 cosθi cosθo) (scalar, no cosine factor); 0 below either horizon."""
-    cos_i, cos_o = wi.z, wo.z
-    h = dr.normalize(wi + wo)
-    value = ggx_d(h.z, alpha) * smith_g1(cos_i, alpha) * smith_g1(cos_o, alpha) * fresnel_schlick(dr.dot(wi, h))
-    valid = (cos_i > 0) & (cos_o > 0)
-    return dr.select(valid, value / (4.0 * dr.maximum(cos_i * cos_o, 1e-12)), 0.0)
+class PreparedBRDF:
+    """The BRDF at fixed (albedo, roughness, ωi), with everything that does not depend on ωo computed once.
+
+    Loops over many light directions (the LED sums) call :meth:`eval_cos` per direction.
+    """
+
+    def __init__(self, albedo, roughness, wi):
+        self.wi = wi
+        self.alpha = alpha_from_roughness(roughness)
+        self.alpha2 = dr.square(self.alpha)
+        # G1(ωi) / (4 cosθi): with f_spec cosθo = D F G1(ωo) · G1(ωi) / (4 cosθi), the cosθo cancels.
+        self.spec_scale = smith_g1(wi.z, self.alpha) / (4.0 * dr.maximum(wi.z, 1e-12))
+        self.diffuse = albedo * (dr.inv_pi * diffuse_transmission(wi.z))
+        self.front = wi.z > 0
+
+    def eval_cos(self, wo):
+        """f(ωi, ωo) · cosθo."""
+        cos_o = wo.z
+        h = dr.normalize(self.wi + wo)
+        denom = dr.square(h.z) * (self.alpha2 - 1.0) + 1.0
+        d = self.alpha2 * dr.inv_pi * dr.rcp(dr.square(denom))
+        # Smith G1 written as 2 cos / (cos + sqrt(α² + (1 − α²) cos²)): no tan, finite at grazing angles.
+        g1_o = 2.0 * cos_o * dr.rcp(cos_o + dr.sqrt(self.alpha2 + (1.0 - self.alpha2) * dr.square(cos_o)))
+        spec = dr.select(h.z > 0, d * fresnel_schlick(dr.dot(self.wi, h)) * g1_o * self.spec_scale, 0.0)
+        value = self.diffuse * (diffuse_transmission(cos_o) * cos_o) + spec
+        return dr.select(self.front & (cos_o > 0), value, 0.0)
 
 
 def eval_cos(albedo, roughness, wi, wo):
     """f(ωi, ωo) · cosθo: what Mitsuba's ``BSDF.eval`` returns. ``albedo`` is RGB, ``roughness`` scalar."""
-    cos_o = wo.z
-    valid = (wi.z > 0) & (cos_o > 0)
-    f = albedo * (dr.inv_pi * diffuse_transmission(wi.z) * diffuse_transmission(cos_o)) + specular(wi, wo, alpha_from_roughness(roughness))
-    return dr.select(valid, f * cos_o, 0.0)
+    return PreparedBRDF(albedo, roughness, wi).eval_cos(wo)
 
 
 # --------------------------------------------------------------------------------------------------------------

@@ -257,25 +257,40 @@ def shade_texels(
     ``albedo`` (M, 3) and ``roughness`` (M,) are per valid texel. LEDs that are off are dropped before the loop.
     """
     m = dr.width(geom.position)
-    on = np.flatnonzero(np.max(led_intensities, axis=1) > 0)
-    pos, inten = led_positions[on], led_intensities[on]
+    num_leds = led_positions.shape[0]
+    on = np.max(led_intensities, axis=1) > 0
+    pos, inten = np.asarray(led_positions, np.float64), np.asarray(led_intensities, np.float64)
     if far_field:
         center = np.zeros(3) if stage_center is None else stage_center
         offset = pos - center
         r2 = np.sum(offset**2, axis=1, keepdims=True)
         pos, inten = offset / np.sqrt(r2), inten / r2
-    led_pos = mi.Point3f(*pos.T.astype(np.float32))
-    led_int = mi.Color3f(*inten.T.astype(np.float32))
-    led_idx = mi.UInt32(on.astype(np.uint32))
+    # One bit per LED that is on, in the same word layout as the visibility: off LEDs are masked out of every
+    # texel's word before the loop, so they cost nothing.
+    words = (num_leds + 31) // 32
+    on_bits = np.zeros(words * 32, bool)
+    on_bits[:num_leds] = on
+    on_words = (on_bits.reshape(words, 32) * (1 << np.arange(32, dtype=np.uint64))).sum(axis=1).astype(np.uint32)
 
     p, n = geom.position, geom.normal
     frame = mi.Frame3f(n)
     view = dr.normalize(mi.Point3f(*(float(x) for x in camera_position)) - p)
     wi = frame.to_local(view)
-    a = mi.Color3f(*np.asarray(albedo, np.float32).T)
-    r = mi.Float(np.asarray(roughness, np.float32))
-    if on.size:
-        radiance = _led_sum(m, visibility, led_pos, led_int, led_idx, int(on.size), p, frame, wi, a, r, far_field)
+    if on.any():
+        radiance = _led_sum(
+            m,
+            words,
+            visibility,
+            mi.UInt32(on_words),
+            mi.Point3f(*pos.T.astype(np.float32)),
+            mi.Color3f(*inten.T.astype(np.float32)),
+            p,
+            frame,
+            wi,
+            mi.Color3f(*np.asarray(albedo, np.float32).T),
+            mi.Float(np.asarray(roughness, np.float32)),
+            far_field,
+        )
     else:  # every LED off: nothing to do
         radiance = dr.zeros(mi.Color3f, m)
     dr.eval(radiance, view, wi)
@@ -283,28 +298,36 @@ def shade_texels(
 
 
 @dr.syntax
-def _led_sum(m, visibility, led_pos, led_int, led_idx, count, p, frame, wi, albedo, roughness, far_field):
+def _led_sum(m, words, visibility, on_words, led_pos, led_int, p, frame, wi, albedo, roughness, far_field):
+    """Σ over the LEDs that are on *and* visible from each texel, walking the set bits of its visibility words.
+
+    Each lane loops over its own visible LEDs only (about a fifth of them on a body), instead of all LEDs masked.
+    """
+    t = dr.arange(mi.UInt32, m)  # texel index
+    material = brdf.PreparedBRDF(albedo, roughness, wi)  # per-texel terms hoisted out of the loop
     radiance = mi.Color3f(0.0)  # accumulated outgoing radiance
-    k = mi.UInt32(0)  # index into the LEDs that are on
-    n_on = mi.UInt32(count)
-    t = dr.arange(mi.UInt32, m)  # texel index (for the visibility words)
-    while k < n_on:
-        led = dr.gather(mi.UInt32, led_idx, k)
-        word = dr.gather(mi.UInt32, visibility, (led >> 5) * m + t)
-        visible = ((word >> (led & 31)) & 1) == 1
-        lp = dr.gather(mi.Point3f, led_pos, k)
-        intensity = dr.gather(mi.Color3f, led_int, k)
-        if dr.hint(far_field, mode="scalar"):
-            wo_world = mi.Vector3f(lp)
-            inv_d2 = mi.Float(1.0)
+    w = mi.UInt32(0)  # current visibility word
+    bits = dr.gather(mi.UInt32, visibility, t) & dr.gather(mi.UInt32, on_words, mi.UInt32(0))  # its remaining set bits
+    n_words = mi.UInt32(words)
+    while w < n_words:
+        if bits == 0:
+            w += 1
+            bits = dr.gather(mi.UInt32, visibility, w * m + t, w < n_words) & dr.gather(mi.UInt32, on_words, w, w < n_words)
         else:
-            offset = lp - p
-            inv_d2 = dr.rcp(dr.squared_norm(offset))
-            wo_world = offset * dr.sqrt(inv_d2)
-        wo = frame.to_local(wo_world)
-        f = brdf.eval_cos(albedo, roughness, wi, wo)
-        radiance += dr.select(visible, f * intensity * inv_d2, 0.0)
-        k += 1
+            led = w * 32 + dr.tzcnt(bits)
+            bits = bits & (bits - 1)  # clear the lowest set bit
+            lp = dr.gather(mi.Point3f, led_pos, led)
+            intensity = dr.gather(mi.Color3f, led_int, led)
+            if dr.hint(far_field, mode="scalar"):
+                wo_world = mi.Vector3f(lp)
+                inv_d2 = mi.Float(1.0)
+            else:
+                offset = lp - p
+                inv_d = dr.rsqrt(dr.squared_norm(offset))
+                inv_d2 = dr.square(inv_d)
+                wo_world = offset * inv_d
+            wo = frame.to_local(wo_world)
+            radiance += material.eval_cos(wo) * intensity * inv_d2
     return radiance
 
 
