@@ -1,9 +1,10 @@
 """The main job: the pipeline as far as it exists, on a small preset, into a folder a person can open.
 
 Stages now: lightstage rig → procedural envmaps (train / held-out test) → animated subject → Mitsuba scene file →
-envmap→LED integration (with its energy check) → renders with Mitsuba's stock ``direct`` integrator under training
-and test envmaps and an OLAT pattern, composited over the camera's background plate → plots, MP4 and report.md.
-Later stages (one-bounce fit, RelightNet, video refiner) are listed in the report as not built yet.
+envmap→LED integration (with its energy check) → coarse one-bounce relighting in UV space under training and test
+envmaps and an OLAT pattern, composited over the camera's background plate, with Mitsuba's stock ``direct``
+integrator beside it for comparison → plots, MP4 and report.md. Later stages (capture + fit, RelightNet, video
+refiner) are listed in the report as not built yet.
 
 Finished files are kept: rerunning after an interruption skips what exists.
 """
@@ -40,12 +41,11 @@ class DemoPreset:
     cameras: list[int]  # which cameras to render
     frames: list[int]  # which frames to render for the contact sheets
     spp: int
-    video_spp: int
+    uv_resolution: int  # UV texture size of the one-bounce stage
     olat_led: int = 0
     stages_not_built: list[str] = field(
         default_factory=lambda: [
-            "one-bounce integrator + visibility cache (issue 3)",
-            "material fit (issue 4)",
+            "capture generator + material fit (issue 4)",
             "RelightNet (issue 6)",
             "video refiner (issue 7)",
         ]
@@ -53,9 +53,9 @@ class DemoPreset:
 
 
 PRESETS = {
-    "tiny": DemoPreset("tiny", 64, 4, 96, 64, "tiny", [], 8, 32, 2, 1, [0, 1], [0, 4], 16, 8),
+    "tiny": DemoPreset("tiny", 64, 4, 96, 64, "tiny", [], 8, 32, 2, 1, [0, 1], [0, 4], 16, 128),
     "small": DemoPreset(
-        "small", 331, 40, 512, 270, "anny", ["walk", "arm_raise", "turn", "squat"], 8, 128, 4, 2, [0, 10, 25], [0, 9, 18, 27], 64, 32
+        "small", 331, 40, 512, 270, "anny", ["walk", "arm_raise", "turn", "squat"], 8, 128, 4, 2, [0, 10, 25], [0, 9, 18, 27], 64, 512
     ),
 }
 
@@ -214,46 +214,71 @@ def run_demo(preset_name: str, out: Path, spp: int | None = None, variant: str |
             energy[name] = energy_table(env, stage)
             plot_led_mapping(env, stage, envmap_to_leds(env, stage).drive, out / "plots" / f"leds_{name}.png", name)
 
-    # 5. Renders -------------------------------------------------------------------------------------------
+    # 5. Coarse relighting: one-bounce GGX in UV space with cached per-LED visibility (issue 3) ---------------
+    from gra_mi.plugins import register_plugins
+    from gra_mi.relight import Relighter
+
+    register_plugins()
     frames = [f for f in preset.frames if f < ls.sequence.num_frames]
-    jobs = [(light, f, c) for light in [*lights, f"olat{preset.olat_led:03d}"] for f in frames for c in preset.cameras]
-    sheets: dict[str, list[list[np.ndarray]]] = {}
-    with _timed(timings, "renders"):
-        for light, frame, cam_index in progress(jobs, description="rendering"):
+    light_names = [*lights, f"olat{preset.olat_led:03d}"]
+
+    def intensities_of(light: str) -> tuple[np.ndarray, float]:
+        if light in lights:
+            lighting = envmap_to_leds(lights[light], stage)
+            return lighting.radiant_intensity(stage), lighting.scale
+        return olat_pattern(stage, preset.olat_led) * stage.gains, 1.0
+
+    def shown_image(light: str, cam, image: np.ndarray) -> np.ndarray:
+        if light in lights:
+            return composite_over(image, background_plate(lights[light], cam) * intensities_of(light)[1])
+        return image[..., :3]
+
+    relighter = Relighter(ls, preset.uv_resolution, cache_dir=out / "cache" / "visibility")
+    jobs = [(f, light, c) for f in frames for light in light_names for c in preset.cameras]  # frame-major: one trace per frame
+    sheets: dict[str, dict[int, list[np.ndarray]]] = {}
+    with _timed(timings, "relight (one-bounce, UV space)"):
+        for frame, light, cam_index in progress(jobs, description="relight"):
             cam = stage.cameras[cam_index]
-            stem = out / "renders" / light / f"{cam.name}_f{frame:04d}"
+            stem = out / "renders" / "onebounce" / light / f"{cam.name}_f{frame:04d}"
             if stem.with_suffix(".exr").is_file():
                 image = read_exr(stem.with_suffix(".exr"))
             else:
-                ls.set_frame(frame)
-                if light in lights:
-                    ls.set_envmap(lights[light])
-                else:
-                    ls.set_pattern(olat_pattern(stage, preset.olat_led))
-                image = render(ls, cam.name, "direct", preset.spp, seed=frame)
+                image = relighter.render(frame, cam.name, intensities_of(light)[0]).image
                 write_exr(stem.with_suffix(".exr"), image)
-            if light in lights:
-                plate = background_plate(lights[light], cam) * envmap_to_leds(lights[light], stage).scale
-                shown = composite_over(image, plate)
-            else:
-                shown = image[..., :3]
+            shown = shown_image(light, cam, image)
             write_png(stem.with_suffix(".png"), shown, exposure=0.9)
             sheets.setdefault(light, {}).setdefault(frame, []).append(shown)
         for light, rows in sheets.items():
             write_png(out / f"contact_{light}.png", contact_sheet(list(rows.values())), exposure=0.9)
 
-    # 6. Video: one camera through every frame under the held-out envmap ---------------------------------
-    with _timed(timings, "video"):
+    # 6. The generic peer: Mitsuba's direct integrator on the same scene file (first frame only) ------------
+    comparison = []
+    with _timed(timings, f"Mitsuba direct, {preset.spp} spp (frame {frames[0]} only)"):
+        ls.set_frame(frames[0])
+        for light in light_names:
+            cam = stage.cameras[preset.cameras[0]]
+            stem = out / "renders" / "direct" / light / f"{cam.name}_f{frames[0]:04d}"
+            if stem.with_suffix(".exr").is_file():
+                image = read_exr(stem.with_suffix(".exr"))
+            else:
+                ls.set_led_intensities(intensities_of(light)[0])
+                image = render(ls, cam.name, "direct", preset.spp, seed=0)
+                write_exr(stem.with_suffix(".exr"), image)
+            write_png(stem.with_suffix(".png"), shown_image(light, cam, image), exposure=0.9)
+            comparison.append([shown_image(light, cam, image), sheets[light][frames[0]][0]])
+        write_png(out / "contact_direct_vs_onebounce.png", contact_sheet(comparison), exposure=0.9)
+
+    # 7. Video: one camera through every frame under the held-out envmap ---------------------------------
+    with _timed(timings, "video (one-bounce)"):
         video_light = test[0].stem
         cam = stage.cameras[preset.cameras[0]]
         video_path = out / "videos" / f"{cam.name}_{video_light}.mp4"
         if not video_path.is_file():
-            ls.set_envmap(lights[video_light])
-            plate = background_plate(lights[video_light], cam) * envmap_to_leds(lights[video_light], stage).scale
-            video = []
-            for frame in progress(range(ls.sequence.num_frames), description="video"):
-                ls.set_frame(frame)
-                video.append(composite_over(render(ls, cam.name, "direct", preset.video_spp, seed=frame), plate))
+            intensities = intensities_of(video_light)[0]
+            video = [
+                shown_image(video_light, cam, relighter.render(frame, cam.name, intensities).image)
+                for frame in progress(range(ls.sequence.num_frames), description="video")
+            ]
             write_mp4(video_path, video, fps=ls.sequence.fps / 2, exposure=0.9)
 
     report = out / "report.md"
@@ -290,13 +315,25 @@ def _report(preset, variant, stage, ls, energy, timings, sheets, video_path, out
         ]
         lines += [f"| {r['normal']} | {r['envmap']:.4g} | {r['leds']:.4g} | {100 * r['rel_error']:.2f} % |" for r in rows]
         lines.append("")
-    lines += ["## Renders (Mitsuba `direct`, composited over each camera's background plate)", "", "Rows: frames; columns: cameras.", ""]
+    lines += [
+        "## Coarse relighting (one-bounce GGX, per-LED visibility, UV space)",
+        "",
+        "Composited over each camera's background plate. Rows: frames; columns: cameras. Material: the subject's base",
+        "colours baked to UV as albedo, roughness 0.5 (fitted maps arrive with issue 4).",
+        "",
+    ]
     for light in sheets:
         lines += [f"### {light}", "", f"![{light}](contact_{light}.png)", ""]
     lines += [
+        "### Mitsuba `direct` (left, the scene file's diffuse material, Monte Carlo) vs gra-mi one-bounce (right)",
+        "",
+        "![direct vs one-bounce](contact_direct_vs_onebounce.png)",
+        "",
+    ]
+    lines += [
         f"Video: [{video_path.name}]({video_path.relative_to(out)})",
         "",
-        "Data: `renders/*/*.exr` (linear RGBA), `envmaps/*/*.exr`, `subject/`, `rig/calibration.json`, `scene.xml` (loads in plain Mitsuba).",
+        "Data: `renders/{onebounce,direct}/*/*.exr` (linear RGBA), `envmaps/*/*.exr`, `subject/`, `rig/calibration.json`, `scene.xml` (loads in plain Mitsuba).",
         "",
     ]
     return "\n".join(lines)

@@ -137,7 +137,8 @@ def test_demo_preset_runs_end_to_end(tmp_path, preset):
     for rel in ("scene.xml", "rig/calibration.json", "plots/rig.png", "videos/cam00_test_0000.mp4", "contact_olat000.png"):
         assert (tmp_path / "demo" / rel).exists(), rel
     renders = sorted((tmp_path / "demo" / "renders").rglob("*.exr"))
-    assert len(renders) == 3 * 2 * 2
+    assert len(renders) == 3 * 2 * 2 + 3  # one-bounce: lights × frames × cameras; direct: one view per light
+    assert (tmp_path / "demo" / "contact_direct_vs_onebounce.png").exists()
     # Resumable: a second run reuses every finished file.
     before = {p: p.stat().st_mtime_ns for p in renders}
     assert run_cli("demo", "--preset", preset, "--out", str(tmp_path / "demo")).returncode == 0

@@ -1,0 +1,214 @@
+"""Speed of the one-bounce core on the default rig (anny body, 331 LEDs, 512² UV), measured side by side.
+
+    .venv/bin/python benchmarks/onebounce.py [--quick]
+
+Prints a markdown table:
+  - visibility for one new frame, and its throughput against raw ``scene.ray_test`` on the same rays;
+  - relight of a visibility-cached frame for one camera under a new envmap (texel shading, rasterisation);
+  - equal-error speedup over Mitsuba's ``direct`` integrator on the same scene and material;
+  - far field against near field; peak memory.
+Timings are medians of repeated runs (the machine is shared and noisy).
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def timed(fn, repeats: int) -> tuple[float, object]:
+    import drjit as dr
+
+    times, out = [], None
+    for _ in range(repeats):
+        dr.sync_thread()
+        t = time.perf_counter()
+        out = fn()
+        dr.sync_thread()
+        times.append(time.perf_counter() - t)
+    return statistics.median(times), out
+
+
+def relative_rmse(image: np.ndarray, reference: np.ndarray, mask: np.ndarray) -> float:
+    diff = (image[..., :3] - reference[..., :3])[mask]
+    return float(np.sqrt(np.mean(diff**2)) / np.mean(reference[..., :3][mask]))
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="Fewer repeats and spp (a smoke run).")
+    parser.add_argument("--uv-resolution", type=int, default=512, help="UV resolution. Default: 512.")
+    parser.add_argument("--variant", default=None, help="Mitsuba variant (default: automatic).")
+    args = parser.parse_args(argv)
+    repeats = 2 if args.quick else 5
+
+    from gra_mi.variant import choose_variant
+
+    variant = choose_variant(args.variant)
+    import drjit as dr
+    import mitsuba as mi
+
+    from gra_mi.anny_body import anny_sequence
+    from gra_mi.envmap import envmap_to_leds
+    from gra_mi.envmap_library import envmap_from_seed
+    from gra_mi.imageio import atomic_write_text, write_exr
+    from gra_mi.lightstage import default_lightstage
+    from gra_mi.plugins import register_plugins
+    from gra_mi.relight import Relighter
+    from gra_mi.scene import LightstageScene, subject_scene_xml, write_rig
+    from gra_mi.subject import save_sequence
+    from gra_mi.uvspace import compute_visibility, rasterize_to_camera, shade_texels
+
+    register_plugins()
+    tmp = Path(tempfile.mkdtemp(prefix="gra_mi_bench_"))
+    stage = default_lightstage(width=512, height=270)
+    write_rig(stage, tmp / "rig")
+    save_sequence(anny_sequence(["walk"], frames_per_clip=6), tmp / "subject")
+    atomic_write_text(tmp / "scene.xml", subject_scene_xml("rig", "subject"))
+    ls = LightstageScene.load(tmp / "scene.xml", frame=1)
+    relighter = Relighter(ls, args.uv_resolution)
+    rows: list[tuple[str, str, str]] = []
+
+    # 1. Visibility for a new frame, against raw ray_test on the same rays ------------------------------------
+    frames = iter(range(1, 6))
+
+    def new_frame_visibility():
+        f = next(frames)
+        ls.set_frame(f)
+        bits = compute_visibility(ls.scene, relighter.geometry(f), stage.led_positions)
+        dr.eval(bits)
+        return f
+
+    t_vis, frame = timed(new_frame_visibility, min(repeats, 4))
+    geom = relighter.geometry(frame)
+    m = dr.width(geom.position)
+    # The same rays, built up front (LED-major, facing pairs only), so that only ray_test is timed.
+    p, n, ng = (np.array(a).T for a in (geom.position, geom.normal, geom.geo_normal))
+    origins, dirs, maxts = [], [], []
+    for led in stage.led_positions:
+        d = led - p
+        dist = np.linalg.norm(d, axis=1)
+        d /= dist[:, None]
+        facing = (np.sum(n * d, 1) > 0) & (np.sum(ng * d, 1) > 0)
+        origins.append((p + ng * 1e-4)[facing])
+        dirs.append(d[facing])
+        maxts.append(dist[facing] * (1 - 1e-4) - 1e-4)
+    origins, dirs, maxts = (np.concatenate(a).astype(np.float32) for a in (origins, dirs, maxts))
+    ray = mi.Ray3f(mi.Point3f(*origins.T), mi.Vector3f(*dirs.T), mi.Float(maxts))
+    dr.eval(ray)
+    t_raw, _ = timed(lambda: dr.eval(ls.scene.ray_test(ray, coherent=True)), repeats)
+    n_rays = origins.shape[0]
+    rows.append(
+        ("visibility, one new frame (texels × 331 LEDs)", f"{t_vis * 1e3:.0f} ms", f"{m} texels, {n_rays / 1e6:.1f} M facing pairs traced")
+    )
+    rows.append(("raw `scene.ray_test`, same rays", f"{t_raw * 1e3:.0f} ms", f"{n_rays / t_raw / 1e6:.1f} M rays/s"))
+    rows.append(("visibility throughput / raw ray_test", f"{t_raw / t_vis:.2f}", "goal ≥ 0.8"))
+    del ray, origins, dirs, maxts
+
+    # 2. Relight of a cached frame under a new envmap -----------------------------------------------------------
+    relighter.visibility(frame)
+    envs = [envmap_from_seed(s, 64)[0] for s in range(3)]
+    intensities = [envmap_to_leds(e, stage).radiant_intensity(stage) for e in envs]
+    cam = stage.cameras[0]
+    counter = iter(range(10**6))
+
+    def shade():
+        i = next(counter) % len(intensities)
+        return shade_texels(
+            geom, relighter.visibility(frame), stage.led_positions, intensities[i], relighter.albedo, relighter.roughness, cam.position
+        )
+
+    shade()  # compile
+    t_shade, shading = timed(shade, repeats)
+    t_raster, image_uv = timed(
+        lambda: rasterize_to_camera(ls.scene, cam, relighter.atlas.scatter(shading.radiance), relighter.atlas.mask), repeats
+    )
+    rows.append(("relight, cached frame, new envmap: texel shading (all LEDs, GGX)", f"{t_shade * 1e3:.0f} ms", "goal ≤ 100 ms"))
+    rows.append(("  + rasterise the texture into the camera (512×270)", f"{t_raster * 1e3:.0f} ms", ""))
+
+    # 3. Equal-error comparison with Mitsuba's direct integrator ---------------------------------------------
+    write_exr(tmp / "albedo.exr", relighter.albedo_tex)
+    ply = tmp / "subject" / "frames" / f"frame_{frame:04d}.ply"
+    emitters = "".join(
+        f'<emitter type="point"><point name="position" value="{", ".join(map(str, q))}"/><rgb name="intensity" value="{", ".join(map(str, i))}"/></emitter>'
+        for q, i in zip(stage.led_positions, intensities[1], strict=True)
+    )
+    from gra_mi.scene import camera_xml
+
+    xml = (
+        f'<scene version="3.0.0">{camera_xml(cam, "1")}{emitters}<shape type="ply"><string name="filename" value="{ply}"/>'
+        f'<bsdf type="gra_microfacet"><texture type="bitmap" name="albedo"><string name="filename" value="{tmp / "albedo.exr"}"/></texture>'
+        '<float name="roughness" value="0.5"/></bsdf></shape></scene>'
+    )
+    scene = mi.load_string(xml)
+    onebounce = mi.load_dict({"type": "gra_onebounce"})
+    ref_spp = 16 if args.quick else 64
+    reference = np.array(mi.render(scene, integrator=onebounce, spp=ref_spp, seed=99))
+    mask = (reference[..., 3] > 0.999) & (image_uv[..., 3] > 0.5)
+    shading = shade_texels(
+        geom, relighter.visibility(frame), stage.led_positions, intensities[1], relighter.albedo, relighter.roughness, cam.position
+    )
+    ours = rasterize_to_camera(ls.scene, cam, relighter.atlas.scatter(shading.radiance), relighter.atlas.mask)
+    err_ours = relative_rmse(ours, reference, mask)
+    t_ours = t_shade + t_raster
+    rows.append(
+        (f"gra-mi UV relight vs image-space one-bounce reference ({ref_spp} spp)", f"rel. RMSE {err_ours:.4f}", f"{t_ours * 1e3:.0f} ms")
+    )
+    t_ob1, img_ob1 = timed(lambda: np.array(mi.render(scene, integrator=onebounce, spp=1, seed=5)), max(2, repeats // 2))
+    rows.append(
+        (
+            "`gra_onebounce` image space, 1 spp (no cache)",
+            f"rel. RMSE {relative_rmse(img_ob1, reference, mask):.4f}",
+            f"{t_ob1 * 1e3:.0f} ms",
+        )
+    )
+    direct = mi.load_dict({"type": "direct", "emitter_samples": 1, "bsdf_samples": 0})
+    points = []
+    for spp in [4, 16] if args.quick else [4, 16, 64, 256]:
+        t_d, img = timed(lambda spp=spp: np.array(mi.render(scene, integrator=direct, spp=spp, seed=spp)), 1 if spp > 16 else 2)
+        err = relative_rmse(img, reference, mask)
+        points.append((spp, t_d, err))
+        rows.append((f"Mitsuba `direct`, {spp} spp", f"rel. RMSE {err:.4f}", f"{t_d * 1e3:.0f} ms"))
+    # Monte Carlo error falls as 1/sqrt(spp) and time grows linearly: extrapolate to our error.
+    spp_last, t_last, err_last = points[-1]
+    spp_equal = spp_last * (err_last / err_ours) ** 2
+    t_equal = t_last * spp_equal / spp_last
+    rows.append(("`direct` at equal error (extrapolated)", f"{spp_equal:.0f} spp", f"{t_equal:.1f} s"))
+    rows.append(("equal-error speedup over `direct`", f"{t_equal / t_ours:.0f}×", "goal ≥ 50×"))
+
+    # 4. Far field vs near field -----------------------------------------------------------------------------
+    far = Relighter(ls, args.uv_resolution, far_field=True)
+    far_shading = shade_texels(
+        far.geometry(frame),
+        far.visibility(frame),
+        stage.led_positions,
+        intensities[1],
+        far.albedo,
+        far.roughness,
+        cam.position,
+        True,
+        stage.center,
+    )
+    lit = shading.radiance.sum(axis=1) > 0
+    far_err = float(np.mean(np.abs(far_shading.radiance - shading.radiance)[lit]) / np.mean(shading.radiance[lit]))
+    rows.append(("far field vs near field (mean abs. error / mean, UV texels)", f"{100 * far_err:.1f} %", "LEDs at 2 m"))
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    rows.append(("peak memory (process)", f"{peak:.0f} MiB", ""))
+
+    print(f"\n# One-bounce core — {variant}, {dr.thread_count()} threads, {m} texels at {args.uv_resolution}², {stage.num_leds} LEDs\n")
+    print("| measurement | value | note |")
+    print("|---|---|---|")
+    for name, value, note in rows:
+        print(f"| {name} | {value} | {note} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
