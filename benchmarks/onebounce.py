@@ -110,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     rows.append(("raw `scene.ray_test`, same rays", f"{t_raw * 1e3:.0f} ms", f"{n_rays / t_raw / 1e6:.1f} M rays/s"))
     rows.append(("visibility throughput / raw ray_test", f"{t_raw / t_vis:.2f}", "goal ≥ 0.8"))
-    del ray, origins, dirs, maxts
+    ray = origins = dirs = maxts = None  # free the materialised rays
 
     # 2. Relight of a cached frame under a new envmap -----------------------------------------------------------
     relighter.visibility(frame)
