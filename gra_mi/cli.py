@@ -130,6 +130,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, default=Path("outputs/render"), help="Output folder. Default: outputs/render.")
     _add_variant(p)
 
+    # bench --------------------------------------------------------------------------------------------------
+    p = sub.add_parser("bench", help="Speed against error of every approximation (report.md, CSV/JSON, Pareto plot).")
+    p.add_argument("--quick", action="store_true", help="Small resolutions and fewer configurations: a few minutes on 2 cores (CI).")
+    p.add_argument("--out", type=Path, default=Path("outputs/bench"), help="Output folder. Default: outputs/bench.")
+    _add_variant(p)
+
     # relight ------------------------------------------------------------------------------------------------
     p = sub.add_parser("relight", help="One-bounce coarse renders (GGX, per-LED visibility) of frames x cameras x lighting: EXR, PNG, MP4.")
     p.add_argument("scene", type=Path, help="Lightstage scene XML (e.g. scenes/tiny_lightstage.xml).")
@@ -351,6 +357,13 @@ def _cmd_relight(args) -> None:
     )
 
 
+def _cmd_bench(args) -> None:
+    from gra_mi.bench import run_bench
+
+    report = run_bench(args.out, "quick" if args.quick else "full", args.variant)
+    print(f"done: open {report}")
+
+
 def _cmd_demo(args) -> None:
     from gra_mi.demo import run_demo
 
@@ -366,6 +379,7 @@ COMMANDS = {
     "scene": _cmd_scene,
     "render": _cmd_render,
     "relight": _cmd_relight,
+    "bench": _cmd_bench,
 }
 
 

@@ -167,3 +167,25 @@ def test_envmap_sweep_pipeline(tmp_path):
     )
     assert out.returncode == 0, out.stderr
     assert (tmp_path / "sweep" / "contact_sheet.png").exists() and (tmp_path / "sweep" / "test_0001.exr").exists()
+
+
+def test_bench_quick_writes_report(tmp_path):
+    out = run_cli("bench", "--quick", "--out", str(tmp_path / "bench"))
+    assert out.returncode == 0, out.stderr
+    report = (tmp_path / "bench" / "report.md").read_text()
+    for needle in (
+        "subsample k=16",
+        "importance k=64",
+        "upsampled",
+        "shared over 2 frames",
+        "far field",
+        "float16",
+        "64² UV",
+        "direct 16 spp",
+    ):
+        assert needle in report, needle
+    rows = json.loads((tmp_path / "bench" / "results.json").read_text())
+    reference = next(r for r in rows if r["group"] == "reference")
+    assert reference["mean_rel_error"] == 0.0
+    assert all(r["mean_rel_error"] > 0 for r in rows if r["group"] in ("LEDs", "lighting model", "Mitsuba direct"))
+    assert (tmp_path / "bench" / "pareto.png").exists() and (tmp_path / "bench" / "results.csv").exists()
