@@ -87,15 +87,18 @@ def image_errors(image: np.ndarray, reference: np.ndarray, mask: np.ndarray) -> 
 # --------------------------------------------------------------------------------------------------------------
 
 
-def subsample_leds(envmap: np.ndarray, stage, k: int) -> np.ndarray:
-    """A k-LED stage (every (L/k)-th LED of the spiral) with the envmap integrated onto it; the rest off."""
+def subsample_leds(envmap: np.ndarray, stage, k: int, scale: float) -> np.ndarray:
+    """A k-LED stage (every (L/k)-th LED of the spiral) with the envmap integrated onto it; the rest off.
+
+    ``scale`` is the full stage's normalisation, so both light the subject with the same energy.
+    """
     from gra_mi.envmap import envmap_to_leds
     from gra_mi.lightstage import Lightstage
 
     keep = np.unique(np.round(np.linspace(0, stage.num_leds - 1, k)).astype(int))
     sub = Lightstage(stage.led_positions[keep], stage.cameras, stage.center, stage.radius, None, None, stage.max_led_intensity)
     out = np.zeros((stage.num_leds, 3))
-    out[keep] = envmap_to_leds(envmap, sub, normalize=False).radiant_intensity(sub)
+    out[keep] = envmap_to_leds(envmap, sub, normalize=False).radiant_intensity(sub) * scale
     return out
 
 
@@ -153,7 +156,8 @@ def run_bench(out: Path, preset_name: str = "full", variant: str | None = None) 
     frame = preset.frames - 1  # the evaluated frame; earlier frames feed visibility sharing
     cam = stage.cameras[0]
     env = bake_sunsky(SkyParams(25.0, 200.0, 3.0, 0.2), 64)  # a sun behind-left of camera 0: hard shadows
-    intensities = envmap_to_leds(env, stage).radiant_intensity(stage)
+    lighting = envmap_to_leds(env, stage)
+    intensities = lighting.radiant_intensity(stage)
 
     def timed(fn: Callable[[], object]) -> tuple[float, object]:
         times, value = [], fn()  # a first, untimed call compiles the kernels
@@ -234,7 +238,7 @@ def run_bench(out: Path, preset_name: str = "full", variant: str | None = None) 
     for k in preset.led_counts:
 
         def sub(k=k):
-            leds = subsample_leds(env, stage, k)
+            leds = subsample_leds(env, stage, k, lighting.scale)
             t, img = timed(lambda: render(R, ref_geom, ref_vis, leds))
             record("LEDs", f"subsample k={k}", t, t + t_vis_ref, cache_mb(R), img)
 
