@@ -68,8 +68,24 @@ class PreparedBRDF:
         self.alpha2 = dr.square(self.alpha)
         # G1(ωi) / (4 cosθi): with f_spec cosθo = D F G1(ωo) · G1(ωi) / (4 cosθi), the cosθo cancels.
         self.spec_scale = smith_g1(wi.z, self.alpha) / (4.0 * dr.maximum(wi.z, 1e-12))
-        self.diffuse = albedo * (dr.inv_pi * diffuse_transmission(wi.z))
+        self.diffuse_unit = dr.inv_pi * diffuse_transmission(wi.z)
+        self.diffuse = albedo * self.diffuse_unit
         self.front = wi.z > 0
+
+    def eval_parts(self, wo):
+        """(diffuse per unit albedo, specular), both times cosθo: f cos = albedo ⊙ first + second.
+
+        The model is linear in albedo; fitting uses the two parts separately.
+        """
+        cos_o = wo.z
+        h = dr.normalize(self.wi + wo)
+        denom = dr.square(h.z) * (self.alpha2 - 1.0) + 1.0
+        d = self.alpha2 * dr.inv_pi * dr.rcp(dr.square(denom))
+        g1_o = 2.0 * cos_o * dr.rcp(cos_o + dr.sqrt(self.alpha2 + (1.0 - self.alpha2) * dr.square(cos_o)))
+        spec = dr.select(h.z > 0, d * fresnel_schlick(dr.dot(self.wi, h)) * g1_o * self.spec_scale, 0.0)
+        valid = self.front & (cos_o > 0)
+        diffuse = self.diffuse_unit * (diffuse_transmission(cos_o) * cos_o)
+        return dr.select(valid, diffuse, 0.0), dr.select(valid, spec, 0.0)
 
     def eval_cos(self, wo):
         """f(ωi, ωo) · cosθo."""

@@ -85,11 +85,16 @@ def write_rig(stage: Lightstage, folder: str | Path) -> Path:
     return folder
 
 
-def subject_scene_xml(rig_dir: str, subject_dir: str, frame: int = 0, spp: int = 64) -> str:
+PREVIEW_BSDF = """<bsdf type="diffuse">
+            <texture type="mesh_attribute" name="reflectance"><string name="name" value="vertex_color"/></texture>
+        </bsdf>"""
+
+
+def subject_scene_xml(rig_dir: str, subject_dir: str, frame: int = 0, spp: int = 64, bsdf_xml: str = PREVIEW_BSDF) -> str:
     """A lightstage scene: the rig's LEDs and cameras plus the subject mesh of frame ``$frame``.
 
-    Paths are relative to the scene file. The subject uses Mitsuba's ``diffuse`` BSDF with the sequence's
-    per-vertex base colour, so stock integrators render it as is.
+    Paths are relative to the scene file. By default the subject uses Mitsuba's ``diffuse`` BSDF with the
+    sequence's per-vertex base colour, so stock integrators render it as is; ``bsdf_xml`` replaces it.
     """
     return f"""<scene version="3.0.0">
     <!-- A gra-mi lightstage scene. Parameters: -D{keys.PARAM_FRAME}=0007 selects the frame's mesh,
@@ -108,9 +113,7 @@ def subject_scene_xml(rig_dir: str, subject_dir: str, frame: int = 0, spp: int =
     <shape type="ply" id="{keys.SUBJECT_ID}">
         <string name="filename" value="${keys.PARAM_SUBJECT}/frames/frame_${keys.PARAM_FRAME}.ply"/>
         <boolean name="face_normals" value="false"/>
-        <bsdf type="diffuse">
-            <texture type="mesh_attribute" name="reflectance"><string name="name" value="vertex_color"/></texture>
-        </bsdf>
+        {bsdf_xml}
     </shape>
 </scene>
 """

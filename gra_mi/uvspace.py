@@ -239,6 +239,8 @@ class TexelShading:
     radiance: np.ndarray  # (M, 3) outgoing radiance toward the camera
     view_dir: np.ndarray  # (M, 3) unit direction from texel to camera (world)
     facing_camera: np.ndarray  # (M,) the camera is above the texel's horizon
+    diffuse_unit: np.ndarray  # (M, 3) the diffuse part for albedo 1: radiance = albedo ⊙ diffuse_unit + specular
+    specular: np.ndarray  # (M, 3)
 
 
 def shade_texels(
@@ -277,35 +279,28 @@ def shade_texels(
     view = dr.normalize(mi.Point3f(*(float(x) for x in camera_position)) - p)
     wi = frame.to_local(view)
     if on.any():
-        radiance = _led_sum(
-            m,
-            words,
-            visibility,
-            mi.UInt32(on_words),
-            mi.Point3f(*pos.T.astype(np.float32)),
-            mi.Color3f(*inten.T.astype(np.float32)),
-            p,
-            frame,
-            wi,
-            mi.Color3f(*np.asarray(albedo, np.float32).T),
-            mi.Float(np.asarray(roughness, np.float32)),
-            far_field,
-        )
+        diffuse, spec = _led_sum(
+            m, words, visibility, mi.UInt32(on_words), mi.Point3f(*pos.T.astype(np.float32)), mi.Color3f(*inten.T.astype(np.float32)),
+            p, frame, wi, mi.Float(np.asarray(roughness, np.float32)), far_field,
+        )  # fmt: skip
     else:  # every LED off: nothing to do
-        radiance = dr.zeros(mi.Color3f, m)
-    dr.eval(radiance, view, wi)
-    return TexelShading(np.array(radiance).T.reshape(m, 3), np.array(view).T.reshape(m, 3), np.array(wi.z > 0))
+        diffuse, spec = dr.zeros(mi.Color3f, m), dr.zeros(mi.Color3f, m)
+    dr.eval(diffuse, spec, view, wi)
+    diffuse, spec = np.array(diffuse).T.reshape(m, 3), np.array(spec).T.reshape(m, 3)
+    radiance = np.asarray(albedo, np.float32) * diffuse + spec
+    return TexelShading(radiance, np.array(view).T.reshape(m, 3), np.array(wi.z > 0), diffuse, spec)
 
 
 @dr.syntax
-def _led_sum(m, words, visibility, on_words, led_pos, led_int, p, frame, wi, albedo, roughness, far_field):
+def _led_sum(m, words, visibility, on_words, led_pos, led_int, p, frame, wi, roughness, far_field):
     """Σ over the LEDs that are on *and* visible from each texel, walking the set bits of its visibility words.
 
     Each lane loops over its own visible LEDs only (about a fifth of them on a body), instead of all LEDs masked.
     """
     t = dr.arange(mi.UInt32, m)  # texel index
-    material = brdf.PreparedBRDF(albedo, roughness, wi)  # per-texel terms hoisted out of the loop
-    radiance = mi.Color3f(0.0)  # accumulated outgoing radiance
+    material = brdf.PreparedBRDF(mi.Color3f(1.0), roughness, wi)  # per-texel terms hoisted out of the loop
+    diffuse = mi.Color3f(0.0)  # Σ diffuse part per unit albedo (the model is linear in albedo)
+    spec = mi.Color3f(0.0)  # Σ specular part
     w = mi.UInt32(0)  # current visibility word
     bits = dr.gather(mi.UInt32, visibility, t) & dr.gather(mi.UInt32, on_words, mi.UInt32(0))  # its remaining set bits
     n_words = mi.UInt32(words)
@@ -327,8 +322,11 @@ def _led_sum(m, words, visibility, on_words, led_pos, led_int, p, frame, wi, alb
                 inv_d2 = dr.square(inv_d)
                 wo_world = offset * inv_d
             wo = frame.to_local(wo_world)
-            radiance += material.eval_cos(wo) * intensity * inv_d2
-    return radiance
+            d_part, s_part = material.eval_parts(wo)
+            weight = intensity * inv_d2
+            diffuse += d_part * weight
+            spec += s_part * weight
+    return diffuse, spec
 
 
 # --------------------------------------------------------------------------------------------------------------

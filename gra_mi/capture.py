@@ -1,0 +1,305 @@
+"""Synthetic lightstage captures standing in for the RHC data (paper Supp. "Details about the Dataset").
+
+``gra-mi capture`` writes the layout of docs/data-format.md: the rig, the tracked subject, procedural envmaps,
+interleaved uniformly lit and envmap-lit training frames (a different training envmap on each relit frame), test
+sequences under held-out envmaps (one envmap per sequence), per-camera linear HDR images with their masks (alpha),
+and the true material maps for evaluation.
+
+Ground truth comes from one of two renderers:
+- ``path`` (default): Mitsuba's ``path`` integrator with more than the one-bounce model can explain — three
+  bounces, Mitsuba's ``principled`` BSDF with sheen on cloth, spatially varying albedo and roughness, and
+  pose-dependent wrinkle normal maps;
+- ``onebounce``: gra-mi's own one-bounce model from the true maps (for recovery tests: the fit must find them).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from gra_mi.errors import GraMiInputError
+from gra_mi.imageio import atomic_write_text, read_exr, write_exr, write_png
+
+logger = logging.getLogger(__name__)
+
+CAPTURE_FORMAT = "gra-mi-capture/1"
+UNIFORM_FRACTION = 0.5  # the tracking frames: every LED at half the stage maximum
+
+
+@dataclass
+class CapturePreset:
+    name: str
+    subject: str  # "tiny" or "anny"
+    train_clips: list[str]
+    test_clips: list[str]  # one test sequence per clip, each under its own held-out envmap
+    frames_per_clip: int
+    num_leds: int
+    num_cameras: int
+    eval_cameras: int  # the last cameras are held out for novel-view evaluation
+    width: int
+    height: int
+    camera_distance: float
+    uv_resolution: int
+    envmap_height: int
+    spp: int  # path tracer samples per pixel
+    max_depth: int = 4  # path length: three bounces
+
+
+PRESETS = {
+    "tiny": CapturePreset("tiny", "tiny", ["tiny"], ["tiny"], 6, 64, 5, 1, 128, 96, 1.2, 64, 32, 128),
+    "small": CapturePreset("small", "anny", ["walk"], ["squat"], 8, 331, 8, 2, 256, 135, 1.8, 256, 64, 64),
+    "full": CapturePreset("full", "anny", ["walk", "arm_raise", "turn"], ["squat"], 24, 331, 40, 3, 1024, 540, 1.8, 512, 128, 256),
+}
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Ground-truth material
+# --------------------------------------------------------------------------------------------------------------
+
+
+def _smooth_noise(resolution: int, seed: int) -> np.ndarray:
+    """A smooth field in [0, 1] over UV: a few random low-frequency waves."""
+    rng = np.random.default_rng(seed)
+    c = (np.arange(resolution) + 0.5) / resolution
+    u, v = np.meshgrid(c, c, indexing="xy")
+    field = np.zeros_like(u)
+    for _ in range(4):
+        fu, fv = rng.uniform(1.0, 4.0, 2)
+        phase = rng.uniform(0, 2 * math.pi)
+        field += np.sin(2 * math.pi * (fu * u + fv * v) + phase)
+    return 0.5 + 0.5 * field / 4.0
+
+
+def ground_truth_maps(atlas, vertex_colors: np.ndarray, seed: int = 0) -> dict[str, np.ndarray]:
+    """Spatially varying albedo, roughness and a cloth (sheen) mask as (R, R, C) UV textures."""
+    r = atlas.resolution
+    base = atlas.bake_vertex_attribute(vertex_colors, fill=0.5)
+    albedo = np.clip(base * (0.8 + 0.4 * _smooth_noise(r, seed))[..., None], 0.03, 0.95)
+    roughness = np.clip(0.3 + 0.5 * _smooth_noise(r, seed + 1), 0.05, 1.0)[..., None]
+    skin = (base[..., 0] > base[..., 2] + 0.1)[..., None]  # skin tones are redder than blue
+    cloth = (~skin) & atlas.mask[..., None]
+    return {"albedo": albedo.astype(np.float32), "roughness": roughness.astype(np.float32), "cloth": cloth.astype(np.float32)}
+
+
+def wrinkle_normal_map(cloth: np.ndarray, amplitude: float, seed: int = 0) -> np.ndarray:
+    """A tangent-space normal map (values in [0, 1]) of wrinkle bands on cloth, of the given slope amplitude."""
+    r = cloth.shape[0]
+    rng = np.random.default_rng(seed)
+    c = (np.arange(r) + 0.5) / r
+    u, v = np.meshgrid(c, c, indexing="xy")
+    angle, freq = rng.uniform(0, math.pi), 24.0
+    phase = 2 * math.pi * freq * (u * math.cos(angle) + v * math.sin(angle))
+    slope = amplitude * np.cos(phase) * cloth[..., 0]
+    n = np.stack([-slope * math.cos(angle), -slope * math.sin(angle), np.ones_like(slope)], axis=-1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    return (0.5 + 0.5 * n).astype(np.float32)
+
+
+def wrinkle_amplitude(frame: int, num_frames: int) -> float:
+    """Pose-dependent: wrinkles deepen and relax with the motion's phase."""
+    return 0.1 + 0.5 * abs(math.sin(2 * math.pi * frame / max(num_frames, 1)))
+
+
+GT_BSDF = """<bsdf type="normalmap" id="gt_material">
+            <texture type="bitmap" name="normalmap"><string name="filename" value="gt/normal_map.exr"/><boolean name="raw" value="true"/></texture>
+            <bsdf type="principled">
+                <texture type="bitmap" name="base_color"><string name="filename" value="gt/albedo.exr"/></texture>
+                <texture type="bitmap" name="roughness"><string name="filename" value="gt/roughness.exr"/><boolean name="raw" value="true"/></texture>
+                <texture type="bitmap" name="sheen"><string name="filename" value="gt/sheen.exr"/><boolean name="raw" value="true"/></texture>
+                <float name="specular" value="0.5"/>
+            </bsdf>
+        </bsdf>"""
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Capture description
+# --------------------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class FrameLighting:
+    frame: int
+    split: str  # "train" or "test"
+    sequence: int  # test sequence index (0 for training)
+    kind: str  # "uniform" or "envmap"
+    envmap: str | None  # path relative to the capture folder
+
+
+@dataclass
+class Capture:
+    folder: Path
+    preset: str
+    renderer: str
+    uv_resolution: int
+    train_cameras: list[str]
+    eval_cameras: list[str]
+    frames: list[FrameLighting]
+
+    def image_path(self, camera: str, frame: int) -> Path:
+        return self.folder / "images" / camera / f"frame_{frame:04d}.exr"
+
+    def save(self) -> None:
+        data = {"format": CAPTURE_FORMAT, **asdict(self)}
+        data["folder"] = None
+        atomic_write_text(self.folder / "capture.json", json.dumps(data, indent=1) + "\n")
+
+    @classmethod
+    def load(cls, folder: str | Path) -> Capture:
+        folder = Path(folder)
+        path = folder / "capture.json"
+        if not path.is_file():
+            raise GraMiInputError(path, "file not found (make a capture with `gra-mi capture`)")
+        try:
+            data = json.loads(path.read_text())
+        except json.JSONDecodeError as exc:
+            raise GraMiInputError(path, f"malformed JSON ({exc})") from None
+        if data.get("format") != CAPTURE_FORMAT:
+            raise GraMiInputError(path, f"expected '{CAPTURE_FORMAT}', got {data.get('format')!r}", field="format")
+        for key in ("train_cameras", "eval_cameras", "frames", "uv_resolution"):
+            if key not in data:
+                raise GraMiInputError(path, "missing", field=key)
+        frames = [FrameLighting(**f) for f in data["frames"]]
+        return cls(
+            folder,
+            data.get("preset", "?"),
+            data.get("renderer", "?"),
+            int(data["uv_resolution"]),
+            data["train_cameras"],
+            data["eval_cameras"],
+            frames,
+        )
+
+    def lighting(self, stage, entry: FrameLighting) -> np.ndarray:
+        """LED radiant intensities (L, 3) of a frame."""
+        from gra_mi.envmap import envmap_to_leds, load_envmap
+        from gra_mi.lightstage import uniform_pattern
+
+        if entry.kind == "uniform":
+            return uniform_pattern(stage, UNIFORM_FRACTION) * stage.gains
+        return envmap_to_leds(load_envmap(self.folder / entry.envmap), stage).radiant_intensity(stage)
+
+
+def _schedule(preset: CapturePreset, train_envmaps: list[str], test_envmaps: list[str]) -> list[FrameLighting]:
+    frames, t, relit = [], 0, 0
+    for _ in preset.train_clips:
+        for k in range(preset.frames_per_clip):
+            if k % 2 == 0:
+                frames.append(FrameLighting(t, "train", 0, "uniform", None))
+            else:
+                frames.append(FrameLighting(t, "train", 0, "envmap", train_envmaps[relit % len(train_envmaps)]))
+                relit += 1
+            t += 1
+    for s, _ in enumerate(preset.test_clips):
+        for _ in range(preset.frames_per_clip):
+            frames.append(FrameLighting(t, "test", s, "envmap", test_envmaps[s % len(test_envmaps)]))
+            t += 1
+    return frames
+
+
+def generate_capture(out: str | Path, preset_name: str = "small", renderer: str = "path", variant: str | None = None) -> Capture:
+    """Write a synthetic capture; rerunning resumes (existing images are kept)."""
+    from gra_mi.envmap_library import write_envmap_set
+    from gra_mi.lightstage import default_lightstage
+    from gra_mi.plugins import register_plugins
+    from gra_mi.progress import progress
+    from gra_mi.scene import LightstageScene, subject_scene_xml, write_rig
+    from gra_mi.subject import save_sequence, tiny_subject
+    from gra_mi.uvspace import UVAtlas
+    from gra_mi.variant import choose_variant
+
+    if preset_name not in PRESETS:
+        raise GraMiInputError("--preset", f"unknown preset '{preset_name}', expected one of {sorted(PRESETS)}")
+    if renderer not in ("path", "onebounce"):
+        raise GraMiInputError("--renderer", f"expected 'path' or 'onebounce', got '{renderer}'")
+    preset = PRESETS[preset_name]
+    out = Path(out)
+    choose_variant(variant)
+    register_plugins()
+
+    # 1. Rig, subject, envmaps ---------------------------------------------------------------------------
+    stage = default_lightstage(
+        preset.num_leds, num_cameras=preset.num_cameras, camera_distance=preset.camera_distance, width=preset.width, height=preset.height
+    )
+    write_rig(stage, out / "rig")
+    if not (out / "subject" / "sequence.npz").is_file():
+        if preset.subject == "tiny":
+            seq = tiny_subject(preset.frames_per_clip * (len(preset.train_clips) + len(preset.test_clips)))
+        else:
+            from gra_mi.anny_body import anny_sequence
+
+            seq = anny_sequence(preset.train_clips + preset.test_clips, preset.frames_per_clip)
+        save_sequence(seq, out / "subject")
+    n_relit = len(preset.train_clips) * (preset.frames_per_clip // 2)
+    train_env = [str(p.relative_to(out)) for p in write_envmap_set(out / "envmaps", "train", max(n_relit, 1), preset.envmap_height)]
+    test_env = [str(p.relative_to(out)) for p in write_envmap_set(out / "envmaps", "test", len(preset.test_clips), preset.envmap_height)]
+    atomic_write_text(out / "scene.xml", subject_scene_xml("rig", "subject"))
+
+    # 2. Ground-truth material ---------------------------------------------------------------------------
+    ls = LightstageScene.load(out / "scene.xml")
+    atlas = UVAtlas.build(ls.sequence.faces, ls.sequence.uvs, preset.uv_resolution)
+    colors = ls.sequence.vertex_colors if ls.sequence.vertex_colors is not None else np.full((ls.sequence.num_vertices, 3), 0.5, np.float32)
+    maps = ground_truth_maps(atlas, colors)
+    write_exr(out / "gt" / "albedo.exr", maps["albedo"])
+    write_exr(out / "gt" / "roughness.exr", maps["roughness"])
+    write_exr(out / "gt" / "sheen.exr", maps["cloth"] * 0.8)
+    write_png(out / "gt" / "albedo.png", maps["albedo"])
+    write_exr(out / "gt" / "normal_map.exr", wrinkle_normal_map(maps["cloth"], 0.0))
+
+    capture = Capture(
+        out,
+        preset.name,
+        renderer,
+        preset.uv_resolution,
+        [c.name for c in stage.cameras[: len(stage.cameras) - preset.eval_cameras]],
+        [c.name for c in stage.cameras[len(stage.cameras) - preset.eval_cameras :]],
+        _schedule(preset, train_env, test_env),
+    )
+    capture.save()
+
+    # 3. Render ------------------------------------------------------------------------------------------
+    if renderer == "onebounce":
+        from gra_mi.relight import Relighter
+
+        source = Relighter(ls, albedo=maps["albedo"], roughness=maps["roughness"])
+    else:
+        import mitsuba as mi
+
+        atomic_write_text(out / "scene_gt.xml", subject_scene_xml("rig", "subject", spp=preset.spp, bsdf_xml=GT_BSDF))
+        source = LightstageScene.load(out / "scene_gt.xml")
+        normal_key = next(k for k in source.params.keys() if k.endswith("normalmap.data"))
+        integrator = mi.load_dict({"type": "path", "max_depth": preset.max_depth})
+    jobs = [(entry, cam) for entry in capture.frames for cam in stage.cameras]
+    for entry, cam in progress(jobs, description=f"capture ({renderer})"):
+        path = capture.image_path(cam.name, entry.frame)
+        if path.is_file():
+            continue
+        intensities = capture.lighting(stage, entry)
+        if renderer == "onebounce":
+            image = source.render(entry.frame, cam.name, intensities).image
+        else:
+            if source.frame != entry.frame:
+                source.set_frame(entry.frame)
+                source.params[normal_key] = mi.TensorXf(
+                    wrinkle_normal_map(maps["cloth"], wrinkle_amplitude(entry.frame, ls.sequence.num_frames))
+                )
+                source.params.update()
+            source.set_led_intensities(intensities)
+            image = np.array(
+                mi.render(source.scene, sensor=source.sensor_index(cam.name), integrator=integrator, spp=preset.spp, seed=entry.frame),
+                dtype=np.float32,
+            )
+        write_exr(path, image)
+    return capture
+
+
+def load_observation(capture: Capture, camera: str, frame: int) -> np.ndarray:
+    path = capture.image_path(camera, frame)
+    image = read_exr(path)
+    if image.shape[2] != 4:
+        raise GraMiInputError(path, f"expected RGBA (alpha = mask), got {image.shape[2]} channels")
+    return image
