@@ -51,7 +51,7 @@ class CapturePreset:
 
 
 PRESETS = {
-    "tiny": CapturePreset("tiny", "tiny", ["tiny"], ["tiny"], 6, 64, 5, 1, 128, 96, 1.2, 64, 32, 128),
+    "tiny": CapturePreset("tiny", "tiny", ["tiny"], ["tiny"], 6, 64, 8, 1, 320, 240, 1.2, 32, 32, 128),
     "small": CapturePreset("small", "anny", ["walk"], ["squat"], 8, 331, 8, 2, 256, 135, 1.8, 256, 64, 64),
     "full": CapturePreset("full", "anny", ["walk", "arm_raise", "turn"], ["squat"], 24, 331, 40, 3, 1024, 540, 1.8, 512, 128, 256),
 }
@@ -104,6 +104,11 @@ def wrinkle_amplitude(frame: int, num_frames: int) -> float:
     """Pose-dependent: wrinkles deepen and relax with the motion's phase."""
     return 0.1 + 0.5 * abs(math.sin(2 * math.pi * frame / max(num_frames, 1)))
 
+
+ONEBOUNCE_BSDF = """<bsdf type="gra_microfacet" id="gt_material">
+            <texture type="bitmap" name="albedo"><string name="filename" value="gt/albedo.exr"/></texture>
+            <texture type="bitmap" name="roughness"><string name="filename" value="gt/roughness.exr"/><boolean name="raw" value="true"/></texture>
+        </bsdf>"""
 
 GT_BSDF = """<bsdf type="normalmap" id="gt_material">
             <texture type="bitmap" name="normalmap"><string name="filename" value="gt/normal_map.exr"/><boolean name="raw" value="true"/></texture>
@@ -261,38 +266,33 @@ def generate_capture(out: str | Path, preset_name: str = "small", renderer: str 
     )
     capture.save()
 
-    # 3. Render ------------------------------------------------------------------------------------------
+    # 3. Render (image space: the fit works in UV space, so the ground truth takes another code path) ------
+    import mitsuba as mi
+
     if renderer == "onebounce":
-        from gra_mi.relight import Relighter
-
-        source = Relighter(ls, albedo=maps["albedo"], roughness=maps["roughness"])
+        atomic_write_text(out / "scene_gt.xml", subject_scene_xml("rig", "subject", spp=preset.spp, bsdf_xml=ONEBOUNCE_BSDF))
+        integrator = mi.load_dict({"type": "gra_onebounce"})
+        spp = 16  # deterministic lighting: samples only anti-alias
     else:
-        import mitsuba as mi
-
         atomic_write_text(out / "scene_gt.xml", subject_scene_xml("rig", "subject", spp=preset.spp, bsdf_xml=GT_BSDF))
-        source = LightstageScene.load(out / "scene_gt.xml")
-        normal_key = next(k for k in source.params.keys() if k.endswith("normalmap.data"))
         integrator = mi.load_dict({"type": "path", "max_depth": preset.max_depth})
+        spp = preset.spp
+    source = LightstageScene.load(out / "scene_gt.xml")
+    normal_key = next((k for k in source.params.keys() if k.endswith("normalmap.data")), None)
     jobs = [(entry, cam) for entry in capture.frames for cam in stage.cameras]
     for entry, cam in progress(jobs, description=f"capture ({renderer})"):
         path = capture.image_path(cam.name, entry.frame)
         if path.is_file():
             continue
-        intensities = capture.lighting(stage, entry)
-        if renderer == "onebounce":
-            image = source.render(entry.frame, cam.name, intensities).image
-        else:
-            if source.frame != entry.frame:
-                source.set_frame(entry.frame)
-                source.params[normal_key] = mi.TensorXf(
-                    wrinkle_normal_map(maps["cloth"], wrinkle_amplitude(entry.frame, ls.sequence.num_frames))
-                )
+        if source.frame != entry.frame:
+            source.set_frame(entry.frame)
+            if normal_key is not None:  # wrinkles follow the pose
+                amplitude = wrinkle_amplitude(entry.frame, ls.sequence.num_frames)
+                source.params[normal_key] = mi.TensorXf(wrinkle_normal_map(maps["cloth"], amplitude))
                 source.params.update()
-            source.set_led_intensities(intensities)
-            image = np.array(
-                mi.render(source.scene, sensor=source.sensor_index(cam.name), integrator=integrator, spp=preset.spp, seed=entry.frame),
-                dtype=np.float32,
-            )
+        source.set_led_intensities(capture.lighting(stage, entry))
+        sensor = source.sensor_index(cam.name)
+        image = np.array(mi.render(source.scene, sensor=sensor, integrator=integrator, spp=spp, seed=entry.frame), dtype=np.float32)
         write_exr(path, image)
     return capture
 

@@ -130,6 +130,44 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, default=Path("outputs/render"), help="Output folder. Default: outputs/render.")
     _add_variant(p)
 
+    # capture ------------------------------------------------------------------------------------------------
+    p = sub.add_parser("capture", help="Generate a synthetic lightstage capture (images, masks, lighting, true maps).")
+    p.add_argument("--out", type=Path, required=True, help="Capture folder (layout: docs/data-format.md). Rerunning resumes.")
+    p.add_argument(
+        "--preset",
+        choices=["tiny", "small", "full"],
+        default="small",
+        help="tiny: CI, seconds; small: the demo, minutes; full: 40 cameras at 1024x540, 512² UV.",
+    )
+    p.add_argument(
+        "--renderer",
+        choices=["path", "onebounce"],
+        default="path",
+        help="Ground truth: Mitsuba path tracing of a richer material (default), or gra-mi's one-bounce model (recovery tests).",
+    )
+    _add_variant(p)
+
+    # fit ----------------------------------------------------------------------------------------------------
+    p = sub.add_parser("fit", help="Fit per-texel albedo and roughness to a capture (albedo.exr, roughness.exr, fit_report.md).")
+    p.add_argument("capture", type=Path, help="Capture folder (from `gra-mi capture` or converted real data).")
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=Path("outputs/fit"),
+        help="Output folder; holds a checkpoint, so rerunning resumes. Default: outputs/fit.",
+    )
+    p.add_argument(
+        "--roughness-candidates",
+        type=int,
+        default=11,
+        help="Roughness values tried per texel on a uniform grid over [0, 1] before refinement. Default: 11.",
+    )
+    p.add_argument(
+        "--irls-iterations", type=int, default=3, help="L1 reweighting iterations after least squares (0: least squares only). Default: 3."
+    )
+    p.add_argument("--uv-resolution", type=int, default=None, help="UV resolution of the fitted maps (default: the capture's).")
+    _add_variant(p)
+
     # bench --------------------------------------------------------------------------------------------------
     p = sub.add_parser("bench", help="Speed against error of every approximation (report.md, CSV/JSON, Pareto plot).")
     p.add_argument("--quick", action="store_true", help="Small resolutions and fewer configurations: a few minutes on 2 cores (CI).")
@@ -357,6 +395,22 @@ def _cmd_relight(args) -> None:
     )
 
 
+def _cmd_capture(args) -> None:
+    from gra_mi.capture import generate_capture
+
+    capture = generate_capture(args.out, args.preset, args.renderer, args.variant)
+    n = len(capture.frames) * (len(capture.train_cameras) + len(capture.eval_cameras))
+    print(f"wrote {n} images of {len(capture.frames)} frames to {args.out}")
+
+
+def _cmd_fit(args) -> None:
+    from gra_mi.fit import FitConfig, run_fit
+
+    config = FitConfig(args.roughness_candidates, args.irls_iterations, args.uv_resolution)
+    _, report = run_fit(args.capture, args.out, config, args.variant)
+    print(f"done: open {report}")
+
+
 def _cmd_bench(args) -> None:
     from gra_mi.bench import run_bench
 
@@ -380,6 +434,8 @@ COMMANDS = {
     "render": _cmd_render,
     "relight": _cmd_relight,
     "bench": _cmd_bench,
+    "capture": _cmd_capture,
+    "fit": _cmd_fit,
 }
 
 
