@@ -185,6 +185,16 @@ def build_parser() -> argparse.ArgumentParser:
         "--pattern", type=Path, action="append", default=[], help="LED drive values, JSON or .npy (repeatable; see docs/data-format.md)."
     )
     p.add_argument(
+        "--point-light",
+        default=None,
+        metavar="X,Y,Z",
+        help="A near-field point light at X,Y,Z metres (LEDs off); also writes its envmap conditioning.",
+    )
+    p.add_argument("--point-light-intensity", type=float, default=2.0, help="Radiant intensity of the point light in W/sr. Default: 2.")
+    p.add_argument(
+        "--point-light-radius", type=float, default=0.03, help="Radius of the point light's sphere in metres (soft shadows). Default: 0.03."
+    )
+    p.add_argument(
         "--repair-envmap", action="store_true", help="Replace NaN/Inf/negative envmap pixels (with a warning) instead of stopping."
     )
     p.add_argument(
@@ -334,6 +344,8 @@ def _cmd_render(args) -> None:
 
 
 def _cmd_relight(args) -> None:
+    import numpy as np
+
     from gra_mi.envmap import background_plate, envmap_to_leds, load_envmap
     from gra_mi.imageio import auto_exposure, write_exr, write_mp4, write_png
     from gra_mi.lightstage import load_pattern, olat_pattern
@@ -343,8 +355,11 @@ def _cmd_relight(args) -> None:
     from gra_mi.scene import LightstageScene, composite_over
     from gra_mi.variant import choose_variant
 
-    if not (args.envmap or args.olat or args.pattern):
-        raise GraMiInputError("lighting", "give at least one --envmap, --olat or --pattern")
+    if not (args.envmap or args.olat or args.pattern or args.point_light):
+        raise GraMiInputError("lighting", "give at least one --envmap, --olat, --pattern or --point-light")
+    from gra_mi.point_light import conditioning_envmap, conditioning_pattern, parse_point_light
+
+    point_light = parse_point_light(args.point_light, args.point_light_intensity, args.point_light_radius) if args.point_light else None
     envmaps = {p.stem: load_envmap(p, repair=args.repair_envmap) for p in args.envmap}
     albedo = load_texture(args.albedo, 3, "albedo") if args.albedo else None
     roughness = load_texture(args.roughness, 1, "roughness") if args.roughness else None
@@ -358,6 +373,12 @@ def _cmd_relight(args) -> None:
             raise GraMiInputError("--frames", f"frame {f} out of range [0, {ls.sequence.num_frames})")
     cameras = [stage.camera(c) for c in _parse_list(args.cameras, len(stage.cameras), "cameras")]
     lights: dict[str, tuple[object, float]] = {}
+    if point_light is not None:
+        lights["point_light"] = (np.zeros((stage.num_leds, 3)), 1.0)
+        pattern = conditioning_pattern(stage, ls.scene, point_light)
+        write_exr(args.out / "point_light" / "conditioning.exr", conditioning_envmap(stage, pattern))
+        write_png(args.out / "point_light" / "conditioning.png", conditioning_envmap(stage, pattern), exposure=None)
+        np.save(args.out / "point_light" / "conditioning_leds.npy", pattern)
     for name, env in envmaps.items():
         lighting = envmap_to_leds(env, stage)
         lights[name] = (lighting.radiant_intensity(stage), lighting.scale)
@@ -372,7 +393,7 @@ def _cmd_relight(args) -> None:
     jobs = [(f, light, cam) for f in frames for light in lights for cam in cameras]  # frame-major: one trace per frame
     for frame, light, cam in progress(jobs, description="relight"):
         intensities, scale = lights[light]
-        view = relighter.render(frame, cam.name, intensities)
+        view = relighter.render(frame, cam.name, intensities, point_light if light == "point_light" else None)
         folder = args.out / light / cam.name
         write_exr(folder / f"frame_{frame:04d}.exr", view.image)
         shown = view.image[..., :3]

@@ -15,6 +15,7 @@ import numpy as np
 
 from gra_mi.errors import GraMiInputError
 from gra_mi.imageio import read_exr
+from gra_mi.point_light import PointLight, point_light_visibility, shade_point_light
 from gra_mi.scene import LightstageScene
 from gra_mi.uvspace import TexelGeometry, TexelShading, UVAtlas, VisibilityCache, rasterize_to_camera, shade_texels
 
@@ -77,6 +78,8 @@ class Relighter:
         self.far_field = far_field
         self.cache = VisibilityCache(cache_dir)
         self._geometry: dict[int, TexelGeometry] = {}
+        self._point_light_vis: dict[tuple, object] = {}
+        self._point_light_vis: dict[tuple, object] = {}
 
     @property
     def led_positions(self) -> np.ndarray:
@@ -93,16 +96,27 @@ class Relighter:
             self.ls.set_frame(frame)  # the scene's mesh must be this frame's to trace against
         return self.cache.get(self.ls.scene, self.geometry(frame), self.led_positions, self.far_field, self.ls.stage.center)
 
-    def render(self, frame: int, camera: int | str, led_intensities: np.ndarray) -> ViewRender:
-        """One-bounce render of ``camera`` at ``frame`` with LED radiant intensities (L, 3)."""
+    def render(self, frame: int, camera: int | str, led_intensities: np.ndarray, point_light: PointLight | None = None) -> ViewRender:
+        """One-bounce render of ``camera`` at ``frame``: LEDs of radiant intensity (L, 3), plus an optional
+        near-field point light."""
         cam = self.ls.stage.camera(camera)
-        vis = self.visibility(frame)
+        # No LED on (e.g. a point light alone): nothing to trace for them.
+        vis = self.visibility(frame) if np.max(led_intensities) > 0 else None
         geom = self.geometry(frame)
+        stage = self.ls.stage
         shading = shade_texels(
-            geom, vis, self.led_positions, led_intensities, self.albedo, self.roughness, cam.position, self.far_field, self.ls.stage.center
+            geom, vis, self.led_positions, led_intensities, self.albedo, self.roughness, cam.position, self.far_field, stage.center
         )
         if self.ls.frame != frame:
             self.ls.set_frame(frame)
+        if point_light is not None:
+            key = (frame, tuple(point_light.position), point_light.radius)
+            if key not in self._point_light_vis:  # depends on geometry and light placement only
+                self._point_light_vis = {key: point_light_visibility(self.ls.scene, geom, point_light)}
+            diffuse, spec = shade_point_light(geom, self._point_light_vis[key], point_light, self.roughness, cam.position)
+            shading.diffuse_unit = shading.diffuse_unit + diffuse
+            shading.specular = shading.specular + spec
+            shading.radiance = self.albedo * shading.diffuse_unit + shading.specular
         image = rasterize_to_camera(self.ls.scene, cam, self.atlas.scatter(shading.radiance), self.atlas.mask)
         return ViewRender(image, shading, geom)
 

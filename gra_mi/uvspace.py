@@ -245,7 +245,7 @@ class TexelShading:
 
 def shade_texels(
     geom: TexelGeometry,
-    visibility: mi.UInt32,
+    visibility: mi.UInt32 | None,
     led_positions: np.ndarray,
     led_intensities: np.ndarray,
     albedo: np.ndarray,
@@ -256,7 +256,8 @@ def shade_texels(
 ) -> TexelShading:
     """Outgoing radiance of every valid texel toward ``camera_position`` (paper Eq. 1, one bounce).
 
-    ``albedo`` (M, 3) and ``roughness`` (M,) are per valid texel. LEDs that are off are dropped before the loop.
+    ``albedo`` (M, 3) and ``roughness`` (M,) are per valid texel. LEDs that are off are dropped before the loop;
+    ``visibility`` may be None when every LED is off.
     """
     m = dr.width(geom.position)
     num_leds = led_positions.shape[0]
