@@ -168,6 +168,27 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--uv-resolution", type=int, default=None, help="UV resolution of the fitted maps (default: the capture's).")
     _add_variant(p)
 
+    # edit-texture -------------------------------------------------------------------------------------------
+    p = sub.add_parser(
+        "edit-texture", help="Edit a fitted albedo: paint an image over it, or tint a UV mask; re-render with `relight --albedo`."
+    )
+    p.add_argument("--albedo", type=Path, required=True, help="Albedo UV texture to edit (square RGB EXR, e.g. from `gra-mi fit`).")
+    p.add_argument(
+        "--image", type=Path, default=None, help="Edit layer (PNG in sRGB, or EXR in linear), RGB or RGBA: alpha says where it applies."
+    )
+    p.add_argument("--mask", type=Path, default=None, help="UV mask (PNG or EXR, single channel in [0,1]) for --color.")
+    p.add_argument("--color", default=None, help="Linear RGB albedo r,g,b in [0,1] painted where --mask is set.")
+    p.add_argument("--opacity", type=float, default=1.0, help="Strength of the edit in [0, 1]. Default: 1.")
+    p.add_argument("--out", type=Path, required=True, help="Edited albedo EXR to write (a PNG preview is written beside it).")
+
+    # export-gltf --------------------------------------------------------------------------------------------
+    p = sub.add_parser("export-gltf", help="Export the fitted avatar as glTF 2.0 (.glb): mesh, textures, frames as morph targets.")
+    p.add_argument("--subject", type=Path, required=True, help="Tracked mesh sequence folder (e.g. CAPTURE/subject).")
+    p.add_argument("--albedo", type=Path, required=True, help="Albedo UV texture (EXR), e.g. from `gra-mi fit`.")
+    p.add_argument("--roughness", type=Path, required=True, help="Roughness UV texture (EXR), e.g. from `gra-mi fit`.")
+    p.add_argument("--frames", type=int, default=None, help="Frames to include as morph targets (default: all).")
+    p.add_argument("--out", type=Path, required=True, help="The .glb file to write.")
+
     # bench --------------------------------------------------------------------------------------------------
     p = sub.add_parser("bench", help="Speed against error of every approximation (report.md, CSV/JSON, Pareto plot).")
     p.add_argument("--quick", action="store_true", help="Small resolutions and fewer configurations: a few minutes on 2 cores (CI).")
@@ -432,6 +453,42 @@ def _cmd_fit(args) -> None:
     print(f"done: open {report}")
 
 
+def _cmd_edit_texture(args) -> None:
+    from gra_mi.imageio import write_exr, write_png
+    from gra_mi.relight import load_texture
+    from gra_mi.texture_edit import edit_albedo, read_edit_image
+
+    albedo = load_texture(args.albedo, 3, "albedo")
+    color = None
+    if args.color is not None:
+        try:
+            color = tuple(float(c) for c in args.color.split(","))
+        except ValueError:
+            color = ()
+        if len(color) != 3:
+            raise GraMiInputError("--color", f"expected r,g,b, got '{args.color}'")
+    if args.image is None and (args.mask is None or color is None):
+        raise GraMiInputError("edit-texture", "give --image, or --mask with --color")
+    image = read_edit_image(args.image) if args.image else None
+    mask = read_edit_image(args.mask) if args.mask else None
+    edited = edit_albedo(albedo, image, mask, color, args.opacity, source=str(args.image or args.mask))
+    write_exr(args.out, edited)
+    write_png(args.out.with_suffix(".png"), edited)
+    print(f"wrote {args.out}; re-render with: gra-mi relight SCENE --albedo {args.out} ...")
+
+
+def _cmd_export_gltf(args) -> None:
+    from gra_mi.gltf import export_glb
+    from gra_mi.relight import load_texture
+    from gra_mi.subject import load_sequence
+
+    seq = load_sequence(args.subject)
+    albedo = load_texture(args.albedo, 3, "albedo")
+    roughness = load_texture(args.roughness, 1, "roughness")
+    path = export_glb(args.out, seq, albedo, roughness, args.frames)
+    print(f"wrote {path}")
+
+
 def _cmd_bench(args) -> None:
     from gra_mi.bench import run_bench
 
@@ -457,6 +514,8 @@ COMMANDS = {
     "bench": _cmd_bench,
     "capture": _cmd_capture,
     "fit": _cmd_fit,
+    "edit-texture": _cmd_edit_texture,
+    "export-gltf": _cmd_export_gltf,
 }
 
 
