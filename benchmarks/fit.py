@@ -64,7 +64,13 @@ def main(argv: list[str] | None = None) -> int:
     final = curve[-1][1]
     t_reach = next(s for s, loss in curve if loss <= 1.01 * final)
     n_views = len(fitter.train) * len(capture.train_cameras)
-    rows.append((f"gra-mi fit, `{args.preset}` ({n_views} views, {fitter.atlas.num_texels} texels)", f"{t_fit:.1f} s", f"final L1 {final:.5f} (texel space)"))
+    rows.append(
+        (
+            f"gra-mi fit, `{args.preset}` ({n_views} views, {fitter.atlas.num_texels} texels)",
+            f"{t_fit:.1f} s",
+            f"final L1 {final:.5f} (texel space)",
+        )
+    )
     rows.append(("  time to reach 1.01× its final L1", f"{t_reach:.1f} s", ""))
 
     # 2. One pass at the full preset's sizes ------------------------------------------------------------------
@@ -89,8 +95,20 @@ def main(argv: list[str] | None = None) -> int:
     t_pass = statistics.median(times[1:])
     full_views = (full.num_cameras - full.eval_cameras) * len(full.train_clips) * full.frames_per_clip
     passes = FitConfig().roughness_candidates + 1 + FitConfig().irls_iterations
-    rows.append((f"one view pass at `full` sizes ({relighter.atlas.num_texels} texels at {full.uv_resolution}², {full.width}×{full.height})", f"{1e3 * t_pass:.0f} ms", "shade + rasterise, visibility cached (a fit pass shades and projects)"))
-    rows.append((f"one iteration (pass over all {full_views} training views of `full`), extrapolated", f"{t_pass * full_views:.0f} s", f"the fit makes {passes} such passes"))
+    rows.append(
+        (
+            f"one view pass at `full` sizes ({relighter.atlas.num_texels} texels at {full.uv_resolution}², {full.width}×{full.height})",
+            f"{1e3 * t_pass:.0f} ms",
+            "shade + rasterise, visibility cached (a fit pass shades and projects)",
+        )
+    )
+    rows.append(
+        (
+            f"one iteration (pass over all {full_views} training views of `full`), extrapolated",
+            f"{t_pass * full_views:.0f} s",
+            f"the fit makes {passes} such passes",
+        )
+    )
 
     # 3. Both fits' error measured the same way -----------------------------------------------------------
     ls = LightstageScene.load(capture.folder / "scene.xml")
@@ -167,7 +185,13 @@ def main(argv: list[str] | None = None) -> int:
                 break
     t_tutorial = reached if reached is not None else time.perf_counter() - start
     best = min((e for _, e in history), default=float("nan"))
-    rows.append((f"tutorial-style fit (`prb` + Adam, spp 4, one view per step), {step} steps", f"{t_tutorial:.0f} s", f"best image L1 {best:.5f}" + ("" if reached else " (budget ran out before gra-mi's error)")))
+    rows.append(
+        (
+            f"tutorial-style fit (`prb` + Adam, spp 4, one view per step), {step} steps",
+            f"{t_tutorial:.0f} s",
+            f"best image L1 {best:.5f}" + ("" if reached else " (budget ran out before gra-mi's error)"),
+        )
+    )
     speedup = t_tutorial / t_fit
     rows.append(("speedup at equal final error", f"{'≥ ' if reached is None else ''}{speedup:.0f}×", "goal ≥ 10×"))
 

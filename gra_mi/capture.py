@@ -52,7 +52,7 @@ class CapturePreset:
 
 PRESETS = {
     "tiny": CapturePreset("tiny", "tiny", ["tiny"], ["tiny"], 6, 64, 8, 1, 320, 240, 1.2, 32, 32, 128),
-    "small": CapturePreset("small", "anny", ["walk"], ["squat"], 8, 331, 8, 2, 256, 135, 1.8, 256, 64, 64),
+    "small": CapturePreset("small", "anny", ["walk"], ["squat"], 8, 331, 8, 2, 256, 135, 1.8, 256, 64, 32),
     "full": CapturePreset("full", "anny", ["walk", "arm_raise", "turn"], ["squat"], 24, 331, 40, 3, 1024, 540, 1.8, 512, 128, 256),
 }
 

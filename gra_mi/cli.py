@@ -56,7 +56,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--out", type=Path, default=Path("outputs/demo"), help="Output folder (renders, plots, report.md). Default: outputs/demo."
     )
-    p.add_argument("--spp", type=int, default=None, help="Samples per pixel for Mitsuba's direct integrator (default: the preset's).")
     _add_variant(p)
 
     # rig ----------------------------------------------------------------------------------------------------
@@ -499,7 +498,7 @@ def _cmd_bench(args) -> None:
 def _cmd_demo(args) -> None:
     from gra_mi.demo import run_demo
 
-    report = run_demo(args.preset, args.out, spp=args.spp, variant=args.variant)
+    report = run_demo(args.preset, args.out, variant=args.variant)
     print(f"done: open {report}")
 
 

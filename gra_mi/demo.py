@@ -1,12 +1,11 @@
 """The main job: the pipeline as far as it exists, on a small preset, into a folder a person can open.
 
-Stages now: lightstage rig → procedural envmaps (train / held-out test) → animated subject → Mitsuba scene file →
-envmap→LED integration (with its energy check) → coarse one-bounce relighting in UV space under training and test
-envmaps and an OLAT pattern, composited over the camera's background plate, with Mitsuba's stock ``direct``
-integrator beside it for comparison → plots, MP4 and report.md. Later stages (capture + fit, RelightNet, video
-refiner) are listed in the report as not built yet.
+Stages: synthetic lightstage capture (path-traced ground truth under interleaved uniform and envmap lighting) →
+envmap→LED energy check → material fit (per-texel albedo and roughness) → coarse one-bounce relighting with the
+fitted maps under held-out envmaps and from held-out cameras, against the ground truth → a near-field point light
+→ glTF export → plots, MP4 and report.md. Later stages (RelightNet, video refiner) are listed as not built yet.
 
-Finished files are kept: rerunning after an interruption skips what exists.
+Finished files are kept: rerunning after an interruption resumes (capture images, fit checkpoint, renders).
 """
 
 from __future__ import annotations
@@ -28,35 +27,15 @@ logger = logging.getLogger(__name__)
 @dataclass
 class DemoPreset:
     name: str
-    num_leds: int
-    num_cameras: int
-    width: int
-    height: int
-    subject: str  # "anny" or "tiny"
-    clips: list[str]
-    frames_per_clip: int
-    envmap_height: int
-    num_train_envmaps: int
-    num_test_envmaps: int
-    cameras: list[int]  # which cameras to render
-    frames: list[int]  # which frames to render for the contact sheets
-    spp: int
-    uv_resolution: int  # UV texture size of the one-bounce stage
-    olat_led: int = 0
-    stages_not_built: list[str] = field(
-        default_factory=lambda: [
-            "capture generator + material fit (issue 4)",
-            "RelightNet (issue 6)",
-            "video refiner (issue 7)",
-        ]
-    )
+    capture: str  # capture preset
+    renderer: str  # ground truth renderer of the capture
+    roughness_candidates: int
+    stages_not_built: list[str] = field(default_factory=lambda: ["RelightNet (issue 6)", "video refiner (issue 7)"])
 
 
 PRESETS = {
-    "tiny": DemoPreset("tiny", 64, 4, 96, 64, "tiny", [], 8, 32, 2, 1, [0, 1], [0, 4], 16, 128),
-    "small": DemoPreset(
-        "small", 331, 40, 512, 270, "anny", ["walk", "arm_raise", "turn", "squat"], 8, 128, 4, 2, [0, 10, 25], [0, 9, 18, 27], 64, 512
-    ),
+    "tiny": DemoPreset("tiny", "tiny", "onebounce", 5),
+    "small": DemoPreset("small", "small", "path", 11),
 }
 
 
@@ -158,152 +137,163 @@ def energy_table(envmap: np.ndarray, stage) -> list[dict]:
     ]
 
 
-def run_demo(preset_name: str, out: Path, spp: int | None = None, variant: str | None = None) -> Path:
+def psnr(image: np.ndarray, reference: np.ndarray, mask: np.ndarray) -> float:
+    peak = float(reference[..., :3][mask].max()) if mask.any() else 1.0
+    mse = float(np.mean(((image[..., :3] - reference[..., :3]) / peak)[mask] ** 2))
+    return float("inf") if mse == 0 else 10.0 * np.log10(1.0 / mse)
+
+
+def run_demo(preset_name: str, out: Path, variant: str | None = None) -> Path:
+    from gra_mi.capture import generate_capture, load_observation
     from gra_mi.envmap import background_plate, envmap_to_leds, load_envmap
-    from gra_mi.envmap_library import write_envmap_set
-    from gra_mi.lightstage import default_lightstage, olat_pattern
+    from gra_mi.fit import FitConfig, run_fit
+    from gra_mi.gltf import export_glb
+    from gra_mi.point_light import PointLight, conditioning_envmap, conditioning_pattern
     from gra_mi.progress import progress
-    from gra_mi.scene import LightstageScene, composite_over, render, subject_scene_xml, write_rig
-    from gra_mi.subject import save_sequence, tiny_subject
+    from gra_mi.relight import Relighter
+    from gra_mi.scene import composite_over
     from gra_mi.variant import choose_variant
 
     if preset_name not in PRESETS:
         raise GraMiInputError("--preset", f"unknown preset '{preset_name}', expected one of {sorted(PRESETS)}")
     preset = PRESETS[preset_name]
-    if spp is not None:
-        if spp < 1:
-            raise GraMiInputError("--spp", f"must be >= 1, got {spp}")
-        preset.spp = spp
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    (out / "plots").mkdir(exist_ok=True)
     timings: dict[str, float] = {}
     chosen = choose_variant(variant)
     atomic_write_text(out / "config.json", json.dumps({"preset": asdict(preset), "variant": chosen}, indent=1) + "\n")
 
-    # 1. Rig -----------------------------------------------------------------------------------------------
-    with _timed(timings, "rig"):
-        stage = default_lightstage(preset.num_leds, num_cameras=preset.num_cameras, width=preset.width, height=preset.height)
-        write_rig(stage, out / "rig")
-        (out / "plots").mkdir(exist_ok=True)
-        plot_rig(stage, out / "plots" / "rig.png")
+    # 1. Capture -------------------------------------------------------------------------------------------
+    with _timed(timings, f"capture ({preset.capture}, {preset.renderer} ground truth)"):
+        capture = generate_capture(out / "capture", preset.capture, preset.renderer, variant)
+    from gra_mi.scene import LightstageScene
 
-    # 2. Envmaps -------------------------------------------------------------------------------------------
-    with _timed(timings, "envmaps"):
-        train = write_envmap_set(out / "envmaps", "train", preset.num_train_envmaps, preset.envmap_height)
-        test = write_envmap_set(out / "envmaps", "test", preset.num_test_envmaps, preset.envmap_height)
+    ls = LightstageScene.load(capture.folder / "scene.xml")
+    stage = ls.stage
+    plot_rig(stage, out / "plots" / "rig.png")
 
-    # 3. Subject -------------------------------------------------------------------------------------------
-    with _timed(timings, "subject"):
-        subject_dir = out / "subject"
-        if not (subject_dir / "sequence.npz").is_file():
-            if preset.subject == "tiny":
-                seq = tiny_subject(preset.frames_per_clip)
-            else:
-                from gra_mi.anny_body import anny_sequence
-
-                seq = anny_sequence(preset.clips, preset.frames_per_clip)
-            save_sequence(seq, subject_dir)
-        atomic_write_text(out / "scene.xml", subject_scene_xml("rig", "subject", spp=preset.spp))
-        ls = LightstageScene.load(out / "scene.xml")
-
-    # 4. Lighting: envmaps onto LEDs, with the energy check ------------------------------------------------
-    lights = {p.stem: load_envmap(p) for p in [train[0], test[0]]}
+    # 2. Envmaps onto LEDs, with the energy check ------------------------------------------------------------
+    train_env = next(f.envmap for f in capture.frames if f.kind == "envmap" and f.split == "train")
+    test_env = next(f.envmap for f in capture.frames if f.split == "test")
+    lights = {Path(p).stem: load_envmap(capture.folder / p) for p in (train_env, test_env)}
     energy = {}
     with _timed(timings, "envmap→LED"):
         for name, env in lights.items():
             energy[name] = energy_table(env, stage)
             plot_led_mapping(env, stage, envmap_to_leds(env, stage).drive, out / "plots" / f"leds_{name}.png", name)
 
-    # 5. Coarse relighting: one-bounce GGX in UV space with cached per-LED visibility (issue 3) ---------------
-    from gra_mi.plugins import register_plugins
-    from gra_mi.relight import Relighter
+    # 3. Material fit ------------------------------------------------------------------------------------------
+    with _timed(timings, "material fit"):
+        fit_result, fit_report = run_fit(capture.folder, out / "fit", FitConfig(roughness_candidates=preset.roughness_candidates), variant)
+    fit_metrics = json.loads((out / "fit" / "fit.json").read_text())["metrics"]
 
-    register_plugins()
-    frames = [f for f in preset.frames if f < ls.sequence.num_frames]
-    light_names = [*lights, f"olat{preset.olat_led:03d}"]
-
-    def intensities_of(light: str) -> tuple[np.ndarray, float]:
-        if light in lights:
-            lighting = envmap_to_leds(lights[light], stage)
-            return lighting.radiant_intensity(stage), lighting.scale
-        return olat_pattern(stage, preset.olat_led) * stage.gains, 1.0
-
-    def shown_image(light: str, cam, image: np.ndarray) -> np.ndarray:
-        if light in lights:
-            return composite_over(image, background_plate(lights[light], cam) * intensities_of(light)[1])
-        return image[..., :3]
-
-    relighter = Relighter(ls, preset.uv_resolution, cache_dir=out / "cache" / "visibility")
-    jobs = [(f, light, c) for f in frames for light in light_names for c in preset.cameras]  # frame-major: one trace per frame
-    sheets: dict[str, dict[int, list[np.ndarray]]] = {}
-    with _timed(timings, "relight (one-bounce, UV space)"):
-        for frame, light, cam_index in progress(jobs, description="relight"):
-            cam = stage.cameras[cam_index]
-            stem = out / "renders" / "onebounce" / light / f"{cam.name}_f{frame:04d}"
-            if stem.with_suffix(".exr").is_file():
-                image = read_exr(stem.with_suffix(".exr"))
-            else:
-                image = relighter.render(frame, cam.name, intensities_of(light)[0]).image
+    # 4. Relight with the fitted maps: held-out lighting and held-out cameras vs ground truth -----------------
+    relighter = Relighter(ls, albedo=fit_result.albedo, roughness=fit_result.roughness, cache_dir=out / "cache" / "visibility")
+    test_frames = [f for f in capture.frames if f.split == "test"]
+    shown_frames = [test_frames[0], test_frames[len(test_frames) // 2]]
+    cameras = [capture.train_cameras[0], capture.eval_cameras[0]]
+    rows, metrics = [], []
+    with _timed(timings, "relight (fitted maps, one-bounce)"):
+        for entry in progress(test_frames, description="relight test frames"):
+            intensities = capture.lighting(stage, entry)
+            for cam_name in capture.train_cameras[:1] + capture.eval_cameras:
+                stem = out / "renders" / cam_name / f"frame_{entry.frame:04d}"
+                image = (
+                    read_exr(stem.with_suffix(".exr"))
+                    if stem.with_suffix(".exr").is_file()
+                    else relighter.render(entry.frame, cam_name, intensities).image
+                )
                 write_exr(stem.with_suffix(".exr"), image)
-            shown = shown_image(light, cam, image)
-            write_png(stem.with_suffix(".png"), shown, exposure=0.9)
-            sheets.setdefault(light, {}).setdefault(frame, []).append(shown)
-        for light, rows in sheets.items():
-            write_png(out / f"contact_{light}.png", contact_sheet(list(rows.values())), exposure=0.9)
+                truth = load_observation(capture, cam_name, entry.frame)
+                mask = (truth[..., 3] > 0.99) & (image[..., 3] > 0.99)
+                view = "held-out camera" if cam_name in capture.eval_cameras else "training camera"
+                metrics.append((view, float(np.abs(image[..., :3] - truth[..., :3])[mask].mean()), psnr(image, truth, mask)))
+                if entry in shown_frames and cam_name in cameras:
+                    env = load_envmap(capture.folder / entry.envmap)
+                    cam = stage.camera(cam_name)
+                    plate = background_plate(env, cam) * envmap_to_leds(env, stage).scale
+                    rows.append([composite_over(truth, plate), composite_over(image, plate)])
+        write_png(out / "contact_truth_vs_relit.png", contact_sheet(rows), exposure=None)
 
-    # 6. The generic peer: Mitsuba's direct integrator on the same scene file (first frame only) ------------
-    comparison = []
-    with _timed(timings, f"Mitsuba direct, {preset.spp} spp (frame {frames[0]} only)"):
-        ls.set_frame(frames[0])
-        for light in light_names:
-            cam = stage.cameras[preset.cameras[0]]
-            stem = out / "renders" / "direct" / light / f"{cam.name}_f{frames[0]:04d}"
-            if stem.with_suffix(".exr").is_file():
-                image = read_exr(stem.with_suffix(".exr"))
-            else:
-                ls.set_led_intensities(intensities_of(light)[0])
-                image = render(ls, cam.name, "direct", preset.spp, seed=0)
-                write_exr(stem.with_suffix(".exr"), image)
-            write_png(stem.with_suffix(".png"), shown_image(light, cam, image), exposure=0.9)
-            comparison.append([shown_image(light, cam, image), sheets[light][frames[0]][0]])
-        write_png(out / "contact_direct_vs_onebounce.png", contact_sheet(comparison), exposure=0.9)
+    # 5. Near-field point light -----------------------------------------------------------------------------
+    with _timed(timings, "near-field point light"):
+        frame = test_frames[0].frame
+        light = PointLight(stage.center + np.array([0.45, 0.3, 0.35]), 1.5)
+        image = relighter.render(frame, capture.train_cameras[0], np.zeros((stage.num_leds, 3)), light).image
+        write_exr(out / "renders" / "point_light.exr", image)
+        write_png(out / "point_light.png", image, exposure=None)
+        write_png(
+            out / "point_light_conditioning.png", conditioning_envmap(stage, conditioning_pattern(stage, ls.scene, light)), exposure=None
+        )
 
-    # 7. Video: one camera through every frame under the held-out envmap ---------------------------------
-    with _timed(timings, "video (one-bounce)"):
-        video_light = test[0].stem
-        cam = stage.cameras[preset.cameras[0]]
-        video_path = out / "videos" / f"{cam.name}_{video_light}.mp4"
-        if not video_path.is_file():
-            intensities = intensities_of(video_light)[0]
-            video = [
-                shown_image(video_light, cam, relighter.render(frame, cam.name, intensities).image)
-                for frame in progress(range(ls.sequence.num_frames), description="video")
-            ]
-            write_mp4(video_path, video, fps=ls.sequence.fps / 2, exposure=0.9)
+    # 6. Video: the held-out camera through the test sequence under its held-out envmap -------------------
+    with _timed(timings, "video"):
+        cam = stage.camera(capture.eval_cameras[0])
+        env = load_envmap(capture.folder / test_frames[0].envmap)
+        plate = background_plate(env, cam) * envmap_to_leds(env, stage).scale
+        frames = [composite_over(read_exr(out / "renders" / cam.name / f"frame_{f.frame:04d}.exr"), plate) for f in test_frames]
+        video_path = out / "videos" / f"{cam.name}_test.mp4"
+        write_mp4(video_path, frames, fps=ls.sequence.fps / 2, exposure=0.8 / max(float(np.percentile(frames[0], 99)), 1e-6))
+
+    # 7. glTF export -------------------------------------------------------------------------------------------
+    with _timed(timings, "glTF export"):
+        export_glb(out / "avatar.glb", ls.sequence, fit_result.albedo, fit_result.roughness)
 
     report = out / "report.md"
-    atomic_write_text(report, _report(preset, chosen, stage, ls, energy, timings, sheets, video_path, out))
+    atomic_write_text(report, _report(preset, chosen, capture, ls, energy, timings, fit_metrics, metrics, video_path, out))
     return report
 
 
-def _report(preset, variant, stage, ls, energy, timings, sheets, video_path, out) -> str:
+def _report(preset, variant, capture, ls, energy, timings, fit_metrics, metrics, video_path, out) -> str:
+    stage = ls.stage
     lines = [
         f"# gra-mi demo — preset `{preset.name}`",
         "",
-        f"Mitsuba variant `{variant}`; {stage.num_leds} LEDs on a {stage.radius:.1f} m sphere, {len(stage.cameras)} cameras "
-        f"({stage.cameras[0].width}×{stage.cameras[0].height}); subject: {ls.sequence.num_vertices} vertices, "
-        f"{len(ls.sequence.faces)} triangles, {ls.sequence.num_frames} frames ({', '.join(dict.fromkeys(ls.sequence.frame_labels))}).",
+        f"Mitsuba variant `{variant}`. Capture: {stage.num_leds} LEDs on a {stage.radius:.1f} m sphere, {len(stage.cameras)} cameras "
+        f"({stage.cameras[0].width}×{stage.cameras[0].height}; held out: {', '.join(capture.eval_cameras)}); subject: "
+        f"{ls.sequence.num_vertices} vertices, {len(ls.sequence.faces)} triangles, {ls.sequence.num_frames} frames "
+        f"({', '.join(dict.fromkeys(ls.sequence.frame_labels))}); ground truth: `{capture.renderer}`.",
         "",
         "## Pipeline stages",
         "",
         "| stage | status | time (s) |",
         "|---|---|---|",
     ]
-    for name, seconds in timings.items():
-        lines.append(f"| {name} | done | {seconds:.1f} |")
-    for name in preset.stages_not_built:
-        lines.append(f"| {name} | not built yet | – |")
-    lines += ["", "Rig: ![rig](plots/rig.png)", "", "## Envmap → LED energy check (irradiance at the stage centre)", ""]
+    lines += [f"| {name} | done | {seconds:.1f} |" for name, seconds in timings.items()]
+    lines += [f"| {name} | not built yet | – |" for name in preset.stages_not_built]
+    lines += [
+        "",
+        "Rig: ![rig](plots/rig.png)",
+        "",
+        "## Material fit",
+        "",
+        "Full report: [fit/fit_report.md](fit/fit_report.md). ![albedo](fit/albedo.png) ![roughness](fit/roughness.png)",
+        "",
+    ]
+    if fit_metrics:
+        lines += ["| against the true maps (texels seen by ≥ 3 cameras) | value |", "|---|---|"]
+        lines += [f"| {k} | {v:.4f} |" for k, v in fit_metrics.items()]
+    lines += ["", "## Relighting with the fitted maps, held-out envmap (test sequence)", ""]
+    lines += ["| view | frames | mean L1 | PSNR (dB) |", "|---|---|---|---|"]
+    for view in ("training camera", "held-out camera"):
+        rows = [m for m in metrics if m[0] == view]
+        if rows:
+            lines.append(f"| {view} | {len(rows)} | {np.mean([r[1] for r in rows]):.4f} | {np.mean([r[2] for r in rows]):.1f} |")
+    lines += [
+        "",
+        "Left: ground truth (the capture); right: gra-mi's one-bounce relight with the fitted maps. Rows: frames × cameras",
+        "(training camera, then held-out camera), composited over the background plate.",
+        "",
+        "![truth vs relit](contact_truth_vs_relit.png)",
+        "",
+        "## Near-field point light",
+        "",
+        "![point light](point_light.png) ![conditioning](point_light_conditioning.png)",
+        "",
+        "## Envmap → LED energy check (irradiance at the stage centre)",
+        "",
+    ]
     for name, rows in energy.items():
         lines += [
             f"### {name}",
@@ -316,24 +306,10 @@ def _report(preset, variant, stage, ls, energy, timings, sheets, video_path, out
         lines += [f"| {r['normal']} | {r['envmap']:.4g} | {r['leds']:.4g} | {100 * r['rel_error']:.2f} % |" for r in rows]
         lines.append("")
     lines += [
-        "## Coarse relighting (one-bounce GGX, per-LED visibility, UV space)",
+        f"Video: [{video_path.name}]({video_path.relative_to(out)}) · Avatar: [avatar.glb](avatar.glb) (opens in Blender)",
         "",
-        "Composited over each camera's background plate. Rows: frames; columns: cameras. Material: the subject's base",
-        "colours baked to UV as albedo, roughness 0.5 (fitted maps arrive with issue 4).",
-        "",
-    ]
-    for light in sheets:
-        lines += [f"### {light}", "", f"![{light}](contact_{light}.png)", ""]
-    lines += [
-        "### Mitsuba `direct` (left, the scene file's diffuse material, Monte Carlo) vs gra-mi one-bounce (right)",
-        "",
-        "![direct vs one-bounce](contact_direct_vs_onebounce.png)",
-        "",
-    ]
-    lines += [
-        f"Video: [{video_path.name}]({video_path.relative_to(out)})",
-        "",
-        "Data: `renders/{onebounce,direct}/*/*.exr` (linear RGBA), `envmaps/*/*.exr`, `subject/`, `rig/calibration.json`, `scene.xml` (loads in plain Mitsuba).",
+        "Data: `capture/` (images, masks, true maps, `scene.xml` loads in plain Mitsuba), `fit/` (albedo.exr, roughness.exr),",
+        "`renders/` (linear RGBA EXR).",
         "",
     ]
     return "\n".join(lines)
