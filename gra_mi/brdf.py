@@ -59,7 +59,7 @@ def diffuse_transmission(cos_theta):
 class PreparedBRDF:
     """The BRDF at fixed (albedo, roughness, ωi), with everything that does not depend on ωo computed once.
 
-    Loops over many light directions (the LED sums) call :meth:`eval_cos` per direction.
+    Loops over many light directions (the LED sums) call :meth:`eval_parts` or :meth:`eval_cos` per direction.
     """
 
     def __init__(self, albedo, roughness, wi):
@@ -69,7 +69,7 @@ class PreparedBRDF:
         # G1(ωi) / (4 cosθi): with f_spec cosθo = D F G1(ωo) · G1(ωi) / (4 cosθi), the cosθo cancels.
         self.spec_scale = smith_g1(wi.z, self.alpha) / (4.0 * dr.maximum(wi.z, 1e-12))
         self.diffuse_unit = dr.inv_pi * diffuse_transmission(wi.z)
-        self.diffuse = albedo * self.diffuse_unit
+        self.albedo = albedo
         self.front = wi.z > 0
 
     def eval_parts(self, wo):
@@ -81,6 +81,7 @@ class PreparedBRDF:
         h = dr.normalize(self.wi + wo)
         denom = dr.square(h.z) * (self.alpha2 - 1.0) + 1.0
         d = self.alpha2 * dr.inv_pi * dr.rcp(dr.square(denom))
+        # Smith G1 written as 2 cos / (cos + sqrt(α² + (1 − α²) cos²)): no tan, finite at grazing angles.
         g1_o = 2.0 * cos_o * dr.rcp(cos_o + dr.sqrt(self.alpha2 + (1.0 - self.alpha2) * dr.square(cos_o)))
         spec = dr.select(h.z > 0, d * fresnel_schlick(dr.dot(self.wi, h)) * g1_o * self.spec_scale, 0.0)
         valid = self.front & (cos_o > 0)
@@ -89,15 +90,8 @@ class PreparedBRDF:
 
     def eval_cos(self, wo):
         """f(ωi, ωo) · cosθo."""
-        cos_o = wo.z
-        h = dr.normalize(self.wi + wo)
-        denom = dr.square(h.z) * (self.alpha2 - 1.0) + 1.0
-        d = self.alpha2 * dr.inv_pi * dr.rcp(dr.square(denom))
-        # Smith G1 written as 2 cos / (cos + sqrt(α² + (1 − α²) cos²)): no tan, finite at grazing angles.
-        g1_o = 2.0 * cos_o * dr.rcp(cos_o + dr.sqrt(self.alpha2 + (1.0 - self.alpha2) * dr.square(cos_o)))
-        spec = dr.select(h.z > 0, d * fresnel_schlick(dr.dot(self.wi, h)) * g1_o * self.spec_scale, 0.0)
-        value = self.diffuse * (diffuse_transmission(cos_o) * cos_o) + spec
-        return dr.select(self.front & (cos_o > 0), value, 0.0)
+        diffuse, spec = self.eval_parts(wo)
+        return self.albedo * diffuse + spec
 
 
 def eval_cos(albedo, roughness, wi, wo):

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from gra_mi.errors import GraMiInputError
-from gra_mi.imageio import atomic_write_text, read_exr, write_exr, write_png
+from gra_mi.imageio import atomic_write_text, read_exr, read_json, write_exr, write_png
 
 logger = logging.getLogger(__name__)
 
@@ -157,12 +157,7 @@ class Capture:
     def load(cls, folder: str | Path) -> Capture:
         folder = Path(folder)
         path = folder / "capture.json"
-        if not path.is_file():
-            raise GraMiInputError(path, "file not found (make a capture with `gra-mi capture`)")
-        try:
-            data = json.loads(path.read_text())
-        except json.JSONDecodeError as exc:
-            raise GraMiInputError(path, f"malformed JSON ({exc})") from None
+        data = read_json(path, hint=" (make a capture with `gra-mi capture`)")
         if data.get("format") != CAPTURE_FORMAT:
             raise GraMiInputError(path, f"expected '{CAPTURE_FORMAT}', got {data.get('format')!r}", field="format")
         for key in ("train_cameras", "eval_cameras", "frames", "uv_resolution"):

@@ -41,6 +41,19 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
             tmp_path.unlink()
 
 
+def read_json(path: str | Path, hint: str = ""):
+    """Parse a JSON file; a missing or malformed file is a :class:`GraMiInputError` naming it."""
+    import json
+
+    path = Path(path)
+    if not path.is_file():
+        raise GraMiInputError(path, f"file not found{hint}")
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise GraMiInputError(path, f"malformed JSON ({exc})") from None
+
+
 def atomic_write_text(path: str | Path, text: str) -> None:
     with atomic_path(path) as tmp:
         tmp.write_text(text)

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from gra_mi.errors import GraMiInputError
-from gra_mi.imageio import atomic_write_text
+from gra_mi.imageio import atomic_write_text, read_json
 
 CALIBRATION_FORMAT = "gra-mi-lightstage/1"
 
@@ -238,10 +238,7 @@ def load_pattern(stage: Lightstage, path: str | Path) -> np.ndarray:
     if path.suffix == ".npy":
         data = np.load(path)
     else:
-        try:
-            raw = json.loads(path.read_text())
-        except json.JSONDecodeError as exc:
-            raise GraMiInputError(path, f"malformed JSON ({exc})") from None
+        raw = read_json(path)
         data = raw.get("intensities") if isinstance(raw, dict) else raw
         if data is None:
             raise GraMiInputError(path, "missing", field="intensities")
@@ -404,11 +401,4 @@ def lightstage_from_dict(data: dict, source: str = "<calibration>") -> Lightstag
 
 def load_calibration(path: str | Path) -> Lightstage:
     """Load and validate a lightstage calibration JSON file."""
-    path = Path(path)
-    if not path.is_file():
-        raise GraMiInputError(path, "file not found")
-    try:
-        data = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise GraMiInputError(path, f"malformed JSON ({exc})") from None
-    return lightstage_from_dict(data, source=str(path))
+    return lightstage_from_dict(read_json(path), source=str(path))
