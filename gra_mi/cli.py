@@ -188,6 +188,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=int, default=None, help="Frames to include as morph targets (default: all).")
     p.add_argument("--out", type=Path, required=True, help="The .glb file to write.")
 
+    # train-relightnet ---------------------------------------------------------------------------------------
+    p = sub.add_parser(
+        "train-relightnet", help="Train RelightNet on a capture and its fitted maps; validate on held-out cameras and envmaps."
+    )
+    p.add_argument("capture", type=Path, help="Capture folder.")
+    p.add_argument("--fit", type=Path, required=True, help="Fit folder with albedo.exr and roughness.exr (from `gra-mi fit`).")
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=Path("outputs/relightnet"),
+        help="Output folder: weights, logs, plots, validation; a checkpoint makes reruns resume. Default: outputs/relightnet.",
+    )
+    p.add_argument("--steps", type=int, default=400, help="Optimisation steps. Default: 400.")
+    p.add_argument("--lr", type=float, default=1e-3, help="Adam learning rate. Default: 1e-3.")
+    p.add_argument(
+        "--base-channels", type=int, default=16, help="UNet channels at full resolution (doubled per level, capped at 128). Default: 16."
+    )
+    p.add_argument("--checkpoint-every", type=int, default=50, help="Steps between checkpoints. Default: 50.")
+    _add_variant(p)
+
     # bench --------------------------------------------------------------------------------------------------
     p = sub.add_parser("bench", help="Speed against error of every approximation (report.md, CSV/JSON, Pareto plot).")
     p.add_argument("--quick", action="store_true", help="Small resolutions and fewer configurations: a few minutes on 2 cores (CI).")
@@ -488,6 +508,16 @@ def _cmd_export_gltf(args) -> None:
     print(f"wrote {path}")
 
 
+def _cmd_train_relightnet(args) -> None:
+    from gra_mi.relightnet_train import TrainConfig, train_relightnet
+
+    if args.steps < 1:
+        raise GraMiInputError("--steps", f"must be >= 1, got {args.steps}")
+    config = TrainConfig(steps=args.steps, lr=args.lr, checkpoint_every=args.checkpoint_every, base_channels=args.base_channels)
+    report = train_relightnet(args.capture, args.fit, args.out, config, args.variant)
+    print(f"done: open {report}")
+
+
 def _cmd_bench(args) -> None:
     from gra_mi.bench import run_bench
 
@@ -515,6 +545,7 @@ COMMANDS = {
     "fit": _cmd_fit,
     "edit-texture": _cmd_edit_texture,
     "export-gltf": _cmd_export_gltf,
+    "train-relightnet": _cmd_train_relightnet,
 }
 
 

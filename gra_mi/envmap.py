@@ -256,6 +256,16 @@ def envmap_to_leds(envmap: np.ndarray, stage: Lightstage, normalize: bool = True
     return LedLighting(drive=drive * scale, scale=scale)
 
 
+def leds_to_envmap(stage: Lightstage, intensities: np.ndarray, height: int = 16) -> np.ndarray:
+    """The lat-long envmap an LED pattern stands for, seen from the stage centre: each pixel takes its nearest
+    LED's radiant intensity spread over that LED's cell (radiance = I / (r² Ω_cell)). The inverse of
+    :func:`envmap_to_leds` up to the cells' resolution; it turns any lighting (OLAT, patterns, point-light
+    conditioning) into an envmap for the learned stages."""
+    cells = nearest_led(pixel_directions(height, 2 * height), stage.led_directions())
+    per_led = np.asarray(intensities, np.float64) / (stage.led_distances()[:, None] ** 2 * (4.0 * math.pi / stage.num_leds))
+    return per_led[cells].astype(np.float32)
+
+
 def envmap_irradiance(envmap: np.ndarray, normals: np.ndarray) -> np.ndarray:
     """Irradiance E(n) = ∫ L(ω) max(0, n·ω) dω at the stage centre for unit normals (N, 3) → (N, 3)."""
     h, w = envmap.shape[:2]

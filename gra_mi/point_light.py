@@ -135,9 +135,8 @@ def conditioning_pattern(stage, scene: mi.Scene, light: PointLight) -> np.ndarra
 
 
 def conditioning_envmap(stage, pattern: np.ndarray, height: int = 64) -> np.ndarray:
-    """A lat-long envmap whose every pixel takes the value of its LED's cell (radiance = value / cell solid angle)."""
-    from gra_mi.envmap import nearest_led, pixel_directions
+    """The conditioning as a lat-long envmap: every pixel takes its LED cell's value (``pattern`` is irradiance-like,
+    I/d², so it is spread over the cell's solid angle directly)."""
+    from gra_mi.envmap import leds_to_envmap
 
-    cells = nearest_led(pixel_directions(height, 2 * height), stage.led_directions())
-    cell_solid_angle = 4 * math.pi / stage.num_leds
-    return (pattern[cells] / cell_solid_angle).astype(np.float32)
+    return leds_to_envmap(stage, pattern * stage.led_distances()[:, None] ** 2, height)

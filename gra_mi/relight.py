@@ -99,6 +99,16 @@ class Relighter:
     def render(self, frame: int, camera: int | str, led_intensities: np.ndarray, point_light: PointLight | None = None) -> ViewRender:
         """One-bounce render of ``camera`` at ``frame``: LEDs of radiant intensity (L, 3), plus an optional
         near-field point light."""
+        shading, geom = self.shade(frame, camera, led_intensities, point_light)
+        if self.ls.frame != frame:
+            self.ls.set_frame(frame)
+        image = rasterize_to_camera(self.ls.scene, self.ls.stage.camera(camera), self.atlas.scatter(shading.radiance), self.atlas.mask)
+        return ViewRender(image, shading, geom)
+
+    def shade(
+        self, frame: int, camera: int | str, led_intensities: np.ndarray, point_light: PointLight | None = None
+    ) -> tuple[TexelShading, TexelGeometry]:
+        """The UV-space part of :meth:`render`: per-texel radiance toward the camera (no rasterisation)."""
         cam = self.ls.stage.camera(camera)
         # No LED on (e.g. a point light alone): nothing to trace for them.
         vis = self.visibility(frame) if np.max(led_intensities) > 0 else None
@@ -117,8 +127,7 @@ class Relighter:
             shading.diffuse_unit = shading.diffuse_unit + diffuse
             shading.specular = shading.specular + spec
             shading.radiance = self.albedo * shading.diffuse_unit + shading.specular
-        image = rasterize_to_camera(self.ls.scene, cam, self.atlas.scatter(shading.radiance), self.atlas.mask)
-        return ViewRender(image, shading, geom)
+        return shading, geom
 
     def texel_inputs(self, view: ViewRender) -> dict[str, np.ndarray]:
         """The later RelightNet inputs as (R, R, C) textures: normal, position, view direction, mask."""
