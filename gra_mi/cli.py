@@ -206,6 +206,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--base-channels", type=int, default=16, help="UNet channels at full resolution (doubled per level, capped at 128). Default: 16."
     )
     p.add_argument("--checkpoint-every", type=int, default=50, help="Steps between checkpoints. Default: 50.")
+    p.add_argument(
+        "--max-train-views", type=int, default=None, help="Train on the first N training views only (an overfitting check). Default: all."
+    )
     _add_variant(p)
 
     # bench --------------------------------------------------------------------------------------------------
@@ -229,6 +232,18 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         metavar="X,Y,Z",
         help="A near-field point light at X,Y,Z metres (LEDs off); also writes its envmap conditioning.",
+    )
+    p.add_argument(
+        "--stage",
+        choices=["microfacet", "relightnet"],
+        default="microfacet",
+        help="microfacet: the one-bounce render; relightnet: passed through a trained RelightNet (needs --relightnet).",
+    )
+    p.add_argument(
+        "--relightnet",
+        type=Path,
+        default=None,
+        help="Folder with relightnet.safetensors + relightnet.json (from `gra-mi train-relightnet`).",
     )
     p.add_argument("--point-light-intensity", type=float, default=2.0, help="Radiant intensity of the point light in W/sr. Default: 2.")
     p.add_argument(
@@ -427,13 +442,35 @@ def _cmd_relight(args) -> None:
     for path in args.pattern:
         lights[path.stem] = (load_pattern(stage, path) * stage.gains, 1.0)
 
+    model = None
+    if args.stage == "relightnet":
+        if args.relightnet is None:
+            raise GraMiInputError("--relightnet", "--stage relightnet needs the folder of a trained RelightNet")
+        from gra_mi.relightnet import RelightNet
+        from gra_mi.variant import torch_device
+
+        model = RelightNet.load(args.relightnet, torch_device())
+        if albedo is not None and albedo.shape[0] != model.config.resolution:
+            raise GraMiInputError(args.albedo, f"RelightNet runs at {model.config.resolution}², the albedo is {albedo.shape[0]}²")
+        args.uv_resolution = model.config.resolution
     relighter = Relighter(ls, args.uv_resolution, albedo, roughness, args.far_field, args.vis_cache)
     videos: dict[tuple[str, str], list] = {}
     exposures: dict[tuple[str, str], float] = {}
     jobs = [(f, light, cam) for f in frames for light in lights for cam in cameras]  # frame-major: one trace per frame
     for frame, light, cam in progress(jobs, description="relight"):
         intensities, scale = lights[light]
-        view = relighter.render(frame, cam.name, intensities, point_light if light == "point_light" else None)
+        light_source = point_light if light == "point_light" else None
+        if model is None:
+            view = relighter.render(frame, cam.name, intensities, light_source)
+        else:
+            from gra_mi.relight import ViewRender
+            from gra_mi.relightnet_train import relightnet_texture
+            from gra_mi.uvspace import rasterize_to_camera
+
+            texture, shading = relightnet_texture(model, relighter, frame, cam.name, intensities, light_source)
+            image = rasterize_to_camera(ls.scene, cam, texture, relighter.atlas.mask)
+            shading.radiance = relighter.atlas.gather(texture)
+            view = ViewRender(image, shading, relighter.geometry(frame))
         folder = args.out / light / cam.name
         write_exr(folder / f"frame_{frame:04d}.exr", view.image)
         shown = view.image[..., :3]
@@ -513,7 +550,13 @@ def _cmd_train_relightnet(args) -> None:
 
     if args.steps < 1:
         raise GraMiInputError("--steps", f"must be >= 1, got {args.steps}")
-    config = TrainConfig(steps=args.steps, lr=args.lr, checkpoint_every=args.checkpoint_every, base_channels=args.base_channels)
+    config = TrainConfig(
+        steps=args.steps,
+        lr=args.lr,
+        checkpoint_every=args.checkpoint_every,
+        base_channels=args.base_channels,
+        max_train_views=args.max_train_views,
+    )
     report = train_relightnet(args.capture, args.fit, args.out, config, args.variant)
     print(f"done: open {report}")
 

@@ -41,6 +41,8 @@ class TrainConfig:
     seed: int = 0
     base_channels: int = 16
     env_height: int = 16
+    max_train_views: int | None = None
+    """Use only the first N training views (an overfitting check, or a quick look)."""
 
 
 @dataclass
@@ -158,6 +160,8 @@ def train_relightnet(
     train = [s for s in samples if s.split == "train"]
     if not train:
         raise GraMiInputError(capture.folder / "capture.json", "no training views")
+    if config.max_train_views:
+        train = train[: config.max_train_views]
     mine = train[rank::world]  # each process its share
 
     net_config = RelightNetConfig(resolution=albedo.shape[0], base_channels=config.base_channels, env_height=config.env_height)
@@ -175,6 +179,7 @@ def train_relightnet(
     rng = np.random.default_rng(config.seed + rank)
     order = rng.permutation(len(mine))
     t0 = time.perf_counter()
+    window: list[float] = []  # losses since the last log row: the log keeps their mean (one view per step is noisy)
 
     def save_checkpoint(step: int) -> None:
         if rank != 0:
@@ -194,8 +199,10 @@ def train_relightnet(
         loss = masked_l1(sample_texture(texture, s.grid), s.target, s.pixels)
         loss.backward()
         optimizer.step()
-        if (step + 1) % config.log_every == 0 or step == start_step:
-            log_rows.append((step + 1, float(loss.detach()), time.perf_counter() - t0))
+        window.append(float(loss.detach()))
+        if (step + 1) % config.log_every == 0 or step + 1 == config.steps:
+            log_rows.append((step + 1, float(np.mean(window)), time.perf_counter() - t0))
+            window = []
         if (step + 1) % config.checkpoint_every == 0:
             save_checkpoint(step + 1)
     save_checkpoint(config.steps)
@@ -270,10 +277,10 @@ def validate(model: RelightNet, samples: list[Sample], out: Path) -> dict:
     return summary
 
 
-def relightnet_texture(model: RelightNet, relighter, frame: int, camera: str, intensities: np.ndarray, point_light=None) -> np.ndarray:
-    """Inference: RelightNet's UV texture (R, R, 3) for one view."""
+def relightnet_texture(model: RelightNet, relighter, frame: int, camera: str, intensities: np.ndarray, point_light=None):
+    """Inference: RelightNet's UV texture (R, R, 3) for one view, and the one-bounce shading it started from."""
     device = next(model.parameters()).device
-    features, mask, env, _ = view_inputs(relighter, frame, camera, intensities, model.config.env_height, str(device), point_light)
+    features, mask, env, shading = view_inputs(relighter, frame, camera, intensities, model.config.env_height, str(device), point_light)
     with torch.no_grad():
         texture = model(features, env, mask)
-    return texture[0].permute(1, 2, 0).cpu().numpy()
+    return texture[0].permute(1, 2, 0).cpu().numpy(), shading
