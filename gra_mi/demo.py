@@ -2,8 +2,9 @@
 
 Stages: synthetic lightstage capture (path-traced ground truth under interleaved uniform and envmap lighting) →
 envmap→LED energy check → material fit (per-texel albedo and roughness) → coarse one-bounce relighting with the
-fitted maps under held-out envmaps and from held-out cameras, against the ground truth → a near-field point light
-→ glTF export → plots, MP4 and report.md. Later stages (RelightNet, video refiner) are listed as not built yet.
+fitted maps under held-out envmaps and from held-out cameras, against the ground truth → RelightNet training and
+its ablation → a near-field point light → glTF export → plots, MP4 and report.md. The video refiner is listed as
+not built yet.
 
 Finished files are kept: rerunning after an interruption resumes (capture images, fit checkpoint, renders).
 """
@@ -30,12 +31,13 @@ class DemoPreset:
     capture: str  # capture preset
     renderer: str  # ground truth renderer of the capture
     roughness_candidates: int
-    stages_not_built: list[str] = field(default_factory=lambda: ["RelightNet (issue 6)", "video refiner (issue 7)"])
+    relightnet_steps: int
+    stages_not_built: list[str] = field(default_factory=lambda: ["video refiner (issue 7)"])
 
 
 PRESETS = {
-    "tiny": DemoPreset("tiny", "tiny", "onebounce", 5),
-    "small": DemoPreset("small", "small", "path", 11),
+    "tiny": DemoPreset("tiny", "tiny", "onebounce", 5, 20),
+    "small": DemoPreset("small", "small", "path", 11, 300),
 }
 
 
@@ -188,6 +190,13 @@ def run_demo(preset_name: str, out: Path, variant: str | None = None) -> Path:
         fit_result, fit_report = run_fit(capture.folder, out / "fit", FitConfig(roughness_candidates=preset.roughness_candidates), variant)
     fit_metrics = json.loads((out / "fit" / "fit.json").read_text())["metrics"]
 
+    # 3b. RelightNet on the capture and the fitted maps ---------------------------------------------------
+    from gra_mi.relightnet_train import TrainConfig, train_relightnet
+
+    with _timed(timings, f"RelightNet training ({preset.relightnet_steps} steps) + validation"):
+        train_relightnet(capture.folder, out / "fit", out / "relightnet", TrainConfig(steps=preset.relightnet_steps), variant)
+    relightnet_summary = json.loads((out / "relightnet" / "validation.json").read_text())
+
     # 4. Relight with the fitted maps: held-out lighting and held-out cameras vs ground truth -----------------
     relighter = Relighter(ls, albedo=fit_result.albedo, roughness=fit_result.roughness, cache_dir=out / "cache" / "visibility")
     test_frames = [f for f in capture.frames if f.split == "test"]
@@ -241,11 +250,13 @@ def run_demo(preset_name: str, out: Path, variant: str | None = None) -> Path:
         export_glb(out / "avatar.glb", ls.sequence, fit_result.albedo, fit_result.roughness)
 
     report = out / "report.md"
-    atomic_write_text(report, _report(preset, chosen, capture, ls, energy, timings, fit_metrics, metrics, video_path, out))
+    atomic_write_text(
+        report, _report(preset, chosen, capture, ls, energy, timings, fit_metrics, metrics, relightnet_summary, video_path, out)
+    )
     return report
 
 
-def _report(preset, variant, capture, ls, energy, timings, fit_metrics, metrics, video_path, out) -> str:
+def _report(preset, variant, capture, ls, energy, timings, fit_metrics, metrics, relightnet_summary, video_path, out) -> str:
     stage = ls.stage
     lines = [
         f"# gra-mi demo — preset `{preset.name}`",
@@ -286,6 +297,18 @@ def _report(preset, variant, capture, ls, energy, timings, fit_metrics, metrics,
         "(training camera, then held-out camera), composited over the background plate.",
         "",
         "![truth vs relit](contact_truth_vs_relit.png)",
+        "",
+        "## RelightNet (ablation: microfacet only vs + RelightNet)",
+        "",
+        "| split | views | microfacet PSNR | microfacet SSIM | + RelightNet PSNR | + RelightNet SSIM |",
+        "|---|---|---|---|---|---|",
+        *[
+            f"| {split} | {m['microfacet']['views']} | {m['microfacet']['psnr']:.2f} | {m['microfacet']['ssim']:.4f} | "
+            f"{m['relightnet']['psnr']:.2f} | {m['relightnet']['ssim']:.4f} |"
+            for split, m in relightnet_summary.items()
+        ],
+        "",
+        "Held-out views — ground truth | microfacet | RelightNet: ![grid](relightnet/grid.png)",
         "",
         "## Near-field point light",
         "",

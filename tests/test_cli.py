@@ -131,7 +131,7 @@ def test_demo_tiny_runs_end_to_end(tmp_path):
     out = run_cli("demo", "--preset", "tiny", "--out", str(tmp_path / "demo"))
     assert out.returncode == 0, out.stderr
     report = (tmp_path / "demo" / "report.md").read_text()
-    for needle in ("## Material fit", "held-out camera", "Envmap → LED energy check", "not built yet", "Near-field"):
+    for needle in ("## Material fit", "held-out camera", "Envmap → LED energy check", "not built yet", "Near-field", "+ RelightNet PSNR"):
         assert needle in report, needle
     for rel in (
         "capture/scene.xml",
