@@ -64,11 +64,12 @@ def view_inputs(relighter, frame: int, camera: str, intensities: np.ndarray, env
     from gra_mi.uvspace import TexelGeometry
 
     stage = relighter.ls.stage
-    shading, _ = relighter.shade(frame, camera, intensities, point_light)
+    shading, geom = relighter.shade(frame, camera, intensities, point_light)
     seq = relighter.ls.sequence
-    normals = [
+    normals = [np.array(geom.normal).T]  # frame t: already interpolated for the shading
+    normals += [
         np.array(TexelGeometry.from_frame(relighter.atlas, seq.vertices[max(frame - k, 0)], seq.normals[max(frame - k, 0)]).normal).T
-        for k in range(NUM_NORMAL_FRAMES)
+        for k in range(1, NUM_NORMAL_FRAMES)
     ]
     features, mask = uv_features(relighter.atlas, shading.radiance, normals, shading.view_dir, device)
     lights = intensities
