@@ -211,6 +211,95 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _add_variant(p)
 
+    # video refiner ------------------------------------------------------------------------------------------
+    p = sub.add_parser(
+        "refiner-data",
+        help="Build the video refiner's sequences (coarse render, ground truth, camera-space envmaps, reference) from a capture, or synthetic ones.",
+    )
+    p.add_argument("capture", type=Path, nargs="?", default=None, help="Capture folder (omit with --synthetic).")
+    p.add_argument("--fit", type=Path, default=None, help="Fit folder with albedo.exr and roughness.exr (from `gra-mi fit`).")
+    p.add_argument(
+        "--relightnet",
+        type=Path,
+        default=None,
+        help="Trained RelightNet folder: coarse frames are its renders. Default: the microfacet render.",
+    )
+    p.add_argument("--out", type=Path, required=True, help="Output folder (dataset.json + sequences/).")
+    p.add_argument("--scale", type=float, default=0.5, help="Image scale before padding to multiples of 16. Default: 0.5.")
+    p.add_argument("--env-height", type=int, default=16, help="Camera-space envmap height (width = 2x). Default: 16.")
+    p.add_argument("--train-length", type=int, default=24, help="Frames per training sequence (looping clips repeat). Default: 24.")
+    p.add_argument("--test-length", type=int, default=41, help="Frames per test sequence (41 = three 17-frame windows). Default: 41.")
+    p.add_argument(
+        "--synthetic",
+        action="store_true",
+        help="Synthetic sequences instead (a textured ball under a new light each frame): fast, for tests and trials.",
+    )
+    p.add_argument("--subjects", type=int, default=1, help="--synthetic: number of subjects. Default: 1.")
+    p.add_argument("--sequences", type=int, default=8, help="--synthetic: training sequences per subject. Default: 8.")
+    p.add_argument("--resolution", type=int, default=64, help="--synthetic: frame height and width (multiple of 16). Default: 64.")
+    _add_variant(p)
+
+    p = sub.add_parser(
+        "train-refiner",
+        help="Train the video refiner (WAN2.1-VACE + LoRA + atemporal envmap attention, flow matching with error recycling).",
+    )
+    p.add_argument("data", type=Path, help="Refiner dataset folder (from `gra-mi refiner-data`).")
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=Path("outputs/refiner"),
+        help="Output folder: weights, logs, loss plot; a checkpoint makes reruns resume.",
+    )
+    p.add_argument(
+        "--size", choices=["tiny", "1.3B", "14B"], default="tiny", help="Model size. tiny: random weights, CPU. Real sizes need --weights."
+    )
+    p.add_argument(
+        "--weights",
+        type=Path,
+        default=None,
+        help="Real sizes: local diffusers WAN2.1-VACE folder, or original-format transformer checkpoint.",
+    )
+    p.add_argument(
+        "--vae-weights", type=Path, default=None, help="With an original-format checkpoint: the Wan2.1 VAE checkpoint (Wan2.1_VAE.pth)."
+    )
+    p.add_argument(
+        "--prompt-embeds", type=Path, default=None, help="Real sizes: cached umT5 prompt embedding (from `gra-mi refiner-prompt`)."
+    )
+    p.add_argument(
+        "--dtype", choices=["float32", "bfloat16"], default="float32", help="Transformer dtype (the VAE stays float32). Default: float32."
+    )
+    p.add_argument(
+        "--init", type=Path, default=None, help="Start from a trained refiner (few-shot identity adaptation on a new subject's clips)."
+    )
+    p.add_argument("--lora-rank", type=int, default=32, help="LoRA rank on the main DiT blocks. Default: 32.")
+    p.add_argument(
+        "--env-blocks",
+        default="all",
+        help="Main blocks followed by atemporal envmap attention: 'all', 'none' or a comma list. Default: all.",
+    )
+    p.add_argument("--steps", type=int, default=200, help="Optimisation steps. Default: 200.")
+    p.add_argument("--lr", type=float, default=1e-3, help="AdamW learning rate. Default: 1e-3.")
+    p.add_argument("--grad-accumulation", type=int, default=1, help="Windows per optimisation step. Default: 1.")
+    p.add_argument("--no-error-recycling", action="store_true", help="Plain flow matching (an ablation).")
+    p.add_argument("--bank-per-level", type=int, default=32, help="Error-bank residuals kept per noise level (memory bound). Default: 32.")
+    p.add_argument("--checkpoint-every", type=int, default=50, help="Steps between checkpoints. Default: 50.")
+    p.add_argument("--seed", type=int, default=0, help="Random seed. Default: 0.")
+
+    p = sub.add_parser("refine", help="Refine a sequence of any length with rolling 17-frame windows: EXR/PNG frames, MP4s, refine.json.")
+    p.add_argument("data", type=Path, help="Refiner dataset folder holding the sequence.")
+    p.add_argument("--model", type=Path, required=True, help="Trained refiner folder (from `gra-mi train-refiner`).")
+    p.add_argument("--sequence", default=None, help="Sequence name (default: the first test sequence).")
+    p.add_argument("--out", type=Path, default=Path("outputs/refined"), help="Output folder. Default: outputs/refined.")
+    p.add_argument("--steps", type=int, default=20, help="Euler steps per window. Default: 20.")
+    p.add_argument("--shift", type=float, default=3.0, help="Wan time shift of the sampling schedule (1 = none). Default: 3.0.")
+    p.add_argument("--seed", type=int, default=0, help="Seed of the first window (each window uses seed + its index). Default: 0.")
+    p.add_argument("--frames", type=int, default=None, help="Refine only the first N frames. Default: all.")
+
+    p = sub.add_parser("refiner-prompt", help="Cache the umT5 prompt embedding of a local WAN2.1 pipeline once (real sizes).")
+    p.add_argument("--pipeline", type=Path, required=True, help="Local diffusers WAN2.1(-VACE) folder with tokenizer/ and text_encoder/.")
+    p.add_argument("--prompt", default="a person, photorealistic, studio lighting", help="The fixed prompt.")
+    p.add_argument("--out", type=Path, required=True, help="The .safetensors file to write.")
+
     # bench --------------------------------------------------------------------------------------------------
     p = sub.add_parser("bench", help="Speed against error of every approximation (report.md, CSV/JSON, Pareto plot).")
     p.add_argument("--quick", action="store_true", help="Small resolutions and fewer configurations: a few minutes on 2 cores (CI).")
@@ -561,6 +650,103 @@ def _cmd_train_relightnet(args) -> None:
     print(f"done: open {report}")
 
 
+def _parse_blocks(text: str) -> list[int] | None:
+    if text == "all":
+        return None
+    if text == "none":
+        return []
+    try:
+        return [int(b) for b in text.split(",") if b.strip()]
+    except ValueError:
+        raise GraMiInputError("--env-blocks", f"expected 'all', 'none' or a comma list of block indices, got '{text}'") from None
+
+
+def _cmd_refiner_data(args) -> None:
+    if args.synthetic:
+        from gra_mi.refiner_data import synthetic_dataset
+
+        if args.resolution % 16:
+            raise GraMiInputError("--resolution", f"must be a multiple of 16, got {args.resolution}")
+        ds = synthetic_dataset(
+            args.out,
+            {s: (args.sequences, 1) for s in range(args.subjects)},
+            17,
+            args.resolution,
+            args.resolution,
+            args.env_height,
+            args.test_length,
+        )
+    else:
+        from gra_mi.refiner_data import dataset_from_capture
+
+        if args.capture is None or args.fit is None:
+            raise GraMiInputError("refiner-data", "give a capture folder and --fit (or --synthetic)")
+        ds = dataset_from_capture(
+            args.capture,
+            args.fit,
+            args.out,
+            args.relightnet,
+            args.scale,
+            args.env_height,
+            args.train_length,
+            args.test_length,
+            args.variant,
+        )
+    print(f"wrote {len(ds.sequences)} sequences ({ds.height}x{ds.width}) to {ds.folder}")
+
+
+def _cmd_train_refiner(args) -> None:
+    from gra_mi.refiner_model import RefinerConfig
+    from gra_mi.refiner_train import RefinerTrainConfig, train_refiner
+
+    if args.steps < 1:
+        raise GraMiInputError("--steps", f"must be >= 1, got {args.steps}")
+    model_config = RefinerConfig(
+        size=args.size,
+        weights=str(args.weights) if args.weights else None,
+        vae_weights=str(args.vae_weights) if args.vae_weights else None,
+        prompt_embeds=str(args.prompt_embeds) if args.prompt_embeds else None,
+        lora_rank=args.lora_rank,
+        env_blocks=_parse_blocks(args.env_blocks),
+        dtype=args.dtype,
+        seed=args.seed,
+    )
+    config = RefinerTrainConfig(
+        steps=args.steps,
+        lr=args.lr,
+        grad_accumulation=args.grad_accumulation,
+        error_recycling=not args.no_error_recycling,
+        bank_per_level=args.bank_per_level,
+        checkpoint_every=args.checkpoint_every,
+        seed=args.seed,
+    )
+    out = train_refiner(args.data, args.out, config, model_config, args.init)
+    print(f"done: weights and logs in {out}")
+
+
+def _cmd_refine(args) -> None:
+    from gra_mi.refiner_data import RefinerDataset
+    from gra_mi.refiner_infer import refine_to_folder
+
+    if args.steps < 1:
+        raise GraMiInputError("--steps", f"must be >= 1, got {args.steps}")
+    sequence = args.sequence
+    if sequence is None:
+        names = RefinerDataset(args.data).names("test") or RefinerDataset(args.data).names()
+        sequence = names[0]
+    summary = refine_to_folder(args.model, args.data, sequence, args.out, args.steps, args.shift, args.seed, args.frames)
+    print(
+        f"refined {summary['frames']} frames in {summary['windows']} windows ({summary['frames_per_second']:.2f} frames/s) into {args.out}"
+    )
+
+
+def _cmd_refiner_prompt(args) -> None:
+    from gra_mi.refiner_model import cache_prompt_embedding
+
+    path = cache_prompt_embedding(args.pipeline, args.prompt, args.out)
+    print(f"wrote {path}")
+
+
 def _cmd_bench(args) -> None:
     from gra_mi.bench import run_bench
 
@@ -589,6 +775,10 @@ COMMANDS = {
     "edit-texture": _cmd_edit_texture,
     "export-gltf": _cmd_export_gltf,
     "train-relightnet": _cmd_train_relightnet,
+    "refiner-data": _cmd_refiner_data,
+    "train-refiner": _cmd_train_refiner,
+    "refine": _cmd_refine,
+    "refiner-prompt": _cmd_refiner_prompt,
 }
 
 

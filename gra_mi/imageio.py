@@ -156,3 +156,26 @@ def write_mp4(path: str | Path, frames: Sequence[np.ndarray], fps: float = 24.0,
                 writer.append_data(rgb)
         finally:
             writer.close()
+
+
+class Mp4Stream:
+    """An MP4 written frame by frame (long videos never sit in memory); renamed into place on a clean close."""
+
+    def __init__(self, path: str | Path, fps: float = 24.0):
+        import imageio.v2 as iio2
+
+        self._atomic = atomic_path(path)
+        self._tmp = self._atomic.__enter__()
+        self._writer = iio2.get_writer(str(self._tmp), format="FFMPEG", fps=fps, codec="libx264", macro_block_size=1)
+
+    def append(self, frame: np.ndarray, exposure: float = 1.0) -> None:
+        rgb = to_srgb8(frame, exposure)[..., :3]
+        h, w = rgb.shape[:2]
+        self._writer.append_data(np.pad(rgb, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge"))
+
+    def __enter__(self) -> Mp4Stream:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._writer.close()
+        self._atomic.__exit__(*exc)

@@ -1,0 +1,178 @@
+"""Refining a sequence of any length (``gra-mi refine``; paper Sec. 3.3 "Error Recycling" and the 509-frame rollouts).
+
+Each window of ``window`` (17) frames is sampled from noise with an Euler ODE solver (``steps`` steps, Wan's time
+shift ``shift``) and a new seed per window. The first window refines all its frames; every later window starts
+``window − handoff`` frames further on, and its first ``handoff`` (5) frames are the previous window's decoded
+output, re-encoded as inactive (mask 0) VACE frames — the seed frames the refiner was trained to continue. Only one
+window is in memory at a time (input frames are read lazily, output frames are written as they come), so memory
+stays flat with length. The VAE runs in float32 for the hand-off (colour drift at joins comes from its round trip).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import resource
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from gra_mi.errors import GraMiInputError
+from gra_mi.refiner_data import RefinerDataset, video_to_image
+from gra_mi.refiner_model import VideoRefiner, sampling_sigmas
+from gra_mi.refiner_train import conditioning, env_tokens_from_latents, seed_mask
+
+logger = logging.getLogger(__name__)
+
+
+@torch.no_grad()
+def euler_sample(model: VideoRefiner, shape, control, env, steps: int, shift: float, generator: torch.Generator) -> torch.Tensor:
+    """Integrate dx/dσ = v(x, σ) from σ = 1 (noise) to 0 with Euler steps (as FlowMatchEulerDiscreteScheduler)."""
+    sigmas = sampling_sigmas(steps, shift).to(torch.float32)
+    x = torch.randn(shape, generator=generator).to(model.device)
+    for i in range(steps):
+        v = model(x, sigmas[i : i + 1].to(model.device), control, env)
+        x = x + (sigmas[i + 1] - sigmas[i]) * v
+    return x
+
+
+def window_starts(frames: int, window: int, handoff: int) -> list[int]:
+    """Start frame of each window: 0, then every ``window − handoff`` frames until the sequence is covered."""
+    stride = window - handoff
+    starts = [0]
+    while starts[-1] + window < frames:
+        starts.append(starts[-1] + stride)
+    return starts
+
+
+@dataclass
+class RefinedFrame:
+    index: int
+    video: torch.Tensor  # (3, H, W) in [-1, 1]
+    window: int
+
+
+@torch.no_grad()
+def rollout(
+    model: VideoRefiner,
+    dataset: RefinerDataset,
+    sequence: str,
+    steps: int = 20,
+    shift: float = 3.0,
+    seed: int = 0,
+    frames: int | None = None,
+) -> Iterator[RefinedFrame]:
+    """Yield the refined frames of ``sequence`` in order, window by window."""
+    info = dataset.sequences[sequence]
+    total = info.frames if frames is None else frames
+    if not 0 < total <= info.frames:
+        raise GraMiInputError("--frames", f"sequence '{sequence}' has {info.frames} frames, asked for {total}")
+    window, handoff = model.config.window, model.config.handoff
+    carried: torch.Tensor | None = None  # (3, handoff, H, W): the previous window's last frames
+    for k, start in enumerate(window_starts(total, window, handoff)):
+        win = {key: v.to(model.device) for key, v in dataset.window(sequence, start, window).items()}
+        coarse = win["coarse"]
+        seeded = 0
+        if carried is not None:
+            coarse = torch.cat([carried, coarse[:, handoff:]], dim=1)
+            seeded = handoff
+        _, t, h, w = coarse.shape
+        control, env_latents = conditioning(
+            model, coarse, seed_mask(t, h, w, seeded).to(model.device), win["reference"], win["env"], win["reference_env"]
+        )
+        env = env_tokens_from_latents(model, env_latents)
+        generator = torch.Generator().manual_seed(seed + k)  # a new seed per window
+        latents = euler_sample(model, (1, 16, *control.shape[2:]), control, env, steps, shift, generator)
+        video = model.decode(latents[:, :, 1:])[0]  # drop the reference frame
+        first = 0 if k == 0 else handoff
+        for i in range(first, t):
+            if start + i < total:
+                yield RefinedFrame(start + i, video[:, i].cpu(), k)
+        carried = video[:, t - handoff :]
+
+
+def _psnr(a: np.ndarray, b: np.ndarray) -> float:
+    mse = float(np.mean((a - b) ** 2))
+    return float("inf") if mse == 0 else 10 * np.log10(1.0 / mse)
+
+
+def refine_to_folder(
+    model_dir: str | Path,
+    dataset_dir: str | Path,
+    sequence: str,
+    out: str | Path,
+    steps: int = 20,
+    shift: float = 3.0,
+    seed: int = 0,
+    frames: int | None = None,
+    write_exr_frames: bool = True,
+) -> dict:
+    """Refine one sequence into ``out``: frames (EXR linear + PNG), refined.mp4, comparison.mp4, refine.json."""
+    from gra_mi.imageio import Mp4Stream, atomic_write_text, write_exr, write_png
+    from gra_mi.progress import progress
+    from gra_mi.variant import torch_device
+
+    out = Path(out)
+    dataset = RefinerDataset(dataset_dir)
+    if sequence not in dataset.sequences:
+        raise GraMiInputError("--sequence", f"no sequence '{sequence}' in {dataset.folder} (have {sorted(dataset.sequences)})")
+    model = VideoRefiner.load(model_dir).to(torch.device(torch_device())).eval()
+    info = dataset.sequences[sequence]
+    total = info.frames if frames is None else frames
+    ch, cw = dataset.crop
+    exposure = dataset.exposure
+    fps = float(dataset.meta.get("fps", 12))
+    rows, diffs, windows_seen, rss = [], [], [], []
+    previous = None
+    t0 = time.perf_counter()
+    with Mp4Stream(out / "refined.mp4", fps) as refined_mp4, Mp4Stream(out / "comparison.mp4", fps) as comparison_mp4:
+        for frame in progress(rollout(model, dataset, sequence, steps, shift, seed, total), description=f"refine {sequence}", total=total):
+            image = video_to_image(frame.video, exposure).permute(1, 2, 0).numpy()[:ch, :cw]
+            shown = ((frame.video.permute(1, 2, 0).numpy()[:ch, :cw] + 1) / 2).clip(0, 1)
+            coarse = dataset.linear_frames(sequence, "coarse", frame.index, frame.index + 1)[0].numpy()[:ch, :cw]
+            if write_exr_frames:
+                write_exr(out / "frames" / f"frame_{frame.index:04d}.exr", image)
+                write_png(out / "frames" / f"frame_{frame.index:04d}.png", image, exposure=exposure)
+            refined_mp4.append(image, exposure)
+            panels = [coarse, image]
+            row = {"frame": frame.index, "window": frame.window}
+            if info.has_target:
+                target = dataset.linear_frames(sequence, "target", frame.index, frame.index + 1)[0].numpy()[:ch, :cw]
+                panels.append(target)
+                tm = lambda x: np.clip(x * exposure, 0, 1)  # noqa: E731  compare in the exposed range the model sees
+                row["psnr_coarse"] = _psnr(tm(coarse), tm(target))
+                row["psnr_refined"] = _psnr(tm(image), tm(target))
+            comparison_mp4.append(np.concatenate(panels, axis=1), exposure)
+            if previous is not None:
+                diffs.append((frame.index, frame.window != windows_seen[-1], float(np.abs(shown - previous).mean())))
+            previous = shown
+            windows_seen.append(frame.window)
+            rows.append(row)
+            rss.append(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+    seconds = time.perf_counter() - t0
+    seam = [d for _, is_seam, d in diffs if is_seam]
+    inner = [d for _, is_seam, d in diffs if not is_seam]
+    summary = {
+        "sequence": sequence,
+        "frames": len(rows),
+        "windows": len(set(windows_seen)),
+        "steps": steps,
+        "shift": shift,
+        "seed": seed,
+        "seconds": seconds,
+        "frames_per_second": len(rows) / seconds,
+        "seam_jump": float(np.mean(seam)) if seam else None,
+        "inner_frame_change": float(np.median(inner)) if inner else None,
+        "peak_rss_mib": rss[-1] if rss else None,
+        "rss_mib_after_first_window": next((r for r, w in zip(rss, windows_seen, strict=True) if w > 0), None),
+    }
+    if info.has_target:
+        summary["psnr_coarse"] = float(np.mean([r["psnr_coarse"] for r in rows]))
+        summary["psnr_refined"] = float(np.mean([r["psnr_refined"] for r in rows]))
+    summary["per_frame"] = rows
+    atomic_write_text(out / "refine.json", json.dumps(summary, indent=1) + "\n")
+    return summary

@@ -1,0 +1,374 @@
+"""The video refiner: diffusers' WAN2.1-VACE + LoRA + atemporal envmap attention, training and rollouts (issue 7)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from gra_mi.errors import GraMiInputError
+from gra_mi.refiner_data import RefinerDataset, env_to_video, image_to_video, synthetic_dataset, video_to_image
+from gra_mi.refiner_model import (
+    TRANSFORMER_CONFIGS,
+    AtemporalCrossAttention,
+    RefinerConfig,
+    VideoRefiner,
+    noisy_latent,
+    recycling_residuals,
+    sampling_sigmas,
+    velocity_target,
+)
+from gra_mi.refiner_train import ErrorBank, RefinerTrainConfig, augment, pan_zoom, train_refiner, validation_loss
+
+torch.set_num_threads(2)
+
+
+def _inputs(model: VideoRefiner, frames: int = 17, size: int = 32, seeded: int = 0, seed: int = 0):
+    g = torch.Generator().manual_seed(seed)
+    video = torch.rand(1, 3, frames, size, size, generator=g) * 2 - 1
+    mask = torch.ones(1, 1, frames, size, size)
+    mask[:, :, :seeded] = 0
+    ref = torch.rand(1, 3, size, size, generator=g) * 2 - 1
+    control = model.control(video, mask, ref)
+    env = model.env_tokens(torch.rand(1, 3, frames, 16, 32, generator=g) * 2 - 1, torch.rand(1, 3, 16, 32, generator=g) * 2 - 1)
+    latents = torch.randn(1, 16, *control.shape[2:], generator=g)
+    return latents, control, env, (video, mask, ref)
+
+
+@pytest.fixture(scope="module")
+def model():
+    return VideoRefiner(RefinerConfig())
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Model structure
+# --------------------------------------------------------------------------------------------------------------
+
+
+def test_stock_equivalence_at_init(model):
+    """Zero-initialised envmap attention and LoRA: the refiner equals diffusers' stock transformer, bit for bit."""
+    from diffusers import WanVACETransformer3DModel
+
+    torch.manual_seed(model.config.seed)
+    stock = WanVACETransformer3DModel(**TRANSFORMER_CONFIGS["tiny"]).eval()  # same seed: the same random weights
+    latents, control, env, _ = _inputs(model)
+    sigma = torch.tensor([0.7])
+    with torch.no_grad():
+        ours = model(latents, sigma, control, env)
+        theirs = stock(latents, sigma * 1000, model.prompt_embeds, control_hidden_states=control, return_dict=False)[0]
+    assert torch.equal(ours, theirs)
+    # ...and the envmap really enters once the attention has weights
+    with torch.no_grad():
+        for attn in model.env_attention.values():
+            attn.to_out.weight.normal_(std=0.1)
+        changed = model(latents, sigma, control, env)
+        for attn in model.env_attention.values():
+            attn.to_out.weight.zero_()
+    assert (changed - ours).abs().max() > 1e-4
+
+
+def test_lora_and_trainable_parts(model):
+    names = {n for n, p in model.named_parameters() if p.requires_grad}
+    assert any(n.startswith("transformer.blocks.") and "lora_A" in n for n in names)
+    assert not any(n.startswith("transformer.vace_blocks.") and "lora_" in n for n in names), "LoRA must not wrap the VACE blocks"
+    assert any(n.startswith("transformer.vace_blocks.") for n in names), "the VACE adapter is fully trainable"
+    assert any(n.startswith("env_attention.") for n in names) and any(n.startswith("env_mlp.") for n in names)
+    frozen = {n for n, p in model.named_parameters() if not p.requires_grad}
+    assert any(n.endswith("attn1.to_q.base_layer.weight") for n in frozen), "the main DiT weights stay frozen"
+    assert not any(n.startswith("vae.") for n in names)
+    lora = [m for n, m in model.named_modules() if n.endswith("blocks.0.attn1.to_q")][0]
+    assert lora.r["default"] == 32
+
+
+def test_atemporal_attention_layer():
+    torch.manual_seed(0)
+    attn = AtemporalCrossAttention(24, 2)
+    torch.nn.init.normal_(attn.to_out.weight, std=0.2)
+    frames, n, m = 5, 6, 4
+    tokens = torch.randn(1, frames * n, 24)
+    env = torch.randn(1, frames, m, 24)
+    base = attn(tokens, env)
+    env2 = env.clone()
+    env2[:, 2] += torch.randn(m, 24)
+    diff = (attn(tokens, env2) - base).abs().view(frames, n, 24).amax(dim=(1, 2))
+    assert diff[2] > 1e-3
+    assert torch.all(diff[[0, 1, 3, 4]] == 0), diff
+
+
+def test_atemporal_in_the_model():
+    """With envmap attention after the last block only, a change of envmap latent frame k changes output frame k only."""
+    model = VideoRefiner(RefinerConfig(env_blocks=[3]))
+    with torch.no_grad():
+        model.env_attention["3"].to_out.weight.normal_(std=0.2)
+    latents, control, env, _ = _inputs(model)
+    with torch.no_grad():
+        base = model(latents, torch.tensor([0.5]), control, env)
+        env2 = env.clone()
+        env2[:, 3] += 1.0
+        out = model(latents, torch.tensor([0.5]), control, env2)
+    per_frame = (out - base).abs().amax(dim=(0, 1, 3, 4))
+    assert per_frame[3] > 1e-4
+    assert torch.all(per_frame[[0, 1, 2, 4, 5]] == 0), per_frame
+
+
+def test_control_and_mask_layout_match_diffusers_pipeline(model):
+    from diffusers import FlowMatchEulerDiscreteScheduler, WanVACEPipeline
+
+    pipe = WanVACEPipeline(
+        tokenizer=None, text_encoder=None, vae=model.vae, scheduler=FlowMatchEulerDiscreteScheduler(), transformer=model.transformer
+    )
+    for seeded in (0, 5):
+        _, control, _, (video, mask, ref) = _inputs(model, seeded=seeded, seed=seeded)
+        mask3 = mask.expand(1, 3, *mask.shape[2:])
+        expected = torch.cat(
+            [pipe.prepare_video_latents(video, mask3, [[ref[0]]], None, torch.device("cpu")), pipe.prepare_masks(mask3, [[ref[0]]])], dim=1
+        )
+        assert control.shape == expected.shape == (1, 96, 6, 4, 4)
+        torch.testing.assert_close(control, expected, atol=1e-5, rtol=1e-5)
+        # the reference is latent frame 0 with a zero mask; 5 seed frames leave one latent mask frame inactive (nearest-exact)
+        frame_mask = control[0, 32:].amax(dim=(0, 2, 3))
+        assert frame_mask.tolist() == ([0, 1, 1, 1, 1, 1] if seeded == 0 else [0, 0, 1, 1, 1, 1])
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Conventions
+# --------------------------------------------------------------------------------------------------------------
+
+
+def test_flow_sign_conventions():
+    g = torch.Generator().manual_seed(1)
+    z1, z0 = torch.randn(2, 3, generator=g), torch.randn(2, 3, generator=g)  # paper: z1 data, z0 noise
+    sigma = torch.tensor(0.3)
+    s = 1 - sigma
+    assert torch.allclose(noisy_latent(z1, z0, sigma), (1 - s) * z0 + s * z1)  # paper's linear path
+    assert torch.allclose(velocity_target(z1, z0), -(z1 - z0))  # Wan's v = ε − x₀ is minus the paper's target
+    # residuals: the paper's literal definitions (Eq. 13-14) equal the Wan-form shortcut
+    v_hat_wan = torch.randn(2, 3, generator=g)
+    z_s = noisy_latent(z1, z0, sigma)
+    v_rcy, v_hat = z1 - z0, -v_hat_wan
+    e0 = (z_s - s * v_hat) - (z_s - s * v_rcy)
+    e1 = (z_s + (1 - s) * v_hat) - (z_s + (1 - s) * v_rcy)
+    e_noise, e_data = recycling_residuals(v_hat_wan, velocity_target(z1, z0), sigma)
+    assert torch.allclose(e_noise, e0) and torch.allclose(e_data, e1)
+
+
+def test_euler_sampler_matches_diffusers_scheduler_and_reaches_the_data():
+    from diffusers import FlowMatchEulerDiscreteScheduler
+
+    from gra_mi.refiner_infer import euler_sample
+
+    for steps, shift in ((10, 1.0), (20, 3.0), (7, 5.0)):
+        sched = FlowMatchEulerDiscreteScheduler(num_train_timesteps=1000, shift=shift)
+        sched.set_timesteps(steps)
+        torch.testing.assert_close(sampling_sigmas(steps, shift).float(), sched.sigmas.float(), atol=1e-6, rtol=1e-6)
+
+    class Exact(torch.nn.Module):  # the exact velocity field of a single data point x₀: v = (x − x₀)/σ
+        def __init__(self, x0):
+            super().__init__()
+            self.x0 = x0
+
+        device = torch.device("cpu")
+
+        def __call__(self, x, sigma, control, env):
+            return (x - self.x0) / sigma
+
+    x0 = torch.randn(1, 16, 2, 2, 2)
+    out = euler_sample(Exact(x0), x0.shape, None, None, steps=8, shift=3.0, generator=torch.Generator().manual_seed(0))
+    torch.testing.assert_close(out, x0, atol=1e-5, rtol=1e-5)
+
+
+def test_tone_mapping_round_trip():
+    x = torch.linspace(0, 1.2, 50)
+    back = video_to_image(image_to_video(x, 1.0), 1.0)
+    torch.testing.assert_close(back[x <= 1], x[x <= 1], atol=1e-5, rtol=1e-4)
+    assert env_to_video(torch.tensor([0.0, 1e9]), 1.0).tolist() == [-1.0, 1.0]
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Training pieces
+# --------------------------------------------------------------------------------------------------------------
+
+
+def test_error_bank_bounds():
+    bank = ErrorBank(levels=5, per_level=3)
+    rng = np.random.default_rng(0)
+    shape = torch.Size([1, 16, 3, 4, 4])
+    for i in range(100):
+        bank.add(i % 5, torch.full(shape, float(i)), rng)
+    assert len(bank) == 15 and all(len(v) <= 3 for v in bank.entries.values())
+    assert bank.nbytes() <= bank.max_nbytes(shape) == 5 * 3 * int(np.prod(shape)) * 2
+    assert all(t.dtype == torch.float16 for v in bank.entries.values() for t in v)
+    only = ErrorBank(levels=50, per_level=2)
+    only.add(40, torch.ones(shape), rng)
+    assert torch.equal(only.sample(3, shape, rng), torch.ones(shape))  # the nearest filled level
+    assert only.sample(3, torch.Size([1, 16, 2, 4, 4]), rng) is None  # never a residual of another shape
+
+
+def test_augmentations():
+    rng = np.random.default_rng(0)
+    video = torch.rand(3, 9, 16, 16) * 2 - 1
+    torch.testing.assert_close(pan_zoom(video, 1.0, (0.0, 0.0)), video, atol=1e-5, rtol=0)
+    moved = pan_zoom(video, 1.2, (0.1, 0.0))
+    torch.testing.assert_close(moved[:, 0], video[:, 0], atol=1e-5, rtol=0)  # the move grows from the first frame
+    assert (moved[:, -1] - video[:, -1]).abs().mean() > 0.05
+    window = {
+        "coarse": video,
+        "target": video.clone(),
+        "env": torch.rand(3, 9, 4, 8),
+        "reference": video[:, 0],
+        "reference_env": torch.rand(3, 4, 8),
+    }
+    config = RefinerTrainConfig(static_clip_prob=1.0, static_motion_prob=1.0)
+    out, what = augment(window, config, rng)
+    assert what == "static+pan/zoom"
+    torch.testing.assert_close(out["coarse"], out["target"])  # the same move on input and ground truth
+    assert torch.equal(out["env"][:, 0], out["env"][:, -1])  # a static clip: one frame's lighting throughout
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Training, adaptation and rollouts on synthetic clips
+# --------------------------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    root = tmp_path_factory.mktemp("refiner")
+    data = synthetic_dataset(root / "data", {0: (3, 1), 1: (10, 0)}, frames=17, height=32, width=32, env_height=16, test_frames=41)
+    only_a = root / "data_a"
+    meta = json.loads((root / "data" / "dataset.json").read_text())
+    meta_a = dict(meta, sequences=[s for s in meta["sequences"] if s["subject"] == "synthetic0"])
+    meta_b = dict(meta, sequences=[s for s in meta["sequences"] if s["subject"] == "synthetic1"])
+    for folder, m in ((only_a, meta_a), (root / "data_b", meta_b)):
+        folder.mkdir()
+        (folder / "sequences").symlink_to(root / "data" / "sequences")
+        (folder / "dataset.json").write_text(json.dumps(m))
+    start = validation_loss(VideoRefiner(RefinerConfig()), RefinerDataset(only_a))
+    config = RefinerTrainConfig(steps=150, lr=3e-3, checkpoint_every=1000, log_every=25)
+    train_refiner(only_a, root / "model", config)
+    return {"root": root, "data": data, "a": RefinerDataset(only_a), "b": RefinerDataset(root / "data_b"), "start": start}
+
+
+def test_tiny_model_overfits_a_tiny_clip_set(trained):
+    model = VideoRefiner.load(trained["root"] / "model")
+    end = validation_loss(model, trained["a"])
+    assert end < 0.6 * trained["start"], (trained["start"], end)
+    summary = json.loads((trained["root"] / "model" / "train.json").read_text())
+    bank = summary["error_bank"]
+    assert 0 < bank["residuals"] <= 2 * 50 * 32  # both banks, bounded by levels × per level
+    assert (trained["root"] / "model" / "loss.png").is_file()
+
+
+def test_rollout_of_three_windows(trained):
+    from gra_mi.refiner_infer import refine_to_folder, rollout, window_starts
+
+    assert window_starts(41, 17, 5) == [0, 12, 24]
+    assert window_starts(17, 17, 5) == [0]
+    model = VideoRefiner.load(trained["root"] / "model")
+    frames = list(rollout(model, trained["a"], "s0_test00", steps=4, frames=30))  # the last window is padded, then cut
+    assert [f.index for f in frames] == list(range(30)) and [f.window for f in frames][-1] == 2
+    out = trained["root"] / "refined"
+    summary = refine_to_folder(trained["root"] / "model", trained["root"] / "data_a", "s0_test00", out, steps=6)
+    assert summary["frames"] == 41 and summary["windows"] == 3
+    assert len(list((out / "frames").glob("*.exr"))) == 41 and (out / "refined.mp4").stat().st_size > 0
+    # continuous seams: the jump into a new window is like an ordinary frame-to-frame change
+    assert summary["seam_jump"] < 2.0 * summary["inner_frame_change"] + 0.01, summary
+    assert summary["psnr_refined"] > 15.0
+
+
+def test_handoff_frames_are_the_previous_windows_output(trained, monkeypatch):
+    import gra_mi.refiner_infer as infer
+
+    model = VideoRefiner.load(trained["root"] / "model")
+    seen = []
+    real = infer.conditioning
+
+    def spy(model, coarse, mask, *rest):
+        seen.append((coarse.clone(), mask.clone()))
+        return real(model, coarse, mask, *rest)
+
+    monkeypatch.setattr(infer, "conditioning", spy)
+    frames = list(infer.rollout(model, trained["a"], "s0_test00", steps=2, frames=29))
+    assert len(seen) == 2
+    second_coarse, second_mask = seen[1]
+    handed = torch.stack([f.video for f in frames[12:17]], dim=1)
+    torch.testing.assert_close(second_coarse[:, :5], handed)
+    assert second_mask[0, 0, :5].max() == 0 and second_mask[0, 0, 5:].min() == 1
+
+
+def test_few_shot_identity_adaptation(trained):
+    """A refiner trained on subject A, fine-tuned on ten 17-frame clips of subject B, fits B better than before."""
+    before = validation_loss(VideoRefiner.load(trained["root"] / "model"), trained["b"])
+    train_refiner(
+        trained["root"] / "data_b",
+        trained["root"] / "adapted",
+        RefinerTrainConfig(steps=60, lr=3e-3, checkpoint_every=1000),
+        init=trained["root"] / "model",
+    )
+    after = validation_loss(VideoRefiner.load(trained["root"] / "adapted"), trained["b"])
+    assert after < 0.9 * before, (before, after)
+
+
+def test_resume_equals_an_uninterrupted_run(tmp_path):
+    data = synthetic_dataset(tmp_path / "data", {0: (2, 0)}, frames=17, height=32, width=32)
+    config = dict(lr=3e-3, checkpoint_every=3, log_every=1, static_clip_prob=0.5)
+    train_refiner(data.folder, tmp_path / "straight", RefinerTrainConfig(steps=6, **config))
+    train_refiner(data.folder, tmp_path / "resumed", RefinerTrainConfig(steps=3, **config))  # "interrupted" after 3
+    train_refiner(data.folder, tmp_path / "resumed", RefinerTrainConfig(steps=6, **config))
+    a = VideoRefiner.load(tmp_path / "straight").trainable_state()
+    b = VideoRefiner.load(tmp_path / "resumed").trainable_state()
+    for name in a:
+        torch.testing.assert_close(a[name], b[name], atol=1e-6, rtol=1e-5)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Real sizes and inputs
+# --------------------------------------------------------------------------------------------------------------
+
+
+def test_real_sizes_need_weights_on_disk(tmp_path):
+    with pytest.raises(GraMiInputError, match="weights on disk"):
+        VideoRefiner(RefinerConfig(size="1.3B"))
+    with pytest.raises(GraMiInputError, match="not found"):
+        VideoRefiner(RefinerConfig(size="14B", weights=str(tmp_path / "nowhere")))
+    (tmp_path / "wan").mkdir()
+    with pytest.raises(GraMiInputError, match="transformer/config.json"):
+        VideoRefiner(RefinerConfig(size="1.3B", weights=str(tmp_path / "wan")))
+
+
+def test_real_configs_lora_size():
+    """The 1.3B config built on the meta device: LoRA r32 on the main blocks adds the 43.7 M parameters of a full count."""
+    from diffusers import WanVACETransformer3DModel
+    from peft import LoraConfig
+
+    from gra_mi.refiner_model import LORA_TARGETS
+
+    with torch.device("meta"):
+        model = WanVACETransformer3DModel(**TRANSFORMER_CONFIGS["1.3B"])
+    base = sum(p.numel() for p in model.parameters())
+    model.add_adapter(LoraConfig(r=32, lora_alpha=32, target_modules=LORA_TARGETS))
+    lora = sum(p.numel() for n, p in model.named_parameters() if "lora_" in n)
+    dim, ffn, layers = 1536, 8960, 30
+    assert lora == layers * 32 * (8 * 2 * dim + 2 * (dim + ffn))  # 8 attention projections + 2 FFN projections per block
+    assert 2.0e9 < base < 2.2e9
+
+
+def test_bad_dataset_is_named(tmp_path):
+    (tmp_path / "dataset.json").write_text(json.dumps({"format": "something-else"}))
+    with pytest.raises(GraMiInputError, match="format"):
+        RefinerDataset(tmp_path)
+    with pytest.raises(GraMiInputError, match="window must be 4k"):
+        RefinerConfig(window=16).validate()
+
+
+def test_cli_end_to_end(tmp_path):
+    from gra_mi.cli import main
+
+    data, model, out = tmp_path / "data", tmp_path / "model", tmp_path / "refined"
+    assert main(["refiner-data", "--synthetic", "--out", str(data), "--sequences", "2", "--resolution", "32", "--test-length", "21"]) == 0
+    assert main(["train-refiner", str(data), "--out", str(model), "--steps", "3", "--lora-rank", "4", "--env-blocks", "1,3"]) == 0
+    assert main(["refine", str(data), "--model", str(model), "--out", str(out), "--steps", "2"]) == 0
+    summary = json.loads((out / "refine.json").read_text())
+    assert summary["frames"] == 21 and summary["windows"] == 2
+    assert main(["train-refiner", str(data), "--out", str(tmp_path / "x"), "--size", "1.3B"]) == 2
