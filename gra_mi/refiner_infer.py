@@ -65,21 +65,22 @@ def rollout(
     shift: float = 3.0,
     seed: int = 0,
     frames: int | None = None,
+    handoff: bool = True,
 ) -> Iterator[RefinedFrame]:
-    """Yield the refined frames of ``sequence`` in order, window by window."""
+    """Yield the refined frames of ``sequence`` in order, window by window (``handoff=False``: independent windows, an ablation)."""
     info = dataset.sequences[sequence]
     total = info.frames if frames is None else frames
     if not 0 < total <= info.frames:
         raise GraMiInputError("--frames", f"sequence '{sequence}' has {info.frames} frames, asked for {total}")
-    window, handoff = model.config.window, model.config.handoff
+    window, carry = model.config.window, model.config.handoff
     carried: torch.Tensor | None = None  # (3, handoff, H, W): the previous window's last frames
-    for k, start in enumerate(window_starts(total, window, handoff)):
+    for k, start in enumerate(window_starts(total, window, carry)):
         win = {key: v.to(model.device) for key, v in dataset.window(sequence, start, window).items()}
         coarse = win["coarse"]
         seeded = 0
-        if carried is not None:
-            coarse = torch.cat([carried, coarse[:, handoff:]], dim=1)
-            seeded = handoff
+        if carried is not None and handoff:
+            coarse = torch.cat([carried, coarse[:, carry:]], dim=1)
+            seeded = carry
         _, t, h, w = coarse.shape
         control, env_latents = conditioning(
             model, coarse, seed_mask(t, h, w, seeded).to(model.device), win["reference"], win["env"], win["reference_env"]
@@ -88,11 +89,11 @@ def rollout(
         generator = torch.Generator().manual_seed(seed + k)  # a new seed per window
         latents = euler_sample(model, (1, 16, *control.shape[2:]), control, env, steps, shift, generator)
         video = model.decode(latents[:, :, 1:])[0]  # drop the reference frame
-        first = 0 if k == 0 else handoff
+        first = 0 if k == 0 else carry
         for i in range(first, t):
             if start + i < total:
                 yield RefinedFrame(start + i, video[:, i].cpu(), k)
-        carried = video[:, t - handoff :]
+        carried = video[:, t - carry :]
 
 
 def _psnr(a: np.ndarray, b: np.ndarray) -> float:

@@ -33,8 +33,8 @@ logger = logging.getLogger(__name__)
 # Real configurations (Wan-AI/Wan2.1-VACE-{1.3B,14B}-diffusers transformer/config.json).
 TRANSFORMER_CONFIGS = {
     "tiny": dict(
-        patch_size=(1, 2, 2), num_attention_heads=2, attention_head_dim=12, in_channels=16, out_channels=16, text_dim=32,
-        freq_dim=32, ffn_dim=64, num_layers=4, cross_attn_norm=True, qk_norm="rms_norm_across_heads", eps=1e-6,
+        patch_size=(1, 2, 2), num_attention_heads=2, attention_head_dim=48, in_channels=16, out_channels=16, text_dim=32,
+        freq_dim=32, ffn_dim=192, num_layers=4, cross_attn_norm=True, qk_norm="rms_norm_across_heads", eps=1e-6,
         rope_max_seq_len=64, vace_layers=[0, 2], vace_in_channels=96,
     ),
     "1.3B": dict(
@@ -108,10 +108,10 @@ def shift_sigma(u: torch.Tensor | float, shift: float):
 
 
 def sampling_sigmas(steps: int, shift: float) -> torch.Tensor:
-    """σ from 1 (noise) to 0 (data) in ``steps`` Euler steps: steps + 1 values (as diffusers' FlowMatchEulerDiscreteScheduler)."""
-    return torch.cat(
-        [shift_sigma(torch.linspace(1.0, 1.0 / steps, steps, dtype=torch.float64), shift), torch.zeros(1, dtype=torch.float64)]
-    )
+    """σ from 1 (noise) to 0 (data) in ``steps`` Euler steps: steps + 1 values, exactly as diffusers'
+    FlowMatchEulerDiscreteScheduler: linear from 1 to its (already shifted) smallest training σ, shifted, then a final 0."""
+    linear = torch.linspace(1.0, shift_sigma(1.0 / 1000, shift), steps, dtype=torch.float64)
+    return torch.cat([shift_sigma(linear, shift), torch.zeros(1, dtype=torch.float64)])
 
 
 def noisy_latent(clean: torch.Tensor, noise: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:

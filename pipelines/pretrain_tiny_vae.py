@@ -24,7 +24,7 @@ import torch.nn.functional as F
 def procedural_clip(rng: np.random.Generator, size: int, frames: int) -> torch.Tensor:
     from gra_mi.refiner_data import env_to_video, image_to_video, synthetic_sequence
 
-    kind = rng.integers(3)
+    kind = rng.choice(3, p=[0.6, 0.25, 0.15])
     if kind == 0:
         seq = synthetic_sequence(frames, size, size, 16, int(rng.integers(1000)), int(rng.integers(1 << 30)))
         key = "target" if rng.random() < 0.6 else "coarse"
@@ -80,7 +80,7 @@ def main() -> None:
     torch.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
     vae = AutoencoderKLWan(**VAE_CONFIGS["tiny"])
-    opt = torch.optim.Adam(vae.parameters(), lr=2e-3)
+    opt = torch.optim.Adam(vae.parameters(), lr=1e-3)
     size, frames = 64, 5
     captured = capture_clips(args.capture, size, frames) if args.capture else []
     t0, step = time.perf_counter(), 0
@@ -97,11 +97,12 @@ def main() -> None:
                 batch.append(procedural_clip(rng, size, frames))
         x = torch.stack(batch)
         for group in opt.param_groups:  # cosine decay over the time budget
-            group["lr"] = 2e-3 * (0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * min((time.perf_counter() - t0) / budget, 1))))
+            group["lr"] = 1e-3 * (0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * min((time.perf_counter() - t0) / budget, 1))))
         recon = vae.decode(vae.encode(x).latent_dist.mode()).sample
         loss = F.mse_loss(recon, x)
         opt.zero_grad()
         loss.backward()
+        torch.nn.utils.clip_grad_norm_(vae.parameters(), 1.0)
         opt.step()
         step += 1
         if step % 50 == 0:
