@@ -40,7 +40,7 @@ class DemoPreset:
 
 PRESETS = {
     "tiny": DemoPreset("tiny", "tiny", "onebounce", 5, 20, 0.25, 20, 4),
-    "small": DemoPreset("small", "small", "path", 11, 300, 0.5, 200, 10),
+    "small": DemoPreset("small", "small", "path", 11, 300, 0.5, 100, 10),
 }
 
 
@@ -355,7 +355,7 @@ def _report(preset, variant, capture, ls, energy, timings, fit_metrics, metrics,
         f"the held-out sequence `{refiner['sequence']}`: {refiner['frames']} frames in {refiner['windows']} windows of 17 "
         f"({refiner['steps']} Euler steps each, {refiner['frames_per_second']:.2f} frames/s).",
         "",
-        "| against the ground truth (exposed range) | PSNR (dB) |",
+        "| against the ground truth (subject pixels, exposed range) | PSNR (dB) |",
         "|---|---|",
         f"| RelightNet render (the refiner's input) | {refiner.get('psnr_coarse', float('nan')):.2f} |",
         f"| refined | {refiner.get('psnr_refined', float('nan')):.2f} |",

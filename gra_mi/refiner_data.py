@@ -356,7 +356,9 @@ def dataset_from_capture(
         raw.append((split, cam, seq))
     targets = np.concatenate([s["target"].reshape(-1, 3) for _, _, s in raw])
     lum = targets.mean(axis=1)
-    exposure = 0.8 / max(float(np.percentile(lum[lum > 0], 99)), 1e-6)
+    # the subject's median radiance to 0.25 (≈ mid-grey after sRGB): robust to the path tracer's fireflies and to
+    # the background, which a high percentile is not
+    exposure = 0.25 / max(float(np.median(lum[lum > 0])), 1e-6)
     envs = np.concatenate([s["env"].reshape(-1, 3) for _, _, s in raw])
     env_exposure = 1.0 / max(float(envs.mean()), 1e-6)
     entries = []

@@ -97,7 +97,11 @@ def rollout(
 
 
 def _psnr(a: np.ndarray, b: np.ndarray) -> float:
-    mse = float(np.mean((a - b) ** 2))
+    """PSNR over the subject (pixels lit in either image): the black background would inflate it."""
+    subject = (a.max(axis=-1) > 0) | (b.max(axis=-1) > 0)
+    if not subject.any():
+        return float("inf")
+    mse = float(np.mean((a - b)[subject] ** 2))
     return float("inf") if mse == 0 else 10 * np.log10(1.0 / mse)
 
 
