@@ -96,6 +96,17 @@ def rollout(
         carried = video[:, t - carry :]
 
 
+def _peak_rss_mib() -> float:
+    """This process's peak resident memory: VmHWM (reset by exec, unlike ru_maxrss, which a child inherits)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
 def _psnr(a: np.ndarray, b: np.ndarray) -> float:
     """PSNR over the subject (pixels lit in either image): the black background would inflate it."""
     subject = (a.max(axis=-1) > 0) | (b.max(axis=-1) > 0)
@@ -157,7 +168,7 @@ def refine_to_folder(
             previous = shown
             windows_seen.append(frame.window)
             rows.append(row)
-            rss.append(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+            rss.append(_peak_rss_mib())
     seconds = time.perf_counter() - t0
     seam = [d for _, is_seam, d in diffs if is_seam]
     inner = [d for _, is_seam, d in diffs if not is_seam]
