@@ -131,7 +131,14 @@ def test_demo_tiny_runs_end_to_end(tmp_path):
     out = run_cli("demo", "--preset", "tiny", "--out", str(tmp_path / "demo"))
     assert out.returncode == 0, out.stderr
     report = (tmp_path / "demo" / "report.md").read_text()
-    for needle in ("## Material fit", "held-out camera", "Envmap → LED energy check", "not built yet", "Near-field", "+ RelightNet PSNR"):
+    for needle in (
+        "## Material fit",
+        "held-out camera",
+        "Envmap → LED energy check",
+        "## Video refiner",
+        "Near-field",
+        "+ RelightNet PSNR",
+    ):
         assert needle in report, needle
     for rel in (
         "capture/scene.xml",
@@ -141,6 +148,9 @@ def test_demo_tiny_runs_end_to_end(tmp_path):
         "videos/cam07_test.mp4",
         "contact_truth_vs_relit.png",
         "avatar.glb",
+        "refiner/model/refiner.safetensors",
+        "refiner/refined/comparison.mp4",
+        "refiner/refined/refine.json",
     ):
         assert (tmp_path / "demo" / rel).exists(), rel
     # Resumable: a second run reuses the capture and the renders.
