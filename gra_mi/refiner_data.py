@@ -130,7 +130,6 @@ class RefinerDataset:
             self.sequences[s["name"]] = SequenceInfo(
                 s["name"], s["split"], int(s["frames"]), s.get("subject", ""), file, bool(s.get("has_target", True))
             )
-        self._cache: dict[str, dict[str, torch.Tensor]] = {}
 
     def names(self, split: str | None = None) -> list[str]:
         return [n for n, s in self.sequences.items() if split is None or s.split == split]
@@ -298,25 +297,19 @@ def dataset_from_capture(
     Coarse frames are RelightNet renders (``relightnet_dir``) or the microfacet render; targets are the captured images.
     The capture's clips loop, so a sequence shorter than ``train_length``/``test_length`` is played again from its start.
     """
-    from gra_mi.capture import Capture, load_observation
+    from gra_mi.capture import load_observation
     from gra_mi.envmap import leds_to_envmap, to_camera_space
     from gra_mi.plugins import register_plugins
     from gra_mi.progress import progress
-    from gra_mi.relight import Relighter, load_texture
-    from gra_mi.scene import LightstageScene
+    from gra_mi.relight import fitted_relighter
     from gra_mi.uvspace import rasterize_to_camera
     from gra_mi.variant import choose_variant, torch_device
 
     choose_variant(variant)
     register_plugins()
     out = Path(out)
-    capture = Capture.load(capture_dir)
-    fit_dir = Path(fit_dir)
-    albedo = load_texture(fit_dir / "albedo.exr", 3, "albedo")
-    roughness = load_texture(fit_dir / "roughness.exr", 1, "roughness")
-    ls = LightstageScene.load(capture.folder / "scene.xml")
-    stage = ls.stage
-    relighter = Relighter(ls, albedo=albedo, roughness=roughness, cache_dir=cache_dir or out / "cache")
+    capture, relighter = fitted_relighter(capture_dir, fit_dir, cache_dir or out / "cache")
+    ls, stage = relighter.ls, relighter.ls.stage
     model = None
     if relightnet_dir is not None:
         from gra_mi.relightnet import RelightNet

@@ -24,7 +24,7 @@ import torch
 from gra_mi.errors import GraMiInputError
 from gra_mi.refiner_data import RefinerDataset, video_to_image
 from gra_mi.refiner_model import VideoRefiner, sampling_sigmas
-from gra_mi.refiner_train import conditioning, env_tokens_from_latents, seed_mask
+from gra_mi.refiner_train import conditioning, seed_mask
 
 logger = logging.getLogger(__name__)
 
@@ -85,7 +85,7 @@ def rollout(
         control, env_latents = conditioning(
             model, coarse, seed_mask(t, h, w, seeded).to(model.device), win["reference"], win["env"], win["reference_env"]
         )
-        env = env_tokens_from_latents(model, env_latents)
+        env = model.env_tokens(env_latents)
         generator = torch.Generator().manual_seed(seed + k)  # a new seed per window
         latents = euler_sample(model, (1, 16, *control.shape[2:]), control, env, steps, shift, generator)
         video = model.decode(latents[:, :, 1:])[0]  # drop the reference frame

@@ -349,13 +349,19 @@ class VideoRefiner(nn.Module):
         frames = (t + TEMPORAL_FACTOR - 1) // TEMPORAL_FACTOR
         return F.interpolate(m, size=(frames, nh, nw), mode="nearest-exact")
 
-    def env_tokens(self, envmaps: torch.Tensor, reference_env: torch.Tensor | None) -> torch.Tensor:
-        """Camera-space envmaps (B, 3, T, h, w) in [-1, 1] (+ the reference's (B, 3, h, w)) → (B, F', M, D) tokens."""
+    def env_latents(self, envmaps: torch.Tensor, reference_env: torch.Tensor | None) -> torch.Tensor:
+        """Camera-space envmaps (B, 3, T, h, w) in [-1, 1] (+ the reference's (B, 3, h, w), a leading frame) → VAE latents."""
         latents = self.encode(envmaps)
         if reference_env is not None:
             latents = torch.cat([self.encode(reference_env[:, :, None]), latents], dim=2)
-        tokens = latents.permute(0, 2, 3, 4, 1).flatten(2, 3)  # (B, F', h·w, 16): one token per latent pixel
-        return self.env_mlp(tokens)
+        return latents
+
+    def env_tokens(self, env_latents: torch.Tensor) -> torch.Tensor:
+        """(B, 16, F', h, w) envmap latents → (B, F', h·w, D): one token per latent pixel, through the shared MLP.
+
+        Kept apart from :meth:`env_latents` because the MLP trains while the (frozen) VAE encoding can be cached.
+        """
+        return self.env_mlp(env_latents.permute(0, 2, 3, 4, 1).flatten(2, 3))
 
     # -- the network ------------------------------------------------------------------------------------------
 
@@ -432,11 +438,6 @@ def parameter_counts(model: VideoRefiner) -> dict[str, int]:
 
 def latent_frames(pixel_frames: int) -> int:
     return (pixel_frames - 1) // TEMPORAL_FACTOR + 1
-
-
-def check_resolution(height: int, width: int, source: str) -> None:
-    if height % 16 or width % 16:
-        raise GraMiInputError(source, f"video frames must be multiples of 16 pixels (VAE 8× and 2×2 patches), got {height}×{width}")
 
 
 def pad_to_multiple(h: int, w: int, m: int = 16) -> tuple[int, int]:

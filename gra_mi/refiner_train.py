@@ -17,7 +17,6 @@ from a trained refiner (``init``) on a few clips of another subject.
 
 from __future__ import annotations
 
-import csv
 import json
 import logging
 import math
@@ -43,6 +42,7 @@ from gra_mi.refiner_model import (
     shift_sigma,
     velocity_target,
 )
+from gra_mi.training import init_distributed, write_training_log
 
 logger = logging.getLogger(__name__)
 
@@ -171,13 +171,7 @@ def conditioning(
 ):
     """(control, env latents before the MLP) for one window; batch of 1. Videos (3, T, H, W) in [-1, 1]."""
     control = model.control(coarse[None], mask, reference[None])
-    env_latents = model.encode(env[None])
-    env_latents = torch.cat([model.encode(reference_env[None, :, None]), env_latents], dim=2)
-    return control, env_latents
-
-
-def env_tokens_from_latents(model: VideoRefiner, env_latents: torch.Tensor) -> torch.Tensor:
-    return model.env_mlp(env_latents.permute(0, 2, 3, 4, 1).flatten(2, 3))
+    return control, model.env_latents(env[None], reference_env[None])
 
 
 @dataclass
@@ -257,7 +251,7 @@ def flow_matching_loss(
     s = torch.tensor([sigma], dtype=torch.float32, device=clean.device)
     x = noisy_latent(clean_in, noise, s.view(1, 1, 1, 1, 1))
     target = velocity_target(clean, noise)  # the paper's v^rcy = z₁ − z̃₀: the *unperturbed* data, the perturbed noise
-    env = env_tokens_from_latents(core, enc.env_latents)
+    env = core.env_tokens(enc.env_latents)
     predicted = model(x, s, control, env)
     loss = F.mse_loss(predicted, target)
     if banks is not None:
@@ -291,10 +285,9 @@ def train_refiner(
 ) -> Path:
     """Train (or, with ``init``, adapt) a refiner; writes weights, logs, a loss plot and ``train.json``."""
     from gra_mi.progress import progress
-    from gra_mi.relightnet_train import _distributed
     from gra_mi.variant import torch_device
 
-    rank, world = _distributed()
+    rank, world = init_distributed()
     device = torch.device(torch_device())
     out = Path(out)
     dataset = RefinerDataset(dataset_dir)
@@ -375,7 +368,13 @@ def train_refiner(
     if rank != 0:
         return out
     model.save(out)
-    _write_logs(out, log_rows)
+    write_training_log(
+        out,
+        ["step", "flow_matching_loss", "seconds", "error_bank_residuals"],
+        log_rows,
+        "Video refiner training",
+        "flow-matching loss (MSE, latent)",
+    )
     summary = {
         "steps": config.steps,
         "dataset": str(dataset_dir),
@@ -388,30 +387,6 @@ def train_refiner(
     }
     atomic_write_text(out / "train.json", json.dumps(summary, indent=1) + "\n")
     return out
-
-
-def _write_logs(out: Path, rows: list) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    with atomic_path(out / "train_log.csv") as tmp, open(tmp, "w", newline="") as fh:
-        writer = csv.writer(fh)
-        writer.writerow(["step", "flow_matching_loss", "seconds", "error_bank_residuals"])
-        writer.writerows(rows)
-    if not rows:
-        return
-    fig, ax = plt.subplots(figsize=(6, 3.5))
-    ax.plot([r[0] for r in rows], [r[1] for r in rows])
-    ax.set_xlabel("step")
-    ax.set_ylabel("flow-matching loss (MSE, latent)")
-    ax.set_yscale("log")
-    ax.set_title("Video refiner training")
-    fig.tight_layout()
-    with atomic_path(out / "loss.png") as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
 
 
 @torch.no_grad()

@@ -12,10 +12,8 @@ model, the optimiser and the step, and a rerun resumes.
 
 from __future__ import annotations
 
-import csv
 import json
 import logging
-import os
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -27,6 +25,7 @@ from gra_mi.bridge import NUM_NORMAL_FRAMES, camera_uv_grid, sample_texture, to_
 from gra_mi.errors import GraMiInputError
 from gra_mi.imageio import atomic_path, atomic_write_text, write_png
 from gra_mi.relightnet import RelightNet, RelightNetConfig
+from gra_mi.training import init_distributed, write_training_log
 
 logger = logging.getLogger(__name__)
 
@@ -127,36 +126,20 @@ def image_metrics(image: torch.Tensor, target: torch.Tensor, pixels: torch.Tenso
 # --------------------------------------------------------------------------------------------------------------
 
 
-def _distributed() -> tuple[int, int]:
-    world = int(os.environ.get("WORLD_SIZE", "1"))
-    if world > 1 and not torch.distributed.is_initialized():
-        backend = "nccl" if torch.cuda.is_available() else "gloo"
-        torch.distributed.init_process_group(backend)
-    rank = torch.distributed.get_rank() if world > 1 else 0
-    return rank, world
-
-
 def train_relightnet(
     capture_dir: str | Path, fit_dir: str | Path, out: str | Path, config: TrainConfig, variant: str | None = None
 ) -> Path:
-    from gra_mi.capture import Capture
     from gra_mi.plugins import register_plugins
-    from gra_mi.relight import Relighter, load_texture
-    from gra_mi.scene import LightstageScene
+    from gra_mi.relight import fitted_relighter
     from gra_mi.variant import choose_variant, torch_device
 
-    rank, world = _distributed()
+    rank, world = init_distributed()
     choose_variant(variant)
     register_plugins()
     device = torch_device()
     torch.manual_seed(config.seed)
     out = Path(out)
-    capture = Capture.load(capture_dir)
-    fit_dir = Path(fit_dir)
-    albedo = load_texture(fit_dir / "albedo.exr", 3, "albedo")
-    roughness = load_texture(fit_dir / "roughness.exr", 1, "roughness")
-    ls = LightstageScene.load(capture.folder / "scene.xml")
-    relighter = Relighter(ls, albedo=albedo, roughness=roughness, cache_dir=out / "cache" if rank == 0 else None)
+    capture, relighter = fitted_relighter(capture_dir, fit_dir, out / "cache" if rank == 0 else None)
     samples = build_samples(capture, relighter, config.env_height, device)
     train = [s for s in samples if s.split == "train"]
     if not train:
@@ -165,7 +148,9 @@ def train_relightnet(
         train = train[: config.max_train_views]
     mine = train[rank::world]  # each process its share
 
-    net_config = RelightNetConfig(resolution=albedo.shape[0], base_channels=config.base_channels, env_height=config.env_height)
+    net_config = RelightNetConfig(
+        resolution=relighter.albedo_tex.shape[0], base_channels=config.base_channels, env_height=config.env_height
+    )
     model = RelightNet(net_config).to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
     start_step, log_rows = 0, []
@@ -212,30 +197,9 @@ def train_relightnet(
     if rank != 0:
         return out
     model.save(out)
-    _write_logs(out, log_rows)
+    write_training_log(out, ["step", "l1", "seconds"], log_rows, "RelightNet training", "L1 (training view)")
     validate(model.eval(), samples, out)
     return out / "validation.md"
-
-
-def _write_logs(out: Path, rows: list) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    with atomic_path(out / "train_log.csv") as tmp, open(tmp, "w", newline="") as fh:
-        writer = csv.writer(fh)
-        writer.writerow(["step", "l1", "seconds"])
-        writer.writerows(rows)
-    fig, ax = plt.subplots(figsize=(6, 3.5))
-    ax.plot([r[0] for r in rows], [r[1] for r in rows])
-    ax.set_xlabel("step")
-    ax.set_ylabel("L1 (training view)")
-    ax.set_yscale("log")
-    ax.set_title("RelightNet training")
-    fig.tight_layout()
-    fig.savefig(out / "loss.png", dpi=110)
-    plt.close(fig)
 
 
 @torch.no_grad()

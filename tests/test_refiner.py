@@ -32,7 +32,9 @@ def _inputs(model: VideoRefiner, frames: int = 17, size: int = 32, seeded: int =
     mask[:, :, :seeded] = 0
     ref = torch.rand(1, 3, size, size, generator=g) * 2 - 1
     control = model.control(video, mask, ref)
-    env = model.env_tokens(torch.rand(1, 3, frames, 16, 32, generator=g) * 2 - 1, torch.rand(1, 3, 16, 32, generator=g) * 2 - 1)
+    env = model.env_tokens(
+        model.env_latents(torch.rand(1, 3, frames, 16, 32, generator=g) * 2 - 1, torch.rand(1, 3, 16, 32, generator=g) * 2 - 1)
+    )
     latents = torch.randn(1, 16, *control.shape[2:], generator=g)
     return latents, control, env, (video, mask, ref)
 
