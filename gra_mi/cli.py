@@ -294,6 +294,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--shift", type=float, default=3.0, help="Wan time shift of the sampling schedule (1 = none). Default: 3.0.")
     p.add_argument("--seed", type=int, default=0, help="Seed of the first window (each window uses seed + its index). Default: 0.")
     p.add_argument("--frames", type=int, default=None, help="Refine only the first N frames. Default: all.")
+    p.add_argument("--no-handoff", action="store_true", help="Ablation: independent windows (no seed frames from the previous window).")
+    p.add_argument(
+        "--no-pin",
+        action="store_true",
+        help="Ablation: let the sampler move the given latents (reference, seed frames) instead of pinning them to their exact flow path.",
+    )
+    p.add_argument(
+        "--no-crossfade", action="store_true", help="Ablation: cut to the new window instead of cross-fading over the handed-off frames."
+    )
 
     p = sub.add_parser("refiner-prompt", help="Cache the umT5 prompt embedding of a local WAN2.1 pipeline once (real sizes).")
     p.add_argument("--pipeline", type=Path, required=True, help="Local diffusers WAN2.1(-VACE) folder with tokenizer/ and text_encoder/.")
@@ -726,7 +735,7 @@ def _cmd_train_refiner(args) -> None:
 
 def _cmd_refine(args) -> None:
     from gra_mi.refiner_data import RefinerDataset
-    from gra_mi.refiner_infer import refine_to_folder
+    from gra_mi.refiner_infer import Joins, refine_to_folder
 
     if args.steps < 1:
         raise GraMiInputError("--steps", f"must be >= 1, got {args.steps}")
@@ -734,7 +743,8 @@ def _cmd_refine(args) -> None:
     if sequence is None:
         names = RefinerDataset(args.data).names("test") or RefinerDataset(args.data).names()
         sequence = names[0]
-    summary = refine_to_folder(args.model, args.data, sequence, args.out, args.steps, args.shift, args.seed, args.frames)
+    joins = Joins(handoff=not args.no_handoff, pin=not args.no_pin, crossfade=not args.no_crossfade)
+    summary = refine_to_folder(args.model, args.data, sequence, args.out, args.steps, args.shift, args.seed, args.frames, joins=joins)
     print(
         f"refined {summary['frames']} frames in {summary['windows']} windows ({summary['frames_per_second']:.2f} frames/s) into {args.out}"
     )

@@ -360,8 +360,9 @@ def _report(preset, variant, capture, ls, energy, timings, fit_metrics, metrics,
         f"| RelightNet render (the refiner's input) | {refiner.get('psnr_coarse', float('nan')):.2f} |",
         f"| refined | {refiner.get('psnr_refined', float('nan')):.2f} |",
         "",
-        f"Seams: mean change into a new window {refiner['seam_jump']:.4f} vs median frame-to-frame change {refiner['inner_frame_change']:.4f} "
-        "(in [0, 1] display values). The tiny model has random stand-in DiT weights and a few hundred CPU steps, so it",
+        f"Joins between windows: mean change into a new window {refiner['seam_jump']:.4f}, over its 5 handed-off frames "
+        f"{refiner['join_frame_change']:.4f}, between all other consecutive frames {refiner['inner_frame_change']:.4f} "
+        "(mean absolute change in [0, 1] display values). The tiny model has random stand-in DiT weights and a few hundred CPU steps, so it",
         "does not add detail here: this stage shows the machinery (VACE control, envmap attention, error recycling,",
         "rolling windows) running end to end; real quality needs the WAN2.1-VACE weights and a GPU.",
         "",

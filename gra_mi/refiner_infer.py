@@ -3,9 +3,13 @@
 Each window of ``window`` (17) frames is sampled from noise with an Euler ODE solver (``steps`` steps, Wan's time
 shift ``shift``) and a new seed per window. The first window refines all its frames; every later window starts
 ``window − handoff`` frames further on, and its first ``handoff`` (5) frames are the previous window's decoded
-output, re-encoded as inactive (mask 0) VACE frames — the seed frames the refiner was trained to continue. Only one
+output, re-encoded as inactive (mask 0) VACE frames — the seed frames the refiner was trained to continue. Two
+things make the joins continuous (``Joins``; measured in refine.json and in the README): the given latents (the
+reference and the seed frames) are pinned to their exact flow path while sampling, the input the refiner saw for
+them in training, so what it generates continues them; and the handed-off frames are shown as a cross-fade from
+the previous window's version to their re-generation, which hides the VAE round trip of the hand-off. Only one
 window is in memory at a time (input frames are read lazily, output frames are written as they come), so memory
-stays flat with length. The VAE runs in float32 for the hand-off (colour drift at joins comes from its round trip).
+stays flat with length.
 """
 
 from __future__ import annotations
@@ -23,20 +27,40 @@ import torch
 
 from gra_mi.errors import GraMiInputError
 from gra_mi.refiner_data import RefinerDataset, video_to_image
-from gra_mi.refiner_model import VideoRefiner, sampling_sigmas
+from gra_mi.refiner_model import VideoRefiner, latent_frames, sampling_sigmas
 from gra_mi.refiner_train import conditioning, seed_mask
 
 logger = logging.getLogger(__name__)
 
 
 @torch.no_grad()
-def euler_sample(model: VideoRefiner, shape, control, env, steps: int, shift: float, generator: torch.Generator) -> torch.Tensor:
-    """Integrate dx/dσ = v(x, σ) from σ = 1 (noise) to 0 with Euler steps (as FlowMatchEulerDiscreteScheduler)."""
+def euler_sample(
+    model: VideoRefiner,
+    shape,
+    control,
+    env,
+    steps: int,
+    shift: float,
+    generator: torch.Generator,
+    known: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Integrate dx/dσ = v(x, σ) from σ = 1 (noise) to 0 with Euler steps (as FlowMatchEulerDiscreteScheduler).
+
+    known (1, 16, K, h, w): latents of the first K latent frames, which are given (the reference and the handed-off
+    seed frames). They follow their exact flow path x_σ = (1 − σ)·z + σ·ε at every step instead of the model's
+    estimate — the inputs the refiner saw for them in training — so the frames it generates continue what was given.
+    """
     sigmas = sampling_sigmas(steps, shift).to(torch.float32)
-    x = torch.randn(shape, generator=generator).to(model.device)
+    noise = torch.randn(shape, generator=generator).to(model.device)
+    x = noise
+    k = 0 if known is None else known.shape[2]
     for i in range(steps):
+        if k:
+            x[:, :, :k] = (1 - sigmas[i]) * known + sigmas[i] * noise[:, :, :k]
         v = model(x, sigmas[i : i + 1].to(model.device), control, env)
         x = x + (sigmas[i + 1] - sigmas[i]) * v
+    if k:
+        x[:, :, :k] = known
     return x
 
 
@@ -56,6 +80,20 @@ class RefinedFrame:
     window: int
 
 
+@dataclass(frozen=True)
+class Joins:
+    """How windows join; every switch off is an ablation (``gra-mi refine --no-…``), all on is the default.
+
+    handoff: the next window's first ``handoff`` frames are this window's output, as inactive VACE frames (the paper).
+    pin: the latents that are given (reference, handed-off frames) follow their exact flow path while sampling.
+    crossfade: the handed-off frames are shown as a linear cross-fade from this window's version to the next's.
+    """
+
+    handoff: bool = True
+    pin: bool = True
+    crossfade: bool = True
+
+
 @torch.no_grad()
 def rollout(
     model: VideoRefiner,
@@ -65,20 +103,21 @@ def rollout(
     shift: float = 3.0,
     seed: int = 0,
     frames: int | None = None,
-    handoff: bool = True,
+    joins: Joins = Joins(),
 ) -> Iterator[RefinedFrame]:
-    """Yield the refined frames of ``sequence`` in order, window by window (``handoff=False``: independent windows, an ablation)."""
+    """Yield the refined frames of ``sequence`` in order, window by window."""
     info = dataset.sequences[sequence]
     total = info.frames if frames is None else frames
     if not 0 < total <= info.frames:
         raise GraMiInputError("--frames", f"sequence '{sequence}' has {info.frames} frames, asked for {total}")
     window, carry = model.config.window, model.config.handoff
     carried: torch.Tensor | None = None  # (3, handoff, H, W): the previous window's last frames
-    for k, start in enumerate(window_starts(total, window, carry)):
+    starts = window_starts(total, window, carry)
+    for k, start in enumerate(starts):
         win = {key: v.to(model.device) for key, v in dataset.window(sequence, start, window).items()}
         coarse = win["coarse"]
         seeded = 0
-        if carried is not None and handoff:
+        if carried is not None and joins.handoff:
             coarse = torch.cat([carried, coarse[:, carry:]], dim=1)
             seeded = carry
         _, t, h, w = coarse.shape
@@ -86,13 +125,19 @@ def rollout(
             model, coarse, seed_mask(t, h, w, seeded).to(model.device), win["reference"], win["env"], win["reference_env"]
         )
         env = model.env_tokens(env_latents)
+        # The inactive latents of the seed frames are their encoding alone (the VAE is causal in time).
+        known = control[:, :16, : 1 + (latent_frames(seeded) if seeded else 0)] if joins.pin else None
         generator = torch.Generator().manual_seed(seed + k)  # a new seed per window
-        latents = euler_sample(model, (1, 16, *control.shape[2:]), control, env, steps, shift, generator)
+        latents = euler_sample(model, (1, 16, *control.shape[2:]), control, env, steps, shift, generator, known)
         video = model.decode(latents[:, :, 1:])[0]  # drop the reference frame
+        if k > 0 and joins.crossfade:  # the previous window held its last frames back
+            for i in range(min(carry, total - start)):
+                alpha = (i + 1) / (carry + 1)
+                yield RefinedFrame(start + i, ((1 - alpha) * carried[:, i] + alpha * video[:, i]).cpu(), k)
         first = 0 if k == 0 else carry
-        for i in range(first, t):
-            if start + i < total:
-                yield RefinedFrame(start + i, video[:, i].cpu(), k)
+        last = t - carry if joins.crossfade and k + 1 < len(starts) else t
+        for i in range(first, min(last, total - start)):
+            yield RefinedFrame(start + i, video[:, i].cpu(), k)
         carried = video[:, t - carry :]
 
 
@@ -126,6 +171,7 @@ def refine_to_folder(
     seed: int = 0,
     frames: int | None = None,
     write_exr_frames: bool = True,
+    joins: Joins = Joins(),
 ) -> dict:
     """Refine one sequence into ``out``: frames (EXR linear + PNG), refined.mp4, comparison.mp4, refine.json."""
     from gra_mi.imageio import Mp4Stream, atomic_write_text, write_exr, write_png
@@ -142,11 +188,13 @@ def refine_to_folder(
     ch, cw = dataset.crop
     exposure = dataset.exposure
     fps = float(dataset.meta.get("fps", 12))
-    rows, diffs, windows_seen, rss = [], [], [], []
+    rows, changes, windows_seen, rss = [], [], [], []
     previous = None
     t0 = time.perf_counter()
     with Mp4Stream(out / "refined.mp4", fps) as refined_mp4, Mp4Stream(out / "comparison.mp4", fps) as comparison_mp4:
-        for frame in progress(rollout(model, dataset, sequence, steps, shift, seed, total), description=f"refine {sequence}", total=total):
+        for frame in progress(
+            rollout(model, dataset, sequence, steps, shift, seed, total, joins), description=f"refine {sequence}", total=total
+        ):
             image = video_to_image(frame.video, exposure).permute(1, 2, 0).numpy()[:ch, :cw]
             shown = ((frame.video.permute(1, 2, 0).numpy()[:ch, :cw] + 1) / 2).clip(0, 1)
             coarse = dataset.linear_frames(sequence, "coarse", frame.index, frame.index + 1)[0].numpy()[:ch, :cw]
@@ -164,14 +212,19 @@ def refine_to_folder(
                 row["psnr_refined"] = _psnr(tm(image), tm(target))
             comparison_mp4.append(np.concatenate(panels, axis=1), exposure)
             if previous is not None:
-                diffs.append((frame.index, frame.window != windows_seen[-1], float(np.abs(shown - previous).mean())))
+                changes.append(float(np.abs(shown - previous).mean()))
             previous = shown
             windows_seen.append(frame.window)
             rows.append(row)
             rss.append(_peak_rss_mib())
     seconds = time.perf_counter() - t0
-    seam = [d for _, is_seam, d in diffs if is_seam]
-    inner = [d for _, is_seam, d in diffs if not is_seam]
+    # Seams: the change into the first frame of a new window, and over its join (into each handed-off frame and
+    # the first one after them), against the change between the other consecutive frames.
+    firsts = [i for i in range(1, len(windows_seen)) if windows_seen[i] != windows_seen[i - 1]]
+    in_join = {i + j for i in firsts for j in range(model.config.handoff + 1)}
+    seam = [changes[i - 1] for i in firsts]
+    join = [changes[i - 1] for i in sorted(in_join) if i < len(windows_seen)]
+    inner = [changes[i - 1] for i in range(1, len(windows_seen)) if i not in in_join]
     summary = {
         "sequence": sequence,
         "frames": len(rows),
@@ -181,8 +234,10 @@ def refine_to_folder(
         "seed": seed,
         "seconds": seconds,
         "frames_per_second": len(rows) / seconds,
+        "joins": {"handoff": joins.handoff, "pin": joins.pin, "crossfade": joins.crossfade},
         "seam_jump": float(np.mean(seam)) if seam else None,
-        "inner_frame_change": float(np.median(inner)) if inner else None,
+        "join_frame_change": float(np.mean(join)) if join else None,
+        "inner_frame_change": float(np.mean(inner)) if inner else None,
         "peak_rss_mib": rss[-1] if rss else None,
         "rss_mib_after_first_window": next((r for r, w in zip(rss, windows_seen, strict=True) if w > 0), None),
     }
