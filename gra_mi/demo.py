@@ -359,6 +359,7 @@ def _report(preset, variant, capture, ls, energy, timings, fit_metrics, metrics,
         "|---|---|",
         f"| RelightNet render (the refiner's input) | {refiner.get('psnr_coarse', float('nan')):.2f} |",
         f"| refined | {refiner.get('psnr_refined', float('nan')):.2f} |",
+        f"| the ground truth through the VAE alone (encode + decode: what the VAE by itself loses) | {refiner.get('psnr_vae_round_trip', float('nan')):.2f} |",
         "",
         f"Joins between windows: mean change into a new window {refiner['seam_jump']:.4f}, over its 5 handed-off frames "
         f"{refiner['join_frame_change']:.4f}, between all other consecutive frames {refiner['inner_frame_change']:.4f} "

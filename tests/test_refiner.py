@@ -328,10 +328,12 @@ def test_rollout_of_three_windows(trained):
         trained["root"] / "cut",
         steps=6,
         write_exr_frames=False,
+        vae_round_trip_psnr=False,
         joins=Joins(handoff=False, pin=False, crossfade=False),
     )
     assert cut["seam_jump"] > 2 * cut["inner_frame_change"], cut
     assert np.isfinite(summary["psnr_refined"])
+    assert np.isfinite(summary["psnr_vae_round_trip"])
 
 
 def test_handoff_frames_are_the_previous_windows_output(trained, monkeypatch):
