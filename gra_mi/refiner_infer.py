@@ -162,9 +162,14 @@ def _peak_rss_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def _psnr(a: np.ndarray, b: np.ndarray) -> float:
-    """PSNR over the subject (pixels lit in either image): the black background would inflate it."""
-    subject = (a.max(axis=-1) > 0) | (b.max(axis=-1) > 0)
+def _subject(coarse: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Where the subject is: pixels lit in the coarse input or the ground truth. One mask for every comparison of a
+    frame, so a refined frame is also charged for light it spreads over the background."""
+    return (coarse.max(axis=-1) > 0) | (target.max(axis=-1) > 0)
+
+
+def _psnr(a: np.ndarray, b: np.ndarray, subject: np.ndarray) -> float:
+    """PSNR over the subject (the black background would inflate it)."""
     if not subject.any():
         return float("inf")
     mse = float(np.mean((a - b)[subject] ** 2))
@@ -223,8 +228,9 @@ def refine_to_folder(
                 target = dataset.linear_frames(sequence, "target", frame.index, frame.index + 1)[0].numpy()[:ch, :cw]
                 panels.append(target)
                 tm = lambda x: np.clip(x * exposure, 0, 1)  # noqa: E731  compare in the exposed range the model sees
-                row["psnr_coarse"] = _psnr(tm(coarse), tm(target))
-                row["psnr_refined"] = _psnr(tm(image), tm(target))
+                subject = _subject(coarse, target)
+                row["psnr_coarse"] = _psnr(tm(coarse), tm(target), subject)
+                row["psnr_refined"] = _psnr(tm(image), tm(target), subject)
             comparison_mp4.append(np.concatenate(panels, axis=1), exposure)
             if previous is not None:
                 changes.append(float(np.abs(shown - previous).mean()))
@@ -264,7 +270,8 @@ def refine_to_folder(
             for index, video in vae_round_trip(model, dataset, sequence, total):
                 image = video_to_image(video, exposure).permute(1, 2, 0).numpy()[:ch, :cw]
                 target = dataset.linear_frames(sequence, "target", index, index + 1)[0].numpy()[:ch, :cw]
-                psnr.append(_psnr(np.clip(image * exposure, 0, 1), np.clip(target * exposure, 0, 1)))
+                coarse = dataset.linear_frames(sequence, "coarse", index, index + 1)[0].numpy()[:ch, :cw]
+                psnr.append(_psnr(np.clip(image * exposure, 0, 1), np.clip(target * exposure, 0, 1), _subject(coarse, target)))
             summary["psnr_vae_round_trip"] = float(np.mean(psnr))
     summary["per_frame"] = rows
     atomic_write_text(out / "refine.json", json.dumps(summary, indent=1) + "\n")
