@@ -1,6 +1,6 @@
 """Speed of the one-bounce core on the default rig (anny body, 331 LEDs, 512² UV), measured side by side.
 
-    .venv/bin/python benchmarks/onebounce.py [--quick]
+    .venv/bin/python benchmarks/onebounce.py [--quick] [--image 1024x540] [--subject SAVED_SEQUENCE]
 
 Prints a markdown table:
   - visibility for one new frame, and its throughput against raw ``scene.ray_test`` on the same rays;
@@ -46,6 +46,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="Fewer repeats and spp (a smoke run).")
     parser.add_argument("--uv-resolution", type=int, default=512, help="UV resolution. Default: 512.")
     parser.add_argument("--variant", default=None, help="Mitsuba variant (default: automatic).")
+    parser.add_argument("--image", default="512x270", help="Camera image size WxH. Default: 512x270 (the paper's is 1024x540).")
+    parser.add_argument(
+        "--subject",
+        type=Path,
+        default=None,
+        help="A saved subject sequence (a folder with frames/, ≥ 6 frames) to use instead of building the anny walk.",
+    )
     args = parser.parse_args(argv)
     repeats = 2 if args.quick else 5
 
@@ -68,10 +75,13 @@ def main(argv: list[str] | None = None) -> int:
 
     register_plugins()
     tmp = Path(tempfile.mkdtemp(prefix="gra_mi_bench_"))
-    stage = default_lightstage(width=512, height=270)
+    width, height = (int(v) for v in args.image.lower().split("x"))
+    stage = default_lightstage(width=width, height=height)
     write_rig(stage, tmp / "rig")
-    save_sequence(anny_sequence(["walk"], frames_per_clip=6), tmp / "subject")
-    atomic_write_text(tmp / "scene.xml", subject_scene_xml("rig", "subject"))
+    subject = args.subject.resolve() if args.subject else tmp / "subject"
+    if args.subject is None:
+        save_sequence(anny_sequence(["walk"], frames_per_clip=6), subject)
+    atomic_write_text(tmp / "scene.xml", subject_scene_xml("rig", str(subject)))
     ls = LightstageScene.load(tmp / "scene.xml", frame=1)
     relighter = Relighter(ls, args.uv_resolution)
     rows: list[tuple[str, str, str]] = []
@@ -104,12 +114,19 @@ def main(argv: list[str] | None = None) -> int:
     ray = mi.Ray3f(mi.Point3f(*origins.T), mi.Vector3f(*dirs.T), mi.Float(maxts))
     dr.eval(ray)
     t_raw, _ = timed(lambda: dr.eval(ls.scene.ray_test(ray, coherent=True)), repeats)
+    t_trace, _ = timed(lambda: compute_visibility(ls.scene, geom, stage.led_positions), repeats)
     n_rays = origins.shape[0]
     rows.append(
-        ("visibility, one new frame (texels × 331 LEDs)", f"{t_vis * 1e3:.0f} ms", f"{m} texels, {n_rays / 1e6:.1f} M facing pairs traced")
+        (
+            "visibility, one new frame (mesh update + texel geometry + tracing)",
+            f"{t_vis * 1e3:.0f} ms",
+            f"{m} texels, {n_rays / 1e6:.1f} M facing pairs traced",
+        )
     )
+    rows.append(("  of which `compute_visibility` (texels × 331 LEDs)", f"{t_trace * 1e3:.0f} ms", ""))
     rows.append(("raw `scene.ray_test`, same rays", f"{t_raw * 1e3:.0f} ms", f"{n_rays / t_raw / 1e6:.1f} M rays/s"))
-    rows.append(("visibility throughput / raw ray_test", f"{t_raw / t_vis:.2f}", "goal ≥ 0.8"))
+    rows.append(("visibility throughput / raw ray_test (whole new frame)", f"{t_raw / t_vis:.2f}", "goal ≥ 0.8 (CPU)"))
+    rows.append(("`compute_visibility` throughput / raw ray_test", f"{t_raw / t_trace:.2f}", ""))
     ray = origins = dirs = maxts = None  # free the materialised rays
 
     # 2. Relight of a cached frame under a new envmap -----------------------------------------------------------
@@ -131,11 +148,11 @@ def main(argv: list[str] | None = None) -> int:
         lambda: rasterize_to_camera(ls.scene, cam, relighter.atlas.scatter(shading.radiance), relighter.atlas.mask), repeats
     )
     rows.append(("relight, cached frame, new envmap: texel shading (all LEDs, GGX)", f"{t_shade * 1e3:.0f} ms", "goal ≤ 100 ms"))
-    rows.append(("  + rasterise the texture into the camera (512×270)", f"{t_raster * 1e3:.0f} ms", ""))
+    rows.append((f"  + rasterise the texture into the camera ({width}×{height})", f"{t_raster * 1e3:.0f} ms", ""))
 
     # 3. Equal-error comparison with Mitsuba's direct integrator ---------------------------------------------
     write_exr(tmp / "albedo.exr", relighter.albedo_tex)
-    ply = tmp / "subject" / "frames" / f"frame_{frame:04d}.ply"
+    ply = subject / "frames" / f"frame_{frame:04d}.ply"
     emitters = "".join(
         f'<emitter type="point"><point name="position" value="{", ".join(map(str, q))}"/><rgb name="intensity" value="{", ".join(map(str, i))}"/></emitter>'
         for q, i in zip(stage.led_positions, intensities[1], strict=True)

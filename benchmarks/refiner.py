@@ -2,7 +2,7 @@
 and, where a GPU exists, the real 1.3B configuration (random weights) per window at 1024×544 against the paper's
 840 ms of video-model time per frame on an H100.
 
-    .venv/bin/python benchmarks/refiner.py [--quick] [--real-1.3b-cpu]
+    .venv/bin/python benchmarks/refiner.py [--quick] [--real-1.3b-cpu] [--skip-tiny] [--real-steps N]
 
 Prints a markdown table; every row of a comparison is measured in this one run.
 """
@@ -63,33 +63,194 @@ def rollout_in_subprocess(model_dir: Path, data_dir: Path, sequence: str, frames
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def real_forward(size: str, frames: int, height: int, width: int, device: str, dtype=torch.bfloat16) -> dict:
-    """One forward of the real transformer (random weights) on a window + reference frame."""
-    from diffusers import WanVACETransformer3DModel
+PAPER_MS_PER_FRAME = {"VAE env.": 140.2, "Video model": 840.3, "VAE dec.": 145.6}
+"""GRA Supp. Tab. "Runtime": H100, averaged over 17-frame generations (model size and step count not stated)."""
 
-    from gra_mi.refiner_model import TRANSFORMER_CONFIGS, latent_frames
 
-    t0 = time.perf_counter()
-    with torch.device(device):
-        model = WanVACETransformer3DModel(**TRANSFORMER_CONFIGS[size]).to(dtype).eval()
-    build = time.perf_counter() - t0
-    f = latent_frames(frames) + 1
-    shape = (1, 16, f, height // 8, width // 8)
-    x = torch.randn(shape, device=device, dtype=dtype)
-    control = torch.randn(1, 96, *shape[2:], device=device, dtype=dtype)
-    text = torch.randn(1, 512, 4096, device=device, dtype=dtype)
-    times = []
-    with torch.no_grad():
-        for _ in range(3 if device == "cuda" else 1):
-            if device == "cuda":
+def real_window(size: str, device: str, height: int, width: int, steps: int, frames: int, folder: Path) -> dict:
+    """The real configuration with random weights (DiT bfloat16, VAE float32) through gra-mi's own inference code:
+    one 17-frame window stage by stage (the stages of the paper's runtime table), then a rollout of ``frames`` frames."""
+    from diffusers import AutoencoderKLWan, WanVACETransformer3DModel
+    from safetensors.torch import save_file
+
+    from gra_mi.refiner_infer import euler_sample, rollout
+    from gra_mi.refiner_model import TRANSFORMER_CONFIGS, cast_transformer
+    from gra_mi.refiner_train import conditioning, seed_mask
+
+    cuda = device == "cuda"
+
+    def timed(fn, repeats: int = 1):
+        best, out = float("inf"), None
+        for _ in range(repeats):
+            if cuda:
                 torch.cuda.synchronize()
             t = time.perf_counter()
-            model(x, torch.tensor([500.0], device=device), text, control_hidden_states=control, return_dict=False)
-            if device == "cuda":
+            out = fn()
+            if cuda:
                 torch.cuda.synchronize()
-            times.append(time.perf_counter() - t)
-    tokens = f * (height // 16) * (width // 16)
-    return {"build_s": build, "forward_s": min(times), "tokens": tokens}
+            best = min(best, time.perf_counter() - t)
+        return best, out
+
+    torch.manual_seed(0)
+    t0 = time.perf_counter()
+    with torch.device(device):
+        backbone = (cast_transformer(WanVACETransformer3DModel(**TRANSFORMER_CONFIGS[size]), torch.bfloat16), AutoencoderKLWan())
+    prompt = folder / "prompt.safetensors"
+    save_file({"prompt_embeds": torch.randn(1, 512, 4096)}, str(prompt))  # umT5's 512 tokens, as diffusers pads them
+    model = VideoRefiner(RefinerConfig(size=size, dtype="bfloat16", prompt_embeds=str(prompt)), backbone=backbone).to(device).eval()
+    build = time.perf_counter() - t0
+    data = synthetic_dataset(folder / "data", {0: (0, 1)}, frames=17, height=height, width=width, env_height=32, test_frames=frames)
+    name = data.names("test")[0]
+    win = {k: v.to(device) for k, v in data.window(name, 0, 17).items()}
+    mask = seed_mask(17, height, width, 0).to(device)
+
+    def encode():
+        return conditioning(model, win["coarse"], mask, win["reference"], win["env"], win["reference_env"])
+
+    timed(encode)  # warm-up (cuDNN autotuning)
+    t_encode, (control, env_latents) = timed(encode, 2)
+    env = model.env_tokens(env_latents)
+    shape = (1, 16, *control.shape[2:])
+    x, sigma = torch.randn(shape, device=device), torch.tensor([0.5], device=device)
+    with torch.no_grad():
+        # Stand-ins for trained layers: nonzero LoRA B (zero at init) and envmap output projections (zero at init).
+        for pname, param in model.named_parameters():
+            if "lora_B" in pname or (pname.startswith("env_attention.") and pname.endswith("to_out.weight")):
+                param.normal_(0.0, 1e-2)
+        repeats = 3 if cuda else 1
+        timed(lambda: model(x, sigma, control, env))
+        t_full, v_trained = timed(lambda: model(x, sigma, control, env), repeats)
+        t_no_env = timed(lambda: model(x, sigma, control, None), repeats)[0]
+        model.transformer.disable_adapters()
+        t_stock = timed(lambda: model(x, sigma, control, None), repeats)[0]
+        v_no_lora = model(x, sigma, control, env)
+        model.transformer.enable_adapters()
+        # The reference: the same weights run in float32 (bf16 → float32 → bf16 round-trips exactly).
+        dtypes = {n: p.dtype for n, p in model.transformer.named_parameters()}
+        for param in model.transformer.parameters():
+            param.data = param.data.float()
+        v_float32 = model(x, sigma, control, env)
+        for n, param in model.transformer.named_parameters():
+            param.data = param.data.to(dtypes[n])
+        change = lambda v: float((v - v_float32).norm() / v_float32.norm())  # noqa: E731
+        trained_error = change(v_trained)
+        model.prepare_for_inference(fuse_lora=False)  # `gra-mi refine --no-fuse-lora`
+        env = model.env_tokens(env_latents)
+        timed(lambda: model(x, sigma, control, env))
+        t_prepared, v_prepared = timed(lambda: model(x, sigma, control, env), repeats)
+        model.transformer.fuse_lora()  # = prepare_for_inference(): what `gra-mi refine` samples with, below too
+        timed(lambda: model(x, sigma, control, env))
+        t_fused, v_fused = timed(lambda: model(x, sigma, control, env), repeats)
+        prepared_error, fused_error = change(v_prepared), change(v_fused)
+        lora_effect = float((v_no_lora - v_trained).norm() / v_trained.norm())
+    t_sample, latents = timed(lambda: euler_sample(model, shape, control, env, steps, 3.0, torch.Generator().manual_seed(0)))
+    t_decode, _ = timed(lambda: model.decode(latents[:, :, 1:]))
+    if cuda:
+        torch.cuda.reset_peak_memory_stats()
+    t_rollout, count = timed(lambda: sum(1 for _ in rollout(model, data, name, steps=steps, frames=frames)))
+    return {
+        "build_s": build,
+        "tokens": int(shape[2] * shape[3] * shape[4] // 4),
+        "encode_s": t_encode,
+        "forward_s": t_full,
+        "forward_no_env_s": t_no_env,
+        "forward_stock_s": t_stock,
+        "forward_prepared_s": t_prepared,
+        "forward_fused_s": t_fused,
+        "prepared_error": prepared_error,
+        "trained_error": trained_error,
+        "fused_error": fused_error,
+        "lora_effect": lora_effect,
+        "sample_s": t_sample,
+        "decode_s": t_decode,
+        "rollout_s": t_rollout,
+        "rollout_frames": count,
+        "peak_gib": torch.cuda.max_memory_allocated() / 2**30 if cuda else float("nan"),
+    }
+
+
+def real_rows(r: dict, where: str, height: int, width: int, steps: int) -> list[tuple[str, str, str]]:
+    per_frame = {"VAE env.": r["encode_s"] / 17, "Video model": r["sample_s"] / 17, "VAE dec.": r["decode_s"] / 17}
+    rows = [
+        (
+            f"1.3B DiT forward, 17×{height}×{width} + reference ({where}, bf16, random weights)",
+            f"{1000 * r['forward_s']:.0f} ms",
+            f"{r['tokens']} tokens; LoRA r32, envmap attention (float32) after all 30 blocks; "
+            f"{100 * r['trained_error']:.2f} % from the float32 network (rel. L2 of the velocity)",
+        ),
+        (
+            "  same, without the envmap attention",
+            f"{1000 * r['forward_no_env_s']:.0f} ms",
+            f"envmap attention costs {100 * (r['forward_s'] / r['forward_no_env_s'] - 1):.1f} %",
+        ),
+        (
+            "  same, without LoRA (stock WAN)",
+            f"{1000 * r['forward_stock_s']:.0f} ms",
+            f"unmerged LoRA costs {100 * (r['forward_no_env_s'] / r['forward_stock_s'] - 1):.1f} %",
+        ),
+        (
+            "  envmap attention in bf16, LoRA kept apart (`refine --no-fuse-lora`)",
+            f"{1000 * r['forward_prepared_s']:.0f} ms",
+            f"{r['forward_s'] / r['forward_prepared_s']:.2f}× faster; {100 * r['prepared_error']:.2f} % from the float32 network",
+        ),
+        (
+            "  + LoRA folded into the bf16 weights: what `refine` runs",
+            f"{1000 * r['forward_fused_s']:.0f} ms",
+            f"{r['forward_s'] / r['forward_fused_s']:.2f}× faster; {100 * r['fused_error']:.2f} % from the float32 network "
+            f"(the stand-in LoRA itself changes the velocity by {100 * r['lora_effect']:.1f} %)",
+        ),
+    ]
+    for stage, seconds in per_frame.items():
+        what = {
+            "VAE env.": "VAE encoding (control video ×2, reference, envmaps)",
+            "Video model": f"{steps} Euler steps",
+            "VAE dec.": "VAE decoding",
+        }
+        paper = f"paper ({stage}, H100): {PAPER_MS_PER_FRAME[stage]} ms" if where == "GPU" else ""
+        rows.append((f"one window, {what[stage]}, per frame (/17)", f"{1000 * seconds:.0f} ms", paper))
+    total = sum(per_frame.values())
+    paper = f"paper: {sum(PAPER_MS_PER_FRAME.values()):.1f} ms" if where == "GPU" else ""
+    rows.append(("one window, all three, per frame (/17)", f"{1000 * total:.0f} ms", paper))
+    memory = f"; peak GPU memory {r['peak_gib']:.1f} GiB" if where == "GPU" else ""
+    rows.append(
+        (
+            f"rollout of {r['rollout_frames']} frames (hand-off of 5 per window)",
+            f"{1000 * r['rollout_s'] / r['rollout_frames']:.0f} ms/frame",
+            f"{r['rollout_s']:.1f} s in all{memory}",
+        )
+    )
+    return rows
+
+
+def tiny_rows(tmp: Path, quick: bool, euler_steps: int) -> list[tuple[str, str, str]]:
+    """The tiny configuration on the CPU: training steps, rollouts, memory against rollout length."""
+    rows = []
+    lengths = [17, 41] if quick else [41, 161]
+    for res in (64,) if quick else (64, 128):
+        data = synthetic_dataset(tmp / f"data{res}", {0: (2, 0)}, frames=17, height=res, width=res)
+        model = VideoRefiner(RefinerConfig())
+        t = train_step_times(model, data, 3 if quick else 8)
+        rows.append(
+            (
+                f"tiny training step, 17×{res}×{res} (+ reference frame)",
+                f"{1000 * t['step']:.0f} ms",
+                f"VAE encoding of the window: {1000 * t['encode']:.0f} ms (cached for un-augmented windows)",
+            )
+        )
+    model.save(tmp / "model")
+    long = synthetic_dataset(tmp / "long", {0: (0, 1)}, frames=17, height=64, width=64, test_frames=max(lengths))
+    results = {n: rollout_in_subprocess(tmp / "model", long.folder, "s0_test00", n, euler_steps) for n in lengths}
+    for n, r in results.items():
+        rows.append(
+            (
+                f"tiny rollout, {n} frames at 64×64, {euler_steps} Euler steps",
+                f"{r['frames_per_second']:.2f} frames/s",
+                f"{r['windows']} windows, peak RSS {r['peak_rss_mib']:.0f} MiB",
+            )
+        )
+    a, b = (results[n]["peak_rss_mib"] for n in lengths)
+    rows.append(("peak memory, longest / shortest rollout", f"{b / a:.3f}×", f"{lengths[-1]} vs {lengths[0]} frames: flat with length"))
+    return rows
 
 
 def main() -> None:
@@ -98,69 +259,32 @@ def main() -> None:
     parser.add_argument(
         "--real-1.3b-cpu", dest="real_cpu", action="store_true", help="Also run one 1.3B forward on the CPU (about 5 GB of RAM, minutes)."
     )
-    parser.add_argument("--euler-steps", type=int, default=10, help="Euler steps per window for the rollouts. Default: 10.")
+    parser.add_argument("--euler-steps", type=int, default=10, help="Euler steps per window for the tiny rollouts. Default: 10.")
+    parser.add_argument("--real-steps", type=int, default=20, help="Euler steps per window for the 1.3B timings. Default: 20.")
+    parser.add_argument("--skip-tiny", action="store_true", help="Only the 1.3B rows (on a GPU machine: skips the CPU measurements).")
     args = parser.parse_args()
-    torch.set_num_threads(2)
+    if not torch.cuda.is_available():
+        torch.set_num_threads(2)  # the CPU rows are comparable across machines of the project's CI size
     rows = []
+    counts = None
     with tempfile.TemporaryDirectory() as tmp:
-        tmp = Path(tmp)
-        lengths = [17, 41] if args.quick else [41, 161]
-        for res in (64,) if args.quick else (64, 128):
-            data = synthetic_dataset(tmp / f"data{res}", {0: (2, 0)}, frames=17, height=res, width=res)
-            model = VideoRefiner(RefinerConfig())
-            t = train_step_times(model, data, 3 if args.quick else 8)
-            rows.append(
-                (
-                    f"tiny training step, 17×{res}×{res} (+ reference frame)",
-                    f"{1000 * t['step']:.0f} ms",
-                    f"VAE encoding of the window: {1000 * t['encode']:.0f} ms (cached for un-augmented windows)",
-                )
-            )
-        counts = parameter_counts(model)
-        model.save(tmp / "model")
-        long = synthetic_dataset(tmp / "long", {0: (0, 1)}, frames=17, height=64, width=64, test_frames=max(lengths))
-        results = {n: rollout_in_subprocess(tmp / "model", long.folder, "s0_test00", n, args.euler_steps) for n in lengths}
-        for n, r in results.items():
-            rows.append(
-                (
-                    f"tiny rollout, {n} frames at 64×64, {args.euler_steps} Euler steps",
-                    f"{r['frames_per_second']:.2f} frames/s",
-                    f"{r['windows']} windows, peak RSS {r['peak_rss_mib']:.0f} MiB",
-                )
-            )
-        a, b = (results[n]["peak_rss_mib"] for n in lengths)
-        rows.append(("peak memory, longest / shortest rollout", f"{b / a:.3f}×", f"{lengths[-1]} vs {lengths[0]} frames: flat with length"))
+        if not args.skip_tiny:
+            rows += tiny_rows(Path(tmp), args.quick, args.euler_steps)
+            counts = parameter_counts(VideoRefiner(RefinerConfig()))
     if torch.cuda.is_available():
-        r = real_forward("1.3B", 17, 544, 1024, "cuda")
-        per_window = r["forward_s"] * 20  # 20 Euler steps, one forward each (no CFG: the refiner runs without a negative prompt)
-        rows.append(
-            (
-                "1.3B forward, 17×544×1024 + reference (GPU, bf16, random weights)",
-                f"{1000 * r['forward_s']:.0f} ms",
-                f"{r['tokens']} tokens",
-            )
-        )
-        rows.append(
-            (
-                "1.3B window, 20 Euler steps",
-                f"{per_window:.1f} s",
-                f"{1000 * per_window / 12:.0f} ms per new frame (12 per window); paper: 840 ms/frame (H100)",
-            )
-        )
+        with tempfile.TemporaryDirectory() as tmp:
+            r = real_window("1.3B", "cuda", 544, 1024, args.real_steps, 41, Path(tmp))
+        rows += real_rows(r, "GPU", 544, 1024, args.real_steps)
     else:
         rows.append(("1.3B per window at 1024×544 (GPU)", "not measured", "no CUDA GPU on this machine"))
     if args.real_cpu:
-        r = real_forward("1.3B", 17, 64, 128, "cpu", torch.float32)
-        rows.append(
-            (
-                "1.3B forward on CPU, 17×64×128 + reference (random weights)",
-                f"{r['forward_s']:.1f} s",
-                f"{r['tokens']} tokens; built in {r['build_s']:.0f} s",
-            )
+        with tempfile.TemporaryDirectory() as tmp:
+            r = real_window("1.3B", "cpu", 64, 128, 2, 17, Path(tmp))
+        rows += real_rows(r, "CPU", 64, 128, 2)
+    if counts:
+        print(
+            f"tiny config: {counts['total']:,} parameters, {counts['trainable']:,} trainable (LoRA {counts['lora']:,}, VACE {counts['vace']:,}, env attention {counts['env_attention']:,})"
         )
-    print(
-        f"tiny config: {counts['total']:,} parameters, {counts['trainable']:,} trainable (LoRA {counts['lora']:,}, VACE {counts['vace']:,}, env attention {counts['env_attention']:,})"
-    )
     print(f"max RSS of this process: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB\n")
     print("| measurement | value | notes |\n|---|---|---|")
     for row in rows:

@@ -48,11 +48,10 @@ def camera_uv_grid(scene, camera, device: str = "cpu"):
     a (1, 1, H, W) mask of pixels that hit the subject. Geometry only: computed once per frame and camera."""
     import mitsuba as mi
 
-    origin, directions = camera.pixel_rays()
-    h, w = directions.shape[:2]
-    d = directions.reshape(-1, 3).astype(np.float32)
-    ray = mi.Ray3f(mi.Point3f(*np.tile(origin.astype(np.float32), (d.shape[0], 1)).T), mi.Vector3f(*d.T))
-    si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.UV, coherent=True)
+    from gra_mi.uvspace import camera_rays
+
+    h, w = camera.height, camera.width
+    si = scene.ray_intersect(camera_rays(camera), ray_flags=mi.RayFlags.UV, coherent=True)
     uv = np.array(si.uv).T.reshape(h, w, 2)
     valid = np.array(si.is_valid()).reshape(h, w)
     grid = to_torch(2.0 * uv - 1.0, device)[None]
@@ -79,4 +78,11 @@ def torch_render(scene, params, keys: dict[str, str], integrator, sensor: int = 
         params.update()
         return mi.render(scene, params, sensor=sensor, integrator=integrator, spp=spp, seed=seed)
 
-    return render
+    device = "cuda" if mi.variant().startswith("cuda") else "cpu"
+
+    def render_on_the_variants_device(albedo, roughness):
+        # dr.wrap maps CPU tensors to the LLVM backend and CUDA tensors to CUDA: move the textures to the variant's
+        # device first (differentiably: gradients come back to the caller's tensors).
+        return render(albedo.to(device), roughness.to(device))
+
+    return render_on_the_variants_device

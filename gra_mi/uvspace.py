@@ -335,16 +335,34 @@ def _led_sum(m, words, visibility, on_words, led_pos, led_int, p, frame, wi, rou
 # --------------------------------------------------------------------------------------------------------------
 
 
+_CAMERA_RAYS: dict[bytes, mi.Ray3f] = {}
+
+
+def camera_rays(camera) -> mi.Ray3f:
+    """The rays through the pixel centres of ``camera``, row-major, built once per camera and kept on the device:
+    only the scene changes from frame to frame, and on a GPU the host-side ray set-up cost more than the tracing."""
+    key = np.array([camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy], np.float64).tobytes()
+    key += np.asarray(camera.position, np.float64).tobytes() + np.asarray(camera.rotation, np.float64).tobytes()
+    key += mi.variant().encode()  # the arrays belong to one backend (tests switch variants in one process)
+    ray = _CAMERA_RAYS.get(key)
+    if ray is None:
+        origin, directions = camera.pixel_rays()
+        d = directions.reshape(-1, 3).astype(np.float32)
+        ray = mi.Ray3f(mi.Point3f(*np.tile(origin.astype(np.float32), (d.shape[0], 1)).T), mi.Vector3f(*d.T))
+        dr.eval(ray)
+        if len(_CAMERA_RAYS) >= 64:  # a rig has tens of cameras; bound the memory all the same
+            _CAMERA_RAYS.pop(next(iter(_CAMERA_RAYS)))
+        _CAMERA_RAYS[key] = ray
+    return ray
+
+
 def rasterize_to_camera(scene: mi.Scene, camera, texture: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
     """Look the UV texture up through each pixel centre of ``camera``: (H, W, C + 1) with alpha = coverage.
 
     Bilinear in UV; texels outside ``mask`` do not bleed in (normalised by the mask's own interpolation).
     """
-    origin, directions = camera.pixel_rays()
-    h, w = directions.shape[:2]
-    d = directions.reshape(-1, 3).astype(np.float32)
-    ray = mi.Ray3f(mi.Point3f(*np.tile(origin.astype(np.float32), (d.shape[0], 1)).T), mi.Vector3f(*d.T))
-    si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.UV, coherent=True)
+    h, w = camera.height, camera.width
+    si = scene.ray_intersect(camera_rays(camera), ray_flags=mi.RayFlags.UV, coherent=True)
     valid = si.is_valid()
     channels = texture.shape[2]
     weight = np.ones(texture.shape[:2] + (1,), np.float32) if mask is None else mask[..., None].astype(np.float32)
@@ -352,8 +370,13 @@ def rasterize_to_camera(scene: mi.Scene, camera, texture: np.ndarray, mask: np.n
         mi.TensorXf(np.concatenate([texture * weight, weight], axis=2).astype(np.float32)), use_accel=False, wrap_mode=dr.WrapMode.Clamp
     )
     values = tex.eval(si.uv, valid)
-    out = np.stack([np.array(v) for v in values], axis=-1).reshape(h, w, channels + 1)
-    cov = out[..., channels:]
-    color = np.where(cov > 1e-6, out[..., :channels] / np.maximum(cov, 1e-6), 0.0)
-    alpha = np.array(valid, dtype=np.float32).reshape(h, w, 1)
-    return np.concatenate([color * alpha, alpha], axis=2).astype(np.float32)
+    # Normalise by the interpolated mask and pack (H, W, C + 1) on the device: one transfer back.
+    cov = values[channels]
+    alpha = dr.select(valid, 1.0, 0.0)
+    scale = dr.select(cov > 1e-6, alpha / dr.maximum(cov, 1e-6), 0.0)
+    out = dr.zeros(mi.Float, h * w * (channels + 1))
+    pixel = dr.arange(mi.UInt32, h * w) * (channels + 1)
+    for c in range(channels):
+        dr.scatter(out, values[c] * scale, pixel + c)
+    dr.scatter(out, alpha, pixel + channels)
+    return np.array(out, dtype=np.float32).reshape(h, w, channels + 1)

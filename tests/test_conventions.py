@@ -90,7 +90,10 @@ def test_agrees_with_mitsuba_envmap_emitter(variant):
     si.wi = mi.Vector3f(*(-d.T.astype(np.float32)))
     theirs = np.array(emitter.eval(si)).T
     ours = em.lookup(env, d)
-    np.testing.assert_allclose(ours, theirs, rtol=1e-3, atol=1e-4)
+    # On CUDA, Mitsuba's envmap filters with the GPU's texture units, whose bilinear weights have 8 fractional bits:
+    # errors up to about 2/256 of the texel contrast (here ≤ 1), measured 0.0048 on an H100.
+    atol = 8e-3 if variant.startswith("cuda") else 1e-4
+    np.testing.assert_allclose(ours, theirs, rtol=1e-3, atol=atol)
 
 
 def test_background_plate_matches_mitsuba_render(variant):

@@ -115,6 +115,41 @@ def test_atemporal_in_the_model():
     assert torch.all(per_frame[[0, 1, 2, 4, 5]] == 0), per_frame
 
 
+def test_prepared_for_inference_is_the_same_network(tmp_path):
+    """Folding a trained LoRA into the DiT changes nothing but rounding; a prepared model refuses to be saved."""
+    model = VideoRefiner(RefinerConfig())
+    with torch.no_grad():
+        for name, param in model.named_parameters():
+            if "lora_B" in name or (name.startswith("env_attention.") and name.endswith("to_out.weight")):
+                param.normal_(std=0.05)
+    latents, control, env, _ = _inputs(model)
+    sigma = torch.tensor([0.6])
+    with torch.no_grad():
+        trained = model(latents, sigma, control, env)
+        model.transformer.disable_adapters()
+        without_lora = model(latents, sigma, control, env)
+        model.transformer.enable_adapters()
+        prepared = model.prepare_for_inference(fuse_lora=True)(latents, sigma, control, env)
+    assert (trained - without_lora).abs().max() > 1e-3, "the LoRA must matter for this test to mean anything"
+    torch.testing.assert_close(prepared, trained, atol=2e-5, rtol=1e-4)  # float32: folding is exact up to rounding
+    assert all(m.merged for n, m in model.transformer.named_modules() if hasattr(m, "merged") and "lora" not in n)
+    with pytest.raises(RuntimeError, match="prepared for inference"):
+        model.save(tmp_path / "m")
+
+
+def test_envmap_layers_run_in_the_dits_dtype():
+    """Real sizes run the DiT in bfloat16 while the new layers train in float32: the residual comes back in the DiT's dtype."""
+    attn = AtemporalCrossAttention(24, 2)
+    torch.nn.init.normal_(attn.to_out.weight, std=0.2)
+    tokens, env = torch.randn(1, 10, 24), torch.randn(1, 2, 3, 24)
+    out32 = attn(tokens, env)
+    out16 = attn(tokens.bfloat16(), env)
+    assert out16.dtype == torch.bfloat16
+    torch.testing.assert_close(out16.float(), out32, atol=0.05, rtol=0.05)
+    attn.bfloat16()
+    assert attn(tokens.bfloat16(), env).dtype == torch.bfloat16
+
+
 def test_control_and_mask_layout_match_diffusers_pipeline(model):
     from diffusers import FlowMatchEulerDiscreteScheduler, WanVACEPipeline
 
