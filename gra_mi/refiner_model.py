@@ -22,6 +22,7 @@ import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -222,6 +223,7 @@ def _build_backbone(config: RefinerConfig):
                 )
         # from_pretrained with torch_dtype keeps diffusers' fp32-sensitive modules in fp32; the VAE stays fp32 (hand-off colour).
         transformer = WanVACETransformer3DModel.from_pretrained(path / "transformer", torch_dtype=dtype, local_files_only=True)
+        _check_size(transformer, config.size, path / "transformer" / "config.json")
         vae = AutoencoderKLWan.from_pretrained(path / "vae", torch_dtype=torch.float32, local_files_only=True)
         return transformer, vae
     from diffusers.loaders.single_file_utils import convert_wan_transformer_to_diffusers, convert_wan_vae_to_diffusers
@@ -241,6 +243,15 @@ def _build_backbone(config: RefinerConfig):
     vae = AutoencoderKLWan()
     vae.load_state_dict(convert_wan_vae_to_diffusers(_read_checkpoint(Path(config.vae_weights))))
     return cast_transformer(transformer, dtype), vae
+
+
+def _check_size(transformer, size: str, source: Path) -> None:
+    """Weights of another size would load and run (shapes follow the folder's config): say so instead."""
+    expected = TRANSFORMER_CONFIGS[size]
+    for key in ("num_layers", "num_attention_heads", "attention_head_dim", "vace_layers"):
+        got = transformer.config[key]
+        if list(np.atleast_1d(got)) != list(np.atleast_1d(expected[key])):
+            raise GraMiInputError(source, f"field '{key}' is {got}: not WAN2.1-VACE-{size} (expected {expected[key]}); check --size")
 
 
 def _read_checkpoint(path: Path) -> dict:

@@ -444,6 +444,70 @@ def test_real_sizes_need_weights_on_disk(tmp_path):
         VideoRefiner(RefinerConfig(size="1.3B", weights=str(tmp_path / "wan")))
 
 
+def _local_wan_folder(folder, text_dim: int = 32):
+    """A WAN2.1-VACE diffusers folder as a user has one (transformer/, vae/, tokenizer/, text_encoder/), tiny sizes."""
+    from diffusers import AutoencoderKLWan, WanVACETransformer3DModel
+    from tokenizers import Tokenizer, models, pre_tokenizers
+    from transformers import PreTrainedTokenizerFast, UMT5Config, UMT5EncoderModel
+
+    from gra_mi.refiner_model import TINY_VAE_WEIGHTS, VAE_CONFIGS
+
+    torch.manual_seed(3)
+    WanVACETransformer3DModel(**TRANSFORMER_CONFIGS["tiny"]).save_pretrained(folder / "transformer")
+    vae = AutoencoderKLWan(**VAE_CONFIGS["tiny"])
+    from safetensors.torch import load_file
+
+    vae.load_state_dict(load_file(str(TINY_VAE_WEIGHTS)))
+    vae.save_pretrained(folder / "vae")
+    words = ["<pad>", "</s>", "<unk>", "a", "person", "photorealistic", "studio", "lighting", ","]
+    tok = Tokenizer(models.WordLevel({w: i for i, w in enumerate(words)}, unk_token="<unk>"))
+    tok.pre_tokenizer = pre_tokenizers.WhitespaceSplit()
+    PreTrainedTokenizerFast(tokenizer_object=tok, pad_token="<pad>", eos_token="</s>", unk_token="<unk>").save_pretrained(
+        folder / "tokenizer"
+    )
+    config = UMT5Config(vocab_size=len(words), d_model=text_dim, d_kv=8, d_ff=64, num_layers=2, num_heads=4)
+    UMT5EncoderModel(config).save_pretrained(folder / "text_encoder")
+
+
+def test_real_size_from_a_local_diffusers_folder(tmp_path, monkeypatch):
+    """The real-size path end to end on a tiny folder standing in for WAN2.1-VACE-1.3B-diffusers: `gra-mi
+    refiner-prompt`, from_pretrained in bfloat16 (fp32-kept modules as `cast_transformer` keeps them), LoRA + envmap
+    layers, a training step, save/load of the trainable weights, and a refined window."""
+    import gra_mi.refiner_model as rm
+    from gra_mi.cli import main
+
+    wan = tmp_path / "wan"
+    _local_wan_folder(wan)
+    prompt = tmp_path / "prompt.safetensors"
+    assert main(["refiner-prompt", "--pipeline", str(wan), "--out", str(prompt)]) == 0
+    from safetensors.torch import load_file
+
+    embeds = load_file(str(prompt))["prompt_embeds"]
+    assert embeds.shape == (1, 512, 32) and embeds[0, :3].abs().sum() > 0 and embeds[0, 10:].abs().sum() == 0
+    # The real 1.3B's weights are the wrong size for this folder: a clear error, not a silently different model.
+    with pytest.raises(GraMiInputError, match="num_layers"):
+        VideoRefiner(RefinerConfig(size="1.3B", weights=str(wan), prompt_embeds=str(prompt)))
+    monkeypatch.setitem(rm.TRANSFORMER_CONFIGS, "1.3B", TRANSFORMER_CONFIGS["tiny"])
+    config = RefinerConfig(size="1.3B", weights=str(wan), prompt_embeds=str(prompt), dtype="bfloat16", lora_rank=4)
+    model = VideoRefiner(config)
+    from diffusers import WanVACETransformer3DModel
+
+    reference = rm.cast_transformer(WanVACETransformer3DModel(**TRANSFORMER_CONFIGS["tiny"]), torch.bfloat16)
+    dtypes = {n.replace(".base_layer", ""): p.dtype for n, p in model.transformer.named_parameters() if "lora_" not in n}
+    assert dtypes == {n: p.dtype for n, p in reference.named_parameters()}
+    assert {d for n, d in dtypes.items() if "scale_shift_table" in n} == {torch.float32}
+    assert {d for n, d in dtypes.items() if n.endswith("attn1.to_q.weight")} == {torch.bfloat16}
+
+    data = synthetic_dataset(tmp_path / "data", {0: (1, 1)}, frames=17, height=32, width=32, test_frames=17)
+    out = train_refiner(data.folder, tmp_path / "model", RefinerTrainConfig(steps=2, log_every=1), model_config=config)
+    loaded = VideoRefiner.load(out)
+    trained = model.trainable_state()
+    assert set(loaded.trainable_state()) == set(trained)
+    assert main(["refine", str(data.folder), "--model", str(out), "--out", str(tmp_path / "refined"), "--steps", "2"]) == 0
+    summary = json.loads((tmp_path / "refined" / "refine.json").read_text())
+    assert summary["frames"] == 17 and summary["fuse_lora"] is True and np.isfinite(summary["psnr_refined"])
+
+
 def test_real_configs_lora_size():
     """The 1.3B config built on the meta device: LoRA r32 on the main blocks adds the 43.7 M parameters of a full count."""
     from diffusers import WanVACETransformer3DModel
