@@ -111,6 +111,16 @@ class UVAtlas:
         """(R, R, C) texture → (M, C) values at the valid texels."""
         return texture.reshape(self.resolution * self.resolution, -1)[self.texel_index]
 
+    def on_device(self) -> tuple[list[mi.UInt32], list[mi.Float]]:
+        """The three vertex-index columns of ``faces`` and of ``barycentrics`` as Dr.Jit arrays, uploaded once per variant."""
+        cache = self.__dict__.setdefault("_on_device", {})
+        if mi.variant() not in cache:
+            cache[mi.variant()] = (
+                [mi.UInt32(np.ascontiguousarray(self.faces[:, k], np.uint32)) for k in range(3)],
+                [mi.Float(np.ascontiguousarray(self.barycentrics[:, k], np.float32)) for k in range(3)],
+            )
+        return cache[mi.variant()]
+
 
 @dataclass
 class TexelGeometry:
@@ -123,18 +133,24 @@ class TexelGeometry:
 
     @classmethod
     def from_frame(cls, atlas: UVAtlas, vertices: np.ndarray, normals: np.ndarray) -> TexelGeometry:
-        b = atlas.barycentrics
-        p = np.einsum("mk,mkc->mc", b, vertices[atlas.faces])
-        n = np.einsum("mk,mkc->mc", b, normals[atlas.faces])
-        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-        v0, v1, v2 = (vertices[atlas.faces[:, k]] for k in range(3))
-        ng = np.cross(v1 - v0, v2 - v0)
-        ng /= np.maximum(np.linalg.norm(ng, axis=1, keepdims=True), 1e-20)
+        """Interpolate the frame's mesh at the texels, on the Dr.Jit device (on a GPU the NumPy version of this cost
+        more than tracing the frame's visibility)."""
+        vertices = np.ascontiguousarray(vertices, dtype=np.float32)
+        faces, bary = atlas.on_device()
+        verts = mi.Point3f(*vertices.T)
+        norms = mi.Vector3f(*np.asarray(normals, np.float32).T)
+        v0, v1, v2 = (dr.gather(mi.Point3f, verts, f) for f in faces)
+        p = bary[0] * v0 + bary[1] * v1 + bary[2] * v2
+        n = bary[0] * dr.gather(mi.Vector3f, norms, faces[0])
+        n += bary[1] * dr.gather(mi.Vector3f, norms, faces[1]) + bary[2] * dr.gather(mi.Vector3f, norms, faces[2])
+        n /= dr.maximum(dr.norm(n), 1e-12)
+        ng = dr.cross(v1 - v0, v2 - v0)
+        length = dr.norm(ng)
         # Sliver triangles have no reliable geometric normal: fall back to the shading normal.
-        ng = np.where(np.linalg.norm(ng, axis=1, keepdims=True) > 0.5, ng, n)
-        digest = hashlib.sha1(np.ascontiguousarray(vertices, dtype=np.float32).tobytes()).hexdigest()[:16]
-        as3 = lambda a, t: t(*a.T.astype(np.float32))  # noqa: E731
-        return cls(as3(p, mi.Point3f), as3(n, mi.Vector3f), as3(ng, mi.Vector3f), digest)
+        ng = dr.select(length > 1e-20, ng / dr.maximum(length, 1e-20), n)
+        dr.eval(p, n, ng)
+        digest = hashlib.sha1(vertices.tobytes()).hexdigest()[:16]
+        return cls(mi.Point3f(p), mi.Vector3f(n), mi.Vector3f(ng), digest)
 
 
 # --------------------------------------------------------------------------------------------------------------

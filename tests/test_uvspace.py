@@ -135,6 +135,23 @@ def test_uv_render_agrees_with_image_space_render(tiny, tmp_path):
     assert rel.mean() < 0.01 and np.median(rel) < 5e-3, (rel.mean(), np.median(rel))
 
 
+def test_texel_geometry_matches_float64_numpy(tiny):
+    """Texel positions, shading normals and geometric normals (interpolated on the device) against float64 NumPy."""
+    from gra_mi.relight import Relighter
+
+    relighter = Relighter(tiny, resolution=64)
+    atlas, geom = relighter.atlas, relighter.geometry(1)
+    vertices, normals = tiny.sequence.vertices[1].astype(np.float64), tiny.sequence.normals[1].astype(np.float64)
+    b, f = atlas.barycentrics, atlas.faces
+    p = np.einsum("mk,mkc->mc", b, vertices[f])
+    n = np.einsum("mk,mkc->mc", b, normals[f])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    ng = np.cross(vertices[f[:, 1]] - vertices[f[:, 0]], vertices[f[:, 2]] - vertices[f[:, 0]])
+    ng /= np.linalg.norm(ng, axis=1, keepdims=True)
+    for ours, ref in ((geom.position, p), (geom.normal, n), (geom.geo_normal, ng)):
+        np.testing.assert_allclose(np.array(ours).T, ref, atol=2e-6)
+
+
 def test_rasterise_matches_a_numpy_bilinear_lookup(tiny):
     """The device-side rasterisation against float64 NumPy: bilinear in UV (texel centres, clamped), normalised by the
     interpolated mask, alpha = the pixel hits the subject. The camera's rays are built once and reused."""
