@@ -1,8 +1,9 @@
 """Video refiner speed: tiny-config training step and rollout frames/s on CPU; memory against rollout length;
-and, where a GPU exists, the real 1.3B configuration (random weights) per window at 1024×544 against the paper's
-840 ms of video-model time per frame on an H100.
+and, where a GPU exists, the real 1.3B (or 14B) configuration (random weights) at 1024×544 stage by stage against
+the paper's runtime table (H100), with each inference mode's distance from the same weights run in float32.
 
-    .venv/bin/python benchmarks/refiner.py [--quick] [--real-1.3b-cpu] [--skip-tiny] [--real-steps N]
+    .venv/bin/python benchmarks/refiner.py [--quick] [--real-1.3b-cpu] [--skip-tiny] [--real-size 14B]
+                                           [--real-steps N] [--real-frames N]
 
 Prints a markdown table; every row of a comparison is measured in this one run.
 """
