@@ -228,21 +228,38 @@ def _build_backbone(config: RefinerConfig):
         return transformer, vae
     from diffusers.loaders.single_file_utils import convert_wan_transformer_to_diffusers, convert_wan_vae_to_diffusers
 
-    transformer = WanVACETransformer3DModel(**TRANSFORMER_CONFIGS[config.size])
-    missing, unexpected = transformer.load_state_dict(convert_wan_transformer_to_diffusers(_read_checkpoint(path)), strict=False)
+    if not config.vae_weights or not Path(config.vae_weights).is_file():
+        raise GraMiInputError(
+            "--vae-weights", "an original-format transformer checkpoint needs the Wan2.1 VAE checkpoint file (Wan2.1_VAE.pth)"
+        )
+    state = convert_wan_transformer_to_diffusers(_read_checkpoint(path))
+    torch.set_default_dtype(dtype)  # built in the target dtype: the 14B takes 28 GB of memory, not 56
+    try:
+        transformer = WanVACETransformer3DModel(**TRANSFORMER_CONFIGS[config.size])
+    finally:
+        torch.set_default_dtype(torch.float32)
+    try:
+        missing, unexpected = transformer.load_state_dict(state, strict=False)
+    except RuntimeError as error:  # shapes of another size
+        raise GraMiInputError(
+            path, f"not a WAN2.1-VACE-{config.size} transformer checkpoint: {str(error).splitlines()[-1].strip()}"
+        ) from None
     if missing:
         raise GraMiInputError(
             path, f"not a WAN2.1-VACE-{config.size} transformer checkpoint: {len(missing)} weights missing, e.g. {missing[:3]}"
         )
     if unexpected:
         logger.warning("%s: %d unexpected weights ignored", path, len(unexpected))
-    if not config.vae_weights or not Path(config.vae_weights).is_file():
-        raise GraMiInputError(
-            "--vae-weights", "an original-format transformer checkpoint needs the Wan2.1 VAE checkpoint file (Wan2.1_VAE.pth)"
-        )
+    cast_transformer(transformer, dtype)
+    for name, param in transformer.named_parameters():  # the float32-kept modules: their checkpoint values, unrounded
+        if param.dtype == torch.float32 and name in state:
+            param.data = state[name].to(torch.float32)
     vae = AutoencoderKLWan()
-    vae.load_state_dict(convert_wan_vae_to_diffusers(_read_checkpoint(Path(config.vae_weights))))
-    return cast_transformer(transformer, dtype), vae
+    try:
+        vae.load_state_dict(convert_wan_vae_to_diffusers(_read_checkpoint(Path(config.vae_weights))))
+    except RuntimeError as error:
+        raise GraMiInputError(config.vae_weights, f"not the Wan2.1 VAE checkpoint: {str(error).splitlines()[0].strip()}") from None
+    return transformer, vae
 
 
 def _check_size(transformer, size: str, source: Path) -> None:

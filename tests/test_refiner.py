@@ -508,6 +508,81 @@ def test_real_size_from_a_local_diffusers_folder(tmp_path, monkeypatch):
     assert summary["frames"] == 17 and summary["fuse_lora"] is True and np.isfinite(summary["psnr_refined"])
 
 
+def _to_original_wan_keys(state: dict) -> dict:
+    """diffusers → original Wan2.1 key names (the inverse of diffusers' convert_wan_transformer_to_diffusers)."""
+    import re
+
+    renames = [
+        (r"^condition_embedder\.time_embedder\.linear_1", "time_embedding.0"),
+        (r"^condition_embedder\.time_embedder\.linear_2", "time_embedding.2"),
+        (r"^condition_embedder\.text_embedder\.linear_1", "text_embedding.0"),
+        (r"^condition_embedder\.text_embedder\.linear_2", "text_embedding.2"),
+        (r"^condition_embedder\.time_proj", "time_projection.1"),
+        (r"^scale_shift_table", "head.modulation"),
+        (r"^proj_out", "head.head"),
+        (r"\.attn1\.", ".self_attn."),
+        (r"\.attn2\.", ".cross_attn."),
+        (r"\.to_out\.0\.", ".o."),
+        (r"\.to_([qkv])\.", r".\1."),
+        (r"\.ffn\.net\.0\.proj\.", ".ffn.0."),
+        (r"\.ffn\.net\.2\.", ".ffn.2."),
+        (r"^(blocks\.\d+)\.scale_shift_table", r"\1.modulation"),
+        (r"\.norm2\.", ".norm__swap."),
+        (r"\.norm3\.", ".norm2."),
+        (r"\.norm__swap\.", ".norm3."),
+        (r"^(vace_blocks\.\d+)\.proj_in", r"\1.before_proj"),
+        (r"^(vace_blocks\.\d+)\.proj_out", r"\1.after_proj"),
+    ]
+    out = {}
+    for key, value in state.items():
+        for pattern, repl in renames:
+            key = re.sub(pattern, repl, key)
+        out[key] = value
+    return out
+
+
+def test_real_size_from_original_checkpoints(tmp_path, monkeypatch):
+    """An original-format transformer checkpoint (Wan2.1 key names) through the real-size loader: converted, loaded in
+    bfloat16 with the float32-kept parameters unrounded; wrong files are named. (The VAE's key conversion is
+    diffusers' own: replaced by the identity here, so a diffusers-format tiny VAE stands in for Wan2.1_VAE.pth.)"""
+    import diffusers
+    from diffusers import AutoencoderKLWan, WanVACETransformer3DModel
+    from diffusers.loaders import single_file_utils
+    from safetensors.torch import save_file
+
+    import gra_mi.refiner_model as rm
+
+    monkeypatch.setitem(rm.TRANSFORMER_CONFIGS, "1.3B", TRANSFORMER_CONFIGS["tiny"])
+    monkeypatch.setattr(diffusers, "AutoencoderKLWan", lambda: AutoencoderKLWan(**rm.VAE_CONFIGS["tiny"]))
+    monkeypatch.setattr(single_file_utils, "convert_wan_vae_to_diffusers", lambda state: state)
+    torch.manual_seed(5)
+    source = WanVACETransformer3DModel(**TRANSFORMER_CONFIGS["tiny"])
+    original = _to_original_wan_keys({k: v.contiguous() for k, v in source.state_dict().items()})
+    assert single_file_utils.convert_wan_transformer_to_diffusers(dict(original)).keys() == source.state_dict().keys()
+    save_file(original, str(tmp_path / "wan_vace.safetensors"))
+    from safetensors.torch import load_file
+
+    save_file(load_file(str(rm.TINY_VAE_WEIGHTS)), str(tmp_path / "vae.safetensors"))
+    prompt = tmp_path / "prompt.safetensors"
+    save_file({"prompt_embeds": torch.randn(1, 8, 32)}, str(prompt))
+    config = dict(size="1.3B", weights=str(tmp_path / "wan_vace.safetensors"), prompt_embeds=str(prompt), dtype="bfloat16")
+    with pytest.raises(GraMiInputError, match="vae-weights"):
+        VideoRefiner(RefinerConfig(**config))
+    model = VideoRefiner(RefinerConfig(**config, vae_weights=str(tmp_path / "vae.safetensors")))
+    loaded = dict(model.transformer.named_parameters())
+    for name, param in source.named_parameters():
+        head, _, leaf = name.rpartition(".")
+        mine = loaded[name] if name in loaded else loaded[f"{head}.base_layer.{leaf}"]  # LoRA-wrapped layers
+        assert torch.equal(mine.detach(), param.detach().to(mine.dtype)), name  # bf16 rounding only; float32-kept ones exact
+    assert loaded["scale_shift_table"].dtype == torch.float32 and loaded["patch_embedding.weight"].dtype == torch.bfloat16
+    # A checkpoint of another size: named, with what did not fit.
+    save_file({k: v[..., :1].contiguous() if k.endswith("q.weight") else v for k, v in original.items()}, str(tmp_path / "bad.safetensors"))
+    with pytest.raises(GraMiInputError, match="bad.safetensors"):
+        VideoRefiner(
+            RefinerConfig(**{**config, "weights": str(tmp_path / "bad.safetensors")}, vae_weights=str(tmp_path / "vae.safetensors"))
+        )
+
+
 def test_real_configs_lora_size():
     """The 1.3B config built on the meta device: LoRA r32 on the main blocks adds the 43.7 M parameters of a full count."""
     from diffusers import WanVACETransformer3DModel
