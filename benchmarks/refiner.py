@@ -78,7 +78,7 @@ def real_window(
     from safetensors.torch import save_file
 
     from gra_mi.refiner_infer import euler_sample, rollout
-    from gra_mi.refiner_model import TRANSFORMER_CONFIGS, cast_transformer
+    from gra_mi.refiner_model import TRANSFORMER_CONFIGS, cast_transformer, default_dtype
     from gra_mi.refiner_train import conditioning, seed_mask
 
     cuda = device == "cuda"
@@ -98,12 +98,8 @@ def real_window(
     torch.manual_seed(0)
     t0 = time.perf_counter()
     with torch.device(device):
-        if size != "1.3B":  # build in bfloat16: 14B's float32 weights alone would take 56 GB
-            torch.set_default_dtype(torch.bfloat16)
-        try:
+        with default_dtype(torch.bfloat16 if size != "1.3B" else torch.float32):  # the 14B in float32 would not fit
             transformer = cast_transformer(WanVACETransformer3DModel(**TRANSFORMER_CONFIGS[size]), torch.bfloat16)
-        finally:
-            torch.set_default_dtype(torch.float32)
         backbone = (transformer, AutoencoderKLWan())
     prompt = folder / "prompt.safetensors"
     save_file({"prompt_embeds": torch.randn(1, 512, 4096)}, str(prompt))  # umT5's 512 tokens, as diffusers pads them
@@ -238,8 +234,8 @@ def real_rows(r: dict, where: str, height: int, width: int, steps: int) -> list[
     return rows
 
 
-def tiny_rows(tmp: Path, quick: bool, euler_steps: int) -> list[tuple[str, str, str]]:
-    """The tiny configuration on the CPU: training steps, rollouts, memory against rollout length."""
+def tiny_rows(tmp: Path, quick: bool, euler_steps: int) -> tuple[list[tuple[str, str, str]], dict[str, int]]:
+    """The tiny configuration on the CPU: training steps, rollouts, memory against rollout length; its parameter counts."""
     rows = []
     lengths = [17, 41] if quick else [41, 161]
     for res in (64,) if quick else (64, 128):
@@ -266,7 +262,7 @@ def tiny_rows(tmp: Path, quick: bool, euler_steps: int) -> list[tuple[str, str, 
         )
     a, b = (results[n]["peak_rss_mib"] for n in lengths)
     rows.append(("peak memory, longest / shortest rollout", f"{b / a:.3f}×", f"{lengths[-1]} vs {lengths[0]} frames: flat with length"))
-    return rows
+    return rows, parameter_counts(model)
 
 
 def main() -> None:
@@ -287,8 +283,8 @@ def main() -> None:
     counts = None
     with tempfile.TemporaryDirectory() as tmp:
         if not args.skip_tiny:
-            rows += tiny_rows(Path(tmp), args.quick, args.euler_steps)
-            counts = parameter_counts(VideoRefiner(RefinerConfig()))
+            tiny, counts = tiny_rows(Path(tmp), args.quick, args.euler_steps)
+            rows += tiny
     if torch.cuda.is_available():
         with tempfile.TemporaryDirectory() as tmp:
             size = args.real_size

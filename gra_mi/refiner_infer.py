@@ -126,7 +126,7 @@ def rollout(
         )
         env = model.env_tokens(env_latents)
         # The inactive latents of the seed frames are their encoding alone (the VAE is causal in time).
-        known = control[:, :16, : 1 + (latent_frames(seeded) if seeded else 0)] if joins.pin else None
+        known = control[:, :16, : 1 + latent_frames(seeded)] if joins.pin else None
         generator = torch.Generator().manual_seed(seed + k)  # a new seed per window
         latents = euler_sample(model, (1, 16, *control.shape[2:]), control, env, steps, shift, generator, known)
         video = model.decode(latents[:, :, 1:])[0]  # drop the reference frame
@@ -210,6 +210,7 @@ def refine_to_folder(
     ch, cw = dataset.crop
     exposure = dataset.exposure
     fps = float(dataset.meta.get("fps", 12))
+    tm = lambda x: np.clip(x * exposure, 0, 1)  # noqa: E731  compare in the exposed range the model sees
     rows, changes, windows_seen, rss = [], [], [], []
     previous = None
     t0 = time.perf_counter()
@@ -229,7 +230,6 @@ def refine_to_folder(
             if info.has_target:
                 target = dataset.linear_frames(sequence, "target", frame.index, frame.index + 1)[0].numpy()[:ch, :cw]
                 panels.append(target)
-                tm = lambda x: np.clip(x * exposure, 0, 1)  # noqa: E731  compare in the exposed range the model sees
                 subject = _subject(coarse, target)
                 row["psnr_coarse"] = _psnr(tm(coarse), tm(target), subject)
                 row["psnr_refined"] = _psnr(tm(image), tm(target), subject)
@@ -274,7 +274,7 @@ def refine_to_folder(
                 image = video_to_image(video, exposure).permute(1, 2, 0).numpy()[:ch, :cw]
                 target = dataset.linear_frames(sequence, "target", index, index + 1)[0].numpy()[:ch, :cw]
                 coarse = dataset.linear_frames(sequence, "coarse", index, index + 1)[0].numpy()[:ch, :cw]
-                psnr.append(_psnr(np.clip(image * exposure, 0, 1), np.clip(target * exposure, 0, 1), _subject(coarse, target)))
+                psnr.append(_psnr(tm(image), tm(target), _subject(coarse, target)))
             summary["psnr_vae_round_trip"] = float(np.mean(psnr))
     summary["per_frame"] = rows
     atomic_write_text(out / "refine.json", json.dumps(summary, indent=1) + "\n")

@@ -19,6 +19,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -181,6 +182,16 @@ def _dtype(name: str) -> torch.dtype:
     return {"float32": torch.float32, "bfloat16": torch.bfloat16, "float16": torch.float16}[name]
 
 
+@contextmanager
+def default_dtype(dtype: torch.dtype):
+    """Build modules in ``dtype`` (the real sizes in bfloat16: the 14B takes 28 GB of memory to build, not 56)."""
+    torch.set_default_dtype(dtype)
+    try:
+        yield
+    finally:
+        torch.set_default_dtype(torch.float32)
+
+
 def cast_transformer(transformer, dtype: torch.dtype):
     """Cast to ``dtype`` as ``from_pretrained(torch_dtype=…)`` does: diffusers' fp32-sensitive parameters (norms, time
     embedding, RoPE, ``scale_shift_table``) stay float32, so every way of loading gives the same numerics."""
@@ -233,11 +244,8 @@ def _build_backbone(config: RefinerConfig):
             "--vae-weights", "an original-format transformer checkpoint needs the Wan2.1 VAE checkpoint file (Wan2.1_VAE.pth)"
         )
     state = convert_wan_transformer_to_diffusers(_read_checkpoint(path))
-    torch.set_default_dtype(dtype)  # built in the target dtype: the 14B takes 28 GB of memory, not 56
-    try:
+    with default_dtype(dtype):
         transformer = WanVACETransformer3DModel(**TRANSFORMER_CONFIGS[config.size])
-    finally:
-        torch.set_default_dtype(torch.float32)
     try:
         missing, unexpected = transformer.load_state_dict(state, strict=False)
     except RuntimeError as error:  # shapes of another size
