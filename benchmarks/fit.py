@@ -33,17 +33,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--variant", default=None, help="Mitsuba variant (default: automatic).")
     args = parser.parse_args(argv)
 
-    from gra_mi.variant import choose_variant
+    from gra_mi.core.runtime import choose_variant
 
     variant = choose_variant(args.variant)
     import drjit as dr
     import mitsuba as mi
 
-    from gra_mi.capture import PRESETS, Capture, generate_capture, load_observation
-    from gra_mi.fit import FitConfig, MaterialFitter
-    from gra_mi.imageio import atomic_write_text, write_exr
-    from gra_mi.plugins import register_plugins
-    from gra_mi.scene import LightstageScene, subject_scene_xml
+    from gra_mi.capture.dataset import Capture, load_observation
+    from gra_mi.capture.synthetic import PRESETS, generate_capture
+    from gra_mi.core.io import atomic_write_text, write_exr
+    from gra_mi.fit.materials import FitConfig, MaterialFitter
+    from gra_mi.render.plugins import register_plugins
+    from gra_mi.stage.scene import LightstageScene, subject_scene_xml
 
     register_plugins()
     work = Path(tempfile.mkdtemp(prefix="gra_mi_fitbench_"))
@@ -75,9 +76,9 @@ def main(argv: list[str] | None = None) -> int:
 
     # 2. One pass at the full preset's sizes ------------------------------------------------------------------
     full = PRESETS["full"]
-    from gra_mi.lightstage import default_lightstage, uniform_pattern
-    from gra_mi.relight import Relighter
-    from gra_mi.scene import write_rig
+    from gra_mi.render.relighter import Relighter
+    from gra_mi.stage.lightstage import default_lightstage, uniform_pattern
+    from gra_mi.stage.scene import write_rig
 
     stage = default_lightstage(width=full.width, height=full.height)
     write_rig(stage, work / "full_rig")

@@ -56,22 +56,24 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     repeats = 2 if args.quick else 5
 
-    from gra_mi.variant import choose_variant
+    from gra_mi.core.runtime import choose_variant
 
     variant = choose_variant(args.variant)
     import drjit as dr
     import mitsuba as mi
 
-    from gra_mi.anny_body import anny_sequence
-    from gra_mi.envmap import envmap_to_leds
-    from gra_mi.envmap_library import envmap_from_seed
-    from gra_mi.imageio import atomic_write_text, write_exr
-    from gra_mi.lightstage import default_lightstage
-    from gra_mi.plugins import register_plugins
-    from gra_mi.relight import Relighter
-    from gra_mi.scene import LightstageScene, subject_scene_xml, write_rig
-    from gra_mi.subject import save_sequence
-    from gra_mi.uvspace import compute_visibility, rasterize_to_camera, shade_texels
+    from gra_mi.core.io import atomic_write_text, write_exr
+    from gra_mi.render.plugins import register_plugins
+    from gra_mi.render.rasterize import rasterize_to_camera
+    from gra_mi.render.relighter import Relighter
+    from gra_mi.render.shading import shade_texels
+    from gra_mi.render.visibility import compute_visibility
+    from gra_mi.stage.envmap import envmap_to_leds
+    from gra_mi.stage.envmap_library import envmap_from_seed
+    from gra_mi.stage.lightstage import default_lightstage
+    from gra_mi.stage.scene import LightstageScene, subject_scene_xml, write_rig
+    from gra_mi.subject.anny_body import anny_sequence
+    from gra_mi.subject.sequence import save_sequence
 
     register_plugins()
     tmp = Path(tempfile.mkdtemp(prefix="gra_mi_bench_"))
@@ -145,7 +147,7 @@ def main(argv: list[str] | None = None) -> int:
     shade()  # compile
     t_shade, shading = timed(shade, repeats)
     t_raster, image_uv = timed(
-        lambda: rasterize_to_camera(ls.scene, cam, relighter.atlas.scatter(shading.radiance), relighter.atlas.mask), repeats
+        lambda: rasterize_to_camera(ls, cam, relighter.atlas.scatter(shading.radiance), relighter.atlas.mask), repeats
     )
     rows.append(("relight, cached frame, new envmap: texel shading (all LEDs, GGX)", f"{t_shade * 1e3:.0f} ms", "goal ≤ 100 ms"))
     rows.append((f"  + rasterise the texture into the camera ({width}×{height})", f"{t_raster * 1e3:.0f} ms", ""))
@@ -157,7 +159,7 @@ def main(argv: list[str] | None = None) -> int:
         f'<emitter type="point"><point name="position" value="{", ".join(map(str, q))}"/><rgb name="intensity" value="{", ".join(map(str, i))}"/></emitter>'
         for q, i in zip(stage.led_positions, intensities[1], strict=True)
     )
-    from gra_mi.scene import camera_xml
+    from gra_mi.stage.scene import camera_xml
 
     xml = (
         f'<scene version="3.0.0">{camera_xml(cam, "1")}{emitters}<shape type="ply"><string name="filename" value="{ply}"/>'
@@ -172,7 +174,7 @@ def main(argv: list[str] | None = None) -> int:
     shading = shade_texels(
         geom, relighter.visibility(frame), stage.led_positions, intensities[1], relighter.albedo, relighter.roughness, cam.position
     )
-    ours = rasterize_to_camera(ls.scene, cam, relighter.atlas.scatter(shading.radiance), relighter.atlas.mask)
+    ours = rasterize_to_camera(ls, cam, relighter.atlas.scatter(shading.radiance), relighter.atlas.mask)
     err_ours = relative_rmse(ours, reference, mask)
     t_ours = t_shade + t_raster
     rows.append(

@@ -26,9 +26,9 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from gra_mi.refiner_data import RefinerDataset, synthetic_dataset  # noqa: E402
-from gra_mi.refiner_model import RefinerConfig, VideoRefiner, parameter_counts  # noqa: E402
-from gra_mi.refiner_train import ErrorBank, RefinerTrainConfig, encode_window, flow_matching_loss  # noqa: E402
+from gra_mi.refiner.data import RefinerDataset, synthetic_dataset
+from gra_mi.refiner.model import RefinerConfig, VideoRefiner, parameter_counts
+from gra_mi.refiner.train import ErrorBank, RefinerTrainConfig, encode_window, flow_matching_loss
 
 
 def train_step_times(model: VideoRefiner, dataset: RefinerDataset, repeats: int) -> dict[str, float]:
@@ -55,7 +55,7 @@ def train_step_times(model: VideoRefiner, dataset: RefinerDataset, repeats: int)
 def rollout_in_subprocess(model_dir: Path, data_dir: Path, sequence: str, frames: int, steps: int) -> dict:
     """Each length in a fresh process, so peak memory (max RSS) is that rollout's own."""
     code = (
-        "import json,sys,torch; torch.set_num_threads(2); from gra_mi.refiner_infer import refine_to_folder;"
+        "import json,sys,torch; torch.set_num_threads(2); from gra_mi.refiner.infer import refine_to_folder;"
         f"s=refine_to_folder('{model_dir}','{data_dir}','{sequence}','{data_dir}/out_{frames}',steps={steps},frames={frames},write_exr_frames=False);"
         "s.pop('per_frame'); print(json.dumps(s))"
     )
@@ -77,9 +77,9 @@ def real_window(
     from diffusers import AutoencoderKLWan, WanVACETransformer3DModel
     from safetensors.torch import save_file
 
-    from gra_mi.refiner_infer import euler_sample, rollout
-    from gra_mi.refiner_model import TRANSFORMER_CONFIGS, cast_transformer, default_dtype
-    from gra_mi.refiner_train import conditioning, seed_mask
+    from gra_mi.refiner.flow import euler_sample
+    from gra_mi.refiner.infer import rollout
+    from gra_mi.refiner.model import TRANSFORMER_CONFIGS, cast_transformer, conditioning, default_dtype, seed_mask
 
     cuda = device == "cuda"
 

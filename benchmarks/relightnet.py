@@ -22,8 +22,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--image", default="1024x540", help="Camera image size WxH for the training step. Default: 1024x540.")
     args = parser.parse_args(argv)
 
-    from gra_mi.bridge import IN_CHANNELS, sample_texture
-    from gra_mi.relightnet import RelightNet, RelightNetConfig
+    from gra_mi.relightnet.model import RelightNet, RelightNetConfig
+    from gra_mi.render.bridge import IN_CHANNELS, sample_texture
 
     device = "cuda" if torch.cuda.is_available() else "cpu"
     w, h = (int(v) for v in args.image.split("x"))

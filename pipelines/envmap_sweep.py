@@ -13,12 +13,12 @@ from pathlib import Path
 
 import numpy as np
 
-from gra_mi.envmap import background_plate, load_envmap
-from gra_mi.errors import GraMiInputError
-from gra_mi.imageio import write_exr, write_png
-from gra_mi.progress import progress
-from gra_mi.scene import LightstageScene, composite_over, render
-from gra_mi.variant import choose_variant
+from gra_mi.core.errors import GraMiInputError
+from gra_mi.core.io import write_exr, write_png
+from gra_mi.core.progress import progress
+from gra_mi.core.runtime import choose_variant
+from gra_mi.stage.envmap import background_plate, load_envmap
+from gra_mi.stage.scene import LightstageScene, composite_over, render
 
 
 def main(argv: list[str] | None = None) -> int:

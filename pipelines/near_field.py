@@ -16,14 +16,14 @@ from pathlib import Path
 
 import numpy as np
 
-from gra_mi.errors import GraMiInputError
-from gra_mi.imageio import write_exr, write_png
-from gra_mi.plugins import register_plugins
-from gra_mi.point_light import PointLight, conditioning_envmap, conditioning_pattern
-from gra_mi.progress import progress
-from gra_mi.relight import Relighter
-from gra_mi.scene import LightstageScene
-from gra_mi.variant import choose_variant
+from gra_mi.core.errors import GraMiInputError
+from gra_mi.core.io import write_exr, write_png
+from gra_mi.core.progress import progress
+from gra_mi.core.runtime import choose_variant
+from gra_mi.render.plugins import register_plugins
+from gra_mi.render.point_light import PointLight, conditioning_envmap, conditioning_pattern
+from gra_mi.render.relighter import Relighter
+from gra_mi.stage.scene import LightstageScene
 
 
 def main(argv: list[str] | None = None) -> int:

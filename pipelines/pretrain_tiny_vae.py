@@ -22,7 +22,7 @@ import torch.nn.functional as F
 
 
 def procedural_clip(rng: np.random.Generator, size: int, frames: int) -> torch.Tensor:
-    from gra_mi.refiner_data import env_to_video, image_to_video, synthetic_sequence
+    from gra_mi.refiner.data import env_to_video, image_to_video, synthetic_sequence
 
     kind = rng.choice(3, p=[0.6, 0.25, 0.15])
     if kind == 0:
@@ -49,8 +49,8 @@ def procedural_clip(rng: np.random.Generator, size: int, frames: int) -> torch.T
 
 
 def capture_clips(folder: Path, size: int, frames: int):
-    from gra_mi.imageio import read_exr
-    from gra_mi.refiner_data import image_to_video
+    from gra_mi.core.io import read_exr
+    from gra_mi.refiner.data import image_to_video
 
     clips = []
     for cam in sorted((folder / "images").iterdir()):
@@ -75,7 +75,7 @@ def main() -> None:
     from diffusers import AutoencoderKLWan
     from safetensors.torch import save_file
 
-    from gra_mi.refiner_model import VAE_CONFIGS
+    from gra_mi.refiner.model import VAE_CONFIGS
 
     torch.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)

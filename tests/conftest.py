@@ -14,7 +14,7 @@ SCENES = REPO / "scenes"
 
 
 def _variants() -> list:
-    from gra_mi.variant import cuda_available
+    from gra_mi.core.runtime import cuda_available
 
     params = [pytest.param("llvm_ad_rgb", id="llvm_ad_rgb")]
     params.append(pytest.param("cuda_ad_rgb", id="cuda_ad_rgb", marks=pytest.mark.skipif(not cuda_available(), reason="no CUDA device")))
@@ -24,7 +24,7 @@ def _variants() -> list:
 @pytest.fixture(params=_variants())
 def variant(request):
     """Set a Mitsuba variant for the test; flush Dr.Jit's caches afterwards as Mitsuba's conftest does."""
-    from gra_mi.variant import choose_variant
+    from gra_mi.core.runtime import choose_variant
 
     name = choose_variant(request.param)
     yield name
@@ -37,13 +37,13 @@ def variant(request):
 @pytest.fixture
 def llvm_variant():
     """Only the CPU variant (for tests whose subject is file I/O or numpy, not the backend)."""
-    from gra_mi.variant import choose_variant
+    from gra_mi.core.runtime import choose_variant
 
     return choose_variant("llvm_ad_rgb")
 
 
 @pytest.fixture(scope="session")
 def default_stage():
-    from gra_mi.lightstage import load_calibration
+    from gra_mi.stage.lightstage import load_calibration
 
     return load_calibration(SCENES / "rigs" / "default" / "calibration.json")

@@ -63,7 +63,7 @@ def plugin_eval(albedo, roughness, wi, wo):
 
 @pytest.fixture
 def plugins(variant):
-    from gra_mi.plugins import register_plugins
+    from gra_mi.render.plugins import register_plugins
 
     register_plugins()
     return variant
@@ -73,7 +73,7 @@ def test_shared_formula_matches_float64_reference(plugins):
     # The same Dr.Jit code the plugin and the texel shader run, evaluated in double precision.
     import drjit as dr
 
-    from gra_mi import brdf
+    from gra_mi.render import brdf
 
     Array3f64 = dr.llvm.ad.Array3f64  # noqa: N806
     rng = np.random.default_rng(0)
@@ -108,7 +108,7 @@ def test_ggx_terms_match_mitsuba_microfacet(plugins):
     import drjit as dr
     import mitsuba as mi
 
-    from gra_mi import brdf
+    from gra_mi.render import brdf
 
     rng = np.random.default_rng(2)
     m = random_dirs(rng, 1000)

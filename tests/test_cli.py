@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from gra_mi.cli import COMMANDS, build_parser
-from gra_mi.imageio import read_exr, write_exr
+from gra_mi.core.io import read_exr, write_exr
 
 from .conftest import SCENES
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gra_mi import envmap as em
-from gra_mi.lightstage import default_lightstage
+from gra_mi.stage import envmap as em
+from gra_mi.stage.lightstage import default_lightstage
 
 
 def smooth_envmap(h: int = 32) -> np.ndarray:
@@ -99,7 +99,7 @@ def test_agrees_with_mitsuba_envmap_emitter(variant):
 def test_background_plate_matches_mitsuba_render(variant):
     import mitsuba as mi
 
-    from gra_mi.scene import camera_xml
+    from gra_mi.stage.scene import camera_xml
 
     env = smooth_envmap(64)
     stage = default_lightstage(num_leds=8, num_cameras=4, width=48, height=32)
@@ -109,7 +109,7 @@ def test_background_plate_matches_mitsuba_render(variant):
     import tempfile
     from pathlib import Path
 
-    from gra_mi.imageio import write_exr
+    from gra_mi.core.io import write_exr
 
     with tempfile.TemporaryDirectory() as tmp:
         write_exr(Path(tmp) / "env.exr", env)

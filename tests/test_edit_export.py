@@ -8,9 +8,9 @@ import struct
 import numpy as np
 import pytest
 
-from gra_mi.errors import GraMiInputError
-from gra_mi.imageio import read_exr, write_exr
-from gra_mi.texture_edit import edit_albedo
+from gra_mi.apps.texture_edit import edit_albedo
+from gra_mi.core.errors import GraMiInputError
+from gra_mi.core.io import read_exr, write_exr
 
 from .conftest import SCENES
 from .test_cli import run_cli
@@ -83,10 +83,10 @@ def _glb_json(path):
 def test_export_gltf_opens_and_carries_textures_and_frames(tmp_path):
     import trimesh
 
-    from gra_mi.subject import tiny_subject
+    from gra_mi.subject.sequence import tiny_subject
 
     seq = tiny_subject(4)
-    from gra_mi.subject import save_sequence
+    from gra_mi.subject.sequence import save_sequence
 
     save_sequence(seq, tmp_path / "subject")
     write_exr(tmp_path / "albedo.exr", np.full((16, 16, 3), 0.3, np.float32))

@@ -8,8 +8,10 @@ import logging
 import numpy as np
 import pytest
 
-from gra_mi import envmap as em
-from gra_mi.envmap_library import (
+from gra_mi.core.errors import GraMiInputError
+from gra_mi.core.io import read_exr, write_exr
+from gra_mi.stage import envmap as em
+from gra_mi.stage.envmap_library import (
     SkyParams,
     bake_room,
     bake_sunsky,
@@ -19,9 +21,7 @@ from gra_mi.envmap_library import (
     sun_direction,
     write_envmap_set,
 )
-from gra_mi.errors import GraMiInputError
-from gra_mi.imageio import read_exr, write_exr
-from gra_mi.lightstage import fibonacci_sphere
+from gra_mi.stage.lightstage import fibonacci_sphere
 
 NORMALS = fibonacci_sphere(200)
 

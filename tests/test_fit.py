@@ -7,15 +7,15 @@ import json
 import numpy as np
 import pytest
 
-from gra_mi.errors import GraMiInputError
+from gra_mi.core.errors import GraMiInputError
 
 from .test_cli import run_cli
 
 
 @pytest.fixture(scope="module")
 def onebounce_capture(tmp_path_factory):
-    from gra_mi.capture import generate_capture
-    from gra_mi.variant import choose_variant
+    from gra_mi.capture.synthetic import generate_capture
+    from gra_mi.core.runtime import choose_variant
 
     choose_variant("llvm_ad_rgb")
     out = tmp_path_factory.mktemp("capture")
@@ -24,7 +24,7 @@ def onebounce_capture(tmp_path_factory):
 
 
 def test_capture_layout(onebounce_capture):
-    from gra_mi.capture import Capture
+    from gra_mi.capture.dataset import Capture
 
     capture = Capture.load(onebounce_capture)
     train = [f for f in capture.frames if f.split == "train"]
@@ -42,15 +42,15 @@ def test_capture_layout(onebounce_capture):
 
 
 def test_fit_recovers_known_maps(onebounce_capture, tmp_path):
-    from gra_mi.fit import FitConfig, run_fit
-    from gra_mi.imageio import read_exr
+    from gra_mi.core.io import read_exr
+    from gra_mi.fit.materials import FitConfig, run_fit
 
     result, report = run_fit(onebounce_capture, tmp_path / "fit", FitConfig(roughness_candidates=21))
     metrics = json.loads((tmp_path / "fit" / "fit.json").read_text())
     assert report.is_file() and (tmp_path / "fit" / "convergence.png").is_file()
     # Texels seen by at least three cameras: albedo within 2 % and roughness within 0.05 (medians).
-    from gra_mi.subject import load_sequence
-    from gra_mi.uvspace import UVAtlas
+    from gra_mi.render.atlas import UVAtlas
+    from gra_mi.subject.sequence import load_sequence
 
     seq = load_sequence(onebounce_capture / "subject")
     atlas = UVAtlas.build(seq.faces, seq.uvs, result.albedo.shape[0])
@@ -79,8 +79,8 @@ def test_fit_cli_resumes_from_checkpoint(onebounce_capture, tmp_path):
 
 
 def test_unseen_texels_keep_defaults(onebounce_capture, tmp_path):
-    from gra_mi.capture import Capture
-    from gra_mi.fit import DEFAULT_ALBEDO, DEFAULT_ROUGHNESS, FitConfig, MaterialFitter
+    from gra_mi.capture.dataset import Capture
+    from gra_mi.fit.materials import DEFAULT_ALBEDO, DEFAULT_ROUGHNESS, FitConfig, MaterialFitter
 
     capture = Capture.load(onebounce_capture)
     capture.train_cameras = capture.train_cameras[:1]  # one camera sees only one side
@@ -93,7 +93,7 @@ def test_unseen_texels_keep_defaults(onebounce_capture, tmp_path):
 
 
 def test_bad_capture_folder(tmp_path):
-    from gra_mi.capture import Capture
+    from gra_mi.capture.dataset import Capture
 
     with pytest.raises(GraMiInputError, match="not found"):
         Capture.load(tmp_path)

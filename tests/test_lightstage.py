@@ -7,8 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from gra_mi.errors import GraMiInputError
-from gra_mi.lightstage import (
+from gra_mi.core.errors import GraMiInputError
+from gra_mi.stage.lightstage import (
     default_lightstage,
     lightstage_to_dict,
     load_calibration,

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gra_mi.lightstage import load_calibration
-from gra_mi.scene import camera_xml
+from gra_mi.stage.lightstage import load_calibration
+from gra_mi.stage.scene import camera_xml
 
 from .conftest import SCENES
 
@@ -17,7 +17,7 @@ LEDS = [3, 10, 22, 40, 51, 60]
 
 @pytest.fixture
 def plugins(variant):
-    from gra_mi.plugins import register_plugins
+    from gra_mi.render.plugins import register_plugins
 
     register_plugins()
     return variant
@@ -37,7 +37,7 @@ def bsdf_xml(kind: str) -> str:
 def make_scene(tmp_path, kind: str, leds: list[int], intensity: float = 3.0, camera: int = 1):
     import mitsuba as mi
 
-    from gra_mi.imageio import write_exr
+    from gra_mi.core.io import write_exr
 
     rng = np.random.default_rng(0)
     write_exr(tmp_path / "albedo.exr", rng.uniform(0.2, 0.8, (8, 8, 3)))
@@ -126,7 +126,7 @@ def test_furnace_uniform_leds_light_a_small_sphere_uniformly(plugins):
     import drjit as dr
     import mitsuba as mi
 
-    from gra_mi.envmap import envmap_to_leds
+    from gra_mi.stage.envmap import envmap_to_leds
 
     stage = load_calibration(SCENES / "rigs" / "default" / "calibration.json")
     env_radiance, rho = 0.8, 0.5

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gra_mi.errors import GraMiInputError
+from gra_mi.core.errors import GraMiInputError
 
 from .conftest import SCENES
 from .test_cli import run_cli
@@ -16,14 +16,14 @@ TINY = SCENES / "tiny_lightstage.xml"
 
 @pytest.fixture
 def plugins(variant):
-    from gra_mi.plugins import register_plugins
+    from gra_mi.render.plugins import register_plugins
 
     register_plugins()
     return variant
 
 
 def test_inverse_square_falloff_and_full_visibility_on_a_plane(plugins):
-    from gra_mi.point_light import PointLight, point_light_visibility, shade_point_light
+    from gra_mi.render.point_light import PointLight, point_light_visibility, shade_point_light
 
     scene = _plane_scene(np.zeros((0, 3)), np.zeros((0, 3)))
     geom = _texels([[0.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]], [[0.0, 1.0, 0.0]])
@@ -38,9 +38,9 @@ def test_inverse_square_falloff_and_full_visibility_on_a_plane(plugins):
 
 
 def test_arm_shadows_the_torso(plugins):
-    from gra_mi.point_light import PointLight, point_light_visibility
-    from gra_mi.relight import Relighter
-    from gra_mi.scene import LightstageScene
+    from gra_mi.render.point_light import PointLight, point_light_visibility
+    from gra_mi.render.relighter import Relighter
+    from gra_mi.stage.scene import LightstageScene
 
     ls = LightstageScene.load(TINY, frame=0)
     relighter = Relighter(ls, resolution=64)
@@ -57,9 +57,9 @@ def test_arm_shadows_the_torso(plugins):
 
 
 def test_conditioning_follows_the_papers_recipe(plugins):
-    from gra_mi.lightstage import load_calibration
-    from gra_mi.point_light import PointLight, conditioning_envmap, conditioning_pattern
-    from gra_mi.scene import LightstageScene
+    from gra_mi.render.point_light import PointLight, conditioning_envmap, conditioning_pattern
+    from gra_mi.stage.lightstage import load_calibration
+    from gra_mi.stage.scene import LightstageScene
 
     ls = LightstageScene.load(TINY, frame=0)
     stage = load_calibration(SCENES / "rigs" / "tiny" / "calibration.json")

@@ -8,19 +8,11 @@ import numpy as np
 import pytest
 import torch
 
-from gra_mi.errors import GraMiInputError
-from gra_mi.refiner_data import RefinerDataset, env_to_video, image_to_video, synthetic_dataset, video_to_image
-from gra_mi.refiner_model import (
-    TRANSFORMER_CONFIGS,
-    AtemporalCrossAttention,
-    RefinerConfig,
-    VideoRefiner,
-    noisy_latent,
-    recycling_residuals,
-    sampling_sigmas,
-    velocity_target,
-)
-from gra_mi.refiner_train import ErrorBank, RefinerTrainConfig, augment, pan_zoom, train_refiner, validation_loss
+from gra_mi.core.errors import GraMiInputError
+from gra_mi.refiner.data import RefinerDataset, env_to_video, image_to_video, synthetic_dataset, video_to_image
+from gra_mi.refiner.flow import noisy_latent, recycling_residuals, sampling_sigmas, velocity_target
+from gra_mi.refiner.model import TRANSFORMER_CONFIGS, AtemporalCrossAttention, RefinerConfig, VideoRefiner
+from gra_mi.refiner.train import ErrorBank, RefinerTrainConfig, augment, pan_zoom, train_refiner, validation_loss
 
 torch.set_num_threads(2)
 
@@ -194,7 +186,7 @@ def test_flow_sign_conventions():
 def test_euler_sampler_matches_diffusers_scheduler_and_reaches_the_data():
     from diffusers import FlowMatchEulerDiscreteScheduler
 
-    from gra_mi.refiner_infer import euler_sample
+    from gra_mi.refiner.flow import euler_sample
 
     for steps, shift in ((10, 1.0), (20, 3.0), (7, 5.0)):
         sched = FlowMatchEulerDiscreteScheduler(num_train_timesteps=1000, shift=shift)
@@ -219,7 +211,7 @@ def test_euler_sampler_matches_diffusers_scheduler_and_reaches_the_data():
 def test_pinned_latents_follow_their_exact_flow_path():
     """Given latents (reference, seed frames) are fed to the model on the straight path (1 − σ)·z + σ·ε and come out
     exactly; a model that already reproduces them exactly sees the same inputs pinned or not."""
-    from gra_mi.refiner_infer import euler_sample
+    from gra_mi.refiner.flow import euler_sample
 
     x0 = torch.randn(1, 16, 5, 2, 2)
     seen = []
@@ -329,7 +321,7 @@ def test_tiny_model_overfits_a_tiny_clip_set(trained):
 
 
 def test_rollout_of_three_windows(trained):
-    from gra_mi.refiner_infer import Joins, refine_to_folder, rollout, window_starts
+    from gra_mi.refiner.infer import Joins, refine_to_folder, rollout, window_starts
 
     assert window_starts(41, 17, 5) == [0, 12, 24]
     assert window_starts(17, 17, 5) == [0]
@@ -374,7 +366,7 @@ def test_rollout_of_three_windows(trained):
 def test_handoff_frames_are_the_previous_windows_output(trained, monkeypatch):
     """The next window's seed frames are the previous window's decoded last frames (mask 0); shown, they cross-fade
     from that version to the next window's; without the cross-fade the previous window's version is shown."""
-    import gra_mi.refiner_infer as infer
+    import gra_mi.refiner.infer as infer
 
     model = VideoRefiner.load(trained["root"] / "model")
     seen, decoded = [], []
@@ -450,7 +442,7 @@ def _local_wan_folder(folder, text_dim: int = 32):
     from tokenizers import Tokenizer, models, pre_tokenizers
     from transformers import PreTrainedTokenizerFast, UMT5Config, UMT5EncoderModel
 
-    from gra_mi.refiner_model import TINY_VAE_WEIGHTS, VAE_CONFIGS
+    from gra_mi.refiner.model import TINY_VAE_WEIGHTS, VAE_CONFIGS
 
     torch.manual_seed(3)
     WanVACETransformer3DModel(**TRANSFORMER_CONFIGS["tiny"]).save_pretrained(folder / "transformer")
@@ -473,7 +465,7 @@ def test_real_size_from_a_local_diffusers_folder(tmp_path, monkeypatch):
     """The real-size path end to end on a tiny folder standing in for WAN2.1-VACE-1.3B-diffusers: `gra-mi
     refiner-prompt`, from_pretrained in bfloat16 (fp32-kept modules as `cast_transformer` keeps them), LoRA + envmap
     layers, a training step, save/load of the trainable weights, and a refined window."""
-    import gra_mi.refiner_model as rm
+    import gra_mi.refiner.model as rm
     from gra_mi.cli import main
 
     wan = tmp_path / "wan"
@@ -550,7 +542,7 @@ def test_real_size_from_original_checkpoints(tmp_path, monkeypatch):
     from diffusers.loaders import single_file_utils
     from safetensors.torch import save_file
 
-    import gra_mi.refiner_model as rm
+    import gra_mi.refiner.model as rm
 
     monkeypatch.setitem(rm.TRANSFORMER_CONFIGS, "1.3B", TRANSFORMER_CONFIGS["tiny"])
     monkeypatch.setattr(diffusers, "AutoencoderKLWan", lambda: AutoencoderKLWan(**rm.VAE_CONFIGS["tiny"]))
@@ -588,7 +580,7 @@ def test_real_configs_lora_size():
     from diffusers import WanVACETransformer3DModel
     from peft import LoraConfig
 
-    from gra_mi.refiner_model import LORA_TARGETS
+    from gra_mi.refiner.model import LORA_TARGETS
 
     with torch.device("meta"):
         model = WanVACETransformer3DModel(**TRANSFORMER_CONFIGS["1.3B"])

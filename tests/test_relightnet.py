@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 import torch
 
-from gra_mi.bridge import IN_CHANNELS
-from gra_mi.relightnet import AttentionBlock, RelightNet, RelightNetConfig
+from gra_mi.relightnet.model import AttentionBlock, RelightNet, RelightNetConfig
+from gra_mi.render.bridge import IN_CHANNELS
 
 from .test_cli import run_cli
 
@@ -21,9 +21,9 @@ def test_bridge_round_trip_and_layout(variant):
     import drjit as dr
     import mitsuba as mi
 
-    from gra_mi.bridge import to_torch, uv_features
-    from gra_mi.subject import tiny_subject
-    from gra_mi.uvspace import UVAtlas
+    from gra_mi.render.atlas import UVAtlas
+    from gra_mi.render.bridge import to_torch, uv_features
+    from gra_mi.subject.sequence import tiny_subject
 
     t = mi.TensorXf(np.arange(24, dtype=np.float32).reshape(2, 3, 4))
     tt = to_torch(t)
@@ -46,8 +46,8 @@ def test_bridge_round_trip_and_layout(variant):
 def test_torch_loss_gradients_reach_the_textures(variant, tmp_path):
     import mitsuba as mi
 
-    from gra_mi.bridge import torch_render
-    from gra_mi.plugins import register_plugins
+    from gra_mi.render.bridge import torch_render
+    from gra_mi.render.plugins import register_plugins
 
     from .test_onebounce import LEDS, make_scene
 

@@ -7,11 +7,11 @@ import shutil
 import numpy as np
 import pytest
 
-from gra_mi import scene_keys as keys
-from gra_mi.errors import GraMiInputError
-from gra_mi.lightstage import default_lightstage, olat_pattern, uniform_pattern
-from gra_mi.scene import LightstageScene, render, subject_scene_xml, write_rig
-from gra_mi.subject import save_sequence, tiny_subject
+from gra_mi.core.errors import GraMiInputError
+from gra_mi.stage import scene_keys as keys
+from gra_mi.stage.lightstage import default_lightstage, olat_pattern, uniform_pattern
+from gra_mi.stage.scene import LightstageScene, render, subject_scene_xml, write_rig
+from gra_mi.subject.sequence import save_sequence, tiny_subject
 
 from .conftest import SCENES
 
@@ -41,9 +41,13 @@ def test_scene_exposes_every_key(variant):
     assert [s.id() for s in ls.scene.sensors()] == [c.name for c in ls.stage.cameras]
 
 
-def test_set_frame_matches_loading_that_frame(variant):
+def test_set_frame_matches_loading_that_frame(variant, monkeypatch):
     a = LightstageScene.load(TINY, frame=0)
-    a.set_frame(5)
+    assert a.set_frame(5) is True
+    # Idempotent and free: asking for the current frame neither writes the mesh nor rebuilds the BVH.
+    monkeypatch.setattr(a, "params", None)  # any access would fail
+    assert a.set_frame(5) is False
+    monkeypatch.undo()
     b = LightstageScene.load(TINY, frame=5)
     np.testing.assert_allclose(np.array(a.params[keys.SUBJECT_POSITIONS]), np.array(b.params[keys.SUBJECT_POSITIONS]), atol=1e-6)
     for ls in (a, b):

@@ -5,15 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gra_mi import envmap as em
-from gra_mi.lightstage import default_lightstage
+from gra_mi.stage import envmap as em
+from gra_mi.stage.lightstage import default_lightstage
 
 from .test_brdf import ref_eval_cos
 
 
 @pytest.fixture
 def plugins(variant):
-    from gra_mi.plugins import register_plugins
+    from gra_mi.render.plugins import register_plugins
 
     register_plugins()
     return variant
@@ -28,7 +28,7 @@ def f64(*arrays):
 def test_extreme_roughness_and_grazing_angles_match_float64(plugins):
     import drjit as dr
 
-    from gra_mi import brdf
+    from gra_mi.render import brdf
 
     theta = np.radians([0.0, 30.0, 60.0, 85.0, 89.0, 89.99])
     phi = np.radians([0.0, 90.0, 180.0, 270.0])
@@ -52,7 +52,7 @@ def test_gradients_at_vanishing_roughness(plugins):
     # finite differences in float64.
     import drjit as dr
 
-    from gra_mi import brdf
+    from gra_mi.render import brdf
 
     rng = np.random.default_rng(0)
     wi = np.array([[0.3, 0.1, 0.95]])
@@ -98,14 +98,15 @@ def _plane_scene(led_positions, intensities):
 def _texels(points, normals, geo_normals):
     import mitsuba as mi
 
-    from gra_mi.uvspace import TexelGeometry
+    from gra_mi.render.atlas import TexelGeometry
 
     as3 = lambda a, t: t(*np.asarray(a, np.float32).T)  # noqa: E731
     return TexelGeometry(as3(points, mi.Point3f), as3(normals, mi.Vector3f), as3(geo_normals, mi.Vector3f), "test")
 
 
 def test_shading_normal_disagreeing_with_geometry_does_not_leak_light(plugins):
-    from gra_mi.uvspace import compute_visibility, shade_texels
+    from gra_mi.render.shading import shade_texels
+    from gra_mi.render.visibility import compute_visibility
 
     # A floor texel (geometric normal +Y) whose skinned shading normal leans 60° toward +X.
     lean = np.radians(60.0)
@@ -126,7 +127,8 @@ def test_shading_normal_disagreeing_with_geometry_does_not_leak_light(plugins):
 
 
 def test_led_almost_touching_the_surface(plugins):
-    from gra_mi.uvspace import compute_visibility, shade_texels
+    from gra_mi.render.shading import shade_texels
+    from gra_mi.render.visibility import compute_visibility
 
     for height in (1e-2, 2e-3):
         led = np.array([[0.0, height, 0.0]])
@@ -176,8 +178,8 @@ def test_extreme_envmap_sun_and_bad_pixels_stay_finite_and_conserve_energy():
 def test_degenerate_and_sliver_triangles(plugins):
     import drjit as dr
 
-    from gra_mi.subject import vertex_normals
-    from gra_mi.uvspace import TexelGeometry, UVAtlas
+    from gra_mi.render.atlas import TexelGeometry, UVAtlas
+    from gra_mi.subject.sequence import vertex_normals
 
     vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [1, 1, 0], [2, 0, 0], [2, 1e-9, 0]], dtype=np.float64)
     faces = np.array([[0, 1, 2], [1, 3, 2], [3, 4, 1], [1, 5, 6]])  # a normal pair, a degenerate (3 == 4), a sliver
@@ -193,8 +195,8 @@ def test_degenerate_and_sliver_triangles(plugins):
 
 
 def test_uv_seam_texels_agree_and_unseen_texels_are_flagged(plugins):
-    from gra_mi.relight import Relighter
-    from gra_mi.scene import LightstageScene
+    from gra_mi.render.relighter import Relighter
+    from gra_mi.stage.scene import LightstageScene
 
     from .conftest import SCENES
 
@@ -219,10 +221,10 @@ def test_accumulating_2000_leds_matches_float64(plugins):
     import tempfile
     from pathlib import Path
 
-    from gra_mi.imageio import atomic_write_text
-    from gra_mi.relight import Relighter
-    from gra_mi.scene import LightstageScene, subject_scene_xml, write_rig
-    from gra_mi.subject import save_sequence, tiny_subject
+    from gra_mi.core.io import atomic_write_text
+    from gra_mi.render.relighter import Relighter
+    from gra_mi.stage.scene import LightstageScene, subject_scene_xml, write_rig
+    from gra_mi.subject.sequence import save_sequence, tiny_subject
 
     tmp = Path(tempfile.mkdtemp())
     stage = default_lightstage(num_leds=2000, num_cameras=1, width=48, height=32)

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gra_mi.errors import GraMiInputError
-from gra_mi.subject import MeshSequence, load_sequence, save_sequence, sequence_from_frames, tiny_subject, vertex_normals
+from gra_mi.core.errors import GraMiInputError
+from gra_mi.subject.sequence import MeshSequence, load_sequence, save_sequence, sequence_from_frames, tiny_subject, vertex_normals
 
 from .conftest import SCENES
 
@@ -77,7 +77,7 @@ def test_bad_sequences_are_rejected(tmp_path):
 
 def test_anny_body_sequence(tmp_path, llvm_variant):
     # Builds the real anny body (about 1.5 minutes the first time on a fresh machine, then cached).
-    from gra_mi.anny_body import MOTION_CLIPS, anny_sequence
+    from gra_mi.subject.anny_body import MOTION_CLIPS, anny_sequence
 
     clips = ["walk", "arm_raise", "turn", "squat"]
     seq = anny_sequence(clips, frames_per_clip=4)
@@ -103,8 +103,8 @@ def test_anny_body_sequence(tmp_path, llvm_variant):
     assert feet[:, 2].max() > 0.1 and feet[:, 2].max() > -feet[:, 2].min()
 
     # The real scene file renders the animated body inside the default lightstage.
-    from gra_mi.lightstage import uniform_pattern
-    from gra_mi.scene import LightstageScene, render
+    from gra_mi.stage.lightstage import uniform_pattern
+    from gra_mi.stage.scene import LightstageScene, render
 
     save_sequence(seq, tmp_path / "anny")
     ls = LightstageScene.load(SCENES / "body_lightstage.xml", frame=9, spp=1, subject=str(tmp_path / "anny"))

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gra_mi.lightstage import olat_pattern, uniform_pattern
+from gra_mi.stage.lightstage import olat_pattern, uniform_pattern
 
 from .conftest import SCENES
 from .test_cli import run_cli
@@ -15,15 +15,15 @@ TINY = SCENES / "tiny_lightstage.xml"
 
 @pytest.fixture
 def tiny(variant):
-    from gra_mi.plugins import register_plugins
-    from gra_mi.scene import LightstageScene
+    from gra_mi.render.plugins import register_plugins
+    from gra_mi.stage.scene import LightstageScene
 
     register_plugins()
     return LightstageScene.load(TINY, frame=2)
 
 
 def test_atlas_covers_the_uv_layout(tiny):
-    from gra_mi.uvspace import UVAtlas
+    from gra_mi.render.atlas import UVAtlas
 
     seq = tiny.sequence
     atlas = UVAtlas.build(seq.faces, seq.uvs, 64)
@@ -42,7 +42,8 @@ def test_atlas_covers_the_uv_layout(tiny):
 def test_visibility_matches_one_ray_per_pair(tiny):
     import mitsuba as mi
 
-    from gra_mi.uvspace import RAY_EPSILON, TexelGeometry, UVAtlas, compute_visibility
+    from gra_mi.render.atlas import TexelGeometry, UVAtlas
+    from gra_mi.render.visibility import RAY_EPSILON, compute_visibility
 
     seq = tiny.sequence
     atlas = UVAtlas.build(seq.faces, seq.uvs, 64)
@@ -75,7 +76,7 @@ def test_visibility_matches_one_ray_per_pair(tiny):
 
 
 def test_cache_reuses_visibility_across_lighting_and_cameras(tiny, tmp_path):
-    from gra_mi.relight import Relighter
+    from gra_mi.render.relighter import Relighter
 
     relighter = Relighter(tiny, resolution=64, cache_dir=tmp_path / "vis")
     a = relighter.render(3, 0, uniform_pattern(tiny.stage, 0.5))
@@ -90,7 +91,7 @@ def test_cache_reuses_visibility_across_lighting_and_cameras(tiny, tmp_path):
 
 
 def test_shading_is_linear_in_led_intensities_and_off_leds_cost_nothing(tiny):
-    from gra_mi.relight import Relighter
+    from gra_mi.render.relighter import Relighter
 
     relighter = Relighter(tiny, resolution=64)
     one = relighter.render(2, 0, olat_pattern(tiny.stage, 3)).shading.radiance
@@ -104,9 +105,9 @@ def test_shading_is_linear_in_led_intensities_and_off_leds_cost_nothing(tiny):
 def test_uv_render_agrees_with_image_space_render(tiny, tmp_path):
     import mitsuba as mi
 
-    from gra_mi.imageio import write_exr
-    from gra_mi.relight import Relighter
-    from gra_mi.scene import camera_xml
+    from gra_mi.core.io import write_exr
+    from gra_mi.render.relighter import Relighter
+    from gra_mi.stage.scene import camera_xml
 
     relighter = Relighter(tiny, resolution=256)
     u = (np.arange(256) + 0.5) / 256
@@ -137,7 +138,7 @@ def test_uv_render_agrees_with_image_space_render(tiny, tmp_path):
 
 def test_texel_geometry_matches_float64_numpy(tiny):
     """Texel positions, shading normals and geometric normals (interpolated on the device) against float64 NumPy."""
-    from gra_mi.relight import Relighter
+    from gra_mi.render.relighter import Relighter
 
     relighter = Relighter(tiny, resolution=64)
     atlas, geom = relighter.atlas, relighter.geometry(1)
@@ -157,15 +158,15 @@ def test_rasterise_matches_a_numpy_bilinear_lookup(tiny):
     interpolated mask, alpha = the pixel hits the subject. The camera's rays are built once and reused."""
     import mitsuba as mi
 
-    from gra_mi.uvspace import camera_rays, rasterize_to_camera
+    from gra_mi.render.rasterize import rasterize_to_camera
 
     cam = tiny.stage.cameras[0]
     rng = np.random.default_rng(0)
     texture = rng.random((32, 32, 3)).astype(np.float32)
     mask = rng.random((32, 32)) > 0.3
-    image = rasterize_to_camera(tiny.scene, cam, texture, mask)
-    assert camera_rays(cam) is camera_rays(cam)
-    si = tiny.scene.ray_intersect(camera_rays(cam), ray_flags=mi.RayFlags.UV, coherent=True)
+    image = rasterize_to_camera(tiny, cam, texture, mask)
+    assert tiny.camera_rays(cam) is tiny.camera_rays(cam)
+    si = tiny.scene.ray_intersect(tiny.camera_rays(cam), ray_flags=mi.RayFlags.UV, coherent=True)
     uv = np.array(si.uv, dtype=np.float64).T
     hit = np.array(si.is_valid())
 
@@ -189,7 +190,7 @@ def test_rasterise_matches_a_numpy_bilinear_lookup(tiny):
 
 
 def test_far_field_converges_to_near_field_for_a_distant_rig(tiny):
-    from gra_mi.relight import Relighter
+    from gra_mi.render.relighter import Relighter
 
     relighter_near = Relighter(tiny, resolution=64)
     relighter_far = Relighter(tiny, resolution=64, far_field=True)
@@ -213,7 +214,7 @@ def test_far_field_converges_to_near_field_for_a_distant_rig(tiny):
 
 
 def test_relight_cli(tmp_path, llvm_variant):
-    from gra_mi.imageio import read_exr, write_exr
+    from gra_mi.core.io import read_exr, write_exr
 
     write_exr(tmp_path / "sky.exr", np.ones((16, 32, 3), np.float32))
     out = run_cli(

@@ -1,0 +1,449 @@
+"""Speed against error for every approximation of the coarse renderer (``gra-mi bench``).
+
+Each configuration renders the same view (the anny body on the default 331-LED rig under a sunny sky) and is
+compared, in the same run, with the exact reference: all LEDs, near field, visibility at full UV resolution,
+float32 everywhere. Reported per configuration: time (median of repeats), the memory of what it caches, and the
+error against the reference over covered pixels — mean relative error, PSNR, and 1 − SSIM of the tone-mapped images
+(a perceptual proxy, kornia). Outputs: report.md, results.csv, results.json and a Pareto plot (time vs error).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import statistics
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from gra_mi.core.io import atomic_write_text, write_exr, write_png
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class BenchPreset:
+    uv_resolution: int
+    width: int
+    height: int
+    frames: int  # frames of the walk clip (visibility sharing needs several)
+    repeats: int
+    led_counts: list[int]
+    uv_resolutions: list[int]
+    visibility_resolutions: list[int]
+    share_frames: list[int]
+    direct_spp: list[int]
+
+
+PRESETS = {
+    "quick": BenchPreset(128, 256, 135, 3, 2, [16, 64], [64, 128, 256], [64], [2], [4, 16]),
+    "full": BenchPreset(512, 512, 270, 6, 5, [8, 16, 32, 64, 128, 331], [128, 256, 512, 1024], [128, 256], [2, 4], [4, 16, 64, 256]),
+}
+
+
+@dataclass
+class Result:
+    group: str
+    name: str
+    time_ms: float  # per view, visibility already cached unless the group is about visibility
+    amortised_ms: float  # per view including visibility, amortised over the views that share it
+    cache_mb: float  # memory of the cached quantities this configuration keeps per frame
+    mean_rel_error: float
+    psnr_db: float
+    ssim_loss: float
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Metrics
+# --------------------------------------------------------------------------------------------------------------
+
+
+def image_errors(image: np.ndarray, reference: np.ndarray, mask: np.ndarray) -> tuple[float, float, float]:
+    """Mean relative error (|a − r| / max(r, 2e-2)), PSNR (peak = reference max) and 1 − SSIM of sRGB previews."""
+    from gra_mi.core import metrics
+    from gra_mi.core.io import to_srgb8
+
+    a, r = image[..., :3], reference[..., :3]
+    exposure = 0.8 / max(float(np.percentile(r[mask], 99)), 1e-6)
+    shown_a, shown_r = (to_srgb8(x, exposure)[..., :3].astype(np.float32) / 255.0 for x in (a, r))
+    return metrics.relative_error(a, r, mask), metrics.psnr(a, r, mask), 1.0 - metrics.ssim(shown_a, shown_r, mask, peak=1.0)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Approximations under study
+# --------------------------------------------------------------------------------------------------------------
+
+
+def subsample_leds(envmap: np.ndarray, stage, k: int, scale: float) -> np.ndarray:
+    """A k-LED stage (every (L/k)-th LED of the spiral) with the envmap integrated onto it; the rest off.
+
+    ``scale`` is the full stage's normalisation, so both light the subject with the same energy.
+    """
+    from gra_mi.stage.envmap import envmap_to_leds
+    from gra_mi.stage.lightstage import Lightstage
+
+    keep = np.unique(np.round(np.linspace(0, stage.num_leds - 1, k)).astype(int))
+    sub = Lightstage(stage.led_positions[keep], stage.cameras, stage.center, stage.radius, None, None, stage.max_led_intensity)
+    out = np.zeros((stage.num_leds, 3))
+    out[keep] = envmap_to_leds(envmap, sub, normalize=False).radiant_intensity(sub) * scale
+    return out
+
+
+def importance_leds(intensities: np.ndarray, stage, k: int) -> np.ndarray:
+    """Keep the k brightest LEDs; give each dropped LED's flux to the nearest kept one (energy conserved)."""
+    if k >= stage.num_leds:
+        return intensities.copy()
+    keep = np.argsort(-intensities.sum(axis=1))[:k]
+    d = stage.led_directions()
+    nearest = keep[np.argmax(d @ d[keep].T, axis=1)]
+    # Flux at the stage centre is I / r²: move it, then convert back with the receiving LED's distance.
+    r2 = stage.led_distances() ** 2
+    flux = intensities / r2[:, None]
+    out_flux = np.zeros_like(flux)
+    np.add.at(out_flux, nearest, flux)
+    return out_flux * r2[:, None]
+
+
+def half(x: np.ndarray) -> np.ndarray:
+    return np.asarray(x, np.float32).astype(np.float16).astype(np.float32)
+
+
+# --------------------------------------------------------------------------------------------------------------
+
+
+def run_bench(out: Path, preset_name: str = "full") -> Path:
+    from gra_mi.core.runtime import ensure_mitsuba
+
+    chosen = ensure_mitsuba()
+    import drjit as dr
+    import mitsuba as mi
+
+    from gra_mi.core.progress import progress
+    from gra_mi.render.atlas import TexelGeometry, UVAtlas
+    from gra_mi.render.rasterize import rasterize_to_camera
+    from gra_mi.render.relighter import Relighter
+    from gra_mi.render.shading import shade_texels
+    from gra_mi.render.visibility import compute_visibility
+    from gra_mi.stage.envmap import envmap_to_leds
+    from gra_mi.stage.envmap_library import SkyParams, bake_sunsky
+    from gra_mi.stage.lightstage import default_lightstage
+    from gra_mi.stage.scene import LightstageScene, camera_xml, subject_scene_xml, write_rig
+    from gra_mi.subject.anny_body import anny_sequence
+    from gra_mi.subject.sequence import save_sequence
+
+    preset = PRESETS[preset_name]
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    work = Path(tempfile.mkdtemp(prefix="gra_mi_bench_"))
+    stage = default_lightstage(width=preset.width, height=preset.height)
+    write_rig(stage, work / "rig")
+    save_sequence(anny_sequence(["walk"], frames_per_clip=2 * preset.frames), work / "subject")
+    atomic_write_text(work / "scene.xml", subject_scene_xml("rig", "subject"))
+    ls = LightstageScene.load(work / "scene.xml")
+    seq = ls.sequence
+    frame = preset.frames - 1  # the evaluated frame; earlier frames feed visibility sharing
+    cam = stage.cameras[0]
+    env = bake_sunsky(SkyParams(25.0, 200.0, 3.0, 0.2), 64)  # a sun behind-left of camera 0: hard shadows
+    lighting = envmap_to_leds(env, stage)
+    intensities = lighting.radiant_intensity(stage)
+
+    def timed(fn: Callable[[], object]) -> tuple[float, object]:
+        times, value = [], fn()  # a first, untimed call compiles the kernels
+        for _ in range(preset.repeats):
+            dr.sync_thread()
+            t = time.perf_counter()
+            value = fn()
+            dr.sync_thread()
+            times.append(time.perf_counter() - t)
+        return 1e3 * statistics.median(times), value
+
+    # Shared machinery: atlases, geometry and visibility per UV resolution.
+    atlases: dict[int, UVAtlas] = {}
+
+    def atlas(res: int) -> UVAtlas:
+        if res not in atlases:
+            atlases[res] = UVAtlas.build(seq.faces, seq.uvs, res)
+        return atlases[res]
+
+    def geometry(res: int, f: int) -> TexelGeometry:
+        return TexelGeometry.from_frame(atlas(res), seq.vertices[f], seq.normals[f])
+
+    def visibility(res: int, f: int, positions=stage.led_positions, far=False):
+        ls.set_frame(f)
+        return compute_visibility(ls.scene, geometry(res, f), positions, far, stage.center)
+
+    base = Relighter(ls, preset.uv_resolution)
+    albedo_tex, rough_tex = base.albedo_tex, base.roughness_tex
+
+    def materials(res: int) -> tuple[np.ndarray, np.ndarray]:
+        a = atlas(res)
+        if res == preset.uv_resolution:
+            return a.gather(albedo_tex), a.gather(rough_tex)[:, 0]
+        tex = a.bake_vertex_attribute(seq.vertex_colors, fill=0.5)
+        return a.gather(tex), np.full(a.num_texels, 0.5, np.float32)
+
+    def render(res: int, geom, vis, leds=intensities, far=False, store=lambda x: x) -> np.ndarray:
+        a = atlas(res)
+        alb, rough = materials(res)
+        ls.set_frame(frame)
+        shading = shade_texels(geom, vis, stage.led_positions, leds, alb, rough, cam.position, far, stage.center)
+        return rasterize_to_camera(ls, cam, a.scatter(store(shading.radiance)), a.mask)
+
+    words = (stage.num_leds + 31) // 32
+
+    def cache_mb(res: int, geometry_bytes_per_texel: int = 36) -> float:
+        m = atlas(res).num_texels
+        return m * (4 * words + geometry_bytes_per_texel) / 2**20
+
+    results: list[Result] = []
+    R = preset.uv_resolution
+    ref_geom = geometry(R, frame)
+    ref_vis = visibility(R, frame)
+    t_vis_ref, _ = timed(lambda: dr.eval(visibility(R, frame)))
+    t_ref, reference = timed(lambda: render(R, ref_geom, ref_vis))
+    mask = reference[..., 3] > 0.5
+    write_exr(out / "reference.exr", reference)
+    write_png(out / "reference.png", reference, exposure=None)
+
+    def record(group: str, name: str, t_ms: float, amortised: float, mb: float, image: np.ndarray) -> None:
+        rel, psnr, ssim_loss = image_errors(image, reference, mask)
+        results.append(Result(group, name, t_ms, amortised, mb, rel, psnr, ssim_loss))
+
+    record(
+        "reference",
+        f"exact ({R}² UV, {stage.num_leds} LEDs, near field, full visibility, float32)",
+        t_ref,
+        t_ref + t_vis_ref,
+        cache_mb(R),
+        reference,
+    )
+
+    jobs: list[tuple[str, Callable[[], None]]] = []
+
+    # LED subsampling and importance sampling ---------------------------------------------------------------
+    for k in preset.led_counts:
+
+        def sub(k=k):
+            leds = subsample_leds(env, stage, k, lighting.scale)
+            t, img = timed(lambda: render(R, ref_geom, ref_vis, leds))
+            record("LEDs", f"subsample k={k}", t, t + t_vis_ref, cache_mb(R), img)
+
+        def imp(k=k):
+            leds = importance_leds(intensities, stage, k)
+            t, img = timed(lambda: render(R, ref_geom, ref_vis, leds))
+            record("LEDs", f"importance k={k}", t, t + t_vis_ref, cache_mb(R), img)
+
+        jobs += [(f"subsample {k}", sub), (f"importance {k}", imp)]
+
+    # Lower-resolution visibility, upsampled ----------------------------------------------------------------
+    for low in preset.visibility_resolutions:
+        if low >= R:
+            continue
+
+        def low_vis(low=low):
+            t_low, bits = timed(
+                lambda: upsample_visibility(visibility(low, frame), atlas(low), atlas(R), ls.scene, ref_geom, stage.led_positions)
+            )
+            t, img = timed(lambda: render(R, ref_geom, bits))
+            record("visibility", f"visibility at {low}², upsampled", t, t + t_low, cache_mb(low, 0) + cache_mb(R, 36) - cache_mb(R, 0), img)
+
+        jobs.append((f"visibility {low}", low_vis))
+
+    # Visibility shared over k consecutive frames (the evaluated frame uses the visibility of k-1 frames before)
+    for k in preset.share_frames:
+
+        def shared(k=k):
+            bits = visibility(R, frame - (k - 1))
+            t, img = timed(lambda: render(R, ref_geom, bits))
+            record("visibility", f"shared over {k} frames (worst frame)", t, t + t_vis_ref / k, cache_mb(R) / k, img)
+
+        jobs.append((f"share {k}", shared))
+
+    # Far field -----------------------------------------------------------------------------------------------
+    def far():
+        bits = visibility(R, frame, far=True)
+        t, img = timed(lambda: render(R, ref_geom, bits, far=True))
+        record("lighting model", "far field (directional LEDs)", t, t + t_vis_ref, cache_mb(R), img)
+
+    jobs.append(("far field", far))
+
+    # Half precision / quantised storage of cached quantities ---------------------------------------------------
+    def half_storage():
+        g = TexelGeometry(
+            *(type(v)(*[mi.Float(half(np.array(c))) for c in v]) for v in (ref_geom.position, ref_geom.normal, ref_geom.geo_normal)),
+            ref_geom.digest,
+        )
+        t, img = timed(lambda: render(R, g, ref_vis, store=half))
+        record("storage", "float16 texel geometry and radiance", t, t + t_vis_ref, cache_mb(R, 18), img)
+
+    jobs.append(("half", half_storage))
+
+    # UV resolution ---------------------------------------------------------------------------------------------
+    for res in preset.uv_resolutions:
+        if res == R:
+            continue
+
+        def uv(res=res):
+            geom = geometry(res, frame)
+            t_v, bits = timed(lambda: visibility(res, frame))
+            t, img = timed(lambda: render(res, geom, bits))
+            record("UV resolution", f"{res}² UV", t, t + t_v, cache_mb(res), img)
+
+        jobs.append((f"uv {res}", uv))
+
+    # Mitsuba's direct integrator: the generic peer --------------------------------------------------------------
+    def direct_peer():
+        write_exr(work / "albedo.exr", albedo_tex)
+        write_exr(work / "rough.exr", rough_tex)
+        ply = work / "subject" / "frames" / f"frame_{frame:04d}.ply"
+        emitters = "".join(
+            f'<emitter type="point"><point name="position" value="{", ".join(map(str, q))}"/><rgb name="intensity" value="{", ".join(map(str, i))}"/></emitter>'
+            for q, i in zip(stage.led_positions, intensities, strict=True)
+        )
+        xml = (
+            f'<scene version="3.0.0">{camera_xml(cam, "1")}{emitters}<shape type="ply"><string name="filename" value="{ply}"/>'
+            f'<bsdf type="gra_microfacet"><texture type="bitmap" name="albedo"><string name="filename" value="{work / "albedo.exr"}"/></texture>'
+            f'<texture type="bitmap" name="roughness"><string name="filename" value="{work / "rough.exr"}"/></texture></bsdf></shape></scene>'
+        )
+        scene = mi.load_string(xml)
+        integrator = mi.load_dict({"type": "direct", "emitter_samples": 1, "bsdf_samples": 0})
+        mi.render(scene, integrator=integrator, spp=1)  # compile
+        for spp in preset.direct_spp:
+            t, img = timed(lambda spp=spp: np.array(mi.render(scene, integrator=integrator, spp=spp, seed=spp)))
+            record("Mitsuba direct", f"direct {spp} spp", t, t, 0.0, img)
+
+    jobs.append(("direct", direct_peer))
+
+    for _, job in progress(jobs, description="bench"):
+        job()
+
+    return _write_report(out, preset_name, chosen, stage, atlas(R).num_texels, results)
+
+
+def upsample_visibility(bits_low, atlas_low, atlas_high, scene, geom_high, led_positions):
+    """Visibility of each full-resolution texel taken from the low-resolution texel that contains it.
+
+    Texels whose low-resolution cell is empty (chart borders) are traced at full resolution.
+    """
+    import drjit as dr
+    import mitsuba as mi
+
+    from gra_mi.render.atlas import TexelGeometry
+    from gra_mi.render.visibility import compute_visibility
+
+    s = atlas_high.resolution // atlas_low.resolution
+    lookup = np.full(atlas_low.resolution**2, -1, np.int64)
+    lookup[atlas_low.texel_index] = np.arange(atlas_low.num_texels)
+    row, col = np.divmod(atlas_high.texel_index, atlas_high.resolution)
+    source = lookup[(row // s) * atlas_low.resolution + col // s]
+    low = np.array(bits_low, dtype=np.uint32).reshape(-1, atlas_low.num_texels)
+    high = low[:, np.maximum(source, 0)]
+    missing = np.flatnonzero(source < 0)
+    if missing.size:
+        sub = TexelGeometry(
+            *(type(v)(*[mi.Float(np.array(c)[missing]) for c in v]) for v in (geom_high.position, geom_high.normal, geom_high.geo_normal)),
+            geom_high.digest,
+        )
+        high[:, missing] = np.array(compute_visibility(scene, sub, led_positions), dtype=np.uint32).reshape(-1, missing.size)
+    out = mi.UInt32(np.ascontiguousarray(high).ravel())
+    dr.eval(out)
+    return out
+
+
+def _pareto(points: list[tuple[float, float]]) -> list[int]:
+    order = sorted(range(len(points)), key=lambda i: (points[i][0], points[i][1]))
+    front, best = [], float("inf")
+    for i in order:
+        if points[i][1] < best:
+            front.append(i)
+            best = points[i][1]
+    return front
+
+
+def _write_report(out: Path, preset_name: str, variant: str, stage, texels: int, results: list[Result]) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = [asdict(r) for r in results]
+    atomic_write_text(out / "results.json", json.dumps(rows, indent=1) + "\n")
+    with open(out / "results.csv.tmp", "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    (out / "results.csv.tmp").replace(out / "results.csv")
+
+    points = [(r.amortised_ms, max(r.mean_rel_error, 1e-6)) for r in results]
+    front = set(_pareto(points))
+    fig, ax = plt.subplots(figsize=(8, 5.5))
+    groups = sorted({r.group for r in results})
+    colors = dict(zip(groups, plt.cm.tab10(np.linspace(0, 1, 10))[: len(groups)], strict=True))
+    for i, r in enumerate(results):
+        ax.scatter(
+            points[i][0],
+            points[i][1],
+            color=colors[r.group],
+            s=60 if i in front else 25,
+            edgecolors="black" if i in front else "none",
+            label=r.group,
+        )
+        ax.annotate(r.name.split(" (")[0], points[i], fontsize=6, xytext=(3, 3), textcoords="offset points")
+    f = sorted(front, key=lambda i: points[i][0])
+    ax.plot([points[i][0] for i in f], [points[i][1] for i in f], "k--", lw=0.8)
+    handles, labels = ax.get_legend_handles_labels()
+    unique = dict(zip(labels, handles, strict=True))
+    ax.legend(unique.values(), unique.keys(), fontsize=8)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("time per view, visibility amortised (ms)")
+    ax.set_ylabel("mean relative error vs exact reference")
+    ax.set_title(f"Speed against error — {stage.num_leds} LEDs, {texels} texels ({preset_name})")
+    fig.tight_layout()
+    fig.savefig(out / "pareto.png", dpi=120)
+    plt.close(fig)
+
+    lines = [
+        f"# gra-mi bench — speed against error ({preset_name}, `{variant}`)",
+        "",
+        "One view of the anny body on the default rig under a low sun, every configuration measured in the same run",
+        "against the exact reference (all LEDs, near field, full-resolution visibility, float32).",
+        "Time: median per view with visibility cached; amortised: including visibility spread over the views that share",
+        "it (one frame, one view here). Cache: memory kept per frame (visibility bits + texel geometry).",
+        "",
+        "| group | configuration | time (ms) | amortised (ms) | cache (MiB) | mean rel. error | PSNR (dB) | 1 − SSIM | Pareto |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for i, r in enumerate(results):
+        lines.append(
+            f"| {r.group} | {r.name} | {r.time_ms:.0f} | {r.amortised_ms:.0f} | {r.cache_mb:.1f} | {r.mean_rel_error:.4f} | "
+            f"{r.psnr_db:.1f} | {r.ssim_loss:.4f} | {'★' if i in front else ''} |"
+        )
+    lines += [
+        "",
+        "![Pareto](pareto.png)",
+        "",
+        "## What the defaults use, and why",
+        "",
+        "- **All LEDs that are on, near field, visibility at the UV resolution, float32.** The loop visits only the",
+        "  LEDs each texel sees, so dropping LEDs saves little time but costs accuracy (subsampling changes the",
+        "  lighting itself; importance sampling by envmap energy keeps the bright ones and is the better of the two).",
+        "- **Visibility is computed once per frame and reused for every camera and lighting**: it is the dominant cost,",
+        "  so amortising it over views matters more than any approximation of the shading. Sharing it across frames",
+        "  or computing it at lower resolution trades visible shadow errors at moving limbs for speed: opt-in only.",
+        "- **Far field is never the default**: on a 2 m stage the LEDs' parallax and falloff across a 1.7 m body are",
+        "  large.",
+        "- **float16 storage** of cached geometry and radiance is nearly free in error and halves that memory; the",
+        "  visibility bits dominate the cache and are exact already.",
+        "- **512² UV** is the paper's choice; lower resolutions blur detail, higher ones cost quadratically.",
+        "",
+        "Raw numbers: `results.csv`, `results.json`.",
+    ]
+    report = out / "report.md"
+    atomic_write_text(report, "\n".join(lines) + "\n")
+    return report

@@ -1,0 +1,394 @@
+"""The main job: the pipeline as far as it exists, on a small preset, into a folder a person can open.
+
+Stages: synthetic lightstage capture (path-traced ground truth under interleaved uniform and envmap lighting) →
+envmap→LED energy check → material fit (per-texel albedo and roughness) → coarse one-bounce relighting with the
+fitted maps under held-out envmaps and from held-out cameras, against the ground truth → RelightNet training and
+its ablation → the video refiner (tiny WAN2.1-VACE on CPU: RelightNet renders → refined video, 17-frame windows
+rolled over a held-out sequence) → a near-field point light → glTF export → plots, MP4 and report.md.
+
+Finished files are kept: rerunning after an interruption resumes (capture images, fit checkpoint, renders).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from gra_mi.core.errors import GraMiParameterError
+from gra_mi.core.io import atomic_write_text, read_exr, write_exr, write_mp4, write_png
+from gra_mi.core.metrics import mean_l1, psnr
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class DemoPreset:
+    name: str
+    capture: str  # capture preset
+    renderer: str  # ground truth renderer of the capture
+    roughness_candidates: int
+    relightnet_steps: int
+    refiner_scale: float  # capture images → refiner frames (then padded to multiples of 16)
+    refiner_steps: int  # training steps of the tiny refiner
+    refiner_euler_steps: int
+    stages_not_built: list[str] = field(default_factory=list)
+
+
+PRESETS = {
+    "tiny": DemoPreset("tiny", "tiny", "onebounce", 5, 20, 0.25, 20, 4),
+    "small": DemoPreset("small", "small", "path", 11, 300, 0.5, 100, 10),
+}
+
+
+def _timed(timings: dict, name: str):
+    class _Timer:
+        def __enter__(self):
+            self.t = time.perf_counter()
+
+        def __exit__(self, *exc):
+            timings[name] = time.perf_counter() - self.t
+
+    return _Timer()
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Plots
+# --------------------------------------------------------------------------------------------------------------
+
+
+def plot_rig(stage, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig = plt.figure(figsize=(6, 6))
+    ax = fig.add_subplot(projection="3d")
+    p = stage.led_positions
+    ax.scatter(p[:, 0], p[:, 2], p[:, 1], s=6, c="orange", label=f"{stage.num_leds} LEDs")
+    c = np.stack([cam.position for cam in stage.cameras])
+    ax.scatter(c[:, 0], c[:, 2], c[:, 1], s=30, marker="^", c="tab:blue", label=f"{len(stage.cameras)} cameras")
+    for cam in stage.cameras:
+        f = cam.rotation[:, 2] * 0.3
+        ax.plot(
+            [cam.position[0], cam.position[0] + f[0]],
+            [cam.position[2], cam.position[2] + f[2]],
+            [cam.position[1], cam.position[1] + f[1]],
+            c="tab:blue",
+            lw=0.8,
+        )
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("z (m)")
+    ax.set_zlabel("y, up (m)")
+    ax.legend(loc="upper left")
+    ax.set_title("Lightstage rig")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_led_mapping(envmap: np.ndarray, stage, drive: np.ndarray, path: Path, title: str) -> None:
+    """The envmap with each LED drawn at its (u, v), coloured by its drive: shows the convention at a glance."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from gra_mi.core.io import auto_exposure, to_srgb8
+    from gra_mi.stage.envmap import direction_to_uv
+
+    u, v = direction_to_uv(stage.led_directions())
+    fig, axes = plt.subplots(1, 2, figsize=(12, 3.4))
+    axes[0].imshow(to_srgb8(envmap, auto_exposure(envmap)), extent=(0, 1, 1, 0))
+    axes[0].set_title(f"{title}: envmap")
+    scaled = to_srgb8(drive[None], 1.0 / max(float(np.percentile(drive, 99)), 1e-9))[0] / 255.0
+    axes[1].set_facecolor("black")
+    axes[1].scatter(u, v, c=scaled[:, :3], s=28, edgecolors="0.4", linewidths=0.3)
+    axes[1].set_xlim(0, 1)
+    axes[1].set_ylim(1, 0)
+    axes[1].set_title("LED drive values at their lat-long positions")
+    for ax in axes:
+        ax.set_xlabel("u  (0.25 = +X, 0.5 = +Z)")
+        ax.set_ylabel("v  (0 = up)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def contact_sheet(images: list[list[np.ndarray]]) -> np.ndarray:
+    rows = [np.concatenate(row, axis=1) for row in images]
+    return np.concatenate(rows, axis=0)
+
+
+# --------------------------------------------------------------------------------------------------------------
+
+
+def energy_table(envmap: np.ndarray, stage) -> list[dict]:
+    """Irradiance at the stage centre from the envmap and from its LEDs, for the six axis normals."""
+    from gra_mi.stage.envmap import envmap_irradiance, envmap_to_leds, led_irradiance
+
+    normals = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=np.float64)
+    lighting = envmap_to_leds(envmap, stage, normalize=False)
+    e_env = envmap_irradiance(envmap, normals).mean(axis=1)
+    e_led = led_irradiance(stage, lighting.radiant_intensity(stage), normals).mean(axis=1)
+    names = ["+X", "-X", "+Y", "-Y", "+Z", "-Z"]
+    return [
+        {"normal": n, "envmap": float(a), "leds": float(b), "rel_error": float(abs(b - a) / max(a, 1e-12))}
+        for n, a, b in zip(names, e_env, e_led, strict=True)
+    ]
+
+
+def run_demo(preset_name: str, out: Path) -> Path:
+    from gra_mi.apps.gltf import export_glb
+    from gra_mi.capture.dataset import load_observation
+    from gra_mi.capture.synthetic import generate_capture
+    from gra_mi.core.progress import progress
+    from gra_mi.core.runtime import ensure_mitsuba, torch_device
+    from gra_mi.fit.materials import FitConfig, run_fit
+    from gra_mi.render.point_light import PointLight, conditioning_envmap, conditioning_pattern
+    from gra_mi.render.relighter import Relighter
+    from gra_mi.stage.envmap import background_plate, envmap_to_leds, load_envmap
+    from gra_mi.stage.scene import composite_over
+
+    if preset_name not in PRESETS:
+        raise GraMiParameterError("preset", f"unknown preset '{preset_name}', expected one of {sorted(PRESETS)}")
+    preset = PRESETS[preset_name]
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "plots").mkdir(exist_ok=True)
+    timings: dict[str, float] = {}
+    chosen = ensure_mitsuba()
+    runtime = {"variant": chosen, "torch_device": torch_device()}
+    atomic_write_text(out / "config.json", json.dumps({"preset": asdict(preset), **runtime}, indent=1) + "\n")
+
+    # 1. Capture -------------------------------------------------------------------------------------------
+    with _timed(timings, f"capture ({preset.capture}, {preset.renderer} ground truth)"):
+        capture = generate_capture(out / "capture", preset.capture, preset.renderer)
+    from gra_mi.stage.scene import LightstageScene
+
+    ls = LightstageScene.load(capture.folder / "scene.xml")
+    stage = ls.stage
+    plot_rig(stage, out / "plots" / "rig.png")
+
+    # 2. Envmaps onto LEDs, with the energy check ------------------------------------------------------------
+    train_env = next(f.envmap for f in capture.frames if f.kind == "envmap" and f.split == "train")
+    test_env = next(f.envmap for f in capture.frames if f.split == "test")
+    lights = {Path(p).stem: load_envmap(capture.folder / p) for p in (train_env, test_env)}
+    energy = {}
+    with _timed(timings, "envmap→LED"):
+        for name, env in lights.items():
+            energy[name] = energy_table(env, stage)
+            plot_led_mapping(env, stage, envmap_to_leds(env, stage).drive, out / "plots" / f"leds_{name}.png", name)
+
+    # 3. Material fit ------------------------------------------------------------------------------------------
+    with _timed(timings, "material fit"):
+        fit_result, fit_report = run_fit(capture.folder, out / "fit", FitConfig(roughness_candidates=preset.roughness_candidates))
+    fit_metrics = json.loads((out / "fit" / "fit.json").read_text())["metrics"]
+
+    # 3b. RelightNet on the capture and the fitted maps ---------------------------------------------------
+    from gra_mi.relightnet.train import TrainConfig, train_relightnet
+
+    with _timed(timings, f"RelightNet training ({preset.relightnet_steps} steps) + validation"):
+        train_relightnet(capture.folder, out / "fit", out / "relightnet", TrainConfig(steps=preset.relightnet_steps))
+    relightnet_summary = json.loads((out / "relightnet" / "validation.json").read_text())
+
+    # 3c. Video refiner on RelightNet's renders --------------------------------------------------------------
+    refiner_summary = _refiner_stage(preset, capture, out, timings)
+
+    # 4. Relight with the fitted maps: held-out lighting and held-out cameras vs ground truth -----------------
+    relighter = Relighter(ls, albedo=fit_result.albedo, roughness=fit_result.roughness, cache_dir=out / "cache" / "visibility")
+    test_frames = [f for f in capture.frames if f.split == "test"]
+    shown_frames = [test_frames[0], test_frames[len(test_frames) // 2]]
+    cameras = [capture.train_cameras[0], capture.eval_cameras[0]]
+    rows, metrics = [], []
+    with _timed(timings, "relight (fitted maps, one-bounce)"):
+        for entry in progress(test_frames, description="relight test frames"):
+            intensities = capture.lighting(stage, entry)
+            for cam_name in capture.train_cameras[:1] + capture.eval_cameras:
+                stem = out / "renders" / cam_name / f"frame_{entry.frame:04d}"
+                image = (
+                    read_exr(stem.with_suffix(".exr"))
+                    if stem.with_suffix(".exr").is_file()
+                    else relighter.render(entry.frame, cam_name, intensities).image
+                )
+                write_exr(stem.with_suffix(".exr"), image)
+                truth = load_observation(capture, cam_name, entry.frame)
+                mask = (truth[..., 3] > 0.99) & (image[..., 3] > 0.99)
+                view = "held-out camera" if cam_name in capture.eval_cameras else "training camera"
+                metrics.append((view, mean_l1(image, truth, mask), psnr(image, truth, mask)))
+                if entry in shown_frames and cam_name in cameras:
+                    env = load_envmap(capture.folder / entry.envmap)
+                    cam = stage.camera(cam_name)
+                    plate = background_plate(env, cam) * envmap_to_leds(env, stage).scale
+                    rows.append([composite_over(truth, plate), composite_over(image, plate)])
+        write_png(out / "contact_truth_vs_relit.png", contact_sheet(rows), exposure=None)
+
+    # 5. Near-field point light -----------------------------------------------------------------------------
+    with _timed(timings, "near-field point light"):
+        frame = test_frames[0].frame
+        light = PointLight(stage.center + np.array([0.45, 0.3, 0.35]), 1.5)
+        image = relighter.render(frame, capture.train_cameras[0], np.zeros((stage.num_leds, 3)), light).image
+        write_exr(out / "renders" / "point_light.exr", image)
+        write_png(out / "point_light.png", image, exposure=None)
+        write_png(
+            out / "point_light_conditioning.png", conditioning_envmap(stage, conditioning_pattern(stage, ls.scene, light)), exposure=None
+        )
+
+    # 6. Video: the held-out camera through the test sequence under its held-out envmap -------------------
+    with _timed(timings, "video"):
+        cam = stage.camera(capture.eval_cameras[0])
+        env = load_envmap(capture.folder / test_frames[0].envmap)
+        plate = background_plate(env, cam) * envmap_to_leds(env, stage).scale
+        frames = [composite_over(read_exr(out / "renders" / cam.name / f"frame_{f.frame:04d}.exr"), plate) for f in test_frames]
+        video_path = out / "videos" / f"{cam.name}_test.mp4"
+        write_mp4(video_path, frames, fps=ls.sequence.fps / 2, exposure=0.8 / max(float(np.percentile(frames[0], 99)), 1e-6))
+
+    # 7. glTF export -------------------------------------------------------------------------------------------
+    with _timed(timings, "glTF export"):
+        export_glb(out / "avatar.glb", ls.sequence, fit_result.albedo, fit_result.roughness)
+
+    report = out / "report.md"
+    atomic_write_text(
+        report,
+        _report(preset, chosen, capture, ls, energy, timings, fit_metrics, metrics, relightnet_summary, refiner_summary, video_path, out),
+    )
+    return report
+
+
+def _refiner_stage(preset: DemoPreset, capture, out: Path, timings: dict) -> dict:
+    """RelightNet renders → refiner sequences → train the tiny refiner → roll it over a held-out sequence."""
+    from gra_mi.refiner.data import RefinerDataset, dataset_from_capture
+    from gra_mi.refiner.infer import refine_to_folder
+    from gra_mi.refiner.train import RefinerTrainConfig, train_refiner
+
+    data_dir, model_dir = out / "refiner" / "data", out / "refiner" / "model"
+    with _timed(timings, "refiner sequences (RelightNet renders)"):
+        if (data_dir / "dataset.json").is_file():
+            dataset = RefinerDataset(data_dir)
+        else:
+            dataset = dataset_from_capture(
+                capture.folder,
+                out / "fit",
+                data_dir,
+                out / "relightnet",
+                preset.refiner_scale,
+                cache_dir=out / "cache" / "visibility",
+            )
+    with _timed(timings, f"video refiner training (tiny, {preset.refiner_steps} steps)"):
+        if not (model_dir / "refiner.json").is_file():
+            train_refiner(data_dir, model_dir, RefinerTrainConfig(steps=preset.refiner_steps, lr=2e-3))
+    sequence = dataset.names("test")[0]
+    with _timed(timings, "video refiner rollout"):
+        summary = refine_to_folder(model_dir, data_dir, sequence, out / "refiner" / "refined", steps=preset.refiner_euler_steps)
+    summary["train"] = json.loads((model_dir / "train.json").read_text())
+    summary["size"] = f"{dataset.height}×{dataset.width}"
+    return summary
+
+
+def _report(preset, variant, capture, ls, energy, timings, fit_metrics, metrics, relightnet_summary, refiner, video_path, out) -> str:
+    stage = ls.stage
+    lines = [
+        f"# gra-mi demo — preset `{preset.name}`",
+        "",
+        f"Mitsuba variant `{variant}`. Capture: {stage.num_leds} LEDs on a {stage.radius:.1f} m sphere, {len(stage.cameras)} cameras "
+        f"({stage.cameras[0].width}×{stage.cameras[0].height}; held out: {', '.join(capture.eval_cameras)}); subject: "
+        f"{ls.sequence.num_vertices} vertices, {len(ls.sequence.faces)} triangles, {ls.sequence.num_frames} frames "
+        f"({', '.join(dict.fromkeys(ls.sequence.frame_labels))}); ground truth: `{capture.renderer}`.",
+        "",
+        "## Pipeline stages",
+        "",
+        "| stage | status | time (s) |",
+        "|---|---|---|",
+    ]
+    lines += [f"| {name} | done | {seconds:.1f} |" for name, seconds in timings.items()]
+    lines += [f"| {name} | not built yet | – |" for name in preset.stages_not_built]
+    lines += [
+        "",
+        "Rig: ![rig](plots/rig.png)",
+        "",
+        "## Material fit",
+        "",
+        "Full report: [fit/fit_report.md](fit/fit_report.md). ![albedo](fit/albedo.png) ![roughness](fit/roughness.png)",
+        "",
+    ]
+    if fit_metrics:
+        lines += ["| against the true maps (texels seen by ≥ 3 cameras) | value |", "|---|---|"]
+        lines += [f"| {k} | {v:.4f} |" for k, v in fit_metrics.items()]
+    lines += ["", "## Relighting with the fitted maps, held-out envmap (test sequence)", ""]
+    lines += ["| view | frames | mean L1 | PSNR (dB) |", "|---|---|---|---|"]
+    for view in ("training camera", "held-out camera"):
+        rows = [m for m in metrics if m[0] == view]
+        if rows:
+            lines.append(f"| {view} | {len(rows)} | {np.mean([r[1] for r in rows]):.4f} | {np.mean([r[2] for r in rows]):.1f} |")
+    lines += [
+        "",
+        "Left: ground truth (the capture); right: gra-mi's one-bounce relight with the fitted maps. Rows: frames × cameras",
+        "(training camera, then held-out camera), composited over the background plate.",
+        "",
+        "![truth vs relit](contact_truth_vs_relit.png)",
+        "",
+        "## RelightNet (ablation: microfacet only vs + RelightNet)",
+        "",
+        "| split | views | microfacet PSNR | microfacet SSIM | + RelightNet PSNR | + RelightNet SSIM |",
+        "|---|---|---|---|---|---|",
+        *[
+            f"| {split} | {m['microfacet']['views']} | {m['microfacet']['psnr']:.2f} | {m['microfacet']['ssim']:.4f} | "
+            f"{m['relightnet']['psnr']:.2f} | {m['relightnet']['ssim']:.4f} |"
+            for split, m in relightnet_summary.items()
+        ],
+        "",
+        "Held-out views — ground truth | microfacet | RelightNet: ![grid](relightnet/grid.png)",
+        "",
+        "## Video refiner (tiny WAN2.1-VACE, CPU)",
+        "",
+        f"Trained {refiner['train']['steps']} steps on RelightNet renders of the training cameras ({refiner['size']} frames, "
+        f"{refiner['train']['parameters']['trainable']:,} trainable of {refiner['train']['parameters']['total']:,} parameters), then rolled over "
+        f"the held-out sequence `{refiner['sequence']}`: {refiner['frames']} frames in {refiner['windows']} windows of 17 "
+        f"({refiner['steps']} Euler steps each, {refiner['frames_per_second']:.2f} frames/s).",
+        "",
+        "| against the ground truth (subject pixels, exposed range) | PSNR (dB) |",
+        "|---|---|",
+        f"| RelightNet render (the refiner's input) | {refiner.get('psnr_coarse', float('nan')):.2f} |",
+        f"| refined | {refiner.get('psnr_refined', float('nan')):.2f} |",
+        f"| the ground truth through the VAE alone (encode + decode: what the VAE by itself loses) | {refiner.get('psnr_vae_round_trip', float('nan')):.2f} |",
+        "",
+        f"Joins between windows: mean change into a new window {refiner['seam_jump']:.4f}, over its 5 handed-off frames "
+        f"{refiner['join_frame_change']:.4f}, between all other consecutive frames {refiner['inner_frame_change']:.4f} "
+        "(mean absolute change in [0, 1] display values). The tiny model has random stand-in DiT weights and a few hundred CPU steps, so it",
+        "does not add detail here: this stage shows the machinery (VACE control, envmap attention, error recycling,",
+        "rolling windows) running end to end; real quality needs the WAN2.1-VACE weights and a GPU.",
+        "",
+        "Video (RelightNet | refined | ground truth): [refiner/refined/comparison.mp4](refiner/refined/comparison.mp4) · ",
+        "loss: ![refiner loss](refiner/model/loss.png)",
+        "",
+        "## Near-field point light",
+        "",
+        "![point light](point_light.png) ![conditioning](point_light_conditioning.png)",
+        "",
+        "## Envmap → LED energy check (irradiance at the stage centre)",
+        "",
+    ]
+    for name, rows in energy.items():
+        lines += [
+            f"### {name}",
+            "",
+            f"![LED mapping](plots/leds_{name}.png)",
+            "",
+            "| normal | envmap | LEDs | rel. error |",
+            "|---|---|---|---|",
+        ]
+        lines += [f"| {r['normal']} | {r['envmap']:.4g} | {r['leds']:.4g} | {100 * r['rel_error']:.2f} % |" for r in rows]
+        lines.append("")
+    lines += [
+        f"Video: [{video_path.name}]({video_path.relative_to(out)}) · Avatar: [avatar.glb](avatar.glb) (opens in Blender)",
+        "",
+        "Data: `capture/` (images, masks, true maps, `scene.xml` loads in plain Mitsuba), `fit/` (albedo.exr, roughness.exr),",
+        "`renders/` (linear RGBA EXR).",
+        "",
+    ]
+    return "\n".join(lines)

@@ -1,0 +1,138 @@
+"""Export the fitted avatar as glTF 2.0 binary (.glb): it opens in Blender, three.js and every glTF viewer.
+
+- the tracked mesh at its first frame (positions, normals, UVs, triangles);
+- a PBR material: ``baseColorTexture`` = albedo (sRGB PNG), ``metallicRoughnessTexture`` with roughness in G and
+  metallic 0 in B. glTF's roughness is perceptual (α = r²), the same convention as gra-mi's;
+- the other frames as morph targets (position and normal deltas), with an animation that steps through them at the
+  sequence's frame rate.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import struct
+from pathlib import Path
+
+import numpy as np
+
+from gra_mi.core.io import atomic_path, to_srgb8
+from gra_mi.subject.sequence import MeshSequence
+
+FLOAT, UINT = 5126, 5125
+ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER = 34962, 34963
+
+
+class _Buffer:
+    def __init__(self):
+        self.data = bytearray()
+        self.views: list[dict] = []
+        self.accessors: list[dict] = []
+
+    def view(self, payload: bytes, target: int | None = None) -> int:
+        while len(self.data) % 4:
+            self.data += b"\0"
+        entry = {"buffer": 0, "byteOffset": len(self.data), "byteLength": len(payload)}
+        if target is not None:
+            entry["target"] = target
+        self.data += payload
+        self.views.append(entry)
+        return len(self.views) - 1
+
+    def accessor(self, array: np.ndarray, kind: str, component: int, target: int | None, minmax: bool = False) -> int:
+        view = self.view(np.ascontiguousarray(array).tobytes(), target)
+        entry = {"bufferView": view, "componentType": component, "count": int(array.shape[0]), "type": kind}
+        if minmax:
+            entry["min"] = array.min(axis=0).tolist()
+            entry["max"] = array.max(axis=0).tolist()
+        self.accessors.append(entry)
+        return len(self.accessors) - 1
+
+
+def _png(image: np.ndarray) -> bytes:
+    import imageio.v3 as iio
+
+    out = io.BytesIO()
+    iio.imwrite(out, image, extension=".png")
+    return out.getvalue()
+
+
+def export_glb(path: str | Path, seq: MeshSequence, albedo: np.ndarray, roughness: np.ndarray, frames: int | None = None) -> Path:
+    """Write ``path`` (.glb). ``frames`` limits the morph targets (default: all frames)."""
+    buf = _Buffer()
+    base_p = seq.vertices[0].astype(np.float32)
+    base_n = seq.normals[0].astype(np.float32)
+    # glTF's UV origin is the top-left of the image; gra-mi's row 0 is v = 0, which glTF also reads as the top row.
+    attributes = {
+        "POSITION": buf.accessor(base_p, "VEC3", FLOAT, ARRAY_BUFFER, minmax=True),
+        "NORMAL": buf.accessor(base_n, "VEC3", FLOAT, ARRAY_BUFFER),
+        "TEXCOORD_0": buf.accessor(seq.uvs.astype(np.float32), "VEC2", FLOAT, ARRAY_BUFFER),
+    }
+    indices = buf.accessor(seq.faces.astype(np.uint32).reshape(-1, 1), "SCALAR", UINT, ELEMENT_ARRAY_BUFFER)
+    count = seq.num_frames if frames is None else max(1, min(frames, seq.num_frames))
+    targets = []
+    for t in range(1, count):
+        targets.append(
+            {
+                "POSITION": buf.accessor((seq.vertices[t] - seq.vertices[0]).astype(np.float32), "VEC3", FLOAT, ARRAY_BUFFER, minmax=True),
+                "NORMAL": buf.accessor((seq.normals[t] - seq.normals[0]).astype(np.float32), "VEC3", FLOAT, ARRAY_BUFFER),
+            }
+        )
+    rough = np.clip(roughness[..., 0], 0, 1)
+    mr = np.stack([np.zeros_like(rough), rough, np.zeros_like(rough)], axis=-1)  # R unused, G roughness, B metallic
+    images = [
+        {"bufferView": buf.view(_png(to_srgb8(np.clip(albedo[..., :3], 0, 1))[..., :3])), "mimeType": "image/png", "name": "albedo"},
+        {"bufferView": buf.view(_png((mr * 255 + 0.5).astype(np.uint8))), "mimeType": "image/png", "name": "metallicRoughness"},
+    ]
+    primitive = {"attributes": attributes, "indices": indices, "material": 0, "mode": 4}
+    mesh = {"name": "avatar", "primitives": [primitive]}
+    gltf: dict = {
+        "asset": {"version": "2.0", "generator": "gra-mi"},
+        "scene": 0,
+        "scenes": [{"nodes": [0]}],
+        "nodes": [{"mesh": 0, "name": "avatar"}],
+        "meshes": [mesh],
+        "materials": [
+            {
+                "name": "gra-mi fitted material",
+                "pbrMetallicRoughness": {
+                    "baseColorTexture": {"index": 0},
+                    "metallicRoughnessTexture": {"index": 1},
+                    "metallicFactor": 1.0,  # scaled by the texture's B channel (0)
+                    "roughnessFactor": 1.0,
+                },
+                "doubleSided": False,
+            }
+        ],
+        "samplers": [{"magFilter": 9729, "minFilter": 9987, "wrapS": 33071, "wrapT": 33071}],
+        "textures": [{"source": 0, "sampler": 0}, {"source": 1, "sampler": 0}],
+        "images": images,
+    }
+    if targets:
+        primitive["targets"] = targets
+        mesh["weights"] = [0.0] * len(targets)
+        times = (np.arange(count, dtype=np.float32) / seq.fps).reshape(-1, 1)
+        weights = np.zeros((count, len(targets)), np.float32)
+        weights[np.arange(1, count), np.arange(len(targets))] = 1.0  # frame t shows target t − 1 fully
+        sampler = {
+            "input": buf.accessor(times, "SCALAR", FLOAT, None, minmax=True),
+            "output": buf.accessor(weights.reshape(-1, 1), "SCALAR", FLOAT, None),
+            "interpolation": "STEP",
+        }
+        gltf["animations"] = [
+            {"name": "performance", "samplers": [sampler], "channels": [{"sampler": 0, "target": {"node": 0, "path": "weights"}}]}
+        ]
+    while len(buf.data) % 4:
+        buf.data += b"\0"
+    gltf["buffers"] = [{"byteLength": len(buf.data)}]
+    gltf["bufferViews"] = buf.views
+    gltf["accessors"] = buf.accessors
+    text = json.dumps(gltf, separators=(",", ":")).encode()
+    text += b" " * ((4 - len(text) % 4) % 4)
+    total = 12 + 8 + len(text) + 8 + len(buf.data)
+    path = Path(path)
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        fh.write(struct.pack("<4sII", b"glTF", 2, total))
+        fh.write(struct.pack("<I4s", len(text), b"JSON") + text)
+        fh.write(struct.pack("<I4s", len(buf.data), b"BIN\0") + bytes(buf.data))
+    return path

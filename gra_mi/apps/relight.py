@@ -1,0 +1,167 @@
+"""Batch relighting (``gra-mi relight``): frames × lights × cameras through one stage, written as EXR, PNG and MP4.
+
+Lights are envmaps (mapped onto the LEDs), OLATs, LED patterns and a near-field point light, all in one run. The
+stage is the one-bounce microfacet render or RelightNet on top of it (:func:`gra_mi.relightnet.infer.render_view`).
+Jobs run frame-major, so each frame's visibility is traced once and reused by every light and camera.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from gra_mi.core.errors import GraMiInputError, GraMiParameterError
+from gra_mi.core.io import atomic_path, auto_exposure, write_exr, write_mp4, write_png
+from gra_mi.core.progress import progress
+
+logger = logging.getLogger(__name__)
+
+STAGES = ("microfacet", "relightnet")
+
+
+@dataclass
+class RelightConfig:
+    uv_resolution: int = 512
+    """UV texture resolution when no albedo texture is given (the paper's)."""
+    far_field: bool = False
+    """Treat LEDs as directional lights seen from the stage centre (for comparison with near field)."""
+    save_uv: bool = False
+    """Also write the UV-space radiance and the RelightNet inputs (normal, position, view direction, mask) as EXR."""
+    background: bool = False
+    """Composite envmap renders over the camera's background plate in the PNG/MP4 previews."""
+    exposure: float | None = None
+    """Preview exposure (default: automatic per light and camera)."""
+
+    def validate(self) -> None:
+        if self.uv_resolution < 1:
+            raise GraMiParameterError("uv_resolution", f"must be >= 1, got {self.uv_resolution}")
+        if self.exposure is not None and not (np.isfinite(self.exposure) and self.exposure > 0):
+            raise GraMiParameterError("exposure", f"must be a positive number, got {self.exposure}")
+
+
+@dataclass
+class Light:
+    """One lighting of the batch: LED radiant intensities (L, 3) and what the previews need."""
+
+    intensities: np.ndarray
+    envmap: np.ndarray | None = None  # for the background plate
+    point_light: object | None = None  # a PointLight, lit with every LED off
+
+
+@dataclass
+class RelightSummary:
+    renders: int
+    out: Path
+    visibility_traced: int  # frames whose visibility was traced
+    visibility_reused: int
+
+
+def collect_lights(stage, envmaps: dict[str, np.ndarray], olats: list[int], patterns: dict[str, np.ndarray], point_light=None):
+    """Name → :class:`Light` for every lighting asked for (patterns are LED drive values, emitted = drive × gain)."""
+    from gra_mi.stage.envmap import envmap_to_leds
+    from gra_mi.stage.lightstage import olat_pattern, validate_pattern
+
+    lights: dict[str, Light] = {}
+    if point_light is not None:
+        lights["point_light"] = Light(np.zeros((stage.num_leds, 3)), point_light=point_light)
+    for name, env in envmaps.items():
+        lights[name] = Light(envmap_to_leds(env, stage).radiant_intensity(stage), envmap=env)
+    for k in olats:
+        lights[f"olat{k:03d}"] = Light(olat_pattern(stage, k) * stage.gains)
+    for name, drive in patterns.items():
+        lights[name] = Light(validate_pattern(stage, drive, source=name) * stage.gains)
+    if not lights:
+        raise GraMiParameterError("lights", "give at least one envmap, OLAT, pattern or point light")
+    return lights
+
+
+def _write_point_light_conditioning(out: Path, stage, scene, point_light) -> None:
+    """The paper's envmap conditioning for a point light (what RelightNet sees in its place)."""
+    from gra_mi.render.point_light import conditioning_envmap, conditioning_pattern
+
+    pattern = conditioning_pattern(stage, scene, point_light)
+    envmap = conditioning_envmap(stage, pattern)
+    write_exr(out / "point_light" / "conditioning.exr", envmap)
+    write_png(out / "point_light" / "conditioning.png", envmap, exposure=None)
+    with atomic_path(out / "point_light" / "conditioning_leds.npy") as tmp, open(tmp, "wb") as fh:
+        np.save(fh, pattern)
+
+
+def relight_batch(
+    scene_path: str | Path,
+    out: str | Path,
+    lights: dict[str, Light],
+    frames: list[int] | None = None,
+    cameras: list[str] | None = None,
+    config: RelightConfig | None = None,
+    stage: str = "microfacet",
+    relightnet_dir: str | Path | None = None,
+    albedo: np.ndarray | None = None,
+    roughness: np.ndarray | None = None,
+    vis_cache: str | Path | None = None,
+) -> RelightSummary:
+    """Render every (frame, light, camera) into ``out/LIGHT/CAMERA/frame_NNNN.{exr,png}`` (+ ``CAMERA.mp4``).
+
+    ``frames``/``cameras`` None: all frames, camera 0. ``albedo``/``roughness`` None: the subject's vertex colours baked
+    to UV and roughness 0.5. Everything is checked before the first file is written.
+    """
+    from gra_mi.core.runtime import ensure_mitsuba, torch_device
+    from gra_mi.relightnet.infer import render_view
+    from gra_mi.render.relighter import Relighter
+    from gra_mi.stage.envmap import stage_background_plate
+    from gra_mi.stage.scene import LightstageScene, composite_over
+
+    config = config or RelightConfig()
+    config.validate()
+    if stage not in STAGES:
+        raise GraMiParameterError("stage", f"expected one of {STAGES}, got '{stage}'")
+    ensure_mitsuba()
+    out = Path(out)
+    ls = LightstageScene.load(scene_path)
+    frames = list(range(ls.sequence.num_frames)) if frames is None else frames
+    for f in frames:
+        if not 0 <= f < ls.sequence.num_frames:
+            raise GraMiParameterError("frames", f"frame {f} out of range [0, {ls.sequence.num_frames})")
+    cams = [ls.stage.camera(c) for c in (cameras or [0])]
+    model, resolution = None, config.uv_resolution
+    if stage == "relightnet":
+        if relightnet_dir is None:
+            raise GraMiParameterError("relightnet", "the relightnet stage needs the folder of a trained RelightNet")
+        from gra_mi.relightnet.model import RelightNet
+
+        model = RelightNet.load(relightnet_dir, torch_device())
+        if albedo is not None and albedo.shape[0] != model.config.resolution:
+            raise GraMiInputError("albedo", f"RelightNet runs at {model.config.resolution}², the albedo is {albedo.shape[0]}²")
+        resolution = model.config.resolution
+    relighter = Relighter(ls, resolution, albedo, roughness, config.far_field, vis_cache)
+
+    point_light = next((light.point_light for light in lights.values() if light.point_light is not None), None)
+    if point_light is not None:
+        _write_point_light_conditioning(out, ls.stage, ls.scene, point_light)
+    videos: dict[tuple[str, str], list] = {}
+    exposures: dict[tuple[str, str], float] = {}
+    jobs = [(f, name, cam) for f in frames for name in lights for cam in cams]  # frame-major: one trace per frame
+    for frame, name, cam in progress(jobs, description="relight"):
+        light = lights[name]
+        view = render_view(relighter, model, frame, cam.name, light.intensities, light.point_light)
+        folder = out / name / cam.name
+        write_exr(folder / f"frame_{frame:04d}.exr", view.image)
+        shown = view.image[..., :3]
+        if config.background and light.envmap is not None:
+            shown = composite_over(view.image, stage_background_plate(light.envmap, cam, ls.stage))
+        key = (name, cam.name)
+        if key not in exposures:
+            exposures[key] = config.exposure if config.exposure is not None else 0.8 * auto_exposure(view.image)
+        write_png(folder / f"frame_{frame:04d}.png", shown, exposure=exposures[key])
+        videos.setdefault(key, []).append(shown)
+        if config.save_uv:
+            write_exr(folder / f"uv_radiance_{frame:04d}.exr", relighter.atlas.scatter(view.shading.radiance))
+            for channel, texture in relighter.texel_inputs(view).items():
+                write_exr(folder / f"uv_{channel}_{frame:04d}.exr", texture)
+    if len(frames) > 1:
+        for (name, cam_name), images in videos.items():
+            write_mp4(out / name / f"{cam_name}.mp4", images, fps=ls.sequence.fps, exposure=exposures[(name, cam_name)])
+    return RelightSummary(len(jobs), out, relighter.cache.misses, relighter.cache.hits)

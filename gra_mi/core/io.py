@@ -1,0 +1,181 @@
+"""Image files: linear HDR EXR for data, sRGB PNG / MP4 for people.
+
+Conventions (docs/conventions.md): images are ``(H, W, C)`` float32 arrays of linear Rec.709 radiance, row 0 at
+the top. The sRGB transfer function (from colour-science) is applied only when writing previews.
+Every writer is atomic: it writes a temporary file beside the target and renames it, so an interrupted run never
+leaves a truncated file that a later run would mistake for a finished one.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import tempfile
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from gra_mi.core.errors import GraMiInputError
+
+logger = logging.getLogger(__name__)
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """Yield a temporary path beside ``path``; rename it onto ``path`` only if the block succeeds."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    tmp_path = Path(tmp)
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp_path, 0o666 & ~umask)  # mkstemp makes 0600 files; give the usual permissions
+    try:
+        yield tmp_path
+        os.replace(tmp_path, path)
+    finally:
+        if tmp_path.exists():
+            tmp_path.unlink()
+
+
+def read_json(path: str | Path, hint: str = ""):
+    """Parse a JSON file; a missing or malformed file is a :class:`GraMiInputError` naming it."""
+    import json
+
+    path = Path(path)
+    if not path.is_file():
+        raise GraMiInputError(path, f"file not found{hint}")
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise GraMiInputError(path, f"malformed JSON ({exc})") from None
+
+
+def atomic_write_text(path: str | Path, text: str) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# EXR
+# --------------------------------------------------------------------------------------------------------------
+
+
+def write_exr(path: str | Path, image: np.ndarray) -> None:
+    """Write an ``(H, W)``, ``(H, W, 1)``, ``(H, W, 3)`` or ``(H, W, 4)`` float array as a float32 EXR."""
+    import OpenEXR
+
+    image = np.asarray(image, dtype=np.float32)
+    if image.ndim == 2:
+        image = image[..., None]
+    if image.ndim != 3 or image.shape[2] not in (1, 3, 4):
+        raise ValueError(f"write_exr expects (H, W[, 1|3|4]), got {image.shape}")
+    names = {1: "Y", 3: "RGB", 4: "RGBA"}[image.shape[2]]
+    channels = {name: np.ascontiguousarray(image[..., i]) for i, name in enumerate(names)}
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    with atomic_path(path) as tmp:
+        with OpenEXR.File(header, channels) as f:
+            f.write(str(tmp))
+
+
+def read_exr(path: str | Path) -> np.ndarray:
+    """Read an EXR as float32 ``(H, W, C)`` with C = 1, 3 or 4 (Y, RGB or RGBA)."""
+    import OpenEXR
+
+    path = Path(path)
+    if not path.is_file():
+        raise GraMiInputError(path, "file not found")
+    try:
+        with OpenEXR.File(str(path), separate_channels=True) as f:
+            channels = {name: np.asarray(ch.pixels) for name, ch in f.channels().items()}
+    except Exception as exc:  # OpenEXR raises bare RuntimeErrors on corrupt files
+        raise GraMiInputError(path, f"not a readable OpenEXR file ({exc})") from None
+    for names in (("R", "G", "B", "A"), ("R", "G", "B"), ("Y",)):
+        if all(n in channels for n in names):
+            return np.stack([channels[n] for n in names], axis=-1).astype(np.float32)
+    raise GraMiInputError(path, f"expected channels R,G,B[,A] or Y, found {sorted(channels)}")
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Previews
+# --------------------------------------------------------------------------------------------------------------
+
+
+def to_srgb8(image: np.ndarray, exposure: float = 1.0) -> np.ndarray:
+    """Linear Rec.709 radiance → 8-bit sRGB preview (clipped; alpha passed through linearly)."""
+    import colour
+
+    image = np.nan_to_num(np.asarray(image, dtype=np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    if image.ndim == 2:
+        image = image[..., None]
+    if image.shape[2] == 1:
+        image = np.repeat(image, 3, axis=2)
+    rgb = np.clip(image[..., :3] * exposure, 0.0, 1.0)
+    encoded = colour.cctf_encoding(rgb, function="sRGB")
+    out = [encoded]
+    if image.shape[2] == 4:
+        out.append(np.clip(image[..., 3:4], 0.0, 1.0))
+    return (np.concatenate(out, axis=2) * 255.0 + 0.5).astype(np.uint8)
+
+
+def auto_exposure(image: np.ndarray, percentile: float = 99.0) -> float:
+    """Exposure that maps the given percentile of the (finite, positive) luminance to 1."""
+    rgb = np.asarray(image, dtype=np.float32)[..., :3]
+    lum = rgb.mean(axis=-1)
+    lum = lum[np.isfinite(lum) & (lum > 0)]
+    if lum.size == 0:
+        return 1.0
+    top = float(np.percentile(lum, percentile))
+    return 1.0 / top if top > 0 else 1.0
+
+
+def write_png(path: str | Path, image: np.ndarray, exposure: float | None = 1.0) -> None:
+    """Write an sRGB preview of a linear image; ``exposure=None`` picks one from the 99th percentile."""
+    import imageio.v3 as iio
+
+    if exposure is None:
+        exposure = auto_exposure(image)
+    with atomic_path(path) as tmp:
+        iio.imwrite(tmp, to_srgb8(image, exposure), extension=".png")
+
+
+def write_mp4(path: str | Path, frames: Sequence[np.ndarray], fps: float = 24.0, exposure: float = 1.0) -> None:
+    """Write linear frames as an H.264 MP4 preview (sizes padded to even numbers for the codec)."""
+    import imageio.v2 as iio2
+
+    with atomic_path(path) as tmp:
+        writer = iio2.get_writer(str(tmp), format="FFMPEG", fps=fps, codec="libx264", macro_block_size=1)
+        try:
+            for frame in frames:
+                rgb = to_srgb8(frame, exposure)[..., :3]
+                h, w = rgb.shape[:2]
+                rgb = np.pad(rgb, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge")
+                writer.append_data(rgb)
+        finally:
+            writer.close()
+
+
+class Mp4Stream:
+    """An MP4 written frame by frame (long videos never sit in memory); renamed into place on a clean close."""
+
+    def __init__(self, path: str | Path, fps: float = 24.0):
+        import imageio.v2 as iio2
+
+        self._atomic = atomic_path(path)
+        self._tmp = self._atomic.__enter__()
+        self._writer = iio2.get_writer(str(self._tmp), format="FFMPEG", fps=fps, codec="libx264", macro_block_size=1)
+
+    def append(self, frame: np.ndarray, exposure: float = 1.0) -> None:
+        rgb = to_srgb8(frame, exposure)[..., :3]
+        h, w = rgb.shape[:2]
+        self._writer.append_data(np.pad(rgb, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge"))
+
+    def __enter__(self) -> Mp4Stream:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._writer.close()
+        self._atomic.__exit__(*exc)

@@ -1,0 +1,161 @@
+"""The runtime of a command: the Mitsuba variant (with gra-mi's plugins registered for it) and the torch device.
+
+Each command starts it once (:func:`start_runtime`, called by the CLI before the command's library function); library
+code asks for what it needs with :func:`ensure_mitsuba` and :func:`torch_device` and never chooses either itself.
+The two are independent: the Mitsuba variant follows Dr.Jit's backends, the torch device follows torch's CUDA, so a
+torch-only command (``train-refiner``, ``refine``) uses the GPU where one works without loading Mitsuba at all.
+
+``llvm_ad_rgb`` is the default variant; ``cuda_ad_rgb`` is picked automatically where a CUDA device works. The Dr.Jit LLVM
+backend needs libLLVM >= 16 (Dr.Jit 1.5 aborts the process on Debian's libLLVM 14/15 with
+``LLVM ERROR: Cannot select ... fminimum``); :func:`check_llvm` finds a usable one *before* Dr.Jit loads, so users get a
+message that says what to do instead of a crash.
+"""
+
+from __future__ import annotations
+
+import glob
+import logging
+import os
+import re
+from dataclasses import dataclass
+
+from gra_mi.core.errors import GraMiInputError
+
+logger = logging.getLogger(__name__)
+
+SUPPORTED_VARIANTS = ("llvm_ad_rgb", "cuda_ad_rgb", "scalar_rgb")
+MIN_LLVM_MAJOR = 16
+LLVM_HELP = (
+    "Dr.Jit 1.5's LLVM backend needs libLLVM >= 16 (Debian 12 ships 14/15, which crash with "
+    "'LLVM ERROR: Cannot select ... fminimum'). Install one with `sudo apt-get install libllvm19` "
+    "(or run scripts/setup.sh), or point DRJIT_LIBLLVM_PATH at a libLLVM.so of version >= 16."
+)
+
+
+def _llvm_major(path: str) -> int | None:
+    match = re.search(r"libLLVM[-.]?(\d+)", os.path.basename(path))
+    return int(match.group(1)) if match else None
+
+
+def find_libllvm() -> str | None:
+    """The newest libLLVM >= 16 on this machine, or None."""
+    patterns = [
+        "/usr/lib/*/libLLVM-*.so*",
+        "/usr/lib/llvm-*/lib/libLLVM*.so*",
+        "/usr/lib/libLLVM*.so*",
+        "/usr/local/lib/libLLVM*.so*",
+        "/opt/homebrew/opt/llvm/lib/libLLVM.dylib",
+    ]
+    found = []
+    for pattern in patterns:
+        for path in glob.glob(pattern):
+            major = _llvm_major(path)
+            if major is None and "llvm-" in path:
+                major = int(re.search(r"llvm-(\d+)", path).group(1))
+            if major is not None and major >= MIN_LLVM_MAJOR:
+                found.append((major, path))
+    return max(found)[1] if found else None
+
+
+def check_llvm() -> None:
+    """Make sure Dr.Jit's LLVM backend will load a libLLVM it can use; raise with instructions otherwise."""
+    configured = os.environ.get("DRJIT_LIBLLVM_PATH")
+    if configured:
+        if not os.path.exists(configured):
+            raise GraMiInputError("DRJIT_LIBLLVM_PATH", f"'{configured}' does not exist. {LLVM_HELP}")
+        return
+    path = find_libllvm()
+    if path is None:
+        raise GraMiInputError("libLLVM", f"no libLLVM >= {MIN_LLVM_MAJOR} found. {LLVM_HELP}")
+    # Dr.Jit searches the default library names itself and may pick libLLVM-14 first: pin the good one.
+    os.environ["DRJIT_LIBLLVM_PATH"] = path
+
+
+def cuda_available() -> bool:
+    """True where Dr.Jit can start its CUDA backend (a driver and a device are present)."""
+    if not glob.glob("/dev/nvidia[0-9]*") and not os.environ.get("GRA_MI_ASSUME_CUDA"):
+        return False
+    try:
+        import drjit as dr
+
+        return bool(dr.has_backend(dr.JitBackend.CUDA))
+    except Exception:  # no driver: Dr.Jit raises on probing
+        return False
+
+
+def choose_variant(requested: str | None = None) -> str:
+    """Set the Mitsuba variant for this process and return its name.
+
+    ``requested=None`` means automatic: ``cuda_ad_rgb`` where CUDA works, else ``llvm_ad_rgb``.
+    """
+    if requested is not None and requested not in SUPPORTED_VARIANTS:
+        raise GraMiInputError("variant", f"unknown variant '{requested}', expected one of {SUPPORTED_VARIANTS}")
+    variant = requested or ("cuda_ad_rgb" if cuda_available() else "llvm_ad_rgb")
+    if variant.startswith("llvm"):
+        check_llvm()
+    import mitsuba as mi
+
+    if mi.variant() != variant:
+        mi.set_variant(variant)
+    logger.debug("Mitsuba variant: %s", variant)
+    return variant
+
+
+TORCH_DEVICES = ("cpu", "cuda")
+
+
+@dataclass
+class Runtime:
+    """What a command runs on. ``None``: not needed by this command (yet)."""
+
+    variant: str | None = None
+    torch_device: str | None = None
+
+
+_RUNTIME = Runtime()  # one per process, like Mitsuba's own variant
+
+
+def pick_torch_device(requested: str | None = None) -> str:
+    """``cuda`` where torch sees a GPU, else ``cpu``; ``requested`` (cpu, cuda, cuda:N) overrides."""
+    import torch
+
+    if requested is None:
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if requested.split(":")[0] not in TORCH_DEVICES:
+        raise GraMiInputError("device", f"unknown torch device '{requested}', expected cpu, cuda or cuda:N")
+    if requested.startswith("cuda") and not torch.cuda.is_available():
+        raise GraMiInputError("device", f"'{requested}' asked for, but torch sees no CUDA GPU (use cpu)")
+    return requested
+
+
+def start_runtime(variant: str | None = None, device: str | None = None, *, mitsuba: bool = True, torch: bool = False) -> Runtime:
+    """Start what a command needs, once: the Mitsuba variant with the plugins registered (``mitsuba``) and the torch
+    device (``torch``). ``None`` means automatic: the GPU where one works."""
+    if mitsuba:
+        from gra_mi.render.plugins import register_plugins
+
+        _RUNTIME.variant = choose_variant(variant)
+        register_plugins()
+    if torch:
+        _RUNTIME.torch_device = pick_torch_device(device)
+    return _RUNTIME
+
+
+def ensure_mitsuba() -> str:
+    """The Mitsuba variant for library code: the one already set (by :func:`start_runtime` or a test), else the
+    automatic choice; gra-mi's plugins are registered for it either way."""
+    import mitsuba as mi
+
+    if mi.variant() is None:
+        return start_runtime().variant
+    from gra_mi.render.plugins import register_plugins
+
+    register_plugins()
+    return mi.variant()
+
+
+def torch_device() -> str:
+    """The torch device for library code: the one this command started with, else the automatic choice."""
+    if _RUNTIME.torch_device is None:
+        _RUNTIME.torch_device = pick_torch_device()
+    return _RUNTIME.torch_device

@@ -1,0 +1,372 @@
+"""The video refiner's data: sequences of (coarse render, ground truth, camera-space envmap) frames + a reference.
+
+On disk (docs/data-format.md, ``gra-mi-refiner-data/1``): ``dataset.json`` and one ``sequences/NAME.safetensors``
+per sequence with linear HDR float tensors ``coarse`` (N, H, W, 3), ``target`` (N, H, W, 3; optional for
+inference), ``env`` (N, h, 2h, 3) camera-space envmaps, ``reference`` (H, W, 3) the subject under neutral light and
+``reference_env`` (h, 2h, 3) its lighting. H and W are multiples of 16 (images are zero-padded at the bottom/right;
+``crop`` gives the valid size). Training draws windows of the refiner's length from sequences of any length.
+
+Two builders: :func:`dataset_from_capture` (the pipeline: RelightNet or microfacet renders of a capture, the
+captured images as targets) and :func:`synthetic_dataset` (a fast stand-in for tests: a textured ball moving under
+a different light each frame, whose coarse render lacks the texture's fine detail and the highlight).
+
+The models see tone-mapped values in [-1, 1]: images through sRGB after a dataset-wide exposure; envmaps through
+a log curve (``ENV_STOPS`` stops above the dataset's mean envmap radiance), as HDR suns would clip otherwise.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from gra_mi.core.errors import GraMiInputError
+from gra_mi.core.io import atomic_path, atomic_write_text, read_json
+
+DATA_FORMAT = "gra-mi-refiner-data/1"
+ENV_STOPS = 12.0
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Tone mapping between linear radiance and the VAE's [-1, 1]
+# --------------------------------------------------------------------------------------------------------------
+
+
+def _srgb_encode(x: torch.Tensor) -> torch.Tensor:
+    return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp(min=0.0031308) ** (1 / 2.4) - 0.055)
+
+
+def _srgb_decode(y: torch.Tensor) -> torch.Tensor:
+    return torch.where(y <= 0.04045, y / 12.92, ((y.clamp(min=0.04045) + 0.055) / 1.055) ** 2.4)
+
+
+def image_to_video(linear: torch.Tensor, exposure: float) -> torch.Tensor:
+    return 2 * _srgb_encode((linear * exposure).clamp(0, 1)) - 1
+
+
+def video_to_image(video: torch.Tensor, exposure: float) -> torch.Tensor:
+    """Inverse of :func:`image_to_video` (exact below the clipping point)."""
+    return _srgb_decode(((video + 1) / 2).clamp(0, 1)) / exposure
+
+
+def env_to_video(env: torch.Tensor, env_exposure: float) -> torch.Tensor:
+    return 2 * (torch.log2(1 + env.clamp(min=0) * env_exposure) / ENV_STOPS).clamp(0, 1) - 1
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Dataset files
+# --------------------------------------------------------------------------------------------------------------
+
+FIELDS = ("coarse", "target", "env", "reference", "reference_env")
+
+
+def write_sequence(folder: Path, name: str, tensors: dict[str, np.ndarray]) -> str:
+    from safetensors.numpy import save_file
+
+    rel = f"sequences/{name}.safetensors"
+    with atomic_path(folder / rel) as tmp:
+        save_file({k: np.ascontiguousarray(v, dtype=np.float32) for k, v in tensors.items()}, str(tmp))
+    return rel
+
+
+def write_dataset_json(
+    folder: Path, sequences: list[dict], height: int, width: int, crop: tuple[int, int], exposure: float, env_exposure: float, **extra
+) -> Path:
+    data = {
+        "format": DATA_FORMAT,
+        "height": height,
+        "width": width,
+        "crop": list(crop),
+        "exposure": exposure,
+        "env_exposure": env_exposure,
+        "sequences": sequences,
+        **extra,
+    }
+    atomic_write_text(folder / "dataset.json", json.dumps(data, indent=1) + "\n")
+    return folder / "dataset.json"
+
+
+@dataclass
+class SequenceInfo:
+    name: str
+    split: str
+    frames: int
+    subject: str
+    file: Path
+    has_target: bool
+
+
+class RefinerDataset:
+    """A folder written by one of the builders; windows come out as model-ready tensors in [-1, 1]."""
+
+    def __init__(self, folder: str | Path):
+        self.folder = Path(folder)
+        path = self.folder / "dataset.json"
+        data = read_json(path, " (make one with `gra-mi refiner-data`)")
+        if data.get("format") != DATA_FORMAT:
+            raise GraMiInputError(path, f"field 'format': expected '{DATA_FORMAT}', got {data.get('format')!r}")
+        for key in ("height", "width", "exposure", "env_exposure", "sequences"):
+            if key not in data:
+                raise GraMiInputError(path, f"missing field '{key}'")
+        self.height, self.width = int(data["height"]), int(data["width"])
+        if self.height % 16 or self.width % 16:
+            raise GraMiInputError(path, f"fields 'height'/'width' must be multiples of 16, got {self.height}×{self.width}")
+        self.crop = tuple(data.get("crop", [self.height, self.width]))
+        self.exposure, self.env_exposure = float(data["exposure"]), float(data["env_exposure"])
+        self.meta = data
+        self.sequences: dict[str, SequenceInfo] = {}
+        for i, s in enumerate(data["sequences"]):
+            missing = [k for k in ("name", "split", "frames", "file") if k not in s]
+            if missing:
+                raise GraMiInputError(path, f"sequences[{i}] lacks {missing}")
+            file = self.folder / s["file"]
+            if not file.is_file():
+                raise GraMiInputError(file, f"sequence '{s['name']}' file not found")
+            self.sequences[s["name"]] = SequenceInfo(
+                s["name"], s["split"], int(s["frames"]), s.get("subject", ""), file, bool(s.get("has_target", True))
+            )
+
+    def names(self, split: str | None = None) -> list[str]:
+        return [n for n, s in self.sequences.items() if split is None or s.split == split]
+
+    def _open(self, name: str):
+        from safetensors import safe_open
+
+        if name not in self.sequences:
+            raise GraMiInputError(self.folder / "dataset.json", f"no sequence '{name}' (have {sorted(self.sequences)})")
+        return safe_open(str(self.sequences[name].file), framework="pt")
+
+    def window(self, name: str, start: int, length: int) -> dict[str, torch.Tensor]:
+        """Frames [start, start + length) as (3, T, H, W) videos in [-1, 1]; frames past the end repeat the last one.
+
+        Read lazily from the file (safetensors slices), so a long sequence is never held in memory whole.
+        """
+        info = self.sequences[name]
+        with self._open(name) as f:
+            idx = [min(start + t, info.frames - 1) for t in range(length)]
+            lo, hi = idx[0], idx[-1] + 1
+
+            def frames(key):
+                block = f.get_slice(key)[lo:hi]
+                return block[[i - lo for i in idx]]
+
+            out = {
+                "coarse": image_to_video(frames("coarse"), self.exposure).permute(3, 0, 1, 2),
+                "env": env_to_video(frames("env"), self.env_exposure).permute(3, 0, 1, 2),
+                "reference": image_to_video(f.get_tensor("reference"), self.exposure).permute(2, 0, 1),
+                "reference_env": env_to_video(f.get_tensor("reference_env"), self.env_exposure).permute(2, 0, 1),
+            }
+            if info.has_target:
+                out["target"] = image_to_video(frames("target"), self.exposure).permute(3, 0, 1, 2)
+        return out
+
+    def linear_frames(self, name: str, key: str, start: int, stop: int) -> torch.Tensor:
+        with self._open(name) as f:
+            return f.get_slice(key)[start:stop]
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Synthetic sequences (tests, CI, benchmarks)
+# --------------------------------------------------------------------------------------------------------------
+
+
+def _latlong_dirs(h: int) -> np.ndarray:
+    from gra_mi.stage.envmap import pixel_directions
+
+    return pixel_directions(h, 2 * h)
+
+
+def synthetic_sequence(frames: int, height: int, width: int, env_height: int, subject_seed: int, seed: int) -> dict[str, np.ndarray]:
+    """A ball with a subject-specific fine texture moving and turning under a new light each frame.
+
+    target = texture · (ambient + sun·cos) + a specular highlight; coarse = a blurred texture under the same diffuse
+    light (no highlight) — the kind of gap the refiner closes. Envmaps: the ambient colour + a sun blob, camera space.
+    """
+    rng = np.random.default_rng(seed)
+    srng = np.random.default_rng(10_000 + subject_seed)
+    freq, colors = srng.uniform(6, 14, 2), srng.uniform(0.15, 0.9, (2, 3))
+    y, x = np.meshgrid((np.arange(height) + 0.5) / height, (np.arange(width) + 0.5) / width, indexing="ij")
+    dirs = _latlong_dirs(env_height)
+    phase0, speed = rng.uniform(0, 2 * math.pi), rng.uniform(0.15, 0.35)
+    sun_az, sun_el = rng.uniform(0, 2 * math.pi), rng.uniform(-0.3, 1.0)
+    out = {k: [] for k in ("coarse", "target", "env")}
+    radius = 0.32 * min(height, width) / width  # in units of the image width
+
+    def render(t: float, light_dir, sun, ambient, textured: bool):
+        cx = 0.5 + 0.22 * math.sin(phase0 + speed * t)
+        cy = 0.5 + 0.08 * math.cos(phase0 + 0.7 * speed * t)
+        px, py = (x - cx) * width / height, (y - cy)
+        r = radius * width / height
+        d2 = (px**2 + py**2) / r**2
+        inside = d2 < 1
+        nz = np.sqrt(np.clip(1 - d2, 0, 1))
+        n = np.stack([px / r, -py / r, nz], -1)
+        u = np.arctan2(n[..., 0], n[..., 2]) + 0.4 * speed * t  # the ball turns: texture moves over it
+        pattern = 0.5 + 0.5 * np.sin(freq[0] * u) * np.sin(freq[1] * n[..., 1] * 3)
+        if not textured:
+            pattern = np.full_like(pattern, 0.5)  # the coarse render's texture has lost the fine detail
+        albedo = colors[0] * pattern[..., None] + colors[1] * (1 - pattern[..., None])
+        cos = np.clip(n @ light_dir, 0, None)[..., None]
+        image = albedo * (ambient + sun * cos)
+        if textured:
+            h = light_dir + np.array([0, 0, 1.0])
+            h /= np.linalg.norm(h)
+            image = image + 0.6 * sun * np.clip(n @ h, 0, None)[..., None] ** 40
+        return (image * inside[..., None]).astype(np.float32)
+
+    for t in range(frames):
+        az = sun_az + 0.35 * t
+        el = sun_el + 0.3 * math.sin(0.5 * t)
+        light_dir = np.array([math.cos(el) * math.sin(az), math.sin(el), math.cos(el) * math.cos(az)])
+        sun = rng.uniform(0.4, 1.2, 3) * np.array([1.0, 0.9, 0.8])
+        ambient = rng.uniform(0.05, 0.25, 3)
+        env = ambient + sun * 40 * np.exp((dirs @ light_dir - 1) / 0.01)[..., None]
+        out["env"].append(env.astype(np.float32))
+        out["target"].append(render(t, light_dir, sun, ambient, True))
+        out["coarse"].append(render(t, light_dir, sun, ambient, False))
+    neutral = np.array([0.0, 0.0, 1.0])
+    reference = render(0, neutral, np.full(3, 0.3), np.full(3, 0.6), True)
+    return {
+        **{k: np.stack(v) for k, v in out.items()},
+        "reference": reference,
+        "reference_env": np.full((env_height, 2 * env_height, 3), 0.6, np.float32),
+    }
+
+
+def synthetic_dataset(
+    folder: str | Path,
+    subjects: dict[int, tuple[int, int]],
+    frames: int = 17,
+    height: int = 64,
+    width: int = 64,
+    env_height: int = 16,
+    test_frames: int = 0,
+    seed: int = 0,
+) -> RefinerDataset:
+    """subjects: subject seed → (number of training sequences, number of test sequences of ``test_frames``)."""
+    folder = Path(folder)
+    entries = []
+    k = seed
+    for subject, (n_train, n_test) in subjects.items():
+        for split, count, length in (("train", n_train, frames), ("test", n_test, test_frames or frames)):
+            for i in range(count):
+                name = f"s{subject}_{split}{i:02d}"
+                k += 1
+                rel = write_sequence(folder, name, synthetic_sequence(length, height, width, env_height, subject, k))
+                entries.append({"name": name, "split": split, "frames": length, "subject": f"synthetic{subject}", "file": rel})
+    write_dataset_json(folder, entries, height, width, (height, width), exposure=1.0, env_exposure=2.0, source="synthetic")
+    return RefinerDataset(folder)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# From the pipeline: a capture, its fit and RelightNet
+# --------------------------------------------------------------------------------------------------------------
+
+
+def _resize_pad(image: np.ndarray, scale: float) -> tuple[np.ndarray, tuple[int, int]]:
+    from gra_mi.refiner.model import pad_to_multiple
+
+    t = torch.from_numpy(np.ascontiguousarray(image[..., :3])).permute(2, 0, 1)[None]
+    if scale != 1.0:
+        t = F.interpolate(t, scale_factor=scale, mode="area")
+    h, w = t.shape[-2:]
+    ph, pw = pad_to_multiple(h, w)
+    t = F.pad(t, (0, pw - w, 0, ph - h))
+    return t[0].permute(1, 2, 0).numpy(), (h, w)
+
+
+def dataset_from_capture(
+    capture_dir: str | Path,
+    fit_dir: str | Path,
+    out: str | Path,
+    relightnet_dir: str | Path | None = None,
+    scale: float = 0.5,
+    env_height: int = 16,
+    train_length: int = 24,
+    test_length: int = 41,
+    cache_dir: str | Path | None = None,
+) -> RefinerDataset:
+    """Sequences per camera: training cameras over the training frames, held-out cameras over the test frames.
+
+    Coarse frames are RelightNet renders (``relightnet_dir``) or the microfacet render; targets are the captured images.
+    The capture's clips loop, so a sequence shorter than ``train_length``/``test_length`` is played again from its start.
+    """
+    from gra_mi.capture.dataset import load_observation
+    from gra_mi.core.progress import progress
+    from gra_mi.core.runtime import ensure_mitsuba, torch_device
+    from gra_mi.relightnet.infer import render_view
+    from gra_mi.render.relighter import fitted_relighter
+    from gra_mi.stage.envmap import leds_to_envmap, to_camera_space
+
+    ensure_mitsuba()
+    out = Path(out)
+    capture, relighter = fitted_relighter(capture_dir, fit_dir, cache_dir or out / "cache")
+    ls, stage = relighter.ls, relighter.ls.stage
+    model = None
+    if relightnet_dir is not None:
+        from gra_mi.relightnet.model import RelightNet
+
+        model = RelightNet.load(relightnet_dir, torch_device())
+
+    def coarse_render(entry, cam):
+        return render_view(relighter, model, entry.frame, cam, capture.lighting(stage, entry)).image
+
+    def camera_env(entry, cam):
+        return to_camera_space(leds_to_envmap(stage, capture.lighting(stage, entry), env_height), stage.camera(cam), supersample=1)
+
+    uniform = next((f for f in capture.frames if f.split == "train" and f.kind == "uniform"), None)
+    if uniform is None:
+        raise GraMiInputError(capture.folder / "capture.json", "no uniformly lit training frame to serve as the neutral reference")
+    jobs = [("train", cam, [f for f in capture.frames if f.split == "train"], train_length) for cam in capture.train_cameras]
+    jobs += [("test", cam, [f for f in capture.frames if f.split == "test"], test_length) for cam in capture.eval_cameras]
+    raw: list[tuple[str, str, dict]] = []
+    for split, cam, entries, length in progress(jobs, description="refiner sequences"):
+        unique = {
+            "coarse": [_resize_pad(coarse_render(e, cam), scale)[0] for e in entries],
+            "target": [_resize_pad(load_observation(capture, cam, e.frame), scale)[0] for e in entries],
+            "env": [camera_env(e, cam) for e in entries],
+        }
+        order = [i % len(entries) for i in range(max(length, len(entries)))]
+        seq = {k: np.stack([v[i] for i in order]) for k, v in unique.items()}
+        seq["reference"], crop = _resize_pad(load_observation(capture, cam, uniform.frame), scale)
+        seq["reference_env"] = camera_env(uniform, cam)
+        raw.append((split, cam, seq))
+    targets = np.concatenate([s["target"].reshape(-1, 3) for _, _, s in raw])
+    lum = targets.mean(axis=1)
+    # the subject's median radiance to 0.25 (≈ mid-grey after sRGB): robust to the path tracer's fireflies and to
+    # the background, which a high percentile is not
+    exposure = 0.25 / max(float(np.median(lum[lum > 0])), 1e-6)
+    envs = np.concatenate([s["env"].reshape(-1, 3) for _, _, s in raw])
+    env_exposure = 1.0 / max(float(envs.mean()), 1e-6)
+    entries = []
+    for split, cam, seq in raw:
+        name = f"{split}_{cam}"
+        entries.append(
+            {
+                "name": name,
+                "split": split,
+                "frames": len(seq["coarse"]),
+                "subject": f"capture:{capture.preset}",
+                "file": write_sequence(out, name, seq),
+                "camera": cam,
+            }
+        )
+    h, w = raw[0][2]["coarse"].shape[1:3]
+    write_dataset_json(
+        out,
+        entries,
+        h,
+        w,
+        crop,
+        exposure,
+        env_exposure,
+        source=str(capture.folder),
+        coarse="relightnet" if model is not None else "microfacet",
+        fps=ls.sequence.fps,
+    )
+    return RefinerDataset(out)

@@ -1,0 +1,265 @@
+"""Refining a sequence of any length (``gra-mi refine``; paper Sec. 3.3 "Error Recycling" and the 509-frame rollouts).
+
+Each window of ``window`` (17) frames is sampled from noise with an Euler ODE solver (``steps`` steps, Wan's time
+shift ``shift``) and a new seed per window. The first window refines all its frames; every later window starts
+``window − handoff`` frames further on, and its first ``handoff`` (5) frames are the previous window's decoded
+output, re-encoded as inactive (mask 0) VACE frames — the seed frames the refiner was trained to continue. Two
+things make the joins continuous (``Joins``; measured in refine.json and in the README): the given latents (the
+reference and the seed frames) are pinned to their exact flow path while sampling, the input the refiner saw for
+them in training, so what it generates continues them; and the handed-off frames are shown as a cross-fade from
+the previous window's version to their re-generation, which hides the VAE round trip of the hand-off. Only one
+window is in memory at a time (input frames are read lazily, output frames are written as they come), so memory
+stays flat with length.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import resource
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from gra_mi.core.errors import GraMiParameterError, require_positive
+from gra_mi.refiner.data import RefinerDataset, video_to_image
+from gra_mi.refiner.flow import euler_sample
+from gra_mi.refiner.model import VideoRefiner, conditioning, latent_frames, seed_mask
+
+logger = logging.getLogger(__name__)
+
+
+def window_starts(frames: int, window: int, handoff: int) -> list[int]:
+    """Start frame of each window: 0, then every ``window − handoff`` frames until the sequence is covered."""
+    stride = window - handoff
+    starts = [0]
+    while starts[-1] + window < frames:
+        starts.append(starts[-1] + stride)
+    return starts
+
+
+@dataclass
+class RefinedFrame:
+    index: int
+    video: torch.Tensor  # (3, H, W) in [-1, 1]
+    window: int
+
+
+@dataclass(frozen=True)
+class Joins:
+    """How windows join; every switch off is an ablation (``gra-mi refine --no-…``), all on is the default."""
+
+    handoff: bool = True
+    """The next window's first frames are this window's output, as inactive VACE frames (the paper); off: independent windows."""
+    pin: bool = True
+    """The given latents (reference, handed-off frames) follow their exact flow path while sampling; off: the sampler moves them."""
+    crossfade: bool = True
+    """The handed-off frames are shown as a cross-fade from this window's version to the next's; off: cut to the new window."""
+
+
+@dataclass
+class RefineConfig:
+    steps: int = 20
+    """Euler steps per window."""
+    shift: float = 3.0
+    """Wan time shift of the sampling schedule (1 = none)."""
+    seed: int = 0
+    """Seed of the first window (each window uses seed + its index)."""
+    frames: int | None = None
+    """Refine only the first N frames; default: all."""
+    joins: Joins = field(default_factory=Joins)
+    fuse_lora: bool = True
+    """Fold the LoRA into the DiT's weights (about 13 % faster per step for real sizes; measured no less accurate,
+    benchmarks/refiner.py); off: keep the adapter apart."""
+
+    def validate(self) -> None:
+        require_positive({"steps": self.steps, "shift": self.shift})
+        if self.frames is not None:
+            require_positive({"frames": self.frames})
+
+
+@torch.no_grad()
+def rollout(
+    model: VideoRefiner,
+    dataset: RefinerDataset,
+    sequence: str,
+    config: RefineConfig | None = None,
+    **options,
+) -> Iterator[RefinedFrame]:
+    """Yield the refined frames of ``sequence`` in order, window by window (``options`` override ``config``'s fields)."""
+    config = replace(config or RefineConfig(), **options)
+    config.validate()
+    steps, shift, seed, frames, joins = config.steps, config.shift, config.seed, config.frames, config.joins
+    info = dataset.sequences[sequence]
+    total = info.frames if frames is None else frames
+    if not 0 < total <= info.frames:
+        raise GraMiParameterError("frames", f"sequence '{sequence}' has {info.frames} frames, asked for {total}")
+    window, carry = model.config.window, model.config.handoff
+    carried: torch.Tensor | None = None  # (3, handoff, H, W): the previous window's last frames
+    starts = window_starts(total, window, carry)
+    for k, start in enumerate(starts):
+        win = {key: v.to(model.device) for key, v in dataset.window(sequence, start, window).items()}
+        coarse = win["coarse"]
+        seeded = 0
+        if carried is not None and joins.handoff:
+            coarse = torch.cat([carried, coarse[:, carry:]], dim=1)
+            seeded = carry
+        _, t, h, w = coarse.shape
+        control, env_latents = conditioning(
+            model, coarse, seed_mask(t, h, w, seeded).to(model.device), win["reference"], win["env"], win["reference_env"]
+        )
+        env = model.env_tokens(env_latents)
+        # The inactive latents of the seed frames are their encoding alone (the VAE is causal in time).
+        known = control[:, :16, : 1 + latent_frames(seeded)] if joins.pin else None
+        generator = torch.Generator().manual_seed(seed + k)  # a new seed per window
+        latents = euler_sample(model, (1, 16, *control.shape[2:]), control, env, steps, shift, generator, known)
+        video = model.decode(latents[:, :, 1:])[0]  # drop the reference frame
+        if k > 0 and joins.crossfade:  # the previous window held its last frames back
+            for i in range(min(carry, total - start)):
+                alpha = (i + 1) / (carry + 1)
+                yield RefinedFrame(start + i, ((1 - alpha) * carried[:, i] + alpha * video[:, i]).cpu(), k)
+        first = 0 if k == 0 else carry
+        last = t - carry if joins.crossfade and k + 1 < len(starts) else t
+        for i in range(first, min(last, total - start)):
+            yield RefinedFrame(start + i, video[:, i].cpu(), k)
+        carried = video[:, t - carry :]
+
+
+@torch.no_grad()
+def vae_round_trip(model: VideoRefiner, dataset: RefinerDataset, sequence: str, total: int) -> Iterator[tuple[int, torch.Tensor]]:
+    """(frame, decode(encode(ground truth))) in windows: what the VAE alone loses, apart from any refiner."""
+    window = model.config.window
+    for start in range(0, total, window):
+        video = model.decode(model.encode(dataset.window(sequence, start, window)["target"][None].to(model.device)))[0]
+        for i in range(min(window, total - start)):
+            yield start + i, video[:, i].cpu()
+
+
+def _peak_rss_mib() -> float:
+    """This process's peak resident memory: VmHWM (reset by exec, unlike ru_maxrss, which a child inherits)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def _subject(coarse: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Where the subject is: pixels lit in the coarse input or the ground truth. One mask for every comparison of a
+    frame, so a refined frame is also charged for light it spreads over the background."""
+    return (coarse.max(axis=-1) > 0) | (target.max(axis=-1) > 0)
+
+
+def _psnr(a: np.ndarray, b: np.ndarray, subject: np.ndarray) -> float:
+    """PSNR of display-referred frames over the subject (the black background would inflate it)."""
+    from gra_mi.core.metrics import psnr
+
+    return psnr(a, b, subject, peak=1.0)
+
+
+def refine_to_folder(
+    model_dir: str | Path,
+    dataset_dir: str | Path,
+    sequence: str,
+    out: str | Path,
+    config: RefineConfig | None = None,
+    write_exr_frames: bool = True,
+    vae_round_trip_psnr: bool = True,
+    **options,
+) -> dict:
+    """Refine one sequence into ``out``: frames (EXR linear + PNG), refined.mp4, comparison.mp4, refine.json.
+
+    With a ground truth, refine.json has PSNRs of the coarse input, the refined frames and (``vae_round_trip_psnr``) the
+    ground truth's own VAE round trip: what the VAE alone loses (with the tiny VAE, most of the gap to the input).
+    ``options`` override ``config``'s fields (``steps=6``).
+    """
+    from gra_mi.core.io import Mp4Stream, atomic_write_text, write_exr, write_png
+    from gra_mi.core.progress import progress
+    from gra_mi.core.runtime import torch_device
+
+    config = replace(config or RefineConfig(), **options)
+    config.validate()
+    steps, shift, seed, frames, joins, fuse_lora = config.steps, config.shift, config.seed, config.frames, config.joins, config.fuse_lora
+    out = Path(out)
+    dataset = RefinerDataset(dataset_dir)
+    if sequence not in dataset.sequences:
+        raise GraMiParameterError("sequence", f"no sequence '{sequence}' in {dataset.folder} (have {sorted(dataset.sequences)})")
+    model = VideoRefiner.load(model_dir).to(torch.device(torch_device())).prepare_for_inference(fuse_lora)
+    info = dataset.sequences[sequence]
+    total = info.frames if frames is None else frames
+    ch, cw = dataset.crop
+    exposure = dataset.exposure
+    fps = float(dataset.meta.get("fps", 12))
+    tm = lambda x: np.clip(x * exposure, 0, 1)  # noqa: E731  compare in the exposed range the model sees
+    rows, changes, windows_seen, rss = [], [], [], []
+    previous = None
+    t0 = time.perf_counter()
+    with Mp4Stream(out / "refined.mp4", fps) as refined_mp4, Mp4Stream(out / "comparison.mp4", fps) as comparison_mp4:
+        for frame in progress(rollout(model, dataset, sequence, config, frames=total), description=f"refine {sequence}", total=total):
+            image = video_to_image(frame.video, exposure).permute(1, 2, 0).numpy()[:ch, :cw]
+            shown = ((frame.video.permute(1, 2, 0).numpy()[:ch, :cw] + 1) / 2).clip(0, 1)
+            coarse = dataset.linear_frames(sequence, "coarse", frame.index, frame.index + 1)[0].numpy()[:ch, :cw]
+            if write_exr_frames:
+                write_exr(out / "frames" / f"frame_{frame.index:04d}.exr", image)
+                write_png(out / "frames" / f"frame_{frame.index:04d}.png", image, exposure=exposure)
+            refined_mp4.append(image, exposure)
+            panels = [coarse, image]
+            row = {"frame": frame.index, "window": frame.window}
+            if info.has_target:
+                target = dataset.linear_frames(sequence, "target", frame.index, frame.index + 1)[0].numpy()[:ch, :cw]
+                panels.append(target)
+                subject = _subject(coarse, target)
+                row["psnr_coarse"] = _psnr(tm(coarse), tm(target), subject)
+                row["psnr_refined"] = _psnr(tm(image), tm(target), subject)
+            comparison_mp4.append(np.concatenate(panels, axis=1), exposure)
+            if previous is not None:
+                changes.append(float(np.abs(shown - previous).mean()))
+            previous = shown
+            windows_seen.append(frame.window)
+            rows.append(row)
+            rss.append(_peak_rss_mib())
+    seconds = time.perf_counter() - t0
+    # Seams: the change into the first frame of a new window, and over its join (into each handed-off frame and
+    # the first one after them), against the change between the other consecutive frames.
+    firsts = [i for i in range(1, len(windows_seen)) if windows_seen[i] != windows_seen[i - 1]]
+    in_join = {i + j for i in firsts for j in range(model.config.handoff + 1)}
+    seam = [changes[i - 1] for i in firsts]
+    join = [changes[i - 1] for i in sorted(in_join) if i < len(windows_seen)]
+    inner = [changes[i - 1] for i in range(1, len(windows_seen)) if i not in in_join]
+    summary = {
+        "sequence": sequence,
+        "frames": len(rows),
+        "windows": len(set(windows_seen)),
+        "steps": steps,
+        "shift": shift,
+        "seed": seed,
+        "seconds": seconds,
+        "frames_per_second": len(rows) / seconds,
+        "joins": {"handoff": joins.handoff, "pin": joins.pin, "crossfade": joins.crossfade},
+        "fuse_lora": fuse_lora,
+        "seam_jump": float(np.mean(seam)) if seam else None,
+        "join_frame_change": float(np.mean(join)) if join else None,
+        "inner_frame_change": float(np.mean(inner)) if inner else None,
+        "peak_rss_mib": rss[-1] if rss else None,
+        "rss_mib_after_first_window": next((r for r, w in zip(rss, windows_seen, strict=True) if w > 0), None),
+    }
+    if info.has_target:
+        summary["psnr_coarse"] = float(np.mean([r["psnr_coarse"] for r in rows]))
+        summary["psnr_refined"] = float(np.mean([r["psnr_refined"] for r in rows]))
+        if vae_round_trip_psnr:
+            psnr = []
+            for index, video in vae_round_trip(model, dataset, sequence, total):
+                image = video_to_image(video, exposure).permute(1, 2, 0).numpy()[:ch, :cw]
+                target = dataset.linear_frames(sequence, "target", index, index + 1)[0].numpy()[:ch, :cw]
+                coarse = dataset.linear_frames(sequence, "coarse", index, index + 1)[0].numpy()[:ch, :cw]
+                psnr.append(_psnr(tm(image), tm(target), _subject(coarse, target)))
+            summary["psnr_vae_round_trip"] = float(np.mean(psnr))
+    summary["per_frame"] = rows
+    atomic_write_text(out / "refine.json", json.dumps(summary, indent=1) + "\n")
+    return summary

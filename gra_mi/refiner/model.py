@@ -1,0 +1,515 @@
+"""The video refiner's model (paper Sec. 3.3): diffusers' WAN2.1-VACE with LoRA and atemporal envmap attention.
+
+- Backbone: diffusers' ``WanVACETransformer3DModel`` and ``AutoencoderKLWan``, untouched (no fork). Sizes: ``tiny``
+  (random weights, seeded: tests, CI, the CPU demo) and the real ``1.3B`` / ``14B`` configurations, whose weights are
+  read from a local diffusers folder or an original-format checkpoint — never downloaded.
+- Trainable parts (paper Supp. "WAN2.1-VACE Finetuning"): LoRA (peft) on the main DiT blocks only, the VACE adapter
+  (``vace_blocks`` + ``vace_patch_embedding``) in full, and new **atemporal cross-attention** layers: each latent
+  frame's tokens attend only to the tokens of its own envmap latent (camera-space envmaps through the same VAE,
+  then a shallow shared MLP). Their output projections start at zero, so at init the model *is* the stock model.
+  The attention is added after chosen main blocks with forward hooks, so diffusers' forward runs as written.
+- Conventions (docs/conventions.md): Wan's flow — σ = 1 is noise, ``x_σ = (1 − σ) x₀ + σ ε``, the network predicts
+  ``v = ε − x₀`` — which is the paper's ``v = z₁ − z₀`` with the sign flipped (paper s = 1 − σ). Pixel videos are
+  ``(B, 3, T, H, W)`` in [-1, 1]; latents are normalised with the VAE's latent mean and std as diffusers does.
+- The text prompt is a fixed, cached embedding (a buffer): no text encoder runs at train or refine time.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from gra_mi.core.errors import GraMiInputError
+
+logger = logging.getLogger(__name__)
+
+# Real configurations (Wan-AI/Wan2.1-VACE-{1.3B,14B}-diffusers transformer/config.json).
+TRANSFORMER_CONFIGS = {
+    "tiny": dict(
+        patch_size=(1, 2, 2), num_attention_heads=2, attention_head_dim=48, in_channels=16, out_channels=16, text_dim=32,
+        freq_dim=32, ffn_dim=192, num_layers=4, cross_attn_norm=True, qk_norm="rms_norm_across_heads", eps=1e-6,
+        rope_max_seq_len=64, vace_layers=[0, 2], vace_in_channels=96,
+    ),
+    "1.3B": dict(
+        patch_size=(1, 2, 2), num_attention_heads=12, attention_head_dim=128, in_channels=16, out_channels=16, text_dim=4096,
+        freq_dim=256, ffn_dim=8960, num_layers=30, cross_attn_norm=True, qk_norm="rms_norm_across_heads", eps=1e-6,
+        rope_max_seq_len=1024, vace_layers=list(range(0, 30, 2)), vace_in_channels=96,
+    ),
+    "14B": dict(
+        patch_size=(1, 2, 2), num_attention_heads=40, attention_head_dim=128, in_channels=16, out_channels=16, text_dim=4096,
+        freq_dim=256, ffn_dim=13824, num_layers=40, cross_attn_norm=True, qk_norm="rms_norm_across_heads", eps=1e-6,
+        rope_max_seq_len=1024, vace_layers=list(range(0, 40, 5)), vace_in_channels=96,
+    ),
+}  # fmt: skip
+# The real VAE is diffusers' default AutoencoderKLWan; z_dim 16 keeps its latent mean/std valid for the tiny one.
+VAE_CONFIGS = {
+    "tiny": dict(base_dim=8, z_dim=16, dim_mult=[1, 1, 1, 1], num_res_blocks=1, attn_scales=[], temperal_downsample=[False, True, True]),
+    "1.3B": {},
+    "14B": {},
+}
+TINY_VAE_WEIGHTS = Path(__file__).resolve().parent.parent / "data" / "tiny_vae.safetensors"
+"""The tiny VAE pretrained as an autoencoder by pipelines/pretrain_tiny_vae.py (70 k parameters, shipped)."""
+TEMPORAL_FACTOR, SPATIAL_FACTOR = 4, 8  # the causal VAE: 4k + 1 frames → k + 1 latent frames, 8× smaller images
+LORA_TARGETS = r"blocks\.\d+\.(attn1|attn2)\.(to_q|to_k|to_v|to_out\.0)|blocks\.\d+\.ffn\.net\.(0\.proj|2)"
+"""Main DiT blocks only (the regex is matched against the whole module name, so ``vace_blocks.*`` is excluded)."""
+
+
+@dataclass
+class RefinerConfig:
+    size: str = "tiny"
+    """Model size. tiny: random weights, CPU. Real sizes (1.3B, 14B) need their weights."""
+    weights: str | None = None
+    """Real sizes: a local diffusers folder (with transformer/ and vae/) or an original-format .safetensors/.pth checkpoint
+    of the transformer (then `vae_weights` names the VAE file)."""
+    vae_weights: str | None = None
+    """With an original-format checkpoint: the Wan2.1 VAE checkpoint (Wan2.1_VAE.pth)."""
+    prompt_embeds: str | None = None
+    """Real sizes: a .safetensors file with `prompt_embeds` (1, L, 4096) computed once by `gra-mi refiner-prompt`."""
+    lora_rank: int = 32
+    """LoRA rank on the main DiT blocks."""
+    env_blocks: list[int] | None = None
+    """Main blocks followed by atemporal envmap cross-attention: 'all', 'none' or a comma list; default: all."""
+    env_heads: int = 2
+    env_mlp_hidden: int = 64
+    window: int = 17
+    """Pixel frames per window (4k + 1)."""
+    handoff: int = 5
+    """Frames a window hands to the next as inactive seeds."""
+    seed: int = 0
+    """Random seed of the new weights."""
+    prompt_length: int = 8
+    dtype: str = "float32"
+    """Transformer dtype (float32 or bfloat16; the VAE stays float32)."""
+    extra: dict = field(default_factory=dict)
+
+    def validate(self, source: str = "refiner config") -> None:
+        if self.size not in TRANSFORMER_CONFIGS:
+            raise GraMiInputError(source, f"size '{self.size}' is not one of {sorted(TRANSFORMER_CONFIGS)}")
+        if self.window < 5 or (self.window - 1) % TEMPORAL_FACTOR:
+            raise GraMiInputError(source, f"window must be 4k + 1 frames (e.g. 17), got {self.window}")
+        if not 0 < self.handoff < self.window:
+            raise GraMiInputError(source, f"handoff must be between 1 and window - 1, got {self.handoff}")
+        layers = TRANSFORMER_CONFIGS[self.size]["num_layers"]
+        if self.env_blocks is not None and any(not 0 <= b < layers for b in self.env_blocks):
+            raise GraMiInputError(source, f"env_blocks {self.env_blocks} must be block indices in [0, {layers})")
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Atemporal envmap cross-attention
+# --------------------------------------------------------------------------------------------------------------
+
+
+class AtemporalCrossAttention(nn.Module):
+    """Each latent frame's video tokens attend to the tokens of that frame's envmap latent only (paper Sec. 3.3)."""
+
+    def __init__(self, dim: int, heads: int):
+        super().__init__()
+        if dim % heads:
+            raise ValueError(f"env attention: dim {dim} is not divisible by {heads} heads")
+        self.heads = heads
+        self.norm = nn.LayerNorm(dim, elementwise_affine=True, eps=1e-6)
+        self.to_q, self.to_k, self.to_v = nn.Linear(dim, dim), nn.Linear(dim, dim), nn.Linear(dim, dim)
+        self.to_out = nn.Linear(dim, dim)
+        nn.init.zeros_(self.to_out.weight)  # the stock model at init
+        nn.init.zeros_(self.to_out.bias)
+
+    def forward(self, tokens: torch.Tensor, env: torch.Tensor) -> torch.Tensor:
+        """tokens (B, F·N, D) frame-major; env (B, F, M, D) → the residual to add, (B, F·N, D)."""
+        b, fn, d = tokens.shape
+        frames = env.shape[1]
+        if fn % frames:
+            raise ValueError(f"env attention: {fn} tokens do not split into {frames} latent frames")
+        h = self.heads
+        # Computed in this layer's own dtype (float32 while it trains), whatever the DiT's (bfloat16 for real sizes).
+        dtype = self.to_q.weight.dtype
+        x = self.norm(tokens.to(dtype)).view(b * frames, fn // frames, d)
+        e = env.reshape(b * frames, env.shape[2], d).to(dtype)
+        q = self.to_q(x).unflatten(-1, (h, d // h)).transpose(1, 2)
+        k = self.to_k(e).unflatten(-1, (h, d // h)).transpose(1, 2)
+        v = self.to_v(e).unflatten(-1, (h, d // h)).transpose(1, 2)
+        out = F.scaled_dot_product_attention(q, k, v).transpose(1, 2).flatten(2)
+        return self.to_out(out).view(b, fn, d).to(tokens.dtype)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# The refiner
+# --------------------------------------------------------------------------------------------------------------
+
+
+def _dtype(name: str) -> torch.dtype:
+    return {"float32": torch.float32, "bfloat16": torch.bfloat16, "float16": torch.float16}[name]
+
+
+@contextmanager
+def default_dtype(dtype: torch.dtype):
+    """Build modules in ``dtype`` (the real sizes in bfloat16: the 14B takes 28 GB of memory to build, not 56)."""
+    torch.set_default_dtype(dtype)
+    try:
+        yield
+    finally:
+        torch.set_default_dtype(torch.float32)
+
+
+def cast_transformer(transformer, dtype: torch.dtype):
+    """Cast to ``dtype`` as ``from_pretrained(torch_dtype=…)`` does: diffusers' fp32-sensitive parameters (norms, time
+    embedding, RoPE, ``scale_shift_table``) stay float32, so every way of loading gives the same numerics."""
+    keep = transformer._keep_in_fp32_modules or []
+    for name, param in transformer.named_parameters():
+        param.data = param.data.to(torch.float32 if any(k in name.split(".") for k in keep) else dtype)
+    return transformer
+
+
+def _build_backbone(config: RefinerConfig):
+    from diffusers import AutoencoderKLWan, WanVACETransformer3DModel
+
+    if config.size == "tiny":
+        torch.manual_seed(config.seed)
+        transformer = WanVACETransformer3DModel(**TRANSFORMER_CONFIGS["tiny"])  # random: a stand-in for pretrained weights
+        vae = AutoencoderKLWan(**VAE_CONFIGS["tiny"])
+        if not TINY_VAE_WEIGHTS.is_file():
+            raise GraMiInputError(
+                TINY_VAE_WEIGHTS, "missing: the pretrained tiny VAE ships with gra-mi (make it with pipelines/pretrain_tiny_vae.py)"
+            )
+        from safetensors.torch import load_file
+
+        vae.load_state_dict(load_file(str(TINY_VAE_WEIGHTS)))  # a random VAE would decode noise: this one reconstructs
+        return transformer, vae
+    if not config.weights:
+        raise GraMiInputError(
+            "--weights",
+            f"the {config.size} refiner needs WAN2.1-VACE-{config.size} weights on disk (a local diffusers folder, or an "
+            "original-format checkpoint); nothing is downloaded. Use size 'tiny' to run without weights.",
+        )
+    path = Path(config.weights)
+    if not path.exists():
+        raise GraMiInputError(path, f"WAN2.1-VACE-{config.size} weights not found (expected a diffusers folder or a checkpoint file)")
+    dtype = _dtype(config.dtype)
+    if path.is_dir():
+        for sub in ("transformer", "vae"):
+            if not (path / sub / "config.json").is_file():
+                raise GraMiInputError(
+                    path / sub / "config.json", "missing: a diffusers WAN2.1-VACE folder has transformer/ and vae/ with config.json"
+                )
+        # from_pretrained with torch_dtype keeps diffusers' fp32-sensitive modules in fp32; the VAE stays fp32 (hand-off colour).
+        transformer = WanVACETransformer3DModel.from_pretrained(path / "transformer", torch_dtype=dtype, local_files_only=True)
+        _check_size(transformer, config.size, path / "transformer" / "config.json")
+        vae = AutoencoderKLWan.from_pretrained(path / "vae", torch_dtype=torch.float32, local_files_only=True)
+        return transformer, vae
+    from diffusers.loaders.single_file_utils import convert_wan_transformer_to_diffusers, convert_wan_vae_to_diffusers
+
+    if not config.vae_weights or not Path(config.vae_weights).is_file():
+        raise GraMiInputError(
+            "--vae-weights", "an original-format transformer checkpoint needs the Wan2.1 VAE checkpoint file (Wan2.1_VAE.pth)"
+        )
+    state = convert_wan_transformer_to_diffusers(_read_checkpoint(path))
+    with default_dtype(dtype):
+        transformer = WanVACETransformer3DModel(**TRANSFORMER_CONFIGS[config.size])
+    try:
+        missing, unexpected = transformer.load_state_dict(state, strict=False)
+    except RuntimeError as error:  # shapes of another size
+        raise GraMiInputError(
+            path, f"not a WAN2.1-VACE-{config.size} transformer checkpoint: {str(error).splitlines()[-1].strip()}"
+        ) from None
+    if missing:
+        raise GraMiInputError(
+            path, f"not a WAN2.1-VACE-{config.size} transformer checkpoint: {len(missing)} weights missing, e.g. {missing[:3]}"
+        )
+    if unexpected:
+        logger.warning("%s: %d unexpected weights ignored", path, len(unexpected))
+    cast_transformer(transformer, dtype)
+    for name, param in transformer.named_parameters():  # the float32-kept modules: their checkpoint values, unrounded
+        if param.dtype == torch.float32 and name in state:
+            param.data = state[name].to(torch.float32)
+    vae = AutoencoderKLWan()
+    try:
+        vae.load_state_dict(convert_wan_vae_to_diffusers(_read_checkpoint(Path(config.vae_weights))))
+    except RuntimeError as error:
+        raise GraMiInputError(config.vae_weights, f"not the Wan2.1 VAE checkpoint: {str(error).splitlines()[0].strip()}") from None
+    return transformer, vae
+
+
+def _check_size(transformer, size: str, source: Path) -> None:
+    """Weights of another size would load and run (shapes follow the folder's config): say so instead."""
+    expected = TRANSFORMER_CONFIGS[size]
+    for key in ("num_layers", "num_attention_heads", "attention_head_dim", "vace_layers"):
+        got = transformer.config[key]
+        if list(np.atleast_1d(got)) != list(np.atleast_1d(expected[key])):
+            raise GraMiInputError(source, f"field '{key}' is {got}: not WAN2.1-VACE-{size} (expected {expected[key]}); check --size")
+
+
+def _read_checkpoint(path: Path) -> dict:
+    if path.suffix == ".safetensors":
+        from safetensors.torch import load_file
+
+        return load_file(str(path))
+    return torch.load(path, map_location="cpu", weights_only=True)
+
+
+class VideoRefiner(nn.Module):
+    """WAN2.1-VACE + LoRA + atemporal envmap attention, with the VAE and the cached prompt embedding."""
+
+    def __init__(self, config: RefinerConfig, backbone=None, lora: bool = True):
+        super().__init__()
+        config.validate()
+        self.config = config
+        self.transformer, self.vae = backbone if backbone is not None else _build_backbone(config)
+        self.vae.requires_grad_(False).eval()
+        self.transformer.requires_grad_(False)
+        tcfg = self.transformer.config
+        dim = tcfg.num_attention_heads * tcfg.attention_head_dim
+        self.dim = dim
+        torch.manual_seed(config.seed + 1)
+        z_dim = self.vae.config.z_dim
+        self.env_mlp = nn.Sequential(nn.Linear(z_dim, config.env_mlp_hidden), nn.GELU(), nn.Linear(config.env_mlp_hidden, dim))
+        blocks = range(tcfg.num_layers) if config.env_blocks is None else config.env_blocks
+        self.env_attention = nn.ModuleDict({str(i): AtemporalCrossAttention(dim, config.env_heads) for i in blocks})
+        self._env_tokens: torch.Tensor | None = None
+        self._inference_only = False  # set by prepare_for_inference
+        for i in blocks:
+            self.transformer.blocks[i].register_forward_hook(self._env_hook(str(i)))
+        self.register_buffer("prompt_embeds", self._prompt_embeds(), persistent=True)
+        if lora and config.lora_rank > 0:
+            from peft import LoraConfig
+
+            self.transformer.add_adapter(
+                LoraConfig(r=config.lora_rank, lora_alpha=config.lora_rank, target_modules=LORA_TARGETS, init_lora_weights=True)
+            )
+        for name, p in self.transformer.named_parameters():
+            p.requires_grad_("lora_" in name or name.startswith(("vace_blocks.", "vace_patch_embedding.")))
+        latents_mean = torch.tensor(self.vae.config.latents_mean, dtype=torch.float32).view(1, z_dim, 1, 1, 1)
+        latents_std = torch.tensor(self.vae.config.latents_std, dtype=torch.float32).view(1, z_dim, 1, 1, 1)
+        self.register_buffer("latents_mean", latents_mean, persistent=False)
+        self.register_buffer("latents_std", latents_std, persistent=False)
+
+    def _prompt_embeds(self) -> torch.Tensor:
+        text_dim = self.transformer.config.text_dim
+        if self.config.size == "tiny":  # a fixed embedding stands in for the umT5 encoding of the prompt
+            g = torch.Generator().manual_seed(self.config.seed + 2)
+            return torch.randn(1, self.config.prompt_length, text_dim, generator=g)
+        if not self.config.prompt_embeds or not Path(self.config.prompt_embeds).is_file():
+            raise GraMiInputError(
+                "--prompt-embeds",
+                "real sizes need the cached umT5 prompt embedding (.safetensors with 'prompt_embeds'); make it once with "
+                "`gra-mi refiner-prompt --pipeline LOCAL_WAN_FOLDER --out prompt.safetensors`",
+            )
+        from safetensors.torch import load_file
+
+        embeds = load_file(self.config.prompt_embeds).get("prompt_embeds")
+        if embeds is None or embeds.ndim != 3 or embeds.shape[-1] != text_dim:
+            raise GraMiInputError(self.config.prompt_embeds, f"expected a 'prompt_embeds' tensor of shape (1, L, {text_dim})")
+        return embeds.float()
+
+    def _env_hook(self, key: str):
+        def hook(module, args, output):
+            if self._env_tokens is None:
+                return output
+            return output + self.env_attention[key](output, self._env_tokens)
+
+        return hook
+
+    def trainable_parameters(self) -> list[nn.Parameter]:
+        return [p for p in self.parameters() if p.requires_grad]
+
+    def trainable_state(self) -> dict[str, torch.Tensor]:
+        names = {n for n, p in self.named_parameters() if p.requires_grad}
+        return {n: t.detach().cpu().contiguous() for n, t in self.state_dict().items() if n in names}
+
+    # -- VAE ----------------------------------------------------------------------------------------------------
+
+    @property
+    def device(self) -> torch.device:
+        return self.latents_mean.device
+
+    def encode(self, video: torch.Tensor) -> torch.Tensor:
+        """(B, 3, T, H, W) in [-1, 1] → normalised latents (B, 16, 1 + (T − 1)/4, H/8, W/8) (argmax, as diffusers)."""
+        with torch.no_grad():
+            mu = self.vae.encode(video.to(self.device, torch.float32)).latent_dist.mode()
+        return (mu.float() - self.latents_mean) / self.latents_std
+
+    def decode(self, latents: torch.Tensor) -> torch.Tensor:
+        with torch.no_grad():
+            video = self.vae.decode(latents.float() * self.latents_std + self.latents_mean).sample
+        return video.clamp(-1, 1)
+
+    def control(self, video: torch.Tensor, mask: torch.Tensor, reference: torch.Tensor | None) -> torch.Tensor:
+        """VACE context (B, 96, F', h, w) exactly as ``WanVACEPipeline``: [inactive latents, reactive latents, 8×8 mask].
+
+        video (B, 3, T, H, W) in [-1, 1]; mask (B, 1, T, H, W), 1 = reactive (refine), 0 = inactive (keep);
+        reference (B, 3, H, W) or None: one extra leading frame (its latent, zeros, a zero mask).
+        """
+        mask = (mask > 0.5).to(video.dtype)
+        latents = torch.cat([self.encode(video * (1 - mask)), self.encode(video * mask)], dim=1)
+        masks = self.latent_mask(mask)
+        if reference is not None:
+            ref = self.encode(reference[:, :, None])
+            latents = torch.cat([torch.cat([ref, torch.zeros_like(ref)], dim=1), latents], dim=2)
+            masks = torch.cat([torch.zeros_like(masks[:, :, :1]), masks], dim=2)
+        return torch.cat([latents, masks], dim=1)
+
+    def latent_mask(self, mask: torch.Tensor) -> torch.Tensor:
+        """(B, 1, T, H, W) → (B, 64, F', H/8, W/8): space-to-depth 8×8, nearest-exact in time (diffusers' prepare_masks)."""
+        b, _, t, h, w = mask.shape
+        s, p = SPATIAL_FACTOR, self.transformer.config.patch_size[1]
+        nh, nw = h // (s * p) * p, w // (s * p) * p
+        m = mask[:, 0].reshape(b, t, nh, s, nw, s).permute(0, 3, 5, 1, 2, 4).flatten(1, 2)
+        frames = (t + TEMPORAL_FACTOR - 1) // TEMPORAL_FACTOR
+        return F.interpolate(m, size=(frames, nh, nw), mode="nearest-exact")
+
+    def env_latents(self, envmaps: torch.Tensor, reference_env: torch.Tensor | None) -> torch.Tensor:
+        """Camera-space envmaps (B, 3, T, h, w) in [-1, 1] (+ the reference's (B, 3, h, w), a leading frame) → VAE latents."""
+        latents = self.encode(envmaps)
+        if reference_env is not None:
+            latents = torch.cat([self.encode(reference_env[:, :, None]), latents], dim=2)
+        return latents
+
+    def env_tokens(self, env_latents: torch.Tensor) -> torch.Tensor:
+        """(B, 16, F', h, w) envmap latents → (B, F', h·w, D): one token per latent pixel, through the shared MLP.
+
+        Kept apart from :meth:`env_latents` because the MLP trains while the (frozen) VAE encoding can be cached.
+        """
+        return self.env_mlp(env_latents.permute(0, 2, 3, 4, 1).flatten(2, 3).to(self.env_mlp[0].weight.dtype))
+
+    # -- the network ------------------------------------------------------------------------------------------
+
+    def prepare_for_inference(self, fuse_lora: bool = True) -> VideoRefiner:
+        """Fold the LoRA into the DiT's weights and run the envmap layers in the DiT's dtype: 1.40× faster per step for
+        the bfloat16 1.3B on an H100, and no further from the same weights run in float32 than bfloat16 itself is (1.52 %
+        relative L2 of the velocity either way; benchmarks/refiner.py). For sampling only: the model cannot be trained or
+        saved afterwards."""
+        self.eval()
+        if fuse_lora and self.config.lora_rank > 0:
+            self.transformer.fuse_lora()
+        dtype = _dtype(self.config.dtype)
+        self.env_attention.to(dtype)
+        self.env_mlp.to(dtype)
+        self._inference_only = True
+        return self
+
+    def forward(self, latents: torch.Tensor, sigma: torch.Tensor, control: torch.Tensor, env: torch.Tensor | None) -> torch.Tensor:
+        """Wan-convention velocity v = ε − x₀ for noisy latents (B, 16, F', h, w) at noise level σ (B,)."""
+        if env is not None and env.shape[1] != latents.shape[2]:
+            raise ValueError(f"{env.shape[1]} envmap latent frames for {latents.shape[2]} video latent frames")
+        dtype = self.transformer.dtype
+        self._env_tokens = env
+        try:
+            out = self.transformer(
+                hidden_states=latents.to(dtype),
+                timestep=(sigma * 1000).to(latents.device),
+                encoder_hidden_states=self.prompt_embeds.expand(latents.shape[0], -1, -1).to(dtype),
+                control_hidden_states=control.to(dtype),
+                return_dict=False,
+            )[0]
+        finally:
+            self._env_tokens = None
+        return out.float()
+
+    # -- files ------------------------------------------------------------------------------------------------
+
+    def save(self, folder: str | Path) -> None:
+        """``refiner.json`` + ``refiner.safetensors`` (trainable weights; a tiny model also stores its base weights)."""
+        from safetensors.torch import save_file
+
+        from gra_mi.core.io import atomic_path, atomic_write_text
+
+        if self._inference_only:
+            raise RuntimeError("this refiner was prepared for inference (LoRA folded into the DiT): save it before that")
+        folder = Path(folder)
+        state = self.trainable_state()
+        if self.config.size == "tiny":
+            state = {n: t.detach().cpu().contiguous() for n, t in self.state_dict().items()}
+        with atomic_path(folder / "refiner.safetensors") as tmp:
+            save_file(state, str(tmp))
+        atomic_write_text(folder / "refiner.json", json.dumps({"format": "gra-mi-refiner/1", **asdict(self.config)}, indent=1) + "\n")
+
+    @classmethod
+    def load(cls, folder: str | Path, **overrides) -> VideoRefiner:
+        from safetensors.torch import load_file
+
+        from gra_mi.core.io import read_json
+
+        folder = Path(folder)
+        data = read_json(folder / "refiner.json", " (a refiner trained with `gra-mi train-refiner`)")
+        if data.pop("format", None) != "gra-mi-refiner/1":
+            raise GraMiInputError(folder / "refiner.json", "field 'format': expected 'gra-mi-refiner/1'")
+        known = RefinerConfig.__dataclass_fields__
+        config = RefinerConfig(**{k: v for k, v in {**data, **overrides}.items() if k in known})
+        model = cls(config)
+        weights = folder / "refiner.safetensors"
+        if not weights.is_file():
+            raise GraMiInputError(weights, "file not found")
+        missing, unexpected = model.load_state_dict(load_file(str(weights)), strict=False)
+        trainable = {n for n, p in model.named_parameters() if p.requires_grad}
+        if unexpected or (trainable & set(missing)):
+            raise GraMiInputError(
+                weights, f"does not match the refiner config: missing {sorted(trainable & set(missing))[:3]}, unexpected {unexpected[:3]}"
+            )
+        return model
+
+
+def seed_mask(frames: int, height: int, width: int, seeded: int) -> torch.Tensor:
+    """(1, 1, T, H, W): 1 = reactive (refine), 0 = inactive (the first ``seeded`` frames are kept)."""
+    mask = torch.ones(1, 1, frames, height, width)
+    mask[:, :, :seeded] = 0
+    return mask
+
+
+def conditioning(
+    model: VideoRefiner, coarse: torch.Tensor, mask: torch.Tensor, reference: torch.Tensor, env: torch.Tensor, reference_env: torch.Tensor
+):
+    """(control, env latents before the MLP) for one window; batch of 1. Videos (3, T, H, W) in [-1, 1]."""
+    control = model.control(coarse[None], mask, reference[None])
+    return control, model.env_latents(env[None], reference_env[None])
+
+
+def parameter_counts(model: VideoRefiner) -> dict[str, int]:
+    count = lambda ps: int(sum(p.numel() for p in ps))  # noqa: E731
+    named = list(model.named_parameters())
+    return {
+        "total": count(p for _, p in named),
+        "trainable": count(p for _, p in named if p.requires_grad),
+        "lora": count(p for n, p in named if "lora_" in n),
+        "vace": count(p for n, p in named if ".vace_" in f".{n}"),
+        "env_attention": count(p for n, p in named if n.startswith(("env_attention.", "env_mlp."))),
+    }
+
+
+def latent_frames(pixel_frames: int) -> int:
+    return (pixel_frames - 1) // TEMPORAL_FACTOR + 1
+
+
+def pad_to_multiple(h: int, w: int, m: int = 16) -> tuple[int, int]:
+    return int(math.ceil(h / m) * m), int(math.ceil(w / m) * m)
+
+
+def cache_prompt_embedding(pipeline_folder: str | Path, prompt: str, out: str | Path) -> Path:
+    """Encode ``prompt`` once with the umT5 text encoder of a local WAN2.1 diffusers folder (no download)."""
+    from safetensors.torch import save_file
+
+    from gra_mi.core.io import atomic_path
+
+    folder = Path(pipeline_folder)
+    for sub in ("tokenizer", "text_encoder"):
+        if not (folder / sub).is_dir():
+            raise GraMiInputError(folder / sub, "missing: a diffusers WAN2.1 folder has tokenizer/ and text_encoder/")
+    from transformers import AutoTokenizer, UMT5EncoderModel
+
+    tokenizer = AutoTokenizer.from_pretrained(folder / "tokenizer", local_files_only=True)
+    encoder = UMT5EncoderModel.from_pretrained(folder / "text_encoder", local_files_only=True).eval()
+    tokens = tokenizer([prompt], padding="max_length", max_length=512, truncation=True, return_tensors="pt")
+    with torch.no_grad():
+        hidden = encoder(tokens.input_ids, tokens.attention_mask).last_hidden_state
+    length = int(tokens.attention_mask.sum())
+    embeds = torch.zeros_like(hidden)
+    embeds[:, :length] = hidden[:, :length]  # as WanPipeline: the prompt's tokens, zeros after
+    with atomic_path(out) as tmp:
+        save_file({"prompt_embeds": embeds.contiguous()}, str(tmp))
+    return Path(out)

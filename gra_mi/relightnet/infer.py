@@ -1,0 +1,55 @@
+"""RelightNet at inference: the inputs of one view (paper Sec. 3.2: coarse texture, normals of frames t, t−1, t−2,
+view direction, camera-space envmap) and the texture RelightNet makes of them. Training
+(:mod:`gra_mi.relightnet.train`), batch relighting and the refiner's data all get a view's RelightNet render here.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from gra_mi.relightnet.model import RelightNet
+from gra_mi.render.bridge import NUM_NORMAL_FRAMES, to_torch, uv_features
+from gra_mi.render.relighter import Relighter, ViewRender
+
+
+def view_inputs(relighter, frame: int, camera: str, intensities: np.ndarray, env_height: int, device: str = "cpu", point_light=None):
+    """RelightNet's inputs for one view: (features, mask, camera-space env, shading)."""
+    from gra_mi.render.atlas import TexelGeometry
+    from gra_mi.render.point_light import conditioning_pattern
+    from gra_mi.stage.envmap import leds_to_envmap, to_camera_space
+
+    stage = relighter.ls.stage
+    shading, geom = relighter.shade(frame, camera, intensities, point_light)
+    seq = relighter.ls.sequence
+    normals = [np.array(geom.normal).T]  # frame t: already interpolated for the shading
+    normals += [
+        np.array(TexelGeometry.from_frame(relighter.atlas, seq.vertices[max(frame - k, 0)], seq.normals[max(frame - k, 0)]).normal).T
+        for k in range(1, NUM_NORMAL_FRAMES)
+    ]
+    features, mask = uv_features(relighter.atlas, shading.radiance, normals, shading.view_dir, device)
+    lights = intensities
+    if point_light is not None:  # the paper's conditioning stands for the point light in the envmap
+        lights = intensities + conditioning_pattern(stage, relighter.ls.scene, point_light) * stage.led_distances()[:, None] ** 2
+    env = to_camera_space(leds_to_envmap(stage, lights, env_height), stage.camera(camera), supersample=1)
+    return features, mask, to_torch(env, device).permute(2, 0, 1)[None].contiguous(), shading
+
+
+def relightnet_texture(model: RelightNet, relighter, frame: int, camera: str, intensities: np.ndarray, point_light=None):
+    """Inference: RelightNet's UV texture (R, R, 3) for one view, and the one-bounce shading it started from."""
+    device = next(model.parameters()).device
+    features, mask, env, shading = view_inputs(relighter, frame, camera, intensities, model.config.env_height, str(device), point_light)
+    with torch.no_grad():
+        texture = model(features, env, mask)
+    return texture[0].permute(1, 2, 0).cpu().numpy(), shading
+
+
+def render_view(
+    relighter: Relighter, model: RelightNet | None, frame: int, camera: str, intensities: np.ndarray, point_light=None
+) -> ViewRender:
+    """One view at one stage: the one-bounce render (``model`` None) or RelightNet's texture of it, seen by the camera."""
+    if model is None:
+        return relighter.render(frame, camera, intensities, point_light)
+    texture, shading = relightnet_texture(model, relighter, frame, camera, intensities, point_light)
+    shading.radiance = relighter.atlas.gather(texture)
+    return ViewRender(relighter.rasterize(frame, camera, texture), shading, relighter.geometry(frame))

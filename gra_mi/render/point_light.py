@@ -1,0 +1,143 @@
+"""A near-field point light inside the stage (paper "Near-field relighting", Supp. "Details of Near-field Relighting").
+
+The light is a small sphere (``radius``) of radiant intensity ``intensity`` (W/sr, RGB) at ``position``. Texels see
+it with inverse-square falloff from its centre and a *fraction* of its sphere visible (soft shadows: the body,
+e.g. an arm, occludes it). Its envmap conditioning follows the paper: a ray from the stage centre toward each LED;
+the LED is lit if its ray meets the light's sphere (of ``conditioning_radius``) and subsequently not the subject,
+with an intensity corrected by the squared distance between the point light and that LED.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from gra_mi.core.errors import GraMiParameterError
+from gra_mi.render import brdf
+from gra_mi.render.atlas import TexelGeometry
+from gra_mi.render.visibility import RAY_EPSILON
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class PointLight:
+    position: np.ndarray  # (3,) metres, world
+    intensity: np.ndarray  # (3,) W/sr
+    radius: float = 0.03  # physical size: soft shadow edges
+    conditioning_radius: float = 0.25  # sphere the stage-centre rays must meet for the envmap conditioning
+
+    def __post_init__(self):
+        self.position = np.asarray(self.position, np.float64).reshape(3)
+        self.intensity = np.broadcast_to(np.asarray(self.intensity, np.float64), (3,)).copy()
+        if not np.all(np.isfinite(self.position)) or not np.all(np.isfinite(self.intensity)) or np.any(self.intensity < 0):
+            raise GraMiParameterError("point_light", "position and intensity must be finite, intensity non-negative")
+        if self.radius < 0 or self.conditioning_radius <= 0:
+            raise GraMiParameterError("point_light_radius", "radii must be positive")
+
+
+def parse_point_light(text: str, intensity: float, radius: float) -> PointLight:
+    try:
+        xyz = [float(v) for v in text.split(",")]
+    except ValueError:
+        xyz = []
+    if len(xyz) != 3:
+        raise GraMiParameterError("point_light", f"expected X,Y,Z in metres, got '{text}'")
+    return PointLight(np.array(xyz), np.full(3, intensity), radius)
+
+
+def light_samples(light: PointLight, count: int) -> np.ndarray:
+    """Points spread evenly over the light's sphere (the centre alone for a zero radius)."""
+    if light.radius == 0 or count <= 1:
+        return light.position[None]
+    i = np.arange(count) + 0.5
+    y = 1 - 2 * i / count
+    r = np.sqrt(1 - y * y)
+    phi = i * math.pi * (3 - math.sqrt(5))
+    return light.position + light.radius * np.stack([r * np.cos(phi), y, r * np.sin(phi)], axis=1)
+
+
+def point_light_visibility(scene: mi.Scene, geom: TexelGeometry, light: PointLight, samples: int = 16) -> mi.Float:
+    """Fraction of the light's sphere each texel sees, above its horizon and unoccluded by the subject."""
+    m = dr.width(geom.position)
+    points = light_samples(light, samples)
+    seen = dr.zeros(mi.Float, m)
+    usable = dr.zeros(mi.Float, m)
+    for q in points:
+        target = mi.Point3f(*(float(x) for x in q))
+        offset = target - geom.position
+        dist = dr.norm(offset)
+        d = offset / dist
+        above = (dr.dot(geom.normal, d) > 0) & (dr.dot(geom.geo_normal, d) > 0)
+        # Sample points on the far side of the light's sphere are hidden by the light itself.
+        front = dr.dot(d, mi.Vector3f(*(float(x) for x in (q - light.position)))) <= 0 if light.radius > 0 else mi.Bool(True)
+        ray = mi.Ray3f(geom.position + geom.geo_normal * RAY_EPSILON, d, dist * (1 - RAY_EPSILON) - RAY_EPSILON)
+        blocked = scene.ray_test(ray, active=above & front)
+        usable += dr.select(front, 1.0, 0.0)
+        seen += dr.select(above & front & ~blocked, 1.0, 0.0)
+    fraction = dr.select(usable > 0, seen / dr.maximum(usable, 1.0), 0.0)
+    dr.eval(fraction)
+    return fraction
+
+
+def shade_point_light(
+    geom: TexelGeometry, fraction: mi.Float, light: PointLight, roughness: np.ndarray, camera_position: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(diffuse per unit albedo, specular) of every texel lit by the point light: I/d² · f cos · visible fraction."""
+    frame = mi.Frame3f(geom.normal)
+    view = dr.normalize(mi.Point3f(*(float(x) for x in camera_position)) - geom.position)
+    material = brdf.PreparedBRDF(mi.Color3f(1.0), mi.Float(np.asarray(roughness, np.float32)), frame.to_local(view))
+    offset = mi.Point3f(*(float(x) for x in light.position)) - geom.position
+    inv_d2 = dr.rcp(dr.maximum(dr.squared_norm(offset), 1e-8))
+    wo = frame.to_local(offset * dr.sqrt(inv_d2))
+    d_part, s_part = material.eval_parts(wo)
+    weight = mi.Color3f(*(float(x) for x in light.intensity)) * inv_d2 * fraction
+    diffuse, spec = d_part * weight, s_part * weight
+    dr.eval(diffuse, spec)
+    m = dr.width(geom.position)
+    return np.array(diffuse).T.reshape(m, 3), np.array(spec).T.reshape(m, 3)
+
+
+def conditioning_pattern(stage, scene: mi.Scene, light: PointLight) -> np.ndarray:
+    """LED intensities (L, 3) standing for the point light in the envmap conditioning (the paper's recipe).
+
+    An LED is lit when the ray from the stage centre toward it meets the light's sphere of ``conditioning_radius``
+    and, after the light, not the subject; its value is I / |LED − light|². If no ray meets the sphere, the LED nearest to the light's
+    direction stands for it (subject to the same occlusion test).
+    """
+    c = stage.center
+    d = stage.led_directions()
+    oc = c - light.position
+    b = d @ oc
+    disc = b * b - (oc @ oc - light.conditioning_radius**2)
+    t_hit = np.where(disc >= 0, -b - np.sqrt(np.maximum(disc, 0)), np.inf)
+    hits = np.isfinite(t_hit) & (t_hit > 0)
+    if not hits.any():  # the sphere falls between LED directions: its nearest LED stands for it
+        to_light = light.position - c
+        distance = max(float(np.linalg.norm(to_light)), 1e-9)
+        nearest = int(np.argmax(d @ (to_light / distance)))
+        hits[nearest], t_hit[nearest] = True, distance
+    idx = np.flatnonzero(hits)
+    # "If a ray intersects the light and subsequently does not intersect the subject": the stretch from the light
+    # onward to the LED must be free (the stage centre itself lies inside the subject).
+    start = c + t_hit[idx, None] * d[idx]
+    remaining = np.linalg.norm(stage.led_positions[idx] - start, axis=1)
+    ray = mi.Ray3f(
+        mi.Point3f(*start.T.astype(np.float32)), mi.Vector3f(*d[idx].T.astype(np.float32)), mi.Float(remaining.astype(np.float32))
+    )
+    hits[idx] = ~np.array(scene.ray_test(ray))
+    dist2 = np.sum((stage.led_positions - light.position) ** 2, axis=1)
+    return np.where(hits[:, None], light.intensity[None] / dist2[:, None], 0.0)
+
+
+def conditioning_envmap(stage, pattern: np.ndarray, height: int = 64) -> np.ndarray:
+    """The conditioning as a lat-long envmap: every pixel takes its LED cell's value (``pattern`` is irradiance-like,
+    I/d², so it is spread over the cell's solid angle directly)."""
+    from gra_mi.stage.envmap import leds_to_envmap
+
+    return leds_to_envmap(stage, pattern * stage.led_distances()[:, None] ** 2, height)

@@ -1,0 +1,154 @@
+"""Coarse relighting: frames × cameras × lighting → one-bounce renders through UV space (paper Sec. 3.1).
+
+A :class:`Relighter` holds what never changes (the UV atlas, the material textures) and caches what changes only
+with geometry (texel positions and visibility per frame). Rendering a view is then: LED intensities from the
+lighting → :func:`gra_mi.uvspace.shade_texels` → :func:`gra_mi.uvspace.rasterize_to_camera`.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from gra_mi.core.errors import GraMiInputError, GraMiParameterError
+from gra_mi.core.io import read_exr
+from gra_mi.render.atlas import TexelGeometry, UVAtlas
+from gra_mi.render.point_light import PointLight, point_light_visibility, shade_point_light
+from gra_mi.render.rasterize import rasterize_to_camera
+from gra_mi.render.shading import TexelShading, shade_texels
+from gra_mi.render.visibility import VisibilityCache
+from gra_mi.stage.scene import LightstageScene
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_ROUGHNESS = 0.5
+
+
+def load_texture(path: str | Path, channels: int, name: str) -> np.ndarray:
+    """A square UV texture from EXR with the given channel count (RGB albedo, single-channel roughness)."""
+    image = read_exr(path)
+    if image.shape[0] != image.shape[1]:
+        raise GraMiInputError(path, f"a UV texture must be square, got {image.shape[1]}x{image.shape[0]}", field=name)
+    if channels == 1:
+        image = image[..., :1] if image.shape[2] in (1, 3, 4) else image
+    else:
+        if image.shape[2] == 1:
+            image = np.repeat(image, 3, axis=2)
+        image = image[..., :3]
+    if not np.isfinite(image).all() or image.min() < 0 or image.max() > 1:
+        raise GraMiInputError(path, "values must be finite and in [0, 1]", field=name)
+    return image.astype(np.float32)
+
+
+@dataclass
+class ViewRender:
+    image: np.ndarray  # (H, W, 4) linear RGB + alpha
+    shading: TexelShading  # per valid texel: radiance, view direction, facing mask
+    geometry: TexelGeometry
+
+
+class Relighter:
+    def __init__(
+        self,
+        ls: LightstageScene,
+        resolution: int = 512,
+        albedo: np.ndarray | None = None,
+        roughness: np.ndarray | None = None,
+        far_field: bool = False,
+        cache_dir: str | Path | None = None,
+    ):
+        self.ls = ls
+        if albedo is not None:
+            resolution = albedo.shape[0]
+        self.atlas = UVAtlas.build(ls.sequence.faces, ls.sequence.uvs, resolution)
+        if albedo is None:
+            colors = (
+                ls.sequence.vertex_colors
+                if ls.sequence.vertex_colors is not None
+                else np.full((ls.sequence.num_vertices, 3), 0.5, np.float32)
+            )
+            albedo = self.atlas.bake_vertex_attribute(colors, fill=0.5)
+        if roughness is None:
+            roughness = np.full((resolution, resolution, 1), DEFAULT_ROUGHNESS, np.float32)
+        if roughness.shape[:2] != albedo.shape[:2]:
+            raise GraMiParameterError("roughness", f"roughness {roughness.shape[:2]} and albedo {albedo.shape[:2]} resolutions differ")
+        self.albedo_tex, self.roughness_tex = albedo, roughness
+        self.albedo = self.atlas.gather(albedo)
+        self.roughness = self.atlas.gather(roughness)[:, 0]
+        self.far_field = far_field
+        self.cache = VisibilityCache(cache_dir)
+        self._geometry: dict[int, TexelGeometry] = {}
+        self._point_light_vis: dict[tuple, object] = {}
+
+    @property
+    def led_positions(self) -> np.ndarray:
+        return self.ls.stage.led_positions
+
+    def geometry(self, frame: int) -> TexelGeometry:
+        if frame not in self._geometry:
+            seq = self.ls.sequence
+            self._geometry = {frame: TexelGeometry.from_frame(self.atlas, seq.vertices[frame], seq.normals[frame])}
+        return self._geometry[frame]
+
+    def visibility(self, frame: int):
+        self.ls.set_frame(frame)  # the scene's mesh must be this frame's to trace against
+        return self.cache.get(self.ls.scene, self.geometry(frame), self.led_positions, self.far_field, self.ls.stage.center)
+
+    def render(self, frame: int, camera: int | str, led_intensities: np.ndarray, point_light: PointLight | None = None) -> ViewRender:
+        """One-bounce render of ``camera`` at ``frame``: LEDs of radiant intensity (L, 3), plus an optional
+        near-field point light."""
+        shading, geom = self.shade(frame, camera, led_intensities, point_light)
+        return ViewRender(self.rasterize(frame, camera, self.atlas.scatter(shading.radiance)), shading, geom)
+
+    def rasterize(self, frame: int, camera: int | str, texture: np.ndarray) -> np.ndarray:
+        """A UV texture (R, R, C) seen by ``camera`` at ``frame``: (H, W, C + 1) with alpha."""
+        self.ls.set_frame(frame)
+        return rasterize_to_camera(self.ls, self.ls.stage.camera(camera), texture, self.atlas.mask)
+
+    def shade(
+        self, frame: int, camera: int | str, led_intensities: np.ndarray, point_light: PointLight | None = None
+    ) -> tuple[TexelShading, TexelGeometry]:
+        """The UV-space part of :meth:`render`: per-texel radiance toward the camera (no rasterisation)."""
+        cam = self.ls.stage.camera(camera)
+        # No LED on (e.g. a point light alone): nothing to trace for them.
+        vis = self.visibility(frame) if np.max(led_intensities) > 0 else None
+        geom = self.geometry(frame)
+        stage = self.ls.stage
+        shading = shade_texels(
+            geom, vis, self.led_positions, led_intensities, self.albedo, self.roughness, cam.position, self.far_field, stage.center
+        )
+        self.ls.set_frame(frame)
+        if point_light is not None:
+            key = (frame, tuple(point_light.position), point_light.radius)
+            if key not in self._point_light_vis:  # depends on geometry and light placement only
+                self._point_light_vis = {key: point_light_visibility(self.ls.scene, geom, point_light)}
+            diffuse, spec = shade_point_light(geom, self._point_light_vis[key], point_light, self.roughness, cam.position)
+            shading.diffuse_unit = shading.diffuse_unit + diffuse
+            shading.specular = shading.specular + spec
+            shading.radiance = self.albedo * shading.diffuse_unit + shading.specular
+        return shading, geom
+
+    def texel_inputs(self, view: ViewRender) -> dict[str, np.ndarray]:
+        """The later RelightNet inputs as (R, R, C) textures: normal, position, view direction, mask."""
+        g = view.geometry
+        return {
+            "normal": self.atlas.scatter(np.array(g.normal).T),
+            "position": self.atlas.scatter(np.array(g.position).T),
+            "view_dir": self.atlas.scatter(view.shading.view_dir),
+            "mask": self.atlas.mask[..., None].astype(np.float32),
+        }
+
+
+def fitted_relighter(capture_dir: str | Path, fit_dir: str | Path, cache_dir: str | Path | None = None):
+    """(capture, relighter) for a capture and its fitted maps (``gra-mi fit``): what RelightNet and the refiner train on."""
+    from gra_mi.capture.dataset import Capture
+
+    capture = Capture.load(capture_dir)
+    fit_dir = Path(fit_dir)
+    albedo = load_texture(fit_dir / "albedo.exr", 3, "albedo")
+    roughness = load_texture(fit_dir / "roughness.exr", 1, "roughness")
+    ls = LightstageScene.load(capture.folder / "scene.xml")
+    return capture, Relighter(ls, albedo=albedo, roughness=roughness, cache_dir=cache_dir)

@@ -1,0 +1,107 @@
+"""Per-LED visibility of every texel (paper Supp. "Details about Microfacet Rendering"): one bit per (texel, LED),
+"the LED is above the texel's horizon and nothing blocks the segment". It depends only on geometry and the LED layout,
+so :class:`VisibilityCache` reuses it across envmaps, cameras, materials and fitting iterations, in memory and on disk.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from gra_mi.core.io import atomic_path
+from gra_mi.render.atlas import TexelGeometry
+
+# Shadow rays start this far (metres) off the surface along the geometric normal, and stop this far short of the
+# LED: enough to clear float32 self-intersection on a 2 m stage, far below a texel's size (~3 mm at 512²).
+RAY_EPSILON = 1e-4
+
+
+def led_layout_digest(led_positions: np.ndarray, far_field: bool) -> str:
+    return hashlib.sha1(np.ascontiguousarray(led_positions, np.float32).tobytes() + bytes([far_field])).hexdigest()[:16]
+
+
+def compute_visibility(
+    scene: mi.Scene, geom: TexelGeometry, led_positions: np.ndarray, far_field: bool = False, stage_center: np.ndarray | None = None
+) -> mi.UInt32:
+    """Bit-packed visibility, word-major: bit (k % 32) of word ``(k // 32) * M + t`` is LED k at texel t.
+
+    Rays are traced LED-major (all texels for one LED, then the next) in groups of 32 LEDs per kernel, which keeps
+    them coherent; pairs below the texel's horizon (shading or geometric) trace nothing.
+    """
+    m = dr.width(geom.position)
+    num_leds = led_positions.shape[0]
+    words = (num_leds + 31) // 32
+    bits = dr.zeros(mi.UInt32, words * m)
+    if far_field:
+        center = np.zeros(3) if stage_center is None else stage_center
+        targets = led_positions - center
+        targets /= np.linalg.norm(targets, axis=1, keepdims=True)
+    else:
+        targets = led_positions
+    target_arr = mi.Point3f(*targets.T.astype(np.float32))
+    for w in range(words):
+        group = min(32, num_leds - 32 * w)
+        i = dr.arange(mi.UInt32, group * m)
+        j = i // m  # LED within the group (m > 0: no division by zero in the masked tail)
+        t = i - j * m
+        k = j + 32 * w
+        target = dr.gather(mi.Point3f, target_arr, k)
+        p = dr.gather(mi.Point3f, geom.position, t)
+        n = dr.gather(mi.Vector3f, geom.normal, t)
+        ng = dr.gather(mi.Vector3f, geom.geo_normal, t)
+        if far_field:
+            d = mi.Vector3f(target)
+            dist = mi.Float(dr.inf)
+        else:
+            offset = target - p
+            dist = dr.norm(offset)
+            d = offset / dist
+        facing = (dr.dot(n, d) > 0) & (dr.dot(ng, d) > 0)
+        origin = p + ng * RAY_EPSILON
+        maxt = dist if far_field else dist * (1.0 - RAY_EPSILON) - RAY_EPSILON
+        ray = mi.Ray3f(origin, d, maxt)
+        blocked = scene.ray_test(ray, coherent=True, active=facing)
+        word = dr.select(facing & ~blocked, mi.UInt32(1) << j, mi.UInt32(0))
+        dr.scatter_reduce(dr.ReduceOp.Add, bits, word, t + w * m)
+        dr.eval(bits)
+    return bits
+
+
+class VisibilityCache:
+    """Visibility bits per (frame geometry, LED layout): in memory, and on disk under ``folder`` if given."""
+
+    def __init__(self, folder: str | Path | None = None):
+        self.folder = None if folder is None else Path(folder)
+        self._memory: dict[str, mi.UInt32] = {}
+        self.hits = 0
+        self.misses = 0
+
+    def get(
+        self,
+        scene: mi.Scene,
+        geom: TexelGeometry,
+        led_positions: np.ndarray,
+        far_field: bool = False,
+        stage_center: np.ndarray | None = None,
+    ) -> mi.UInt32:
+        key = f"{geom.digest}_{led_layout_digest(led_positions, far_field)}"
+        if key in self._memory:
+            self.hits += 1
+            return self._memory[key]
+        path = None if self.folder is None else self.folder / f"vis_{key}.npy"
+        if path is not None and path.is_file():
+            bits = mi.UInt32(np.load(path))
+            self.hits += 1
+        else:
+            bits = compute_visibility(scene, geom, led_positions, far_field, stage_center)
+            self.misses += 1
+            if path is not None:
+                with atomic_path(path) as tmp:
+                    with open(tmp, "wb") as fh:
+                        np.save(fh, np.array(bits, dtype=np.uint32))
+        self._memory[key] = bits
+        return bits

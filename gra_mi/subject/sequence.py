@@ -1,0 +1,248 @@
+"""Tracked mesh sequences: fixed topology and UVs, per-frame vertex positions and normals.
+
+This is the paper's ``M_t`` (a person-specific tracked template mesh). On disk a sequence is a folder:
+
+    sequence.npz        faces (F,3) int32, uvs (V,2) float32, vertices (T,V,3) float32, normals (T,V,3) float32,
+                        vertex_colors (V,3) float32 (optional base albedo), fps, frame_labels (T,)
+    frames/frame_0000.ply ... one binary PLY per frame (positions, normals, UVs, colours) for Mitsuba scenes
+
+UVs follow docs/conventions.md: (u, v) ∈ [0,1]², as Mitsuba stores them; vertices are split along UV seams.
+:func:`validate_sequence` rejects NaN vertices, changing vertex counts, out-of-range UVs and bad faces.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from gra_mi.core.errors import GraMiInputError
+from gra_mi.core.io import atomic_path
+
+
+@dataclass
+class MeshSequence:
+    faces: np.ndarray  # (F, 3) int32
+    uvs: np.ndarray  # (V, 2) float32
+    vertices: np.ndarray  # (T, V, 3) float32, metres, world frame
+    normals: np.ndarray  # (T, V, 3) float32, unit
+    fps: float = 24.0
+    frame_labels: list[str] = field(default_factory=list)  # e.g. the motion clip of each frame
+    vertex_colors: np.ndarray | None = None  # (V, 3) float32 base albedo for stock-BSDF previews
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.vertices.shape[0])
+
+    @property
+    def num_vertices(self) -> int:
+        return int(self.vertices.shape[1])
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted vertex normals, (..., V, 3); isolated vertices get +Y."""
+    batched = vertices if vertices.ndim == 3 else vertices[None]
+    v0, v1, v2 = (batched[:, faces[:, k], :].astype(np.float64) for k in range(3))
+    face_n = np.cross(v1 - v0, v2 - v0)  # length = 2 * area: area weighting for free
+    normals = np.zeros(batched.shape, dtype=np.float64)
+    for k in range(3):
+        np.add.at(normals, (slice(None), faces[:, k]), face_n)
+    normals = normals if vertices.ndim == 3 else normals[0]
+    length = np.linalg.norm(normals, axis=-1, keepdims=True)
+    fallback = np.zeros_like(normals)
+    fallback[..., 1] = 1.0
+    return np.where(length > 1e-12, normals / np.maximum(length, 1e-30), fallback).astype(np.float32)
+
+
+def split_uv_seams(faces: np.ndarray, face_uv_indices: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Turn (position index, UV index) corners into one vertex per unique pair.
+
+    Returns new faces (F, 3), the position index of each new vertex, and the UV index of each new vertex.
+    """
+    pairs = np.stack([faces.ravel(), face_uv_indices.ravel()], axis=1)
+    unique, inverse = np.unique(pairs, axis=0, return_inverse=True)
+    return inverse.reshape(faces.shape).astype(np.int32), unique[:, 0], unique[:, 1]
+
+
+def validate_sequence(seq: MeshSequence, source: str = "<sequence>") -> None:
+    """Raise :class:`GraMiInputError` unless the sequence is a well-formed tracked mesh."""
+    v = np.asarray(seq.vertices)
+    if v.ndim != 3 or v.shape[2] != 3 or v.shape[0] < 1:
+        raise GraMiInputError(source, f"expected (frames, vertices, 3), got {v.shape}", field="vertices")
+    bad = ~np.isfinite(v).all(axis=(1, 2))
+    if bad.any():
+        raise GraMiInputError(source, f"non-finite (NaN/Inf) vertex positions in frame {int(np.argmax(bad))}", field="vertices")
+    if seq.normals.shape != v.shape:
+        raise GraMiInputError(source, f"normals {seq.normals.shape} do not match vertices {v.shape}", field="normals")
+    if not np.isfinite(seq.normals).all():
+        raise GraMiInputError(source, "non-finite normals", field="normals")
+    if seq.uvs.shape != (v.shape[1], 2):
+        raise GraMiInputError(source, f"expected ({v.shape[1]}, 2) UVs, got {seq.uvs.shape}", field="uvs")
+    if not np.isfinite(seq.uvs).all() or seq.uvs.min() < 0 or seq.uvs.max() > 1:
+        raise GraMiInputError(source, "UVs must be finite and in [0, 1]", field="uvs")
+    f = np.asarray(seq.faces)
+    if f.ndim != 2 or f.shape[1] != 3 or f.shape[0] < 1:
+        raise GraMiInputError(source, f"expected (faces, 3) triangles, got {f.shape}", field="faces")
+    if f.min() < 0 or f.max() >= v.shape[1]:
+        raise GraMiInputError(source, f"face indices must lie in [0, {v.shape[1]})", field="faces")
+    if seq.frame_labels and len(seq.frame_labels) != v.shape[0]:
+        raise GraMiInputError(source, "one label per frame expected", field="frame_labels")
+    if seq.vertex_colors is not None and seq.vertex_colors.shape != (v.shape[1], 3):
+        raise GraMiInputError(source, f"expected ({v.shape[1]}, 3) colours", field="vertex_colors")
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Files
+# --------------------------------------------------------------------------------------------------------------
+
+
+def ply_name(frame: int) -> str:
+    return f"frame_{frame:04d}.ply"
+
+
+def write_ply(
+    path: str | Path, positions: np.ndarray, normals: np.ndarray, uvs: np.ndarray, faces: np.ndarray, colors: np.ndarray | None = None
+) -> None:
+    """Binary little-endian PLY that Mitsuba's ``ply`` shape reads (x y z nx ny nz u v [r g b])."""
+    n = positions.shape[0]
+    props = ["x", "y", "z", "nx", "ny", "nz", "u", "v"] + (["r", "g", "b"] if colors is not None else [])
+    columns = [positions, normals, uvs] + ([colors] if colors is not None else [])
+    vertex = np.ascontiguousarray(np.concatenate(columns, axis=1).astype("<f4"))
+    face = np.empty(faces.shape[0], dtype=[("n", "u1"), ("i", "<i4", (3,))])
+    face["n"], face["i"] = 3, faces
+    header = "ply\nformat binary_little_endian 1.0\n" + f"element vertex {n}\n"
+    header += "".join(f"property float {p}\n" for p in props)
+    header += f"element face {faces.shape[0]}\nproperty list uchar int vertex_indices\nend_header\n"
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            fh.write(header.encode("ascii"))
+            fh.write(vertex.tobytes())
+            fh.write(face.tobytes())
+
+
+def save_sequence(seq: MeshSequence, folder: str | Path, write_plys: bool = True) -> Path:
+    """Write ``sequence.npz`` (and per-frame PLYs for scene files); returns the folder."""
+    validate_sequence(seq)
+    folder = Path(folder)
+    if write_plys:
+        for t in range(seq.num_frames):
+            write_ply(folder / "frames" / ply_name(t), seq.vertices[t], seq.normals[t], seq.uvs, seq.faces, seq.vertex_colors)
+    extra = {} if seq.vertex_colors is None else {"vertex_colors": seq.vertex_colors.astype(np.float32)}
+    with atomic_path(folder / "sequence.npz") as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez_compressed(
+                fh,
+                faces=seq.faces.astype(np.int32),
+                uvs=seq.uvs.astype(np.float32),
+                vertices=seq.vertices.astype(np.float32),
+                normals=seq.normals.astype(np.float32),
+                fps=np.float32(seq.fps),
+                frame_labels=np.array(seq.frame_labels or [""] * seq.num_frames),
+                **extra,
+            )
+    return folder
+
+
+def load_sequence(folder: str | Path) -> MeshSequence:
+    """Load and validate a sequence folder (or a ``sequence.npz`` path)."""
+    path = Path(folder)
+    if path.is_dir():
+        path = path / "sequence.npz"
+    if not path.is_file():
+        raise GraMiInputError(path, "file not found (generate a subject with `gra-mi subject`)")
+    try:
+        data = np.load(path, allow_pickle=False)
+        for key in ("faces", "uvs", "vertices", "normals"):
+            if key not in data:
+                raise GraMiInputError(path, "missing array", field=key)
+        seq = MeshSequence(
+            faces=data["faces"],
+            uvs=data["uvs"],
+            vertices=data["vertices"],
+            normals=data["normals"],
+            fps=float(data["fps"]) if "fps" in data else 24.0,
+            frame_labels=[str(x) for x in data["frame_labels"]] if "frame_labels" in data else [],
+            vertex_colors=data["vertex_colors"] if "vertex_colors" in data else None,
+        )
+    except (OSError, ValueError) as exc:
+        if isinstance(exc, GraMiInputError):
+            raise
+        raise GraMiInputError(path, f"not a readable sequence archive ({exc})") from None
+    validate_sequence(seq, str(path))
+    return seq
+
+
+def sequence_from_frames(frames: list[np.ndarray], faces: np.ndarray, uvs: np.ndarray, source: str = "<frames>", **kwargs) -> MeshSequence:
+    """Stack per-frame vertex arrays into a sequence, checking that the vertex count never changes."""
+    counts = {np.asarray(f).shape[0] for f in frames}
+    if len(counts) != 1:
+        first = np.asarray(frames[0]).shape[0]
+        bad = next(i for i, f in enumerate(frames) if np.asarray(f).shape[0] != first)
+        raise GraMiInputError(
+            source,
+            f"vertex count changes across frames ({first} in frame 0, {np.asarray(frames[bad]).shape[0]} in frame {bad})",
+            field="vertices",
+        )
+    vertices = np.stack([np.asarray(f, dtype=np.float32) for f in frames])
+    seq = MeshSequence(
+        faces=np.asarray(faces, np.int32), uvs=np.asarray(uvs, np.float32), vertices=vertices, normals=np.zeros_like(vertices), **kwargs
+    )
+    if not np.isfinite(vertices).all():
+        validate_sequence(seq, source)
+    seq.normals = vertex_normals(vertices, seq.faces)
+    validate_sequence(seq, source)
+    return seq
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Tiny procedural subject (fast tests)
+# --------------------------------------------------------------------------------------------------------------
+
+
+def _uv_sphere(rings: int, segments: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unit sphere with a UV seam: (rings+1)*(segments+1) vertices, UVs in [0,1]²."""
+    theta = np.linspace(0.0, math.pi, rings + 1)
+    phi = np.linspace(0.0, 2.0 * math.pi, segments + 1)
+    t, p = np.meshgrid(theta, phi, indexing="ij")
+    pos = np.stack([np.sin(t) * np.sin(p), np.cos(t), np.sin(t) * np.cos(p)], axis=-1).reshape(-1, 3)
+    uv = np.stack([p / (2.0 * math.pi), t / math.pi], axis=-1).reshape(-1, 2)
+    faces = []
+    for r in range(rings):
+        for s in range(segments):
+            a, b = r * (segments + 1) + s, (r + 1) * (segments + 1) + s
+            if r > 0:
+                faces.append([a, b, a + 1])
+            if r < rings - 1:
+                faces.append([a + 1, b, b + 1])
+    return pos, uv, np.asarray(faces, np.int32)
+
+
+def tiny_subject(num_frames: int = 8, fps: float = 24.0) -> MeshSequence:
+    """A torso (ellipsoid) and a swinging arm (capsule) that shadows it: ~450 triangles, a looping motion.
+
+    The torso takes the left half of the UV atlas, the arm the right half.
+    """
+    torso_p, torso_uv, torso_f = _uv_sphere(10, 16)
+    arm_p, arm_uv, arm_f = _uv_sphere(8, 10)
+    torso_uv = torso_uv * [0.48, 0.96] + [0.01, 0.02]
+    arm_uv = arm_uv * [0.48, 0.96] + [0.51, 0.02]
+    faces = np.concatenate([torso_f, arm_f + len(torso_p)])
+    uvs = np.concatenate([torso_uv, arm_uv])
+    torso = torso_p * [0.22, 0.55, 0.15] + [0.0, 1.0, 0.0]
+    arm_local = arm_p * [0.05, 0.32, 0.05] + [0.0, -0.32, 0.0]  # hangs from the shoulder at the origin
+    shoulder = np.array([0.30, 1.42, 0.0])
+    frames = []
+    for t in range(num_frames):
+        a = 0.12 + 0.1 * math.sin(2.0 * math.pi * t / num_frames)  # close to the body: shadows the torso
+        c, s = math.cos(a), math.sin(a)
+        rot_z = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])  # about +Z, swings the hand outward
+        swing = 0.4 * math.sin(2.0 * math.pi * t / num_frames)
+        cx, sx = math.cos(swing), math.sin(swing)
+        rot_x = np.array([[1.0, 0.0, 0.0], [0.0, cx, -sx], [0.0, sx, cx]])
+        frames.append(np.concatenate([torso, arm_local @ (rot_x @ rot_z).T + shoulder]))
+    colors = np.concatenate([np.tile([0.55, 0.35, 0.25], (len(torso_p), 1)), np.tile([0.2, 0.3, 0.6], (len(arm_p), 1))])
+    return sequence_from_frames(
+        frames, faces, uvs, source="tiny_subject", fps=fps, frame_labels=["tiny"] * num_frames, vertex_colors=colors.astype(np.float32)
+    )
