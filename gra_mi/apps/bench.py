@@ -116,45 +116,49 @@ def half(x: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------------------------------------------
 
 
-def run_bench(out: Path, preset_name: str = "full") -> Path:
-    from gra_mi.core.runtime import ensure_mitsuba
+class BenchSetup:
+    """The scene every measurement shares (the anny body, the default rig, a sunny sky on camera 0), the cached atlases,
+    geometry and visibility per UV resolution, the exact reference render, and the results so far."""
 
-    chosen = ensure_mitsuba()
-    import drjit as dr
-    import mitsuba as mi
+    def __init__(self, preset: BenchPreset, out: Path):
+        from gra_mi.render.relighter import Relighter
+        from gra_mi.stage.envmap import envmap_to_leds
+        from gra_mi.stage.envmap_library import SkyParams, bake_sunsky
+        from gra_mi.stage.lightstage import default_lightstage
+        from gra_mi.stage.scene import LightstageScene, subject_scene_xml, write_rig
+        from gra_mi.subject.anny_body import anny_sequence
+        from gra_mi.subject.sequence import save_sequence
 
-    from gra_mi.core.progress import progress
-    from gra_mi.render.atlas import TexelGeometry, UVAtlas
-    from gra_mi.render.rasterize import rasterize_to_camera
-    from gra_mi.render.relighter import Relighter
-    from gra_mi.render.shading import shade_texels
-    from gra_mi.render.visibility import compute_visibility
-    from gra_mi.stage.envmap import envmap_to_leds
-    from gra_mi.stage.envmap_library import SkyParams, bake_sunsky
-    from gra_mi.stage.lightstage import default_lightstage
-    from gra_mi.stage.scene import LightstageScene, camera_xml, subject_scene_xml, write_rig
-    from gra_mi.subject.anny_body import anny_sequence
-    from gra_mi.subject.sequence import save_sequence
+        self.preset, self.out = preset, out
+        self.work = Path(tempfile.mkdtemp(prefix="gra_mi_bench_"))
+        self.stage = default_lightstage(width=preset.width, height=preset.height)
+        write_rig(self.stage, self.work / "rig")
+        save_sequence(anny_sequence(["walk"], frames_per_clip=2 * preset.frames), self.work / "subject")
+        atomic_write_text(self.work / "scene.xml", subject_scene_xml("rig", "subject"))
+        self.ls = LightstageScene.load(self.work / "scene.xml")
+        self.seq = self.ls.sequence
+        self.frame = preset.frames - 1  # the evaluated frame; earlier frames feed visibility sharing
+        self.cam = self.stage.cameras[0]
+        self.env = bake_sunsky(SkyParams(25.0, 200.0, 3.0, 0.2), 64)  # a sun behind-left of camera 0: hard shadows
+        self.lighting = envmap_to_leds(self.env, self.stage)
+        self.intensities = self.lighting.radiant_intensity(self.stage)
+        base = Relighter(self.ls, preset.uv_resolution)
+        self.albedo_tex, self.rough_tex = base.albedo_tex, base.roughness_tex
+        self.atlases: dict[int, object] = {}
+        self.results: list[Result] = []
+        self.R = preset.uv_resolution
+        self.ref_geom = self.geometry(self.R, self.frame)
+        self.ref_vis = self.visibility(self.R, self.frame)
+        self.t_vis_ref, _ = self.timed(lambda: self.visibility(self.R, self.frame))
+        self.t_ref, self.reference = self.timed(lambda: self.render(self.R, self.ref_geom, self.ref_vis))
+        self.mask = self.reference[..., 3] > 0.5
 
-    preset = PRESETS[preset_name]
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    work = Path(tempfile.mkdtemp(prefix="gra_mi_bench_"))
-    stage = default_lightstage(width=preset.width, height=preset.height)
-    write_rig(stage, work / "rig")
-    save_sequence(anny_sequence(["walk"], frames_per_clip=2 * preset.frames), work / "subject")
-    atomic_write_text(work / "scene.xml", subject_scene_xml("rig", "subject"))
-    ls = LightstageScene.load(work / "scene.xml")
-    seq = ls.sequence
-    frame = preset.frames - 1  # the evaluated frame; earlier frames feed visibility sharing
-    cam = stage.cameras[0]
-    env = bake_sunsky(SkyParams(25.0, 200.0, 3.0, 0.2), 64)  # a sun behind-left of camera 0: hard shadows
-    lighting = envmap_to_leds(env, stage)
-    intensities = lighting.radiant_intensity(stage)
+    def timed(self, fn: Callable[[], object]) -> tuple[float, object]:
+        """Median milliseconds over the preset's repeats, after a first, untimed call that compiles the kernels."""
+        import drjit as dr
 
-    def timed(fn: Callable[[], object]) -> tuple[float, object]:
-        times, value = [], fn()  # a first, untimed call compiles the kernels
-        for _ in range(preset.repeats):
+        times, value = [], fn()
+        for _ in range(self.preset.repeats):
             dr.sync_thread()
             t = time.perf_counter()
             value = fn()
@@ -162,167 +166,162 @@ def run_bench(out: Path, preset_name: str = "full") -> Path:
             times.append(time.perf_counter() - t)
         return 1e3 * statistics.median(times), value
 
-    # Shared machinery: atlases, geometry and visibility per UV resolution.
-    atlases: dict[int, UVAtlas] = {}
+    def atlas(self, res: int):
+        from gra_mi.render.atlas import UVAtlas
 
-    def atlas(res: int) -> UVAtlas:
-        if res not in atlases:
-            atlases[res] = UVAtlas.build(seq.faces, seq.uvs, res)
-        return atlases[res]
+        if res not in self.atlases:
+            self.atlases[res] = UVAtlas.build(self.seq.faces, self.seq.uvs, res)
+        return self.atlases[res]
 
-    def geometry(res: int, f: int) -> TexelGeometry:
-        return TexelGeometry.from_frame(atlas(res), seq.vertices[f], seq.normals[f])
+    def geometry(self, res: int, f: int):
+        from gra_mi.render.atlas import TexelGeometry
 
-    def visibility(res: int, f: int, positions=stage.led_positions, far=False):
-        ls.set_frame(f)
-        return compute_visibility(ls.scene, geometry(res, f), positions, far, stage.center)
+        return TexelGeometry.from_frame(self.atlas(res), self.seq.vertices[f], self.seq.normals[f])
 
-    base = Relighter(ls, preset.uv_resolution)
-    albedo_tex, rough_tex = base.albedo_tex, base.roughness_tex
+    def visibility(self, res: int, f: int, far: bool = False):
+        from gra_mi.render.visibility import compute_visibility
 
-    def materials(res: int) -> tuple[np.ndarray, np.ndarray]:
-        a = atlas(res)
-        if res == preset.uv_resolution:
-            return a.gather(albedo_tex), a.gather(rough_tex)[:, 0]
-        tex = a.bake_vertex_attribute(seq.vertex_colors, fill=0.5)
+        self.ls.set_frame(f)
+        return compute_visibility(self.ls.scene, self.geometry(res, f), self.stage.led_positions, far, self.stage.center)
+
+    def materials(self, res: int) -> tuple[np.ndarray, np.ndarray]:
+        a = self.atlas(res)
+        if res == self.R:
+            return a.gather(self.albedo_tex), a.gather(self.rough_tex)[:, 0]
+        tex = a.bake_vertex_attribute(self.seq.vertex_colors, fill=0.5)
         return a.gather(tex), np.full(a.num_texels, 0.5, np.float32)
 
-    def render(res: int, geom, vis, leds=intensities, far=False, store=lambda x: x) -> np.ndarray:
-        a = atlas(res)
-        alb, rough = materials(res)
-        ls.set_frame(frame)
-        shading = shade_texels(geom, vis, stage.led_positions, leds, alb, rough, cam.position, far, stage.center)
-        return rasterize_to_camera(ls, cam, a.scatter(store(shading.radiance)), a.mask)
+    def render(self, res: int, geom, vis, leds=None, far=False, store=lambda x: x) -> np.ndarray:
+        from gra_mi.render.rasterize import rasterize_to_camera
+        from gra_mi.render.shading import shade_texels
 
-    words = (stage.num_leds + 31) // 32
+        a = self.atlas(res)
+        alb, rough = self.materials(res)
+        leds = self.intensities if leds is None else leds
+        self.ls.set_frame(self.frame)
+        shading = shade_texels(geom, vis, self.stage.led_positions, leds, alb, rough, self.cam.position, far, self.stage.center)
+        return rasterize_to_camera(self.ls, self.cam, a.scatter(store(shading.radiance)), a.mask)
 
-    def cache_mb(res: int, geometry_bytes_per_texel: int = 36) -> float:
-        m = atlas(res).num_texels
-        return m * (4 * words + geometry_bytes_per_texel) / 2**20
+    def cache_mb(self, res: int, geometry_bytes_per_texel: int = 36) -> float:
+        words = (self.stage.num_leds + 31) // 32
+        return self.atlas(res).num_texels * (4 * words + geometry_bytes_per_texel) / 2**20
 
-    results: list[Result] = []
-    R = preset.uv_resolution
-    ref_geom = geometry(R, frame)
-    ref_vis = visibility(R, frame)
-    t_vis_ref, _ = timed(lambda: dr.eval(visibility(R, frame)))
-    t_ref, reference = timed(lambda: render(R, ref_geom, ref_vis))
-    mask = reference[..., 3] > 0.5
-    write_exr(out / "reference.exr", reference)
-    write_png(out / "reference.png", reference, exposure=None)
+    def record(self, group: str, name: str, t_ms: float, amortised: float, mb: float, image: np.ndarray) -> None:
+        rel, psnr, ssim_loss = image_errors(image, self.reference, self.mask)
+        self.results.append(Result(group, name, t_ms, amortised, mb, rel, psnr, ssim_loss))
 
-    def record(group: str, name: str, t_ms: float, amortised: float, mb: float, image: np.ndarray) -> None:
-        rel, psnr, ssim_loss = image_errors(image, reference, mask)
-        results.append(Result(group, name, t_ms, amortised, mb, rel, psnr, ssim_loss))
 
-    record(
+# --------------------------------------------------------------------------------------------------------------
+# The measurements: each approximation against the exact reference
+# --------------------------------------------------------------------------------------------------------------
+
+
+def bench_led_sampling(b: BenchSetup, k: int) -> None:
+    """Fewer LEDs: every n-th (subsampled, re-normalised) or the k brightest (importance)."""
+    for name, leds in (
+        ("subsample", subsample_leds(b.env, b.stage, k, b.lighting.scale)),
+        ("importance", importance_leds(b.intensities, b.stage, k)),
+    ):
+        t, img = b.timed(lambda leds=leds: b.render(b.R, b.ref_geom, b.ref_vis, leds))
+        b.record("LEDs", f"{name} k={k}", t, t + b.t_vis_ref, b.cache_mb(b.R), img)
+
+
+def bench_low_visibility(b: BenchSetup, low: int) -> None:
+    t_low, bits = b.timed(
+        lambda: upsample_visibility(b.visibility(low, b.frame), b.atlas(low), b.atlas(b.R), b.ls.scene, b.ref_geom, b.stage.led_positions)
+    )
+    t, img = b.timed(lambda: b.render(b.R, b.ref_geom, bits))
+    mb = b.cache_mb(low, 0) + b.cache_mb(b.R, 36) - b.cache_mb(b.R, 0)
+    b.record("visibility", f"visibility at {low}², upsampled", t, t + t_low, mb, img)
+
+
+def bench_shared_visibility(b: BenchSetup, k: int) -> None:
+    """Visibility shared over k consecutive frames: the evaluated frame uses that of k − 1 frames before."""
+    bits = b.visibility(b.R, b.frame - (k - 1))
+    t, img = b.timed(lambda: b.render(b.R, b.ref_geom, bits))
+    b.record("visibility", f"shared over {k} frames (worst frame)", t, t + b.t_vis_ref / k, b.cache_mb(b.R) / k, img)
+
+
+def bench_far_field(b: BenchSetup) -> None:
+    bits = b.visibility(b.R, b.frame, far=True)
+    t, img = b.timed(lambda: b.render(b.R, b.ref_geom, bits, far=True))
+    b.record("lighting model", "far field (directional LEDs)", t, t + b.t_vis_ref, b.cache_mb(b.R), img)
+
+
+def bench_half_storage(b: BenchSetup) -> None:
+    import mitsuba as mi
+
+    from gra_mi.render.atlas import TexelGeometry
+
+    g = b.ref_geom
+    g = TexelGeometry(*(type(v)(*[mi.Float(half(np.array(c))) for c in v]) for v in (g.position, g.normal, g.geo_normal)), g.digest)
+    t, img = b.timed(lambda: b.render(b.R, g, b.ref_vis, store=half))
+    b.record("storage", "float16 texel geometry and radiance", t, t + b.t_vis_ref, b.cache_mb(b.R, 18), img)
+
+
+def bench_uv_resolution(b: BenchSetup, res: int) -> None:
+    geom = b.geometry(res, b.frame)
+    t_v, bits = b.timed(lambda: b.visibility(res, b.frame))
+    t, img = b.timed(lambda: b.render(res, geom, bits))
+    b.record("UV resolution", f"{res}² UV", t, t + t_v, b.cache_mb(res), img)
+
+
+def bench_mitsuba_direct(b: BenchSetup) -> None:
+    """Mitsuba's own ``direct`` integrator with the same BSDF and LEDs: the generic peer, at several spp."""
+    import mitsuba as mi
+
+    from gra_mi.stage.scene import camera_xml
+
+    write_exr(b.work / "albedo.exr", b.albedo_tex)
+    write_exr(b.work / "rough.exr", b.rough_tex)
+    ply = b.work / "subject" / "frames" / f"frame_{b.frame:04d}.ply"
+    emitters = "".join(
+        f'<emitter type="point"><point name="position" value="{", ".join(map(str, q))}"/><rgb name="intensity" value="{", ".join(map(str, i))}"/></emitter>'
+        for q, i in zip(b.stage.led_positions, b.intensities, strict=True)
+    )
+    xml = (
+        f'<scene version="3.0.0">{camera_xml(b.cam, "1")}{emitters}<shape type="ply"><string name="filename" value="{ply}"/>'
+        f'<bsdf type="gra_microfacet"><texture type="bitmap" name="albedo"><string name="filename" value="{b.work / "albedo.exr"}"/></texture>'
+        f'<texture type="bitmap" name="roughness"><string name="filename" value="{b.work / "rough.exr"}"/></texture></bsdf></shape></scene>'
+    )
+    scene = mi.load_string(xml)
+    integrator = mi.load_dict({"type": "direct", "emitter_samples": 1, "bsdf_samples": 0})
+    mi.render(scene, integrator=integrator, spp=1)  # compile
+    for spp in b.preset.direct_spp:
+        t, img = b.timed(lambda spp=spp: np.array(mi.render(scene, integrator=integrator, spp=spp, seed=spp)))
+        b.record("Mitsuba direct", f"direct {spp} spp", t, t, 0.0, img)
+
+
+def run_bench(out: Path, preset_name: str = "full") -> Path:
+    """Every approximation of the one-bounce render against the exact one: time, amortised time, memory, error."""
+    from gra_mi.core.progress import progress
+    from gra_mi.core.runtime import ensure_mitsuba
+
+    chosen = ensure_mitsuba()
+    preset = PRESETS[preset_name]
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    b = BenchSetup(preset, out)
+    write_exr(out / "reference.exr", b.reference)
+    write_png(out / "reference.png", b.reference, exposure=None)
+    stage, R = b.stage, b.R
+    b.record(
         "reference",
         f"exact ({R}² UV, {stage.num_leds} LEDs, near field, full visibility, float32)",
-        t_ref,
-        t_ref + t_vis_ref,
-        cache_mb(R),
-        reference,
+        b.t_ref,
+        b.t_ref + b.t_vis_ref,
+        b.cache_mb(R),
+        b.reference,
     )
-
-    jobs: list[tuple[str, Callable[[], None]]] = []
-
-    # LED subsampling and importance sampling ---------------------------------------------------------------
-    for k in preset.led_counts:
-
-        def sub(k=k):
-            leds = subsample_leds(env, stage, k, lighting.scale)
-            t, img = timed(lambda: render(R, ref_geom, ref_vis, leds))
-            record("LEDs", f"subsample k={k}", t, t + t_vis_ref, cache_mb(R), img)
-
-        def imp(k=k):
-            leds = importance_leds(intensities, stage, k)
-            t, img = timed(lambda: render(R, ref_geom, ref_vis, leds))
-            record("LEDs", f"importance k={k}", t, t + t_vis_ref, cache_mb(R), img)
-
-        jobs += [(f"subsample {k}", sub), (f"importance {k}", imp)]
-
-    # Lower-resolution visibility, upsampled ----------------------------------------------------------------
-    for low in preset.visibility_resolutions:
-        if low >= R:
-            continue
-
-        def low_vis(low=low):
-            t_low, bits = timed(
-                lambda: upsample_visibility(visibility(low, frame), atlas(low), atlas(R), ls.scene, ref_geom, stage.led_positions)
-            )
-            t, img = timed(lambda: render(R, ref_geom, bits))
-            record("visibility", f"visibility at {low}², upsampled", t, t + t_low, cache_mb(low, 0) + cache_mb(R, 36) - cache_mb(R, 0), img)
-
-        jobs.append((f"visibility {low}", low_vis))
-
-    # Visibility shared over k consecutive frames (the evaluated frame uses the visibility of k-1 frames before)
-    for k in preset.share_frames:
-
-        def shared(k=k):
-            bits = visibility(R, frame - (k - 1))
-            t, img = timed(lambda: render(R, ref_geom, bits))
-            record("visibility", f"shared over {k} frames (worst frame)", t, t + t_vis_ref / k, cache_mb(R) / k, img)
-
-        jobs.append((f"share {k}", shared))
-
-    # Far field -----------------------------------------------------------------------------------------------
-    def far():
-        bits = visibility(R, frame, far=True)
-        t, img = timed(lambda: render(R, ref_geom, bits, far=True))
-        record("lighting model", "far field (directional LEDs)", t, t + t_vis_ref, cache_mb(R), img)
-
-    jobs.append(("far field", far))
-
-    # Half precision / quantised storage of cached quantities ---------------------------------------------------
-    def half_storage():
-        g = TexelGeometry(
-            *(type(v)(*[mi.Float(half(np.array(c))) for c in v]) for v in (ref_geom.position, ref_geom.normal, ref_geom.geo_normal)),
-            ref_geom.digest,
-        )
-        t, img = timed(lambda: render(R, g, ref_vis, store=half))
-        record("storage", "float16 texel geometry and radiance", t, t + t_vis_ref, cache_mb(R, 18), img)
-
-    jobs.append(("half", half_storage))
-
-    # UV resolution ---------------------------------------------------------------------------------------------
-    for res in preset.uv_resolutions:
-        if res == R:
-            continue
-
-        def uv(res=res):
-            geom = geometry(res, frame)
-            t_v, bits = timed(lambda: visibility(res, frame))
-            t, img = timed(lambda: render(res, geom, bits))
-            record("UV resolution", f"{res}² UV", t, t + t_v, cache_mb(res), img)
-
-        jobs.append((f"uv {res}", uv))
-
-    # Mitsuba's direct integrator: the generic peer --------------------------------------------------------------
-    def direct_peer():
-        write_exr(work / "albedo.exr", albedo_tex)
-        write_exr(work / "rough.exr", rough_tex)
-        ply = work / "subject" / "frames" / f"frame_{frame:04d}.ply"
-        emitters = "".join(
-            f'<emitter type="point"><point name="position" value="{", ".join(map(str, q))}"/><rgb name="intensity" value="{", ".join(map(str, i))}"/></emitter>'
-            for q, i in zip(stage.led_positions, intensities, strict=True)
-        )
-        xml = (
-            f'<scene version="3.0.0">{camera_xml(cam, "1")}{emitters}<shape type="ply"><string name="filename" value="{ply}"/>'
-            f'<bsdf type="gra_microfacet"><texture type="bitmap" name="albedo"><string name="filename" value="{work / "albedo.exr"}"/></texture>'
-            f'<texture type="bitmap" name="roughness"><string name="filename" value="{work / "rough.exr"}"/></texture></bsdf></shape></scene>'
-        )
-        scene = mi.load_string(xml)
-        integrator = mi.load_dict({"type": "direct", "emitter_samples": 1, "bsdf_samples": 0})
-        mi.render(scene, integrator=integrator, spp=1)  # compile
-        for spp in preset.direct_spp:
-            t, img = timed(lambda spp=spp: np.array(mi.render(scene, integrator=integrator, spp=spp, seed=spp)))
-            record("Mitsuba direct", f"direct {spp} spp", t, t, 0.0, img)
-
-    jobs.append(("direct", direct_peer))
-
+    jobs = [(f"LEDs {k}", lambda k=k: bench_led_sampling(b, k)) for k in preset.led_counts]
+    jobs += [(f"visibility {low}", lambda low=low: bench_low_visibility(b, low)) for low in preset.visibility_resolutions if low < R]
+    jobs += [(f"share {k}", lambda k=k: bench_shared_visibility(b, k)) for k in preset.share_frames]
+    jobs += [("far field", lambda: bench_far_field(b)), ("half", lambda: bench_half_storage(b))]
+    jobs += [(f"uv {res}", lambda res=res: bench_uv_resolution(b, res)) for res in preset.uv_resolutions if res != R]
+    jobs.append(("direct", lambda: bench_mitsuba_direct(b)))
     for _, job in progress(jobs, description="bench"):
         job()
-
-    return _write_report(out, preset_name, chosen, stage, atlas(R).num_texels, results)
+    return _write_report(out, preset_name, chosen, stage, b.atlas(R).num_texels, b.results)
 
 
 def upsample_visibility(bits_low, atlas_low, atlas_high, scene, geom_high, led_positions):

@@ -145,14 +145,12 @@ def energy_table(envmap: np.ndarray, stage) -> list[dict]:
 
 def run_demo(preset_name: str, out: Path) -> Path:
     from gra_mi.apps.gltf import export_glb
-    from gra_mi.capture.dataset import load_observation
     from gra_mi.capture.synthetic import generate_capture
-    from gra_mi.core.progress import progress
     from gra_mi.core.runtime import ensure_mitsuba, torch_device
     from gra_mi.fit.materials import FitConfig, run_fit
     from gra_mi.render.point_light import PointLight, conditioning_envmap, conditioning_pattern
     from gra_mi.render.relighter import Relighter
-    from gra_mi.stage.envmap import background_plate, envmap_to_leds, load_envmap
+    from gra_mi.stage.envmap import envmap_to_leds, load_envmap, stage_background_plate
     from gra_mi.stage.scene import composite_over
 
     if preset_name not in PRESETS:
@@ -203,30 +201,8 @@ def run_demo(preset_name: str, out: Path) -> Path:
     # 4. Relight with the fitted maps: held-out lighting and held-out cameras vs ground truth -----------------
     relighter = Relighter(ls, albedo=fit_result.albedo, roughness=fit_result.roughness, cache_dir=out / "cache" / "visibility")
     test_frames = [f for f in capture.frames if f.split == "test"]
-    shown_frames = [test_frames[0], test_frames[len(test_frames) // 2]]
-    cameras = [capture.train_cameras[0], capture.eval_cameras[0]]
-    rows, metrics = [], []
     with _timed(timings, "relight (fitted maps, one-bounce)"):
-        for entry in progress(test_frames, description="relight test frames"):
-            intensities = capture.lighting(stage, entry)
-            for cam_name in capture.train_cameras[:1] + capture.eval_cameras:
-                stem = out / "renders" / cam_name / f"frame_{entry.frame:04d}"
-                image = (
-                    read_exr(stem.with_suffix(".exr"))
-                    if stem.with_suffix(".exr").is_file()
-                    else relighter.render(entry.frame, cam_name, intensities).image
-                )
-                write_exr(stem.with_suffix(".exr"), image)
-                truth = load_observation(capture, cam_name, entry.frame)
-                mask = (truth[..., 3] > 0.99) & (image[..., 3] > 0.99)
-                view = "held-out camera" if cam_name in capture.eval_cameras else "training camera"
-                metrics.append((view, mean_l1(image, truth, mask), psnr(image, truth, mask)))
-                if entry in shown_frames and cam_name in cameras:
-                    env = load_envmap(capture.folder / entry.envmap)
-                    cam = stage.camera(cam_name)
-                    plate = background_plate(env, cam) * envmap_to_leds(env, stage).scale
-                    rows.append([composite_over(truth, plate), composite_over(image, plate)])
-        write_png(out / "contact_truth_vs_relit.png", contact_sheet(rows), exposure=None)
+        metrics = relight_test_frames(capture, relighter, test_frames, out)
 
     # 5. Near-field point light -----------------------------------------------------------------------------
     with _timed(timings, "near-field point light"):
@@ -243,7 +219,7 @@ def run_demo(preset_name: str, out: Path) -> Path:
     with _timed(timings, "video"):
         cam = stage.camera(capture.eval_cameras[0])
         env = load_envmap(capture.folder / test_frames[0].envmap)
-        plate = background_plate(env, cam) * envmap_to_leds(env, stage).scale
+        plate = stage_background_plate(env, cam, stage)
         frames = [composite_over(read_exr(out / "renders" / cam.name / f"frame_{f.frame:04d}.exr"), plate) for f in test_frames]
         video_path = out / "videos" / f"{cam.name}_test.mp4"
         write_mp4(video_path, frames, fps=ls.sequence.fps / 2, exposure=0.8 / max(float(np.percentile(frames[0], 99)), 1e-6))
@@ -258,6 +234,36 @@ def run_demo(preset_name: str, out: Path) -> Path:
         _report(preset, chosen, capture, ls, energy, timings, fit_metrics, metrics, relightnet_summary, refiner_summary, video_path, out),
     )
     return report
+
+
+def relight_test_frames(capture, relighter, test_frames, out: Path) -> list[tuple[str, float, float]]:
+    """One-bounce renders of the test sequence (held-out lighting) from a training and every held-out camera, against
+    the ground truth: (view, mean L1, PSNR) per render, and a contact sheet of two frames × two cameras."""
+    from gra_mi.capture.dataset import load_observation
+    from gra_mi.core.progress import progress
+    from gra_mi.stage.envmap import load_envmap, stage_background_plate
+    from gra_mi.stage.scene import composite_over
+
+    stage = relighter.ls.stage
+    shown_frames = [test_frames[0], test_frames[len(test_frames) // 2]]
+    cameras = [capture.train_cameras[0], capture.eval_cameras[0]]
+    rows, metrics = [], []
+    for entry in progress(test_frames, description="relight test frames"):
+        intensities = capture.lighting(stage, entry)
+        for cam_name in capture.train_cameras[:1] + capture.eval_cameras:
+            stem = out / "renders" / cam_name / f"frame_{entry.frame:04d}"
+            exr = stem.with_suffix(".exr")
+            image = read_exr(exr) if exr.is_file() else relighter.render(entry.frame, cam_name, intensities).image
+            write_exr(exr, image)
+            truth = load_observation(capture, cam_name, entry.frame)
+            mask = (truth[..., 3] > 0.99) & (image[..., 3] > 0.99)
+            view = "held-out camera" if cam_name in capture.eval_cameras else "training camera"
+            metrics.append((view, mean_l1(image, truth, mask), psnr(image, truth, mask)))
+            if entry in shown_frames and cam_name in cameras:
+                plate = stage_background_plate(load_envmap(capture.folder / entry.envmap), stage.camera(cam_name), stage)
+                rows.append([composite_over(truth, plate), composite_over(image, plate)])
+    write_png(out / "contact_truth_vs_relit.png", contact_sheet(rows), exposure=None)
+    return metrics
 
 
 def _refiner_stage(preset: DemoPreset, capture, out: Path, timings: dict) -> dict:

@@ -1,14 +1,21 @@
-"""What every training command shares: joining a ``torchrun`` process group, and the training log (CSV + plot)."""
+"""What every training command shares: the loop skeleton (``torchrun`` processes, resume, DDP, checkpoints, progress,
+log) and the training log (CSV + plot). The stages (RelightNet, the refiner) supply only their step."""
 
 from __future__ import annotations
 
 import csv
+import logging
 import os
+import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from gra_mi.core.io import atomic_path
+
+logger = logging.getLogger(__name__)
 
 
 def init_distributed() -> tuple[int, int]:
@@ -44,3 +51,72 @@ def write_training_log(out: Path, header: list[str], rows: list, title: str, yla
     with atomic_path(out / "loss.png") as tmp:
         fig.savefig(tmp, dpi=110, format="png")
     plt.close(fig)
+
+
+class TrainingLoop:
+    """The skeleton every training command shares; the stage writes only its step.
+
+    - joins the ``torchrun`` process group (:func:`init_distributed`); ``parallel`` wraps a model in DDP when needed;
+    - ``resume`` reads ``OUT/checkpoint.pt`` (the step and the log, plus whatever the stage saved) so a rerun carries on;
+    - ``steps`` yields the remaining step indices (a progress bar on rank 0); after each step it appends the mean of the
+      losses given to ``add_loss`` to the log every ``log_every`` steps and, on rank 0, writes a checkpoint every
+      ``checkpoint_every`` steps (atomic) from ``state_of()``;
+    - ``finish`` writes the last checkpoint, waits for every process and says whether this one should write outputs.
+    """
+
+    def __init__(self, out: Path, total_steps: int, checkpoint_every: int, log_every: int, description: str):
+        self.rank, self.world = init_distributed()
+        self.out, self.checkpoint = Path(out), Path(out) / "checkpoint.pt"
+        self.total_steps, self.checkpoint_every, self.log_every = total_steps, checkpoint_every, log_every
+        self.description = description
+        self.start = 0
+        self.log_rows: list[tuple] = []
+        self._losses: list[float] = []
+        self._state_of = dict
+        self._row_extra = tuple
+        self._t0 = time.perf_counter()
+
+    def resume(self, map_location) -> dict | None:
+        """The saved state, or None on a fresh start."""
+        if not self.checkpoint.is_file():
+            return None
+        state = torch.load(self.checkpoint, map_location=map_location, weights_only=False)
+        self.start, self.log_rows = state["step"], state["log"]
+        logger.info("%s: resuming from step %d", self.description, self.start)
+        return state
+
+    def parallel(self, model: torch.nn.Module) -> torch.nn.Module:
+        return torch.nn.parallel.DistributedDataParallel(model) if self.world > 1 else model
+
+    def add_loss(self, value: float) -> None:
+        self._losses.append(value)
+
+    def steps(self, state_of: Callable[[], dict], row_extra: Callable[[], tuple] = tuple) -> Iterator[int]:
+        """Step indices from the resumed one on; ``state_of()`` is what a checkpoint holds besides step and log,
+        ``row_extra()`` what a log row holds after (step, mean loss, seconds)."""
+        from gra_mi.core.progress import progress
+
+        self._state_of, self._row_extra = state_of, row_extra
+        self._t0 = time.perf_counter()  # the log's seconds count training only
+        remaining = range(self.start, self.total_steps)
+        for step in progress(remaining, description=self.description) if self.rank == 0 else remaining:
+            yield step
+            done = step + 1
+            if done % self.log_every == 0 or done == self.total_steps:
+                self.log_rows.append((done, float(np.mean(self._losses)), time.perf_counter() - self._t0, *self._row_extra()))
+                self._losses = []
+            if done % self.checkpoint_every == 0:
+                self.save_checkpoint(done)
+
+    def save_checkpoint(self, step: int) -> None:
+        if self.rank != 0:
+            return
+        with atomic_path(self.checkpoint) as tmp:
+            torch.save({**self._state_of(), "step": step, "log": self.log_rows}, tmp)
+
+    def finish(self) -> bool:
+        """Last checkpoint, then a barrier; True on the process that writes the outputs (rank 0)."""
+        self.save_checkpoint(self.total_steps)
+        if self.world > 1:
+            torch.distributed.barrier()
+        return self.rank == 0

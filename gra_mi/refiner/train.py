@@ -20,7 +20,6 @@ from __future__ import annotations
 import json
 import logging
 import math
-import time
 from collections import OrderedDict
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -30,8 +29,8 @@ import torch
 import torch.nn.functional as F
 
 from gra_mi.core.errors import GraMiInputError, require_positive
-from gra_mi.core.io import atomic_path, atomic_write_text
-from gra_mi.core.training import init_distributed, write_training_log
+from gra_mi.core.io import atomic_write_text
+from gra_mi.core.training import TrainingLoop, write_training_log
 from gra_mi.refiner.data import RefinerDataset
 from gra_mi.refiner.flow import noisy_latent, recycling_residuals, sampling_sigmas, shift_sigma, velocity_target
 from gra_mi.refiner.model import RefinerConfig, VideoRefiner, conditioning, parameter_counts, seed_mask
@@ -274,11 +273,10 @@ def train_refiner(
     init: str | Path | None = None,
 ) -> Path:
     """Train (or, with ``init``, adapt) a refiner; writes weights, logs, a loss plot and ``train.json``."""
-    from gra_mi.core.progress import progress
     from gra_mi.core.runtime import torch_device
 
     config.validate()
-    rank, world = init_distributed()
+    loop = TrainingLoop(Path(out), config.steps, config.checkpoint_every, config.log_every, "train refiner")
     device = torch.device(torch_device())
     out = Path(out)
     dataset = RefinerDataset(dataset_dir)
@@ -291,43 +289,30 @@ def train_refiner(
     short = [n for n in dataset.names("train") if dataset.sequences[n].frames < window]
     if short:
         logger.warning("sequences shorter than the %d-frame window repeat their last frame: %s", window, short)
-    mine = items[rank::world]
+    mine = items[loop.rank :: loop.world]
     optimizer = torch.optim.AdamW(model.trainable_parameters(), lr=config.lr, weight_decay=0.0)
     banks = (ErrorBank(config.bank_grid, config.bank_per_level), ErrorBank(config.bank_grid, config.bank_per_level))
-    start, log_rows = 0, []
-    checkpoint = out / "checkpoint.pt"
-    if checkpoint.is_file():
-        state = torch.load(checkpoint, map_location=device, weights_only=False)
+    state = loop.resume(device)
+    if state is not None:
         model.load_state_dict(state["trainable"], strict=False)
         optimizer.load_state_dict(state["optimizer"])
-        start, log_rows = state["step"], state["log"]
         if state.get("banks") is not None:
             banks = tuple(ErrorBank.from_state(b) for b in state["banks"])
-        logger.info("resuming refiner training from step %d", start)
-    ddp = torch.nn.parallel.DistributedDataParallel(model) if world > 1 else model
+    ddp = loop.parallel(model)
     cache: OrderedDict = OrderedDict()
-    t0 = time.perf_counter()
-    window_losses: list[float] = []
 
-    def save_checkpoint(step: int) -> None:
-        if rank != 0:
-            return
-        state = {
+    def state_of() -> dict:
+        return {
             "trainable": model.trainable_state(),
             "optimizer": optimizer.state_dict(),
-            "step": step,
-            "log": log_rows,
             "config": asdict(config),
             "banks": [b.state() for b in banks] if config.error_recycling else None,
         }
-        with atomic_path(checkpoint) as tmp:
-            torch.save(state, tmp)
 
-    steps = range(start, config.steps)
-    for step in progress(steps, description="train refiner") if rank == 0 else steps:
+    for step in loop.steps(state_of, row_extra=lambda: (len(banks[1]),)):
         optimizer.zero_grad(set_to_none=True)
         for micro in range(config.grad_accumulation):
-            rng = np.random.default_rng([config.seed, rank, step, micro])  # resumable: the draw depends on the step only
+            rng = np.random.default_rng([config.seed, loop.rank, step, micro])  # resumable: the draw depends on the step only
             generator = torch.Generator().manual_seed(int(rng.integers(2**62)))
             name, begin = mine[int(rng.integers(len(mine)))]
             raw = dataset.window(name, begin, window)
@@ -345,19 +330,12 @@ def train_refiner(
                         cache.popitem(last=False)
             result = flow_matching_loss(ddp, enc, config, rng, generator, banks if config.error_recycling else None)
             (result.loss / config.grad_accumulation).backward()
-            window_losses.append(float(result.loss.detach()))
+            loop.add_loss(float(result.loss.detach()))
         torch.nn.utils.clip_grad_norm_(model.trainable_parameters(), 1.0)
         optimizer.step()
-        if (step + 1) % config.log_every == 0 or step + 1 == config.steps:
-            log_rows.append((step + 1, float(np.mean(window_losses)), time.perf_counter() - t0, len(banks[1])))
-            window_losses = []
-        if (step + 1) % config.checkpoint_every == 0:
-            save_checkpoint(step + 1)
-    save_checkpoint(config.steps)
-    if world > 1:
-        torch.distributed.barrier()
-    if rank != 0:
+    if not loop.finish():
         return out
+    log_rows = loop.log_rows
     model.save(out)
     write_training_log(
         out,

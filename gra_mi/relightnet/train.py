@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import json
 import logging
-import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -22,8 +21,8 @@ import numpy as np
 import torch
 
 from gra_mi.core.errors import GraMiInputError, require_positive
-from gra_mi.core.io import atomic_path, atomic_write_text, write_png
-from gra_mi.core.training import init_distributed, write_training_log
+from gra_mi.core.io import atomic_write_text, write_png
+from gra_mi.core.training import TrainingLoop, write_training_log
 from gra_mi.relightnet.infer import view_inputs
 from gra_mi.relightnet.model import RelightNet, RelightNetConfig
 from gra_mi.render.bridge import camera_uv_grid, sample_texture, to_torch
@@ -120,68 +119,46 @@ def train_relightnet(capture_dir: str | Path, fit_dir: str | Path, out: str | Pa
     from gra_mi.render.relighter import fitted_relighter
 
     config.validate()
-    rank, world = init_distributed()
+    loop = TrainingLoop(Path(out), config.steps, config.checkpoint_every, config.log_every, "train RelightNet")
     ensure_mitsuba()
     device = torch_device()
     torch.manual_seed(config.seed)
     out = Path(out)
-    capture, relighter = fitted_relighter(capture_dir, fit_dir, out / "cache" if rank == 0 else None)
+    capture, relighter = fitted_relighter(capture_dir, fit_dir, out / "cache" if loop.rank == 0 else None)
     samples = build_samples(capture, relighter, config.env_height, device)
     train = [s for s in samples if s.split == "train"]
     if not train:
         raise GraMiInputError(capture.folder / "capture.json", "no training views")
     if config.max_train_views:
         train = train[: config.max_train_views]
-    mine = train[rank::world]  # each process its share
+    mine = train[loop.rank :: loop.world]  # each process its share
 
     net_config = RelightNetConfig(
         resolution=relighter.albedo_tex.shape[0], base_channels=config.base_channels, env_height=config.env_height
     )
     model = RelightNet(net_config).to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
-    start_step, log_rows = 0, []
-    checkpoint = out / "checkpoint.pt"
-    if checkpoint.is_file():
-        state = torch.load(checkpoint, map_location=device, weights_only=False)
+    state = loop.resume(device)
+    if state is not None:
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
-        start_step, log_rows = state["step"], state["log"]
-        logger.info("resuming from step %d", start_step)
-    ddp = torch.nn.parallel.DistributedDataParallel(model) if world > 1 else model
-    rng = np.random.default_rng(config.seed + rank)
-    order = rng.permutation(len(mine))
-    t0 = time.perf_counter()
-    window: list[float] = []  # losses since the last log row: the log keeps their mean (one view per step is noisy)
+    ddp = loop.parallel(model)
+    order = np.random.default_rng(config.seed + loop.rank).permutation(len(mine))
 
-    def save_checkpoint(step: int) -> None:
-        if rank != 0:
-            return
-        with atomic_path(checkpoint) as tmp:
-            torch.save(
-                {"model": model.state_dict(), "optimizer": optimizer.state_dict(), "step": step, "log": log_rows, "config": asdict(config)},
-                tmp,
-            )
+    def state_of() -> dict:
+        return {"model": model.state_dict(), "optimizer": optimizer.state_dict(), "config": asdict(config)}
 
-    from gra_mi.core.progress import progress
-
-    for step in progress(range(start_step, config.steps), description="train RelightNet") if rank == 0 else range(start_step, config.steps):
+    for step in loop.steps(state_of):
         s = mine[order[step % len(mine)]]
         optimizer.zero_grad(set_to_none=True)
         texture = ddp(s.features, s.env, s.mask)
         loss = masked_l1(sample_texture(texture, s.grid), s.target, s.pixels)
         loss.backward()
         optimizer.step()
-        window.append(float(loss.detach()))
-        if (step + 1) % config.log_every == 0 or step + 1 == config.steps:
-            log_rows.append((step + 1, float(np.mean(window)), time.perf_counter() - t0))
-            window = []
-        if (step + 1) % config.checkpoint_every == 0:
-            save_checkpoint(step + 1)
-    save_checkpoint(config.steps)
-    if world > 1:
-        torch.distributed.barrier()
-    if rank != 0:
+        loop.add_loss(float(loss.detach()))  # the log keeps the mean since its last row: one view per step is noisy
+    if not loop.finish():
         return out
+    log_rows = loop.log_rows
     model.save(out)
     write_training_log(out, ["step", "l1", "seconds"], log_rows, "RelightNet training", "L1 (training view)")
     validate(model.eval(), samples, out)
