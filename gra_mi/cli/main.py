@@ -323,7 +323,7 @@ def _cmd_edit_texture(args) -> None:
 
     color = parse_color(args.color) if args.color is not None else None
     if args.image is None and (args.mask is None or color is None):
-        raise GraMiParameterError("edit", "give an image, or a mask with a colour")
+        raise GraMiInputError("edit-texture", "give --image, or --mask with --color")
     edit_albedo_file(args.albedo, args.out, args.image, args.mask, color, args.opacity)
     print(f"wrote {args.out}; re-render with: gra-mi relight SCENE --albedo {args.out} ...")
 
