@@ -19,7 +19,7 @@ import os
 import re
 from dataclasses import dataclass
 
-from gra_mi.core.errors import GraMiInputError
+from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 
 logger = logging.getLogger(__name__)
 
@@ -89,7 +89,7 @@ def choose_variant(requested: str | None = None) -> str:
     ``requested=None`` means automatic: ``cuda_ad_rgb`` where CUDA works, else ``llvm_ad_rgb``.
     """
     if requested is not None and requested not in SUPPORTED_VARIANTS:
-        raise GraMiInputError("variant", f"unknown variant '{requested}', expected one of {SUPPORTED_VARIANTS}")
+        raise GraMiParameterError("variant", f"unknown variant '{requested}', expected one of {SUPPORTED_VARIANTS}")
     variant = requested or ("cuda_ad_rgb" if cuda_available() else "llvm_ad_rgb")
     if variant.startswith("llvm"):
         check_llvm()
@@ -122,9 +122,9 @@ def pick_torch_device(requested: str | None = None) -> str:
     if requested is None:
         return "cuda" if torch.cuda.is_available() else "cpu"
     if requested.split(":")[0] not in TORCH_DEVICES:
-        raise GraMiInputError("device", f"unknown torch device '{requested}', expected cpu, cuda or cuda:N")
+        raise GraMiParameterError("device", f"unknown torch device '{requested}', expected cpu, cuda or cuda:N")
     if requested.startswith("cuda") and not torch.cuda.is_available():
-        raise GraMiInputError("device", f"'{requested}' asked for, but torch sees no CUDA GPU (use cpu)")
+        raise GraMiParameterError("device", f"'{requested}' asked for, but torch sees no CUDA GPU (use cpu)")
     return requested
 
 
