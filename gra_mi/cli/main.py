@@ -594,6 +594,8 @@ def _cmd_relight(args) -> None:
     from gra_mi.stage.lightstage import load_pattern
     from gra_mi.stage.scene import LightstageScene
 
+    if not (args.envmap or args.olat or args.pattern or args.point_light):
+        raise GraMiInputError("lighting", "give at least one --envmap, --olat, --pattern or --point-light")
     point_light = parse_point_light(args.point_light, args.point_light_intensity, args.point_light_radius) if args.point_light else None
     envmaps = {p.stem: load_envmap(p, repair=args.repair_envmap) for p in args.envmap}
     albedo = load_texture(args.albedo, 3, "albedo") if args.albedo else None
