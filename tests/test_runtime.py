@@ -110,3 +110,31 @@ def test_cli_defaults_are_the_configs_defaults(command, config_path):
         if f.name == "seed" and command == "train-refiner":
             continue  # one --seed sets both configs' seed (their defaults agree)
         assert defaults[f.name] == expected, (command, f.name)
+
+
+@pytest.mark.parametrize(
+    ("argv", "flag"),
+    [
+        (["relight", "scene.xml", "--olat", "0", "--uv-resolution", "0"], "--uv-resolution: must be >= 1"),
+        (["relight", "scene.xml", "--olat", "0", "--exposure", "nan"], "--exposure: must be a positive number"),
+        (["refine", "data", "--model", "m", "--sequence", "s", "--shift", "nan"], "--shift: must be a finite number > 0"),
+        (["refine", "data", "--model", "m", "--sequence", "s", "--steps", "0"], "--steps: must be a finite number > 0"),
+    ],
+)
+def test_bad_options_stop_before_any_file_is_read(argv, flag, tmp_path, capsys, monkeypatch):
+    """The scene, model and data named here do not exist: the option is checked first, and named as typed."""
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert flag in err and err.count("\n") == 1, err
+    assert not any(tmp_path.iterdir())
+
+
+def test_one_command_parser_does_not_import_torch():
+    """`gra-mi rig --help` builds only rig's options: building them all imports torch and diffusers (seconds)."""
+    import subprocess
+    import sys
+
+    code = "import sys; from gra_mi.cli.main import build_parser; build_parser('rig'); print('torch' in sys.modules)"
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert result.stdout.strip() == "False"

@@ -16,6 +16,7 @@ import numpy as np
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.io import atomic_path, auto_exposure, write_exr, write_mp4, write_png
 from gra_mi.core.progress import progress
+from gra_mi.stage.scene import LightstageScene
 
 logger = logging.getLogger(__name__)
 
@@ -48,6 +49,7 @@ class Light:
 
     intensities: np.ndarray
     envmap: np.ndarray | None = None  # for the background plate
+    plate_scale: float = 1.0  # the envmap → LED mapping's normalisation, which the background plate takes too
     point_light: object | None = None  # a PointLight, lit with every LED off
 
 
@@ -68,7 +70,8 @@ def collect_lights(stage, envmaps: dict[str, np.ndarray], olats: list[int], patt
     if point_light is not None:
         lights["point_light"] = Light(np.zeros((stage.num_leds, 3)), point_light=point_light)
     for name, env in envmaps.items():
-        lights[name] = Light(envmap_to_leds(env, stage).radiant_intensity(stage), envmap=env)
+        lighting = envmap_to_leds(env, stage)
+        lights[name] = Light(lighting.radiant_intensity(stage), envmap=env, plate_scale=lighting.scale)
     for k in olats:
         lights[f"olat{k:03d}"] = Light(olat_pattern(stage, k) * stage.gains)
     for name, drive in patterns.items():
@@ -91,7 +94,7 @@ def _write_point_light_conditioning(out: Path, stage, scene, point_light) -> Non
 
 
 def relight_batch(
-    scene_path: str | Path,
+    scene: str | Path | LightstageScene,
     out: str | Path,
     lights: dict[str, Light],
     frames: list[int] | None = None,
@@ -103,7 +106,7 @@ def relight_batch(
     roughness: np.ndarray | None = None,
     vis_cache: str | Path | None = None,
 ) -> RelightSummary:
-    """Render every (frame, light, camera) into ``out/LIGHT/CAMERA/frame_NNNN.{exr,png}`` (+ ``CAMERA.mp4``).
+    """Render every (frame, light, camera) of ``scene`` (a path or a loaded scene) into ``out/LIGHT/CAMERA/frame_NNNN.{exr,png}`` (+ ``CAMERA.mp4``).
 
     ``frames``/``cameras`` None: all frames, camera 0. ``albedo``/``roughness`` None: the subject's vertex colours baked
     to UV and roughness 0.5. Everything is checked before the first file is written.
@@ -111,8 +114,8 @@ def relight_batch(
     from gra_mi.core.runtime import ensure_mitsuba, torch_device
     from gra_mi.relightnet.infer import render_view
     from gra_mi.render.relighter import Relighter
-    from gra_mi.stage.envmap import stage_background_plate
-    from gra_mi.stage.scene import LightstageScene, composite_over
+    from gra_mi.stage.envmap import background_plate
+    from gra_mi.stage.scene import composite_over
 
     config = config or RelightConfig()
     config.validate()
@@ -120,7 +123,7 @@ def relight_batch(
         raise GraMiParameterError("stage", f"expected one of {STAGES}, got '{stage}'")
     ensure_mitsuba()
     out = Path(out)
-    ls = LightstageScene.load(scene_path)
+    ls = scene if isinstance(scene, LightstageScene) else LightstageScene.load(scene)
     frames = list(range(ls.sequence.num_frames)) if frames is None else frames
     for f in frames:
         if not 0 <= f < ls.sequence.num_frames:
@@ -151,7 +154,7 @@ def relight_batch(
         write_exr(folder / f"frame_{frame:04d}.exr", view.image)
         shown = view.image[..., :3]
         if config.background and light.envmap is not None:
-            shown = composite_over(view.image, stage_background_plate(light.envmap, cam, ls.stage))
+            shown = composite_over(view.image, background_plate(light.envmap, cam) * light.plate_scale)
         key = (name, cam.name)
         if key not in exposures:
             exposures[key] = config.exposure if config.exposure is not None else 0.8 * auto_exposure(view.image)

@@ -503,6 +503,7 @@ def _cmd_refine(args) -> None:
         dataset = RefinerDataset(args.data)
         sequence = (dataset.names("test") or dataset.names())[0]
     config = config_from_args(RefineConfig, args, joins=config_from_args(Joins, args))
+    config.validate()  # before the model and data are read
     summary = refine_to_folder(args.model, args.data, sequence, args.out, config)
     print(
         f"refined {summary['frames']} frames in {summary['windows']} windows ({summary['frames_per_second']:.2f} frames/s) into {args.out}"
@@ -596,21 +597,23 @@ def _cmd_relight(args) -> None:
 
     if not (args.envmap or args.olat or args.pattern or args.point_light):
         raise GraMiInputError("lighting", "give at least one --envmap, --olat, --pattern or --point-light")
+    config = config_from_args(RelightConfig, args)
+    config.validate()  # before any file is read
     point_light = parse_point_light(args.point_light, args.point_light_intensity, args.point_light_radius) if args.point_light else None
     envmaps = {p.stem: load_envmap(p, repair=args.repair_envmap) for p in args.envmap}
     albedo = load_texture(args.albedo, 3, "albedo") if args.albedo else None
     roughness = load_texture(args.roughness, 1, "roughness") if args.roughness else None
-    ls = LightstageScene.load(args.scene)  # checked before any work; relight_batch loads it again, cheaply
+    ls = LightstageScene.load(args.scene)
     lights = collect_lights(ls.stage, envmaps, args.olat, {p.stem: load_pattern(ls.stage, p) for p in args.pattern}, point_light)
     frames = [int(f) for f in _parse_list(args.frames, ls.sequence.num_frames, "frames")]
     cameras = _parse_list(args.cameras, len(ls.stage.cameras), "cameras")
     summary = relight_batch(
-        args.scene,
+        ls,
         args.out,
         lights,
         frames,
         cameras,
-        config_from_args(RelightConfig, args),
+        config,
         args.stage,
         args.relightnet,
         albedo,
@@ -690,7 +693,9 @@ COMMANDS: dict[str, Command] = {
 }
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The whole parser, or (``only``) one whose other commands carry no arguments: building a command's options
+    imports its stage (torch, diffusers), which ``gra-mi rig --help`` should not wait for."""
     parser = argparse.ArgumentParser(
         prog="gra-mi", description="gra-mi: relightable full-body avatars on Mitsuba 3 / Dr.Jit (Generative Relightable Avatars)."
     )
@@ -698,7 +703,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, command in COMMANDS.items():
         p = sub.add_parser(name, help=command.help, description=command.help)
-        command.add_arguments(p)
+        if only is None or name == only:
+            command.add_arguments(p)
         p.set_defaults(flags=option_flags(p))
     return parser
 
@@ -713,7 +719,9 @@ def _message(exc: GraMiInputError, flags: dict[str, str]) -> str:
 def main(argv: list[str] | None = None) -> int:
     from gra_mi.core.runtime import start_runtime
 
-    args = build_parser().parse_args(argv)
+    words = sys.argv[1:] if argv is None else argv
+    selected = next((w for w in words if not w.startswith("-")), None)
+    args = build_parser(selected if selected in COMMANDS else None).parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     command = COMMANDS[args.command]
     try:
