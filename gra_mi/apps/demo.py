@@ -128,21 +128,6 @@ def contact_sheet(images: list[list[np.ndarray]]) -> np.ndarray:
 # --------------------------------------------------------------------------------------------------------------
 
 
-def energy_table(envmap: np.ndarray, stage) -> list[dict]:
-    """Irradiance at the stage centre from the envmap and from its LEDs, for the six axis normals."""
-    from gra_mi.stage.envmap import envmap_irradiance, envmap_to_leds, led_irradiance
-
-    normals = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=np.float64)
-    lighting = envmap_to_leds(envmap, stage, normalize=False)
-    e_env = envmap_irradiance(envmap, normals).mean(axis=1)
-    e_led = led_irradiance(stage, lighting.radiant_intensity(stage), normals).mean(axis=1)
-    names = ["+X", "-X", "+Y", "-Y", "+Z", "-Z"]
-    return [
-        {"normal": n, "envmap": float(a), "leds": float(b), "rel_error": float(abs(b - a) / max(a, 1e-12))}
-        for n, a, b in zip(names, e_env, e_led, strict=True)
-    ]
-
-
 def run_demo(preset_name: str, out: Path) -> Path:
     from gra_mi.apps.gltf import export_glb
     from gra_mi.capture.synthetic import generate_capture
@@ -173,14 +158,12 @@ def run_demo(preset_name: str, out: Path) -> Path:
     stage = ls.stage
     plot_rig(stage, out / "plots" / "rig.png")
 
-    # 2. Envmaps onto LEDs, with the energy check ------------------------------------------------------------
+    # 2. Envmaps onto LEDs (their irradiance fidelity is in capture.json) ------------------------------------------------------------
     train_env = next(f.envmap for f in capture.frames if f.kind == "envmap" and f.split == "train")
     test_env = next(f.envmap for f in capture.frames if f.split == "test")
     lights = {Path(p).stem: load_envmap(capture.folder / p) for p in (train_env, test_env)}
-    energy = {}
     with _timed(timings, "envmap→LED"):
         for name, env in lights.items():
-            energy[name] = energy_table(env, stage)
             plot_led_mapping(env, stage, envmap_to_leds(env, stage).drive, out / "plots" / f"leds_{name}.png", name)
 
     # 3. Material fit ------------------------------------------------------------------------------------------
@@ -231,7 +214,7 @@ def run_demo(preset_name: str, out: Path) -> Path:
     report = out / "report.md"
     atomic_write_text(
         report,
-        _report(preset, chosen, capture, ls, energy, timings, fit_metrics, metrics, relightnet_summary, refiner_summary, video_path, out),
+        _report(preset, chosen, capture, ls, lights, timings, fit_metrics, metrics, relightnet_summary, refiner_summary, video_path, out),
     )
     return report
 
@@ -296,7 +279,7 @@ def _refiner_stage(preset: DemoPreset, capture, out: Path, timings: dict) -> dic
     return summary
 
 
-def _report(preset, variant, capture, ls, energy, timings, fit_metrics, metrics, relightnet_summary, refiner, video_path, out) -> str:
+def _report(preset, variant, capture, ls, lights, timings, fit_metrics, metrics, relightnet_summary, refiner, video_path, out) -> str:
     stage = ls.stage
     lines = [
         f"# gra-mi demo — preset `{preset.name}`",
@@ -376,20 +359,38 @@ def _report(preset, variant, capture, ls, energy, timings, fit_metrics, metrics,
         "",
         "![point light](point_light.png) ![conditioning](point_light_conditioning.png)",
         "",
-        "## Envmap → LED energy check (irradiance at the stage centre)",
+        "## Ground-truth noise",
         "",
+        "Relative RMSE over the subject's pixels of one ground-truth image against a render of the same view with "
+        f"16× the samples (direct light from every LED: {capture.ground_truth.get('spp', '?')} spp; interreflections: "
+        f"{capture.ground_truth.get('indirect_spp', '?')} spp).",
+        "",
+        "| frame | lighting | relative RMSE | s / image |",
+        "|---|---|---|---|",
     ]
-    for name, rows in energy.items():
-        lines += [
-            f"### {name}",
-            "",
-            f"![LED mapping](plots/leds_{name}.png)",
-            "",
-            "| normal | envmap | LEDs | rel. error |",
-            "|---|---|---|---|",
-        ]
-        lines += [f"| {r['normal']} | {r['envmap']:.4g} | {r['leds']:.4g} | {100 * r['rel_error']:.2f} % |" for r in rows]
-        lines.append("")
+    for label, row in capture.ground_truth.get("noise", {}).items():
+        lines.append(
+            f"| {row['frame']} | {label} ({row['envmap'] or 'all LEDs'}) | {100 * row['relative_rmse']:.2f} % | {row['seconds_per_image']:.2f} |"
+        )
+    lines += [
+        "",
+        "## Envmap → LED fidelity (irradiance at the stage centre)",
+        "",
+        "Per-normal irradiance error of the LED mapping over 256 normals, next to the best non-negative LED intensities "
+        "can do (NNLS on irradiance alone, which ignores the direction of highlights). Error relative to each normal's "
+        "irradiance, floored at 5 % of the mean.",
+        "",
+        "| envmap | max | mean | NNLS optimum max | NNLS optimum mean |",
+        "|---|---|---|---|---|",
+    ]
+    for name, f in capture.ground_truth.get("envmap_fidelity", {}).items():
+        lines.append(
+            f"| {name} | {100 * f['max_rel_error']:.2f} % | {100 * f['mean_rel_error']:.2f} % | "
+            f"{100 * f['optimum_max_rel_error']:.2f} % | {100 * f['optimum_mean_rel_error']:.2f} % |"
+        )
+    lines.append("")
+    for name in lights:
+        lines += [f"LED mapping of {name}: ![LED mapping](plots/leds_{name}.png)", ""]
     lines += [
         f"Video: [{video_path.name}]({video_path.relative_to(out)}) · Avatar: [avatar.glb](avatar.glb) (opens in Blender)",
         "",

@@ -5,7 +5,7 @@ read. :mod:`gra_mi.capture.synthetic` writes one; real data converted to this la
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -22,8 +22,9 @@ class FrameLighting:
     frame: int
     split: str  # "train" or "test"
     sequence: int  # test sequence index (0 for training)
-    kind: str  # "uniform" or "envmap"
+    kind: str  # "uniform", "envmap" or "pattern"
     envmap: str | None  # path relative to the capture folder
+    pattern: str | None = None  # kind "pattern": LED drive values (JSON or .npy, docs/data-format.md), relative path
 
 
 @dataclass
@@ -35,6 +36,7 @@ class Capture:
     train_cameras: list[str]
     eval_cameras: list[str]
     frames: list[FrameLighting]
+    ground_truth: dict = field(default_factory=dict)  # how the images were rendered, and their measured noise
 
     def image_path(self, camera: str, frame: int) -> Path:
         return self.folder / "images" / camera / f"frame_{frame:04d}.exr"
@@ -54,7 +56,18 @@ class Capture:
         for key in ("train_cameras", "eval_cameras", "frames", "uv_resolution"):
             if key not in data:
                 raise GraMiInputError(path, "missing", field=key)
-        frames = [FrameLighting(**f) for f in data["frames"]]
+        frames = []
+        for i, f in enumerate(data["frames"]):
+            try:
+                entry = FrameLighting(**f)
+            except TypeError as exc:
+                raise GraMiInputError(path, f"bad entry: {exc}", field=f"frames[{i}]") from None
+            needs = {"uniform": None, "envmap": entry.envmap, "pattern": entry.pattern}
+            if entry.kind not in needs or (entry.kind != "uniform" and not needs[entry.kind]):
+                raise GraMiInputError(
+                    path, f"kind must be uniform, envmap (with envmap) or pattern (with pattern), got {f}", field=f"frames[{i}]"
+                )
+            frames.append(entry)
         return cls(
             folder,
             data.get("preset", "?"),
@@ -63,15 +76,18 @@ class Capture:
             data["train_cameras"],
             data["eval_cameras"],
             frames,
+            data.get("ground_truth", {}),
         )
 
     def lighting(self, stage, entry: FrameLighting) -> np.ndarray:
         """LED radiant intensities (L, 3) of a frame."""
         from gra_mi.stage.envmap import envmap_to_leds, load_envmap
-        from gra_mi.stage.lightstage import uniform_pattern
+        from gra_mi.stage.lightstage import load_pattern, uniform_pattern
 
         if entry.kind == "uniform":
             return uniform_pattern(stage, UNIFORM_FRACTION) * stage.gains
+        if entry.kind == "pattern":
+            return load_pattern(stage, self.folder / entry.pattern) * stage.gains
         return envmap_to_leds(load_envmap(self.folder / entry.envmap), stage).radiant_intensity(stage)
 
 

@@ -6,14 +6,18 @@ sequences under held-out envmaps (one envmap per sequence), per-camera linear HD
 and the true material maps for evaluation.
 
 Ground truth comes from one of two renderers:
-- ``path`` (default): Mitsuba's ``path`` integrator with more than the one-bounce model can explain — three
-  bounces, Mitsuba's ``principled`` BSDF with sheen on cloth, spatially varying albedo and roughness, and
-  pose-dependent wrinkle normal maps;
+- ``path`` (default): more than the one-bounce model can explain — three bounces, Mitsuba's ``principled`` BSDF
+  with sheen on cloth, spatially varying albedo and roughness, and pose-dependent wrinkle normal maps. Rendered as
+  direct light summed exactly over every LED that is on (one shadow ray per LED, the principled BSDF evaluated by
+  Mitsuba) plus the interreflections of Mitsuba's ``path`` (``max_depth`` 4 minus 2 with the same samples, so the
+  difference is exactly the bounces after the first), whose LED choice follows each LED's power (``sampling_weight``);
+  see :func:`render_ground_truth` and the noise it leaves, measured by :func:`measure_ground_truth_noise`;
 - ``onebounce``: gra-mi's own one-bounce model from the true maps (for recovery tests: the fit must find them).
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 from dataclasses import dataclass
@@ -33,8 +37,8 @@ class CapturePreset:
     name: str
     subject: str  # "tiny" or "anny"
     train_clips: list[str]
-    test_clips: list[str]  # one test sequence per clip, each under its own held-out envmap
-    frames_per_clip: int
+    test_clips: list[str]  # one test sequence per clip, under held-out lighting
+    frames_per_clip: int  # training clips (even frames uniformly lit, odd frames each under its own envmap)
     num_leds: int
     num_cameras: int
     eval_cameras: int  # the last cameras are held out for novel-view evaluation
@@ -43,15 +47,48 @@ class CapturePreset:
     camera_distance: float
     uv_resolution: int
     envmap_height: int
-    spp: int  # path tracer samples per pixel
+    # Sample counts are powers of 4: the rig's low-discrepancy sampler (ldsampler) rounds anything else up.
+    spp: int  # camera samples per pixel of the exact direct light (anti-aliasing, texture and highlight detail)
+    indirect_spp: int  # path samples per pixel of the interreflections
     max_depth: int = 4  # path length: three bounces
+    test_frames_per_clip: int | None = None  # default: frames_per_clip
+    test_lighting: list[str] | None = None  # per test clip: "envmap" (held out) or "olat" (default: all envmaps)
+
+    def test_lightings(self) -> list[str]:
+        return self.test_lighting or ["envmap"] * len(self.test_clips)
+
+    def test_frames(self) -> int:
+        return self.test_frames_per_clip or self.frames_per_clip
 
 
 PRESETS = {
-    "tiny": CapturePreset("tiny", "tiny", ["tiny"], ["tiny"], 6, 64, 8, 1, 320, 240, 1.2, 32, 32, 128),
-    "small": CapturePreset("small", "anny", ["walk"], ["squat"], 8, 331, 8, 2, 256, 135, 1.8, 256, 64, 32),
-    "full": CapturePreset("full", "anny", ["walk", "arm_raise", "turn"], ["squat"], 24, 331, 40, 3, 1024, 540, 1.8, 512, 128, 256),
+    "tiny": CapturePreset("tiny", "tiny", ["tiny"], ["tiny"], 6, 64, 8, 1, 320, 240, 1.2, 32, 32, 4, 16),
+    "small": CapturePreset("small", "anny", ["walk"], ["squat"], 8, 331, 8, 2, 256, 135, 1.8, 256, 64, 16, 64),
+    # 48 training envmaps over three motions; test: two held-out envmaps and one OLAT (out of distribution).
+    "medium": CapturePreset(
+        "medium",
+        "anny",
+        ["walk", "arm_raise", "turn"],
+        ["squat", "walk", "arm_raise"],
+        32,
+        331,
+        8,
+        2,
+        192,
+        108,
+        1.8,
+        256,
+        64,
+        16,
+        64,
+        test_frames_per_clip=17,
+        test_lighting=["envmap", "envmap", "olat"],
+    ),
+    # The paper's protocol: 40 cameras at 1024x540, interleaved full-on / relit frames (a GPU's work).
+    "full": CapturePreset("full", "anny", ["walk", "arm_raise", "turn"], ["squat"], 24, 331, 40, 3, 1024, 540, 1.8, 512, 128, 64, 256),
 }
+
+OLAT_KEY_DIRECTION = np.array([0.5, 0.6, 0.62])  # the test OLAT: a key light front-left and above the subject
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -118,7 +155,9 @@ GT_BSDF = """<bsdf type="normalmap" id="gt_material">
         </bsdf>"""
 
 
-def _schedule(preset: CapturePreset, train_envmaps: list[str], test_envmaps: list[str]) -> list[FrameLighting]:
+def _schedule(preset: CapturePreset, train_envmaps: list[str], test_sources: list[tuple[str, str]]) -> list[FrameLighting]:
+    """Training: even frames uniformly lit (tracking), odd frames each under the next training envmap. Test: one
+    sequence per test clip under one held-out lighting, ``(kind, file)`` with kind "envmap" or "pattern"."""
     frames, t, relit = [], 0, 0
     for _ in preset.train_clips:
         for k in range(preset.frames_per_clip):
@@ -128,18 +167,134 @@ def _schedule(preset: CapturePreset, train_envmaps: list[str], test_envmaps: lis
                 frames.append(FrameLighting(t, "train", 0, "envmap", train_envmaps[relit % len(train_envmaps)]))
                 relit += 1
             t += 1
-    for s, _ in enumerate(preset.test_clips):
-        for _ in range(preset.frames_per_clip):
-            frames.append(FrameLighting(t, "test", s, "envmap", test_envmaps[s % len(test_envmaps)]))
+    for s, (kind, source) in enumerate(test_sources):
+        for _ in range(preset.test_frames()):
+            if kind == "envmap":
+                frames.append(FrameLighting(t, "test", s, "envmap", source))
+            else:
+                frames.append(FrameLighting(t, "test", s, "pattern", None, pattern=source))
             t += 1
     return frames
 
 
-def generate_capture(out: str | Path, preset_name: str = "small", renderer: str = "path") -> Capture:
-    """Write a synthetic capture; rerunning resumes (existing images are kept)."""
+def _write_test_olat(stage, out: Path) -> str:
+    """The out-of-distribution test lighting: one LED (the one nearest a front-left key light) at the stage maximum."""
+    from gra_mi.stage.lightstage import olat_pattern
+
+    direction = OLAT_KEY_DIRECTION / np.linalg.norm(OLAT_KEY_DIRECTION)
+    led = int(np.argmax(stage.led_directions() @ direction))
+    path = out / "patterns" / f"test_olat_{led:03d}.json"
+    drive = olat_pattern(stage, led)
+    atomic_write_text(path, json.dumps({"led": led, "intensities": drive.tolist()}) + "\n")
+    return str(path.relative_to(out))
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Ground-truth rendering and its noise
+# --------------------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class GroundTruthRenderer:
+    """Exact direct light from every LED that is on + the path tracer's interreflections (see the module doc).
+
+    The two path renders share their seed, so their samples agree up to the first bounce and the difference holds
+    only the light of the later bounces: unbiased, and as noisy as that light (a few per cent of the image) alone.
+    """
+
+    spp: int
+    indirect_spp: int
+    max_depth: int = 4
+
+    def __post_init__(self):
+        import mitsuba as mi
+
+        from gra_mi.core.runtime import ensure_mitsuba
+
+        ensure_mitsuba()  # registers gra_onebounce for the variant
+        self.direct = mi.load_dict({"type": "gra_onebounce"})
+        self.path = mi.load_dict({"type": "path", "max_depth": self.max_depth})
+        self.first_bounce = mi.load_dict({"type": "path", "max_depth": 2})
+
+    def render(self, scene, sensor: int, seed: int, factor: int = 1) -> np.ndarray:
+        """(H, W, 4) linear RGB + alpha; ``factor`` multiplies both sample counts (the noise reference)."""
+        import mitsuba as mi
+
+        image = np.array(mi.render(scene, sensor=sensor, integrator=self.direct, spp=self.spp * factor, seed=seed), dtype=np.float64)
+        if self.max_depth > 2 and self.indirect_spp > 0:
+            spp = self.indirect_spp * factor
+            later = np.array(mi.render(scene, sensor=sensor, integrator=self.path, spp=spp, seed=seed), dtype=np.float64)
+            first = np.array(mi.render(scene, sensor=sensor, integrator=self.first_bounce, spp=spp, seed=seed), dtype=np.float64)
+            image[..., :3] += later[..., :3] - first[..., :3]
+        return image.astype(np.float32)
+
+
+NOISE_REFERENCE_FACTOR = 16
+
+
+def relative_rmse(image: np.ndarray, reference: np.ndarray) -> float:
+    """RMS difference over the subject's pixels (reference alpha > 0.5), over the reference's mean there."""
+    mask = reference[..., 3] > 0.5
+    x, r = image[..., :3][mask].astype(np.float64), reference[..., :3][mask].astype(np.float64)
+    return float(np.sqrt(np.mean((x - r) ** 2)) / max(r.mean(), 1e-12))
+
+
+def noise_probe_frames(capture: Capture) -> dict[str, FrameLighting]:
+    """The frames the ground truth's noise is measured on: a uniform one, a sky with a sun and a room (training)."""
+    kinds: dict[str, str] = {}
+    for folder in {Path(f.envmap).parent for f in capture.frames if f.envmap}:
+        index = capture.folder / folder / "index.json"
+        if index.is_file():
+            kinds.update({str(folder / e["file"]): e["kind"] for e in json.loads(index.read_text())})
+    probes: dict[str, FrameLighting] = {}
+    for entry in capture.frames:
+        label = "uniform" if entry.kind == "uniform" else kinds.get(entry.envmap or "", "")
+        if label in ("uniform", "sky", "room") and label not in probes and entry.split == "train":
+            probes[label] = entry
+    return probes
+
+
+def measure_ground_truth_noise(capture: Capture, source, renderer: GroundTruthRenderer, camera: str, pose=None) -> dict[str, dict]:
+    """Relative RMSE of the ground truth against a render of the same view with 16x the samples (other seeds).
+
+    ``pose(frame)`` moves ``source`` to a frame (default: ``source.set_frame``). The reference's own noise is a
+    quarter of the image's, so the figure overstates the noise by at most 3 % of itself."""
+    import time
+
+    out = {}
+    for label, entry in noise_probe_frames(capture).items():
+        (pose or source.set_frame)(entry.frame)
+        source.set_led_intensities(capture.lighting(source.stage, entry))
+        sensor = source.sensor_index(camera)
+        start = time.perf_counter()
+        image = renderer.render(source.scene, sensor, seed=entry.frame)
+        seconds = time.perf_counter() - start
+        reference = renderer.render(source.scene, sensor, seed=100_003 + entry.frame, factor=NOISE_REFERENCE_FACTOR)
+        out[label] = {
+            "frame": entry.frame,
+            "camera": camera,
+            "envmap": entry.envmap,
+            "relative_rmse": round(relative_rmse(image, reference), 5),
+            "seconds_per_image": round(seconds, 3),
+        }
+    return out
+
+
+def generate_capture(
+    out: str | Path,
+    preset_name: str = "small",
+    renderer: str = "path",
+    measure_noise: bool = True,
+    test_envmaps: dict[str, np.ndarray] | None = None,
+) -> Capture:
+    """Write a synthetic capture; rerunning resumes (existing images are kept, and each image's samples depend only
+    on its frame, so a resumed capture equals an uninterrupted one). ``measure_noise``: measure the ground truth's
+    noise (:func:`measure_ground_truth_noise`) into ``capture.json``. ``test_envmaps`` (name → validated lat-long
+    map): the user's own held-out lighting, in place of the first procedural test envmaps."""
     from gra_mi.core.progress import progress
     from gra_mi.core.runtime import ensure_mitsuba
     from gra_mi.render.atlas import UVAtlas
+    from gra_mi.stage.envmap import downsample_envmap
     from gra_mi.stage.envmap_library import write_envmap_set
     from gra_mi.stage.lightstage import default_lightstage
     from gra_mi.stage.scene import LightstageScene, subject_scene_xml, write_rig
@@ -153,22 +308,37 @@ def generate_capture(out: str | Path, preset_name: str = "small", renderer: str 
     out = Path(out)
     ensure_mitsuba()
 
-    # 1. Rig, subject, envmaps ---------------------------------------------------------------------------
+    # 1. Rig, subject, lighting ----------------------------------------------------------------------------
     stage = default_lightstage(
         preset.num_leds, num_cameras=preset.num_cameras, camera_distance=preset.camera_distance, width=preset.width, height=preset.height
     )
     write_rig(stage, out / "rig")
     if not (out / "subject" / "sequence.npz").is_file():
+        counts = [preset.frames_per_clip] * len(preset.train_clips) + [preset.test_frames()] * len(preset.test_clips)
         if preset.subject == "tiny":
-            seq = tiny_subject(preset.frames_per_clip * (len(preset.train_clips) + len(preset.test_clips)))
+            seq = tiny_subject(sum(counts))
         else:
             from gra_mi.subject.anny_body import anny_sequence
 
-            seq = anny_sequence(preset.train_clips + preset.test_clips, preset.frames_per_clip)
+            seq = anny_sequence(preset.train_clips + preset.test_clips, counts)
         save_sequence(seq, out / "subject")
     n_relit = len(preset.train_clips) * (preset.frames_per_clip // 2)
     train_env = [str(p.relative_to(out)) for p in write_envmap_set(out / "envmaps", "train", max(n_relit, 1), preset.envmap_height)]
-    test_env = [str(p.relative_to(out)) for p in write_envmap_set(out / "envmaps", "test", len(preset.test_clips), preset.envmap_height)]
+    test_kinds = preset.test_lightings()
+    n_test_env = sum(k == "envmap" for k in test_kinds)
+    user = list((test_envmaps or {}).items())
+    if len(user) > n_test_env:
+        raise GraMiParameterError(
+            "test_envmap", f"the {preset.name} preset has {n_test_env} envmap-lit test sequence(s), got {len(user)} maps"
+        )
+    user_paths = []
+    for name, image in user:
+        user_paths.append(f"envmaps/test/user_{name}.exr")
+        write_exr(out / user_paths[-1], downsample_envmap(image, preset.envmap_height))
+        write_png((out / user_paths[-1]).with_suffix(".png"), image, exposure=None)
+    procedural = write_envmap_set(out / "envmaps", "test", n_test_env - len(user), preset.envmap_height) if n_test_env > len(user) else []
+    test_env = iter(user_paths + [str(p.relative_to(out)) for p in procedural])
+    test_sources = [("envmap", next(test_env)) if k == "envmap" else ("pattern", _write_test_olat(stage, out)) for k in test_kinds]
     atomic_write_text(out / "scene.xml", subject_scene_xml("rig", "subject"))
 
     # 2. Ground-truth material ---------------------------------------------------------------------------
@@ -182,6 +352,7 @@ def generate_capture(out: str | Path, preset_name: str = "small", renderer: str 
     write_png(out / "gt" / "albedo.png", maps["albedo"])
     write_exr(out / "gt" / "normal_map.exr", wrinkle_normal_map(maps["cloth"], 0.0))
 
+    previous = Capture.load(out) if (out / "capture.json").is_file() else None
     capture = Capture(
         out,
         preset.name,
@@ -189,8 +360,20 @@ def generate_capture(out: str | Path, preset_name: str = "small", renderer: str 
         preset.uv_resolution,
         [c.name for c in stage.cameras[: len(stage.cameras) - preset.eval_cameras]],
         [c.name for c in stage.cameras[len(stage.cameras) - preset.eval_cameras :]],
-        _schedule(preset, train_env, test_env),
+        _schedule(preset, train_env, test_sources),
+        ground_truth={"renderer": renderer, "spp": preset.spp, "indirect_spp": preset.indirect_spp, "max_depth": preset.max_depth},
     )
+    if previous is not None:
+        for key in ("noise", "envmap_fidelity"):
+            if key in previous.ground_truth:
+                capture.ground_truth[key] = previous.ground_truth[key]
+    if "envmap_fidelity" not in capture.ground_truth:
+        from gra_mi.stage.envmap import led_fidelity, load_envmap
+
+        envmaps = sorted({f.envmap for f in capture.frames if f.envmap})
+        capture.ground_truth["envmap_fidelity"] = {
+            name: led_fidelity(load_envmap(out / name), stage) for name in progress(envmaps, description="envmap -> LED fidelity")
+        }
     capture.save()
 
     # 3. Render (image space: the fit works in UV space, so the ground truth takes another code path) ------
@@ -198,26 +381,29 @@ def generate_capture(out: str | Path, preset_name: str = "small", renderer: str 
 
     if renderer == "onebounce":
         atomic_write_text(out / "scene_gt.xml", subject_scene_xml("rig", "subject", spp=preset.spp, bsdf_xml=ONEBOUNCE_BSDF))
-        integrator = mi.load_dict({"type": "gra_onebounce"})
-        spp = 16  # deterministic lighting: samples only anti-alias
+        gt_renderer = GroundTruthRenderer(spp=16, indirect_spp=0, max_depth=2)  # deterministic lighting: samples only anti-alias
     else:
         atomic_write_text(out / "scene_gt.xml", subject_scene_xml("rig", "subject", spp=preset.spp, bsdf_xml=GT_BSDF))
-        integrator = mi.load_dict({"type": "path", "max_depth": preset.max_depth})
-        spp = preset.spp
+        gt_renderer = GroundTruthRenderer(preset.spp, preset.indirect_spp, preset.max_depth)
     source = LightstageScene.load(out / "scene_gt.xml")
     normal_key = next((k for k in source.params.keys() if k.endswith("normalmap.data")), None)
+
+    def pose(frame: int) -> None:
+        if source.set_frame(frame) and normal_key is not None:  # wrinkles follow the pose
+            amplitude = wrinkle_amplitude(frame, ls.sequence.num_frames)
+            source.params[normal_key] = mi.TensorXf(wrinkle_normal_map(maps["cloth"], amplitude))
+            source.params.update()
+
     jobs = [(entry, cam) for entry in capture.frames for cam in stage.cameras]
     for entry, cam in progress(jobs, description=f"capture ({renderer})"):
         path = capture.image_path(cam.name, entry.frame)
         if path.is_file():
             continue
-        if source.set_frame(entry.frame):
-            if normal_key is not None:  # wrinkles follow the pose
-                amplitude = wrinkle_amplitude(entry.frame, ls.sequence.num_frames)
-                source.params[normal_key] = mi.TensorXf(wrinkle_normal_map(maps["cloth"], amplitude))
-                source.params.update()
+        pose(entry.frame)
         source.set_led_intensities(capture.lighting(stage, entry))
-        sensor = source.sensor_index(cam.name)
-        image = np.array(mi.render(source.scene, sensor=sensor, integrator=integrator, spp=spp, seed=entry.frame), dtype=np.float32)
-        write_exr(path, image)
+        write_exr(path, gt_renderer.render(source.scene, source.sensor_index(cam.name), seed=entry.frame))
+    if measure_noise and renderer == "path" and "noise" not in capture.ground_truth:
+        logger.info("measuring the ground truth's noise against %dx the samples", NOISE_REFERENCE_FACTOR)
+        capture.ground_truth["noise"] = measure_ground_truth_noise(capture, source, gt_renderer, stage.cameras[0].name, pose)
+        capture.save()
     return capture

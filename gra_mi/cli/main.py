@@ -44,6 +44,44 @@ def _add_device(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _add_envmap_input(p: argparse.ArgumentParser) -> None:
+    from gra_mi.stage.envmap import DEFAULT_ENVMAP_HEIGHT, ENVMAP_CONVENTIONS
+
+    p.add_argument(
+        "--envmap-convention",
+        choices=sorted(ENVMAP_CONVENTIONS),
+        default="mitsuba",
+        help="Which tool's lat-long layout the envmaps follow: mitsuba/gra-mi (image centre = +Z), blender/polyhaven or "
+        "threejs/gltf (centre = +X after the usual Y-up conversion); see docs/conventions.md. Default: mitsuba.",
+    )
+    p.add_argument(
+        "--envmap-rotate",
+        type=float,
+        default=0.0,
+        help="Turn the envmaps about the up axis by this many degrees (counter-clockwise seen from above).",
+    )
+    p.add_argument(
+        "--envmap-height",
+        type=int,
+        default=DEFAULT_ENVMAP_HEIGHT,
+        help=f"Larger envmaps are downsampled to this many rows, flux kept, before the LED mapping. Default: {DEFAULT_ENVMAP_HEIGHT}.",
+    )
+    p.add_argument(
+        "--repair-envmap",
+        action="store_true",
+        help="Replace NaN/Inf envmap pixels (with a warning) instead of stopping. Negative pixels (lossy-compression ringing) "
+        "are always removed with the flux kept, with a warning.",
+    )
+
+
+def _envmap_loader(args) -> Callable[[Path], object]:
+    from gra_mi.stage.envmap import load_envmap
+
+    if args.envmap_height < 2:
+        raise GraMiParameterError("envmap_height", f"must be >= 2, got {args.envmap_height}")
+    return lambda path: load_envmap(path, args.repair_envmap, args.envmap_convention, args.envmap_rotate, args.envmap_height)
+
+
 def _parse_clips(text: str) -> list[str]:
     from gra_mi.subject.anny_body import MOTION_CLIPS
 
@@ -226,14 +264,14 @@ def _args_render(p):
     p.add_argument("--frame", type=int, default=0, help="Frame of the subject sequence. Default: 0.")
     p.add_argument("--camera", default="0", help="Camera index or name. Default: 0.")
     light = p.add_mutually_exclusive_group(required=True)
-    light.add_argument("--envmap", type=Path, help="Lat-long HDR EXR mapped onto the LEDs.")
+    light.add_argument("--envmap", type=Path, help="Lat-long HDR map (OpenEXR or Radiance .hdr) mapped onto the LEDs.")
     light.add_argument("--olat", type=int, help="Light one LED (index) at the stage maximum.")
     light.add_argument("--pattern", type=Path, help='LED drive values: JSON {"intensities": [[r,g,b],...]} or .npy of shape (L,) or (L,3).')
-    p.add_argument(
-        "--repair-envmap", action="store_true", help="Replace NaN/Inf/negative envmap pixels (with a warning) instead of stopping."
-    )
+    _add_envmap_input(p)
     p.add_argument("--integrator", choices=["direct", "path"], default="direct", help="Mitsuba integrator. Default: direct.")
-    p.add_argument("--spp", type=int, default=128, help="Samples per pixel. Default: 128.")
+    p.add_argument(
+        "--spp", type=int, default=64, help="Samples per pixel (the low-discrepancy sampler rounds up to a power of 4). Default: 64."
+    )
     p.add_argument("--seed", type=int, default=0, help="Sampler seed. Default: 0.")
     p.add_argument("--background", action="store_true", help="Also write a preview composited over the envmap's background plate.")
     p.add_argument("--out", type=Path, default=Path("outputs/render"), help="Output folder. Default: outputs/render.")
@@ -241,14 +279,13 @@ def _args_render(p):
 
 
 def _cmd_render(args) -> None:
-    from gra_mi.stage.envmap import load_envmap
     from gra_mi.stage.lightstage import load_pattern, olat_pattern
     from gra_mi.stage.scene import render_to_folder
 
     if args.spp < 1:
         raise GraMiParameterError("spp", f"must be >= 1, got {args.spp}")
     if args.envmap:
-        light, envmap, drive = args.envmap.stem, load_envmap(args.envmap, repair=args.repair_envmap), None
+        light, envmap, drive = args.envmap.stem, _envmap_loader(args)(args.envmap), None
     elif args.olat is not None:
         light, envmap, drive = f"olat{args.olat:03d}", None, lambda stage: olat_pattern(stage, args.olat)
     else:
@@ -267,7 +304,8 @@ def _args_capture(p):
         "--preset",
         choices=sorted(PRESETS),
         default="small",
-        help="tiny: CI, seconds; small: the demo, minutes; full: 40 cameras at 1024x540, 512² UV.",
+        help="tiny: CI, seconds; small: the demo, minutes; medium: 48 training envmaps, 8 cameras, OLAT test, about 15 "
+        "minutes on 2 cores; full: 40 cameras at 1024x540, 512² UV (a GPU's work).",
     )
     p.add_argument(
         "--renderer",
@@ -275,13 +313,23 @@ def _args_capture(p):
         default="path",
         help="Ground truth: Mitsuba path tracing of a richer material (default), or gra-mi's one-bounce model (recovery tests).",
     )
+    p.add_argument(
+        "--test-envmap",
+        type=Path,
+        action="append",
+        default=[],
+        help="Your own HDR map (OpenEXR or .hdr) as held-out test lighting, in place of a procedural one (repeatable).",
+    )
+    _add_envmap_input(p)
     _add_runtime(p)
 
 
 def _cmd_capture(args) -> None:
     from gra_mi.capture.synthetic import generate_capture
 
-    capture = generate_capture(args.out, args.preset, args.renderer)
+    load = _envmap_loader(args)
+    test_envmaps = {path.stem: load(path) for path in args.test_envmap}
+    capture = generate_capture(args.out, args.preset, args.renderer, test_envmaps=test_envmaps)
     n = len(capture.frames) * (len(capture.train_cameras) + len(capture.eval_cameras))
     print(f"wrote {n} images of {len(capture.frames)} frames to {args.out}")
 
@@ -540,7 +588,13 @@ def _args_relight(p):
     p.add_argument("scene", type=Path, help="Lightstage scene XML (e.g. scenes/tiny_lightstage.xml).")
     p.add_argument("--frames", default="all", help="Frames: 'all', 'A:B' (B excluded) or a comma list. Default: all.")
     p.add_argument("--cameras", default="0", help="Cameras: 'all' or a comma list of indices or names. Default: 0.")
-    p.add_argument("--envmap", type=Path, action="append", default=[], help="Lat-long HDR EXR mapped onto the LEDs (repeatable).")
+    p.add_argument(
+        "--envmap",
+        type=Path,
+        action="append",
+        default=[],
+        help="Lat-long HDR map (OpenEXR or Radiance .hdr) mapped onto the LEDs (repeatable).",
+    )
     p.add_argument("--olat", type=int, action="append", default=[], help="Light one LED (index) at the stage maximum (repeatable).")
     p.add_argument(
         "--pattern", type=Path, action="append", default=[], help="LED drive values, JSON or .npy (repeatable; see docs/data-format.md)."
@@ -567,9 +621,7 @@ def _args_relight(p):
         default=None,
         help="Folder with relightnet.safetensors + relightnet.json (from `gra-mi train-relightnet`).",
     )
-    p.add_argument(
-        "--repair-envmap", action="store_true", help="Replace NaN/Inf/negative envmap pixels (with a warning) instead of stopping."
-    )
+    _add_envmap_input(p)
     p.add_argument(
         "--albedo",
         type=Path,
@@ -591,7 +643,6 @@ def _cmd_relight(args) -> None:
     from gra_mi.apps.relight import RelightConfig, collect_lights, relight_batch
     from gra_mi.render.point_light import parse_point_light
     from gra_mi.render.relighter import load_texture
-    from gra_mi.stage.envmap import load_envmap
     from gra_mi.stage.lightstage import load_pattern
     from gra_mi.stage.scene import LightstageScene
 
@@ -600,7 +651,8 @@ def _cmd_relight(args) -> None:
     config = config_from_args(RelightConfig, args)
     config.validate()  # before any file is read
     point_light = parse_point_light(args.point_light, args.point_light_intensity, args.point_light_radius) if args.point_light else None
-    envmaps = {p.stem: load_envmap(p, repair=args.repair_envmap) for p in args.envmap}
+    load = _envmap_loader(args)
+    envmaps = {p.stem: load(p) for p in args.envmap}
     albedo = load_texture(args.albedo, 3, "albedo") if args.albedo else None
     roughness = load_texture(args.roughness, 1, "roughness") if args.roughness else None
     ls = LightstageScene.load(args.scene)

@@ -82,7 +82,12 @@ def write_exr(path: str | Path, image: np.ndarray) -> None:
 
 
 def read_exr(path: str | Path) -> np.ndarray:
-    """Read an EXR as float32 ``(H, W, C)`` with C = 1, 3 or 4 (Y, RGB or RGBA)."""
+    """Read an EXR as float32 ``(H, W, C)`` with C = 1, 3 or 4 (Y, RGB or RGBA).
+
+    Any compression OpenEXR reads (ZIP, PIZ, DWAA, DWAB, ...), half or float pixels, R,G,B stored as separate
+    channels or as the interleaved ``RGB``/``RGBA`` channel of OpenEXR's Python API, and layered files (Blender's
+    ``ViewLayer.Combined.R``): the first layer with R, G, B is read.
+    """
     import OpenEXR
 
     path = Path(path)
@@ -93,10 +98,103 @@ def read_exr(path: str | Path) -> np.ndarray:
             channels = {name: np.asarray(ch.pixels) for name, ch in f.channels().items()}
     except Exception as exc:  # OpenEXR raises bare RuntimeErrors on corrupt files
         raise GraMiInputError(path, f"not a readable OpenEXR file ({exc})") from None
-    for names in (("R", "G", "B", "A"), ("R", "G", "B"), ("Y",)):
-        if all(n in channels for n in names):
-            return np.stack([channels[n] for n in names], axis=-1).astype(np.float32)
+    layers = sorted({name.rsplit(".", 1)[0] + "." if "." in name else "" for name in channels}, key=len)
+    for prefix in layers:
+        for names in (("R", "G", "B", "A"), ("R", "G", "B"), ("Y",)):
+            if all(prefix + n in channels for n in names):
+                return np.stack([channels[prefix + n] for n in names], axis=-1).astype(np.float32)
+    for name in ("RGBA", "RGB"):  # a file whose interleaved channel kept its name
+        if name in channels and channels[name].ndim == 3:
+            return channels[name].astype(np.float32)
     raise GraMiInputError(path, f"expected channels R,G,B[,A] or Y, found {sorted(channels)}")
+
+
+def read_rgbe(path: str | Path) -> np.ndarray:
+    """Read a Radiance ``.hdr``/``.pic`` file (RGBE, flat or run-length encoded scanlines) as float32 (H, W, 3).
+
+    Only the standard ``-Y H +X W`` orientation (rows top to bottom) is accepted; other orientations name themselves.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise GraMiInputError(path, "file not found")
+    data = path.read_bytes()
+    if not data.startswith((b"#?RADIANCE", b"#?RGBE")):
+        raise GraMiInputError(path, "not a Radiance HDR file (no '#?RADIANCE' signature)")
+    end = data.find(b"\n\n")
+    if end < 0:
+        raise GraMiInputError(path, "truncated header")
+    header = data[:end].decode("latin-1")
+    if "FORMAT=" in header and "FORMAT=32-bit_rle_rgbe" not in header:
+        raise GraMiInputError(path, "only FORMAT=32-bit_rle_rgbe is supported (not XYZE)")
+    eol = data.find(b"\n", end + 2)
+    size = data[end + 2 : eol].decode("latin-1").split()
+    if len(size) != 4 or size[0] != "-Y" or size[2] != "+X":
+        raise GraMiInputError(path, f"expected the resolution line '-Y H +X W', got {' '.join(size)!r}")
+    height, width = int(size[1]), int(size[3])
+    body = np.frombuffer(data, dtype=np.uint8, offset=eol + 1)
+    pixels = np.empty((height, width, 4), dtype=np.uint8)
+    pos = 0
+    try:
+        for row in range(height):
+            rle = (
+                width >= 8
+                and width < 32768
+                and body[pos] == 2
+                and body[pos + 1] == 2
+                and (int(body[pos + 2]) << 8 | body[pos + 3]) == width
+            )
+            if not rle:  # flat scanline (old-style run lengths are not written by any current tool)
+                pixels[row] = body[pos : pos + 4 * width].reshape(width, 4)
+                pos += 4 * width
+                continue
+            pos += 4
+            for channel in range(4):
+                x = 0
+                while x < width:
+                    count = int(body[pos])
+                    pos += 1
+                    if count > 128:  # a run
+                        count -= 128
+                        pixels[row, x : x + count, channel] = body[pos]
+                        pos += 1
+                    else:
+                        pixels[row, x : x + count, channel] = body[pos : pos + count]
+                        pos += count
+                    if count == 0 or x + count > width:
+                        raise ValueError("bad run length")
+                    x += count
+    except (IndexError, ValueError) as exc:
+        raise GraMiInputError(path, f"corrupt or truncated pixel data at row {row} ({exc})") from None
+    exponent = pixels[..., 3].astype(np.int32)
+    scale = np.where(exponent > 0, np.ldexp(1.0, exponent - 136), 0.0)  # (mantissa + 0.5) / 256 * 2^(e - 128)
+    return ((pixels[..., :3].astype(np.float64) + 0.5) * scale[..., None] * (exponent[..., None] > 0)).astype(np.float32)
+
+
+def write_rgbe(path: str | Path, image: np.ndarray) -> None:
+    """Write float RGB as a flat (uncompressed) Radiance ``.hdr`` file, atomically."""
+    rgb = np.maximum(np.asarray(image, dtype=np.float64)[..., :3], 0.0)
+    peak = rgb.max(axis=-1)
+    mantissa, exponent = np.frexp(peak)
+    scale = np.where(peak > 1e-32, mantissa * 256.0 / np.maximum(peak, 1e-300), 0.0)
+    out = np.zeros(rgb.shape[:2] + (4,), dtype=np.uint8)
+    out[..., :3] = np.clip(rgb * scale[..., None], 0, 255).astype(np.uint8)
+    out[..., 3] = np.where(peak > 1e-32, exponent + 128, 0).astype(np.uint8)
+    header = f"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y {rgb.shape[0]} +X {rgb.shape[1]}\n".encode("latin-1")
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        fh.write(header + out.tobytes())
+
+
+HDR_SUFFIXES = (".exr", ".hdr", ".pic")
+
+
+def read_hdr_image(path: str | Path) -> np.ndarray:
+    """An HDR image from an OpenEXR or Radiance file, chosen by the suffix."""
+    path = Path(path)
+    if path.suffix.lower() == ".exr":
+        return read_exr(path)
+    if path.suffix.lower() in (".hdr", ".pic"):
+        return read_rgbe(path)
+    raise GraMiInputError(path, f"unsupported HDR image type '{path.suffix}', expected one of {', '.join(HDR_SUFFIXES)}")
 
 
 # --------------------------------------------------------------------------------------------------------------

@@ -23,7 +23,6 @@ from pathlib import Path
 import numpy as np
 
 from gra_mi.core.errors import GraMiInputError
-from gra_mi.core.io import read_exr
 from gra_mi.stage.lightstage import Camera, Lightstage
 
 logger = logging.getLogger(__name__)
@@ -117,21 +116,81 @@ def lookup(envmap: np.ndarray, directions: np.ndarray) -> np.ndarray:
 class EnvmapIssues:
     nan: int
     inf: int
-    negative: int
 
     @property
     def total(self) -> int:
-        return self.nan + self.inf + self.negative
+        return self.nan + self.inf
 
     def describe(self) -> str:
-        return f"{self.nan} NaN, {self.inf} Inf and {self.negative} negative pixel values"
+        return f"{self.nan} NaN and {self.inf} Inf pixel values"
+
+
+def repair_negative_flux(image: np.ndarray, radius: int = 3) -> np.ndarray:
+    """Remove negative lobes (the ringing of lossy DWA compression around a sun) while keeping every channel's flux.
+
+    Each negative pixel's flux deficit is taken from the positive pixels within ``radius`` pixels, in proportion to
+    their flux, so the ringing's overshoot and undershoot cancel where they were made (clamping to 0 alone would
+    add the undershoot's energy back as light). A deficit with no positive neighbour is spread over the whole map.
+    """
+    from scipy.ndimage import uniform_filter
+
+    h, w = image.shape[:2]
+    omega = pixel_solid_angles(h, w)[..., None]
+    flux = image.astype(np.float64) * omega
+    positive, deficit = np.maximum(flux, 0.0), np.minimum(flux, 0.0)
+    size, mode = (1, 2 * radius + 1, 2 * radius + 1), ("nearest", "wrap", "constant")
+    box = np.transpose(positive, (2, 0, 1))  # channels first: filter rows (clamped) and columns (wrapping) only
+    local = np.transpose(uniform_filter(box, size=size, mode=mode), (1, 2, 0))
+    share = np.where(local > 0, deficit / np.where(local > 0, local, 1.0), 0.0)
+    taken = positive * np.transpose(uniform_filter(np.transpose(share, (2, 0, 1)), size=size, mode=mode), (1, 2, 0))
+    repaired = np.maximum(positive + taken, 0.0)
+    # What could not be taken locally (no or too little positive flux nearby) comes off the whole map.
+    target = flux.sum(axis=(0, 1))
+    total = repaired.sum(axis=(0, 1))
+    repaired *= np.where(total > 0, np.maximum(target, 0.0) / np.where(total > 0, total, 1.0), 0.0)
+    return (repaired / omega).astype(np.float32)
+
+
+def downsample_envmap(image: np.ndarray, height: int) -> np.ndarray:
+    """A lat-long map at ``height`` rows (width 2 x height) with each channel's flux exactly preserved: every source
+    pixel's flux ``L Ω`` goes to the target pixel its direction falls in, divided by that pixel's solid angle."""
+    h, w = image.shape[:2]
+    if height >= h:
+        return image
+    u, v = pixel_uv(h, w)
+    cols = np.minimum((u * 2 * height).astype(np.int64), 2 * height - 1)
+    rows = np.rint(v * (height - 1)).astype(np.int64)
+    index = (rows[:, None] * (2 * height) + cols[None, :]).ravel()
+    flux = (image[..., :3].astype(np.float64) * pixel_solid_angles(h, w)[..., None]).reshape(-1, 3)
+    out = np.stack([np.bincount(index, weights=flux[:, c], minlength=2 * height * height) for c in range(3)], axis=-1)
+    return (out.reshape(height, 2 * height, 3) / pixel_solid_angles(height, 2 * height)[..., None]).astype(np.float32)
+
+
+# Where other tools put the image centre, as a longitude shift into gra-mi's convention: out(u) = source(u + shift).
+# Blender's world texture (and so Poly Haven maps) and three.js / glTF viewers centre the image on +X of their
+# worlds; with the usual Y-up conversion (Blender (x, y, z) -> (x, z, -y), as glTF exporters do) that is gra-mi's
+# +X, a quarter turn from gra-mi's (and Mitsuba's) centre at +Z. Rows are top = zenith everywhere.
+ENVMAP_CONVENTIONS = {"mitsuba": 0.0, "gra-mi": 0.0, "blender": 0.25, "polyhaven": 0.25, "threejs": 0.25, "gltf": 0.25}
+
+
+def shift_longitude(image: np.ndarray, shift: float) -> np.ndarray:
+    """out(u) = image(u + shift), wrapping around; whole-pixel shifts are exact, others interpolate linearly."""
+    w = image.shape[1]
+    columns = shift * w
+    whole = math.floor(columns)
+    frac = columns - whole
+    rolled = np.roll(image, -whole, axis=1)
+    if abs(frac) < 1e-9:
+        return rolled.copy()
+    return ((1.0 - frac) * rolled + frac * np.roll(rolled, -1, axis=1)).astype(image.dtype)
 
 
 def validate_envmap(image: np.ndarray, source: str = "<envmap>", repair: bool = False) -> np.ndarray:
     """Check shape (lat-long: W = 2 H, 1/3/4 channels) and values; return an (H, W, 3) float32 copy.
 
-    NaN/Inf/negative values raise :class:`GraMiInputError`, or with ``repair=True`` are replaced (NaN → 0,
-    +Inf → the largest finite value, −Inf and negatives → 0) with a warning that says how many.
+    Negative values (lossy compression's ringing) are removed with the flux kept (:func:`repair_negative_flux`)
+    and a one-line warning. NaN/Inf raise :class:`GraMiInputError`, or with ``repair=True`` become 0 (NaN, −Inf)
+    and the largest finite value (+Inf), with a warning. A map with no positive energy is an error.
     """
     image = np.asarray(image)
     if image.ndim == 2:
@@ -144,21 +203,51 @@ def validate_envmap(image: np.ndarray, source: str = "<envmap>", repair: bool = 
     if image.shape[2] == 1:
         image = np.repeat(image, 3, axis=2)
     image = np.array(image[..., :3], dtype=np.float32)
-    issues = EnvmapIssues(nan=int(np.isnan(image).sum()), inf=int(np.isinf(image).sum()), negative=int((image < 0).sum()))
+    issues = EnvmapIssues(nan=int(np.isnan(image).sum()), inf=int(np.isinf(image).sum()))
     if issues.total:
         if not repair:
             raise GraMiInputError(source, f"contains {issues.describe()} (use the repair option to fix them)")
         finite = image[np.isfinite(image)]
         top = float(finite.max()) if finite.size else 0.0
         image = np.nan_to_num(image, nan=0.0, posinf=top, neginf=0.0)
-        image = np.maximum(image, 0.0)
         logger.warning("%s: repaired %s", source, issues.describe())
+    negative = image < 0
+    if negative.any():
+        low = float(image.min())
+        image = repair_negative_flux(image)
+        logger.warning(
+            "%s: %d negative values (down to %.4g; lossy-compression ringing) removed, flux of each channel kept",
+            source,
+            int(negative.sum()),
+            low,
+        )
+    flux = float((image.astype(np.float64) * pixel_solid_angles(h, w)[..., None]).sum())
+    if not flux > 0:
+        raise GraMiInputError(source, "the map carries no light (its total energy is zero)")
     return image
 
 
-def load_envmap(path: str | Path, repair: bool = False) -> np.ndarray:
-    """Read a lat-long HDR EXR and validate it (see :func:`validate_envmap`)."""
-    return validate_envmap(read_exr(path), source=str(path), repair=repair)
+DEFAULT_ENVMAP_HEIGHT = 256  # larger maps are downsampled (flux kept) before the LED mapping: 331 LEDs see no more
+
+
+def load_envmap(
+    path: str | Path, repair: bool = False, convention: str = "mitsuba", rotate_deg: float = 0.0, max_height: int = DEFAULT_ENVMAP_HEIGHT
+) -> np.ndarray:
+    """Read a lat-long HDR map (OpenEXR or Radiance .hdr), validate it (:func:`validate_envmap`), bring it into
+    gra-mi's convention (``convention``: where the source tool puts the image centre, see ``ENVMAP_CONVENTIONS``;
+    ``rotate_deg``: a further turn about the up axis, counter-clockwise seen from above) and downsample it to at
+    most ``max_height`` rows with its flux kept."""
+    from gra_mi.core.io import read_hdr_image
+
+    if convention not in ENVMAP_CONVENTIONS:
+        raise GraMiInputError(path, f"unknown envmap convention '{convention}', expected one of {sorted(ENVMAP_CONVENTIONS)}")
+    if not math.isfinite(rotate_deg):
+        raise GraMiInputError(path, f"rotation must be finite, got {rotate_deg}")
+    image = validate_envmap(read_hdr_image(path), source=str(path), repair=repair)
+    image = downsample_envmap(image, max_height)
+    # A counter-clockwise turn moves light from u to u - angle/360 (see :func:`rotate`), so out(u) = in(u + angle/360).
+    shift = ENVMAP_CONVENTIONS[convention] + rotate_deg / 360.0
+    return shift_longitude(image, shift) if shift % 1.0 else image
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -278,6 +367,45 @@ def led_irradiance(stage: Lightstage, intensities: np.ndarray, normals: np.ndarr
     """Irradiance at the stage centre from point LEDs of radiant intensity (L, 3): Σ I max(0, n·d) / r²."""
     cos = np.maximum(normals @ stage.led_directions().T, 0.0)
     return (cos / stage.led_distances()[None, :] ** 2) @ intensities
+
+
+FIDELITY_NORMALS = 256
+
+
+def led_fidelity(envmap: np.ndarray, stage: Lightstage, num_normals: int = FIDELITY_NORMALS) -> dict[str, float]:
+    """How well the LED mapping reproduces the envmap's irradiance at the stage centre, over ``num_normals`` normals
+    spread evenly over the sphere: max and mean relative error per normal (luminance-free: channels averaged), for
+    the barycentric mapping and for the least-squares optimum under non-negativity (NNLS on LED intensities, solved
+    on another, denser set of normals so the figure is not the fit's own residual). The error is relative to each
+    normal's irradiance, floored at 5 % of the mean so that normals facing away from all light do not divide by ~0.
+    """
+    from scipy.optimize import nnls
+
+    from gra_mi.stage.lightstage import fibonacci_sphere
+
+    def errors(normals, intensities):
+        truth = envmap_irradiance(envmap, normals).mean(axis=1)
+        got = led_irradiance(stage, intensities, normals).mean(axis=1)
+        floor = 0.05 * truth.mean()
+        return np.abs(got - truth) / np.maximum(truth, floor)
+
+    normals = fibonacci_sphere(num_normals)
+    mapped = envmap_to_leds(envmap, stage, normalize=False).radiant_intensity(stage)
+    barycentric = errors(normals, mapped)
+    # The optimum, fitted on 4x as many normals (turned, so none coincides with an evaluation normal).
+    fit_normals = fibonacci_sphere(4 * num_normals) @ rotation_y(17.0).T
+    truth = envmap_irradiance(envmap, fit_normals)
+    weights = 1.0 / np.maximum(truth.mean(axis=1), 0.05 * truth.mean())
+    design = np.maximum(fit_normals @ stage.led_directions().T, 0.0) / stage.led_distances()[None, :] ** 2
+    optimum = np.stack([nnls(design * weights[:, None], truth[:, c] * weights, maxiter=20 * stage.num_leds)[0] for c in range(3)], axis=1)
+    best = errors(normals, optimum)
+    return {
+        "normals": num_normals,
+        "max_rel_error": float(barycentric.max()),
+        "mean_rel_error": float(barycentric.mean()),
+        "optimum_max_rel_error": float(best.max()),
+        "optimum_mean_rel_error": float(best.mean()),
+    }
 
 
 # --------------------------------------------------------------------------------------------------------------

@@ -64,7 +64,7 @@ def camera_xml(camera: Camera, spp_param: str = f"${keys.PARAM_SPP}") -> str:
         '        <float name="near_clip" value="0.01"/>\n'
         '        <float name="far_clip" value="100"/>\n'
         f'        <transform name="to_world"><matrix value="{_fmt(m)}"/></transform>\n'
-        f'        <sampler type="independent"><integer name="sample_count" value="{spp_param}"/></sampler>\n'
+        f'        <sampler type="ldsampler"><integer name="sample_count" value="{spp_param}"/></sampler>\n'
         f'        <film type="hdrfilm"><integer name="width" value="{camera.width}"/><integer name="height" value="{camera.height}"/>'
         '<string name="pixel_format" value="rgba"/><rfilter type="box"/></film>\n'
         "    </sensor>"
@@ -225,8 +225,13 @@ class LightstageScene:
         import mitsuba as mi
 
         intensities = validate_pattern(self.stage, intensities, source="LED intensities")
+        # Path tracers pick an LED in proportion to its power: with a sun, a few LEDs carry nearly all the light,
+        # and picking among all of them uniformly is what made fireflies. LEDs that are off are never picked.
+        power = intensities.mean(axis=1)
+        weights = power / power.max() if power.max() > 0 else np.ones_like(power)
         for i, value in enumerate(intensities):
             self.params[keys.led_intensity(i)] = mi.Color3f(*(float(x) for x in value))
+            self.params[keys.led_sampling_weight(i)] = float(weights[i])
         self.params.update()
 
     def set_pattern(self, drive: np.ndarray) -> None:

@@ -26,6 +26,11 @@ def led_intensity(index: int) -> str:
     return f"{led_id(index)}.intensity.value"
 
 
+def led_sampling_weight(index: int) -> str:
+    """How often the path tracer picks this LED for next-event estimation (relative to the others)."""
+    return f"{led_id(index)}.sampling_weight"
+
+
 def led_position(index: int) -> str:
     return f"{led_id(index)}.position"
 

@@ -97,13 +97,17 @@ def _axis_rotation(axis: str, angle: float) -> np.ndarray:
     return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
 
 
-def clip_frames(clips: list[str], frames_per_clip: int | None = None) -> list[tuple[str, float]]:
-    """(clip name, phase) for every frame of the clips played one after the other."""
+def clip_frames(clips: list[str], frames_per_clip: int | list[int] | None = None) -> list[tuple[str, float]]:
+    """(clip name, phase) for every frame of the clips played one after the other (frames: one count, one per clip,
+    or None for each clip's own loop length)."""
+    counts = frames_per_clip if isinstance(frames_per_clip, list) else [frames_per_clip] * len(clips)
+    if len(counts) != len(clips):
+        raise ValueError(f"{len(counts)} frame counts for {len(clips)} clips")
     out = []
-    for name in clips:
+    for name, count in zip(clips, counts, strict=True):
         if name not in MOTION_CLIPS:
             raise ValueError(f"unknown motion clip '{name}', expected one of {sorted(MOTION_CLIPS)}")
-        n = frames_per_clip or MOTION_CLIPS[name].frames_per_loop
+        n = count or MOTION_CLIPS[name].frames_per_loop
         out += [(name, 2.0 * math.pi * k / n) for k in range(n)]
     return out
 
@@ -129,7 +133,7 @@ def _body_colors(model, position_index: np.ndarray) -> np.ndarray:
     return per_position[position_index]
 
 
-def anny_sequence(clips: list[str], frames_per_clip: int | None = None, fps: float = 24.0) -> MeshSequence:
+def anny_sequence(clips: list[str], frames_per_clip: int | list[int] | None = None, fps: float = 24.0) -> MeshSequence:
     """Animate the anny body through the given clips and export a tracked mesh sequence (world frame)."""
     import anny
     import torch
