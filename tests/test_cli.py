@@ -134,7 +134,10 @@ def test_demo_tiny_runs_end_to_end(tmp_path):
     for needle in (
         "## Material fit",
         "held-out camera",
-        "Envmap → LED energy check",
+        "## Envmap → LED fidelity",
+        "| envmaps/train/train_0000.exr |",
+        "## Ground-truth noise",
+        "| uniform (all LEDs) |",
         "## Video refiner",
         "Near-field",
         "+ RelightNet PSNR",
