@@ -100,3 +100,17 @@ def test_capture_json_frame_errors_name_the_entry(tmp_path, field):
     (tmp_path / "capture.json").write_text(json.dumps(data))
     with pytest.raises(GraMiInputError, match=r"frames\[0\]"):
         Capture.load(tmp_path)
+
+
+def test_sample_counts_are_checked_and_a_resume_keeps_its_settings(tmp_path, llvm_variant, capsys):
+    from gra_mi.cli import main
+
+    assert main(["capture", "--preset", "tiny", "--out", str(tmp_path / "a"), "--spp", "8"]) == 2
+    assert "--spp: must be a power of 4" in capsys.readouterr().err
+    assert not (tmp_path / "a").exists()
+    out = tmp_path / "b"
+    (out / "images" / "cam00").mkdir(parents=True)
+    (out / "images" / "cam00" / "frame_0000.exr").write_bytes(b"")  # one image of an earlier run
+    Capture(out, "tiny", "path", 32, [], [], [], {"renderer": "path", "spp": 16, "indirect_spp": 16, "max_depth": 4}).save()
+    assert main(["capture", "--preset", "tiny", "--out", str(out)]) == 2
+    assert "this capture was rendered with" in capsys.readouterr().err

@@ -137,7 +137,6 @@ def test_demo_tiny_runs_end_to_end(tmp_path):
         "## Envmap → LED fidelity",
         "| envmaps/train/train_0000.exr |",
         "## Ground-truth noise",
-        "| uniform (all LEDs) |",
         "## Video refiner",
         "Near-field",
         "+ RelightNet PSNR",

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -242,5 +244,8 @@ def test_relight_cli(tmp_path, llvm_variant):
     for name in ("uv_radiance", "uv_normal", "uv_position", "uv_view_dir", "uv_mask"):
         assert (tmp_path / "r" / "olat004" / "cam00" / f"{name}_0002.exr").exists()
     assert (tmp_path / "r" / "sky" / "cam00.mp4").exists()
+    fidelity = json.loads((tmp_path / "r" / "envmap_fidelity.json").read_text())
+    assert set(fidelity) == {"sky"} and fidelity["sky"]["normals"] >= 200
+    assert fidelity["sky"]["max_rel_error"] < 0.02  # a constant sky: every normal sees the same irradiance; 64 LEDs match it
     bad = run_cli("relight", str(TINY), "--out", str(tmp_path / "x"))
     assert bad.returncode == 2 and "at least one --envmap" in bad.stderr

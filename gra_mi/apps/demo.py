@@ -368,6 +368,8 @@ def _report(preset, variant, capture, ls, lights, timings, fit_metrics, metrics,
         "| frame | lighting | relative RMSE | s / image |",
         "|---|---|---|---|",
     ]
+    if not capture.ground_truth.get("noise"):
+        lines.append(f"| – | not measured: the `{capture.renderer}` ground truth | – | – |")
     for label, row in capture.ground_truth.get("noise", {}).items():
         lines.append(
             f"| {row['frame']} | {label} ({row['envmap'] or 'all LEDs'}) | {100 * row['relative_rmse']:.2f} % | {row['seconds_per_image']:.2f} |"

@@ -7,6 +7,7 @@ Jobs run frame-major, so each frame's visibility is traced once and reused by ev
 
 from __future__ import annotations
 
+import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -14,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
-from gra_mi.core.io import atomic_path, auto_exposure, write_exr, write_mp4, write_png
+from gra_mi.core.io import atomic_path, atomic_write_text, auto_exposure, write_exr, write_mp4, write_png
 from gra_mi.core.progress import progress
 from gra_mi.stage.scene import LightstageScene
 
@@ -106,7 +107,7 @@ def relight_batch(
     roughness: np.ndarray | None = None,
     vis_cache: str | Path | None = None,
 ) -> RelightSummary:
-    """Render every (frame, light, camera) of ``scene`` (a path or a loaded scene) into ``out/LIGHT/CAMERA/frame_NNNN.{exr,png}`` (+ ``CAMERA.mp4``).
+    """Render every (frame, light, camera) of ``scene`` (a path or a loaded scene) (+ ``envmap_fidelity.json``) into ``out/LIGHT/CAMERA/frame_NNNN.{exr,png}`` (+ ``CAMERA.mp4``).
 
     ``frames``/``cameras`` None: all frames, camera 0. ``albedo``/``roughness`` None: the subject's vertex colours baked
     to UV and roughness 0.5. Everything is checked before the first file is written.
@@ -114,7 +115,7 @@ def relight_batch(
     from gra_mi.core.runtime import ensure_mitsuba, torch_device
     from gra_mi.relightnet.infer import render_view
     from gra_mi.render.relighter import Relighter
-    from gra_mi.stage.envmap import background_plate
+    from gra_mi.stage.envmap import background_plate, led_fidelity
     from gra_mi.stage.scene import composite_over
 
     config = config or RelightConfig()
@@ -141,6 +142,18 @@ def relight_batch(
         resolution = model.config.resolution
     relighter = Relighter(ls, resolution, albedo, roughness, config.far_field, vis_cache)
 
+    # How well 331 (or L) LEDs can stand in for each envmap: irradiance error over 256 normals, next to the optimum.
+    fidelity = {name: led_fidelity(light.envmap, ls.stage) for name, light in lights.items() if light.envmap is not None}
+    for name, f in fidelity.items():
+        logger.info(
+            "%s on the LEDs: irradiance error mean %.2f %%, max %.2f %% over %d normals",
+            name,
+            100 * f["mean_rel_error"],
+            100 * f["max_rel_error"],
+            f["normals"],
+        )
+    if fidelity:
+        atomic_write_text(out / "envmap_fidelity.json", json.dumps(fidelity, indent=1) + "\n")
     point_light = next((light.point_light for light in lights.values() if light.point_light is not None), None)
     if point_light is not None:
         _write_point_light_conditioning(out, ls.stage, ls.scene, point_light)

@@ -20,13 +20,13 @@ from __future__ import annotations
 import json
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from gra_mi.capture.dataset import Capture, FrameLighting
-from gra_mi.core.errors import GraMiParameterError
+from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.io import atomic_write_text, write_exr, write_png
 
 logger = logging.getLogger(__name__)
@@ -286,11 +286,14 @@ def generate_capture(
     renderer: str = "path",
     measure_noise: bool = True,
     test_envmaps: dict[str, np.ndarray] | None = None,
+    spp: int | None = None,
+    indirect_spp: int | None = None,
 ) -> Capture:
     """Write a synthetic capture; rerunning resumes (existing images are kept, and each image's samples depend only
     on its frame, so a resumed capture equals an uninterrupted one). ``measure_noise``: measure the ground truth's
     noise (:func:`measure_ground_truth_noise`) into ``capture.json``. ``test_envmaps`` (name → validated lat-long
-    map): the user's own held-out lighting, in place of the first procedural test envmaps."""
+    map): the user's own held-out lighting, in place of the first procedural test envmaps. ``spp``/``indirect_spp``
+    override the preset's sample counts (powers of 4): more samples, less noise (README: what 2 % costs)."""
     from gra_mi.core.progress import progress
     from gra_mi.core.runtime import ensure_mitsuba
     from gra_mi.render.atlas import UVAtlas
@@ -305,8 +308,29 @@ def generate_capture(
     if renderer not in ("path", "onebounce"):
         raise GraMiParameterError("renderer", f"expected 'path' or 'onebounce', got '{renderer}'")
     preset = PRESETS[preset_name]
+    for name, value in (("spp", spp), ("indirect_spp", indirect_spp)):
+        if value is not None and (value < 1 or 4 ** round(math.log(value, 4)) != value):
+            raise GraMiParameterError(
+                name, f"must be a power of 4 (the low-discrepancy sampler's counts: 4, 16, 64, 256, ...), got {value}"
+            )
+    preset = replace(preset, spp=spp or preset.spp, indirect_spp=indirect_spp or preset.indirect_spp)
     out = Path(out)
     ensure_mitsuba()
+    # onebounce: deterministic lighting, samples only anti-alias
+    counts = (
+        {"spp": 16, "indirect_spp": 0, "max_depth": 2}
+        if renderer == "onebounce"
+        else {"spp": preset.spp, "indirect_spp": preset.indirect_spp, "max_depth": preset.max_depth}
+    )
+    previous = Capture.load(out) if (out / "capture.json").is_file() else None
+    if previous is not None:
+        rendered = {k: previous.ground_truth.get(k) for k in ("renderer", "spp", "indirect_spp", "max_depth")}
+        asked = {k: {"renderer": renderer, **counts}[k] for k in rendered}
+        if rendered != asked and any((out / "images").rglob("*.exr")):  # a resume must not mix two estimators
+            how = f"with {rendered}" if previous.ground_truth else "by an earlier gra-mi (no ground_truth record)"
+            raise GraMiInputError(
+                out / "capture.json", f"this capture was rendered {how}, not {asked}: resume it with those, or use a new folder"
+            )
 
     # 1. Rig, subject, lighting ----------------------------------------------------------------------------
     stage = default_lightstage(
@@ -352,7 +376,6 @@ def generate_capture(
     write_png(out / "gt" / "albedo.png", maps["albedo"])
     write_exr(out / "gt" / "normal_map.exr", wrinkle_normal_map(maps["cloth"], 0.0))
 
-    previous = Capture.load(out) if (out / "capture.json").is_file() else None
     capture = Capture(
         out,
         preset.name,
@@ -361,7 +384,7 @@ def generate_capture(
         [c.name for c in stage.cameras[: len(stage.cameras) - preset.eval_cameras]],
         [c.name for c in stage.cameras[len(stage.cameras) - preset.eval_cameras :]],
         _schedule(preset, train_env, test_sources),
-        ground_truth={"renderer": renderer, "spp": preset.spp, "indirect_spp": preset.indirect_spp, "max_depth": preset.max_depth},
+        ground_truth={"renderer": renderer, **counts},
     )
     if previous is not None:
         for key in ("noise", "envmap_fidelity"):
@@ -381,10 +404,10 @@ def generate_capture(
 
     if renderer == "onebounce":
         atomic_write_text(out / "scene_gt.xml", subject_scene_xml("rig", "subject", spp=preset.spp, bsdf_xml=ONEBOUNCE_BSDF))
-        gt_renderer = GroundTruthRenderer(spp=16, indirect_spp=0, max_depth=2)  # deterministic lighting: samples only anti-alias
+        gt_renderer = GroundTruthRenderer(**counts)
     else:
         atomic_write_text(out / "scene_gt.xml", subject_scene_xml("rig", "subject", spp=preset.spp, bsdf_xml=GT_BSDF))
-        gt_renderer = GroundTruthRenderer(preset.spp, preset.indirect_spp, preset.max_depth)
+        gt_renderer = GroundTruthRenderer(**counts)
     source = LightstageScene.load(out / "scene_gt.xml")
     normal_key = next((k for k in source.params.keys() if k.endswith("normalmap.data")), None)
 

@@ -314,6 +314,15 @@ def _args_capture(p):
         help="Ground truth: Mitsuba path tracing of a richer material (default), or gra-mi's one-bounce model (recovery tests).",
     )
     p.add_argument(
+        "--spp", type=int, default=None, help="Samples per pixel of the exact direct light (a power of 4). Default: the preset's."
+    )
+    p.add_argument(
+        "--indirect-spp",
+        type=int,
+        default=None,
+        help="Path samples per pixel of the interreflections (a power of 4). Default: the preset's.",
+    )
+    p.add_argument(
         "--test-envmap",
         type=Path,
         action="append",
@@ -329,7 +338,9 @@ def _cmd_capture(args) -> None:
 
     load = _envmap_loader(args)
     test_envmaps = {path.stem: load(path) for path in args.test_envmap}
-    capture = generate_capture(args.out, args.preset, args.renderer, test_envmaps=test_envmaps)
+    capture = generate_capture(
+        args.out, args.preset, args.renderer, test_envmaps=test_envmaps, spp=args.spp, indirect_spp=args.indirect_spp
+    )
     n = len(capture.frames) * (len(capture.train_cameras) + len(capture.eval_cameras))
     print(f"wrote {n} images of {len(capture.frames)} frames to {args.out}")
 
