@@ -114,3 +114,20 @@ def test_sample_counts_are_checked_and_a_resume_keeps_its_settings(tmp_path, llv
     Capture(out, "tiny", "path", 32, [], [], [], {"renderer": "path", "spp": 16, "indirect_spp": 16, "max_depth": 4}).save()
     assert main(["capture", "--preset", "tiny", "--out", str(out)]) == 2
     assert "this capture was rendered with" in capsys.readouterr().err
+
+
+def test_olat_test_frames_light_one_led(tmp_path, default_stage):
+    """The medium preset's out-of-distribution test: one LED, front-left above the subject, at the stage maximum."""
+    from gra_mi.capture.dataset import FrameLighting
+    from gra_mi.capture.synthetic import OLAT_KEY_DIRECTION, _write_test_olat
+
+    rel = _write_test_olat(default_stage, tmp_path)
+    capture = Capture(tmp_path, "x", "path", 8, [], [], [FrameLighting(0, "test", 2, "pattern", None, pattern=rel)])
+    lighting = capture.lighting(default_stage, capture.frames[0])
+    lit = np.flatnonzero(lighting.max(axis=1))
+    assert len(lit) == 1
+    np.testing.assert_allclose(lighting[lit[0]], default_stage.max_led_intensity * default_stage.gains[lit[0]])
+    key = OLAT_KEY_DIRECTION / np.linalg.norm(OLAT_KEY_DIRECTION)
+    assert default_stage.led_directions()[lit[0]] @ key > 0.98
+    capture.save()
+    assert Capture.load(tmp_path).frames == capture.frames  # the pattern survives the round trip

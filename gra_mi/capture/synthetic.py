@@ -317,7 +317,7 @@ def generate_capture(
     out = Path(out)
     ensure_mitsuba()
     # onebounce: deterministic lighting, samples only anti-alias
-    counts = (
+    sample_counts = (
         {"spp": 16, "indirect_spp": 0, "max_depth": 2}
         if renderer == "onebounce"
         else {"spp": preset.spp, "indirect_spp": preset.indirect_spp, "max_depth": preset.max_depth}
@@ -325,7 +325,7 @@ def generate_capture(
     previous = Capture.load(out) if (out / "capture.json").is_file() else None
     if previous is not None:
         rendered = {k: previous.ground_truth.get(k) for k in ("renderer", "spp", "indirect_spp", "max_depth")}
-        asked = {k: {"renderer": renderer, **counts}[k] for k in rendered}
+        asked = {k: {"renderer": renderer, **sample_counts}[k] for k in rendered}
         if rendered != asked and any((out / "images").rglob("*.exr")):  # a resume must not mix two estimators
             how = f"with {rendered}" if previous.ground_truth else "by an earlier gra-mi (no ground_truth record)"
             raise GraMiInputError(
@@ -338,13 +338,13 @@ def generate_capture(
     )
     write_rig(stage, out / "rig")
     if not (out / "subject" / "sequence.npz").is_file():
-        counts = [preset.frames_per_clip] * len(preset.train_clips) + [preset.test_frames()] * len(preset.test_clips)
+        frames_per_clip = [preset.frames_per_clip] * len(preset.train_clips) + [preset.test_frames()] * len(preset.test_clips)
         if preset.subject == "tiny":
-            seq = tiny_subject(sum(counts))
+            seq = tiny_subject(sum(frames_per_clip))
         else:
             from gra_mi.subject.anny_body import anny_sequence
 
-            seq = anny_sequence(preset.train_clips + preset.test_clips, counts)
+            seq = anny_sequence(preset.train_clips + preset.test_clips, frames_per_clip)
         save_sequence(seq, out / "subject")
     n_relit = len(preset.train_clips) * (preset.frames_per_clip // 2)
     train_env = [str(p.relative_to(out)) for p in write_envmap_set(out / "envmaps", "train", max(n_relit, 1), preset.envmap_height)]
@@ -384,7 +384,7 @@ def generate_capture(
         [c.name for c in stage.cameras[: len(stage.cameras) - preset.eval_cameras]],
         [c.name for c in stage.cameras[len(stage.cameras) - preset.eval_cameras :]],
         _schedule(preset, train_env, test_sources),
-        ground_truth={"renderer": renderer, **counts},
+        ground_truth={"renderer": renderer, **sample_counts},
     )
     if previous is not None:
         for key in ("noise", "envmap_fidelity"):
@@ -404,10 +404,10 @@ def generate_capture(
 
     if renderer == "onebounce":
         atomic_write_text(out / "scene_gt.xml", subject_scene_xml("rig", "subject", spp=preset.spp, bsdf_xml=ONEBOUNCE_BSDF))
-        gt_renderer = GroundTruthRenderer(**counts)
+        gt_renderer = GroundTruthRenderer(**sample_counts)
     else:
         atomic_write_text(out / "scene_gt.xml", subject_scene_xml("rig", "subject", spp=preset.spp, bsdf_xml=GT_BSDF))
-        gt_renderer = GroundTruthRenderer(**counts)
+        gt_renderer = GroundTruthRenderer(**sample_counts)
     source = LightstageScene.load(out / "scene_gt.xml")
     normal_key = next((k for k in source.params.keys() if k.endswith("normalmap.data")), None)
 
