@@ -378,6 +378,7 @@ def led_fidelity(envmap: np.ndarray, stage: Lightstage, num_normals: int = FIDEL
     the barycentric mapping and for the least-squares optimum under non-negativity (NNLS on LED intensities, solved
     on another, denser set of normals so the figure is not the fit's own residual). The error is relative to each
     normal's irradiance, floored at 5 % of the mean so that normals facing away from all light do not divide by ~0.
+    ``glossy_*``: the same for a glossy lobe, where the optimum for irradiance falls apart (it moves the light).
     """
     from scipy.optimize import nnls
 
@@ -399,12 +400,24 @@ def led_fidelity(envmap: np.ndarray, stage: Lightstage, num_normals: int = FIDEL
     design = np.maximum(fit_normals @ stage.led_directions().T, 0.0) / stage.led_distances()[None, :] ** 2
     optimum = np.stack([nnls(design * weights[:, None], truth[:, c] * weights, maxiter=20 * stage.num_leds)[0] for c in range(3)], axis=1)
     best = errors(normals, optimum)
+
+    def glossy(intensities):
+        # What a glossy surface reflects: the light convolved with a lobe exp(κ(cos − 1)), κ = 20 (about GGX
+        # roughness 0.35), toward the same directions. Irradiance alone cannot tell where the light comes from.
+        h, w = envmap.shape[:2]
+        flux = (envmap[..., :3].astype(np.float64) * pixel_solid_angles(h, w)[..., None]).reshape(-1, 3).mean(axis=1)
+        truth = np.exp(20.0 * (normals @ pixel_directions(h, w).reshape(-1, 3).T - 1.0)) @ flux
+        got = np.exp(20.0 * (normals @ stage.led_directions().T - 1.0)) @ (intensities.mean(axis=1) / stage.led_distances() ** 2)
+        return float((np.abs(got - truth) / np.maximum(truth, 0.05 * truth.mean())).mean())
+
     return {
         "normals": num_normals,
         "max_rel_error": float(barycentric.max()),
         "mean_rel_error": float(barycentric.mean()),
         "optimum_max_rel_error": float(best.max()),
         "optimum_mean_rel_error": float(best.mean()),
+        "glossy_mean_rel_error": glossy(mapped),
+        "optimum_glossy_mean_rel_error": glossy(optimum),
     }
 
 
