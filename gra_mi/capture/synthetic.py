@@ -11,7 +11,7 @@ Ground truth comes from one of two renderers:
   direct light summed exactly over every LED that is on (one shadow ray per LED, the principled BSDF evaluated by
   Mitsuba) plus the interreflections of Mitsuba's ``path`` (``max_depth`` 4 minus 2 with the same samples, so the
   difference is exactly the bounces after the first), whose LED choice follows each LED's power (``sampling_weight``);
-  see :func:`render_ground_truth` and the noise it leaves, measured by :func:`measure_ground_truth_noise`;
+  see :class:`GroundTruthRenderer` and the noise it leaves, measured by :func:`measure_ground_truth_noise`;
 - ``onebounce``: gra-mi's own one-bounce model from the true maps (for recovery tests: the fit must find them).
 """
 

@@ -337,6 +337,9 @@ def _cmd_capture(args) -> None:
     from gra_mi.capture.synthetic import generate_capture
 
     load = _envmap_loader(args)
+    stems = [path.stem for path in args.test_envmap]
+    if len(set(stems)) != len(stems):
+        raise GraMiParameterError("test_envmap", f"two maps share a name ({stems}); the capture stores them by name")
     test_envmaps = {path.stem: load(path) for path in args.test_envmap}
     capture = generate_capture(
         args.out, args.preset, args.renderer, test_envmaps=test_envmaps, spp=args.spp, indirect_spp=args.indirect_spp
