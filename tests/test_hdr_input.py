@@ -187,3 +187,18 @@ def test_corrupt_exr_is_one_line(tmp_path, capsys):
     assert main(["relight", "scene.xml", "--envmap", str(path), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err
     assert "not a readable OpenEXR file" in err and str(path) in err and err.count("\n") == 1
+
+
+@pytest.mark.parametrize(
+    ("option", "message"),
+    [(["--envmap-height", "1"], "--envmap-height: must be >= 2"), (["--envmap-rotate", "nan"], "--envmap-rotate: must be a finite")],
+)
+def test_bad_envmap_options_name_the_flag(tmp_path, capsys, option, message):
+    from gra_mi.core.io import write_exr
+
+    write_exr(tmp_path / "sky.exr", sky_with_sun(8))
+    out = tmp_path / "out"
+    assert main(["relight", "scene.xml", "--envmap", str(tmp_path / "sky.exr"), *option, "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1, err
+    assert not out.exists()

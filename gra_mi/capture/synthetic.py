@@ -232,13 +232,6 @@ class GroundTruthRenderer:
 NOISE_REFERENCE_FACTOR = 16
 
 
-def relative_rmse(image: np.ndarray, reference: np.ndarray) -> float:
-    """RMS difference over the subject's pixels (reference alpha > 0.5), over the reference's mean there."""
-    mask = reference[..., 3] > 0.5
-    x, r = image[..., :3][mask].astype(np.float64), reference[..., :3][mask].astype(np.float64)
-    return float(np.sqrt(np.mean((x - r) ** 2)) / max(r.mean(), 1e-12))
-
-
 def noise_probe_frames(capture: Capture) -> dict[str, FrameLighting]:
     """The frames the ground truth's noise is measured on: a uniform one, a sky with a sun and a room (training)."""
     kinds: dict[str, str] = {}
@@ -261,6 +254,8 @@ def measure_ground_truth_noise(capture: Capture, source, renderer: GroundTruthRe
     quarter of the image's, so the figure overstates the noise by at most 3 % of itself."""
     import time
 
+    from gra_mi.core.metrics import relative_rmse
+
     out = {}
     for label, entry in noise_probe_frames(capture).items():
         (pose or source.set_frame)(entry.frame)
@@ -274,7 +269,7 @@ def measure_ground_truth_noise(capture: Capture, source, renderer: GroundTruthRe
             "frame": entry.frame,
             "camera": camera,
             "envmap": entry.envmap,
-            "relative_rmse": round(relative_rmse(image, reference), 5),
+            "relative_rmse": round(relative_rmse(image, reference, mask=reference[..., 3] > 0.5), 5),
             "seconds_per_image": round(seconds, 3),
         }
     return out
@@ -418,12 +413,15 @@ def generate_capture(
             source.params.update()
 
     jobs = [(entry, cam) for entry in capture.frames for cam in stage.cameras]
+    lit = None  # the frame whose lighting is set: jobs run frame-major, so each frame's envmap is mapped once
     for entry, cam in progress(jobs, description=f"capture ({renderer})"):
         path = capture.image_path(cam.name, entry.frame)
         if path.is_file():
             continue
         pose(entry.frame)
-        source.set_led_intensities(capture.lighting(stage, entry))
+        if lit != entry.frame:
+            source.set_led_intensities(capture.lighting(stage, entry))
+            lit = entry.frame
         write_exr(path, gt_renderer.render(source.scene, source.sensor_index(cam.name), seed=entry.frame))
     if measure_noise and renderer == "path" and "noise" not in capture.ground_truth:
         logger.info("measuring the ground truth's noise against %dx the samples", NOISE_REFERENCE_FACTOR)

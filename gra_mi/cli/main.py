@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import inspect
 import logging
+import math
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -79,6 +80,8 @@ def _envmap_loader(args) -> Callable[[Path], object]:
 
     if args.envmap_height < 2:
         raise GraMiParameterError("envmap_height", f"must be >= 2, got {args.envmap_height}")
+    if not math.isfinite(args.envmap_rotate):
+        raise GraMiParameterError("envmap_rotate", f"must be a finite angle in degrees, got {args.envmap_rotate}")
     return lambda path: load_envmap(path, args.repair_envmap, args.envmap_convention, args.envmap_rotate, args.envmap_height)
 
 

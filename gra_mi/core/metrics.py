@@ -63,6 +63,12 @@ def relative_error(image: np.ndarray, reference: np.ndarray, mask: np.ndarray | 
     return float(np.mean(np.abs(a - r) / np.maximum(r, floor)))
 
 
+def relative_rmse(image: np.ndarray, reference: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """RMS difference over the masked pixels and channels, over the reference's mean there (a render's noise)."""
+    a, r = _masked(image, mask), _masked(reference, mask)
+    return float(np.sqrt(np.mean((a - r) ** 2)) / max(float(r.mean()), 1e-12))
+
+
 def brightness_error(image: np.ndarray, reference: np.ndarray, mask: np.ndarray | None = None) -> float:
     """Relative error of the total light over the mask: Σ image / Σ reference − 1 (−0.8: 80 % too dark)."""
     total = float(_masked(reference, mask).sum())
