@@ -30,12 +30,17 @@ def alpha_from_roughness(roughness):
     return dr.maximum(dr.square(roughness), ALPHA_MIN)
 
 
-def ggx_d(cos_h, alpha):
-    """GGX normal distribution D(h) for cos θh = n·h."""
+def ggx_d(h, alpha):
+    """GGX normal distribution D(h) for a half vector h in the local frame (any length > 0).
+
+    Written as α² |h|⁴ / (π (α² h_z² + h_x² + h_y²)²), i.e. from the tangential components, as Mitsuba's microfacet
+    code does: the textbook denominator cos²θh (α² − 1) + 1 cancels in float32 near the peak (at α = 1e-3 it erred
+    by up to 75 % within 3α of the normal); here every term is positive, so float32 stays exact to a few ulps.
+    """
     a2 = dr.square(alpha)
-    c2 = dr.square(cos_h)
-    denom = c2 * (a2 - 1.0) + 1.0
-    return dr.select(cos_h > 0, a2 / (dr.pi * dr.square(denom)), 0.0)
+    len2 = dr.squared_norm(h)
+    denom = a2 * dr.square(h.z) + (dr.square(h.x) + dr.square(h.y))
+    return dr.select(h.z > 0, a2 * dr.square(len2) * dr.inv_pi * dr.rcp(dr.square(dr.maximum(denom, 1e-18))), 0.0)
 
 
 def smith_g1(cos_theta, alpha):
@@ -78,9 +83,9 @@ class PreparedBRDF:
         The model is linear in albedo; fitting uses the two parts separately.
         """
         cos_o = wo.z
-        h = dr.normalize(self.wi + wo)
-        denom = dr.square(h.z) * (self.alpha2 - 1.0) + 1.0
-        d = self.alpha2 * dr.inv_pi * dr.rcp(dr.square(denom))
+        h_raw = self.wi + wo  # unnormalised: ggx_d needs only its direction, exactly
+        d = ggx_d(h_raw, self.alpha)
+        h = h_raw * dr.rsqrt(dr.squared_norm(h_raw))
         # Smith G1 written as 2 cos / (cos + sqrt(α² + (1 − α²) cos²)): no tan, finite at grazing angles.
         g1_o = 2.0 * cos_o * dr.rcp(cos_o + dr.sqrt(self.alpha2 + (1.0 - self.alpha2) * dr.square(cos_o)))
         spec = dr.select(h.z > 0, d * fresnel_schlick(dr.dot(self.wi, h)) * g1_o * self.spec_scale, 0.0)
@@ -132,7 +137,7 @@ def pdf(albedo, roughness, wi, wo):
     p_spec = specular_probability(albedo)
     h = dr.normalize(wi + wo)
     # Visible-normal density: G1(wi) max(0, wi·h) D(h) / cosθi, then the reflection Jacobian 1 / (4 wo·h).
-    d_visible = smith_g1(wi.z, alpha) * dr.maximum(dr.dot(wi, h), 0.0) * ggx_d(h.z, alpha) / dr.maximum(wi.z, 1e-12)
+    d_visible = smith_g1(wi.z, alpha) * dr.maximum(dr.dot(wi, h), 0.0) * ggx_d(h, alpha) / dr.maximum(wi.z, 1e-12)
     spec = d_visible / (4.0 * dr.maximum(dr.dot(wo, h), 1e-12))
     diff = dr.maximum(wo.z, 0.0) * dr.inv_pi
     valid = (wi.z > 0) & (wo.z > 0)
