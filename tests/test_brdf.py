@@ -133,9 +133,9 @@ def test_near_peak_float32_matches_float64(plugins, roughness):
     ours = plugin_eval(albedo, np.full(len(wi), roughness), wi, wo)
     assert np.max(np.abs(ours - ref) / np.abs(ref)) <= 1e-4
     # The UV-space shader's loop body: diffuse and specular parts, float32.
-    diffuse, spec = brdf.PreparedBRDF(mi.Color3f(1.0), mi.Float(np.full(len(wi), roughness, np.float32)), mi.Vector3f(*wi.T.astype(np.float32))).eval_parts(
-        mi.Vector3f(*wo.T.astype(np.float32))
-    )
+    diffuse, spec = brdf.PreparedBRDF(
+        mi.Color3f(1.0), mi.Float(np.full(len(wi), roughness, np.float32)), mi.Vector3f(*wi.T.astype(np.float32))
+    ).eval_parts(mi.Vector3f(*wo.T.astype(np.float32)))
     ref_spec = ref_eval_cos(np.zeros((len(wi), 3)), np.full(len(wi), roughness), wi, wo)[:, 0]
     ref_diffuse = ref_eval_cos(np.ones((len(wi), 3)), np.full(len(wi), roughness), wi, wo)[:, 0] - ref_spec
     assert np.max(np.abs(np.array(spec).ravel() - ref_spec) / ref_spec) <= 1e-4
