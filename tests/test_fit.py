@@ -78,18 +78,83 @@ def test_fit_cli_resumes_from_checkpoint(onebounce_capture, tmp_path):
     assert (tmp_path / "fit" / "albedo.exr").read_bytes() == first
 
 
-def test_unseen_texels_keep_defaults(onebounce_capture, tmp_path):
+def test_unseen_texels(onebounce_capture, tmp_path):
+    # Closed form: texels no camera saw keep the defaults. Adam: they take their neighbours' values (the prior).
     from gra_mi.capture.dataset import Capture
     from gra_mi.fit.materials import DEFAULT_ALBEDO, DEFAULT_ROUGHNESS, FitConfig, MaterialFitter
 
     capture = Capture.load(onebounce_capture)
     capture.train_cameras = capture.train_cameras[:1]  # one camera sees only one side
-    fitter = MaterialFitter(capture, FitConfig(roughness_candidates=3, irls_iterations=0))
+    fitter = MaterialFitter(capture, FitConfig(solver="closed-form", roughness_candidates=3, irls_iterations=0))
     result = fitter.fit()
     unseen = result.observed_cameras == 0
     assert unseen.sum() > 0.3 * unseen.size
     np.testing.assert_allclose(fitter.atlas.gather(result.albedo)[unseen], DEFAULT_ALBEDO)
     np.testing.assert_allclose(fitter.atlas.gather(result.roughness)[unseen], DEFAULT_ROUGHNESS)
+
+    fitter = MaterialFitter(capture, FitConfig(roughness_candidates=3, irls_iterations=0, iterations=5))
+    result = fitter.fit()
+    albedo = fitter.atlas.gather(result.albedo)
+    seen_albedo = albedo[~unseen]
+    assert not np.allclose(albedo[unseen], DEFAULT_ALBEDO)  # filled, not defaulted
+    assert np.all(albedo[unseen] >= seen_albedo.min(axis=0) - 1e-3) and np.all(albedo[unseen] <= seen_albedo.max(axis=0) + 1e-3)
+
+
+def test_pixel_footprints_predict_the_images(onebounce_capture):
+    # The optimiser compares pixels, each the average of the texels its footprint covers: footprint weights sum to 1,
+    # and the true maps reproduce a capture rendered by the same model far better than constant maps.
+    import mitsuba as mi
+
+    from gra_mi.capture.dataset import Capture
+    from gra_mi.core.io import read_exr
+    from gra_mi.fit import optimize
+    from gra_mi.fit.materials import FitConfig, MaterialFitter
+
+    capture = Capture.load(onebounce_capture)
+    fitter = MaterialFitter(capture, FitConfig())
+    batches = optimize.build_batches(fitter, 0.0, progress_bar=False)
+    assert batches and all(b.pixels > 0 for b in batches)
+    for b in batches:
+        ones = np.array(b.to_pixels(mi.Color3f(np.ones((3, b.count), np.float32))))
+        np.testing.assert_allclose(ones, 1.0, atol=1e-5)
+    true_albedo = fitter.atlas.gather(read_exr(onebounce_capture / "gt" / "albedo.exr")[..., :3])
+    true_rough = fitter.atlas.gather(read_exr(onebounce_capture / "gt" / "roughness.exr")[..., :1])[:, 0]
+    m = fitter.atlas.num_texels
+    truth = optimize.image_l1(batches, true_albedo, true_rough)
+    constant = optimize.image_l1(batches, np.full((m, 3), 0.5), np.full(m, 0.5))
+    # (32² texels on `tiny`: shading texel centres and interpolating costs a few per cent)
+    assert truth < 0.05 and truth < constant / 3, (truth, constant)
+
+
+def test_adam_fit_resumes_where_it_stopped(onebounce_capture, tmp_path, monkeypatch):
+    # An interrupted Adam run resumes from its checkpoint and ends where an uninterrupted run ends.
+    from gra_mi.capture.dataset import Capture
+    from gra_mi.fit import optimize
+    from gra_mi.fit.materials import FitConfig, MaterialFitter
+
+    capture = Capture.load(onebounce_capture)
+    config = FitConfig(roughness_candidates=5, irls_iterations=1, iterations=20)
+    whole = MaterialFitter(capture, config).fit(tmp_path / "whole")
+
+    step = optimize.Adam.step
+    calls = {"n": 0}
+
+    def interrupted(self, *args):
+        calls["n"] += 1
+        if calls["n"] == 15:
+            raise KeyboardInterrupt
+        return step(self, *args)
+
+    monkeypatch.setattr(optimize.Adam, "step", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        MaterialFitter(capture, config).fit(tmp_path / "resumed")
+    monkeypatch.setattr(optimize.Adam, "step", step)
+    resumed = MaterialFitter(capture, config).fit(tmp_path / "resumed")
+    np.testing.assert_allclose(resumed.albedo, whole.albedo, atol=1e-4)
+    np.testing.assert_allclose(resumed.roughness, whole.roughness, atol=1e-4)
+    # The checkpoint belongs to its settings: other options are refused, naming the file.
+    with pytest.raises(GraMiInputError, match="optimize.npz"):
+        MaterialFitter(capture, FitConfig(roughness_candidates=5, irls_iterations=1, iterations=30)).fit(tmp_path / "resumed")
 
 
 def test_bad_capture_folder(tmp_path):

@@ -88,6 +88,8 @@ PRESETS = {
     "full": CapturePreset("full", "anny", ["walk", "arm_raise", "turn"], ["squat"], 24, 331, 40, 3, 1024, 540, 1.8, 512, 128, 64, 256),
 }
 
+ABLATABLE_EFFECTS = ("sheen", "wrinkles", "interreflection")  # what the one-bounce model does not explain
+
 OLAT_KEY_DIRECTION = np.array([0.5, 0.6, 0.62])  # the test OLAT: a key light front-left and above the subject
 
 
@@ -96,25 +98,34 @@ OLAT_KEY_DIRECTION = np.array([0.5, 0.6, 0.62])  # the test OLAT: a key light fr
 # --------------------------------------------------------------------------------------------------------------
 
 
-def _smooth_noise(resolution: int, seed: int) -> np.ndarray:
-    """A smooth field in [0, 1] over UV: a few random low-frequency waves."""
+def _smooth_noise(points: np.ndarray, scale: float, seed: int) -> np.ndarray:
+    """A smooth field in [0, 1] over 3D points: a few random plane waves with wavelengths of 0.25 … 1 × ``scale``.
+
+    Defined on the surface (not in UV), so the maps are continuous across UV seams, like a real subject's.
+    """
     rng = np.random.default_rng(seed)
-    c = (np.arange(resolution) + 0.5) / resolution
-    u, v = np.meshgrid(c, c, indexing="xy")
-    field = np.zeros_like(u)
+    field = np.zeros(points.shape[0])
     for _ in range(4):
-        fu, fv = rng.uniform(1.0, 4.0, 2)
-        phase = rng.uniform(0, 2 * math.pi)
-        field += np.sin(2 * math.pi * (fu * u + fv * v) + phase)
+        direction = rng.normal(size=3)
+        direction /= np.linalg.norm(direction)
+        wavelength = scale * rng.uniform(0.25, 1.0)
+        field += np.sin(2 * math.pi * (points @ direction) / wavelength + rng.uniform(0, 2 * math.pi))
     return 0.5 + 0.5 * field / 4.0
 
 
-def ground_truth_maps(atlas, vertex_colors: np.ndarray, seed: int = 0) -> dict[str, np.ndarray]:
-    """Spatially varying albedo, roughness and a cloth (sheen) mask as (R, R, C) UV textures."""
+def ground_truth_maps(atlas, vertex_colors: np.ndarray, rest_vertices: np.ndarray, seed: int = 0) -> dict[str, np.ndarray]:
+    """Spatially varying albedo, roughness and a cloth (sheen) mask as (R, R, C) UV textures.
+
+    Albedo and roughness vary smoothly over the body's surface (``rest_vertices``: its first frame), with features
+    of about a tenth to half of its height.
+    """
     r = atlas.resolution
     base = atlas.bake_vertex_attribute(vertex_colors, fill=0.5)
-    albedo = np.clip(base * (0.8 + 0.4 * _smooth_noise(r, seed))[..., None], 0.03, 0.95)
-    roughness = np.clip(0.3 + 0.5 * _smooth_noise(r, seed + 1), 0.05, 1.0)[..., None]
+    points = atlas.bake_vertex_attribute(np.asarray(rest_vertices, np.float64), fill=0.0).reshape(-1, 3)
+    height = float(np.ptp(rest_vertices[:, 1])) or 1.0
+    variation = _smooth_noise(points, 0.5 * height, seed).reshape(r, r)
+    albedo = np.clip(base * (0.8 + 0.4 * variation)[..., None], 0.03, 0.95)
+    roughness = np.clip(0.3 + 0.5 * _smooth_noise(points, 0.5 * height, seed + 1).reshape(r, r), 0.05, 1.0)[..., None]
     skin = (base[..., 0] > base[..., 2] + 0.1)[..., None]  # skin tones are redder than blue
     cloth = (~skin) & atlas.mask[..., None]
     return {"albedo": albedo.astype(np.float32), "roughness": roughness.astype(np.float32), "cloth": cloth.astype(np.float32)}
@@ -283,12 +294,15 @@ def generate_capture(
     test_envmaps: dict[str, np.ndarray] | None = None,
     spp: int | None = None,
     indirect_spp: int | None = None,
+    without: tuple[str, ...] = (),
 ) -> Capture:
     """Write a synthetic capture; rerunning resumes (existing images are kept, and each image's samples depend only
     on its frame, so a resumed capture equals an uninterrupted one). ``measure_noise``: measure the ground truth's
     noise (:func:`measure_ground_truth_noise`) into ``capture.json``. ``test_envmaps`` (name → validated lat-long
     map): the user's own held-out lighting, in place of the first procedural test envmaps. ``spp``/``indirect_spp``
-    override the preset's sample counts (powers of 4): more samples, less noise (README: what 2 % costs)."""
+    override the preset's sample counts (powers of 4): more samples, less noise (README: what 2 % costs).
+    ``without``: effects of the path-traced ground truth to leave out (:data:`ABLATABLE_EFFECTS`), to measure what
+    each one costs the fit."""
     from gra_mi.core.progress import progress
     from gra_mi.core.runtime import ensure_mitsuba
     from gra_mi.render.atlas import UVAtlas
@@ -312,15 +326,23 @@ def generate_capture(
     out = Path(out)
     ensure_mitsuba()
     # onebounce: deterministic lighting, samples only anti-alias
+    unknown = sorted(set(without) - set(ABLATABLE_EFFECTS))
+    if unknown or (without and renderer != "path"):
+        raise GraMiParameterError(
+            "without", f"expected effects of the path-traced ground truth among {', '.join(ABLATABLE_EFFECTS)}, got {', '.join(without)}"
+        )
     sample_counts = (
         {"spp": 16, "indirect_spp": 0, "max_depth": 2}
-        if renderer == "onebounce"
+        if renderer == "onebounce" or "interreflection" in without
         else {"spp": preset.spp, "indirect_spp": preset.indirect_spp, "max_depth": preset.max_depth}
     )
+    if renderer == "path" and "interreflection" in without:
+        sample_counts["spp"] = preset.spp
+    record = {"renderer": renderer, **sample_counts, **({"without": sorted(without)} if without else {})}
     previous = Capture.load(out) if (out / "capture.json").is_file() else None
     if previous is not None:
-        rendered = {k: previous.ground_truth.get(k) for k in ("renderer", "spp", "indirect_spp", "max_depth")}
-        asked = {k: {"renderer": renderer, **sample_counts}[k] for k in rendered}
+        rendered = {k: previous.ground_truth.get(k) for k in ("renderer", "spp", "indirect_spp", "max_depth", "without")}
+        asked = {k: record.get(k) for k in rendered}
         if rendered != asked and any((out / "images").rglob("*.exr")):  # a resume must not mix two estimators
             how = f"with {rendered}" if previous.ground_truth else "by an earlier gra-mi (no ground_truth record)"
             raise GraMiInputError(
@@ -364,10 +386,11 @@ def generate_capture(
     ls = LightstageScene.load(out / "scene.xml")
     atlas = UVAtlas.build(ls.sequence.faces, ls.sequence.uvs, preset.uv_resolution)
     colors = ls.sequence.vertex_colors if ls.sequence.vertex_colors is not None else np.full((ls.sequence.num_vertices, 3), 0.5, np.float32)
-    maps = ground_truth_maps(atlas, colors)
+    maps = ground_truth_maps(atlas, colors, ls.sequence.vertices[0])
     write_exr(out / "gt" / "albedo.exr", maps["albedo"])
     write_exr(out / "gt" / "roughness.exr", maps["roughness"])
-    write_exr(out / "gt" / "sheen.exr", maps["cloth"] * 0.8)
+    write_exr(out / "gt" / "sheen.exr", maps["cloth"] * (0.0 if "sheen" in without else 0.8))
+    write_exr(out / "gt" / "cloth.exr", maps["cloth"])  # the material regions (reports score skin and cloth apart)
     write_png(out / "gt" / "albedo.png", maps["albedo"])
     write_exr(out / "gt" / "normal_map.exr", wrinkle_normal_map(maps["cloth"], 0.0))
 
@@ -379,7 +402,7 @@ def generate_capture(
         [c.name for c in stage.cameras[: len(stage.cameras) - preset.eval_cameras]],
         [c.name for c in stage.cameras[len(stage.cameras) - preset.eval_cameras :]],
         _schedule(preset, train_env, test_sources),
-        ground_truth={"renderer": renderer, **sample_counts},
+        ground_truth=dict(record),
     )
     if previous is not None:
         for key in ("noise", "envmap_fidelity"):
@@ -407,7 +430,7 @@ def generate_capture(
     normal_key = next((k for k in source.params.keys() if k.endswith("normalmap.data")), None)
 
     def pose(frame: int) -> None:
-        if source.set_frame(frame) and normal_key is not None:  # wrinkles follow the pose
+        if source.set_frame(frame) and normal_key is not None and "wrinkles" not in without:  # wrinkles follow the pose
             amplitude = wrinkle_amplitude(frame, ls.sequence.num_frames)
             source.params[normal_key] = mi.TensorXf(wrinkle_normal_map(maps["cloth"], amplitude))
             source.params.update()

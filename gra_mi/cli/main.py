@@ -326,6 +326,12 @@ def _args_capture(p):
         help="Path samples per pixel of the interreflections (a power of 4). Default: the preset's.",
     )
     p.add_argument(
+        "--without",
+        default="",
+        help="Effects to leave out of the path-traced ground truth, comma-separated: sheen, wrinkles, interreflection. "
+        "Fitting such captures shows what each effect costs the one-bounce fit (README, material fitting).",
+    )
+    p.add_argument(
         "--test-envmap",
         type=Path,
         action="append",
@@ -345,7 +351,13 @@ def _cmd_capture(args) -> None:
         raise GraMiParameterError("test_envmap", f"two maps share a name ({stems}); the capture stores them by name")
     test_envmaps = {path.stem: load(path) for path in args.test_envmap}
     capture = generate_capture(
-        args.out, args.preset, args.renderer, test_envmaps=test_envmaps, spp=args.spp, indirect_spp=args.indirect_spp
+        args.out,
+        args.preset,
+        args.renderer,
+        test_envmaps=test_envmaps,
+        spp=args.spp,
+        indirect_spp=args.indirect_spp,
+        without=tuple(e.strip() for e in args.without.split(",") if e.strip()),
     )
     n = len(capture.frames) * (len(capture.train_cameras) + len(capture.eval_cameras))
     print(f"wrote {n} images of {len(capture.frames)} frames to {args.out}")
@@ -361,7 +373,16 @@ def _args_fit(p):
         default=Path("outputs/fit"),
         help="Output folder; holds a checkpoint, so rerunning resumes. Default: outputs/fit.",
     )
-    add_config_options(p, FitConfig, ["roughness_candidates", "irls_iterations", "resolution"], flags={"resolution": "--uv-resolution"})
+    add_config_options(
+        p,
+        FitConfig,
+        [
+            "solver", "iterations", "lr_albedo", "lr_roughness", "smooth_albedo", "smooth_roughness", "min_view_cos",
+            "roughness_candidates", "irls_iterations", "resolution",
+        ],
+        flags={"resolution": "--uv-resolution"},
+        choices={"solver": ["adam", "closed-form"]},
+    )  # fmt: skip
     _add_runtime(p)
 
 

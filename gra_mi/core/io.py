@@ -64,8 +64,9 @@ def atomic_write_text(path: str | Path, text: str) -> None:
 # --------------------------------------------------------------------------------------------------------------
 
 
-def write_exr(path: str | Path, image: np.ndarray) -> None:
-    """Write an ``(H, W)``, ``(H, W, 1)``, ``(H, W, 3)`` or ``(H, W, 4)`` float array as a float32 EXR."""
+def write_exr(path: str | Path, image: np.ndarray, channel_names: list[str] | None = None) -> None:
+    """Write an ``(H, W)``, ``(H, W, 1)``, ``(H, W, 3)`` or ``(H, W, 4)`` float array as a float32 EXR; channels are
+    Y, RGB or RGBA unless ``channel_names`` names them (data that is not a colour, e.g. a confidence map)."""
     import OpenEXR
 
     image = np.asarray(image, dtype=np.float32)
@@ -73,7 +74,9 @@ def write_exr(path: str | Path, image: np.ndarray) -> None:
         image = image[..., None]
     if image.ndim != 3 or image.shape[2] not in (1, 3, 4):
         raise ValueError(f"write_exr expects (H, W[, 1|3|4]), got {image.shape}")
-    names = {1: "Y", 3: "RGB", 4: "RGBA"}[image.shape[2]]
+    if channel_names is not None and len(channel_names) != image.shape[2]:
+        raise ValueError(f"write_exr: {len(channel_names)} channel names for {image.shape[2]} channels")
+    names = channel_names or {1: "Y", 3: "RGB", 4: "RGBA"}[image.shape[2]]
     channels = {name: np.ascontiguousarray(image[..., i]) for i, name in enumerate(names)}
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     with atomic_path(path) as tmp:

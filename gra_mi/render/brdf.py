@@ -76,11 +76,21 @@ class PreparedBRDF:
         self.diffuse_unit = dr.inv_pi * diffuse_transmission(wi.z)
         self.albedo = albedo
         self.front = wi.z > 0
+        # dα/dr (0 where the clamp at ALPHA_MIN holds) and ∂ ln G1(ωi) / ∂α, for roughness derivatives.
+        self.dalpha_dr = dr.select(dr.square(roughness) > ALPHA_MIN, 2.0 * roughness, 0.0)
+        self.dlog_g1_i = self._dlog_g1(wi.z)
 
-    def eval_parts(self, wo):
+    def _dlog_g1(self, cos_theta):
+        """∂ ln G1 / ∂α for G1 = 2c / (c + s), s = sqrt(α² + (1 − α²) c²): −α (1 − c²) / (s (c + s))."""
+        s = dr.sqrt(self.alpha2 + (1.0 - self.alpha2) * dr.square(cos_theta))
+        return -self.alpha * (1.0 - dr.square(cos_theta)) * dr.rcp(s * (cos_theta + s))
+
+    def eval_parts(self, wo, roughness_derivative: bool = False):
         """(diffuse per unit albedo, specular), both times cosθo: f cos = albedo ⊙ first + second.
 
-        The model is linear in albedo; fitting uses the two parts separately.
+        The model is linear in albedo; fitting uses the two parts separately. With ``roughness_derivative``, a
+        third value: ∂ specular / ∂ roughness, analytic (material fitting differentiates the LED sums with it;
+        Dr.Jit's AD cannot go through their per-lane loops).
         """
         cos_o = wo.z
         h_raw = self.wi + wo  # unnormalised: ggx_d needs only its direction, exactly
@@ -91,7 +101,15 @@ class PreparedBRDF:
         spec = dr.select(h.z > 0, d * fresnel_schlick(dr.dot(self.wi, h)) * g1_o * self.spec_scale, 0.0)
         valid = self.front & (cos_o > 0)
         diffuse = self.diffuse_unit * (diffuse_transmission(cos_o) * cos_o)
-        return dr.select(valid, diffuse, 0.0), dr.select(valid, spec, 0.0)
+        diffuse, spec = dr.select(valid, diffuse, 0.0), dr.select(valid, spec, 0.0)
+        if not roughness_derivative:
+            return diffuse, spec
+        # ∂ ln D / ∂α for D = α² |h|⁴ / (π q²), q = α² h_z² + h_x² + h_y²: 2/α − 4 α h_z² / q (h unnormalised).
+        hz2 = dr.square(h_raw.z)
+        q = self.alpha2 * hz2 + dr.square(h_raw.x) + dr.square(h_raw.y)
+        dlog_d = 2.0 * dr.rcp(self.alpha) - 4.0 * self.alpha * hz2 * dr.rcp(dr.maximum(q, 1e-18))
+        dlog_spec = dlog_d + self._dlog_g1(cos_o) + self.dlog_g1_i
+        return diffuse, spec, spec * dlog_spec * self.dalpha_dr
 
     def eval_cos(self, wo):
         """f(ωi, ωo) · cosθo."""

@@ -150,5 +150,11 @@ def fitted_relighter(capture_dir: str | Path, fit_dir: str | Path, cache_dir: st
     fit_dir = Path(fit_dir)
     albedo = load_texture(fit_dir / "albedo.exr", 3, "albedo")
     roughness = load_texture(fit_dir / "roughness.exr", 1, "roughness")
+    if roughness.shape[:2] != albedo.shape[:2]:
+        raise GraMiInputError(
+            fit_dir / "roughness.exr",
+            f"{roughness.shape[0]}² but albedo.exr is {albedo.shape[0]}²: the maps of one fit share a resolution (refit, or resample both)",
+            field="resolution",
+        )
     ls = LightstageScene.load(capture.folder / "scene.xml")
     return capture, Relighter(ls, albedo=albedo, roughness=roughness, cache_dir=cache_dir)

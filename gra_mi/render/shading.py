@@ -41,6 +41,74 @@ def shade_texels(
     ``visibility`` may be None when every LED is off.
     """
     m = dr.width(geom.position)
+    words, on_words, pos, inten = led_loop_inputs(led_positions, led_intensities, far_field, stage_center)
+
+    p, n = geom.position, geom.normal
+    frame = mi.Frame3f(n)
+    view = dr.normalize(mi.Point3f(*(float(x) for x in camera_position)) - p)
+    wi = frame.to_local(view)
+    if np.max(led_intensities, initial=0.0) > 0:
+        diffuse, spec = _led_sum(
+            m, words, visibility, on_words, pos, inten, p, frame, wi, mi.Float(np.asarray(roughness, np.float32)), far_field
+        )
+    else:  # every LED off: nothing to do
+        diffuse, spec = dr.zeros(mi.Color3f, m), dr.zeros(mi.Color3f, m)
+    dr.eval(diffuse, spec, view, wi)
+    diffuse, spec = np.array(diffuse).T.reshape(m, 3), np.array(spec).T.reshape(m, 3)
+    radiance = np.asarray(albedo, np.float32) * diffuse + spec
+    return TexelShading(radiance, np.array(view).T.reshape(m, 3), np.array(wi.z > 0), diffuse, spec)
+
+
+@dataclass
+class TexelLedLoop:
+    """The LED sum of a subset of a frame's texels seen from one camera under one lighting, with its inputs gathered
+    once: material fitting runs it many times (roughness candidates, optimiser steps) on the same texels."""
+
+    count: int
+    words: int
+    visibility: mi.UInt32
+    on_words: mi.UInt32
+    led_pos: mi.Point3f
+    led_int: mi.Color3f
+    position: mi.Point3f
+    frame: mi.Frame3f
+    wi: mi.Vector3f
+
+    @classmethod
+    def build(
+        cls,
+        geom: TexelGeometry,
+        visibility: mi.UInt32,
+        texels: np.ndarray,
+        led_positions: np.ndarray,
+        led_intensities: np.ndarray,
+        camera_position,
+    ) -> TexelLedLoop:
+        m = dr.width(geom.position)
+        words, on_words, led_pos, led_int = led_loop_inputs(led_positions, led_intensities)
+        t = mi.UInt32(np.asarray(texels, np.uint32))
+        position = dr.gather(mi.Point3f, geom.position, t)
+        frame = mi.Frame3f(dr.gather(mi.Vector3f, geom.normal, t))
+        wi = frame.to_local(dr.normalize(mi.Point3f(*(float(x) for x in camera_position)) - position))
+        # Visibility words are word-major over all texels (w * M + t): gather this subset's, in the same layout.
+        index = (np.arange(words, dtype=np.uint64)[:, None] * m + np.asarray(texels, np.uint64)[None, :]).ravel()
+        vis = dr.gather(mi.UInt32, visibility, mi.UInt32(index.astype(np.uint32)))
+        dr.eval(position, frame, wi, vis)
+        return cls(int(len(texels)), words, vis, on_words, led_pos, led_int, position, frame, wi)
+
+    def run(self, roughness: mi.Float, roughness_derivative: bool = False):
+        """(diffuse per unit albedo, specular) per texel of the subset, and ∂ specular / ∂ roughness if asked."""
+        return _led_sum(
+            self.count, self.words, self.visibility, self.on_words, self.led_pos, self.led_int, self.position, self.frame, self.wi,
+            roughness, False, roughness_derivative,
+        )  # fmt: skip
+
+
+def led_loop_inputs(
+    led_positions: np.ndarray, led_intensities: np.ndarray, far_field: bool = False, stage_center: np.ndarray | None = None
+) -> tuple[int, mi.UInt32, mi.Point3f, mi.Color3f]:
+    """What :func:`_led_sum` needs of the LEDs: (visibility words per texel, the mask of LEDs that are on in the same
+    word layout, LED positions (far field: unit directions), intensities (far field: divided by d² at the centre))."""
     num_leds = led_positions.shape[0]
     on = np.max(led_intensities, axis=1) > 0
     pos, inten = np.asarray(led_positions, np.float64), np.asarray(led_intensities, np.float64)
@@ -55,34 +123,21 @@ def shade_texels(
     on_bits = np.zeros(words * 32, bool)
     on_bits[:num_leds] = on
     on_words = (on_bits.reshape(words, 32) * (1 << np.arange(32, dtype=np.uint64))).sum(axis=1).astype(np.uint32)
-
-    p, n = geom.position, geom.normal
-    frame = mi.Frame3f(n)
-    view = dr.normalize(mi.Point3f(*(float(x) for x in camera_position)) - p)
-    wi = frame.to_local(view)
-    if on.any():
-        diffuse, spec = _led_sum(
-            m, words, visibility, mi.UInt32(on_words), mi.Point3f(*pos.T.astype(np.float32)), mi.Color3f(*inten.T.astype(np.float32)),
-            p, frame, wi, mi.Float(np.asarray(roughness, np.float32)), far_field,
-        )  # fmt: skip
-    else:  # every LED off: nothing to do
-        diffuse, spec = dr.zeros(mi.Color3f, m), dr.zeros(mi.Color3f, m)
-    dr.eval(diffuse, spec, view, wi)
-    diffuse, spec = np.array(diffuse).T.reshape(m, 3), np.array(spec).T.reshape(m, 3)
-    radiance = np.asarray(albedo, np.float32) * diffuse + spec
-    return TexelShading(radiance, np.array(view).T.reshape(m, 3), np.array(wi.z > 0), diffuse, spec)
+    return words, mi.UInt32(on_words), mi.Point3f(*pos.T.astype(np.float32)), mi.Color3f(*inten.T.astype(np.float32))
 
 
 @dr.syntax
-def _led_sum(m, words, visibility, on_words, led_pos, led_int, p, frame, wi, roughness, far_field):
+def _led_sum(m, words, visibility, on_words, led_pos, led_int, p, frame, wi, roughness, far_field, roughness_derivative=False):
     """Σ over the LEDs that are on *and* visible from each texel, walking the set bits of its visibility words.
 
     Each lane loops over its own visible LEDs only (about a fifth of them on a body), instead of all LEDs masked.
+    Returns (diffuse per unit albedo, specular), and ∂ specular / ∂ roughness with ``roughness_derivative``.
     """
     t = dr.arange(mi.UInt32, m)  # texel index
     material = brdf.PreparedBRDF(mi.Color3f(1.0), roughness, wi)  # per-texel terms hoisted out of the loop
     diffuse = mi.Color3f(0.0)  # Σ diffuse part per unit albedo (the model is linear in albedo)
     spec = mi.Color3f(0.0)  # Σ specular part
+    dspec = mi.Color3f(0.0)  # Σ ∂ specular / ∂ roughness (stays 0 unless asked for)
     w = mi.UInt32(0)  # current visibility word
     bits = dr.gather(mi.UInt32, visibility, t) & dr.gather(mi.UInt32, on_words, mi.UInt32(0))  # its remaining set bits
     n_words = mi.UInt32(words)
@@ -104,8 +159,12 @@ def _led_sum(m, words, visibility, on_words, led_pos, led_int, p, frame, wi, rou
                 inv_d2 = dr.square(inv_d)
                 wo_world = offset * inv_d
             wo = frame.to_local(wo_world)
-            d_part, s_part = material.eval_parts(wo)
             weight = intensity * inv_d2
+            if dr.hint(roughness_derivative, mode="scalar"):
+                d_part, s_part, ds_part = material.eval_parts(wo, roughness_derivative=True)
+                dspec += ds_part * weight
+            else:
+                d_part, s_part = material.eval_parts(wo)
             diffuse += d_part * weight
             spec += s_part * weight
-    return diffuse, spec
+    return (diffuse, spec, dspec) if roughness_derivative else (diffuse, spec)

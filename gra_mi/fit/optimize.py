@@ -1,0 +1,378 @@
+"""Dr.Jit optimisation of the UV albedo and roughness maps (paper Eq. 3), with a surface prior.
+
+    loss = Σ_views w_v Σ_obs |a_t ⊙ D_j + S_j(r_t) − O_j| / (3 N)  +  λ_a E(albedo)  +  λ_r E(roughness)
+
+- the data term is the paper's L1 between the one-bounce model and every training observation (a texel seen by a
+  camera in a frame), each view weighted by 1 / its mean observed radiance so that a dim envmap frame counts as
+  much as a bright uniformly lit one;
+- E is the mean squared difference across the edges of the :class:`~gra_mi.fit.prior.SurfaceGraph` (smoothness on
+  the body, across seams, not across chart boundaries); roughness gets the stronger weight, as its evidence is
+  sparse (highlights) where albedo's is dense (every observation);
+- D (diffuse per unit albedo) does not depend on the material and is computed once per view; S and ∂S/∂r come
+  from the same LED loop as every other renderer (cached per-LED visibility, LEDs that are off skipped), with the
+  analytic roughness derivative; Dr.Jit's reverse-mode AD carries the rest (gathers, the loss, the prior) back to
+  the textures;
+- texels without highlight evidence get no roughness gradient from the data: their roughness is the prior's, i.e.
+  their neighbours' (:meth:`~gra_mi.fit.prior.SurfaceGraph.fill` initialises them that way);
+- Adam (own, 10 lines, so that its state is checkpointed and a resumed run ends where an uninterrupted one does),
+  with the learning rate decaying to a tenth, full batch (deterministic).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from gra_mi.core.errors import GraMiInputError
+from gra_mi.core.io import atomic_path
+from gra_mi.render.shading import TexelLedLoop
+
+FILL_STRENGTH = 0.1  # harmonic fill: highlight texels (confidence 1) move little, the others interpolate them
+HIGHLIGHT_CHANGE = 0.05  # an observation is a highlight if roughness ± 0.1 changes it by at least 5 %
+
+
+FOOTPRINT_SAMPLES = 4  # 4 × 4 sub-pixel rays per pixel: the capture's box pixel filter
+
+
+@dataclass
+class ViewBatch:
+    """One training view: its fully covered pixels, the texels they see, and everything that stays fixed while the
+    maps change. A pixel's prediction is its footprint's average of texel radiance (``entry_*``: which texel, which
+    pixel, what weight), as the camera integrates it; comparing pixels with single texels instead blurs highlights
+    on curved parts (a pixel spans up to ~25° of normal on an arm at 256 × 135) into wrong roughness."""
+
+    name: str
+    count: int  # texels (lanes of the LED loop)
+    texels: mi.UInt32  # (count,) valid-texel index of each lane
+    pixels: int
+    observed: mi.Color3f  # (pixels,)
+    weight: float  # 1 / mean observed radiance
+    entry_lane: mi.UInt32
+    entry_pixel: mi.UInt32
+    entry_weight: mi.Float
+    diffuse: mi.Color3f  # (count,) per unit albedo
+    loop: TexelLedLoop
+
+    def specular(self, roughness: mi.Float) -> tuple[mi.Color3f, mi.Color3f]:
+        """(S, ∂S/∂r) at this view's texels for their roughness."""
+        _, spec, dspec = self.loop.run(roughness, roughness_derivative=True)
+        return spec, dspec
+
+    def to_pixels(self, radiance: mi.Color3f) -> mi.Color3f:
+        """Texel radiance (count,) → the pixels' footprint averages (pixels,)."""
+        value = dr.gather(mi.Color3f, radiance, self.entry_lane) * self.entry_weight
+        out = dr.zeros(mi.Color3f, self.pixels)
+        dr.scatter_reduce(dr.ReduceOp.Add, out, value, self.entry_pixel)
+        return out
+
+
+def pixel_footprints(ls, camera, atlas, alpha: np.ndarray, samples: int = FOOTPRINT_SAMPLES):
+    """For each pixel fully covered in the capture (alpha = 1) and by all of its ``samples``² sub-pixel rays: the
+    texels its rays land on, with bilinear weights. Returns (pixel flat indices, entries (pixel row, texel, weight))."""
+    r = atlas.resolution
+    lookup = np.full(r * r, -1, np.int64)
+    lookup[atlas.texel_index] = np.arange(atlas.num_texels)
+    ys, xs = np.nonzero(alpha >= 0.999)
+    offsets = (np.arange(samples) + 0.5) / samples
+    ox, oy = (g.ravel() for g in np.meshgrid(offsets, offsets, indexing="xy"))
+    px = (xs[:, None] + ox[None, :] - camera.cx) / camera.fx
+    py = (ys[:, None] + oy[None, :] - camera.cy) / camera.fy
+    d = np.stack([px, py, np.ones_like(px)], axis=-1).reshape(-1, 3) @ camera.rotation.T
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    origin = np.tile(camera.position.astype(np.float32), (d.shape[0], 1))
+    ray = mi.Ray3f(mi.Point3f(*origin.T), mi.Vector3f(*d.T.astype(np.float32)))
+    si = ls.scene.ray_intersect(ray, ray_flags=mi.RayFlags.UV, coherent=True)
+    hit = np.array(si.is_valid())
+    uv = np.array(si.uv).T.reshape(-1, 2)
+    x, y = uv[:, 0] * r - 0.5, uv[:, 1] * r - 0.5
+    x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
+    fx, fy = x - x0, y - y0
+    corners = []
+    for dx, dy, w in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
+        cx, cy = np.clip(x0 + dx, 0, r - 1), np.clip(y0 + dy, 0, r - 1)
+        texel = lookup[cy * r + cx]
+        corners.append((texel, np.where(texel >= 0, w, 0.0)))
+    total = sum(w for _, w in corners)
+    ok = hit & (total > 1e-6)  # a sample outside the atlas (between charts) cannot be predicted
+    pixel_ok = ok.reshape(-1, samples * samples).all(axis=1)
+    keep_pixels = np.flatnonzero(pixel_ok)
+    rows = np.full(pixel_ok.size, -1)
+    rows[keep_pixels] = np.arange(keep_pixels.size)
+    sample_pixel = np.repeat(rows, samples * samples)
+    entries = []
+    for texel, w in corners:
+        use = ok & (sample_pixel >= 0) & (w > 0)
+        entries.append((sample_pixel[use], texel[use], (w / np.maximum(total, 1e-12))[use] / (samples * samples)))
+    pix, tex, wgt = (np.concatenate([e[k] for e in entries]) for k in range(3))
+    key, inverse = np.unique(pix * atlas.num_texels + tex, return_inverse=True)
+    summed = np.bincount(inverse, weights=wgt)
+    flat_pixels = (ys * alpha.shape[1] + xs)[keep_pixels]
+    return flat_pixels, (key // atlas.num_texels, key % atlas.num_texels, summed)
+
+
+def build_batches(fitter, min_view_cos: float = 0.0, progress_bar: bool = True) -> list[ViewBatch]:
+    """A :class:`ViewBatch` per training camera and frame of a :class:`~gra_mi.fit.materials.MaterialFitter`; pixels
+    that see a texel more obliquely than ``min_view_cos`` are left out."""
+    from gra_mi.capture.dataset import load_observation
+    from gra_mi.core.progress import progress
+
+    batches = []
+    jobs = [(f.frame, cam) for f in fitter.train for cam in fitter.capture.train_cameras]
+    for frame_index, cam_name in progress(jobs, description="pixel footprints") if progress_bar else jobs:
+        cam = fitter.stage.camera(cam_name)
+        image = load_observation(fitter.capture, cam_name, frame_index)
+        fitter.ls.set_frame(frame_index)
+        flat_pixels, (pix, tex, wgt) = pixel_footprints(fitter.ls, cam, fitter.atlas, image[..., 3])
+        geom = fitter.relighter.geometry(frame_index)
+        to_cam = cam.position[None, :] - np.array(geom.position).T[tex]
+        cos_view = np.sum(np.array(geom.normal).T[tex] * to_cam, axis=1) / np.linalg.norm(to_cam, axis=1)
+        grazing = np.zeros(flat_pixels.size, bool)
+        grazing[pix[cos_view < min_view_cos]] = True
+        keep = ~grazing
+        rows = np.cumsum(keep) - 1
+        use = keep[pix]
+        flat_pixels, pix, tex, wgt = flat_pixels[keep], rows[pix[use]], tex[use], wgt[use]
+        if flat_pixels.size == 0:
+            continue
+        lanes, entry_lane = np.unique(tex, return_inverse=True)
+        loop = TexelLedLoop.build(
+            fitter.relighter.geometry(frame_index), fitter.relighter.visibility(frame_index), lanes, fitter.stage.led_positions,
+            fitter._lighting[frame_index], cam.position,
+        )  # fmt: skip
+        diffuse, _ = loop.run(dr.full(mi.Float, 0.5, loop.count))  # the diffuse part does not depend on roughness
+        dr.eval(diffuse)
+        observed = image[..., :3].reshape(-1, 3)[flat_pixels].astype(np.float64)
+        batches.append(
+            ViewBatch(
+                f"{cam_name}/frame_{frame_index:04d}", loop.count, mi.UInt32(lanes.astype(np.uint32)), int(flat_pixels.size),
+                mi.Color3f(*observed.T.astype(np.float32)), 1.0 / max(float(observed.mean()), 1e-6),
+                mi.UInt32(entry_lane.astype(np.uint32)), mi.UInt32(pix.astype(np.uint32)), mi.Float(wgt.astype(np.float32)), diffuse, loop,
+            )
+        )  # fmt: skip
+    return batches
+
+
+def _predict(b: ViewBatch, albedo: mi.Color3f, roughness: mi.Float) -> mi.Color3f:
+    spec, _ = b.specular(dr.gather(mi.Float, roughness, b.texels))
+    return b.to_pixels(dr.gather(mi.Color3f, albedo, b.texels) * b.diffuse + spec)
+
+
+def image_l1(batches: list[ViewBatch], albedo: np.ndarray, roughness: np.ndarray) -> float:
+    """The optimiser's data term (weighted mean L1 over all pixels) for (M, 3) albedo and (M,) roughness."""
+    a, r = mi.Color3f(*np.asarray(albedo, np.float32).T), mi.Float(np.asarray(roughness, np.float32))
+    total = 0.0
+    for b in batches:
+        residual = np.abs(np.array(_predict(b, a, r) - b.observed))
+        total += float(residual.sum()) * b.weight
+    return total / (3.0 * max(sum(b.pixels for b in batches), 1))
+
+
+def view_l1(batches: list[ViewBatch], albedo: np.ndarray, roughness: np.ndarray) -> list[float]:
+    """Mean absolute L1 over each view's pixels (radiance units)."""
+    a, r = mi.Color3f(*np.asarray(albedo, np.float32).T), mi.Float(np.asarray(roughness, np.float32))
+    return [float(np.abs(np.array(_predict(b, a, r) - b.observed)).mean()) for b in batches]
+
+
+@dataclass
+class Evidence:
+    """What the training views say about each texel (the confidence map)."""
+
+    views: np.ndarray  # (M,) observations (camera × frame)
+    highlights: np.ndarray  # (M,) observations whose radiance roughness ± 0.1 changes by ≥ HIGHLIGHT_CHANGE
+    information: np.ndarray  # (M,) Σ (w ∂S/∂r)²: Fisher information of roughness under relative noise
+
+
+def gather_evidence(batches: list[ViewBatch], albedo: np.ndarray, roughness: np.ndarray) -> Evidence:
+    m = roughness.shape[0]
+    views, highlights, information = np.zeros(m), np.zeros(m), np.zeros(m)
+    a_all, r_all = mi.Color3f(*albedo.T.astype(np.float32)), mi.Float(roughness.astype(np.float32))
+    for b in batches:
+        spec, dspec = b.specular(dr.gather(mi.Float, r_all, b.texels))
+        pred = dr.gather(mi.Color3f, a_all, b.texels) * b.diffuse + spec
+        pred, dspec = np.array(pred).T.reshape(b.count, 3), np.array(dspec).T.reshape(b.count, 3)
+        texels = np.array(b.texels).astype(np.int64)
+        change = 0.1 * np.abs(dspec).mean(axis=1) / np.maximum(pred.mean(axis=1), 1e-8)
+        np.add.at(views, texels, 1)
+        np.add.at(highlights, texels, change >= HIGHLIGHT_CHANGE)
+        np.add.at(information, texels, np.sum(np.square(b.weight * dspec), axis=1))
+    return Evidence(views, highlights, information)
+
+
+class Adam:
+    """Adam (Kingma & Ba 2015) on Dr.Jit arrays, with its state as plain arrays for checkpoints."""
+
+    def __init__(self, beta1: float = 0.9, beta2: float = 0.999, eps: float = 1e-8):
+        self.beta1, self.beta2, self.eps = beta1, beta2, eps
+        self.t = 0
+        self.m: dict = {}
+        self.v: dict = {}
+
+    def step(self, params: dict, grads: dict, lr: dict) -> dict:
+        self.t += 1
+        out = {}
+        for key, value in params.items():
+            g = grads[key]
+            m = dr.lerp(g, self.m.get(key, dr.zeros(type(g), dr.width(g))), self.beta1)
+            v = dr.lerp(dr.square(g), self.v.get(key, dr.zeros(type(g), dr.width(g))), self.beta2)
+            self.m[key], self.v[key] = m, v
+            m_hat = m / (1.0 - self.beta1**self.t)
+            v_hat = v / (1.0 - self.beta2**self.t)
+            out[key] = value - lr[key] * m_hat / (dr.sqrt(v_hat) + self.eps)
+        return out
+
+    def state(self) -> dict[str, np.ndarray]:
+        state = {"adam_t": np.array(self.t)}
+        for key in self.m:
+            state[f"adam_m_{key}"] = np.array(self.m[key])
+            state[f"adam_v_{key}"] = np.array(self.v[key])
+        return state
+
+    def load(self, state: dict, types: dict[str, type]) -> None:
+        self.t = int(state["adam_t"])
+        for key, tp in types.items():
+            if f"adam_m_{key}" in state:
+                self.m[key] = tp(state[f"adam_m_{key}"])
+                self.v[key] = tp(state[f"adam_v_{key}"])
+
+
+@dataclass
+class OptimizeSettings:
+    iterations: int
+    lr_albedo: float
+    lr_roughness: float
+    smooth_albedo: float
+    smooth_roughness: float
+    checkpoint_every: int = 10
+
+
+def optimize_maps(
+    batches: list[ViewBatch],
+    graph,
+    albedo: np.ndarray,
+    roughness: np.ndarray,
+    observed: np.ndarray,
+    has_highlight: np.ndarray,
+    settings: OptimizeSettings,
+    checkpoint: Path | None = None,
+    progress_bar: bool = True,
+    clock_offset: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray, list[tuple[float, float, float, str]], list[tuple[float, np.ndarray, np.ndarray]]]:
+    """Adam on the (M, 3) albedo of ``observed`` texels and the (M,) roughness of those ``has_highlight``; the others
+    take the prior's interpolation of their neighbours (refreshed at every checkpoint). Returns the maps, the curve (seconds, data L1, total loss, label) and
+    the maps at each checkpoint (seconds, albedo, roughness), for time-to-error curves.
+
+    ``checkpoint`` (an .npz) is written every ``checkpoint_every`` iterations and at the end; a run finding one
+    resumes from it.
+    """
+    from gra_mi.core.progress import progress
+
+    start = time.perf_counter() - clock_offset
+    n_obs = sum(b.pixels for b in batches)
+    ei, ej = mi.UInt32(graph.i.astype(np.uint32)), mi.UInt32(graph.j.astype(np.uint32))
+    n_edges = max(graph.num_edges, 1)
+    gate_all = mi.Float(has_highlight.astype(np.float32))
+    gates = [dr.gather(mi.Float, gate_all, b.texels) for b in batches]
+    types = {"albedo": mi.Color3f, "roughness": mi.Float}
+    params = {"albedo": mi.Color3f(*albedo.T.astype(np.float32)), "roughness": mi.Float(roughness.astype(np.float32))}
+    adam = Adam()
+    curve: list[tuple[float, float, float, str]] = []
+    snapshots: list[tuple[float, np.ndarray, np.ndarray]] = []
+    first = 0
+    settings_json = json.dumps(asdict(settings), sort_keys=True)
+    if checkpoint is not None and checkpoint.is_file():
+        state = dict(np.load(checkpoint))
+        if str(state.get("settings", "")) != settings_json or state["roughness"].shape[0] != roughness.shape[0]:
+            raise GraMiInputError(
+                checkpoint,
+                f"this fit was started with {state.get('settings', 'other settings')} on {state['roughness'].shape[0]} texels, "
+                f"not {settings_json} on {roughness.shape[0]}: rerun with those options, or use a new --out folder",
+                field="settings",
+            )
+        params = {"albedo": mi.Color3f(*state["albedo"].T), "roughness": mi.Float(state["roughness"])}
+        adam.load(state, types)
+        curve = [tuple(c) for c in json.loads(str(state["curve"]))]
+        first = int(state["iteration"])
+        snapshots = [
+            (float(t), state[f"snapshot_albedo_{k}"], state[f"snapshot_roughness_{k}"]) for k, t in enumerate(state["snapshot_times"])
+        ]
+        start = time.perf_counter() - (curve[-1][0] if curve else 0.0)
+
+    def save(iteration: int) -> None:
+        if checkpoint is None:
+            return
+        arrays = {"albedo": np.array(params["albedo"]).T.reshape(-1, 3), "roughness": np.array(params["roughness"])}
+        arrays["snapshot_times"] = np.array([t for t, _, _ in snapshots])
+        for k, (_, a, r) in enumerate(snapshots):
+            arrays[f"snapshot_albedo_{k}"], arrays[f"snapshot_roughness_{k}"] = a, r
+        with atomic_path(checkpoint) as tmp, open(tmp, "wb") as fh:
+            np.savez(fh, **arrays, **adam.state(), iteration=np.array(iteration), curve=json.dumps(curve), settings=settings_json)
+
+    def loss_and_grads(with_grad: bool):
+        a, r = mi.Color3f(params["albedo"]), mi.Float(params["roughness"])
+        if with_grad:
+            dr.enable_grad(a, r)
+        data = mi.Float(0.0)
+        for b, gate in zip(batches, gates, strict=True):
+            r_t = dr.gather(mi.Float, r, b.texels)
+            spec, dspec = b.specular(dr.detach(r_t))
+            # S(r) to first order around the current roughness: the value S, the derivative ∂S/∂r (the LED loop's
+            # analytic one) for texels with highlight evidence, 0 for the others.
+            radiance = dr.gather(mi.Color3f, a, b.texels) * b.diffuse + spec + dspec * (gate * (r_t - dr.detach(r_t)))
+            residual = dr.abs(b.to_pixels(radiance) - b.observed)
+            data += dr.sum(residual.x + residual.y + residual.z) * (b.weight / (3.0 * n_obs))
+        prior = settings.smooth_roughness * dr.sum(dr.square(dr.gather(mi.Float, r, ei) - dr.gather(mi.Float, r, ej)))
+        prior += settings.smooth_albedo * dr.sum(dr.squared_norm(dr.gather(mi.Color3f, a, ei) - dr.gather(mi.Color3f, a, ej)))
+        loss = data + prior / n_edges
+        if not with_grad:
+            return float(data[0]), float(loss[0]), None
+        dr.backward(loss)
+        return float(data[0]), float(loss[0]), {"albedo": dr.grad(a), "roughness": dr.grad(r)}
+
+    # Texels the data does not constrain (no highlight: roughness; never seen: albedo) are not moved by Adam, whose
+    # normalised steps would make them wander on the prior's tiny gradient; they take the harmonic interpolation of
+    # their neighbours, refreshed as the others move.
+    fill_roughness = graph.filler(has_highlight.astype(np.float64), FILL_STRENGTH)
+    fill_albedo = graph.filler(observed.astype(np.float64), FILL_STRENGTH)
+    free = {"albedo": mi.Bool(observed), "roughness": mi.Bool(has_highlight)}
+
+    def refill() -> None:
+        if has_highlight.any() and not has_highlight.all():
+            r = np.array(params["roughness"])
+            filled = np.clip(fill_roughness(r, float(np.median(r[has_highlight])))[:, 0], 0.0, 1.0)
+            params["roughness"] = mi.Float(np.where(has_highlight, r, filled).astype(np.float32))
+        if observed.any() and not observed.all():
+            a = np.array(params["albedo"]).T.reshape(-1, 3)
+            filled = np.clip(fill_albedo(a, float(np.median(a[observed]))), 0.0, 1.0)
+            params["albedo"] = mi.Color3f(*np.where(observed[:, None], a, filled).T.astype(np.float32))
+
+    def snapshot() -> None:
+        albedo_now = np.array(params["albedo"]).T.reshape(-1, 3).astype(np.float32)
+        snapshots.append((curve[-1][0], albedo_now, np.array(params["roughness"]).astype(np.float32)))
+
+    if not curve:
+        refill()
+        data, loss, _ = loss_and_grads(False)
+        curve.append((time.perf_counter() - start, data, loss, "initial"))
+        snapshot()
+    iterations = range(first, settings.iterations)
+    for it in progress(list(iterations), description="optimise maps") if progress_bar else iterations:
+        _, _, grads = loss_and_grads(True)
+        decay = 0.1 ** (it / max(settings.iterations - 1, 1))  # the learning rate falls to a tenth
+        lr = {"albedo": settings.lr_albedo * decay, "roughness": settings.lr_roughness * decay}
+        stepped = adam.step(params, grads, lr)
+        params = {k: dr.select(free[k], dr.clip(stepped[k], 0.0, 1.0), params[k]) for k in params}
+        dr.eval(params, adam.m, adam.v)
+        done = it + 1
+        if done % settings.checkpoint_every == 0 or done == settings.iterations:
+            refill()
+            data, loss, _ = loss_and_grads(False)
+            curve.append((time.perf_counter() - start, data, loss, f"Adam {done}"))
+            snapshot()
+            save(done)
+    return np.array(params["albedo"]).T.reshape(-1, 3), np.array(params["roughness"]), curve, snapshots

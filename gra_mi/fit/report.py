@@ -1,0 +1,264 @@
+"""What a material fit writes: the maps (EXR + PNG), the confidence map, plots, ``fit_report.md`` and ``fit.json``.
+
+Where the capture has true maps (synthetic captures: ``gt/``), the report scores the fit against them next to the
+baseline of knowing nothing (a constant: the true map's median over the scored texels), over texels seen by ≥ 3
+training cameras, overall and per material region (skin, cloth); and it relights the held-out lighting from the
+held-out cameras with the fitted maps against the captured images.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+
+from gra_mi.core.io import atomic_write_text, read_exr, write_exr, write_png
+
+SCORED_MIN_CAMERAS = 3
+
+
+def map_errors(albedo: np.ndarray, roughness: np.ndarray, true_albedo: np.ndarray, true_roughness: np.ndarray) -> dict[str, float]:
+    """Albedo MAE and median relative error, roughness MAE and median absolute error over the given texels."""
+    if roughness.size == 0:
+        return {}
+    rel = np.abs(albedo - true_albedo) / np.maximum(true_albedo, 1e-3)
+    return {
+        "albedo_mae": float(np.mean(np.abs(albedo - true_albedo))),
+        "albedo_rel_median": float(np.median(rel)),
+        "roughness_mae": float(np.mean(np.abs(roughness - true_roughness))),
+        "roughness_median_abs": float(np.median(np.abs(roughness - true_roughness))),
+    }
+
+
+def _true_maps(fitter):
+    gt = fitter.capture.folder / "gt"
+    if not (gt / "albedo.exr").is_file() or not (gt / "roughness.exr").is_file():
+        return None
+    atlas = fitter.atlas
+    true_albedo = read_exr(gt / "albedo.exr")[..., :3]
+    true_rough = read_exr(gt / "roughness.exr")[..., :1]
+    if true_albedo.shape[0] != atlas.resolution:
+        return None  # fitted at another resolution: no texel-by-texel comparison
+    region = gt / "cloth.exr" if (gt / "cloth.exr").is_file() else gt / "sheen.exr"
+    cloth = atlas.gather(read_exr(region)[..., :1])[:, 0] > 0 if region.is_file() else np.zeros(atlas.num_texels, bool)
+    return atlas.gather(true_albedo), atlas.gather(true_rough)[:, 0], cloth
+
+
+def score_maps(fitter, result) -> tuple[dict, dict]:
+    """(metrics of the fit, metrics of the constant-median baseline), each {region: {metric: value}}."""
+    truth = _true_maps(fitter)
+    if truth is None:
+        return {}, {}
+    true_albedo, true_rough, cloth = truth
+    scored = result.observed_cameras >= SCORED_MIN_CAMERAS
+    fit_albedo, fit_rough = fitter.atlas.gather(result.albedo), fitter.atlas.gather(result.roughness)[:, 0]
+    const_albedo = np.broadcast_to(np.median(true_albedo[scored], axis=0) if scored.any() else 0.5, true_albedo.shape)
+    const_rough = np.full_like(true_rough, np.median(true_rough[scored]) if scored.any() else 0.5)
+    ours, baseline = {}, {}
+    for region, sel in (("all", scored), ("skin", scored & ~cloth), ("cloth", scored & cloth)):
+        ours[region] = map_errors(fit_albedo[sel], fit_rough[sel], true_albedo[sel], true_rough[sel])
+        baseline[region] = map_errors(const_albedo[sel], const_rough[sel], true_albedo[sel], true_rough[sel])
+    return ours, baseline
+
+
+def relight_scores(fitter, result, cache_dir: Path | None) -> dict[str, dict]:
+    """PSNR and mean L1 of one-bounce renders with the fitted maps under the capture's held-out (test) lighting, from
+    held-out and training cameras, against the captured images."""
+    from gra_mi.capture.dataset import load_observation
+    from gra_mi.core.metrics import mean_l1, psnr
+    from gra_mi.core.progress import progress
+    from gra_mi.render.relighter import Relighter
+
+    capture = fitter.capture
+    test = [f for f in capture.frames if f.split == "test"]
+    if not test:
+        return {}
+    relighter = Relighter(fitter.ls, albedo=result.albedo, roughness=result.roughness, cache_dir=cache_dir)
+    scores: dict[str, list] = {"held-out cameras": [], "training cameras": []}
+    cameras = [(c, "held-out cameras") for c in capture.eval_cameras] + [(capture.train_cameras[0], "training cameras")]
+    for entry in progress(test, description="relight held-out lighting"):
+        intensities = capture.lighting(fitter.stage, entry)
+        for cam, split in cameras:
+            image = relighter.render(entry.frame, cam, intensities).image
+            truth = load_observation(capture, cam, entry.frame)
+            mask = (truth[..., 3] > 0.99) & (image[..., 3] > 0.99)
+            scores[split].append((psnr(image, truth, mask), mean_l1(image, truth, mask)))
+    return {
+        split: {"psnr": float(np.mean([p for p, _ in values])), "l1": float(np.mean([e for _, e in values])), "images": len(values)}
+        for split, values in scores.items()
+        if values
+    }
+
+
+def _plot_convergence(result, map_curve: list[tuple[float, float, float]], path: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    curve = [c for c in result.loss_curve if np.isfinite(c[1])]
+    panels = 2 if map_curve else 1
+    fig, axes = plt.subplots(1, panels, figsize=(5.5 * panels, 3.6), squeeze=False)
+    ax = axes[0, 0]
+    ax.plot([c[0] for c in curve], [c[1] for c in curve], "o-", ms=3)
+    for t, loss, name in curve[:2] + curve[-1:]:
+        ax.annotate(name, (t, loss), fontsize=7, xytext=(3, 3), textcoords="offset points")
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel(f"mean L1 ({result.loss_measure})")
+    ax.set_title("Material fit: image error")
+    if map_curve:
+        ax = axes[0, 1]
+        ax.plot([t for t, _, _ in map_curve], [r for _, r, _ in map_curve], "o-", ms=3, label="roughness MAE")
+        ax.plot([t for t, _, _ in map_curve], [a for _, _, a in map_curve], "s-", ms=3, label="albedo median rel. error")
+        ax.set_xlabel("time (s)")
+        ax.set_title("Error against the true maps (texels seen by ≥ 3 cameras)")
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _plot_maps_vs_truth(fitter, result, path: Path) -> None:
+    """truth | fit | |error| for albedo and roughness, masked to the atlas."""
+    import matplotlib.pyplot as plt
+
+    gt = fitter.capture.folder / "gt"
+    mask = fitter.atlas.mask[..., None]
+    true_albedo, true_rough = read_exr(gt / "albedo.exr")[..., :3], read_exr(gt / "roughness.exr")[..., :1]
+    rows = [
+        ("albedo", true_albedo, result.albedo, 0.3),
+        ("roughness", true_rough, result.roughness, 0.3),
+    ]
+    fig, axes = plt.subplots(2, 3, figsize=(10, 6.8))
+    for row, (name, truth, fit, err_max) in enumerate(rows):
+        error = np.abs(fit - truth).mean(axis=2) * mask[..., 0]
+        shown = [np.clip(truth * mask, 0, 1), np.clip(fit * mask, 0, 1), error]
+        for col, (image, title) in enumerate(zip(shown, ("truth", "fit", "|error|"), strict=True)):
+            ax = axes[row, col]
+            if col == 2:
+                im = ax.imshow(image, origin="lower", cmap="magma", vmin=0, vmax=err_max)
+                fig.colorbar(im, ax=ax, fraction=0.046)
+            else:
+                ax.imshow(image[..., 0] if image.shape[2] == 1 else image, origin="lower", cmap="gray", vmin=0, vmax=1)
+            ax.set_title(f"{name}: {title}", fontsize=9)
+            ax.axis("off")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def _table(ours: dict, baseline: dict) -> list[str]:
+    lines = ["| region | texels | metric | fit | constant median (baseline) |", "|---|---|---|---|---|"]
+    for region in ours:
+        for metric, value in ours[region].items():
+            lines.append(f"| {region} | {ours[region].get('count', '')} | {metric} | {value:.4f} | {baseline[region][metric]:.4f} |")
+    return lines
+
+
+def write_fit_outputs(fitter, result, out: Path) -> Path:
+    """Everything a fit folder holds besides its checkpoints; returns the report's path."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+
+    out.mkdir(parents=True, exist_ok=True)
+    atlas = fitter.atlas
+    write_exr(out / "albedo.exr", result.albedo)
+    write_exr(out / "roughness.exr", result.roughness)
+    write_png(out / "albedo.png", result.albedo)
+    write_png(out / "roughness.png", result.roughness)
+    ev = result.evidence
+    if ev is not None:
+        confidence = np.stack([ev.views, ev.highlights, ev.information], axis=1).astype(np.float32)
+        write_exr(out / "confidence.exr", atlas.scatter(confidence), channel_names=["views", "highlights", "information"])
+        preview = np.stack([ev.views / max(ev.views.max(), 1), np.minimum(ev.highlights / 4.0, 1.0), np.zeros_like(ev.views)], axis=1)
+        write_png(out / "confidence.png", atlas.scatter(preview.astype(np.float32)))
+
+    ours, baseline = score_maps(fitter, result)
+    truth = _true_maps(fitter)
+    map_curve = []
+    if truth is not None and result.snapshots:
+        true_albedo, true_rough, _ = truth
+        scored = result.observed_cameras >= SCORED_MIN_CAMERAS
+        for t, a, r in result.snapshots:
+            e = map_errors(a[scored], r[scored], true_albedo[scored], true_rough[scored])
+            map_curve.append((t, e["roughness_mae"], e["albedo_rel_median"]))
+    _plot_convergence(result, map_curve, out / "convergence.png")
+    if truth is not None:
+        _plot_maps_vs_truth(fitter, result, out / "maps_vs_truth.png")
+    relight = relight_scores(fitter, result, out / "cache")
+
+    m = atlas.num_texels
+    never = int(np.sum(result.observed_cameras == 0))
+    cfg = fitter.config
+    lines = [
+        "# Material fit",
+        "",
+        f"Capture `{fitter.capture.folder}` ({fitter.capture.renderer} ground truth); {m} texels at {atlas.resolution}²; "
+        f"{len(fitter.train)} training frames × {len(fitter.capture.train_cameras)} cameras; solver `{cfg.solver}`"
+        + (f" ({cfg.iterations} Adam iterations)." if cfg.solver == "adam" else "."),
+        "",
+        f"- texels never observed: {never} ({100 * never / m:.1f} %)"
+        + (", filled from their neighbours" if ev is not None else ", kept at the defaults"),
+        f"- texels seen by ≥ {SCORED_MIN_CAMERAS} cameras (scored below): {int(np.sum(result.observed_cameras >= SCORED_MIN_CAMERAS))}",
+    ]
+    if ev is not None:
+        seen = ev.views > 0
+        no_highlight = int(np.sum(seen & (ev.highlights == 0)))
+        lines.append(
+            f"- observed texels without highlight evidence (roughness from their neighbours): {no_highlight} "
+            f"({100 * no_highlight / max(int(seen.sum()), 1):.1f} %); confidence map: `confidence.exr` (views, highlights, "
+            "information), preview `confidence.png` (red: views, green: highlights)"
+        )
+    if ours:
+        lines += [
+            "",
+            f"## Against the true maps (texels seen by ≥ {SCORED_MIN_CAMERAS} cameras)",
+            "",
+            "The baseline knows nothing: every texel gets the true map's median.",
+            "",
+        ]
+        lines += _table(ours, baseline)
+        lines += ["", "![truth | fit | error](maps_vs_truth.png)"]
+    if relight:
+        lines += [
+            "",
+            "## Relighting the held-out lighting with the fitted maps (one bounce)",
+            "",
+            "| cameras | images | PSNR (dB) | mean L1 |",
+        ]
+        lines += ["|---|---|---|---|"] + [f"| {k} | {v['images']} | {v['psnr']:.2f} | {v['l1']:.5f} |" for k, v in relight.items()]
+    lines += [
+        "",
+        "## Convergence (time to error)",
+        "",
+        "![convergence](convergence.png)",
+        "",
+        f"| time (s) | mean L1 ({result.loss_measure}) | stage |",
+    ]
+    lines += ["|---|---|---|"] + [f"| {t:.1f} | {loss:.5f} | {name} |" for t, loss, name in result.loss_curve]
+    if map_curve:
+        lines += ["", "| time (s) | roughness MAE | albedo median relative error |", "|---|---|---|"]
+        lines += [f"| {t:.1f} | {r:.4f} | {a:.4f} |" for t, r, a in map_curve]
+    lines += ["", "## Per view (mean L1)", "", "| view | L1 |", "|---|---|"]
+    lines += [f"| {k} | {v:.5f} |" for k, v in sorted(result.per_view_l1.items())]
+    atomic_write_text(out / "fit_report.md", "\n".join(lines) + "\n")
+    flat = {k: v for k, v in ours.get("all", {}).items()}
+    atomic_write_text(
+        out / "fit.json",
+        json.dumps(
+            {
+                "config": asdict(cfg),
+                "metrics": flat,
+                "regions": ours,
+                "baseline": baseline,
+                "relight": relight,
+                "loss_curve": result.loss_curve,
+                "loss_measure": result.loss_measure,
+                "map_curve": map_curve,
+                "never_observed": never,
+            },
+            indent=1,
+        )
+        + "\n",
+    )
+    return out / "fit_report.md"
