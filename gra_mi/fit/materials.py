@@ -63,7 +63,7 @@ class FitConfig:
     """Adam's learning rate for roughness (it decays to a tenth over the run)."""
     smooth_albedo: float = 0.1
     """Weight of the albedo smoothness prior (mean squared difference across surface neighbours)."""
-    smooth_roughness: float = 1.0
+    smooth_roughness: float = 3.0
     """Weight of the roughness smoothness prior; stronger than albedo's, whose evidence is denser."""
     min_view_cos: float = 0.35
     """Pixels whose surface is seen more obliquely than this cosine are left out of the Adam loss (silhouettes:

@@ -1,10 +1,10 @@
 """Dr.Jit optimisation of the UV albedo and roughness maps (paper Eq. 3), with a surface prior.
 
-    loss = Σ_views w_v Σ_obs |a_t ⊙ D_j + S_j(r_t) − O_j| / (3 N)  +  λ_a E(albedo)  +  λ_r E(roughness)
+    loss = Σ_views w_v Σ_pixels |Σ_t∈footprint ω_pt (a_t ⊙ D_t + S_t(r_t)) − O_p| / (3 N)  +  λ_a E(a)  +  λ_r E(r)
 
-- the data term is the paper's L1 between the one-bounce model and every training observation (a texel seen by a
-  camera in a frame), each view weighted by 1 / its mean observed radiance so that a dim envmap frame counts as
-  much as a bright uniformly lit one;
+- the data term is the paper's L1 between the one-bounce render and every fully covered training pixel, predicted
+  as the average of the texels its footprint covers (:func:`pixel_footprints`), each view weighted by 1 / its mean
+  observed radiance so that a dim envmap frame counts as much as a bright uniformly lit one;
 - E is the mean squared difference across the edges of the :class:`~gra_mi.fit.prior.SurfaceGraph` (smoothness on
   the body, across seams, not across chart boundaries); roughness gets the stronger weight, as its evidence is
   sparse (highlights) where albedo's is dense (every observation);
@@ -12,8 +12,9 @@
   from the same LED loop as every other renderer (cached per-LED visibility, LEDs that are off skipped), with the
   analytic roughness derivative; Dr.Jit's reverse-mode AD carries the rest (gathers, the loss, the prior) back to
   the textures;
-- texels without highlight evidence get no roughness gradient from the data: their roughness is the prior's, i.e.
-  their neighbours' (:meth:`~gra_mi.fit.prior.SurfaceGraph.fill` initialises them that way);
+- texels without highlight evidence (and, for albedo, texels no view saw) are not moved by Adam: they take the
+  prior's harmonic interpolation of their neighbours (:meth:`~gra_mi.fit.prior.SurfaceGraph.filler`), refreshed
+  every checkpoint;
 - Adam (own, 10 lines, so that its state is checkpointed and a resumed run ends where an uninterrupted one does),
   with the learning rate decaying to a tenth, full batch (deterministic).
 """
@@ -35,8 +36,6 @@ from gra_mi.render.shading import TexelLedLoop
 
 FILL_STRENGTH = 0.1  # harmonic fill: highlight texels (confidence 1) move little, the others interpolate them
 HIGHLIGHT_CHANGE = 0.05  # an observation is a highlight if roughness ± 0.1 changes it by at least 5 %
-
-
 FOOTPRINT_SAMPLES = 4  # 4 × 4 sub-pixel rays per pixel: the capture's box pixel filter
 
 
@@ -189,6 +188,8 @@ class Evidence:
 
 
 def gather_evidence(batches: list[ViewBatch], albedo: np.ndarray, roughness: np.ndarray) -> Evidence:
+    """Per texel: in how many views it appears, in how many of them its radiance depends on roughness enough to
+    count as a highlight (at the given maps), and the Fisher information of its roughness."""
     m = roughness.shape[0]
     views, highlights, information = np.zeros(m), np.zeros(m), np.zeros(m)
     a_all, r_all = mi.Color3f(*albedo.T.astype(np.float32)), mi.Float(roughness.astype(np.float32))
