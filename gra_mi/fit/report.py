@@ -46,21 +46,25 @@ def _true_maps(fitter):
     return atlas.gather(true_albedo), atlas.gather(true_rough)[:, 0], cloth
 
 
-def score_maps(fitter, result) -> tuple[dict, dict]:
-    """(metrics of the fit, metrics of the constant-median baseline), each {region: {metric: value}}."""
+def score_maps(fitter, result) -> tuple[dict, dict, dict]:
+    """(metrics of the fit, metrics of the constant-median baseline), each {region: {metric: value}}, and the number
+    of texels scored per region."""
     truth = _true_maps(fitter)
     if truth is None:
-        return {}, {}
+        return {}, {}, {}
     true_albedo, true_rough, cloth = truth
     scored = result.observed_cameras >= SCORED_MIN_CAMERAS
     fit_albedo, fit_rough = fitter.atlas.gather(result.albedo), fitter.atlas.gather(result.roughness)[:, 0]
     const_albedo = np.broadcast_to(np.median(true_albedo[scored], axis=0) if scored.any() else 0.5, true_albedo.shape)
     const_rough = np.full_like(true_rough, np.median(true_rough[scored]) if scored.any() else 0.5)
-    ours, baseline = {}, {}
+    ours, baseline, counts = {}, {}, {}
     for region, sel in (("all", scored), ("skin", scored & ~cloth), ("cloth", scored & cloth)):
+        if not sel.any():
+            continue
         ours[region] = map_errors(fit_albedo[sel], fit_rough[sel], true_albedo[sel], true_rough[sel])
         baseline[region] = map_errors(const_albedo[sel], const_rough[sel], true_albedo[sel], true_rough[sel])
-    return ours, baseline
+        counts[region] = int(sel.sum())
+    return ours, baseline, counts
 
 
 def relight_scores(fitter, result, cache_dir: Path | None) -> dict[str, dict]:
@@ -146,11 +150,11 @@ def _plot_maps_vs_truth(fitter, result, path: Path) -> None:
     plt.close(fig)
 
 
-def _table(ours: dict, baseline: dict) -> list[str]:
+def _table(ours: dict, baseline: dict, counts: dict) -> list[str]:
     lines = ["| region | texels | metric | fit | constant median (baseline) |", "|---|---|---|---|---|"]
     for region in ours:
         for metric, value in ours[region].items():
-            lines.append(f"| {region} | {ours[region].get('count', '')} | {metric} | {value:.4f} | {baseline[region][metric]:.4f} |")
+            lines.append(f"| {region} | {counts[region]} | {metric} | {value:.4f} | {baseline[region][metric]:.4f} |")
     return lines
 
 
@@ -173,7 +177,7 @@ def write_fit_outputs(fitter, result, out: Path) -> Path:
         preview = np.stack([ev.views / max(ev.views.max(), 1), np.minimum(ev.highlights / 4.0, 1.0), np.zeros_like(ev.views)], axis=1)
         write_png(out / "confidence.png", atlas.scatter(preview.astype(np.float32)))
 
-    ours, baseline = score_maps(fitter, result)
+    ours, baseline, counts = score_maps(fitter, result)
     truth = _true_maps(fitter)
     map_curve = []
     if truth is not None and result.snapshots:
@@ -217,7 +221,7 @@ def write_fit_outputs(fitter, result, out: Path) -> Path:
             "The baseline knows nothing: every texel gets the true map's median.",
             "",
         ]
-        lines += _table(ours, baseline)
+        lines += _table(ours, baseline, counts)
         lines += ["", "![truth | fit | error](maps_vs_truth.png)"]
     if relight:
         lines += [
@@ -251,6 +255,7 @@ def write_fit_outputs(fitter, result, out: Path) -> Path:
                 "metrics": flat,
                 "regions": ours,
                 "baseline": baseline,
+                "scored_texels": counts,
                 "relight": relight,
                 "loss_curve": result.loss_curve,
                 "loss_measure": result.loss_measure,
