@@ -73,33 +73,72 @@ def test_torch_loss_gradients_reach_the_textures(variant, tmp_path):
 
 
 def test_architecture_follows_the_paper():
-    config = RelightNetConfig(resolution=128)
+    config = RelightNetConfig(resolution=256)
     model = RelightNet(config)
     levels = config.levels()
-    assert levels == [128, 64, 32, 16]
+    assert levels == [128, 64, 32, 16], "the top level runs at R / patch"
     kinds = [isinstance(a, AttentionBlock) for a in model.down_attn]
     assert kinds == [r < 64 for r in levels], "attention exactly below 64²"
     assert all(a.cross_attn.num_heads == 4 for a in model.down_attn if isinstance(a, AttentionBlock))
-    x = torch.randn(2, IN_CHANNELS, 128, 128)
+    x = torch.rand(2, IN_CHANNELS, 256, 256)
     env = torch.rand(2, 3, 16, 32)
     y = model(x, env)
-    assert y.shape == (2, 3, 128, 128)
-    assert torch.equal(y, x[:, :3]), "zero-initialised head: at init RelightNet returns the coarse texture"
+    assert y.shape == (2, 3, 256, 256)
+    torch.testing.assert_close(y, x[:, :3], rtol=1e-6, atol=0), "zero-initialised head: at init RelightNet returns the coarse texture"
     with pytest.raises(ValueError):
-        model(torch.randn(1, 12, 128, 128), env)
+        model(torch.randn(1, 12, 256, 256), env)
+
+
+@pytest.mark.parametrize("patch", [1, 2, 4])
+def test_exposure_invariant_and_non_negative(patch):
+    """The same avatar under 10× the light gives 10× the texture, and no texel is ever negative, whatever the
+    weights (random here, far from the identity)."""
+    torch.manual_seed(patch)
+    model = RelightNet(RelightNetConfig(resolution=64, patch=patch, lowest_resolution=8)).eval()
+    with torch.no_grad():
+        for p in model.parameters():
+            p.normal_(0, 0.1)
+    features = torch.cat([torch.rand(2, 3, 64, 64) * 2, torch.randn(2, 12, 64, 64)], dim=1)
+    mask = (torch.rand(1, 1, 64, 64) > 0.3).float().expand(2, -1, -1, -1)
+    env = torch.rand(2, 3, 16, 32) * torch.tensor([1.0, 1e4])[:, None, None, None]  # one with a sun-like range
+    with torch.no_grad():
+        y = model(features, env, mask)
+        brighter = features.clone()
+        brighter[:, :3] *= 10
+        y10 = model(brighter, env * 10, mask)
+    assert y.min() >= 0 and y10.min() >= 0
+    assert (y > 0).float().mean() > 0.2, "the random network is not simply clamped to black"
+    torch.testing.assert_close(y10, 10 * y, rtol=1e-3, atol=1e-4)  # atol: texels where the max(·, 0) cancels
+    assert torch.all(y[mask.expand(-1, 3, -1, -1) == 0] == 0), "texels outside the atlas stay empty"
 
 
 def test_weights_round_trip(tmp_path):
-    model = RelightNet(RelightNetConfig(resolution=32))
+    model = RelightNet(RelightNetConfig(resolution=32, patch=1))
     with torch.no_grad():
         for p in model.parameters():
             p.normal_()
     model.save(tmp_path)
     assert json.loads((tmp_path / "relightnet.json").read_text())["resolution"] == 32
     again = RelightNet.load(tmp_path)
-    x, env = torch.randn(1, IN_CHANNELS, 32, 32), torch.rand(1, 3, 16, 32)
+    x, env = torch.rand(1, IN_CHANNELS, 32, 32), torch.rand(1, 3, 16, 32)
     model.eval()
     assert torch.allclose(model(x, env), again(x, env))
+
+
+def test_weights_of_another_format_or_config_are_refused(tmp_path):
+    from gra_mi.core.errors import GraMiInputError
+
+    RelightNet(RelightNetConfig(resolution=32, patch=1)).save(tmp_path)
+    config = json.loads((tmp_path / "relightnet.json").read_text())
+    (tmp_path / "relightnet.json").write_text(json.dumps({k: v for k, v in config.items() if k not in ("format", "patch")}))
+    with pytest.raises(GraMiInputError, match="format 1.*retrain"):
+        RelightNet.load(tmp_path)
+    (tmp_path / "relightnet.json").write_text(json.dumps({**config, "base_channels": 8}))
+    with pytest.raises(GraMiInputError, match="relightnet.safetensors.*cannot load"):
+        RelightNet.load(tmp_path)
+    (tmp_path / "relightnet.json").write_text(json.dumps({**config, "colour": 1}))
+    with pytest.raises(GraMiInputError, match="unknown keys"):
+        RelightNet.load(tmp_path)
 
 
 @pytest.fixture(scope="module")
@@ -130,12 +169,21 @@ def test_training_lowers_the_loss_validates_and_resumes(capture_and_fit, tmp_pat
     rows = [line.split(",") for line in (tmp_path / "rn" / "train_log.csv").read_text().splitlines()[1:]]
     losses = [float(r[1]) for r in rows]
     assert np.mean(losses[-2:]) < losses[0], "the loss falls"
-    summary = json.loads((tmp_path / "rn" / "validation.json").read_text())
-    assert {"train", "novel view", "novel lighting"} <= set(summary)
+    report = json.loads((tmp_path / "rn" / "validation.json").read_text())
+    summary = report["splits"]
+    assert {"train", "novel view", "novel view (selection)", "novel lighting (envmap)"} <= set(summary)
     for split in summary.values():
         assert np.isfinite(split["relightnet"]["psnr"]) and 0 < split["relightnet"]["ssim"] <= 1
+        assert np.isfinite(split["relightnet"]["brightness"])
+    # Validated every 100 steps or at the end, from step 0 (the microfacet render) on; the kept weights score best.
+    scores = {row["step"]: row["score"] for row in report["validation"]}
+    assert sorted(scores) == [0, 60] and scores[report["kept_step"]] == min(scores.values())
     for name in ("relightnet.safetensors", "relightnet.json", "loss.png", "grid.png", "validation.md", "checkpoint.pt"):
         assert (tmp_path / "rn" / name).exists(), name
+    assert (tmp_path / "rn" / "validation.png").exists() and (tmp_path / "rn" / "validation_log.csv").exists()
+    # Other options into the same folder: refused, naming the checkpoint and the option.
+    other = run_cli("train-relightnet", str(root / "cap"), "--fit", str(root / "fit"), "--out", str(tmp_path / "rn"), "--steps", "70")
+    assert other.returncode == 2 and "checkpoint.pt" in other.stderr and "lr" in other.stderr, other.stderr
     # Resume: more steps continue from the checkpoint (the log keeps its earlier rows).
     again = run_cli(
         "train-relightnet",
@@ -146,8 +194,10 @@ def test_training_lowers_the_loss_validates_and_resumes(capture_and_fit, tmp_pat
         str(tmp_path / "rn"),
         "--steps",
         "70",
-        "--max-train-views",
-        "1",
+        "--lr",
+        "3e-3",
+        "--checkpoint-every",
+        "20",
     )
     assert again.returncode == 0, again.stderr
     steps = [int(r.split(",")[0]) for r in (tmp_path / "rn" / "train_log.csv").read_text().splitlines()[1:]]
@@ -159,6 +209,21 @@ def test_training_lowers_the_loss_validates_and_resumes(capture_and_fit, tmp_pat
     )  # fmt: skip
     assert r.returncode == 0, r.stderr
     assert (tmp_path / "relit" / "olat005" / "cam00" / "frame_0000.exr").exists()
+
+
+def test_a_run_that_makes_images_worse_ships_the_microfacet_render(capture_and_fit, tmp_path):
+    """A learning rate far too high wrecks the network; validation keeps step 0, whose output is the coarse render."""
+    root = capture_and_fit
+    args = ["--out", str(tmp_path / "bad"), "--steps", "20", "--lr", "0.5", "--weight-decay", "0", "--validate-every", "10"]
+    out = run_cli("train-relightnet", str(root / "cap"), "--fit", str(root / "fit"), *args)
+    assert out.returncode == 0, out.stderr
+    report = json.loads((tmp_path / "bad" / "validation.json").read_text())
+    scores = {row["step"]: row["score"] for row in report["validation"]}
+    assert sorted(scores) == [0, 10, 20] and min(scores[10], scores[20]) > scores[0], "the run did make things worse"
+    assert report["kept_step"] == 0
+    for split in report["splits"].values():
+        assert split["relightnet"]["psnr"] == pytest.approx(split["microfacet"]["psnr"], abs=1e-3)
+    assert "microfacet render itself" in (tmp_path / "bad" / "validation.md").read_text()
 
 
 def test_ddp_training_with_two_processes(capture_and_fit, tmp_path):

@@ -365,10 +365,9 @@ def _pareto(points: list[tuple[float, float]]) -> list[int]:
 
 
 def _write_report(out: Path, preset_name: str, variant: str, stage, texels: int, results: list[Result]) -> Path:
-    import matplotlib
+    from gra_mi.core.io import pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     rows = [asdict(r) for r in results]
     atomic_write_text(out / "results.json", json.dumps(rows, indent=1) + "\n")
@@ -404,8 +403,7 @@ def _write_report(out: Path, preset_name: str, variant: str, stage, texels: int,
     ax.set_ylabel("mean relative error vs exact reference")
     ax.set_title(f"Speed against error — {stage.num_leds} LEDs, {texels} texels ({preset_name})")
     fig.tight_layout()
-    fig.savefig(out / "pareto.png", dpi=120)
-    plt.close(fig)
+    save_figure(fig, out / "pareto.png", dpi=120)
 
     lines = [
         f"# gra-mi bench — speed against error ({preset_name}, `{variant}`)",

@@ -41,7 +41,7 @@ class DemoPreset:
 
 PRESETS = {
     "tiny": DemoPreset("tiny", "tiny", "onebounce", 5, 20, 0.25, 20, 4),
-    "small": DemoPreset("small", "small", "path", 11, 300, 0.5, 100, 10),
+    "small": DemoPreset("small", "small", "path", 11, 1000, 0.5, 100, 10),
 }
 
 
@@ -62,10 +62,9 @@ def _timed(timings: dict, name: str):
 
 
 def plot_rig(stage, path: Path) -> None:
-    import matplotlib
+    from gra_mi.core.io import pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig = plt.figure(figsize=(6, 6))
     ax = fig.add_subplot(projection="3d")
@@ -88,16 +87,14 @@ def plot_rig(stage, path: Path) -> None:
     ax.legend(loc="upper left")
     ax.set_title("Lightstage rig")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
 
 
 def plot_led_mapping(envmap: np.ndarray, stage, drive: np.ndarray, path: Path, title: str) -> None:
     """The envmap with each LED drawn at its (u, v), coloured by its drive: shows the convention at a glance."""
-    import matplotlib
+    from gra_mi.core.io import pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     from gra_mi.core.io import auto_exposure, to_srgb8
     from gra_mi.stage.envmap import direction_to_uv
@@ -116,8 +113,7 @@ def plot_led_mapping(envmap: np.ndarray, stage, drive: np.ndarray, path: Path, t
         ax.set_xlabel("u  (0.25 = +X, 0.5 = +Z)")
         ax.set_ylabel("v  (0 = up)")
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    save_figure(fig, path, dpi=100)
 
 
 def contact_sheet(images: list[list[np.ndarray]]) -> np.ndarray:
@@ -324,13 +320,19 @@ def _report(preset, variant, capture, ls, lights, timings, fit_metrics, metrics,
         "",
         "## RelightNet (ablation: microfacet only vs + RelightNet)",
         "",
-        "| split | views | microfacet PSNR | microfacet SSIM | + RelightNet PSNR | + RelightNet SSIM |",
-        "|---|---|---|---|---|---|",
+        f"Weights kept: step {relightnet_summary['kept_step']} of {preset.relightnet_steps}, chosen on the selection views "
+        "(step 0 would be the microfacet render itself). Brightness: Σ render / Σ truth − 1 over the subject.",
+        "",
+        "| split | views | microfacet PSNR | SSIM | brightness | + RelightNet PSNR | SSIM | brightness |",
+        "|---|---|---|---|---|---|---|---|",
         *[
             f"| {split} | {m['microfacet']['views']} | {m['microfacet']['psnr']:.2f} | {m['microfacet']['ssim']:.4f} | "
-            f"{m['relightnet']['psnr']:.2f} | {m['relightnet']['ssim']:.4f} |"
-            for split, m in relightnet_summary.items()
+            f"{100 * m['microfacet']['brightness']:+.1f} % | {m['relightnet']['psnr']:.2f} | {m['relightnet']['ssim']:.4f} | "
+            f"{100 * m['relightnet']['brightness']:+.1f} % |"
+            for split, m in relightnet_summary["splits"].items()
         ],
+        "",
+        "Validation during training: ![validation](relightnet/validation.png)",
         "",
         "Held-out views — ground truth | microfacet | RelightNet: ![grid](relightnet/grid.png)",
         "",

@@ -448,7 +448,12 @@ def _args_train_relightnet(p):
         default=Path("outputs/relightnet"),
         help="Output folder: weights, logs, plots, validation; a checkpoint makes reruns resume. Default: outputs/relightnet.",
     )
-    add_config_options(p, TrainConfig, ["steps", "lr", "base_channels", "checkpoint_every", "max_train_views", "seed"])
+    add_config_options(
+        p,
+        TrainConfig,
+        ["steps", "lr", "weight_decay", "batch_size", "env_dropout", "validate_every", "selection_views", "base_channels", "patch"]
+        + ["env_height", "checkpoint_every", "max_train_views", "seed"],
+    )
     _add_runtime(p, torch=True)
 
 

@@ -54,6 +54,23 @@ def read_json(path: str | Path, hint: str = ""):
         raise GraMiInputError(path, f"malformed JSON ({exc})") from None
 
 
+def pyplot():
+    """matplotlib's pyplot on the file-only Agg backend (no display needed): the one place that chooses it."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def save_figure(fig, path: str | Path, dpi: int = 110) -> None:
+    """Write a matplotlib figure as PNG atomically and close it."""
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=dpi, format="png")
+    pyplot().close(fig)
+
+
 def atomic_write_text(path: str | Path, text: str) -> None:
     with atomic_path(path) as tmp:
         tmp.write_text(text)

@@ -30,11 +30,9 @@ def init_distributed() -> tuple[int, int]:
 
 def write_training_log(out: Path, header: list[str], rows: list, title: str, ylabel: str) -> None:
     """``train_log.csv`` (columns ``header``) and ``loss.png`` (column 2 against column 1, log scale)."""
-    import matplotlib
+    from gra_mi.core.io import pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     with atomic_path(out / "train_log.csv") as tmp, open(tmp, "w", newline="") as fh:
         writer = csv.writer(fh)
         writer.writerow(header)
@@ -48,9 +46,7 @@ def write_training_log(out: Path, header: list[str], rows: list, title: str, yla
     ax.set_yscale("log")
     ax.set_title(title)
     fig.tight_layout()
-    with atomic_path(out / "loss.png") as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
+    save_figure(fig, out / "loss.png")
 
 
 class TrainingLoop:

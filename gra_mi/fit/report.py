@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gra_mi.core.io import atomic_write_text, read_exr, write_exr, write_png
+from gra_mi.core.io import atomic_write_text, pyplot, read_exr, save_figure, write_exr, write_png
 
 SCORED_MIN_CAMERAS = 3
 
@@ -97,8 +97,7 @@ def relight_scores(fitter, result, cache_dir: Path | None) -> dict[str, dict]:
 
 
 def _plot_convergence(result, map_curve: list[tuple[float, float, float]], path: Path) -> None:
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     curve = [c for c in result.loss_curve if np.isfinite(c[1])]
     panels = 2 if map_curve else 1
     fig, axes = plt.subplots(1, panels, figsize=(5.5 * panels, 3.6), squeeze=False)
@@ -117,14 +116,12 @@ def _plot_convergence(result, map_curve: list[tuple[float, float, float]], path:
         ax.set_title("Error against the true maps (texels seen by ≥ 3 cameras)")
         ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
 
 
 def _plot_maps_vs_truth(fitter, result, path: Path) -> None:
     """truth | fit | |error| for albedo and roughness, masked to the atlas."""
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     gt = fitter.capture.folder / "gt"
     mask = fitter.atlas.mask[..., None]
     true_albedo, true_rough = read_exr(gt / "albedo.exr")[..., :3], read_exr(gt / "roughness.exr")[..., :1]
@@ -146,8 +143,7 @@ def _plot_maps_vs_truth(fitter, result, path: Path) -> None:
             ax.set_title(f"{name}: {title}", fontsize=9)
             ax.axis("off")
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    save_figure(fig, path, dpi=100)
 
 
 def _table(ours: dict, baseline: dict, counts: dict) -> list[str]:
@@ -160,10 +156,6 @@ def _table(ours: dict, baseline: dict, counts: dict) -> list[str]:
 
 def write_fit_outputs(fitter, result, out: Path) -> Path:
     """Everything a fit folder holds besides its checkpoints; returns the report's path."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-
     out.mkdir(parents=True, exist_ok=True)
     atlas = fitter.atlas
     write_exr(out / "albedo.exr", result.albedo)

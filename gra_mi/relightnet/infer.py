@@ -39,7 +39,7 @@ def relightnet_texture(model: RelightNet, relighter, frame: int, camera: str, in
     """Inference: RelightNet's UV texture (R, R, 3) for one view, and the one-bounce shading it started from."""
     device = next(model.parameters()).device
     features, mask, env, shading = view_inputs(relighter, frame, camera, intensities, model.config.env_height, str(device), point_light)
-    with torch.no_grad():
+    with torch.inference_mode():
         texture = model(features, env, mask)
     return texture[0].permute(1, 2, 0).cpu().numpy(), shading
 

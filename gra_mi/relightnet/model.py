@@ -1,13 +1,21 @@
 """RelightNet (paper Sec. 3.2, Supp. "Details about RelightNet"): a UV-space UNet that turns the coarse physics
 texture into a pose- and illumination-aware texture.
 
-- Input: the 15 channels of :mod:`gra_mi.bridge` (coarse texture 3 + normals of the last 3 frames 9 + view
+- Input: the 15 channels of :mod:`gra_mi.render.bridge` (coarse texture 3 + normals of the last 3 frames 9 + view
   direction 3); output: 3 channels (linear RGB radiance).
+- **Exposure-invariant** (:func:`exposure`): the coarse texture and the envmap are divided by the lighting's
+  exposure (the coarse texture's mean over the covered texels) before the network sees them, and the output is
+  multiplied back, so the same avatar under a 10× brighter light gives a 10× brighter texture, and every sample
+  weighs the same in training whatever its lighting. The coarse texture enters as log(1 + radiance / exposure).
+- **Output**: a per-texel gain g and offset b (normalised units) on the coarse texture,
+  out = exposure · max(coarse / exposure · exp(g) + b, 0): non-negative by construction. The last convolution
+  starts at zero, so an untrained RelightNet reproduces the microfacet render exactly (training starts from the
+  physics, not from noise).
+- The full-resolution work runs at R / ``patch`` (space-to-depth stem, depth-to-space head): the correction is
+  smooth, the coarse texture carries the detail, and a 512² pass stays within 200 ms on 2 CPU cores.
 - Resolutions ≥ 64²: convolution-only residual blocks. Below 64²: convolution + self-attention + cross-attention
   to environment-map tokens (4 heads).
-- Environment tokens: a small CNN encodes the camera-space envmap E^κ (log radiance) into a grid of tokens.
-- The output is added to the coarse texture and the last convolution starts at zero, so an untrained RelightNet
-  reproduces the microfacet render exactly (training starts from the physics, not from noise).
+- Environment tokens: a small CNN encodes the camera-space envmap E^κ (log of exposure-normalised radiance).
 
 Weights are saved as safetensors with the config as JSON beside them (``relightnet.safetensors``,
 ``relightnet.json``).
@@ -27,11 +35,19 @@ from torch import nn
 from gra_mi.core.errors import GraMiInputError
 from gra_mi.render.bridge import IN_CHANNELS
 
+FORMAT = 2  # 1: additive absolute-radiance output (before exposure invariance); refused on load
+
+TOP_LEVEL = 128  # the automatic patch puts the UNet's top level here
+MAX_LOG_GAIN = 3.0  # the gain stays within e^±3: a correction, not a new image
+
 
 @dataclass
 class RelightNetConfig:
     resolution: int = 512
-    """UV resolution the network runs at (a power of two, ≥ 32)."""
+    """UV resolution of the texture (a power of two, ≥ 32)."""
+    patch: int | None = None
+    """Space-to-depth factor of the stem: the UNet's top level runs at resolution / patch. None: the factor that
+    puts the top level at 128² (1 for 128², 2 for 256², 4 for 512²)."""
     base_channels: int = 16
     """Channels at full resolution; doubled per level down to ``max_channels``."""
     max_channels: int = 128
@@ -46,8 +62,14 @@ class RelightNetConfig:
     in_channels: int = IN_CHANNELS
     out_channels: int = 3
 
+    format: int = FORMAT
+
+    def __post_init__(self):
+        if self.patch is None:
+            self.patch = int(min(4, max(1, self.resolution // TOP_LEVEL)))
+
     def levels(self) -> list[int]:
-        res, out = self.resolution, []
+        res, out = self.resolution // self.patch, []
         while res >= self.lowest_resolution:
             out.append(res)
             res //= 2
@@ -59,6 +81,8 @@ class RelightNetConfig:
     def validate(self) -> None:
         if self.resolution < 32 or self.resolution & (self.resolution - 1):
             raise GraMiInputError("relightnet.resolution", f"must be a power of two ≥ 32, got {self.resolution}")
+        if self.patch not in (1, 2, 4) or self.resolution // self.patch < self.lowest_resolution:
+            raise GraMiInputError("relightnet.patch", f"must be 1, 2 or 4 and leave ≥ {self.lowest_resolution}² texels, got {self.patch}")
         if any(self.channels(i) % self.heads for i, r in enumerate(self.levels()) if r < self.attention_below):
             raise GraMiInputError("relightnet.heads", "attention channels must divide by the number of heads")
 
@@ -112,8 +136,17 @@ class EnvEncoder(nn.Module):
         self.positions = nn.Parameter(torch.zeros(1, (env_height // 4) * (env_height // 2), dim))
 
     def forward(self, env):
-        z = self.net(torch.log1p(env.clamp(min=0)))  # HDR → log: a sun must not swamp the sky
+        z = self.net(torch.log1p(env.clamp(min=0)))  # HDR → log: a sun must not swamp the sky (env is normalised)
         return z.flatten(2).transpose(1, 2) + self.positions
+
+
+def exposure(coarse: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """The lighting's exposure of each sample, (N, 1, 1, 1): the mean coarse radiance over the covered texels (all
+    channels). Proportional to the light, so dividing by it makes RelightNet exposure-invariant."""
+    weights = torch.ones_like(coarse[:, :1]) if mask is None else mask
+    total = (coarse.clamp(min=0) * weights).sum(dim=(1, 2, 3), keepdim=True)
+    count = 3 * weights.sum(dim=(1, 2, 3), keepdim=True)
+    return (total / count.clamp(min=1)).clamp(min=1e-12)  # a black view stays black; no division by zero
 
 
 class RelightNet(nn.Module):
@@ -123,7 +156,8 @@ class RelightNet(nn.Module):
         self.config = config
         levels = config.levels()
         ch = [config.channels(i) for i in range(len(levels))]
-        self.stem = nn.Conv2d(config.in_channels, ch[0], 3, padding=1)
+        p2 = config.patch**2
+        self.stem = nn.Conv2d(config.in_channels * p2, ch[0], 3, padding=1)
         self.env = EnvEncoder(config.env_height, config.env_token_dim)
         self.down = nn.ModuleList()
         self.down_attn = nn.ModuleList()
@@ -139,19 +173,30 @@ class RelightNet(nn.Module):
             self.up_attn.append(
                 AttentionBlock(ch[i], config.heads, config.env_token_dim) if levels[i] < config.attention_below else nn.Identity()
             )
-        self.head = nn.Conv2d(ch[0], config.out_channels, 3, padding=1)
+        self.head = nn.Conv2d(ch[0], 2 * config.out_channels * p2, 3, padding=1)  # gain and offset
         nn.init.zeros_(self.head.weight)
         nn.init.zeros_(self.head.bias)
 
-    def forward(self, features: torch.Tensor, env: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
-        """features (N, 15, R, R), env (N, 3, H, 2H) camera-space envmap, mask (N, 1, R, R) → texture (N, 3, R, R)."""
+    def forward(
+        self, features: torch.Tensor, env: torch.Tensor, mask: torch.Tensor | None = None, drop_env: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """features (N, 15, R, R), env (N, 3, H, 2H) camera-space envmap, mask (N, 1, R, R) → texture (N, 3, R, R).
+
+        ``drop_env`` (N,) bool, training only: those samples see a black envmap (environment-token dropout)."""
         n, c, r, r2 = features.shape
         if c != self.config.in_channels or r != r2 or r != self.config.resolution:
             raise ValueError(
                 f"expected (N, {self.config.in_channels}, {self.config.resolution}, {self.config.resolution}), got {tuple(features.shape)}"
             )
-        tokens = self.env(env)
-        x = self.stem(features)
+        coarse = features[:, :3]
+        scale = exposure(coarse, mask)
+        coarse_n = coarse / scale
+        env_n = env / scale
+        if drop_env is not None:
+            env_n = env_n * (~drop_env).to(env_n.dtype)[:, None, None, None]
+        tokens = self.env(env_n)
+        x = torch.cat([torch.log1p(coarse_n.clamp(min=0)), features[:, 3:]], dim=1)
+        x = self.stem(F.pixel_unshuffle(x, self.config.patch) if self.config.patch > 1 else x)
         skips = []
         for i, (block, attn) in enumerate(zip(self.down, self.down_attn, strict=True)):
             if i > 0:
@@ -165,7 +210,10 @@ class RelightNet(nn.Module):
             x = F.interpolate(x, size=skip.shape[-2:], mode="nearest")
             x = block(torch.cat([x, skip], dim=1))
             x = attn(x, tokens) if isinstance(attn, AttentionBlock) else x
-        out = features[:, :3] + self.head(x)
+        x = self.head(x)
+        x = F.pixel_shuffle(x, self.config.patch) if self.config.patch > 1 else x
+        gain, offset = x.split(self.config.out_channels, dim=1)
+        out = scale * F.relu(coarse_n * torch.exp(gain.clamp(-MAX_LOG_GAIN, MAX_LOG_GAIN)) + offset)
         return out if mask is None else out * mask
 
     # ------------------------------------------------------------------------------------------------------
@@ -191,7 +239,21 @@ class RelightNet(nn.Module):
                 raise GraMiInputError(folder / name, "file not found (train one with `gra-mi train-relightnet`)")
         from gra_mi.core.io import read_json
 
-        config = RelightNetConfig(**read_json(folder / "relightnet.json"))
+        fields = read_json(folder / "relightnet.json")
+        if not isinstance(fields, dict) or fields.get("format") != FORMAT:
+            raise GraMiInputError(
+                folder / "relightnet.json",
+                f"format {fields.get('format', 1) if isinstance(fields, dict) else '?'}, this gra-mi reads "
+                f"format {FORMAT} (exposure-invariant output): retrain with `gra-mi train-relightnet`",
+            )
+        known = set(RelightNetConfig.__dataclass_fields__)
+        if unknown := set(fields) - known:
+            raise GraMiInputError(folder / "relightnet.json", f"unknown keys {sorted(unknown)}; expected some of {sorted(known)}")
+        config = RelightNetConfig(**fields)
         model = cls(config)
-        model.load_state_dict(load_file(str(folder / "relightnet.safetensors")))
+        try:
+            model.load_state_dict(load_file(str(folder / "relightnet.safetensors")))
+        except (RuntimeError, OSError, ValueError) as exc:  # truncated file, or weights of another config
+            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            raise GraMiInputError(folder / "relightnet.safetensors", f"cannot load the weights ({first})") from None
         return model.to(device).eval()

@@ -60,7 +60,8 @@ def sample_texture(texture, grid):
     """Rasterise a (N, C, R, R) UV texture into a camera through its UV grid: (N, C, H, W). Differentiable."""
     import torch.nn.functional as F
 
-    return F.grid_sample(texture, grid.expand(texture.shape[0], -1, -1, -1), mode="bilinear", padding_mode="border", align_corners=False)
+    grid = grid if grid.shape[0] == texture.shape[0] else grid.expand(texture.shape[0], -1, -1, -1)
+    return F.grid_sample(texture, grid, mode="bilinear", padding_mode="border", align_corners=False)
 
 
 def torch_render(scene, params, keys: dict[str, str], integrator, sensor: int = 0, spp: int = 4, seed: int = 0):
