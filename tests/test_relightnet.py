@@ -112,6 +112,20 @@ def test_exposure_invariant_and_non_negative(patch):
     assert torch.all(y[mask.expand(-1, 3, -1, -1) == 0] == 0), "texels outside the atlas stay empty"
 
 
+def test_every_input_reaches_the_output():
+    """Each of the 15 channels and the envmap change the output of a trained-like (non-zero head) network."""
+    torch.manual_seed(0)
+    model = RelightNet(RelightNetConfig(resolution=64, lowest_resolution=8)).eval()
+    with torch.no_grad():
+        model.head.weight.normal_(0, 0.05)
+    features = torch.cat([torch.rand(1, 3, 64, 64) + 0.1, torch.randn(1, 12, 64, 64)], dim=1).requires_grad_()
+    env = (torch.rand(1, 3, 16, 32) + 0.1).requires_grad_()
+    model(features, env).sum().backward()
+    per_channel = features.grad.abs().sum(dim=(0, 2, 3))
+    assert torch.all(per_channel > 0), per_channel
+    assert env.grad.abs().sum() > 0
+
+
 def test_weights_round_trip(tmp_path):
     model = RelightNet(RelightNetConfig(resolution=32, patch=1))
     with torch.no_grad():

@@ -268,6 +268,16 @@ def selection_scores(model: RelightNet, views: list[Sample], step: int) -> dict:
     return {"step": step, "score": float(np.mean(l1s)) if l1s else 0.0, "psnr": {k: float(np.mean(v)) for k, v in per_split.items()}}
 
 
+def subject_crop(image: torch.Tensor, pixels: torch.Tensor, margin: int = 4) -> np.ndarray:
+    """(1, 3, H, W) → (h, w, 3): the box around the subject's pixels (the grid shows the subject, not the stage)."""
+    rows, cols = np.nonzero(pixels[0, 0].cpu().numpy() > 0.5)
+    array = image[0].permute(1, 2, 0).cpu().numpy()
+    if rows.size == 0:
+        return array
+    r0, c0 = max(rows.min() - margin, 0), max(cols.min() - margin, 0)
+    return array[r0 : rows.max() + margin + 1, c0 : cols.max() + margin + 1]
+
+
 def write_validation_curve(out: Path, rows: list[dict], best_step: int) -> None:
     """``validation_log.csv`` and ``validation.png``: each held-out split's PSNR on the selection views against the
     training step (step 0 is the microfacet render), the chosen step marked."""
@@ -309,9 +319,12 @@ def validate(model: RelightNet, samples: list[Sample], out: Path, best_step: int
         entry["microfacet"].append(image_metrics(coarse, s.target, s.pixels))
         entry["relightnet"].append(image_metrics(relit, s.target, s.pixels))
         if s.split != "train" and not s.selection and len(grid_rows) < 4:
-            grid_rows.append(torch.cat([s.target * s.pixels, coarse * s.pixels, relit * s.pixels], dim=3)[0].permute(1, 2, 0).cpu().numpy())
+            grid_rows.append([subject_crop(x * s.pixels, s.pixels) for x in (s.target, coarse, relit)])
     if grid_rows:
-        write_png(out / "grid.png", np.concatenate(grid_rows, axis=0), exposure=None)
+        height = max(row[0].shape[0] for row in grid_rows)
+        padded = [np.concatenate([np.pad(x, ((0, height - x.shape[0]), (0, 0), (0, 0))) for x in row], axis=1) for row in grid_rows]
+        width = max(row.shape[1] for row in padded)
+        write_png(out / "grid.png", np.concatenate([np.pad(r, ((0, 0), (0, width - r.shape[1]), (0, 0))) for r in padded]), exposure=None)
     summary = {
         split: {
             method: {
