@@ -195,7 +195,7 @@ def main(argv: list[str] | None = None) -> int:
         )
     )
     speedup = t_tutorial / t_fit
-    rows.append(("speedup at equal final error", f"{'≥ ' if reached is None else ''}{speedup:.0f}×", "goal ≥ 10×"))
+    rows.append(("speedup at equal final error", f"{'≥ ' if reached is None else ''}{speedup:.1f}×", "goal ≥ 10×"))
 
     print(f"\n# Material fit — {variant}, capture `{args.preset}` ({capture.renderer}, made in {t_capture:.0f} s)\n")
     print("| measurement | value | note |")

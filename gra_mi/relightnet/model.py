@@ -49,7 +49,7 @@ class RelightNetConfig:
     """Space-to-depth factor of the stem: the UNet's top level runs at resolution / patch. None: the factor that
     puts the top level at 128² (1 for 128², 2 for 256², 4 for 512²)."""
     base_channels: int = 16
-    """Channels at full resolution; doubled per level down to ``max_channels``."""
+    """Channels at the UNet's top level; doubled per level down to ``max_channels``."""
     max_channels: int = 128
     lowest_resolution: int = 16
     """The bottleneck's resolution."""

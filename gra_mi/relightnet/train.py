@@ -207,15 +207,15 @@ def train_relightnet(capture_dir: str | Path, fit_dir: str | Path, out: str | Pa
     else:
         best, validation_rows = None, []
     ddp = loop.parallel(model)
-    rng = np.random.default_rng(config.seed + loop.rank)
-    dropout_rng = torch.Generator().manual_seed(config.seed + 1000 + loop.rank)
 
     def run_validation(step: int) -> None:
         nonlocal best
         row = selection_scores(model, selection, step)
         validation_rows.append(row)
-        if best is None or row["score"] < best["score"]:
-            best = {"step": step, "score": row["score"], "model": {k: v.detach().clone() for k, v in model.state_dict().items()}}
+        # A capture without held-out views has nothing to select on: the latest weights are kept.
+        score = row["score"] if selection else -float(step)
+        if best is None or score < best["score"]:
+            best = {"step": step, "score": score, "model": {k: v.detach().clone() for k, v in model.state_dict().items()}}
 
     if best is None and loop.rank == 0:
         run_validation(0)  # the untrained network is the microfacet render: the baseline every later step must beat
@@ -232,7 +232,10 @@ def train_relightnet(capture_dir: str | Path, fit_dir: str | Path, out: str | Pa
             group["lr"] = config.learning_rate(step)
         order = np.random.default_rng([config.seed, loop.rank, step]).choice(len(mine), min(config.batch_size, len(mine)), replace=False)
         batch = stack([mine[k] for k in order])
-        drop = torch.rand(len(order), generator=torch.Generator().manual_seed(config.seed * 1_000_003 + step)) < config.env_dropout
+        drop = (
+            torch.rand(len(order), generator=torch.Generator().manual_seed((config.seed * 1_000_003 + step) * 64 + loop.rank))
+            < config.env_dropout
+        )
         optimizer.zero_grad(set_to_none=True)
         texture = ddp(batch.features, batch.env, batch.mask, drop.to(device))
         scale = exposure(batch.features[:, :3], batch.mask).detach()
@@ -244,7 +247,6 @@ def train_relightnet(capture_dir: str | Path, fit_dir: str | Path, out: str | Pa
             model.eval()
             run_validation(step + 1)
             model.train()
-    del rng, dropout_rng
     if not loop.finish():
         return out
     model.load_state_dict(best["model"])
@@ -265,7 +267,11 @@ def selection_scores(model: RelightNet, views: list[Sample], step: int) -> dict:
         image = sample_texture(model(s.features, s.env, s.mask), s.grid)
         l1s.append(float(normalised_l1(image, s.target, s.pixels, exposure(s.features[:, :3], s.mask))))
         per_split.setdefault(s.split, []).append(image_metrics(image, s.target, s.pixels)[0])
-    return {"step": step, "score": float(np.mean(l1s)) if l1s else 0.0, "psnr": {k: float(np.mean(v)) for k, v in per_split.items()}}
+    return {
+        "step": step,
+        "score": float(np.mean(l1s)) if l1s else float("nan"),
+        "psnr": {k: float(np.mean(v)) for k, v in per_split.items()},
+    }
 
 
 def subject_crop(image: torch.Tensor, pixels: torch.Tensor, margin: int = 4) -> np.ndarray:
