@@ -22,14 +22,17 @@ from gra_mi.stage.scene import LightstageScene
 logger = logging.getLogger(__name__)
 
 STAGES = ("microfacet", "relightnet")
+LIGHTING_MODELS = ("auto", "far", "near")
 
 
 @dataclass
 class RelightConfig:
     uv_resolution: int = 512
     """UV texture resolution when no albedo texture is given (the paper's)."""
-    far_field: bool = False
-    """Treat LEDs as directional lights seen from the stage centre (for comparison with near field)."""
+    lighting_model: str = "auto"
+    """How the LEDs light the subject. far: as an environment at infinity (directions and irradiance from the stage
+    centre): what relighting under an HDRI means. near: as the stage's point LEDs where they are: how a capture was
+    lit. auto: far for envmaps, near for OLATs and LED patterns (docs/accuracy.md, lighting models)."""
     save_uv: bool = False
     """Also write the UV-space radiance and the RelightNet inputs (normal, position, view direction, mask) as EXR."""
     background: bool = False
@@ -38,6 +41,8 @@ class RelightConfig:
     """Preview exposure (default: automatic per light and camera)."""
 
     def validate(self) -> None:
+        if self.lighting_model not in LIGHTING_MODELS:
+            raise GraMiParameterError("lighting_model", f"expected one of {', '.join(LIGHTING_MODELS)}, got '{self.lighting_model}'")
         if self.uv_resolution < 1:
             raise GraMiParameterError("uv_resolution", f"must be >= 1, got {self.uv_resolution}")
         if self.exposure is not None and not (np.isfinite(self.exposure) and self.exposure > 0):
@@ -52,6 +57,10 @@ class Light:
     envmap: np.ndarray | None = None  # for the background plate
     plate_scale: float = 1.0  # the envmap → LED mapping's normalisation, which the background plate takes too
     point_light: object | None = None  # a PointLight, lit with every LED off
+
+    def far_field(self, lighting_model: str) -> bool:
+        """Whether this light is rendered far field under ``lighting_model`` (auto: envmaps are, stage lightings not)."""
+        return self.envmap is not None if lighting_model == "auto" else lighting_model == "far"
 
 
 @dataclass
@@ -140,7 +149,7 @@ def relight_batch(
         if albedo is not None and albedo.shape[0] != model.config.resolution:
             raise GraMiInputError("albedo", f"RelightNet runs at {model.config.resolution}², the albedo is {albedo.shape[0]}²")
         resolution = model.config.resolution
-    relighter = Relighter(ls, resolution, albedo, roughness, config.far_field, vis_cache)
+    relighter = Relighter(ls, resolution, albedo, roughness, cache_dir=vis_cache)
 
     # How well 331 (or L) LEDs can stand in for each envmap: irradiance error over 256 normals, next to the optimum.
     fidelity = {name: led_fidelity(light.envmap, ls.stage) for name, light in lights.items() if light.envmap is not None}
@@ -162,7 +171,7 @@ def relight_batch(
     jobs = [(f, name, cam) for f in frames for name in lights for cam in cams]  # frame-major: one trace per frame
     for frame, name, cam in progress(jobs, description="relight"):
         light = lights[name]
-        view = render_view(relighter, model, frame, cam.name, light.intensities, light.point_light)
+        view = render_view(relighter, model, frame, cam.name, light.intensities, light.point_light, light.far_field(config.lighting_model))
         folder = out / name / cam.name
         write_exr(folder / f"frame_{frame:04d}.exr", view.image)
         shown = view.image[..., :3]

@@ -451,3 +451,72 @@ def generate_capture(
         capture.ground_truth["noise"] = measure_ground_truth_noise(capture, source, gt_renderer, stage.cameras[0].name, pose)
         capture.save()
     return capture
+
+
+# --------------------------------------------------------------------------------------------------------------
+# The truth under any environment: the capture's subject and materials, lit by an envmap instead of the LEDs
+# --------------------------------------------------------------------------------------------------------------
+
+ENVMAP_TRUTH_SCENE = "scene_gt_envmap.xml"
+LEDS_INCLUDE = '<include filename="rig/leds.xml"/>'
+
+
+def envmap_truth_scene(capture: Capture) -> Path:
+    """Write ``scene_gt_envmap.xml`` beside the capture's ``scene_gt.xml``: the same subject, true materials and
+    cameras, with an ``envmap`` emitter (``-Denvmap=FILE``, Mitsuba's lat-long convention, which is gra-mi's) in place
+    of the LEDs. What relighting under an environment should reproduce: the environment itself, at infinity."""
+    source = capture.folder / "scene_gt.xml"
+    if not source.is_file():
+        raise GraMiInputError(source, "missing: the envmap truth needs the capture's ground-truth scene (make it with `gra-mi capture`)")
+    text = source.read_text()
+    if LEDS_INCLUDE not in text:
+        raise GraMiInputError(source, f"expected the LEDs as `{LEDS_INCLUDE}` (a scene written by `gra-mi capture`)")
+    emitter = (
+        '<default name="envmap" value="envmap.exr"/>\n'
+        '    <emitter type="envmap" id="environment"><string name="filename" value="$envmap"/></emitter>'
+    )
+    path = capture.folder / ENVMAP_TRUTH_SCENE
+    atomic_write_text(path, text.replace(LEDS_INCLUDE, emitter))
+    return path
+
+
+def render_envmap_truth(
+    capture: Capture, envmap: np.ndarray, frame: int, cameras: list[str], spp: int = 256, seed: int = 0
+) -> dict[str, np.ndarray]:
+    """Path-trace the capture's subject (true materials, sheen, the frame's wrinkles, its interreflections) under
+    ``envmap`` (linear lat-long radiance, used as given): camera name → (H, W, 4) linear RGB + alpha (coverage).
+
+    The environment is hidden from the cameras (alpha is the subject's coverage, the background black), as in
+    the capture. Interreflections follow the capture's ``max_depth`` (none when it was made without them)."""
+    import tempfile
+
+    import mitsuba as mi
+
+    from gra_mi.core.io import read_exr
+    from gra_mi.core.runtime import ensure_mitsuba
+    from gra_mi.stage import scene_keys as keys
+
+    ensure_mitsuba()
+    without = capture.ground_truth.get("without", [])
+    max_depth = int(capture.ground_truth.get("max_depth", 4))
+    scene_path = envmap_truth_scene(capture)
+    with tempfile.TemporaryDirectory() as tmp:
+        env_path = Path(tmp) / "envmap.exr"
+        write_exr(env_path, np.asarray(envmap, np.float32)[..., :3])
+        scene = mi.load_file(str(scene_path), parallel=False, **{keys.PARAM_FRAME: keys.frame_param(frame), "envmap": str(env_path)})
+    params = mi.traverse(scene)
+    normal_key = next((k for k in params.keys() if k.endswith("normalmap.data")), None)
+    if normal_key is not None and "wrinkles" not in without and (capture.folder / "gt" / "cloth.exr").is_file():
+        cloth = read_exr(capture.folder / "gt" / "cloth.exr")[..., 0]
+        num_frames = int(np.load(capture.folder / "subject" / "sequence.npz")["vertices"].shape[0])
+        params[normal_key] = mi.TensorXf(wrinkle_normal_map(cloth, wrinkle_amplitude(frame, num_frames)))
+        params.update()
+    integrator = mi.load_dict({"type": "path", "max_depth": max(max_depth, 2), "hide_emitters": True})
+    sensors = {s.id(): i for i, s in enumerate(scene.sensors())}
+    out = {}
+    for name in cameras:
+        if name not in sensors:
+            raise GraMiParameterError("cameras", f"no camera '{name}' in {scene_path}; it has {', '.join(sensors)}")
+        image = mi.render(scene, sensor=sensors[name], integrator=integrator, spp=spp, seed=seed + frame)
+        out[name] = np.array(image, dtype=np.float32)
+    return out

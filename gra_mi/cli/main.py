@@ -626,7 +626,7 @@ def _cmd_bench(args) -> None:
 
 
 def _args_relight(p):
-    from gra_mi.apps.relight import STAGES, RelightConfig
+    from gra_mi.apps.relight import LIGHTING_MODELS, STAGES, RelightConfig
 
     p.add_argument("scene", type=Path, help="Lightstage scene XML (e.g. scenes/tiny_lightstage.xml).")
     p.add_argument("--frames", default="all", help="Frames: 'all', 'A:B' (B excluded) or a comma list. Default: all.")
@@ -674,7 +674,12 @@ def _args_relight(p):
     p.add_argument(
         "--roughness", type=Path, default=None, help="Roughness UV texture (square single-channel EXR in [0,1]). Default: 0.5 everywhere."
     )
-    add_config_options(p, RelightConfig, ["uv_resolution", "far_field", "save_uv", "background", "exposure"])
+    add_config_options(
+        p,
+        RelightConfig,
+        ["uv_resolution", "lighting_model", "save_uv", "background", "exposure"],
+        choices={"lighting_model": list(LIGHTING_MODELS)},
+    )
     p.add_argument(
         "--vis-cache", type=Path, default=None, help="Folder to keep per-frame visibility in (reused across runs). Default: memory only."
     )

@@ -1,14 +1,18 @@
-"""Image metrics, defined once for every report (fit, RelightNet validation, the refiner, the demo, the benchmark).
+"""Image metrics, defined once for every report (fit, RelightNet validation, the refiner, the demo, the benchmarks).
 
-Conventions (docs/evaluation.md in spirit; the evaluation issue builds on these):
+:func:`compare` is *the* comparison of a render with its truth, and the one every report prints:
 
-- Images are (H, W, C) NumPy arrays (C ≥ 3; only RGB is compared); ``mask`` (H, W) bool says which pixels count
-  (the subject: one mask for every stage compared on a frame). Every masked pixel weighs the same, every channel too.
-- **PSNR** = 10 log10(peak² / MSE) over the masked pixels and channels. ``peak``: 1 for display-referred images
-  (tone-mapped into [0, 1]); for linear HDR radiance, :func:`linear_peak` — the reference's maximum over the mask.
-  With a noisy reference that maximum is a firefly, which inflates PSNR: report :func:`brightness_error` beside it.
-- **SSIM**: kornia's, 7×7 Gaussian window, on both images divided by ``peak`` and clamped to [0, 1], averaged over
-  the channels and then over the masked pixels.
+- **Mask**: :func:`subject_mask` — the pixels the truth's subject covers (alpha ≥ 0.5); background is never scored.
+- **Display PSNR**: both images are shown at one exposure, the truth's (:func:`display_exposure`: its 99th
+  percentile of luminance over the mask at 0.8), sRGB-encoded and clipped to [0, 1] (:func:`to_display`), then
+  PSNR with peak 1. A firefly in a noisy truth cannot move the peak, and what is compared is what a person sees.
+- **SSIM** on the same display images (kornia, 7×7 Gaussian window), outside the mask zeroed in both.
+- **Brightness error**: Σ render / Σ truth − 1 over the mask, in linear radiance (−0.8: 80 % too dark). PSNR and
+  SSIM are blind to an exposure error of a few per cent; this is not, so it is reported beside them.
+
+The lower-level functions take images as (H, W, C) NumPy arrays (C ≥ 3; only RGB is compared) and a ``mask``
+(H, W) bool of the pixels that count; every masked pixel weighs the same, every channel too. :func:`psnr` with
+``peak`` None uses :func:`linear_peak` (the reference's maximum), which suits only noise-free linear references.
 """
 
 from __future__ import annotations
@@ -73,3 +77,43 @@ def brightness_error(image: np.ndarray, reference: np.ndarray, mask: np.ndarray 
     """Relative error of the total light over the mask: Σ image / Σ reference − 1 (−0.8: 80 % too dark)."""
     total = float(_masked(reference, mask).sum())
     return float(_masked(image, mask).sum()) / total - 1.0 if total > 0 else 0.0
+
+
+DISPLAY_PERCENTILE = 99.0
+DISPLAY_LEVEL = 0.8
+
+
+def subject_mask(reference: np.ndarray) -> np.ndarray:
+    """The pixels the truth's subject covers: alpha ≥ 0.5 (RGBA), else any positive channel (RGB)."""
+    reference = np.asarray(reference)
+    if reference.shape[-1] >= 4:
+        return reference[..., 3] >= 0.5
+    return reference[..., :3].max(axis=-1) > 0
+
+
+def display_exposure(reference: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """The exposure both images are shown at: the truth's 99th-percentile luminance (mean RGB) over the mask → 0.8."""
+    lum = _masked(reference, mask).mean(axis=1)
+    lum = lum[np.isfinite(lum) & (lum > 0)]
+    top = float(np.percentile(lum, DISPLAY_PERCENTILE)) if lum.size else 0.0
+    return DISPLAY_LEVEL / top if top > 0 else 1.0
+
+
+def to_display(image: np.ndarray, exposure: float) -> np.ndarray:
+    """Linear RGB → what a screen shows: × exposure, clipped to [0, 1], sRGB-encoded, (H, W, 3) float64."""
+    rgb = np.clip(np.nan_to_num(np.asarray(image, np.float64)[..., :3] * exposure, nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0)
+    return np.where(rgb <= 0.0031308, 12.92 * rgb, 1.055 * np.power(rgb, 1.0 / 2.4) - 0.055)
+
+
+def compare(image: np.ndarray, reference: np.ndarray, mask: np.ndarray | None = None) -> dict[str, float]:
+    """The comparison every report prints: display PSNR, display SSIM and brightness error of ``image`` against the
+    truth ``reference`` over ``mask`` (None: :func:`subject_mask` of the reference). See the module doc."""
+    mask = subject_mask(reference) if mask is None else np.asarray(mask, bool)
+    exposure = display_exposure(reference, mask)
+    shown, truth = to_display(image, exposure), to_display(reference, exposure)
+    outside = ~mask[..., None]
+    return {
+        "psnr": psnr(shown, truth, mask, peak=1.0),
+        "ssim": ssim(np.where(outside, 0.0, shown), np.where(outside, 0.0, truth), mask, peak=1.0),
+        "brightness": brightness_error(image, reference, mask),
+    }

@@ -71,7 +71,7 @@ def relight_scores(fitter, result, cache_dir: Path | None) -> dict[str, dict]:
     """PSNR and mean L1 of one-bounce renders with the fitted maps under the capture's held-out (test) lighting, from
     held-out and training cameras, against the captured images."""
     from gra_mi.capture.dataset import load_observation
-    from gra_mi.core.metrics import mean_l1, psnr
+    from gra_mi.core.metrics import compare, mean_l1, subject_mask
     from gra_mi.core.progress import progress
     from gra_mi.render.relighter import Relighter
 
@@ -87,10 +87,15 @@ def relight_scores(fitter, result, cache_dir: Path | None) -> dict[str, dict]:
         for cam, split in cameras:
             image = relighter.render(entry.frame, cam, intensities).image
             truth = load_observation(capture, cam, entry.frame)
-            mask = (truth[..., 3] > 0.99) & (image[..., 3] > 0.99)
-            scores[split].append((psnr(image, truth, mask), mean_l1(image, truth, mask)))
+            scored = compare(image, truth)
+            scores[split].append((scored["psnr"], mean_l1(image, truth, subject_mask(truth)), scored["brightness"]))
     return {
-        split: {"psnr": float(np.mean([p for p, _ in values])), "l1": float(np.mean([e for _, e in values])), "images": len(values)}
+        split: {
+            "psnr": float(np.mean([v[0] for v in values])),
+            "l1": float(np.mean([v[1] for v in values])),
+            "brightness": float(np.mean([v[2] for v in values])),
+            "images": len(values),
+        }
         for split, values in scores.items()
         if values
     }
@@ -220,9 +225,13 @@ def write_fit_outputs(fitter, result, out: Path) -> Path:
             "",
             "## Relighting the held-out lighting with the fitted maps (one bounce)",
             "",
-            "| cameras | images | PSNR (dB) | mean L1 |",
+            "Display PSNR and brightness error over the subject (docs/accuracy.md, one comparison for every report).",
+            "",
+            "| cameras | images | PSNR (dB) | brightness | mean L1 |",
         ]
-        lines += ["|---|---|---|---|"] + [f"| {k} | {v['images']} | {v['psnr']:.2f} | {v['l1']:.5f} |" for k, v in relight.items()]
+        lines += ["|---|---|---|---|---|"] + [
+            f"| {k} | {v['images']} | {v['psnr']:.2f} | {100 * v['brightness']:+.1f} % | {v['l1']:.5f} |" for k, v in relight.items()
+        ]
     lines += [
         "",
         "## Convergence (time to error)",

@@ -157,10 +157,10 @@ def _subject(coarse: np.ndarray, target: np.ndarray) -> np.ndarray:
 
 
 def _psnr(a: np.ndarray, b: np.ndarray, subject: np.ndarray) -> float:
-    """PSNR of display-referred frames over the subject (the black background would inflate it)."""
-    from gra_mi.core.metrics import psnr
+    """The one display PSNR (:func:`gra_mi.core.metrics.compare`) of linear frames over the subject."""
+    from gra_mi.core.metrics import compare
 
-    return psnr(a, b, subject, peak=1.0)
+    return compare(a, b, subject)["psnr"]
 
 
 def refine_to_folder(
@@ -196,7 +196,6 @@ def refine_to_folder(
     ch, cw = dataset.crop
     exposure = dataset.exposure
     fps = float(dataset.meta.get("fps", 12))
-    tm = lambda x: np.clip(x * exposure, 0, 1)  # noqa: E731  compare in the exposed range the model sees
     rows, changes, windows_seen, rss = [], [], [], []
     previous = None
     t0 = time.perf_counter()
@@ -215,8 +214,8 @@ def refine_to_folder(
                 target = dataset.linear_frames(sequence, "target", frame.index, frame.index + 1)[0].numpy()[:ch, :cw]
                 panels.append(target)
                 subject = _subject(coarse, target)
-                row["psnr_coarse"] = _psnr(tm(coarse), tm(target), subject)
-                row["psnr_refined"] = _psnr(tm(image), tm(target), subject)
+                row["psnr_coarse"] = _psnr(coarse, target, subject)
+                row["psnr_refined"] = _psnr(image, target, subject)
             comparison_mp4.append(np.concatenate(panels, axis=1), exposure)
             if previous is not None:
                 changes.append(float(np.abs(shown - previous).mean()))
@@ -258,7 +257,7 @@ def refine_to_folder(
                 image = video_to_image(video, exposure).permute(1, 2, 0).numpy()[:ch, :cw]
                 target = dataset.linear_frames(sequence, "target", index, index + 1)[0].numpy()[:ch, :cw]
                 coarse = dataset.linear_frames(sequence, "coarse", index, index + 1)[0].numpy()[:ch, :cw]
-                psnr.append(_psnr(tm(image), tm(target), _subject(coarse, target)))
+                psnr.append(_psnr(image, target, _subject(coarse, target)))
             summary["psnr_vae_round_trip"] = float(np.mean(psnr))
     summary["per_frame"] = rows
     atomic_write_text(out / "refine.json", json.dumps(summary, indent=1) + "\n")

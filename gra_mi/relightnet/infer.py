@@ -13,14 +13,17 @@ from gra_mi.render.bridge import NUM_NORMAL_FRAMES, to_torch, uv_features
 from gra_mi.render.relighter import Relighter, ViewRender
 
 
-def view_inputs(relighter, frame: int, camera: str, intensities: np.ndarray, env_height: int, device: str = "cpu", point_light=None):
-    """RelightNet's inputs for one view: (features, mask, camera-space env, shading)."""
+def view_inputs(
+    relighter, frame: int, camera: str, intensities: np.ndarray, env_height: int, device: str = "cpu", point_light=None, far_field=None
+):
+    """RelightNet's inputs for one view: (features, mask, camera-space env, shading); ``far_field`` as in
+    :meth:`Relighter.render`."""
     from gra_mi.render.atlas import TexelGeometry
     from gra_mi.render.point_light import conditioning_pattern
     from gra_mi.stage.envmap import leds_to_envmap, to_camera_space
 
     stage = relighter.ls.stage
-    shading, geom = relighter.shade(frame, camera, intensities, point_light)
+    shading, geom = relighter.shade(frame, camera, intensities, point_light, far_field)
     seq = relighter.ls.sequence
     normals = [np.array(geom.normal).T]  # frame t: already interpolated for the shading
     normals += [
@@ -35,21 +38,30 @@ def view_inputs(relighter, frame: int, camera: str, intensities: np.ndarray, env
     return features, mask, to_torch(env, device).permute(2, 0, 1)[None].contiguous(), shading
 
 
-def relightnet_texture(model: RelightNet, relighter, frame: int, camera: str, intensities: np.ndarray, point_light=None):
+def relightnet_texture(model: RelightNet, relighter, frame: int, camera: str, intensities: np.ndarray, point_light=None, far_field=None):
     """Inference: RelightNet's UV texture (R, R, 3) for one view, and the one-bounce shading it started from."""
     device = next(model.parameters()).device
-    features, mask, env, shading = view_inputs(relighter, frame, camera, intensities, model.config.env_height, str(device), point_light)
+    features, mask, env, shading = view_inputs(
+        relighter, frame, camera, intensities, model.config.env_height, str(device), point_light, far_field
+    )
     with torch.inference_mode():
         texture = model(features, env, mask)
     return texture[0].permute(1, 2, 0).cpu().numpy(), shading
 
 
 def render_view(
-    relighter: Relighter, model: RelightNet | None, frame: int, camera: str, intensities: np.ndarray, point_light=None
+    relighter: Relighter,
+    model: RelightNet | None,
+    frame: int,
+    camera: str,
+    intensities: np.ndarray,
+    point_light=None,
+    far_field: bool | None = None,
 ) -> ViewRender:
-    """One view at one stage: the one-bounce render (``model`` None) or RelightNet's texture of it, seen by the camera."""
+    """One view at one stage: the one-bounce render (``model`` None) or RelightNet's texture of it, seen by the camera.
+    ``far_field`` None: the relighter's own lighting model."""
     if model is None:
-        return relighter.render(frame, camera, intensities, point_light)
-    texture, shading = relightnet_texture(model, relighter, frame, camera, intensities, point_light)
+        return relighter.render(frame, camera, intensities, point_light, far_field)
+    texture, shading = relightnet_texture(model, relighter, frame, camera, intensities, point_light, far_field)
     shading.radiance = relighter.atlas.gather(texture)
     return ViewRender(relighter.rasterize(frame, camera, texture), shading, relighter.geometry(frame))

@@ -154,13 +154,13 @@ def normalised_l1(image: torch.Tensor, target: torch.Tensor, pixels: torch.Tenso
 
 
 def image_metrics(image: torch.Tensor, target: torch.Tensor, pixels: torch.Tensor) -> tuple[float, float, float]:
-    """PSNR, SSIM and brightness error (:mod:`gra_mi.core.metrics`) over the subject's pixels of (1, 3, H, W) images;
-    the pixels outside the subject are zeroed in both first, as the SSIM window reaches across the silhouette."""
+    """Display PSNR, SSIM and brightness error (:func:`gra_mi.core.metrics.compare`) over the subject's pixels of
+    (1, 3, H, W) images."""
     from gra_mi.core import metrics
 
     a, b = ((x * pixels)[0].permute(1, 2, 0).detach().cpu().numpy() for x in (image, target))
-    mask = pixels[0, 0].detach().cpu().numpy() > 0.5
-    return metrics.psnr(a, b, mask), metrics.ssim(a, b, mask), metrics.brightness_error(a, b, mask)
+    scores = metrics.compare(a, b, pixels[0, 0].detach().cpu().numpy() > 0.5)
+    return scores["psnr"], scores["ssim"], scores["brightness"]
 
 
 # --------------------------------------------------------------------------------------------------------------

@@ -6,29 +6,44 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+RASTER_SAMPLES = 3
+"""Sub-samples per pixel and axis (3: a 3×3 stratified grid). Edges and texture detail are box-filtered as the
+path-traced capture's box reconstruction filter does; 1 is point sampling at the pixel centre (no anti-aliasing)."""
 
-def rasterize_to_camera(ls, camera, texture: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
-    """Look the UV texture up through each pixel centre of ``camera``: (H, W, C + 1) with alpha = coverage.
+
+def rasterize_to_camera(ls, camera, texture: np.ndarray, mask: np.ndarray | None = None, samples: int = RASTER_SAMPLES) -> np.ndarray:
+    """Look the UV texture up through ``samples``² stratified points of each pixel of ``camera``: (H, W, C + 1),
+    premultiplied, with alpha = the fraction of the pixel's sub-samples that hit the subject (as Mitsuba's box filter).
 
     Bilinear in UV; texels outside ``mask`` do not bleed in (normalised by the mask's own interpolation). ``ls`` is the
     :class:`~gra_mi.stage.scene.LightstageScene` at the frame to show (it keeps each camera's rays on the device).
     """
+    if samples < 1:
+        raise ValueError(f"samples must be >= 1, got {samples}")
     h, w = camera.height, camera.width
-    si = ls.scene.ray_intersect(ls.camera_rays(camera), ray_flags=mi.RayFlags.UV, coherent=True)
-    valid = si.is_valid()
     channels = texture.shape[2]
     weight = np.ones(texture.shape[:2] + (1,), np.float32) if mask is None else mask[..., None].astype(np.float32)
     tex = mi.Texture2f(
         mi.TensorXf(np.concatenate([texture * weight, weight], axis=2).astype(np.float32)), use_accel=False, wrap_mode=dr.WrapMode.Clamp
     )
-    values = tex.eval(si.uv, valid)
-    # Normalise by the interpolated mask and pack (H, W, C + 1) on the device: one transfer back.
-    cov = values[channels]
-    alpha = dr.select(valid, 1.0, 0.0)
-    scale = dr.select(cov > 1e-6, alpha / dr.maximum(cov, 1e-6), 0.0)
+    accum = [dr.zeros(mi.Float, h * w) for _ in range(channels + 1)]
+    strata = (np.arange(samples) + 0.5) / samples
+    for oy in strata:
+        for ox in strata:
+            si = ls.scene.ray_intersect(ls.camera_rays(camera, (ox, oy)), ray_flags=mi.RayFlags.UV, coherent=True)
+            valid = si.is_valid()
+            values = tex.eval(si.uv, valid)
+            # Normalise by the interpolated mask: chart borders keep their own colour.
+            cov = values[channels]
+            scale = dr.select(valid & (cov > 1e-6), 1.0 / dr.maximum(cov, 1e-6), 0.0)
+            for c in range(channels):
+                accum[c] += values[c] * scale
+            accum[channels] += dr.select(valid, 1.0, 0.0)
+            dr.eval(accum)
+    # Pack (H, W, C + 1) on the device: one transfer back.
     out = dr.zeros(mi.Float, h * w * (channels + 1))
     pixel = dr.arange(mi.UInt32, h * w) * (channels + 1)
-    for c in range(channels):
-        dr.scatter(out, values[c] * scale, pixel + c)
-    dr.scatter(out, alpha, pixel + channels)
+    inv = 1.0 / (samples * samples)
+    for c in range(channels + 1):
+        dr.scatter(out, accum[c] * inv, pixel + c)
     return np.array(out, dtype=np.float32).reshape(h, w, channels + 1)

@@ -18,7 +18,7 @@ from gra_mi.core.io import read_exr
 from gra_mi.render.atlas import TexelGeometry, UVAtlas
 from gra_mi.render.point_light import PointLight, point_light_visibility, shade_point_light
 from gra_mi.render.rasterize import rasterize_to_camera
-from gra_mi.render.shading import TexelShading, shade_texels
+from gra_mi.render.shading import TexelShading, led_cell_roughness, shade_texels
 from gra_mi.render.visibility import VisibilityCache
 from gra_mi.stage.scene import LightstageScene
 
@@ -93,14 +93,22 @@ class Relighter:
             self._geometry = {frame: TexelGeometry.from_frame(self.atlas, seq.vertices[frame], seq.normals[frame])}
         return self._geometry[frame]
 
-    def visibility(self, frame: int):
+    def visibility(self, frame: int, far_field: bool | None = None):
         self.ls.set_frame(frame)  # the scene's mesh must be this frame's to trace against
-        return self.cache.get(self.ls.scene, self.geometry(frame), self.led_positions, self.far_field, self.ls.stage.center)
+        far_field = self.far_field if far_field is None else far_field
+        return self.cache.get(self.ls.scene, self.geometry(frame), self.led_positions, far_field, self.ls.stage.center)
 
-    def render(self, frame: int, camera: int | str, led_intensities: np.ndarray, point_light: PointLight | None = None) -> ViewRender:
+    def render(
+        self,
+        frame: int,
+        camera: int | str,
+        led_intensities: np.ndarray,
+        point_light: PointLight | None = None,
+        far_field: bool | None = None,
+    ) -> ViewRender:
         """One-bounce render of ``camera`` at ``frame``: LEDs of radiant intensity (L, 3), plus an optional
-        near-field point light."""
-        shading, geom = self.shade(frame, camera, led_intensities, point_light)
+        near-field point light. ``far_field`` None: the relighter's own setting (docs/accuracy.md, lighting models)."""
+        shading, geom = self.shade(frame, camera, led_intensities, point_light, far_field)
         return ViewRender(self.rasterize(frame, camera, self.atlas.scatter(shading.radiance)), shading, geom)
 
     def rasterize(self, frame: int, camera: int | str, texture: np.ndarray) -> np.ndarray:
@@ -109,16 +117,24 @@ class Relighter:
         return rasterize_to_camera(self.ls, self.ls.stage.camera(camera), texture, self.atlas.mask)
 
     def shade(
-        self, frame: int, camera: int | str, led_intensities: np.ndarray, point_light: PointLight | None = None
+        self,
+        frame: int,
+        camera: int | str,
+        led_intensities: np.ndarray,
+        point_light: PointLight | None = None,
+        far_field: bool | None = None,
     ) -> tuple[TexelShading, TexelGeometry]:
         """The UV-space part of :meth:`render`: per-texel radiance toward the camera (no rasterisation)."""
         cam = self.ls.stage.camera(camera)
+        far_field = self.far_field if far_field is None else far_field
         # No LED on (e.g. a point light alone): nothing to trace for them.
-        vis = self.visibility(frame) if np.max(led_intensities) > 0 else None
+        vis = self.visibility(frame, far_field) if np.max(led_intensities) > 0 else None
         geom = self.geometry(frame)
         stage = self.ls.stage
+        # Far field: the LEDs sample an environment, so each lobe is widened to the LEDs' spacing (no sparkles).
+        roughness = led_cell_roughness(self.roughness, stage.num_leds) if far_field else self.roughness
         shading = shade_texels(
-            geom, vis, self.led_positions, led_intensities, self.albedo, self.roughness, cam.position, self.far_field, stage.center
+            geom, vis, self.led_positions, led_intensities, self.albedo, roughness, cam.position, far_field, stage.center
         )
         self.ls.set_frame(frame)
         if point_light is not None:

@@ -104,6 +104,17 @@ class TexelLedLoop:
         )  # fmt: skip
 
 
+def led_cell_roughness(roughness: np.ndarray, num_leds: int) -> np.ndarray:
+    """Roughness whose GGX lobe is widened to the angular spacing of ``num_leds`` LEDs that sample an environment.
+
+    Each LED stands for a cell of about 4π/L sr, 2/√L rad across; a lobe narrower than that sees the samples (one
+    sparkle per LED, a sun split into three highlights) instead of the environment. α² + α_cell², α_cell = 1/√L
+    (half-vectors spread half as far as the light), widens roughness 0.31 by 7 % and leaves rough texels alone.
+    """
+    alpha = np.square(np.asarray(roughness, np.float64))
+    return np.minimum(np.sqrt(np.sqrt(alpha**2 + 1.0 / num_leds)), np.maximum(roughness, 1.0)).astype(np.float32)
+
+
 def led_loop_inputs(
     led_positions: np.ndarray, led_intensities: np.ndarray, far_field: bool = False, stage_center: np.ndarray | None = None
 ) -> tuple[int, mi.UInt32, mi.Point3f, mi.Color3f]:

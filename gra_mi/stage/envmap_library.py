@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from gra_mi.core.io import atomic_write_text, write_exr, write_png
-from gra_mi.stage.envmap import direction_to_uv, pixel_solid_angles, pixel_subsamples
+from gra_mi.stage.envmap import direction_to_uv, pixel_directions, pixel_solid_angles, pixel_subsamples
 
 logger = logging.getLogger(__name__)
 
@@ -263,4 +263,86 @@ def write_envmap_set(out_dir: str | Path, split: str, count: int, height: int = 
         paths.append(path)
         index.append({"file": path.name, **meta})
     atomic_write_text(out_dir / "index.json", json.dumps(index, indent=1) + "\n")
+    return paths
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Reference lighting: the hard cases of real HDRIs, as fixed maps
+# --------------------------------------------------------------------------------------------------------------
+
+REFERENCE_MAPS = ("sun", "studio", "interior", "night")
+
+
+def _direction(elevation_deg: float, azimuth_deg: float) -> np.ndarray:
+    e, a = math.radians(elevation_deg), math.radians(azimuth_deg)
+    return np.array([math.cos(e) * math.sin(a), math.sin(e), math.cos(e) * math.cos(a)])
+
+
+def _add_disc(envmap: np.ndarray, center: np.ndarray, radius_deg: float, radiance, supersample: int = 4) -> None:
+    """Add a uniform disc of ``radiance`` (angular radius ``radius_deg``), box-filtered into the pixels, in place.
+    Discs smaller than a pixel are splatted with their exact flux (:func:`splat_flux`) instead."""
+    h, w = envmap.shape[:2]
+    radius = math.radians(radius_deg)
+    flux = np.asarray(radiance, np.float64) * 2.0 * math.pi * (1.0 - math.cos(radius))
+    if radius < 2.0 * math.pi / w:
+        splat_flux(envmap, center, flux)
+        return
+    d, weights = pixel_subsamples(h, w, supersample)
+    inside = (d @ center > math.cos(radius)).astype(np.float64) * weights
+    envmap += (inside.sum(axis=2)[..., None] * np.asarray(radiance, np.float64)).astype(np.float32)
+
+
+def reference_map(name: str, height: int = 64) -> np.ndarray:
+    """One of :data:`REFERENCE_MAPS`, the cases that break a relighting method on real HDRIs:
+
+    - ``sun``: a clear sky and a 2°-wide sun of 10⁴× the sky's mean radiance (half of the light, from one point);
+    - ``studio``: a dark room with a key, a fill and a rim softbox (large, bright area lights, strong contrast);
+    - ``interior``: a room with a ceiling lamp, a window and coloured walls (soft, coloured bounce light);
+    - ``night``: a dark sky, a moon and two warm street lamps near the horizon (low, small, coloured sources).
+    """
+    w = 2 * height
+    d = pixel_directions(height, w)
+    image = np.zeros((height, w, 3), np.float32)
+    up = np.clip(d[..., 1:2], 0.0, 1.0)
+    if name == "sun":
+        sky = np.array([0.35, 0.55, 1.0]) * (0.6 + 0.4 * (1.0 - up)) * (d[..., 1:2] > 0)  # brighter toward the horizon
+        ground = np.array([0.18, 0.16, 0.13]) * (d[..., 1:2] <= 0)
+        image += (sky + ground).astype(np.float32)
+        sky_mean = float(image[: height // 2].mean())
+        _add_disc(image, _direction(40.0, 60.0), 1.0, np.array([1.0, 0.95, 0.88]) * 1e4 * sky_mean)
+    elif name == "studio":
+        image += np.float32(0.01)
+        _add_disc(image, _direction(35.0, -40.0), 14.0, [30.0, 29.0, 27.0])  # key
+        _add_disc(image, _direction(10.0, 70.0), 20.0, [4.0, 4.2, 4.6])  # fill
+        _add_disc(image, _direction(50.0, 170.0), 8.0, [40.0, 40.0, 40.0])  # rim, behind
+    elif name == "interior":
+        room = RoomParams(
+            half_size=(3.0, 1.5, 2.5),
+            wall_colors=[[0.7, 0.55, 0.4], [0.35, 0.45, 0.6], [0.25, 0.2, 0.15], [0.85, 0.85, 0.85], [0.6, 0.6, 0.55], [0.5, 0.3, 0.3]],
+            ambient=0.2,
+            lamps=[{"center": [0.5, 0.3], "size": [0.6, 0.6], "radiance": [60.0, 50.0, 35.0]}],
+            windows=[{"wall": 1, "center": [0.0, 0.2], "size": [1.4, 1.0], "radiance": [9.0, 10.0, 12.0]}],
+        )
+        image += bake_room(room, height)
+    elif name == "night":
+        image += (np.array([0.002, 0.003, 0.006]) * (d[..., 1:2] > 0) + np.array([0.003, 0.0025, 0.002]) * (d[..., 1:2] <= 0)).astype(
+            np.float32
+        )
+        _add_disc(image, _direction(30.0, -120.0), 2.0, [0.5, 0.5, 0.55])  # moon (wider than the real one: a pixel)
+        _add_disc(image, _direction(8.0, 30.0), 3.0, [40.0, 22.0, 6.0])  # sodium street lamps
+        _add_disc(image, _direction(5.0, 100.0), 3.0, [40.0, 22.0, 6.0])
+    else:
+        raise ValueError(f"reference map must be one of {REFERENCE_MAPS}, got {name!r}")
+    return image
+
+
+def write_reference_maps(out_dir: str | Path, height: int = 64) -> dict[str, Path]:
+    """Write every :func:`reference_map` as EXR + PNG preview: name → EXR path."""
+    out_dir = Path(out_dir)
+    paths = {}
+    for name in REFERENCE_MAPS:
+        image = reference_map(name, height)
+        paths[name] = out_dir / f"{name}.exr"
+        write_exr(paths[name], image)
+        write_png(out_dir / f"{name}.png", image, exposure=None)
     return paths

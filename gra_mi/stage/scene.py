@@ -244,12 +244,22 @@ class LightstageScene:
         self.set_pattern(lighting.drive)
         return lighting
 
-    def camera_rays(self, camera: Camera):
-        """The rays through the pixel centres of ``camera``, row-major, built once per camera and kept on the device:
-        only the mesh changes from frame to frame, and on a GPU the host-side ray set-up cost more than the tracing."""
+    def camera_rays(self, camera: Camera, offset: tuple[float, float] = (0.5, 0.5)):
+        """The rays through the point ``offset`` (in pixels, (0.5, 0.5) the centre) of each pixel of ``camera``,
+        row-major. Centre rays are built once per camera and kept on the device: only the mesh changes from frame to
+        frame, and on a GPU the host-side ray set-up cost more than the tracing. Other offsets (anti-aliasing
+        sub-samples) are built on the device, not kept."""
         import drjit as dr
         import mitsuba as mi
 
+        if tuple(offset) != (0.5, 0.5):
+            index = dr.arange(mi.UInt32, camera.width * camera.height)
+            row = index // camera.width
+            x = (mi.Float(index - row * camera.width) + float(offset[0]) - camera.cx) / camera.fx
+            y = (mi.Float(row) + float(offset[1]) - camera.cy) / camera.fy
+            r = [[float(v) for v in column] for column in camera.rotation.T]
+            d = dr.normalize(x * mi.ScalarVector3f(r[0]) + y * mi.ScalarVector3f(r[1]) + mi.ScalarVector3f(r[2]))
+            return mi.Ray3f(mi.Point3f(mi.ScalarPoint3f([float(v) for v in camera.position])), d)
         ray = self._camera_rays.get(camera.name)
         if ray is None:
             origin, directions = camera.pixel_rays()

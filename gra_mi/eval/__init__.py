@@ -1,0 +1,1 @@
+"""Evaluation against the path-traced truth: :mod:`~gra_mi.eval.lighting` scores relighting under environments."""
