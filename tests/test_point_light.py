@@ -85,7 +85,7 @@ def test_relight_cli_point_light(tmp_path):
         "relight", str(TINY), "--frames", "0", "--point-light", "0.6,1.2,0.3", "--uv-resolution", "64", "--out", str(tmp_path / "r")
     )
     assert out.returncode == 0, out.stderr
-    assert "visibility traced for 0 frame(s)" in out.stdout, "LEDs are off: nothing traced for them"
+    assert "visibility traced 0 time(s)" in out.stdout, "LEDs are off: nothing traced for them"
     for name in ("conditioning.exr", "conditioning.png", "conditioning_leds.npy", "cam00/frame_0000.exr"):
         assert (tmp_path / "r" / "point_light" / name).exists(), name
     bad = run_cli("relight", str(TINY), "--point-light", "1,2", "--out", str(tmp_path / "x"))

@@ -273,7 +273,7 @@ def test_relight_cli(tmp_path, llvm_variant):
         str(tmp_path / "r"),
     )
     assert out.returncode == 0, out.stderr
-    assert "visibility traced for 3 frame(s)" in out.stdout
+    assert "visibility traced 6 time(s)" in out.stdout  # 3 frames × (the envmap far field, the OLAT near field)
     image = read_exr(tmp_path / "r" / "sky" / "cam02" / "frame_0001.exr")
     assert image.shape == (64, 96, 4) and image[..., :3].max() > 0
     for name in ("uv_radiance", "uv_normal", "uv_position", "uv_view_dir", "uv_mask"):

@@ -378,7 +378,7 @@ def _args_fit(p):
         FitConfig,
         [
             "solver", "iterations", "lr_albedo", "lr_roughness", "smooth_albedo", "smooth_roughness", "min_view_cos",
-            "roughness_candidates", "irls_iterations", "resolution",
+            "roughness_candidates", "irls_iterations", "resolution", "calibrate_brightness",
         ],
         flags={"resolution": "--uv-resolution"},
         choices={"solver": ["adam", "closed-form"]},
@@ -721,7 +721,7 @@ def _cmd_relight(args) -> None:
         args.vis_cache,
     )
     print(
-        f"wrote {summary.renders} renders to {summary.out} (visibility traced for {summary.visibility_traced} frame(s), "
+        f"wrote {summary.renders} renders to {summary.out} (visibility traced {summary.visibility_traced} time(s), once per frame and lighting model; "
         f"reused {summary.visibility_reused} times)"
     )
 

@@ -202,6 +202,11 @@ def write_fit_outputs(fitter, result, out: Path) -> Path:
         + (", filled from their neighbours" if ev is not None else ", kept at the defaults"),
         f"- texels seen by ≥ {SCORED_MIN_CAMERAS} cameras (scored below): {int(np.sum(result.observed_cameras >= SCORED_MIN_CAMERAS))}",
     ]
+    if result.albedo_gain is not None:
+        lines.append(
+            f"- brightness calibration: albedo × ({', '.join(f'{g:.3f}' for g in result.albedo_gain)}) (R, G, B) so that the training "
+            "views' renders hold the captured total light (L1 alone leaves them too dark by the light the model leaves out)"
+        )
     if ev is not None:
         seen = ev.views > 0
         no_highlight = int(np.sum(seen & (ev.highlights == 0)))
@@ -262,6 +267,7 @@ def write_fit_outputs(fitter, result, out: Path) -> Path:
                 "loss_measure": result.loss_measure,
                 "map_curve": map_curve,
                 "never_observed": never,
+                "albedo_gain": None if result.albedo_gain is None else [float(g) for g in result.albedo_gain],
             },
             indent=1,
         )
