@@ -194,10 +194,14 @@ def test_path_traced_capture_and_fit(tmp_path):
     # Recovery on the richer ground truth (path tracing, principled + sheen, wrinkles), not on the fit's own model.
     # On `tiny` (32² texels, 64 LEDs) the Adam fit must clearly beat the closed form on both maps, stay near the
     # constant guess on roughness (wrinkles hold it back: README, material fitting) and relight held-out views.
+    # The maps are scored as fitted: the brightness calibration (on by default, tested in test_lighting_eval) moves
+    # into the albedo the light the one-bounce model leaves out, which is not the material.
     out = run_cli("capture", "--preset", "tiny", "--out", str(tmp_path / "cap"))
     assert out.returncode == 0, out.stderr
-    closed = run_cli("fit", str(tmp_path / "cap"), "--out", str(tmp_path / "closed"), "--solver", "closed-form")
-    fit = run_cli("fit", str(tmp_path / "cap"), "--out", str(tmp_path / "fit"))
+    closed = run_cli(
+        "fit", str(tmp_path / "cap"), "--out", str(tmp_path / "closed"), "--solver", "closed-form", "--no-calibrate-brightness"
+    )
+    fit = run_cli("fit", str(tmp_path / "cap"), "--out", str(tmp_path / "fit"), "--no-calibrate-brightness")
     assert fit.returncode == 0 and closed.returncode == 0, fit.stderr + closed.stderr
     report = (tmp_path / "fit" / "fit_report.md").read_text()
     assert "constant median (baseline)" in report and (tmp_path / "fit" / "maps_vs_truth.png").is_file()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -111,3 +112,49 @@ def test_fit_calibrates_the_training_views_total_light(path_traced_fit):
             total_render += image[mask, :3].sum()
             total_truth += truth[mask, :3].sum()
     assert total_render / total_truth == pytest.approx(1.0, abs=0.03)
+
+
+def test_relight_picks_the_lighting_model_by_intent(tmp_path, llvm_variant):
+    """auto: envmaps far field (an environment at infinity), OLATs near field (the stage's LEDs, as captured)."""
+    from gra_mi.apps.relight import RelightConfig, collect_lights, relight_batch
+    from gra_mi.core.errors import GraMiParameterError
+    from gra_mi.core.io import read_exr
+    from gra_mi.stage.scene import LightstageScene
+
+    ls = LightstageScene.load(Path(__file__).parents[1] / "scenes" / "tiny_lightstage.xml")
+    lights = collect_lights(ls.stage, {"sun": reference_map("sun", 16)}, [4], {})
+    images = {}
+    for model in ("auto", "near", "far"):
+        relight_batch(ls, tmp_path / model, lights, [1], ["cam00"], RelightConfig(uv_resolution=32, lighting_model=model))
+        images[model] = {name: read_exr(tmp_path / model / name / "cam00" / "frame_0001.exr") for name in ("sun", "olat004")}
+    np.testing.assert_array_equal(images["auto"]["sun"], images["far"]["sun"])
+    np.testing.assert_array_equal(images["auto"]["olat004"], images["near"]["olat004"])
+    assert np.abs(images["near"]["sun"] - images["far"]["sun"]).max() > 1e-3, "the two models differ on a 1.2 m rig"
+    with pytest.raises(GraMiParameterError, match="lighting_model"):
+        RelightConfig(lighting_model="infinite").validate()
+
+
+def test_far_field_lobes_are_widened_to_the_led_spacing(llvm_variant, monkeypatch):
+    """Glossy texels under a sun: without widening, the few texels whose lobe happens to catch one of the sun's LEDs
+    spike (sparkles) and the total depends on where texel centres fall; widened to the LEDs' spacing, the highlight
+    is smooth and its light the same for any low roughness."""
+    import gra_mi.render.relighter as relighter_module
+    from gra_mi.render.relighter import Relighter
+    from gra_mi.stage.envmap import envmap_to_leds
+    from gra_mi.stage.scene import LightstageScene
+
+    ls = LightstageScene.load(Path(__file__).parents[1] / "scenes" / "tiny_lightstage.xml")
+    sun = envmap_to_leds(reference_map("sun", 32), ls.stage).radiant_intensity(ls.stage)
+
+    def render(roughness: float):
+        view = Relighter(ls, 64, roughness=np.full((64, 64, 1), roughness, np.float32)).render(2, 0, sun, far_field=True)
+        spec = view.shading.specular.mean(axis=1)
+        return view.image[..., :3].mean(axis=-1).max(), spec.sum(), np.sort(spec)[::-1][: spec.size // 100].sum() / spec.sum()
+
+    widened = {r: render(r) for r in (0.03, 0.08, 0.15)}
+    monkeypatch.setattr(relighter_module, "led_cell_roughness", lambda roughness, num_leds: roughness)
+    sharp = render(0.08)
+    assert sharp[0] > 3 * widened[0.08][0], "a sparkle: one pixel far brighter than the widened highlight"
+    assert sharp[2] > 0.8 and widened[0.08][2] < 0.5, "the top 1 % of texels hold the sharp highlight's light"
+    totals = [w[1] for w in widened.values()]
+    assert max(totals) < 1.05 * min(totals), "the widened highlight's light does not depend on texel sampling"

@@ -36,12 +36,13 @@ class DemoPreset:
     refiner_scale: float  # capture images → refiner frames (then padded to multiples of 16)
     refiner_steps: int  # training steps of the tiny refiner
     refiner_euler_steps: int
+    lighting_spp: int  # samples per pixel of the path-traced truth under the reference environments
     stages_not_built: list[str] = field(default_factory=list)
 
 
 PRESETS = {
-    "tiny": DemoPreset("tiny", "tiny", "onebounce", 5, 20, 0.25, 20, 4),
-    "small": DemoPreset("small", "small", "path", 11, 1000, 0.5, 100, 10),
+    "tiny": DemoPreset("tiny", "tiny", "onebounce", 5, 20, 0.25, 20, 4, 16),
+    "small": DemoPreset("small", "small", "path", 11, 1000, 0.5, 100, 10, 256),
 }
 
 
@@ -184,10 +185,11 @@ def run_demo(preset_name: str, out: Path) -> Path:
         metrics = relight_test_frames(capture, relighter, test_frames, out)
 
     # 4b. Relighting under environments: near vs far field against the path-traced truth --------------------
-    from gra_mi.eval.lighting import envmap_accuracy
+    from gra_mi.eval.lighting import EnvmapAccuracyConfig, envmap_accuracy
 
     with _timed(timings, "lighting models vs path-traced truth (reference maps)"):
-        envmap_accuracy(capture.folder, out / "fit", out / "lighting", relightnet_dir=out / "relightnet")
+        lighting_config = EnvmapAccuracyConfig(spp=preset.lighting_spp)
+        envmap_accuracy(capture.folder, out / "fit", out / "lighting", relightnet_dir=out / "relightnet", config=lighting_config)
 
     # 5. Near-field point light -----------------------------------------------------------------------------
     with _timed(timings, "near-field point light"):

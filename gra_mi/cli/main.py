@@ -726,6 +726,33 @@ def _cmd_relight(args) -> None:
     )
 
 
+def _args_eval_lighting(p):
+    from gra_mi.eval.lighting import EnvmapAccuracyConfig
+
+    p.add_argument("capture", type=Path, help="Capture folder made by `gra-mi capture` (its scene_gt.xml holds the true materials).")
+    p.add_argument("--fit", type=Path, required=True, help="Fit folder (albedo.exr, roughness.exr from `gra-mi fit`).")
+    p.add_argument(
+        "--relightnet", type=Path, default=None, help="A trained RelightNet folder: also score RelightNet on the far-field render."
+    )
+    add_config_options(
+        p, EnvmapAccuracyConfig, ["maps", "frame", "cameras", "spp", "map_height"], parsers={"maps": _comma_list, "cameras": _comma_list}
+    )
+    p.add_argument("--out", type=Path, default=Path("outputs/lighting"), help="Output folder. Default: outputs/lighting.")
+    _add_runtime(p, torch=True)
+
+
+def _comma_list(text: str) -> list[str]:
+    return [t.strip() for t in text.split(",") if t.strip()]
+
+
+def _cmd_eval_lighting(args) -> None:
+    from gra_mi.eval.lighting import EnvmapAccuracyConfig, envmap_accuracy
+
+    envmap_accuracy(args.capture, args.fit, args.out, args.relightnet, config_from_args(EnvmapAccuracyConfig, args))
+    print((args.out / "accuracy.md").read_text())
+    print(f"done: open {args.out / 'accuracy.md'}")
+
+
 COMMANDS: dict[str, Command] = {
     "demo": Command(
         _cmd_demo, _args_demo, "Run the whole pipeline (as far as it exists) on a small preset and write a report.", torch=True
@@ -744,6 +771,12 @@ COMMANDS: dict[str, Command] = {
         torch=True,
     ),
     "bench": Command(_cmd_bench, _args_bench, "Speed against error of every approximation (report.md, CSV/JSON, Pareto plot)."),
+    "eval-lighting": Command(
+        _cmd_eval_lighting,
+        _args_eval_lighting,
+        "Relight under reference environments (sun, studio, interior, night), near vs far field (vs RelightNet), against the path-traced truth.",
+        torch=True,
+    ),
     "capture": Command(_cmd_capture, _args_capture, "Generate a synthetic lightstage capture (images, masks, lighting, true maps)."),
     "fit": Command(_cmd_fit, _args_fit, "Fit per-texel albedo and roughness to a capture (albedo.exr, roughness.exr, fit_report.md)."),
     "edit-texture": Command(

@@ -32,11 +32,11 @@ TRUTH_SPP = 256
 @dataclass
 class EnvmapAccuracyConfig:
     maps: list[str] = field(default_factory=lambda: ["sun", "studio", "interior", "night"])
-    """Reference maps (:data:`gra_mi.stage.envmap_library.REFERENCE_MAPS`) to relight under."""
+    """Reference maps to relight under, comma-separated, among sun, studio, interior, night (envmap_library.reference_map)."""
     frame: int | None = None
     """Subject frame (default: the first frame of the first test sequence)."""
     cameras: list[str] | None = None
-    """Cameras to score (default: the capture's held-out cameras)."""
+    """Cameras to score, comma-separated names (default: the capture's held-out cameras)."""
     spp: int = TRUTH_SPP
     """Samples per pixel of the path-traced truth."""
     map_height: int = 64

@@ -245,7 +245,11 @@ class MaterialFitter:
             return result
         gain = np.clip((sums[0] - sums[2]) / sums[1], 0.5, 2.0)
         logger.info("brightness calibration: albedo gain %s", np.round(gain, 4).tolist())
-        return replace(result, albedo=np.clip(result.albedo * gain.astype(np.float32), 0.0, 1.0), albedo_gain=gain)
+        # Texels no view saw keep the default (closed form); filled ones (Adam) come from calibrated neighbours.
+        fitted = (result.observed_cameras > 0) | (result.evidence is not None)
+        albedo = self.atlas.gather(result.albedo)
+        albedo[fitted] = np.clip(albedo[fitted] * gain, 0.0, 1.0)
+        return replace(result, albedo=self.atlas.scatter(albedo.astype(np.float32), fill=DEFAULT_ALBEDO), albedo_gain=gain)
 
     def optimize(self, closed: FitResult, out: Path | None = None) -> FitResult:
         """Adam on the UV maps (:mod:`gra_mi.fit.optimize`) from the closed-form albedo and the median of its roughness.
