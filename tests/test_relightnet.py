@@ -192,6 +192,11 @@ def test_training_lowers_the_loss_validates_and_resumes(capture_and_fit, tmp_pat
     # Validated every 100 steps or at the end, from step 0 (the microfacet render) on; the kept weights score best.
     scores = {row["step"]: row["score"] for row in report["validation"]}
     assert sorted(scores) == [0, 60] and scores[report["kept_step"]] == min(scores.values())
+    # One output gain gives the training views their total light back (L1 alone learns medians: a few % too dark).
+    gain = json.loads((tmp_path / "rn" / "relightnet.json").read_text())["output_gain"]
+    assert gain == report["output_gain"] and (0.5 < gain < 2.0) and (gain != 1.0 or report["kept_step"] == 0)
+    if report["kept_step"] > 0:
+        assert abs(summary["train"]["relightnet"]["brightness"]) < 0.02
     for name in ("relightnet.safetensors", "relightnet.json", "loss.png", "grid.png", "validation.md", "checkpoint.pt"):
         assert (tmp_path / "rn" / name).exists(), name
     assert (tmp_path / "rn" / "validation.png").exists() and (tmp_path / "rn" / "validation_log.csv").exists()

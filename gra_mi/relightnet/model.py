@@ -61,6 +61,10 @@ class RelightNetConfig:
     env_token_dim: int = 64
     in_channels: int = IN_CHANNELS
     out_channels: int = 3
+    output_gain: float = 1.0
+    """One gain on the output, fitted after training (:func:`gra_mi.relightnet.train.calibrate_output_gain`) so
+    that the training views keep their total light: L1 learns each pixel's median, and the light the coarse render
+    misses is one-sided, so the network alone comes out a few per cent too dark."""
 
     format: int = FORMAT
 
@@ -213,7 +217,7 @@ class RelightNet(nn.Module):
         x = self.head(x)
         x = F.pixel_shuffle(x, self.config.patch) if self.config.patch > 1 else x
         gain, offset = x.split(self.config.out_channels, dim=1)
-        out = scale * F.relu(coarse_n * torch.exp(gain.clamp(-MAX_LOG_GAIN, MAX_LOG_GAIN)) + offset)
+        out = (scale * self.config.output_gain) * F.relu(coarse_n * torch.exp(gain.clamp(-MAX_LOG_GAIN, MAX_LOG_GAIN)) + offset)
         return out if mask is None else out * mask
 
     # ------------------------------------------------------------------------------------------------------

@@ -250,11 +250,28 @@ def train_relightnet(capture_dir: str | Path, fit_dir: str | Path, out: str | Pa
     if not loop.finish():
         return out
     model.load_state_dict(best["model"])
+    # Step 0 is the microfacet render itself, shipped as is (its brightness is the fit's calibration).
+    model.config.output_gain = calibrate_output_gain(model.eval(), train) if best["step"] > 0 else 1.0
+    logger.info("RelightNet output gain (the training views' total light): %.4f", model.config.output_gain)
     model.save(out)
     write_training_log(out, ["step", "l1", "seconds"], loop.log_rows, "RelightNet training", "L1 / exposure (training views)")
     write_validation_curve(out, validation_rows, best["step"])
     validate(model.eval(), samples, out, best["step"], validation_rows)
     return out / "validation.md"
+
+
+@torch.no_grad()
+def calibrate_output_gain(model: RelightNet, views: list[Sample]) -> float:
+    """The gain that gives the network's renders of ``views`` their true total light (each view in units of its own
+    exposure, so every view weighs the same): L1 fits medians, and the light the coarse render misses is one-sided."""
+    model.config.output_gain = 1.0
+    rendered = truth = 0.0
+    for s in views:
+        scale = float(exposure(s.features[:, :3], s.mask))
+        image = sample_texture(model(s.features, s.env, s.mask), s.grid)
+        rendered += float((image * s.pixels).sum()) / scale
+        truth += float((s.target * s.pixels).sum()) / scale
+    return float(np.clip(truth / rendered, 0.5, 2.0)) if rendered > 0 else 1.0
 
 
 @torch.no_grad()
@@ -343,17 +360,18 @@ def validate(model: RelightNet, samples: list[Sample], out: Path, best_step: int
         }
         for split, methods in sorted(results.items(), key=lambda kv: (kv[0] != "train", "selection" in kv[0], kv[0]))
     }
-    report = {"splits": summary, "kept_step": best_step, "validation": validation_rows or []}
+    report = {"splits": summary, "kept_step": best_step, "output_gain": model.config.output_gain, "validation": validation_rows or []}
     atomic_write_text(out / "validation.json", json.dumps(report, indent=1) + "\n")
     kept = "the untrained network, i.e. the microfacet render itself" if best_step == 0 else f"step {best_step}"
     lines = [
         "# RelightNet — validation and ablation",
         "",
         "Like the paper's Table 2 rows 1-2: the coarse microfacet render alone, then with RelightNet, on the subject's",
-        "pixels (PSNR with the reference's peak, SSIM, and the brightness error Σ render / Σ truth − 1 beside them).",
+        "pixels (display PSNR, SSIM, and the brightness error Σ render / Σ truth − 1 beside them: docs/conventions.md).",
         "Held-out views that chose the weights (the selection views) are reported apart; the other held-out rows are",
         f"views training never looked at. Weights kept: {kept}, the best selection score (exposure-normalised L1) among",
-        "every validation, step 0 included, so RelightNet never ships worse than its input on the selection views.",
+        "every validation, step 0 included, so RelightNet never ships worse than its input on the selection views;",
+        f"then one output gain, {model.config.output_gain:.4f}, gives the training views their total light (L1 learns medians).",
         "",
         "| split | views | microfacet PSNR | SSIM | brightness | + RelightNet PSNR | SSIM | brightness |",
         "|---|---|---|---|---|---|---|---|",
