@@ -335,7 +335,8 @@ def _report(preset, variant, capture, ls, lights, timings, fit_metrics, metrics,
         "## RelightNet (ablation: microfacet only vs + RelightNet)",
         "",
         f"Weights kept: step {relightnet_summary['kept_step']} of {preset.relightnet_steps}, chosen on the selection views "
-        "(step 0 would be the microfacet render itself). Brightness: Σ render / Σ truth − 1 over the subject.",
+        f"(step 0 would be the microfacet render itself); output gain {relightnet_summary['output_gain']:.4f} (the training views' "
+        "total light). Display PSNR, SSIM, and brightness Σ render / Σ truth − 1 over the subject.",
         "",
         "| split | views | microfacet PSNR | SSIM | brightness | + RelightNet PSNR | SSIM | brightness |",
         "|---|---|---|---|---|---|---|---|",
