@@ -158,3 +158,17 @@ def test_far_field_lobes_are_widened_to_the_led_spacing(llvm_variant, monkeypatc
     assert sharp[2] > 0.8 and widened[0.08][2] < 0.5, "the top 1 % of texels hold the sharp highlight's light"
     totals = [w[1] for w in widened.values()]
     assert max(totals) < 1.05 * min(totals), "the widened highlight's light does not depend on texel sampling"
+
+
+def test_eval_lighting_refuses_bad_frames_and_cameras(path_traced_fit):
+    from gra_mi.core.errors import GraMiParameterError
+    from gra_mi.eval.lighting import EnvmapAccuracyConfig, envmap_accuracy
+
+    root = path_traced_fit
+    for config, field in (
+        (EnvmapAccuracyConfig(frame=999, spp=4), "frame"),
+        (EnvmapAccuracyConfig(cameras=["cam99"], spp=4), "cameras"),
+        (EnvmapAccuracyConfig(maps=["beach"], spp=4), "maps"),
+    ):
+        with pytest.raises(GraMiParameterError, match=field):
+            envmap_accuracy(root / "cap", root / "fit", root / "bad", config=config)

@@ -79,7 +79,7 @@ def envmap_accuracy(
     config: EnvmapAccuracyConfig | None = None,
 ) -> list[dict]:
     """Score every lighting model on every reference map and camera; write ``accuracy.json``, ``accuracy.md``,
-    ``contact_sheet.png`` (truth | each model, per map) and every render (EXR + PNG) under ``out``. Returns the rows
+    ``contact_sheet.png`` (truth | each model, per map) and every render (EXR) under ``out``. Returns the rows
     (one per map and model, averaged over the cameras)."""
     from gra_mi.core.runtime import ensure_mitsuba, torch_device
     from gra_mi.relightnet.infer import render_view
@@ -105,6 +105,12 @@ def envmap_accuracy(
         model = RelightNet.load(relightnet_dir, torch_device())
     frame = config.frame if config.frame is not None else next((f.frame for f in capture.frames if f.split == "test"), 0)
     cameras = config.cameras or capture.eval_cameras
+    if not 0 <= frame < ls.sequence.num_frames:
+        raise GraMiParameterError("frame", f"frame {frame} out of range [0, {ls.sequence.num_frames}) of {capture.folder}")
+    known = [c.name for c in ls.stage.cameras]
+    unknown = [c for c in cameras if c not in known]
+    if unknown:
+        raise GraMiParameterError("cameras", f"no camera {', '.join(unknown)} in {capture.folder}; it has {', '.join(known)}")
     methods = [("near field", fitted, None, False), ("far field", fitted, None, True), ("far field, true maps", truth_maps, None, True)]
     if model is not None:
         methods.append(("RelightNet (far field)", fitted, model, True))
