@@ -358,7 +358,7 @@ def _report(preset, variant, capture, ls, lights, timings, fit_metrics, metrics,
         f"the held-out sequence `{refiner['sequence']}`: {refiner['frames']} frames in {refiner['windows']} windows of 17 "
         f"({refiner['steps']} Euler steps each, {refiner['frames_per_second']:.2f} frames/s).",
         "",
-        "| against the ground truth (subject pixels, exposed range) | PSNR (dB) |",
+        "| against the ground truth (subject pixels, display PSNR) | PSNR (dB) |",
         "|---|---|",
         f"| RelightNet render (the refiner's input) | {refiner.get('psnr_coarse', float('nan')):.2f} |",
         f"| refined | {refiner.get('psnr_refined', float('nan')):.2f} |",
