@@ -2,7 +2,8 @@
 
 Lights are envmaps (mapped onto the LEDs), OLATs, LED patterns and a near-field point light, all in one run. The
 stage is the one-bounce microfacet render or RelightNet on top of it (:func:`gra_mi.relightnet.infer.render_view`).
-Jobs run frame-major, so each frame's visibility is traced once and reused by every light and camera.
+Jobs run frame-major, so each frame's visibility is traced once per lighting model (near, far) and reused by every
+light and camera.
 """
 
 from __future__ import annotations

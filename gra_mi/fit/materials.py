@@ -217,7 +217,7 @@ class MaterialFitter:
         return self.calibrate_brightness(result) if self.config.calibrate_brightness else result
 
     def calibrate_brightness(self, result: FitResult) -> FitResult:
-        """One least-squares gain per albedo channel that gives renders of every training view (rasterised as the
+        """One gain per albedo channel (a ratio of sums) that gives renders of every training view (rasterised as the
         relit images are, every covered pixel, grazing ones included) the captured total light, each view weighted
         by its own brightness. The roughness and the specular light stay as fitted."""
         from dataclasses import replace
@@ -242,6 +242,7 @@ class MaterialFitter:
                 for row, image in enumerate((truth, diffuse, specular)):
                     sums[row] += weight * image[mask, :3].sum(axis=0, dtype=np.float64)
         if not sums[1].all():
+            logger.warning("brightness calibration skipped: a colour channel has no diffuse light in any training view")
             return result
         gain = np.clip((sums[0] - sums[2]) / sums[1], 0.5, 2.0)
         logger.info("brightness calibration: albedo gain %s", np.round(gain, 4).tolist())
