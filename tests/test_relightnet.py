@@ -153,6 +153,10 @@ def test_weights_of_another_format_or_config_are_refused(tmp_path):
     (tmp_path / "relightnet.json").write_text(json.dumps({**config, "colour": 1}))
     with pytest.raises(GraMiInputError, match="unknown keys"):
         RelightNet.load(tmp_path)
+    for gain in (float("nan"), -1.0, 0.0, "2"):
+        (tmp_path / "relightnet.json").write_text(json.dumps({**config, "output_gain": gain}))
+        with pytest.raises(GraMiInputError, match="output_gain"):
+            RelightNet.load(tmp_path)
 
 
 @pytest.fixture(scope="module")

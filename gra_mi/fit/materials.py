@@ -236,11 +236,12 @@ class MaterialFitter:
                 mask = subject_mask(truth)
                 if not mask.any():
                     continue
-                diffuse = relighter.rasterize(entry.frame, cam, self.atlas.scatter(relighter.albedo * shading.diffuse_unit))
-                specular = relighter.rasterize(entry.frame, cam, self.atlas.scatter(shading.specular))
+                parts = np.concatenate([relighter.albedo * shading.diffuse_unit, shading.specular], axis=1)
+                image = relighter.rasterize(entry.frame, cam, self.atlas.scatter(parts))  # one pass: diffuse, specular
+                diffuse, specular = image[..., :3], image[..., 3:6]
                 weight = 1.0 / max(float(truth[mask, :3].mean()), 1e-12)
-                for row, image in enumerate((truth, diffuse, specular)):
-                    sums[row] += weight * image[mask, :3].sum(axis=0, dtype=np.float64)
+                for row, part in enumerate((truth[..., :3], diffuse, specular)):
+                    sums[row] += weight * part[mask].sum(axis=0, dtype=np.float64)
         if not sums[1].all():
             logger.warning("brightness calibration skipped: a colour channel has no diffuse light in any training view")
             return result

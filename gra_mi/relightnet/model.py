@@ -253,6 +253,9 @@ class RelightNet(nn.Module):
         known = set(RelightNetConfig.__dataclass_fields__)
         if unknown := set(fields) - known:
             raise GraMiInputError(folder / "relightnet.json", f"unknown keys {sorted(unknown)}; expected some of {sorted(known)}")
+        gain = fields.get("output_gain", 1.0)
+        if not (isinstance(gain, (int, float)) and math.isfinite(gain) and gain > 0):
+            raise GraMiInputError(folder / "relightnet.json", f"must be a finite number > 0, got {gain!r}", field="output_gain")
         config = RelightNetConfig(**fields)
         model = cls(config)
         try:
