@@ -38,6 +38,9 @@ class RelightConfig:
     """Also write the UV-space radiance and the RelightNet inputs (normal, position, view direction, mask) as EXR."""
     background: bool = False
     """Composite envmap renders over the camera's background plate in the PNG/MP4 previews."""
+    composite: bool = False
+    """Composite envmap renders over the background plate on a platform with the subject's shadow (a Mitsuba
+    path-traced layer under the same envmap, gra_mi.render.composite) in the PNG/MP4 previews."""
     exposure: float | None = None
     """Preview exposure (default: automatic per light and camera)."""
 
@@ -116,11 +119,13 @@ def relight_batch(
     albedo: np.ndarray | None = None,
     roughness: np.ndarray | None = None,
     vis_cache: str | Path | None = None,
+    platform=None,
 ) -> RelightSummary:
     """Render every (frame, light, camera) of ``scene`` (a path or a loaded scene) (+ ``envmap_fidelity.json``) into ``out/LIGHT/CAMERA/frame_NNNN.{exr,png}`` (+ ``CAMERA.mp4``).
 
     ``frames``/``cameras`` None: all frames, camera 0. ``albedo``/``roughness`` None: the subject's vertex colours baked
-    to UV and roughness 0.5. Everything is checked before the first file is written.
+    to UV and roughness 0.5. ``platform``: the :class:`gra_mi.render.composite.PlatformConfig` of ``config.composite``.
+    Everything is checked before the first file is written.
     """
     from gra_mi.core.runtime import ensure_mitsuba, torch_device
     from gra_mi.relightnet.infer import render_view
@@ -170,13 +175,20 @@ def relight_batch(
     videos: dict[tuple[str, str], list] = {}
     exposures: dict[tuple[str, str], float] = {}
     jobs = [(f, name, cam) for f in frames for name in lights for cam in cams]  # frame-major: one trace per frame
+    compositor = None
+    if config.composite:
+        from gra_mi.render.composite import PlatformCompositor
+
+        compositor = PlatformCompositor(ls.sequence, platform, keep=len(lights) * len(cams))
     for frame, name, cam in progress(jobs, description="relight"):
         light = lights[name]
         view = render_view(relighter, model, frame, cam.name, light.intensities, light.point_light, light.far_field(config.lighting_model))
         folder = out / name / cam.name
         write_exr(folder / f"frame_{frame:04d}.exr", view.image)
         shown = view.image[..., :3]
-        if config.background and light.envmap is not None:
+        if compositor is not None and light.envmap is not None:
+            shown = compositor(view.image, frame, cam, light.envmap, light.plate_scale, name)
+        elif config.background and light.envmap is not None:
             shown = composite_over(view.image, background_plate(light.envmap, cam) * light.plate_scale)
         key = (name, cam.name)
         if key not in exposures:

@@ -126,7 +126,7 @@ def _parse_list(text: str, count: int, parameter: str) -> list[str]:
 
 @dataclass
 class Command:
-    run: Callable[[argparse.Namespace], None]
+    run: Callable[[argparse.Namespace], int | None]  # an exit code, or None for 0
     add_arguments: Callable[[argparse.ArgumentParser], None]
     help: str
     mitsuba: bool = True  # starts the Mitsuba variant (and registers the plugins)
@@ -582,7 +582,44 @@ def _args_refine(p):
     p.add_argument("--out", type=Path, default=Path("outputs/refined"), help="Output folder. Default: outputs/refined.")
     add_config_options(p, RefineConfig, ["steps", "shift", "seed", "frames", "fuse_lora"])
     add_config_options(p, Joins, ["handoff", "pin", "crossfade"])
+    p.add_argument(
+        "--deflicker",
+        action="store_true",
+        help="Also write flicker-corrected frames (guided filter towards the coarse input; paper supplementary) to OUT/deflickered/.",
+    )
+    _add_deflicker_options(p)
+    p.add_argument(
+        "--composite",
+        action="store_true",
+        help="Also write composite.mp4: the frames over the environment on a platform with the subject's shadow (data made from a capture).",
+    )
+    _add_platform_options(p)
     _add_device(p)
+
+
+def _add_deflicker_options(p) -> None:
+    from gra_mi.refiner.deflicker import DeflickerConfig
+
+    add_config_options(p, DeflickerConfig, ["filter_radius", "filter_eps", "strength"])
+
+
+def _add_platform_options(p) -> None:
+    from gra_mi.render.composite import PlatformConfig
+
+    add_config_options(
+        p,
+        PlatformConfig,
+        ["radius", "thickness", "albedo", "spp"],
+        flags={"radius": "--platform-radius", "thickness": "--platform-thickness", "albedo": "--platform-albedo", "spp": "--platform-spp"},
+    )
+
+
+def _platform_config(args):
+    from gra_mi.render.composite import PlatformConfig
+
+    config = config_from_args(PlatformConfig, args)
+    config.validate()
+    return config
 
 
 def _cmd_refine(args) -> None:
@@ -595,7 +632,13 @@ def _cmd_refine(args) -> None:
         sequence = (dataset.names("test") or dataset.names())[0]
     config = config_from_args(RefineConfig, args, joins=config_from_args(Joins, args))
     config.validate()  # before the model and data are read
-    summary = refine_to_folder(args.model, args.data, sequence, args.out, config)
+    from gra_mi.refiner.deflicker import DeflickerConfig
+
+    deflicker = config_from_args(DeflickerConfig, args) if args.deflicker else None
+    if deflicker is not None:
+        deflicker.validate()
+    composite = _platform_config(args) if args.composite else None
+    summary = refine_to_folder(args.model, args.data, sequence, args.out, config, deflicker=deflicker, composite=composite)
     print(
         f"refined {summary['frames']} frames in {summary['windows']} windows ({summary['frames_per_second']:.2f} frames/s) into {args.out}"
     )
@@ -677,9 +720,10 @@ def _args_relight(p):
     add_config_options(
         p,
         RelightConfig,
-        ["uv_resolution", "lighting_model", "save_uv", "background", "exposure"],
+        ["uv_resolution", "lighting_model", "save_uv", "background", "composite", "exposure"],
         choices={"lighting_model": list(LIGHTING_MODELS)},
     )
+    _add_platform_options(p)
     p.add_argument(
         "--vis-cache", type=Path, default=None, help="Folder to keep per-frame visibility in (reused across runs). Default: memory only."
     )
@@ -719,6 +763,7 @@ def _cmd_relight(args) -> None:
         albedo,
         roughness,
         args.vis_cache,
+        _platform_config(args),
     )
     print(
         f"wrote {summary.renders} renders to {summary.out} (visibility traced {summary.visibility_traced} time(s), once per frame and lighting model; "
@@ -753,6 +798,98 @@ def _cmd_eval_lighting(args) -> None:
     print(f"done: open {args.out / 'accuracy.md'}")
 
 
+def _args_eval(p):
+    from gra_mi.eval.protocol import FRAME_SELECTIONS, EvalConfig
+
+    p.add_argument(
+        "run",
+        type=Path,
+        nargs="?",
+        default=None,
+        help="A run folder laid out as `gra-mi demo` writes it (capture/, fit/, relightnet/, refiner/data/, refiner/refined/); "
+        "the options below override or replace its parts.",
+    )
+    p.add_argument("--capture", type=Path, default=None, help="Capture folder (the truth, its held-out cameras and lighting).")
+    p.add_argument("--fit", type=Path, default=None, help="Fit folder: scores the microfacet render with the fitted maps.")
+    p.add_argument("--relightnet", type=Path, default=None, help="Trained RelightNet folder: scores + RelightNet.")
+    p.add_argument(
+        "--refiner-data", type=Path, default=None, help="The refiner's data folder (dataset.json): the sequences the refiner saw."
+    )
+    p.add_argument(
+        "--refined",
+        type=Path,
+        action="append",
+        default=None,
+        help="A `gra-mi refine` output folder (refine.json; its deflickered/ is scored as flicker correction), or a folder of them. Repeatable.",
+    )
+    p.add_argument(
+        "--lpips-weights",
+        type=str,
+        action="append",
+        default=None,
+        help="LPIPS weights on disk: torchvision's alexnet-owt-7be5be79.pth and the lpips package's weights/v0.1/alex.pth "
+        "(repeat the flag, or give their folder), or one lpips.LPIPS(net='alex') state dict. Never downloaded.",
+    )
+    add_config_options(p, EvalConfig, ["frames", "scale", "i3d_weights", "composite"], choices={"frames": list(FRAME_SELECTIONS)})
+    _add_platform_options(p)
+    p.add_argument("--out", type=Path, default=None, help="Output folder. Default: RUN/eval, or outputs/eval without a run folder.")
+    _add_runtime(p, torch=True)
+
+
+def _cmd_eval(args) -> int:
+    from gra_mi.eval.protocol import EvalConfig, EvalInputs, evaluate
+
+    config = config_from_args(EvalConfig, args, lpips_weights=args.lpips_weights, platform=_platform_config(args))
+    config.validate()
+    if args.run is not None:
+        inputs = EvalInputs.from_run(args.run)
+    elif args.capture is not None:
+        inputs = EvalInputs(args.capture)
+    else:
+        raise GraMiParameterError("run", "give a run folder, or --capture (with the stages' folders to score)")
+    for name in ("capture", "fit", "relightnet", "refiner_data"):
+        if getattr(args, name) is not None:
+            setattr(inputs, name, getattr(args, name))
+            inputs.explicit.add(name)
+    if args.refined:
+        inputs.refined = list(args.refined)
+        inputs.explicit.add("refined")
+    out = args.out or (args.run / "eval" if args.run is not None else Path("outputs/eval"))
+    report = evaluate(inputs, out, config)
+    print((out / "eval.md").read_text())
+    for problem in report["problems"]:
+        print(f"gra-mi eval: error: {problem}", file=sys.stderr)
+    print(f"done: open {out / 'eval.md'}")
+    return 2 if report["problems"] else 0
+
+
+def _args_deflicker(p):
+    p.add_argument("frames", type=Path, help="Folder of frames to correct (EXR, or PNG; sorted by name), e.g. a refine output's frames/.")
+    p.add_argument(
+        "--stable",
+        type=Path,
+        required=True,
+        help="Folder of the temporally stable renders of the same views (e.g. RelightNet's), one per frame, same size.",
+    )
+    p.add_argument(
+        "--exposure",
+        type=float,
+        default=None,
+        help="Linear → display exposure the filter works at (default: the first stable frame's 99th percentile at 0.8).",
+    )
+    p.add_argument("--out", type=Path, default=Path("outputs/deflickered"), help="Output folder. Default: outputs/deflickered.")
+    _add_deflicker_options(p)
+
+
+def _cmd_deflicker(args) -> None:
+    from gra_mi.refiner.deflicker import DeflickerConfig, deflicker_folder
+
+    if args.exposure is not None and not (math.isfinite(args.exposure) and args.exposure > 0):
+        raise GraMiParameterError("exposure", f"must be a finite number > 0, got {args.exposure}")
+    written = deflicker_folder(args.frames, args.stable, args.out, config_from_args(DeflickerConfig, args), args.exposure)
+    print(f"deflickered {len(written)} frames into {args.out}")
+
+
 COMMANDS: dict[str, Command] = {
     "demo": Command(
         _cmd_demo, _args_demo, "Run the whole pipeline (as far as it exists) on a small preset and write a report.", torch=True
@@ -775,6 +912,20 @@ COMMANDS: dict[str, Command] = {
         _cmd_eval_lighting,
         _args_eval_lighting,
         "Relight under reference environments (sun, studio, interior, night), near vs far field (vs RelightNet), against the path-traced truth.",
+        torch=True,
+    ),
+    "eval": Command(
+        _cmd_eval,
+        _args_eval,
+        "Score every stage (microfacet, + RelightNet, + refiner, + flicker correction) on held-out cameras and lighting: "
+        "PSNR, SSIM, FLIP, temporal error (LPIPS, FVD with local weights); eval.md table, contact sheets, MP4s.",
+        torch=True,
+    ),
+    "deflicker": Command(
+        _cmd_deflicker,
+        _args_deflicker,
+        "Flicker correction of a folder of frames towards temporally stable renders (guided filter; paper supplementary).",
+        mitsuba=False,
         torch=True,
     ),
     "capture": Command(_cmd_capture, _args_capture, "Generate a synthetic lightstage capture (images, masks, lighting, true maps)."),
@@ -859,7 +1010,7 @@ def main(argv: list[str] | None = None) -> int:
     command = COMMANDS[args.command]
     try:
         start_runtime(getattr(args, "variant", None), getattr(args, "device", None), mitsuba=command.mitsuba, torch=command.torch)
-        command.run(args)
+        code = command.run(args)
     except GraMiInputError as exc:
         if args.verbose:
             logger.exception("bad input")
@@ -873,7 +1024,7 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"gra-mi {args.command}: interrupted (finished files are kept; rerun to resume)", file=sys.stderr)
         return 130
-    return 0
+    return int(code or 0)  # a command that finished but could not do all it was asked returns 2 itself
 
 
 if __name__ == "__main__":

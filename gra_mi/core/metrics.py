@@ -117,3 +117,43 @@ def compare(image: np.ndarray, reference: np.ndarray, mask: np.ndarray | None = 
         "ssim": ssim(np.where(outside, 0.0, shown), np.where(outside, 0.0, truth), mask, peak=1.0),
         "brightness": brightness_error(image, reference, mask),
     }
+
+
+FLIP_PPD = 67.0  # FLIP's default viewing condition: 0.7 m from a 0.7 m wide 3840-pixel monitor
+
+
+def flip_map(image: np.ndarray, reference: np.ndarray, exposure: float) -> np.ndarray:
+    """Per-pixel LDR-ꟻLIP (NVIDIA's ``flip-evaluator``) of ``image`` against ``reference`` as both are shown at
+    ``exposure`` (:func:`to_display`): (H, W) in [0, 1], 0 where they look the same."""
+    import flip_evaluator
+
+    shown = to_display(image, exposure).astype(np.float32)
+    truth = to_display(reference, exposure).astype(np.float32)
+    error, _, _ = flip_evaluator.evaluate(
+        truth, shown, "LDR", inputsRGB=True, applyMagma=False, computeMeanError=False, parameters={"ppd": FLIP_PPD}
+    )
+    return np.asarray(error, np.float64)[..., 0]
+
+
+def flip(image: np.ndarray, reference: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """Mean LDR-ꟻLIP over the mask (None: :func:`subject_mask`), both shown at the truth's exposure as in :func:`compare`."""
+    mask = subject_mask(reference) if mask is None else np.asarray(mask, bool)
+    error = flip_map(image, reference, display_exposure(reference, mask))
+    return float(error[mask].mean()) if mask.any() else 0.0
+
+
+def temporal_error(frames: list[np.ndarray], truths: list[np.ndarray], masks: list[np.ndarray], exposure: float) -> float:
+    """Flicker: the mean absolute difference between a video's frame-to-frame change and the truth's, in display
+    values (:func:`to_display` at one ``exposure`` for the whole video), over the pixels the subject covers in both
+    frames of each pair. 0 when the video changes exactly as the truth does (a constant error, in colour or
+    brightness, costs nothing); a frame alternating by ±a around the truth scores 2a. NaN for fewer than 2 frames."""
+    if len(frames) < 2:
+        return float("nan")
+    shown = [to_display(f, exposure) for f in frames]
+    truth = [to_display(t, exposure) for t in truths]
+    errors = []
+    for t in range(1, len(frames)):
+        both = np.asarray(masks[t], bool) & np.asarray(masks[t - 1], bool)
+        if both.any():
+            errors.append(float(np.abs((shown[t] - shown[t - 1]) - (truth[t] - truth[t - 1]))[both].mean()))
+    return float(np.mean(errors)) if errors else float("nan")

@@ -335,16 +335,16 @@ def dataset_from_capture(
         seq = {k: np.stack([v[i] for i in order]) for k, v in unique.items()}
         seq["reference"], crop = _resize_pad(load_observation(capture, cam, uniform.frame), scale)
         seq["reference_env"] = camera_env(uniform, cam)
-        raw.append((split, cam, seq))
-    targets = np.concatenate([s["target"].reshape(-1, 3) for _, _, s in raw])
+        raw.append((split, cam, seq, [entries[i].frame for i in order]))
+    targets = np.concatenate([s["target"].reshape(-1, 3) for _, _, s, _ in raw])
     lum = targets.mean(axis=1)
     # the subject's median radiance to 0.25 (≈ mid-grey after sRGB): robust to the path tracer's fireflies and to
     # the background, which a high percentile is not
     exposure = 0.25 / max(float(np.median(lum[lum > 0])), 1e-6)
-    envs = np.concatenate([s["env"].reshape(-1, 3) for _, _, s in raw])
+    envs = np.concatenate([s["env"].reshape(-1, 3) for _, _, s, _ in raw])
     env_exposure = 1.0 / max(float(envs.mean()), 1e-6)
     entries = []
-    for split, cam, seq in raw:
+    for split, cam, seq, capture_frames in raw:
         name = f"{split}_{cam}"
         entries.append(
             {
@@ -354,6 +354,7 @@ def dataset_from_capture(
                 "subject": f"capture:{capture.preset}",
                 "file": write_sequence(out, name, seq),
                 "camera": cam,
+                "capture_frames": capture_frames,  # the capture frame shown in each sequence frame (clips loop)
             }
         )
     h, w = raw[0][2]["coarse"].shape[1:3]
@@ -367,6 +368,7 @@ def dataset_from_capture(
         env_exposure,
         source=str(capture.folder),
         coarse="relightnet" if model is not None else "microfacet",
+        scale=scale,
         fps=ls.sequence.fps,
     )
     return RefinerDataset(out)

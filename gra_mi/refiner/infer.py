@@ -14,21 +14,24 @@ stays flat with length.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import resource
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from gra_mi.core.errors import GraMiParameterError, require_positive
+from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive
 from gra_mi.refiner.data import RefinerDataset, video_to_image
+from gra_mi.refiner.deflicker import DeflickerConfig, deflicker_frame
 from gra_mi.refiner.flow import euler_sample
 from gra_mi.refiner.model import VideoRefiner, conditioning, latent_frames, seed_mask
+from gra_mi.render.composite import PlatformConfig
 
 logger = logging.getLogger(__name__)
 
@@ -163,6 +166,43 @@ def _psnr(a: np.ndarray, b: np.ndarray, subject: np.ndarray) -> float:
     return compare(a, b, subject)["psnr"]
 
 
+def _capture_compositor(dataset: RefinerDataset, sequence: str, platform: PlatformConfig):
+    """(sequence frame, linear image) → the image over its environment on a platform: for data made from a capture,
+    whose dataset.json names the capture, the camera and the capture frame of each sequence frame."""
+    from gra_mi.capture.dataset import Capture
+    from gra_mi.render.composite import PlatformCompositor
+    from gra_mi.stage.envmap import envmap_to_leds, load_envmap
+    from gra_mi.stage.scene import LightstageScene
+
+    entry = next(s for s in dataset.meta["sequences"] if s["name"] == sequence)
+    path = dataset.folder / "dataset.json"
+    for key in ("camera", "capture_frames"):
+        if key not in entry:
+            raise GraMiInputError(
+                path,
+                f"--composite: sequence '{sequence}' has no '{key}' (composites need data made from a capture by `gra-mi refiner-data`)",
+            )
+    capture = Capture.load(dataset.meta.get("source", ""))
+    ls = LightstageScene.load(capture.folder / "scene.xml")
+    scale = float(dataset.meta.get("scale", dataset.crop[1] / ls.stage.camera(entry["camera"]).width))
+    camera = ls.stage.camera(entry["camera"]).resized(scale)
+    entries = {f.frame: f for f in capture.frames}
+    compositor = PlatformCompositor(ls.sequence, platform)
+    envmaps: dict[str, tuple[np.ndarray, float]] = {}
+
+    def compose(index: int, image: np.ndarray) -> np.ndarray:
+        lighting = entries[entry["capture_frames"][index]]
+        if lighting.envmap is None:
+            raise GraMiInputError(path, f"--composite: capture frame {lighting.frame} is lit by an LED pattern, not an environment")
+        if lighting.envmap not in envmaps:
+            env = load_envmap(capture.folder / lighting.envmap)
+            envmaps[lighting.envmap] = (env, envmap_to_leds(env, ls.stage).scale)
+        env, env_scale = envmaps[lighting.envmap]
+        return compositor(image, lighting.frame, camera, env, env_scale, lighting.envmap)
+
+    return compose
+
+
 def refine_to_folder(
     model_dir: str | Path,
     dataset_dir: str | Path,
@@ -171,9 +211,15 @@ def refine_to_folder(
     config: RefineConfig | None = None,
     write_exr_frames: bool = True,
     vae_round_trip_psnr: bool = True,
+    deflicker: DeflickerConfig | None = None,
+    composite: PlatformConfig | None = None,
     **options,
 ) -> dict:
-    """Refine one sequence into ``out``: frames (EXR linear + PNG), refined.mp4, comparison.mp4, refine.json.
+    """Refine one sequence into ``out``: frames (EXR linear + PNG), refined.mp4, comparison.mp4, refine.json; with
+    ``deflicker``, also each frame flicker-corrected against its coarse input (:mod:`gra_mi.refiner.deflicker`) in
+    ``out/deflickered/`` (EXR + PNG, deflickered.mp4); with ``composite``, ``composite.mp4``: the refined (and
+    flicker-corrected) frames over the environment on a platform with the subject's shadow (:mod:`gra_mi.render.composite`;
+    data made from a capture only).
 
     With a ground truth, refine.json has PSNRs of the coarse input, the refined frames and (``vae_round_trip_psnr``) the
     ground truth's own VAE round trip: what the VAE alone loses (with the tiny VAE, most of the gap to the input).
@@ -190,6 +236,7 @@ def refine_to_folder(
     dataset = RefinerDataset(dataset_dir)
     if sequence not in dataset.sequences:
         raise GraMiParameterError("sequence", f"no sequence '{sequence}' in {dataset.folder} (have {sorted(dataset.sequences)})")
+    compose = _capture_compositor(dataset, sequence, composite) if composite is not None else None
     model = VideoRefiner.load(model_dir).to(torch.device(torch_device())).prepare_for_inference(fuse_lora)
     info = dataset.sequences[sequence]
     total = info.frames if frames is None else frames
@@ -199,7 +246,11 @@ def refine_to_folder(
     rows, changes, windows_seen, rss = [], [], [], []
     previous = None
     t0 = time.perf_counter()
-    with Mp4Stream(out / "refined.mp4", fps) as refined_mp4, Mp4Stream(out / "comparison.mp4", fps) as comparison_mp4:
+    with contextlib.ExitStack() as streams:
+        refined_mp4 = streams.enter_context(Mp4Stream(out / "refined.mp4", fps))
+        comparison_mp4 = streams.enter_context(Mp4Stream(out / "comparison.mp4", fps))
+        deflickered_mp4 = streams.enter_context(Mp4Stream(out / "deflickered" / "deflickered.mp4", fps)) if deflicker is not None else None
+        composite_mp4 = streams.enter_context(Mp4Stream(out / "composite.mp4", fps)) if compose is not None else None
         for frame in progress(rollout(model, dataset, sequence, config, frames=total), description=f"refine {sequence}", total=total):
             image = video_to_image(frame.video, exposure).permute(1, 2, 0).numpy()[:ch, :cw]
             shown = ((frame.video.permute(1, 2, 0).numpy()[:ch, :cw] + 1) / 2).clip(0, 1)
@@ -210,13 +261,22 @@ def refine_to_folder(
             refined_mp4.append(image, exposure)
             panels = [coarse, image]
             row = {"frame": frame.index, "window": frame.window}
+            if deflicker is not None:  # the refiner's own display space: the dataset's exposure
+                corrected = deflicker_frame(image, coarse, exposure, deflicker)
+                write_exr(out / "deflickered" / f"frame_{frame.index:04d}.exr", corrected)
+                write_png(out / "deflickered" / f"frame_{frame.index:04d}.png", corrected, exposure=exposure)
+                deflickered_mp4.append(corrected, exposure)
             if info.has_target:
                 target = dataset.linear_frames(sequence, "target", frame.index, frame.index + 1)[0].numpy()[:ch, :cw]
                 panels.append(target)
                 subject = _subject(coarse, target)
                 row["psnr_coarse"] = _psnr(coarse, target, subject)
                 row["psnr_refined"] = _psnr(image, target, subject)
+                if deflicker is not None:
+                    row["psnr_deflickered"] = _psnr(corrected, target, subject)
             comparison_mp4.append(np.concatenate(panels, axis=1), exposure)
+            if compose is not None:
+                composite_mp4.append(compose(frame.index, corrected if deflicker is not None else image), exposure)
             if previous is not None:
                 changes.append(float(np.abs(shown - previous).mean()))
             previous = shown
@@ -242,6 +302,7 @@ def refine_to_folder(
         "frames_per_second": len(rows) / seconds,
         "joins": {"handoff": joins.handoff, "pin": joins.pin, "crossfade": joins.crossfade},
         "fuse_lora": fuse_lora,
+        "deflicker": None if deflicker is None else asdict(deflicker),
         "seam_jump": float(np.mean(seam)) if seam else None,
         "join_frame_change": float(np.mean(join)) if join else None,
         "inner_frame_change": float(np.mean(inner)) if inner else None,
@@ -251,6 +312,8 @@ def refine_to_folder(
     if info.has_target:
         summary["psnr_coarse"] = float(np.mean([r["psnr_coarse"] for r in rows]))
         summary["psnr_refined"] = float(np.mean([r["psnr_refined"] for r in rows]))
+        if deflicker is not None:
+            summary["psnr_deflickered"] = float(np.mean([r["psnr_deflickered"] for r in rows]))
         if vae_round_trip_psnr:
             psnr = []
             for index, video in vae_round_trip(model, dataset, sequence, total):

@@ -62,6 +62,20 @@ class Camera:
         d_world /= np.linalg.norm(d_world, axis=-1, keepdims=True)
         return self.position, d_world
 
+    def resized(self, scale: float) -> Camera:
+        """The same camera with its image area-downscaled by ``scale`` (sizes floored, as torch's ``area`` resampling)."""
+        from dataclasses import replace
+
+        return replace(
+            self,
+            width=int(self.width * scale),
+            height=int(self.height * scale),
+            fx=self.fx * scale,
+            fy=self.fy * scale,
+            cx=self.cx * scale,
+            cy=self.cy * scale,
+        )
+
     def project(self, points: np.ndarray) -> np.ndarray:
         """World points (N, 3) → pixel coordinates (N, 2) and depth; returns (N, 3) as (x, y, z_cam)."""
         world_to_camera = np.linalg.inv(self.camera_to_world)

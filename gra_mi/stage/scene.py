@@ -49,12 +49,34 @@ def leds_xml(stage: Lightstage) -> str:
     return "\n".join(lines) + "\n"
 
 
+def principal_point_offsets(camera: Camera) -> tuple[float, float]:
+    """Mitsuba's principal point offsets: fractions of the film size from its centre, with the opposite sign of the
+    OpenCV pixel offset (checked against our background plates in tests/test_conventions.py)."""
+    return 0.0 - (camera.cx - camera.width / 2.0) / camera.width, 0.0 - (camera.cy - camera.height / 2.0) / camera.height
+
+
+def camera_sensor_dict(camera: Camera, spp: int) -> dict:
+    """The sensor of :func:`camera_xml` as a ``mi.load_dict`` dictionary (scenes built in Python)."""
+    import mitsuba as mi
+
+    off_x, off_y = principal_point_offsets(camera)
+    return {
+        "type": "perspective",
+        "fov": camera.fov_x_deg,
+        "fov_axis": "x",
+        "principal_point_offset_x": off_x,
+        "principal_point_offset_y": off_y,
+        "near_clip": 0.01,
+        "far_clip": 100.0,
+        "to_world": mi.ScalarTransform4f(camera.mitsuba_to_world()),
+        "sampler": {"type": "independent", "sample_count": int(spp)},
+        "film": {"type": "hdrfilm", "width": camera.width, "height": camera.height, "pixel_format": "rgba", "rfilter": {"type": "box"}},
+    }
+
+
 def camera_xml(camera: Camera, spp_param: str = f"${keys.PARAM_SPP}") -> str:
     m = camera.mitsuba_to_world()
-    # Mitsuba's principal point offsets are fractions of the film size from its centre, with the opposite sign
-    # of the OpenCV pixel offset (checked against our background plates in tests/test_conventions.py).
-    off_x = 0.0 - (camera.cx - camera.width / 2.0) / camera.width
-    off_y = 0.0 - (camera.cy - camera.height / 2.0) / camera.height
+    off_x, off_y = principal_point_offsets(camera)
     return (
         f'    <sensor type="perspective" id="{camera.name}">\n'
         f'        <float name="fov" value="{camera.fov_x_deg:.9g}"/>\n'

@@ -1,0 +1,608 @@
+"""``gra-mi eval``: every stage of the pipeline scored the paper's way, in one table (paper Sec. 4, Table 2).
+
+Protocol (docs/evaluation.md):
+
+- **Splits**: the held-out cameras under the held-out lighting sequence (the capture's test frames), one split per
+  camera. With the refiner's data, a split is its test sequence of that camera (the capture's clip looped to the
+  sequence's length, ``capture_frames`` in dataset.json), so every stage sees the same frames.
+- **Stages**: the microfacet render with the fitted maps, + RelightNet, + the video refiner, + flicker correction;
+  each is scored only where its outputs exist, and the table says what was skipped and why.
+- **Frames**: per-frame metrics on every 10th frame of each sequence (``every10``, the paper's protocol), or on the
+  middle frame of each 17-frame refiner window (``window-middles``), or on all frames (``all``); the temporal
+  metric and FVD use every frame.
+- **One mask** per frame for every stage: the truth's alpha ≥ 0.5 (:func:`gra_mi.core.metrics.subject_mask`), at
+  one resolution for all stages (the refiner's frames when a video stage is scored, the capture's otherwise).
+- **Metrics**: display PSNR and SSIM (:func:`gra_mi.core.metrics.compare`), LDR-ꟻLIP, the temporal error
+  (:func:`gra_mi.core.metrics.temporal_error`), and LPIPS / FVD when their weights are given
+  (:mod:`gra_mi.eval.perceptual`).
+
+Outputs: ``eval.md`` (the table), ``eval.csv``, ``eval.json``, ``contact_<split>.png`` (truth | each stage, their ꟻLIP
+maps below), ``videos/<split>.mp4`` (truth | each stage side by side; ``--composite``: over the environment on a
+platform with the subject's shadow).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from gra_mi.core.errors import GraMiInputError, GraMiParameterError
+from gra_mi.render.composite import PlatformConfig
+
+logger = logging.getLogger(__name__)
+
+FRAME_SELECTIONS = ("every10", "window-middles", "all")
+WINDOW, HANDOFF = 17, 5  # the refiner's window and hand-off (gra_mi.refiner.infer.window_starts)
+STAGES = ("microfacet", "RelightNet", "refined", "deflickered")
+STAGE_TITLES = {
+    "microfacet": "microfacet (fitted maps)",
+    "RelightNet": "+ RelightNet",
+    "refined": "+ video refiner",
+    "deflickered": "+ flicker correction",
+}
+
+
+@dataclass
+class EvalConfig:
+    frames: str = "every10"
+    """Frames scored per sequence: every10 (every 10th frame, the paper's protocol), window-middles (the middle frame
+    of each 17-frame refiner window) or all. The temporal metric and FVD always use every frame."""
+    scale: float | None = None
+    """Capture images → evaluation resolution (default: the refiner data's scale when a video stage is scored, else 1)."""
+    lpips_weights: list[str] | None = None
+    """LPIPS weights on disk (AlexNet backbone + lpips heads: files or a folder); none: no LPIPS column."""
+    i3d_weights: str | None = None
+    """TorchScript I3D (i3d_torchscript.pt, the usual FVD feature network) on disk; default none: no FVD column."""
+    composite: bool = False
+    """Also write the side-by-side videos over the environment on a platform with the subject's shadow."""
+    platform: PlatformConfig = field(default_factory=PlatformConfig)
+    """The platform of the composites (gra_mi.render.composite)."""
+
+    def validate(self) -> None:
+        if self.frames not in FRAME_SELECTIONS:
+            raise GraMiParameterError("frames", f"expected one of {', '.join(FRAME_SELECTIONS)}, got '{self.frames}'")
+        if self.scale is not None and not (0 < self.scale <= 1):
+            raise GraMiParameterError("scale", f"must be in (0, 1], got {self.scale}")
+        self.platform.validate()
+
+
+@dataclass
+class EvalInputs:
+    """Where each stage's outputs are. ``explicit`` names the ones the user pointed to: a problem with one of those is
+    an error (exit 2); a stage merely absent from a run folder is skipped and said so."""
+
+    capture: Path
+    fit: Path | None = None
+    relightnet: Path | None = None
+    refiner_data: Path | None = None
+    refined: list[Path] = field(default_factory=list)
+    explicit: set[str] = field(default_factory=set)
+
+    @classmethod
+    def from_run(cls, run: str | Path) -> EvalInputs:
+        """The layout ``gra-mi demo`` writes: capture/, fit/, relightnet/, refiner/data/, refiner/refined/."""
+        run = Path(run)
+        if not run.is_dir():
+            raise GraMiInputError(run, "run folder not found")
+        refined = run / "refiner" / "refined"
+        return cls(run / "capture", run / "fit", run / "relightnet", run / "refiner" / "data", [refined] if refined.is_dir() else [])
+
+
+def frame_selection(count: int, how: str) -> list[int]:
+    """The sequence frames scored per frame (see :class:`EvalConfig`)."""
+    if how == "all":
+        return list(range(count))
+    if how == "every10":
+        return list(range(0, count, 10))
+    from gra_mi.refiner.infer import window_starts
+
+    return [s + WINDOW // 2 for s in window_starts(count, WINDOW, HANDOFF) if s + WINDOW // 2 < count]
+
+
+def _downscale(image: np.ndarray, scale: float) -> np.ndarray:
+    """Area-average downscale (the refiner data's own resampling), every channel."""
+    if scale == 1.0:
+        return np.asarray(image, np.float32)
+    import torch
+    import torch.nn.functional as F
+
+    t = torch.from_numpy(np.ascontiguousarray(image, np.float32)).permute(2, 0, 1)[None]
+    return F.interpolate(t, scale_factor=scale, mode="area")[0].permute(1, 2, 0).numpy()
+
+
+@dataclass
+class Split:
+    """One held-out camera under the held-out lighting: the capture frame of each sequence frame."""
+
+    name: str
+    camera: str
+    capture_frames: list[int]
+    refined_dir: Path | None = None
+
+
+@dataclass
+class StageResult:
+    stage: str
+    status: str = "done"  # or "skipped: why"
+    splits: dict[str, dict] = field(default_factory=dict)  # split → metrics
+    seconds_per_frame: float | None = None
+    fvd: float | None = None
+
+
+def _refined_folders(paths: list[Path]) -> dict[str, Path]:
+    """Sequence name → refined folder (a folder with refine.json, or a folder of such folders)."""
+    from gra_mi.core.io import read_json
+
+    found = {}
+    for path in paths:
+        candidates = (
+            [path]
+            if (path / "refine.json").is_file()
+            else sorted(p for p in path.iterdir() if (p / "refine.json").is_file())
+            if path.is_dir()
+            else []
+        )
+        if not candidates:
+            raise GraMiInputError(path, "--refined: no refine.json here or in its sub-folders (write one with `gra-mi refine`)")
+        for folder in candidates:
+            summary = read_json(folder / "refine.json")
+            if "sequence" not in summary:
+                raise GraMiInputError(folder / "refine.json", "missing field 'sequence'")
+            found[summary["sequence"]] = folder
+    return found
+
+
+def _splits(capture, dataset, refined: dict[str, Path]) -> list[Split]:
+    test = [f.frame for f in capture.frames if f.split == "test"]
+    if not test:
+        raise GraMiInputError(capture.folder / "capture.json", "no test frames: nothing is held out to evaluate on")
+    splits = []
+    for cam in capture.eval_cameras:
+        name, frames = f"test_{cam}", test
+        if dataset is not None:
+            entry = next((s for s in dataset.meta["sequences"] if s.get("camera") == cam and s["split"] == "test"), None)
+            if entry is not None:
+                name = entry["name"]
+                frames = entry.get("capture_frames") or [test[i % len(test)] for i in range(int(entry["frames"]))]
+        splits.append(Split(name, cam, list(frames), refined.get(name)))
+    return splits
+
+
+def evaluate(inputs: EvalInputs, out: str | Path, config: EvalConfig | None = None) -> dict:
+    """Score every stage found in ``inputs`` on every split; write the table, contact sheets and videos under ``out``.
+    Returns the eval.json content; its ``problems`` lists what the user pointed to that could not be evaluated."""
+    from gra_mi.capture.dataset import Capture
+    from gra_mi.core.runtime import ensure_mitsuba
+
+    config = config or EvalConfig()
+    config.validate()
+    ensure_mitsuba()
+    out = Path(out)
+    problems: list[str] = []
+    capture = Capture.load(inputs.capture)
+    results = {s: StageResult(s) for s in STAGES}
+
+    def skip(stage: str, why: str, source: str | None = None) -> None:
+        results[stage].status = f"skipped: {why}"
+        if source is not None and source in inputs.explicit:
+            problems.append(why)
+
+    # What each stage needs, checked before any work -----------------------------------------------------------
+    relighter = model = dataset = None
+    refined: dict[str, Path] = {}
+    try:
+        from gra_mi.render.relighter import fitted_relighter
+
+        if inputs.fit is None or not (inputs.fit / "albedo.exr").is_file():
+            raise GraMiInputError(inputs.fit or "--fit", "no albedo.exr (a fit folder from `gra-mi fit`)")
+        _, relighter = fitted_relighter(capture.folder, inputs.fit, out / "cache")
+    except GraMiInputError as exc:
+        for stage in ("microfacet", "RelightNet"):
+            skip(stage, str(exc), "fit")
+    if relighter is not None:
+        try:
+            from gra_mi.core.runtime import torch_device
+            from gra_mi.relightnet.model import RelightNet
+
+            if inputs.relightnet is None or not (inputs.relightnet / "relightnet.json").is_file():
+                raise GraMiInputError(inputs.relightnet or "--relightnet", "no relightnet.json (a folder from `gra-mi train-relightnet`)")
+            model = RelightNet.load(inputs.relightnet, torch_device())
+        except GraMiInputError as exc:
+            skip("RelightNet", str(exc), "relightnet")
+    else:
+        results["RelightNet"].status = results["microfacet"].status
+    try:
+        from gra_mi.refiner.data import RefinerDataset
+
+        if inputs.refiner_data is not None and (inputs.refiner_data / "dataset.json").is_file():
+            dataset = RefinerDataset(inputs.refiner_data)
+        elif "refiner_data" in inputs.explicit:
+            raise GraMiInputError(inputs.refiner_data, "no dataset.json (a folder from `gra-mi refiner-data`)")
+        refined = _refined_folders(inputs.refined) if inputs.refined else {}
+        if refined and dataset is None:
+            raise GraMiInputError(
+                next(iter(refined.values())), "refined frames need the refiner's data (--refiner-data) to know their frames"
+            )
+    except GraMiInputError as exc:
+        refined = {}
+        skip("refined", str(exc))
+        if {"refined", "refiner_data"} & inputs.explicit:
+            problems.append(str(exc))
+    if not refined and results["refined"].status == "done":
+        results["refined"].status = "skipped: no refined sequence (`gra-mi refine`)"
+    splits = _splits(capture, dataset if refined else None, refined)
+    scale = config.scale
+    if scale is None:
+        scale = float(dataset.meta.get("scale", dataset.crop[1] / capture_width(capture))) if refined else 1.0
+    lpips_model = i3d = None
+    if config.lpips_weights:
+        try:
+            from gra_mi.eval.perceptual import load_lpips
+
+            lpips_model = load_lpips(config.lpips_weights)
+        except GraMiInputError as exc:
+            problems.append(str(exc))
+    if config.i3d_weights:
+        try:
+            from gra_mi.eval.perceptual import load_i3d
+
+            i3d = load_i3d(config.i3d_weights)
+        except GraMiInputError as exc:
+            problems.append(str(exc))
+
+    # Frames of every stage, split by split ---------------------------------------------------------------------
+    from gra_mi.capture.dataset import load_observation
+    from gra_mi.core.metrics import display_exposure, subject_mask
+    from gra_mi.core.progress import progress
+    from gra_mi.relightnet.infer import render_view
+
+    entries = {f.frame: f for f in capture.frames}
+    truth_cache: dict[tuple[str, int], np.ndarray] = {}
+    render_cache: dict[tuple[str, str, int], np.ndarray] = {}
+    render_seconds: dict[str, list[float]] = {"microfacet": [], "RelightNet": []}
+    videos: dict[str, dict[str, list[np.ndarray]]] = {}
+    for split in progress(splits, description="evaluate splits"):
+        truths = []
+        for f in split.capture_frames:
+            key = (split.camera, f)
+            if key not in truth_cache:
+                truth_cache[key] = _downscale(load_observation(capture, split.camera, f), scale)
+            truths.append(truth_cache[key])
+        frames = {"truth": truths}
+
+        def rendered(stage: str, net, split=split) -> list[np.ndarray]:
+            images = []
+            for f in split.capture_frames:
+                key = (stage, split.camera, f)
+                if key not in render_cache:
+                    start = time.perf_counter()
+                    image = render_view(relighter, net, f, split.camera, capture.lighting(relighter.ls.stage, entries[f])).image
+                    render_seconds[stage].append(time.perf_counter() - start)
+                    render_cache[key] = _downscale(image, scale)
+                images.append(render_cache[key])
+            return images
+
+        if results["microfacet"].status == "done":
+            frames["microfacet"] = rendered("microfacet", None)
+        if results["RelightNet"].status == "done":
+            frames["RelightNet"] = rendered("RelightNet", model)
+        if split.refined_dir is not None and results["refined"].status == "done":
+            loaded = _read_sequence(split.refined_dir / "frames", len(truths), truths[0].shape[:2])
+            if isinstance(loaded, str):
+                results["refined"].splits[split.name] = {"skipped": loaded}
+                if "refined" in inputs.explicit:
+                    problems.append(loaded)
+            else:
+                frames["refined"] = loaded
+                if (split.refined_dir / "deflickered").is_dir():
+                    loaded = _read_sequence(split.refined_dir / "deflickered", len(truths), truths[0].shape[:2])
+                    if isinstance(loaded, str):
+                        results["deflickered"].splits[split.name] = {"skipped": loaded}
+                        problems.append(loaded)
+                    else:
+                        frames["deflickered"] = loaded
+        coverage = frames.get("microfacet", frames.get("RelightNet"))
+        masks = [subject_mask(t) for t in truths]
+        exposure = float(np.median([display_exposure(t, m) for t, m in zip(truths, masks, strict=True)]))
+        for stage in STAGES:
+            if stage in frames:
+                results[stage].splits[split.name] = _score(
+                    frames[stage], truths, masks, exposure, frame_selection(len(truths), config.frames), lpips_model
+                )
+        videos[split.name] = {"frames": frames, "exposure": exposure, "coverage": coverage}
+        _contact_sheet(
+            out / f"contact_{split.name}.png", frames, truths, masks, exposure, frame_selection(len(truths), config.frames), split.name
+        )
+    if not any("deflickered" in v["frames"] for v in videos.values()) and not results["deflickered"].splits:
+        results["deflickered"].status = "skipped: no deflickered frames (`gra-mi refine --deflicker` or `gra-mi deflicker`)"
+    for stage in ("microfacet", "RelightNet"):
+        if render_seconds[stage]:
+            results[stage].seconds_per_frame = float(np.median(render_seconds[stage]))
+    for split in splits:
+        if split.refined_dir is not None and results["refined"].status == "done":
+            from gra_mi.core.io import read_json
+
+            fps = read_json(split.refined_dir / "refine.json").get("frames_per_second")
+            results["refined"].seconds_per_frame = 1.0 / fps if fps else None
+    if results["refined"].status == "done" and not any(s in results["refined"].splits for s in (sp.name for sp in splits)):
+        results["refined"].status = "skipped: no refined sequence matches a held-out camera"
+    if i3d is not None:
+        _fvd(i3d, results, videos)
+
+    # Outputs ---------------------------------------------------------------------------------------------------
+    _write_videos(out / "videos", videos, splits, capture, relighter, scale, config)
+    report = {
+        "protocol": {
+            "frames": config.frames,
+            "scale": scale,
+            "resolution": list(next(iter(videos.values()))["frames"]["truth"][0].shape[1::-1]),
+            "splits": {
+                s.name: {
+                    "camera": s.camera,
+                    "frames": len(s.capture_frames),
+                    "scored": frame_selection(len(s.capture_frames), config.frames),
+                }
+                for s in splits
+            },
+            "lpips": lpips_model is not None,
+            "fvd": i3d is not None,
+            "composite": config.composite and relighter is not None,
+        },
+        "stages": {s: asdict(r) for s, r in results.items()},
+        "problems": problems,
+    }
+    from gra_mi.core.io import atomic_write_text
+
+    atomic_write_text(out / "eval.json", json.dumps(report, indent=1, default=float) + "\n")
+    atomic_write_text(out / "eval.csv", eval_csv(report))
+    atomic_write_text(out / "eval.md", eval_markdown(report))
+    return report
+
+
+def capture_width(capture) -> int:
+    """Pixels across a capture image (refiner data written before ``scale`` was recorded give only their crop)."""
+    from gra_mi.core.io import read_exr
+
+    return read_exr(capture.image_path(capture.eval_cameras[0], next(f.frame for f in capture.frames if f.split == "test"))).shape[1]
+
+
+def _read_sequence(folder: Path, count: int, size: tuple[int, int]) -> list[np.ndarray] | str:
+    """A refined sequence's frames ``frame_NNNN.exr``; a string says why they cannot be scored."""
+    from gra_mi.core.io import read_exr
+
+    if not folder.is_dir():
+        return f"{folder}: folder not found"
+    images = []
+    for i in range(count):
+        path = folder / f"frame_{i:04d}.exr"
+        if not path.is_file():
+            return f"{path}: missing (the sequence has {count} frames)"
+        try:
+            image = read_exr(path)
+        except GraMiInputError as exc:
+            return str(exc)
+        if image.shape[:2] != size:
+            return f"{path}: {image.shape[1]}×{image.shape[0]} pixels, the truth at the evaluation scale is {size[1]}×{size[0]}"
+        images.append(image)
+    return images
+
+
+def _score(images, truths, masks, exposure, scored: list[int], lpips_model) -> dict:
+    from gra_mi.core.metrics import compare, flip, temporal_error
+
+    rows = []
+    for i in scored:
+        row = compare(images[i], truths[i], masks[i])
+        row["flip"] = flip(images[i], truths[i], masks[i])
+        if lpips_model is not None:
+            from gra_mi.core.metrics import display_exposure
+            from gra_mi.eval.perceptual import lpips_distance
+
+            row["lpips"] = lpips_distance(lpips_model, images[i], truths[i], masks[i], display_exposure(truths[i], masks[i]))
+        rows.append(row)
+    result = {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
+    result["temporal"] = temporal_error(images, truths, masks, exposure)
+    result["frames_scored"] = len(rows)
+    return result
+
+
+def _fvd(i3d, results: dict[str, StageResult], videos: dict) -> None:
+    """FVD of each stage against the truth over all splits' 17-frame clips (non-overlapping, from frame 0)."""
+    from gra_mi.core.metrics import to_display
+    from gra_mi.eval.perceptual import frechet_distance, i3d_features
+
+    for stage in STAGES:
+        real, fake = [], []
+        for video in videos.values():
+            frames, exposure = video["frames"], video["exposure"]
+            if stage not in frames:
+                continue
+            for start in range(0, len(frames["truth"]) - WINDOW + 1, WINDOW):
+                real.append(np.stack([to_display(f, exposure) for f in frames["truth"][start : start + WINDOW]]))
+                fake.append(np.stack([to_display(f, exposure) for f in frames[stage][start : start + WINDOW]]))
+        if len(real) >= 2:
+            results[stage].fvd = frechet_distance(i3d_features(i3d, real), i3d_features(i3d, fake))
+
+
+def _contact_sheet(path: Path, frames: dict, truths, masks, exposure: float, scored: list[int], split: str) -> None:
+    """Truth and each stage at the middle scored frame, their ꟻLIP maps below."""
+    from gra_mi.core.io import pyplot, save_figure
+    from gra_mi.core.metrics import flip_map, to_display
+
+    i = scored[len(scored) // 2]
+    stages = [s for s in STAGES if s in frames]
+    ys, xs = np.nonzero(masks[i])
+    pad = 4
+    box = (slice(max(ys.min() - pad, 0), ys.max() + pad + 1), slice(max(xs.min() - pad, 0), xs.max() + pad + 1)) if ys.size else (slice(None), slice(None))
+    plt = pyplot()
+    fig, axes = plt.subplots(2, 1 + len(stages), figsize=(1.9 * (1 + len(stages)), 5.2), squeeze=False)
+    axes[0, 0].imshow(to_display(truths[i], exposure)[box])
+    axes[0, 0].set_title("truth", fontsize=8)
+    axes[1, 0].imshow(masks[i][box], cmap="gray")
+    axes[1, 0].set_title("mask (truth α ≥ 0.5)", fontsize=8)
+    for k, stage in enumerate(stages, start=1):
+        axes[0, k].imshow(to_display(frames[stage][i], exposure)[box])
+        axes[0, k].set_title(STAGE_TITLES[stage], fontsize=8)
+        error = np.where(masks[i], flip_map(frames[stage][i], truths[i], exposure), 0.0)
+        axes[1, k].imshow(error[box], cmap="magma", vmin=0, vmax=1)
+        axes[1, k].set_title(f"ꟻLIP (mean {error[masks[i]].mean():.3f})", fontsize=8)
+    for ax in axes.ravel():
+        ax.axis("off")
+    fig.suptitle(f"{split}, frame {i}", fontsize=9)
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+def _write_videos(folder: Path, videos: dict, splits: list[Split], capture, relighter, scale: float, config: EvalConfig) -> None:
+    """Truth | each stage side by side per split; with ``config.composite`` also over the environment on a platform."""
+    from gra_mi.core.io import write_mp4
+    from gra_mi.core.progress import progress
+
+    fps = 12.0
+    for split in splits:
+        video = videos[split.name]
+        frames, exposure = video["frames"], video["exposure"]
+        order = ["truth"] + [s for s in STAGES if s in frames]
+        panels = [np.concatenate([frames[s][i][..., :3] for s in order], axis=1) for i in range(len(frames["truth"]))]
+        write_mp4(folder / f"{split.name}.mp4", panels, fps=fps, exposure=exposure)
+        if not config.composite or relighter is None:
+            continue
+        from gra_mi.render.composite import PlatformCompositor
+        from gra_mi.stage.envmap import envmap_to_leds, load_envmap
+
+        stage = relighter.ls.stage
+        entries = {f.frame: f for f in capture.frames}
+        if any(entries[f].kind != "envmap" for f in split.capture_frames):
+            logger.warning("%s: composites need environment lighting; this sequence has LED patterns, skipped", split.name)
+            continue
+        cam = stage.camera(split.camera).resized(scale)
+        compositor = PlatformCompositor(relighter.ls.sequence, config.platform)
+        envmaps = {e: load_envmap(capture.folder / e) for e in {entries[f].envmap for f in split.capture_frames}}
+        composites = []
+        for i, f in progress(list(enumerate(split.capture_frames)), description=f"composites {split.name}"):
+            env = envmaps[entries[f].envmap]
+            scale_env = envmap_to_leds(env, stage).scale
+            # stages without an alpha of their own (the refiner's frames) are shown where the geometry covers
+            covered = (video["coverage"][i][..., 3:4] if video["coverage"] is not None else frames["truth"][i][..., 3:4]) > 0
+            row = [compositor(frames[s][i][..., :3] * covered, f, cam, env, scale_env, entries[f].envmap) for s in order]
+            composites.append(np.concatenate(row, axis=1))
+        write_mp4(folder / f"{split.name}_composite.mp4", composites, fps=fps, exposure=exposure)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# The table
+# --------------------------------------------------------------------------------------------------------------
+
+METRICS: list[tuple[str, str, Callable[[float], str]]] = [
+    ("psnr", "PSNR ↑", lambda v: f"{v:.2f}"),
+    ("ssim", "SSIM ↑", lambda v: f"{v:.3f}"),
+    ("flip", "ꟻLIP ↓", lambda v: f"{v:.3f}"),
+    ("lpips", "LPIPS ↓", lambda v: f"{v:.3f}"),
+    ("temporal", "temporal ↓", lambda v: f"{100 * v:.2f}"),
+]
+
+
+def _metrics(report: dict) -> list[tuple[str, str, Callable]]:
+    return [m for m in METRICS if m[0] != "lpips" or report["protocol"]["lpips"]]
+
+
+def eval_table(report: dict) -> tuple[list[str], list[str]]:
+    """The Table-2-like Markdown table (rows: stages; columns: metrics × splits, FVD, time) and the notes on what
+    was skipped and why."""
+    protocol, stages = report["protocol"], report["stages"]
+    splits = list(protocol["splits"])
+    metrics = _metrics(report)
+    header = ["stage"] + [f"{split} {label}" if k == 0 else label for split in splits for k, (_, label, _) in enumerate(metrics)]
+    if protocol["fvd"]:
+        header.append("FVD ↓")
+    header.append("s / frame")
+    lines = ["| " + " | ".join(header) + " |", "|---" * len(header) + "|"]
+    notes = []
+    for stage, result in stages.items():
+        cells = [STAGE_TITLES[stage]]
+        for split in splits:
+            scored = result["splits"].get(split)
+            for key, _, fmt in metrics:
+                cells.append(fmt(scored[key]) if scored and key in scored and np.isfinite(scored[key]) else "–")
+            if scored and "skipped" in scored:
+                notes.append(f"- {STAGE_TITLES[stage]}, {split}: skipped: {scored['skipped']}")
+            elif scored is None and result["status"] == "done":
+                notes.append(f"- {STAGE_TITLES[stage]}, {split}: no output for this sequence")
+        if protocol["fvd"]:
+            cells.append(f"{result['fvd']:.1f}" if result.get("fvd") is not None else "–")
+        cells.append(f"{result['seconds_per_frame']:.2f}" if result.get("seconds_per_frame") else "–")
+        lines.append("| " + " | ".join(cells) + " |")
+        if result["status"] != "done":
+            notes.append(f"- {STAGE_TITLES[stage]}: {result['status']}")
+    notes += [f"- problem: {p}" for p in report["problems"]]
+    return lines, notes
+
+
+def protocol_said(report: dict) -> str:
+    """One paragraph: what was scored, how, at which size."""
+    protocol = report["protocol"]
+    scored = next(iter(protocol["splits"].values()))
+    return (
+        f"Held-out cameras under the held-out lighting sequence, at {protocol['resolution'][0]}×{protocol['resolution'][1]} "
+        f"(capture images × {protocol['scale']:.3g}). Per-frame metrics on {_frames_said(protocol['frames'])} "
+        f"({scored['frames']} frames per sequence, {len(scored['scored'])} scored); the temporal error on every consecutive pair"
+        + ("; FVD on all 17-frame clips" if protocol["fvd"] else "")
+        + ". One mask per frame for every stage: the truth's alpha ≥ 0.5. PSNR, SSIM, ꟻLIP"
+        + (", LPIPS" if protocol["lpips"] else "")
+        + " on display values at the truth's exposure; temporal: mean |Δframe − Δtruth| in % of the display range "
+        "(docs/evaluation.md). s / frame: render time (the microfacet render includes each frame's visibility trace, "
+        "which RelightNet then reuses), the refiner's rollout."
+    )
+
+
+def eval_markdown(report: dict) -> str:
+    protocol = report["protocol"]
+    lines, notes = eval_table(report)
+    text = ["# Evaluation: every stage against the path-traced truth", "", protocol_said(report), "", *lines, ""]
+    if notes:
+        text += ["Skipped, and why:", "", *notes, ""]
+    if not protocol["lpips"]:
+        text.append("LPIPS: not measured (give `--lpips-weights`). ")
+    if not protocol["fvd"]:
+        text.append("FVD: not measured (give `--i3d-weights`).")
+    text.append("")
+    for s in protocol["splits"]:
+        videos = f"[videos/{s}.mp4](videos/{s}.mp4)"
+        if protocol.get("composite"):
+            videos += f", over the environment on a platform: [videos/{s}_composite.mp4](videos/{s}_composite.mp4)"
+        text.append(f"{s}: truth | each stage, ꟻLIP below: ![contact sheet](contact_{s}.png) · side by side: {videos}")
+    return "\n".join(text) + "\n"
+
+
+def _frames_said(how: str) -> str:
+    return {
+        "every10": "every 10th frame (the paper's protocol)",
+        "window-middles": "the middle frame of each 17-frame refiner window",
+        "all": "every frame",
+    }[how]
+
+
+def eval_csv(report: dict) -> str:
+    buffer = io.StringIO()
+    writer = csv.writer(buffer)
+    writer.writerow(
+        ["stage", "split", "status", "psnr", "ssim", "brightness", "flip", "lpips", "temporal", "frames_scored", "fvd", "seconds_per_frame"]
+    )
+    for stage, result in report["stages"].items():
+        if not result["splits"]:
+            writer.writerow([stage, "", result["status"]] + [""] * 9)
+        for split, m in result["splits"].items():
+            writer.writerow(
+                [stage, split, m.get("skipped", result["status"])]
+                + [m.get(k, "") for k in ("psnr", "ssim", "brightness", "flip", "lpips", "temporal", "frames_scored")]
+                + [result.get("fvd") or "", result.get("seconds_per_frame") or ""]
+            )
+    return buffer.getvalue()
