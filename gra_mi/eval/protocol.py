@@ -135,6 +135,7 @@ class StageResult:
     splits: dict[str, dict] = field(default_factory=dict)  # split → metrics
     seconds_per_frame: float | None = None
     fvd: float | None = None
+    fvd_clips: int = 0
 
 
 def _refined_folders(paths: list[Path]) -> dict[str, Path]:
@@ -164,15 +165,23 @@ def _splits(capture, dataset, refined: dict[str, Path]) -> list[Split]:
     test = [f.frame for f in capture.frames if f.split == "test"]
     if not test:
         raise GraMiInputError(capture.folder / "capture.json", "no test frames: nothing is held out to evaluate on")
+    # The capture's held-out lighting sequences; the refiner's data plays them one after another per camera.
+    sequences: dict[int, list[int]] = {}
+    for f in capture.frames:
+        if f.split == "test":
+            sequences.setdefault(f.sequence, []).append(f.frame)
     splits = []
     for cam in capture.eval_cameras:
-        name, frames = f"test_{cam}", test
+        entry = None
         if dataset is not None:
             entry = next((s for s in dataset.meta["sequences"] if s.get("camera") == cam and s["split"] == "test"), None)
-            if entry is not None:
-                name = entry["name"]
-                frames = entry.get("capture_frames") or [test[i % len(test)] for i in range(int(entry["frames"]))]
-        splits.append(Split(name, cam, list(frames), refined.get(name)))
+        if entry is not None:
+            frames = entry.get("capture_frames") or [test[i % len(test)] for i in range(int(entry["frames"]))]
+            splits.append(Split(entry["name"], cam, list(frames), refined.get(entry["name"])))
+            continue
+        for k, frames in sequences.items():
+            name = f"test_{cam}" if len(sequences) == 1 else f"test{k}_{cam}"
+            splits.append(Split(name, cam, frames))
     return splits
 
 
@@ -430,6 +439,7 @@ def _fvd(i3d, results: dict[str, StageResult], videos: dict) -> None:
                 fake.append(np.stack([to_display(f, exposure) for f in frames[stage][start : start + WINDOW]]))
         if len(real) >= 2:
             results[stage].fvd = frechet_distance(i3d_features(i3d, real), i3d_features(i3d, fake))
+            results[stage].fvd_clips = len(real)
 
 
 def _contact_sheet(path: Path, frames: dict, truths, masks, exposure: float, scored: list[int], split: str) -> None:
@@ -441,7 +451,11 @@ def _contact_sheet(path: Path, frames: dict, truths, masks, exposure: float, sco
     stages = [s for s in STAGES if s in frames]
     ys, xs = np.nonzero(masks[i])
     pad = 4
-    box = (slice(max(ys.min() - pad, 0), ys.max() + pad + 1), slice(max(xs.min() - pad, 0), xs.max() + pad + 1)) if ys.size else (slice(None), slice(None))
+    box = (
+        (slice(max(ys.min() - pad, 0), ys.max() + pad + 1), slice(max(xs.min() - pad, 0), xs.max() + pad + 1))
+        if ys.size
+        else (slice(None), slice(None))
+    )
     plt = pyplot()
     fig, axes = plt.subplots(2, 1 + len(stages), figsize=(1.9 * (1 + len(stages)), 5.2), squeeze=False)
     axes[0, 0].imshow(to_display(truths[i], exposure)[box])
@@ -537,7 +551,7 @@ def eval_table(report: dict) -> tuple[list[str], list[str]]:
             elif scored is None and result["status"] == "done":
                 notes.append(f"- {STAGE_TITLES[stage]}, {split}: no output for this sequence")
         if protocol["fvd"]:
-            cells.append(f"{result['fvd']:.1f}" if result.get("fvd") is not None else "–")
+            cells.append(f"{result['fvd']:.1f} ({result['fvd_clips']} clips)" if result.get("fvd") is not None else "–")
         cells.append(f"{result['seconds_per_frame']:.2f}" if result.get("seconds_per_frame") else "–")
         lines.append("| " + " | ".join(cells) + " |")
         if result["status"] != "done":

@@ -26,8 +26,11 @@ from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_pos
 class DeflickerConfig:
     filter_radius: int = 4
     """Guided filter radius in pixels (window 2r + 1): how low the corrected frequencies reach."""
-    filter_eps: float = 1e-3
-    """Guided filter regularisation, in squared display units: edges with a local contrast above √eps are kept."""
+    filter_eps: float = 0.05
+    """Guided filter regularisation, in squared display units: structure with a local standard deviation well above
+    √eps (≈ 0.22: the silhouette) is kept in the illumination maps, finer detail (wrinkles) is not, so it stays the
+    refined frame's own. Measured on a synthetic flicker (tests/test_eval.py): 1e-3 keeps the detail in the maps and
+    swaps it for the coarse render's blur; 0.05 takes 62 % of the flicker out and raises PSNR."""
     strength: float = 1.0
     """Fraction of the illumination residual added back (0: off, 1: the paper's correction)."""
 
