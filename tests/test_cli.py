@@ -131,7 +131,11 @@ def test_demo_tiny_runs_end_to_end(tmp_path):
     out = run_cli("demo", "--preset", "tiny", "--out", str(tmp_path / "demo"))
     assert out.returncode == 0, out.stderr
     report = (tmp_path / "demo" / "report.md").read_text()
+    assert report.index("## Every stage against the truth (`gra-mi eval`)") < report.index("## Pipeline stages"), (
+        "the table opens the report"
+    )
     for needle in (
+        "| + flicker correction |",
         "## Material fit",
         "held-out camera",
         "## Envmap → LED fidelity",
@@ -151,8 +155,13 @@ def test_demo_tiny_runs_end_to_end(tmp_path):
         "contact_truth_vs_relit.png",
         "avatar.glb",
         "refiner/model/refiner.safetensors",
-        "refiner/refined/comparison.mp4",
-        "refiner/refined/refine.json",
+        "refiner/refined/test_cam07/comparison.mp4",
+        "refiner/refined/test_cam07/refine.json",
+        "refiner/refined/test_cam07/deflickered/deflickered.mp4",
+        "eval/eval.md",
+        "eval/contact_test_cam07.png",
+        "eval/videos/test_cam07_composite.mp4",
+        "composite.png",
     ):
         assert (tmp_path / "demo" / rel).exists(), rel
     # Resumable: a second run reuses the capture and the renders.

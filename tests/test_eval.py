@@ -340,7 +340,9 @@ def test_platform_layer_is_lit_by_the_environment_and_shadowed_by_the_subject(ll
     cam, gx, gz = looking_down(25.0)
     r = np.hypot(gx - centre[0], gz - centre[2])
     L, rho = 0.7, 0.5
-    layer = platform_layer(seq, 0, cam, np.full((32, 64, 3), L, np.float32), PlatformConfig(radius=3.0, thickness=0.05, albedo=rho, spp=64))
+    layer = platform_layer(
+        seq, 0, cam, np.full((32, 64, 3), L, np.float32), PlatformConfig(radius=3.0, thickness=0.05, reflectance=rho, spp=64)
+    )
     ring = (r > 2.3) & (r < 2.9)
     assert ring.sum() > 500 and (layer[ring, 3] > 0.99).all()
     assert np.median(layer[ring, :3]) == pytest.approx(rho * L, rel=0.02)
@@ -352,7 +354,7 @@ def test_platform_layer_is_lit_by_the_environment_and_shadowed_by_the_subject(ll
     sun = np.array([np.cos(np.radians(30)), np.sin(np.radians(30)), 0.0])
     env = np.full((32, 64, 3), 0.05, np.float32)
     env[pixel_directions(32, 64) @ sun > np.cos(np.radians(8))] = 50.0
-    config = PlatformConfig(radius=1.0, thickness=0.05, albedo=rho, spp=64)
+    config = PlatformConfig(radius=1.0, thickness=0.05, reflectance=rho, spp=64)
     lit = platform_layer(seq, 0, cam, env, config)
     open_ground = (r > 0.45) & (r < 0.95) & (np.abs(gz - centre[2]) < 0.15)
     shadow_side = lit[open_ground & (gx < centre[0]), :3].mean()
@@ -368,8 +370,28 @@ def test_platform_layer_is_lit_by_the_environment_and_shadowed_by_the_subject(ll
     np.testing.assert_allclose(out[ring], layer[ring, :3], rtol=1e-6)
     with pytest.raises(GraMiParameterError, match="sizes"):
         composite_on_platform(subject[:10], layer, plate)
-    with pytest.raises(GraMiParameterError, match="albedo"):
-        PlatformConfig(albedo=1.5).validate()
+    with pytest.raises(GraMiParameterError, match="reflectance"):
+        PlatformConfig(reflectance=1.5).validate()
+
+
+def test_relight_composite_puts_the_subject_on_a_platform(tmp_path, llvm_variant):
+    import imageio.v3 as iio
+
+    from gra_mi.core.io import write_exr
+    from tests.test_cli import TINY, run_cli
+
+    write_exr(tmp_path / "sky.exr", np.full((16, 32, 3), 0.8, np.float32))
+    common = ["relight", str(TINY), "--frames", "0:2", "--envmap", str(tmp_path / "sky.exr"), "--uv-resolution", "64", "--exposure", "0.01"]
+    plain = run_cli(*common, "--background", "--out", str(tmp_path / "plain"))
+    shadowed = run_cli(*common, "--composite", "--platform-spp", "8", "--out", str(tmp_path / "platform"))
+    assert plain.returncode == 0 and shadowed.returncode == 0, shadowed.stderr
+    a = iio.imread(tmp_path / "plain" / "sky" / "cam00" / "frame_0001.png").astype(float)
+    b = iio.imread(tmp_path / "platform" / "sky" / "cam00" / "frame_0001.png").astype(float)
+    changed = np.abs(a - b).max(axis=-1) > 8
+    assert changed.mean() > 0.01, "the platform and its shadow change the background"
+    assert not changed[:16, :20].any() and not changed[:16, -20:].any(), "the top corners (sky, off the subject) are the plate in both"
+    bad = run_cli(*common, "--composite", "--platform-reflectance", "2", "--out", str(tmp_path / "x"))
+    assert bad.returncode == 2 and "--platform-reflectance" in bad.stderr
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -378,22 +400,22 @@ def test_platform_layer_is_lit_by_the_environment_and_shadowed_by_the_subject(ll
 
 
 @pytest.fixture(scope="module")
-def tiny_run(tmp_path_factory):
-    """A run folder as the demo lays it out: capture, fit, RelightNet (a few steps), the refiner's data, and a
-    refined sequence that is the RelightNet render with the truth's detail and an alternating flicker (a stand-in
-    for a refiner whose frames are good but flicker), deflickered by ``gra-mi refine``'s own filter."""
-    from gra_mi.capture.synthetic import generate_capture
+def tiny_run(path_traced_fit, tmp_path_factory):
+    """A run folder as the demo lays it out: the tiny path-traced capture and its fit, RelightNet (a few steps), the
+    refiner's data, and a refined sequence that is the truth with an alternating ±20 % flicker (a stand-in for a
+    refiner whose frames are good but flicker), corrected by ``gra-mi refine``'s own filter."""
+    import os
+
     from gra_mi.core.io import atomic_write_text, write_exr
     from gra_mi.core.runtime import choose_variant
-    from gra_mi.fit.materials import FitConfig, run_fit
     from gra_mi.refiner.data import RefinerDataset, dataset_from_capture
     from gra_mi.refiner.deflicker import DeflickerConfig, deflicker_frame
     from gra_mi.relightnet.train import TrainConfig, train_relightnet
 
     choose_variant("llvm_ad_rgb")
     run = tmp_path_factory.mktemp("evalrun")
-    generate_capture(run / "capture", "tiny", "onebounce", measure_noise=False)
-    run_fit(run / "capture", run / "fit", FitConfig(roughness_candidates=3))
+    os.symlink(path_traced_fit / "cap", run / "capture")
+    os.symlink(path_traced_fit / "fit", run / "fit")
     train_relightnet(run / "capture", run / "fit", run / "relightnet", TrainConfig(steps=4, validate_every=4))
     dataset_from_capture(run / "capture", run / "fit", run / "refiner" / "data", run / "relightnet", scale=0.25, test_length=20)
     data = RefinerDataset(run / "refiner" / "data")

@@ -55,19 +55,6 @@ def test_envmap_truth_reads_maps_in_gras_convention(llvm_variant):
     np.testing.assert_allclose(got, em.lookup(env, d), rtol=2e-3, atol=1e-4)
 
 
-@pytest.fixture(scope="module")
-def path_traced_fit(tmp_path_factory):
-    from gra_mi.capture.synthetic import generate_capture
-    from gra_mi.core.runtime import choose_variant
-    from gra_mi.fit.materials import FitConfig, run_fit
-
-    choose_variant("llvm_ad_rgb")
-    root = tmp_path_factory.mktemp("lighting")
-    generate_capture(root / "cap", "tiny", measure_noise=False)
-    run_fit(root / "cap", root / "fit", FitConfig())
-    return root
-
-
 def test_far_field_relights_environments_as_the_path_traced_truth(path_traced_fit):
     """The issue's goals on the tiny path-traced capture, against the true materials path-traced under each reference
     map at infinity: far field (the default for envmaps) beats near field on every map, keeps the subject's

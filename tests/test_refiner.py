@@ -609,6 +609,12 @@ def test_cli_end_to_end(tmp_path):
     assert main(["refine", str(data), "--model", str(model), "--out", str(out), "--steps", "2"]) == 0
     summary = json.loads((out / "refine.json").read_text())
     assert summary["frames"] == 21 and summary["windows"] == 2
+    # flicker correction beside the refined frames; composites need data made from a capture (named, exit 2)
+    assert main(["refine", str(data), "--model", str(model), "--out", str(out), "--steps", "2", "--deflicker", "--frames", "3"]) == 0
+    summary = json.loads((out / "refine.json").read_text())
+    assert summary["deflicker"]["filter_eps"] == 0.05 and "psnr_deflickered" in summary
+    assert (out / "deflickered" / "frame_0002.exr").is_file() and (out / "deflickered" / "deflickered.mp4").is_file()
+    assert main(["refine", str(data), "--model", str(model), "--out", str(tmp_path / "c"), "--composite"]) == 2
     assert main(["train-refiner", str(data), "--out", str(tmp_path / "x"), "--size", "1.3B"]) == 2
 
 

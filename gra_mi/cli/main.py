@@ -609,8 +609,13 @@ def _add_platform_options(p) -> None:
     add_config_options(
         p,
         PlatformConfig,
-        ["radius", "thickness", "albedo", "spp"],
-        flags={"radius": "--platform-radius", "thickness": "--platform-thickness", "albedo": "--platform-albedo", "spp": "--platform-spp"},
+        ["radius", "thickness", "reflectance", "spp"],
+        flags={
+            "radius": "--platform-radius",
+            "thickness": "--platform-thickness",
+            "reflectance": "--platform-reflectance",
+            "spp": "--platform-spp",
+        },
     )
 
 

@@ -29,15 +29,15 @@ class PlatformConfig:
     """Platform disc radius (m), centred under the subject's mean position over the sequence."""
     thickness: float = 0.06
     """Platform height (m); its top is at the subject's lowest point over the sequence."""
-    albedo: float = 0.45
-    """Grey diffuse albedo of the platform."""
+    reflectance: float = 0.45
+    """Grey diffuse reflectance (albedo) of the platform."""
     spp: int = 64
     """Samples per pixel of the platform layer (path-traced, 3 bounces)."""
 
     def validate(self) -> None:
         require_positive({"radius": self.radius, "thickness": self.thickness, "spp": self.spp})
-        if not 0.0 <= self.albedo <= 1.0:
-            raise GraMiParameterError("albedo", f"must be in [0, 1], got {self.albedo}")
+        if not 0.0 <= self.reflectance <= 1.0:
+            raise GraMiParameterError("reflectance", f"must be in [0, 1], got {self.reflectance}")
 
 
 def _subject_mesh(vertices: np.ndarray, faces: np.ndarray):
@@ -71,7 +71,7 @@ def platform_layer(sequence, frame: int, camera, envmap: np.ndarray, config: Pla
     everything = sequence.vertices.reshape(-1, 3)
     top = float(everything[:, 1].min())
     cx, cz = (float(v) for v in everything[:, [0, 2]].mean(axis=0))
-    grey = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [config.albedo] * 3}}
+    grey = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [config.reflectance] * 3}}
     transform = mi.ScalarTransform4f
     scene = mi.load_dict(
         {
