@@ -160,11 +160,9 @@ def test_weights_of_another_format_or_config_are_refused(tmp_path):
 
 
 @pytest.fixture(scope="module")
-def capture_and_fit(tmp_path_factory):
-    root = tmp_path_factory.mktemp("rn")
-    assert run_cli("capture", "--preset", "tiny", "--renderer", "onebounce", "--out", str(root / "cap")).returncode == 0
-    assert run_cli("fit", str(root / "cap"), "--out", str(root / "fit"), "--roughness-candidates", "5").returncode == 0
-    return root
+def capture_and_fit(path_traced_fit):
+    """The tiny path-traced capture (cap/) and its fit (fit/), shared with the other modules (tests/conftest.py)."""
+    return path_traced_fit
 
 
 def test_training_lowers_the_loss_validates_and_resumes(capture_and_fit, tmp_path):

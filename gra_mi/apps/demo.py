@@ -311,12 +311,16 @@ def _refiner_stage(preset: DemoPreset, capture, out: Path, timings: dict) -> dic
             train_refiner(data_dir, model_dir, RefinerTrainConfig(steps=preset.refiner_steps, lr=2e-3))
     sequences = dataset.names("test")
     with _timed(timings, f"video refiner rollout + flicker correction ({len(sequences)} held-out sequences)"):
-        summaries = [
-            refine_to_folder(
-                model_dir, data_dir, name, out / "refiner" / "refined" / name, steps=preset.refiner_euler_steps, deflicker=DeflickerConfig()
+        summaries = []
+        for name in sequences:
+            folder = out / "refiner" / "refined" / name
+            done = folder / "refine.json"
+            if done.is_file() and (folder / "deflickered" / "deflickered.mp4").is_file():  # finished before an interruption
+                summaries.append(json.loads(done.read_text()))
+                continue
+            summaries.append(
+                refine_to_folder(model_dir, data_dir, name, folder, steps=preset.refiner_euler_steps, deflicker=DeflickerConfig())
             )
-            for name in sequences
-        ]
     summary = summaries[0]
     summary["train"] = json.loads((model_dir / "train.json").read_text())
     summary["size"] = f"{dataset.height}×{dataset.width}"

@@ -163,8 +163,9 @@ def _refined_folders(paths: list[Path]) -> dict[str, Path]:
 
 def _splits(capture, dataset, refined: dict[str, Path]) -> list[Split]:
     test = [f.frame for f in capture.frames if f.split == "test"]
-    if not test:
-        raise GraMiInputError(capture.folder / "capture.json", "no test frames: nothing is held out to evaluate on")
+    if not test or not capture.eval_cameras:
+        what = "test frames" if not test else "held-out cameras (eval_cameras)"
+        raise GraMiInputError(capture.folder / "capture.json", f"no {what}: nothing is held out to evaluate on")
     # The capture's held-out lighting sequences; the refiner's data plays them one after another per camera.
     sequences: dict[int, list[int]] = {}
     for f in capture.frames:
