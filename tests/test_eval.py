@@ -19,7 +19,7 @@ EXPOSURE = 1.0
 def from_display(display: np.ndarray, exposure: float = EXPOSURE) -> np.ndarray:
     """Linear radiance that :func:`to_display` shows as ``display`` (the sRGB decode, independent of metrics.py)."""
     d = np.asarray(display, np.float64)
-    return (np.where(d <= 0.04045, d / 12.92, ((d + 0.055) / 1.055) ** 2.4) / exposure).astype(np.float64)
+    return (np.where(d <= 0.04045, d / 12.92, (np.maximum(d + 0.055, 0) / 1.055) ** 2.4) / exposure).astype(np.float64)
 
 
 def moving_video(frames: int = 8, h: int = 32, w: int = 48) -> list[np.ndarray]:

@@ -348,7 +348,7 @@ def evaluate(inputs: EvalInputs, out: str | Path, config: EvalConfig | None = No
         _fvd(i3d, results, videos)
 
     # Outputs ---------------------------------------------------------------------------------------------------
-    _write_videos(out / "videos", videos, splits, capture, relighter, scale, config)
+    composited = _write_videos(out / "videos", videos, splits, capture, relighter, scale, config)
     report = {
         "protocol": {
             "frames": config.frames,
@@ -357,6 +357,7 @@ def evaluate(inputs: EvalInputs, out: str | Path, config: EvalConfig | None = No
             "splits": {
                 s.name: {
                     "camera": s.camera,
+                    "lighting": _lighting_said(capture, s.capture_frames),
                     "frames": len(s.capture_frames),
                     "scored": frame_selection(len(s.capture_frames), config.frames),
                 }
@@ -364,7 +365,7 @@ def evaluate(inputs: EvalInputs, out: str | Path, config: EvalConfig | None = No
             },
             "lpips": lpips_model is not None,
             "fvd": i3d is not None,
-            "composite": config.composite and relighter is not None,
+            "composited": composited,
         },
         "stages": {s: asdict(r) for s, r in results.items()},
         "problems": problems,
@@ -476,8 +477,17 @@ def _contact_sheet(path: Path, frames: dict, truths, masks, exposure: float, sco
     save_figure(fig, path)
 
 
-def _write_videos(folder: Path, videos: dict, splits: list[Split], capture, relighter, scale: float, config: EvalConfig) -> None:
-    """Truth | each stage side by side per split; with ``config.composite`` also over the environment on a platform."""
+def _lighting_said(capture, frames: list[int]) -> str:
+    """The held-out lighting of a split in words: its envmaps' file names, or 'LED pattern'."""
+    entries = {f.frame: f for f in capture.frames}
+    names = dict.fromkeys(Path(entries[f].envmap).stem if entries[f].envmap else "LED pattern" for f in frames)
+    return ", ".join(names)
+
+
+def _write_videos(folder: Path, videos: dict, splits: list[Split], capture, relighter, scale: float, config: EvalConfig) -> list[str]:
+    """Truth | each stage side by side per split; with ``config.composite`` also over the environment on a platform.
+    Returns the splits that were composited (environment lighting only)."""
+    composited = []
     from gra_mi.core.io import write_mp4
     from gra_mi.core.progress import progress
 
@@ -510,6 +520,8 @@ def _write_videos(folder: Path, videos: dict, splits: list[Split], capture, reli
             row = [compositor(frames[s][i][..., :3] * covered, f, cam, env, scale_env, entries[f].envmap) for s in order]
             composites.append(np.concatenate(row, axis=1))
         write_mp4(folder / f"{split.name}_composite.mp4", composites, fps=fps, exposure=exposure)
+        composited.append(split.name)
+    return composited
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -529,36 +541,68 @@ def _metrics(report: dict) -> list[tuple[str, str, Callable]]:
     return [m for m in METRICS if m[0] != "lpips" or report["protocol"]["lpips"]]
 
 
+WIDE_SPLITS = 2  # more splits than this: one column group of their means, and a per-split table below
+
+
+def _split_means(stages: dict, splits: list[str]) -> dict:
+    """Each stage's metrics averaged over the splits, for stages scored on all of them."""
+    means = {}
+    for stage, result in stages.items():
+        scored = [result["splits"].get(s) for s in splits]
+        if all(m and "skipped" not in m for m in scored):
+            means[stage] = {k: float(np.mean([m[k] for m in scored])) for k in scored[0]}
+    return means
+
+
 def eval_table(report: dict) -> tuple[list[str], list[str]]:
-    """The Table-2-like Markdown table (rows: stages; columns: metrics × splits, FVD, time) and the notes on what
-    was skipped and why."""
+    """The Table-2-like Markdown table (rows: stages; columns: metrics × splits, FVD, time; with more than
+    ``WIDE_SPLITS`` splits, metrics × their mean, then one row per stage and split) and the notes on what was skipped
+    and why."""
     protocol, stages = report["protocol"], report["stages"]
-    splits = list(protocol["splits"])
-    metrics = _metrics(report)
-    header = ["stage"] + [f"{split} {label}" if k == 0 else label for split in splits for k, (_, label, _) in enumerate(metrics)]
-    if protocol["fvd"]:
-        header.append("FVD ↓")
-    header.append("s / frame")
-    lines = ["| " + " | ".join(header) + " |", "|---" * len(header) + "|"]
+    splits, metrics = list(protocol["splits"]), _metrics(report)
     notes = []
     for stage, result in stages.items():
-        cells = [STAGE_TITLES[stage]]
         for split in splits:
             scored = result["splits"].get(split)
-            for key, _, fmt in metrics:
-                cells.append(fmt(scored[key]) if scored and key in scored and np.isfinite(scored[key]) else "–")
             if scored and "skipped" in scored:
                 notes.append(f"- {STAGE_TITLES[stage]}, {split}: skipped: {scored['skipped']}")
             elif scored is None and result["status"] == "done":
                 notes.append(f"- {STAGE_TITLES[stage]}, {split}: no output for this sequence")
-        if protocol["fvd"]:
-            cells.append(f"{result['fvd']:.1f} ({result['fvd_clips']} clips)" if result.get("fvd") is not None else "–")
-        cells.append(f"{result['seconds_per_frame']:.2f}" if result.get("seconds_per_frame") else "–")
-        lines.append("| " + " | ".join(cells) + " |")
         if result["status"] != "done":
             notes.append(f"- {STAGE_TITLES[stage]}: {result['status']}")
     notes += [f"- problem: {p}" for p in report["problems"]]
-    return lines, notes
+    if len(splits) <= WIDE_SPLITS:
+        return _wide_table(stages, splits, metrics, protocol["fvd"]), notes
+    label = f"mean of {len(splits)} splits"
+    means = _split_means(stages, splits)
+    table = _wide_table(
+        {s: {**r, "splits": {label: means[s]} if s in means else {}} for s, r in stages.items()}, [label], metrics, protocol["fvd"]
+    )
+    table += ["", "| stage | split | " + " | ".join(label for _, label, _ in metrics) + " |", "|---|---|" + "---|" * len(metrics)]
+    for stage, result in stages.items():
+        for split in splits:
+            m = result["splits"].get(split)
+            if m and "skipped" not in m:
+                table.append(f"| {STAGE_TITLES[stage]} | {split} | " + " | ".join(_cell(m, k, fmt) for k, _, fmt in metrics) + " |")
+    return table, notes
+
+
+def _cell(scored: dict | None, key: str, fmt: Callable[[float], str]) -> str:
+    return fmt(scored[key]) if scored and key in scored and np.isfinite(scored[key]) else "–"
+
+
+def _wide_table(stages: dict, splits: list[str], metrics, fvd: bool) -> list[str]:
+    header = ["stage"] + [f"{split} {label}" if k == 0 else label for split in splits for k, (_, label, _) in enumerate(metrics)]
+    header += ["FVD ↓"] if fvd else []
+    header.append("s / frame")
+    lines = ["| " + " | ".join(header) + " |", "|---" * len(header) + "|"]
+    for stage, result in stages.items():
+        cells = [STAGE_TITLES[stage]] + [_cell(result["splits"].get(split), key, fmt) for split in splits for key, _, fmt in metrics]
+        if fvd:
+            cells.append(f"{result['fvd']:.1f} ({result['fvd_clips']} clips)" if result.get("fvd") is not None else "–")
+        cells.append(f"{result['seconds_per_frame']:.2f}" if result.get("seconds_per_frame") else "–")
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines
 
 
 def protocol_said(report: dict) -> str:
@@ -589,9 +633,12 @@ def eval_markdown(report: dict) -> str:
     if not protocol["fvd"]:
         text.append("FVD: not measured (give `--i3d-weights`).")
     text.append("")
+    for s, about in protocol["splits"].items():
+        text.append(f"- {s}: camera {about['camera']}, lighting {about['lighting']}, {about['frames']} frames")
+    text.append("")
     for s in protocol["splits"]:
         videos = f"[videos/{s}.mp4](videos/{s}.mp4)"
-        if protocol.get("composite"):
+        if s in protocol.get("composited", []):
             videos += f", over the environment on a platform: [videos/{s}_composite.mp4](videos/{s}_composite.mp4)"
         text.append(f"{s}: truth | each stage, ꟻLIP below: ![contact sheet](contact_{s}.png) · side by side: {videos}")
     return "\n".join(text) + "\n"
