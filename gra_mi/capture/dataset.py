@@ -48,36 +48,76 @@ class Capture:
 
     @classmethod
     def load(cls, folder: str | Path) -> Capture:
+        """Read and check ``capture.json`` against the schema (types, ranges, unknown keys, frames, camera names
+        in the rig): a bad capture stops here, naming the field, before any work."""
         folder = Path(folder)
         path = folder / "capture.json"
+        if folder.exists() and not folder.is_dir():
+            raise GraMiInputError(folder, "is a file; expected a capture folder (made by `gra-mi capture`)")
         data = read_json(path, hint=" (make a capture with `gra-mi capture`)")
+        if not isinstance(data, dict):
+            raise GraMiInputError(path, f"expected a JSON object, got {type(data).__name__}")
         if data.get("format") != CAPTURE_FORMAT:
             raise GraMiInputError(path, f"expected '{CAPTURE_FORMAT}', got {data.get('format')!r}", field="format")
+        unknown = sorted(set(data) - {"format", *cls.__dataclass_fields__})
+        if unknown:
+            raise GraMiInputError(path, f"unknown field(s) {unknown} (docs/data-format.md lists the fields)")
         for key in ("train_cameras", "eval_cameras", "frames", "uv_resolution"):
             if key not in data:
                 raise GraMiInputError(path, "missing", field=key)
-        frames = []
-        for i, f in enumerate(data["frames"]):
-            try:
-                entry = FrameLighting(**f)
-            except TypeError as exc:
-                raise GraMiInputError(path, f"bad entry: {exc}", field=f"frames[{i}]") from None
-            needs = {"uniform": None, "envmap": entry.envmap, "pattern": entry.pattern}
-            if entry.kind not in needs or (entry.kind != "uniform" and not needs[entry.kind]):
-                raise GraMiInputError(
-                    path, f"kind must be uniform, envmap (with envmap) or pattern (with pattern), got {f}", field=f"frames[{i}]"
-                )
-            frames.append(entry)
-        return cls(
+        for key in ("train_cameras", "eval_cameras"):
+            names = data[key]
+            if not isinstance(names, list) or not all(isinstance(n, str) for n in names) or (key == "train_cameras" and not names):
+                raise GraMiInputError(path, f"expected a list of camera names, got {names!r}", field=key)
+        uv = data["uv_resolution"]
+        if not isinstance(uv, int) or isinstance(uv, bool) or uv < 1:
+            raise GraMiInputError(path, f"expected an integer >= 1, got {uv!r}", field="uv_resolution")
+        if not isinstance(data["frames"], list) or not data["frames"]:
+            raise GraMiInputError(path, "expected a non-empty list of frame entries", field="frames")
+        frames = [_frame_entry(path, i, f) for i, f in enumerate(data["frames"])]
+        seen: dict[int, int] = {}
+        for i, entry in enumerate(frames):
+            if entry.frame in seen:
+                raise GraMiInputError(path, f"frame {entry.frame} is listed twice (entries {seen[entry.frame]} and {i})", field="frames")
+            seen[entry.frame] = i
+        capture = cls(
             folder,
-            data.get("preset", "?"),
-            data.get("renderer", "?"),
-            int(data["uv_resolution"]),
+            str(data.get("preset", "?")),
+            str(data.get("renderer", "?")),
+            uv,
             data["train_cameras"],
             data["eval_cameras"],
             frames,
-            data.get("ground_truth", {}),
+            data.get("ground_truth", {}) or {},
         )
+        capture._check_cameras(path)
+        return capture
+
+    def _check_cameras(self, path: Path) -> None:
+        """Every camera named in capture.json exists in the capture's rig (when it has one)."""
+        calibration = self.folder / "rig" / "calibration.json"
+        if not calibration.is_file():
+            return
+        from gra_mi.stage.lightstage import load_calibration
+
+        self._sizes = {c.name: (c.width, c.height) for c in load_calibration(calibration).cameras}
+        for key in ("train_cameras", "eval_cameras"):
+            missing = [n for n in getattr(self, key) if n not in self._sizes]
+            if missing:
+                raise GraMiInputError(path, f"camera(s) {missing} are not in {calibration} (it has {sorted(self._sizes)})", field=key)
+
+    def check_images(self) -> None:
+        """Read and check every image once before work starts (a bad one found hours into a fit, or after caches
+        were written, would leave partial output). About 2 ms an image at the small preset's size."""
+        from gra_mi.core.progress import progress
+
+        views = [(cam, f.frame) for cam in self.train_cameras + self.eval_cameras for f in self.frames]
+        for cam, frame in progress(views, "checking the capture's images"):
+            load_observation(self, cam, frame)
+
+    def camera_size(self, camera: str) -> tuple[int, int] | None:
+        """(width, height) of a camera from the capture's rig, None where the capture has no rig folder."""
+        return getattr(self, "_sizes", {}).get(camera)
 
     def lighting(self, stage, entry: FrameLighting) -> np.ndarray:
         """LED radiant intensities (L, 3) of a frame."""
@@ -91,9 +131,53 @@ class Capture:
         return envmap_to_leds(load_envmap(self.folder / entry.envmap), stage).radiant_intensity(stage)
 
 
+FRAME_KINDS = ("uniform", "envmap", "pattern")
+
+
+def _frame_entry(path: Path, i: int, f) -> FrameLighting:
+    where = f"frames[{i}]"
+    if not isinstance(f, dict):
+        raise GraMiInputError(path, f"expected an object with {list(FrameLighting.__dataclass_fields__)}, got {f!r}", field=where)
+    try:
+        entry = FrameLighting(**f)
+    except TypeError as exc:
+        raise GraMiInputError(path, f"bad entry: {exc}", field=where) from None
+    for name in ("frame", "sequence"):
+        value = getattr(entry, name)
+        if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+            raise GraMiInputError(path, f"expected an integer >= 0, got {value!r}", field=f"{where}.{name}")
+    if entry.split not in ("train", "test"):
+        raise GraMiInputError(path, f"expected 'train' or 'test', got {entry.split!r}", field=f"{where}.split")
+    needs = {"uniform": None, "envmap": entry.envmap, "pattern": entry.pattern}
+    if entry.kind not in needs or (entry.kind != "uniform" and not isinstance(needs[entry.kind], str)):
+        raise GraMiInputError(path, f"kind must be uniform, envmap (with envmap) or pattern (with pattern), got {f}", field=f"{where}.kind")
+    return entry
+
+
 def load_observation(capture: Capture, camera: str, frame: int) -> np.ndarray:
+    """A captured image, RGBA (alpha = the subject mask), checked: linear radiance is finite and >= 0, the mask in
+    [0, 1], the size the camera's calibration says (images at another resolution would be sampled with the wrong
+    intrinsics)."""
     path = capture.image_path(camera, frame)
     image = read_exr(path)
     if image.shape[2] != 4:
         raise GraMiInputError(path, f"expected RGBA (alpha = mask), got {image.shape[2]} channels")
+    size = capture.camera_size(camera)
+    if size is not None and (image.shape[1], image.shape[0]) != size:
+        raise GraMiInputError(
+            path,
+            f"is {image.shape[1]}x{image.shape[0]} pixels, but camera {camera} in rig/calibration.json is {size[0]}x{size[1]} "
+            "(resize the images or the calibration's intrinsics together)",
+        )
+    rgb, alpha = image[..., :3], image[..., 3]
+    nan, inf = int(np.isnan(rgb).sum()), int(np.isinf(rgb).sum())
+    if nan or inf:
+        raise GraMiInputError(path, f"{nan} NaN and {inf} inf pixel values; captured radiance must be finite")
+    if rgb.min() < 0:
+        raise GraMiInputError(
+            path,
+            f"{int((rgb < 0).sum())} negative values (min {rgb.min():.3g}); captured radiance must be >= 0 (clamp after black-level subtraction)",
+        )
+    if not np.all(np.isfinite(alpha)) or alpha.min() < 0 or alpha.max() > 1:
+        raise GraMiInputError(path, f"alpha (the subject mask) must be in [0, 1], got [{np.nanmin(alpha):.3g}, {np.nanmax(alpha):.3g}]")
     return image

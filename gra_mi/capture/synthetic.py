@@ -17,6 +17,7 @@ Ground truth comes from one of two renderers:
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import math
@@ -28,6 +29,7 @@ import numpy as np
 from gra_mi.capture.dataset import Capture, FrameLighting
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.io import atomic_write_text, write_exr, write_png
+from gra_mi.core.provenance import claim_output
 
 logger = logging.getLogger(__name__)
 
@@ -295,6 +297,7 @@ def generate_capture(
     spp: int | None = None,
     indirect_spp: int | None = None,
     without: tuple[str, ...] = (),
+    overwrite: bool = False,
 ) -> Capture:
     """Write a synthetic capture; rerunning resumes (existing images are kept, and each image's samples depend only
     on its frame, so a resumed capture equals an uninterrupted one). ``measure_noise``: measure the ground truth's
@@ -302,7 +305,7 @@ def generate_capture(
     map): the user's own held-out lighting, in place of the first procedural test envmaps. ``spp``/``indirect_spp``
     override the preset's sample counts (powers of 4): more samples, less noise (README: what 2 % costs).
     ``without``: effects of the path-traced ground truth to leave out (:data:`ABLATABLE_EFFECTS`), to measure what
-    each one costs the fit."""
+    each one costs the fit. ``overwrite``: empty a folder made by another run first (else it is refused)."""
     from gra_mi.core.progress import progress
     from gra_mi.core.runtime import ensure_mitsuba
     from gra_mi.render.atlas import UVAtlas
@@ -339,6 +342,10 @@ def generate_capture(
     if renderer == "path" and "interreflection" in without:
         sample_counts["spp"] = preset.spp
     record = {"renderer": renderer, **sample_counts, **({"without": sorted(without)} if without else {})}
+    envmap_ids = {
+        name: hashlib.sha256(np.ascontiguousarray(env, np.float32).tobytes()).hexdigest()[:16] for name, env in (test_envmaps or {}).items()
+    }
+    claim_output(out, "capture", {}, {"preset": preset_name, **record, "test_envmaps": envmap_ids}, overwrite=overwrite)
     previous = Capture.load(out) if (out / "capture.json").is_file() else None
     if previous is not None:
         rendered = {k: previous.ground_truth.get(k) for k in ("renderer", "spp", "indirect_spp", "max_depth", "without")}

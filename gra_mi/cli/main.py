@@ -17,8 +17,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from gra_mi.cli.options import add_config_options, config_from_args, option_flags
-from gra_mi.core.errors import GraMiInputError, GraMiParameterError
+from gra_mi.cli.options import add_config_options, config_from_args, finite_float, option_flags
+from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive, require_seed
 
 logger = logging.getLogger("gra_mi")
 
@@ -57,7 +57,7 @@ def _add_envmap_input(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--envmap-rotate",
-        type=float,
+        type=finite_float,
         default=0.0,
         help="Turn the envmaps about the up axis by this many degrees (counter-clockwise seen from above).",
     )
@@ -133,6 +133,15 @@ class Command:
     torch: bool = False  # picks the torch device
 
 
+def _add_overwrite(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="Start over in an output folder made by a different run (other inputs or options; its provenance.json says "
+        "which). Without it such a folder is refused; the same run resumes.",
+    )
+
+
 def _args_demo(p):
     p.add_argument(
         "--preset",
@@ -166,13 +175,13 @@ def _args_rig(p):
         default=d["num_leds"],
         help=f"LEDs spread evenly over the sphere (Fibonacci spiral). Default: {d['num_leds']}.",
     )
-    p.add_argument("--radius", type=float, default=d["radius"], help=f"LED sphere radius in metres. Default: {d['radius']}.")
+    p.add_argument("--radius", type=finite_float, default=d["radius"], help=f"LED sphere radius in metres. Default: {d['radius']}.")
     p.add_argument(
         "--num-cameras", type=int, default=d["num_cameras"], help=f"Cameras on four rings at several heights. Default: {d['num_cameras']}."
     )
     p.add_argument(
         "--camera-distance",
-        type=float,
+        type=finite_float,
         default=d["camera_distance"],
         help=f"Camera distance from the stage centre in metres. Default: {d['camera_distance']}.",
     )
@@ -180,7 +189,7 @@ def _args_rig(p):
     p.add_argument("--height", type=int, default=d["height"], help=f"Image height in pixels. Default: {d['height']}.")
     p.add_argument(
         "--max-led-intensity",
-        type=float,
+        type=finite_float,
         default=d["max_led_intensity"],
         help=f"Radiant intensity (W/sr) of a fully driven LED; envmaps are normalised to it. Default: {d['max_led_intensity']}.",
     )
@@ -213,6 +222,8 @@ def _cmd_envmaps(args) -> None:
     for split, count in (("train", args.train), ("test", args.test)):
         if count < 0:
             raise GraMiParameterError(split, "must be >= 0")
+    if args.height < 4:
+        raise GraMiParameterError("height", f"must be >= 4 (lat-long rows), got {args.height}")
     for split, count in (("train", args.train), ("test", args.test)):
         paths = write_envmap_set(args.out, split, count, args.height)
         print(f"{split}: {len(paths)} envmaps in {args.out / split}")
@@ -239,6 +250,9 @@ def _args_subject(p):
 def _cmd_subject(args) -> None:
     from gra_mi.subject.sequence import save_sequence, tiny_subject
 
+    require_positive({"frames": args.frames})
+    if args.frames_per_clip is not None:
+        require_positive({"frames_per_clip": args.frames_per_clip})
     if args.kind == "tiny":
         seq = tiny_subject(args.frames)
     else:
@@ -287,6 +301,7 @@ def _cmd_render(args) -> None:
 
     if args.spp < 1:
         raise GraMiParameterError("spp", f"must be >= 1, got {args.spp}")
+    require_seed(args.seed)
     if args.envmap:
         light, envmap, drive = args.envmap.stem, _envmap_loader(args)(args.envmap), None
     elif args.olat is not None:
@@ -339,6 +354,7 @@ def _args_capture(p):
         help="Your own HDR map (OpenEXR or .hdr) as held-out test lighting, in place of a procedural one (repeatable).",
     )
     _add_envmap_input(p)
+    _add_overwrite(p)
     _add_runtime(p)
 
 
@@ -358,6 +374,7 @@ def _cmd_capture(args) -> None:
         spp=args.spp,
         indirect_spp=args.indirect_spp,
         without=tuple(e.strip() for e in args.without.split(",") if e.strip()),
+        overwrite=args.overwrite,
     )
     n = len(capture.frames) * (len(capture.train_cameras) + len(capture.eval_cameras))
     print(f"wrote {n} images of {len(capture.frames)} frames to {args.out}")
@@ -383,13 +400,14 @@ def _args_fit(p):
         flags={"resolution": "--uv-resolution"},
         choices={"solver": ["adam", "closed-form"]},
     )  # fmt: skip
+    _add_overwrite(p)
     _add_runtime(p)
 
 
 def _cmd_fit(args) -> None:
     from gra_mi.fit.materials import FitConfig, run_fit
 
-    _, report = run_fit(args.capture, args.out, config_from_args(FitConfig, args))
+    _, report = run_fit(args.capture, args.out, config_from_args(FitConfig, args), args.overwrite)
     print(f"done: open {report}")
 
 
@@ -400,7 +418,7 @@ def _args_edit_texture(p):
     )
     p.add_argument("--mask", type=Path, default=None, help="UV mask (PNG or EXR, single channel in [0,1]) for --color.")
     p.add_argument("--color", default=None, help="Linear RGB albedo r,g,b in [0,1] painted where --mask is set.")
-    p.add_argument("--opacity", type=float, default=1.0, help="Strength of the edit in [0, 1]. Default: 1.")
+    p.add_argument("--opacity", type=finite_float, default=1.0, help="Strength of the edit in [0, 1]. Default: 1.")
     p.add_argument("--out", type=Path, required=True, help="Edited albedo EXR to write (a PNG preview is written beside it).")
 
 
@@ -427,6 +445,8 @@ def _cmd_export_gltf(args) -> None:
     from gra_mi.render.relighter import load_texture
     from gra_mi.subject.sequence import load_sequence
 
+    if args.frames is not None:
+        require_positive({"frames": args.frames})
     path = export_glb(
         args.out,
         load_sequence(args.subject),
@@ -454,13 +474,14 @@ def _args_train_relightnet(p):
         ["steps", "lr", "weight_decay", "batch_size", "env_dropout", "validate_every", "selection_views", "base_channels", "patch"]
         + ["env_height", "checkpoint_every", "max_train_views", "seed"],
     )
+    _add_overwrite(p)
     _add_runtime(p, torch=True)
 
 
 def _cmd_train_relightnet(args) -> None:
     from gra_mi.relightnet.train import TrainConfig, train_relightnet
 
-    print(f"done: open {train_relightnet(args.capture, args.fit, args.out, config_from_args(TrainConfig, args))}")
+    print(f"done: open {train_relightnet(args.capture, args.fit, args.out, config_from_args(TrainConfig, args), args.overwrite)}")
 
 
 def _args_refiner_data(p):
@@ -476,7 +497,9 @@ def _args_refiner_data(p):
         help="Trained RelightNet folder: coarse frames are its renders. Default: the microfacet render.",
     )
     p.add_argument("--out", type=Path, required=True, help="Output folder (dataset.json + sequences/).")
-    p.add_argument("--scale", type=float, default=d["scale"], help=f"Image scale before padding to multiples of 16. Default: {d['scale']}.")
+    p.add_argument(
+        "--scale", type=finite_float, default=d["scale"], help=f"Image scale before padding to multiples of 16. Default: {d['scale']}."
+    )
     p.add_argument(
         "--env-height", type=int, default=d["env_height"], help=f"Camera-space envmap height (width = 2x). Default: {d['env_height']}."
     )
@@ -502,24 +525,39 @@ def _args_refiner_data(p):
     p.add_argument(
         "--resolution", type=int, default=s["height"], help=f"--synthetic: frame height and width (multiple of 16). Default: {s['height']}."
     )
+    _add_overwrite(p)
     _add_runtime(p, torch=True)
 
 
 def _cmd_refiner_data(args) -> None:
+    require_positive({"scale": args.scale, "train_length": args.train_length, "test_length": args.test_length})
+    require_positive({"subjects": args.subjects, "sequences": args.sequences, "resolution": args.resolution})
+    if args.env_height < 4:
+        raise GraMiParameterError("env_height", f"must be >= 4 (lat-long rows), got {args.env_height}")
     if args.synthetic:
         from gra_mi.refiner.data import synthetic_dataset
 
         if args.resolution % 16:
             raise GraMiParameterError("resolution", f"must be a multiple of 16, got {args.resolution}")
         subjects = {s: (args.sequences, 1) for s in range(args.subjects)}
-        ds = synthetic_dataset(args.out, subjects, 17, args.resolution, args.resolution, args.env_height, args.test_length)
+        ds = synthetic_dataset(
+            args.out, subjects, 17, args.resolution, args.resolution, args.env_height, args.test_length, overwrite=args.overwrite
+        )
     else:
         from gra_mi.refiner.data import dataset_from_capture
 
         if args.capture is None or args.fit is None:
             raise GraMiParameterError("capture", "give a capture folder and --fit (or --synthetic)")
         ds = dataset_from_capture(
-            args.capture, args.fit, args.out, args.relightnet, args.scale, args.env_height, args.train_length, args.test_length
+            args.capture,
+            args.fit,
+            args.out,
+            args.relightnet,
+            args.scale,
+            args.env_height,
+            args.train_length,
+            args.test_length,
+            overwrite=args.overwrite,
         )
     print(f"wrote {len(ds.sequences)} sequences ({ds.height}x{ds.width}) to {ds.folder}")
 
@@ -560,6 +598,7 @@ def _args_train_refiner(p):
     add_config_options(
         p, RefinerTrainConfig, ["steps", "lr", "grad_accumulation", "error_recycling", "bank_per_level", "checkpoint_every", "seed"]
     )
+    _add_overwrite(p)
     _add_device(p)
 
 
@@ -569,7 +608,7 @@ def _cmd_train_refiner(args) -> None:
 
     paths = {k: str(getattr(args, k)) if getattr(args, k) else None for k in ("weights", "vae_weights", "prompt_embeds")}
     model_config = config_from_args(RefinerConfig, args, **paths)
-    out = train_refiner(args.data, args.out, config_from_args(RefinerTrainConfig, args), model_config, args.init)
+    out = train_refiner(args.data, args.out, config_from_args(RefinerTrainConfig, args), model_config, args.init, args.overwrite)
     print(f"done: weights and logs in {out}")
 
 
@@ -594,6 +633,7 @@ def _args_refine(p):
         help="Also write composite.mp4: the frames over the environment on a platform with the subject's shadow (data made from a capture).",
     )
     _add_platform_options(p)
+    _add_overwrite(p)
     _add_device(p)
 
 
@@ -631,10 +671,6 @@ def _cmd_refine(args) -> None:
     from gra_mi.refiner.data import RefinerDataset
     from gra_mi.refiner.infer import Joins, RefineConfig, refine_to_folder
 
-    sequence = args.sequence
-    if sequence is None:
-        dataset = RefinerDataset(args.data)
-        sequence = (dataset.names("test") or dataset.names())[0]
     config = config_from_args(RefineConfig, args, joins=config_from_args(Joins, args))
     config.validate()  # before the model and data are read
     from gra_mi.refiner.deflicker import DeflickerConfig
@@ -643,7 +679,13 @@ def _cmd_refine(args) -> None:
     if deflicker is not None:
         deflicker.validate()
     composite = _platform_config(args) if args.composite else None
-    summary = refine_to_folder(args.model, args.data, sequence, args.out, config, deflicker=deflicker, composite=composite)
+    sequence = args.sequence
+    if sequence is None:
+        dataset = RefinerDataset(args.data)
+        sequence = (dataset.names("test") or dataset.names())[0]
+    summary = refine_to_folder(
+        args.model, args.data, sequence, args.out, config, deflicker=deflicker, composite=composite, overwrite=args.overwrite
+    )
     print(
         f"refined {summary['frames']} frames in {summary['windows']} windows ({summary['frames_per_second']:.2f} frames/s) into {args.out}"
     )
@@ -696,9 +738,14 @@ def _args_relight(p):
         metavar="X,Y,Z",
         help="A near-field point light at X,Y,Z metres (LEDs off); also writes its envmap conditioning.",
     )
-    p.add_argument("--point-light-intensity", type=float, default=2.0, help="Radiant intensity of the point light in W/sr. Default: 2.")
     p.add_argument(
-        "--point-light-radius", type=float, default=0.03, help="Radius of the point light's sphere in metres (soft shadows). Default: 0.03."
+        "--point-light-intensity", type=finite_float, default=2.0, help="Radiant intensity of the point light in W/sr. Default: 2."
+    )
+    p.add_argument(
+        "--point-light-radius",
+        type=finite_float,
+        default=0.03,
+        help="Radius of the point light's sphere in metres (soft shadows). Default: 0.03.",
     )
     p.add_argument(
         "--stage",
@@ -878,7 +925,7 @@ def _args_deflicker(p):
     )
     p.add_argument(
         "--exposure",
-        type=float,
+        type=finite_float,
         default=None,
         help="Linear → display exposure the filter works at (default: the first stable frame's 99th percentile at 0.8).",
     )
@@ -982,10 +1029,17 @@ COMMANDS: dict[str, Command] = {
 }
 
 
+class Parser(argparse.ArgumentParser):
+    """argparse with the house error format: one line naming the option, exit code 2 (not usage + error)."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see `{self.prog} --help`)\n")
+
+
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     """The whole parser, or (``only``) one whose other commands carry no arguments: building a command's options
     imports its stage (torch, diffusers), which ``gra-mi rig --help`` should not wait for."""
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="gra-mi", description="gra-mi: relightable full-body avatars on Mitsuba 3 / Dr.Jit (Generative Relightable Avatars)."
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="Log debug messages, and show the traceback of an error.")

@@ -44,6 +44,17 @@ def _value_type(annotation) -> tuple[type, bool]:
     return annotation, False
 
 
+def finite_float(text: str) -> float:
+    """argparse type of every real-valued option: NaN and infinities are refused where they are typed."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if value != value or abs(value) == float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got '{text}'")
+    return value
+
+
 def flag_name(field_name: str) -> str:
     return "--" + field_name.replace("_", "-")
 
@@ -79,7 +90,7 @@ def add_config_options(
         parser.add_argument(
             flags.get(name, flag_name(name)),
             dest=name,
-            type=parsers.get(name, kind),
+            type=parsers.get(name, finite_float if kind is float else kind),
             default=default,
             choices=choices.get(name),
             metavar=None if name in choices else name.upper(),

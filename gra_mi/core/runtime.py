@@ -91,6 +91,8 @@ def choose_variant(requested: str | None = None) -> str:
     if requested is not None and requested not in SUPPORTED_VARIANTS:
         raise GraMiParameterError("variant", f"unknown variant '{requested}', expected one of {SUPPORTED_VARIANTS}")
     variant = requested or ("cuda_ad_rgb" if cuda_available() else "llvm_ad_rgb")
+    if variant.startswith("cuda") and not cuda_available():
+        raise GraMiParameterError("variant", f"{variant} needs a working CUDA GPU and driver, and none was found; use llvm_ad_rgb (CPU)")
     if variant.startswith("llvm"):
         check_llvm()
     import mitsuba as mi

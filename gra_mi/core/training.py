@@ -18,6 +18,10 @@ from gra_mi.core.io import atomic_path
 logger = logging.getLogger(__name__)
 
 
+TRAINING_CADENCE = ("steps", "checkpoint_every", "log_every", "validate_every")
+"""Config fields a resumed training run may change: more steps continue it, cadence does not change the weights."""
+
+
 def init_distributed() -> tuple[int, int]:
     """(rank, world size); joins the process group under ``torchrun`` (gloo on CPU, NCCL on GPU)."""
     world = int(os.environ.get("WORLD_SIZE", "1"))
@@ -72,11 +76,28 @@ class TrainingLoop:
         self._row_extra = tuple
         self._t0 = time.perf_counter()
 
+    def claim(self, command: str, inputs: dict, config, overwrite: bool = False) -> None:
+        """Check and record what makes ``out`` (:func:`gra_mi.core.provenance.claim_output`; the step count and
+        logging cadence may change on a resume) before any rank reads a checkpoint from it."""
+        from gra_mi.core.provenance import claim_output
+
+        if self.rank == 0:
+            claim_output(self.out, command, inputs, config, overwrite=overwrite, free=TRAINING_CADENCE)
+        if self.world > 1:
+            torch.distributed.barrier()
+
     def resume(self, map_location) -> dict | None:
         """The saved state, or None on a fresh start."""
         if not self.checkpoint.is_file():
             return None
-        state = torch.load(self.checkpoint, map_location=map_location, weights_only=False)
+        try:
+            state = torch.load(self.checkpoint, map_location=map_location, weights_only=False)
+        except Exception as exc:  # truncated by a full disk or a copy cut short
+            from gra_mi.core.errors import GraMiInputError
+
+            raise GraMiInputError(
+                self.checkpoint, f"unreadable checkpoint ({str(exc)[:120]}); rerun with --overwrite to start over"
+            ) from None
         self.start, self.log_rows = state["step"], state["log"]
         logger.info("%s: resuming from step %d", self.description, self.start)
         return state

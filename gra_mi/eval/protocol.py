@@ -202,7 +202,7 @@ def evaluate(inputs: EvalInputs, out: str | Path, config: EvalConfig | None = No
 
     def skip(stage: str, why: str, source: str | None = None) -> None:
         results[stage].status = f"skipped: {why}"
-        if source is not None and source in inputs.explicit:
+        if source is not None and source in inputs.explicit and why not in problems:
             problems.append(why)
 
     # What each stage needs, checked before any work -----------------------------------------------------------

@@ -392,13 +392,17 @@ class MaterialFitter:
         return result
 
 
-def run_fit(capture_dir: str | Path, out: str | Path, config: FitConfig) -> tuple[FitResult, Path]:
+def run_fit(capture_dir: str | Path, out: str | Path, config: FitConfig, overwrite: bool = False) -> tuple[FitResult, Path]:
+    """Fit ``config``'s maps to a capture into ``out`` (resumes a run of the same capture and config there; a folder
+    made by another refuses, or with ``overwrite`` starts over)."""
+    from gra_mi.core.provenance import claim_output
     from gra_mi.core.runtime import ensure_mitsuba
 
     config.validate()
     capture = Capture.load(capture_dir)
+    capture.check_images()
     ensure_mitsuba()
-    out = Path(out)
+    out = claim_output(out, "fit", {"capture": capture_dir}, config, overwrite=overwrite)
     fitter = MaterialFitter(capture, config, cache_dir=out / "cache")
     result = fitter.fit(out)
     from gra_mi.fit.report import write_fit_outputs

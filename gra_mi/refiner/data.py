@@ -247,9 +247,14 @@ def synthetic_dataset(
     env_height: int = 16,
     test_frames: int = 0,
     seed: int = 0,
+    overwrite: bool = False,
 ) -> RefinerDataset:
     """subjects: subject seed → (number of training sequences, number of test sequences of ``test_frames``)."""
-    folder = Path(folder)
+    from gra_mi.core.provenance import claim_output
+
+    config = {"subjects": {str(k): list(v) for k, v in subjects.items()}, "frames": frames, "height": height, "width": width}
+    config |= {"env_height": env_height, "test_frames": test_frames, "seed": seed}
+    folder = claim_output(folder, "refiner-data --synthetic", {}, config, overwrite=overwrite)
     entries = []
     k = seed
     for subject, (n_train, n_test) in subjects.items():
@@ -290,6 +295,7 @@ def dataset_from_capture(
     train_length: int = 24,
     test_length: int = 41,
     cache_dir: str | Path | None = None,
+    overwrite: bool = False,
 ) -> RefinerDataset:
     """Sequences per camera: training cameras over the training frames, held-out cameras over the test frames.
 
@@ -304,8 +310,13 @@ def dataset_from_capture(
     from gra_mi.stage.envmap import leds_to_envmap, to_camera_space
 
     ensure_mitsuba()
+    from gra_mi.core.provenance import claim_output
+
+    config = {"scale": scale, "env_height": env_height, "train_length": train_length, "test_length": test_length}
+    inputs = {"capture": capture_dir, "fit": fit_dir, "relightnet": relightnet_dir}
     out = Path(out)
     capture, relighter = fitted_relighter(capture_dir, fit_dir, cache_dir or out / "cache")
+    claim_output(out, "refiner-data", inputs, config, overwrite=overwrite)
     ls, stage = relighter.ls, relighter.ls.stage
     model = None
     if relightnet_dir is not None:

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive
+from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive, require_seed
 from gra_mi.refiner.data import RefinerDataset, video_to_image
 from gra_mi.refiner.deflicker import DeflickerConfig, deflicker_frame
 from gra_mi.refiner.flow import euler_sample
@@ -81,6 +81,7 @@ class RefineConfig:
 
     def validate(self) -> None:
         require_positive({"steps": self.steps, "shift": self.shift})
+        require_seed(self.seed)
         if self.frames is not None:
             require_positive({"frames": self.frames})
 
@@ -213,6 +214,7 @@ def refine_to_folder(
     vae_round_trip_psnr: bool = True,
     deflicker: DeflickerConfig | None = None,
     composite: PlatformConfig | None = None,
+    overwrite: bool = False,
     **options,
 ) -> dict:
     """Refine one sequence into ``out``: frames (EXR linear + PNG), refined.mp4, comparison.mp4, refine.json; with
@@ -236,6 +238,11 @@ def refine_to_folder(
     dataset = RefinerDataset(dataset_dir)
     if sequence not in dataset.sequences:
         raise GraMiParameterError("sequence", f"no sequence '{sequence}' in {dataset.folder} (have {sorted(dataset.sequences)})")
+    from gra_mi.core.provenance import claim_output
+
+    said = {"sequence": sequence, "refine": asdict(config), "deflicker": asdict(deflicker) if deflicker else None}
+    said["composite"] = asdict(composite) if composite else None
+    claim_output(out, "refine", {"model": model_dir, "data": dataset_dir}, said, overwrite=overwrite)
     compose = _capture_compositor(dataset, sequence, composite) if composite is not None else None
     model = VideoRefiner.load(model_dir).to(torch.device(torch_device())).prepare_for_inference(fuse_lora)
     info = dataset.sequences[sequence]

@@ -28,7 +28,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from gra_mi.core.errors import GraMiInputError
+from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 
 logger = logging.getLogger(__name__)
 
@@ -91,16 +91,32 @@ class RefinerConfig:
     """Transformer dtype (float32 or bfloat16; the VAE stays float32)."""
     extra: dict = field(default_factory=dict)
 
-    def validate(self, source: str = "refiner config") -> None:
+    def validate(self, source: str | Path | None = None) -> None:
+        """Check every field; ``source``: the refiner.json these came from (errors then name it and the field;
+        without it they name the parameter, which the CLI shows as its flag)."""
+
+        def bad(name: str, problem: str):
+            raise GraMiInputError(source, problem, field=name) if source else GraMiParameterError(name, problem)
+
         if self.size not in TRANSFORMER_CONFIGS:
-            raise GraMiInputError(source, f"size '{self.size}' is not one of {sorted(TRANSFORMER_CONFIGS)}")
+            bad("size", f"'{self.size}' is not one of {sorted(TRANSFORMER_CONFIGS)}")
         if self.window < 5 or (self.window - 1) % TEMPORAL_FACTOR:
-            raise GraMiInputError(source, f"window must be 4k + 1 frames (e.g. 17), got {self.window}")
+            bad("window", f"must be 4k + 1 frames (e.g. 17), got {self.window}")
         if not 0 < self.handoff < self.window:
-            raise GraMiInputError(source, f"handoff must be between 1 and window - 1, got {self.handoff}")
+            bad("handoff", f"must be between 1 and window - 1, got {self.handoff}")
         layers = TRANSFORMER_CONFIGS[self.size]["num_layers"]
         if self.env_blocks is not None and any(not 0 <= b < layers for b in self.env_blocks):
-            raise GraMiInputError(source, f"env_blocks {self.env_blocks} must be block indices in [0, {layers})")
+            bad("env_blocks", f"{self.env_blocks} must be block indices in [0, {layers})")
+        if self.lora_rank < 0:
+            bad("lora_rank", f"must be >= 0 (0: no LoRA), got {self.lora_rank}")
+        if not 0 <= self.seed < 2**32:
+            bad("seed", f"must be an integer in [0, 2^32), got {self.seed}")
+        if self.dtype not in ("float32", "bfloat16"):
+            bad("dtype", f"must be float32 or bfloat16, got '{self.dtype}'")
+        for name in ("weights", "vae_weights", "prompt_embeds"):
+            path = getattr(self, name)
+            if path is not None and not Path(path).exists():
+                bad(name, f"{path}: not found")
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -442,11 +458,16 @@ class VideoRefiner(nn.Module):
             raise GraMiInputError(folder / "refiner.json", "field 'format': expected 'gra-mi-refiner/1'")
         known = RefinerConfig.__dataclass_fields__
         config = RefinerConfig(**{k: v for k, v in {**data, **overrides}.items() if k in known})
+        config.validate(folder / "refiner.json")
         model = cls(config)
         weights = folder / "refiner.safetensors"
         if not weights.is_file():
             raise GraMiInputError(weights, "file not found")
-        missing, unexpected = model.load_state_dict(load_file(str(weights)), strict=False)
+        try:
+            missing, unexpected = model.load_state_dict(load_file(str(weights)), strict=False)
+        except Exception as exc:  # truncated file (SafetensorError) or tensors of another size (RuntimeError)
+            first = str(exc).strip().splitlines()[0][:200]
+            raise GraMiInputError(weights, f"cannot load these weights into the refiner of refiner.json ({first})") from None
         trainable = {n for n, p in model.named_parameters() if p.requires_grad}
         if unexpected or (trainable & set(missing)):
             raise GraMiInputError(

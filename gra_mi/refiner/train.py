@@ -28,7 +28,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from gra_mi.core.errors import GraMiInputError, require_positive
+from gra_mi.core.errors import GraMiInputError, require_positive, require_seed
 from gra_mi.core.io import atomic_write_text
 from gra_mi.core.training import TrainingLoop, write_training_log
 from gra_mi.refiner.data import RefinerDataset
@@ -76,6 +76,7 @@ class RefinerTrainConfig:
         require_positive({"bank_grid": self.bank_grid, "bank_per_level": self.bank_per_level})
         require_positive({"checkpoint_every": self.checkpoint_every, "log_every": self.log_every})
         require_positive({"train_shift": self.train_shift, "sample_shift": self.sample_shift})
+        require_seed(self.seed)
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -271,16 +272,20 @@ def train_refiner(
     config: RefinerTrainConfig,
     model_config: RefinerConfig | None = None,
     init: str | Path | None = None,
+    overwrite: bool = False,
 ) -> Path:
     """Train (or, with ``init``, adapt) a refiner; writes weights, logs, a loss plot and ``train.json``."""
     from gra_mi.core.runtime import torch_device
 
     config.validate()
+    model_config = model_config or RefinerConfig()
+    model_config.validate()  # before the dataset is read
     loop = TrainingLoop(Path(out), config.steps, config.checkpoint_every, config.log_every, "train refiner")
+    loop.claim("train-refiner", {"data": dataset_dir, "init": init}, {"train": asdict(config), "model": asdict(model_config)}, overwrite)
     device = torch.device(torch_device())
     out = Path(out)
     dataset = RefinerDataset(dataset_dir)
-    model = VideoRefiner.load(init) if init is not None else VideoRefiner(model_config or RefinerConfig())
+    model = VideoRefiner.load(init) if init is not None else VideoRefiner(model_config)
     model.to(device)
     window = model.config.window
     items = _windows(dataset, window, "train")

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from gra_mi.core.errors import GraMiInputError, require_positive
+from gra_mi.core.errors import GraMiInputError, require_positive, require_seed
 from gra_mi.core.io import atomic_write_text, write_png
 from gra_mi.core.training import TrainingLoop, write_training_log
 from gra_mi.relightnet.infer import view_inputs
@@ -73,6 +73,7 @@ class TrainConfig:
             positive["max_train_views"] = self.max_train_views
         require_positive(positive)
         require_positive({"lr": self.lr})
+        require_seed(self.seed)
         for name, value in (("weight_decay", self.weight_decay), ("env_dropout", self.env_dropout)):
             if not (0 <= value < 1):
                 raise GraMiParameterError(name, f"must be in [0, 1), got {value}")
@@ -166,12 +167,15 @@ def image_metrics(image: torch.Tensor, target: torch.Tensor, pixels: torch.Tenso
 # --------------------------------------------------------------------------------------------------------------
 
 
-def train_relightnet(capture_dir: str | Path, fit_dir: str | Path, out: str | Path, config: TrainConfig) -> Path:
+def train_relightnet(capture_dir: str | Path, fit_dir: str | Path, out: str | Path, config: TrainConfig, overwrite: bool = False) -> Path:
+    """Train RelightNet into ``out``; a rerun with the same inputs and config resumes (``steps`` may grow), a folder
+    made by another run is refused (``overwrite``: start over)."""
     from gra_mi.core.runtime import ensure_mitsuba, torch_device
     from gra_mi.render.relighter import fitted_relighter
 
     config.validate()
     loop = TrainingLoop(Path(out), config.steps, config.checkpoint_every, config.log_every, "train RelightNet")
+    loop.claim("train-relightnet", {"capture": capture_dir, "fit": fit_dir}, config, overwrite)
     ensure_mitsuba()
     device = torch_device()
     torch.manual_seed(config.seed)

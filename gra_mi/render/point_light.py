@@ -35,10 +35,12 @@ class PointLight:
     def __post_init__(self):
         self.position = np.asarray(self.position, np.float64).reshape(3)
         self.intensity = np.broadcast_to(np.asarray(self.intensity, np.float64), (3,)).copy()
-        if not np.all(np.isfinite(self.position)) or not np.all(np.isfinite(self.intensity)) or np.any(self.intensity < 0):
-            raise GraMiParameterError("point_light", "position and intensity must be finite, intensity non-negative")
-        if self.radius < 0 or self.conditioning_radius <= 0:
-            raise GraMiParameterError("point_light_radius", "radii must be positive")
+        if not np.all(np.isfinite(self.position)):
+            raise GraMiParameterError("point_light", f"position must be three finite numbers, got {self.position.tolist()}")
+        if not np.all(np.isfinite(self.intensity)) or np.any(self.intensity < 0):
+            raise GraMiParameterError("point_light_intensity", f"must be finite and >= 0, got {self.intensity.tolist()}")
+        if not (np.isfinite(self.radius) and self.radius >= 0) or not self.conditioning_radius > 0:
+            raise GraMiParameterError("point_light_radius", f"must be a finite number >= 0 (metres), got {self.radius}")
 
 
 def parse_point_light(text: str, intensity: float, radius: float) -> PointLight:

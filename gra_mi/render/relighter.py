@@ -163,6 +163,7 @@ def fitted_relighter(capture_dir: str | Path, fit_dir: str | Path, cache_dir: st
     from gra_mi.capture.dataset import Capture
 
     capture = Capture.load(capture_dir)
+    capture.check_images()
     fit_dir = Path(fit_dir)
     albedo = load_texture(fit_dir / "albedo.exr", 3, "albedo")
     roughness = load_texture(fit_dir / "roughness.exr", 1, "roughness")

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gra_mi.core.errors import GraMiInputError, GraMiParameterError
+from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive
 from gra_mi.core.io import atomic_write_text, read_json
 
 CALIBRATION_FORMAT = "gra-mi-lightstage/1"
@@ -197,8 +197,10 @@ def default_lightstage(
     max_led_intensity: float = 4.0,
 ) -> Lightstage:
     """The default rig: LEDs evenly over a sphere (Fibonacci spiral), cameras on four rings."""
-    if num_leds < 1 or num_cameras < 1 or radius <= 0 or camera_distance <= 0:
-        raise GraMiInputError("rig", "LED count, camera count, radius and camera distance must be positive")
+    require_positive(
+        {"num_leds": num_leds, "num_cameras": num_cameras, "width": width, "height": height}
+        | {"radius": radius, "camera_distance": camera_distance, "max_led_intensity": max_led_intensity}
+    )
     if camera_distance >= radius:
         raise GraMiInputError("rig", f"cameras ({camera_distance} m) must stand inside the LED sphere ({radius} m)")
     c = np.asarray(center, dtype=np.float64)
@@ -234,7 +236,10 @@ def uniform_pattern(stage: Lightstage, fraction: float = 1.0) -> np.ndarray:
 
 def validate_pattern(stage: Lightstage, pattern: np.ndarray, source: str = "pattern") -> np.ndarray:
     """Check an arbitrary LED intensity pattern: (L,) grey or (L, 3) RGB, finite, non-negative."""
-    pattern = np.asarray(pattern, dtype=np.float64)
+    try:
+        pattern = np.asarray(pattern, dtype=np.float64)
+    except (ValueError, TypeError):  # strings, ragged rows
+        raise GraMiInputError(source, "expected a list of numbers (one per LED) or of [r, g, b] rows of numbers") from None
     if pattern.ndim == 1:
         pattern = np.repeat(pattern[:, None], 3, axis=1)
     if pattern.shape != (stage.num_leds, 3):
@@ -250,7 +255,10 @@ def load_pattern(stage: Lightstage, path: str | Path) -> np.ndarray:
     if not path.is_file():
         raise GraMiInputError(path, "file not found")
     if path.suffix == ".npy":
-        data = np.load(path)
+        try:
+            data = np.load(path, allow_pickle=False)
+        except (ValueError, OSError, EOFError) as exc:
+            raise GraMiInputError(path, f"not a readable .npy array ({exc})") from None
     else:
         raw = read_json(path)
         data = raw.get("intensities") if isinstance(raw, dict) else raw

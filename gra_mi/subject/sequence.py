@@ -13,6 +13,7 @@ UVs follow docs/conventions.md: (u, v) ∈ [0,1]², as Mitsuba stores them; vert
 from __future__ import annotations
 
 import math
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -166,7 +167,7 @@ def load_sequence(folder: str | Path) -> MeshSequence:
             frame_labels=[str(x) for x in data["frame_labels"]] if "frame_labels" in data else [],
             vertex_colors=data["vertex_colors"] if "vertex_colors" in data else None,
         )
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as exc:  # truncated or not an .npz at all
         if isinstance(exc, GraMiInputError):
             raise
         raise GraMiInputError(path, f"not a readable sequence archive ({exc})") from None

@@ -1,0 +1,166 @@
+"""What made an output folder, so that a resume never mixes two runs, and a lock against two writers.
+
+Every resumable folder (capture, fit, RelightNet, refiner data, refiner, refined video) holds ``provenance.json``:
+the command, a content id of each input and the config. A rerun into the folder compares them first: the same run
+resumes; a different one stops with the difference named (``overwrite=True`` / ``--overwrite`` starts over). Fields
+listed as ``free`` (the step count, logging cadence) may change between runs: raising ``--steps`` continues training.
+
+The lock is an advisory ``flock`` on ``.gra-mi.lock`` held until the process ends (Unix; re-entrant within one
+process, so a pipeline that resumes its own stages is not blocked by itself).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import shutil
+from pathlib import Path
+
+from gra_mi.core.errors import GraMiInputError
+from gra_mi.core.io import atomic_write_text
+
+PROVENANCE = "provenance.json"
+LOCK = ".gra-mi.lock"
+SMALL_FILE = 1 << 20  # inputs this small are hashed whole; larger ones by size and their first and last MiB
+SKIPPED = {PROVENANCE, LOCK, "cache", "checkpoint.pt", "checkpoint", "__pycache__"}  # what a run writes for itself
+_HELD: dict[Path, int] = {}
+
+
+def content_id(path: str | Path) -> str | None:
+    """A short hash of a file's or a folder's content (JSON files whole, other files by size and ends), None for
+    a path that does not exist. Copying or moving a capture keeps its id; changing any file changes it."""
+    path = Path(path)
+    if not path.exists():
+        return None
+    digest = hashlib.sha256()
+    files = [path] if path.is_file() else sorted(p for p in path.rglob("*") if p.is_file() and not SKIPPED & set(p.relative_to(path).parts))
+    for f in files:
+        size = f.stat().st_size
+        digest.update(f"{f.relative_to(path) if f != path else f.name}:{size}\n".encode())
+        with open(f, "rb") as fh:
+            if size <= SMALL_FILE:
+                digest.update(fh.read())
+            else:
+                digest.update(fh.read(SMALL_FILE))
+                fh.seek(-SMALL_FILE, os.SEEK_END)
+                digest.update(fh.read())
+    return digest.hexdigest()[:16]
+
+
+def _plain(config) -> dict:
+    if dataclasses.is_dataclass(config):
+        config = dataclasses.asdict(config)
+    return json.loads(json.dumps(config or {}, default=str))  # tuples → lists, paths → str: what the file holds
+
+
+def lock_folder(folder: Path) -> None:
+    """Hold the folder's writer lock until the process ends; a second process stops with its pid named."""
+    folder = folder.resolve()
+    if folder in _HELD:
+        return
+    folder.mkdir(parents=True, exist_ok=True)
+    fd = os.open(folder / LOCK, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        import fcntl
+
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except ImportError:  # not Unix: no advisory locks; the provenance check still applies
+        pass
+    except OSError:
+        holder = os.read(fd, 32).decode(errors="replace").strip() or "?"
+        os.close(fd)
+        raise GraMiInputError(
+            folder, f"another gra-mi process (pid {holder}) is writing to this folder; wait for it, or choose another output folder"
+        ) from None
+    os.ftruncate(fd, 0)
+    os.write(fd, str(os.getpid()).encode())
+    _HELD[folder] = fd
+
+
+def release_folder(folder: Path) -> None:
+    """Give up the lock early (library callers that run two stages on one folder one after another)."""
+    fd = _HELD.pop(Path(folder).resolve(), None)
+    if fd is not None:
+        os.close(fd)
+
+
+def claim_output(
+    folder: str | Path,
+    command: str,
+    inputs: dict[str, str | Path | None],
+    config=None,
+    *,
+    overwrite: bool = False,
+    free: tuple[str, ...] = (),
+) -> Path:
+    """Lock ``folder`` and check it was made by this same run (or is new, or empty); record what makes it.
+
+    ``inputs``: name → path (its content id is recorded); ``config``: a dataclass or dict; ``free``: config keys
+    allowed to differ on a resume. A folder made otherwise raises a :class:`GraMiInputError` naming the
+    difference, unless ``overwrite``, which empties it first (only a folder gra-mi made: one with provenance.json).
+    """
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise GraMiInputError(folder, "is a file; expected an output folder")
+    record = {
+        "command": command,
+        "inputs": {name: content_id(path) if path is not None else None for name, path in inputs.items()},
+        "input_paths": {name: str(path) if path is not None else None for name, path in inputs.items()},
+        "config": _plain(config),
+    }
+    path = folder / PROVENANCE
+    existing = [p for p in folder.iterdir() if p.name not in (LOCK,)] if folder.is_dir() else []
+    if existing:
+        if not path.is_file():
+            if not overwrite:
+                raise GraMiInputError(
+                    folder, "is not empty and was not made by gra-mi (no provenance.json); choose an empty or new output folder"
+                )
+            raise GraMiInputError(folder, "--overwrite empties only folders gra-mi made (with provenance.json); this one has none")
+        try:
+            old = json.loads(path.read_text())
+        except (OSError, ValueError) as exc:
+            raise GraMiInputError(path, f"unreadable ({exc}); remove the folder or use --overwrite") from None
+        differences = _differences(old, record, free)
+        if differences and not overwrite:
+            raise GraMiInputError(
+                path,
+                f"this folder was made by another run ({'; '.join(differences)}): resuming would mix the two. "
+                "Use --overwrite to start over, or choose another output folder",
+            )
+        if differences:
+            lock_folder(folder)
+            for p in folder.iterdir():
+                if p.name != LOCK:
+                    shutil.rmtree(p) if p.is_dir() and not p.is_symlink() else p.unlink()
+    lock_folder(folder)
+    atomic_write_text(path, json.dumps(record, indent=1) + "\n")
+    return folder
+
+
+def _flat(config: dict, prefix: str = "") -> dict:
+    """Nested configs ({"train": {...}, "model": {...}}) as dotted keys, so each field is compared and named."""
+    flat = {}
+    for key, value in config.items():
+        if isinstance(value, dict) and value and all(isinstance(k, str) for k in value):
+            flat.update(_flat(value, f"{prefix}{key}."))
+        else:
+            flat[prefix + key] = value
+    return flat
+
+
+def _differences(old: dict, new: dict, free: tuple[str, ...]) -> list[str]:
+    said = []
+    if old.get("command") != new["command"]:
+        said.append(f"command {old.get('command')!r}, now {new['command']!r}")
+    for name in sorted(set(old.get("inputs", {})) | set(new["inputs"])):
+        if old.get("inputs", {}).get(name) != new["inputs"].get(name):
+            was = old.get("input_paths", {}).get(name)
+            said.append(f"input {name}: {was} then, {new['input_paths'].get(name)} now (different content)")
+    old_config, new_config = _flat(old.get("config", {})), _flat(new["config"])
+    for key in sorted(set(old_config) | set(new_config)):
+        if key.rsplit(".", 1)[-1] not in free and old_config.get(key) != new_config.get(key):
+            said.append(f"{key}: {old_config.get(key)!r} then, {new_config.get(key)!r} now")
+    return said

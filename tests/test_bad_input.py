@@ -1,0 +1,485 @@
+"""The bad-input suite: every command, fed what a hostile but realistic user would feed it, stops with one line
+naming the file or option and what was expected, exit code 2, no traceback, and writes nothing (issue 19).
+
+Cases run in-process (``gra_mi.cli.main``) on tiny inputs written here, so the whole suite takes about a minute
+once the shared tiny capture exists. Grow it with every new reader or option.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gra_mi.cli import main
+from gra_mi.core.io import read_exr, write_exr
+
+from .conftest import SCENES
+
+TINY = SCENES / "tiny_lightstage.xml"
+
+
+def run(argv: list[str], capsys) -> tuple[int, list[str]]:
+    """Exit code and the lines gra-mi itself printed on stderr (log records aside)."""
+    try:
+        code = main([str(a) for a in argv])
+    except SystemExit as exc:
+        code = exc.code
+    err = capsys.readouterr().err
+    assert "Traceback" not in err, err
+    return code, [line for line in err.splitlines() if line.startswith("gra-mi")]
+
+
+def assert_refused(argv: list[str], capsys, *needles: str, out: Path | None = None) -> str:
+    code, lines = run(argv, capsys)
+    assert code == 2, (argv, code, lines)
+    assert len(lines) == 1, lines
+    for needle in needles:
+        assert needle.lower() in lines[0].lower(), (needle, lines[0])
+    if out is not None:
+        left = sorted(out.rglob("*")) if out.is_dir() else [out] if out.exists() else []
+        assert not left, f"partial output: {left}"
+    return lines[0]
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Inputs: the tiny path-traced capture and its fit (shared with the other modules), and broken copies of them
+# --------------------------------------------------------------------------------------------------------------
+
+
+def _linked_copy(src: Path, dst: Path, copy: tuple[str, ...] = ()) -> Path:
+    """A copy of a folder whose files are symlinks, except those under ``copy`` (relative paths), which are real."""
+    dst.mkdir(parents=True)
+    for path in sorted(src.rglob("*")):
+        rel = path.relative_to(src)
+        target = dst / rel
+        if path.is_dir():
+            target.mkdir(parents=True, exist_ok=True)
+        elif any(str(rel) == c or str(rel).startswith(c + "/") for c in copy):
+            shutil.copy2(path, target)
+        else:
+            target.symlink_to(path)
+    return dst
+
+
+@pytest.fixture(scope="module")
+def inputs(path_traced_fit, tmp_path_factory):
+    root = tmp_path_factory.mktemp("bad")
+    cap, fit = path_traced_fit / "cap", path_traced_fit / "fit"
+    data = json.loads((cap / "capture.json").read_text())
+    first = "images/cam00/frame_0001.exr"
+
+    def capture(name: str, mutate_image=None, mutate_json=None, image: str = first) -> Path:
+        folder = _linked_copy(cap, root / name, copy=("capture.json", image))
+        if mutate_image is not None:
+            write_exr(folder / image, mutate_image(read_exr(cap / image)))
+        if mutate_json is not None:
+            text = mutate_json(json.loads(json.dumps(data)))
+            (folder / "capture.json").write_text(text if isinstance(text, str) else json.dumps(text))
+        return folder
+
+    def nan_all(a):
+        a[..., :3] = np.nan
+        return a
+
+    def one_nan(a):
+        a[3, 4, 1] = np.nan
+        return a
+
+    def negative(a):
+        a[:2, :, :3] = -0.5
+        return a
+
+    def inf(a):
+        a[0, 0, 0] = np.inf
+        return a
+
+    def bad_mask(a):
+        a[..., 3] = 3.0
+        return a
+
+    paths = {
+        "cap": cap,
+        "fit": fit,
+        "root": root,
+        "cap_nan": capture("cap_nan", nan_all),
+        "cap_one_nan": capture("cap_one_nan", one_nan),
+        "cap_negative": capture("cap_negative", negative),
+        "cap_inf": capture("cap_inf", inf),
+        "cap_half": capture("cap_half", lambda a: a[::2, ::2]),
+        "cap_rgb": capture("cap_rgb", lambda a: a[..., :3]),
+        "cap_mask": capture("cap_mask", bad_mask),
+        "cap_json_broken": capture("cap_json_broken", mutate_json=lambda d: '{"format": "gra-mi-capture/1", "frames": ['),
+        "cap_json_format": capture("cap_json_format", mutate_json=lambda d: {**d, "format": "other/1"}),
+        "cap_json_missing": capture("cap_json_missing", mutate_json=lambda d: {k: v for k, v in d.items() if k != "frames"}),
+        "cap_json_frame_str": capture("cap_json_frame_str", mutate_json=lambda d: {**d, "frames": ["frame0"] + d["frames"][1:]}),
+        "cap_json_frame_num": capture(
+            "cap_json_frame_num", mutate_json=lambda d: {**d, "frames": [{**d["frames"][0], "frame": "zero"}] + d["frames"][1:]}
+        ),
+        "cap_json_kind": capture(
+            "cap_json_kind", mutate_json=lambda d: {**d, "frames": [{**d["frames"][0], "kind": "disco"}] + d["frames"][1:]}
+        ),
+        "cap_json_split": capture(
+            "cap_json_split", mutate_json=lambda d: {**d, "frames": [{**d["frames"][0], "split": "val"}] + d["frames"][1:]}
+        ),
+        "cap_json_cameras": capture("cap_json_cameras", mutate_json=lambda d: {**d, "train_cameras": "cam00"}),
+        "cap_json_camera_name": capture("cap_json_camera_name", mutate_json=lambda d: {**d, "eval_cameras": ["cam99"]}),
+        "cap_json_uv": capture("cap_json_uv", mutate_json=lambda d: {**d, "uv_resolution": "big"}),
+        "cap_json_uv_neg": capture("cap_json_uv_neg", mutate_json=lambda d: {**d, "uv_resolution": -4}),
+        "cap_json_unknown": capture("cap_json_unknown", mutate_json=lambda d: {**d, "calibration_date": "today"}),
+        "cap_json_list": capture("cap_json_list", mutate_json=lambda d: "[1, 2]"),
+        "cap_json_dup": capture("cap_json_dup", mutate_json=lambda d: {**d, "frames": d["frames"] + d["frames"][:1]}),
+    }
+    # A missing image, a truncated one, one that is not an EXR at all
+    paths["cap_missing_image"] = capture("cap_missing_image")
+    (paths["cap_missing_image"] / first).unlink()
+    paths["cap_truncated"] = capture("cap_truncated")
+    raw = (cap / first).read_bytes()
+    (paths["cap_truncated"] / first).write_bytes(raw[: len(raw) // 3])
+    paths["cap_text_image"] = capture("cap_text_image")
+    (paths["cap_text_image"] / first).write_text("not an image")
+    # A truncated tracked mesh sequence
+    seq = _linked_copy(cap, root / "cap_seq", copy=("subject/sequence.npz",))
+    raw = (cap / "subject" / "sequence.npz").read_bytes()
+    (seq / "subject" / "sequence.npz").write_bytes(raw[: len(raw) // 2])
+    paths["cap_seq"] = seq
+
+    # Fits: a NaN albedo, a wrong-size roughness, a missing one
+    for name, edit in (
+        ("fit_nan", lambda f: write_exr(f / "albedo.exr", np.full((32, 32, 3), np.nan, np.float32))),
+        ("fit_size", lambda f: write_exr(f / "roughness.exr", np.full((7, 9, 1), 0.5, np.float32))),
+        ("fit_missing", lambda f: (f / "roughness.exr").unlink()),
+    ):
+        folder = _linked_copy(fit, root / name, copy=("albedo.exr", "roughness.exr"))
+        edit(folder)
+        paths[name] = folder
+
+    # Envmaps, patterns, textures, masks
+    write_exr(root / "nan.exr", np.where(np.arange(16 * 32 * 3).reshape(16, 32, 3) == 5, np.nan, 1).astype(np.float32))
+    write_exr(root / "square.exr", np.ones((8, 8, 3), np.float32))
+    write_exr(root / "white.exr", np.ones((8, 16, 3), np.float32))
+    write_exr(root / "albedo_nan.exr", np.full((16, 16, 3), np.nan, np.float32))
+    write_exr(root / "albedo_rect.exr", np.full((16, 8, 3), 0.5, np.float32))
+    write_exr(root / "albedo.exr", np.full((16, 16, 3), 0.5, np.float32))
+    write_exr(root / "mask.exr", np.ones((16, 16, 1), np.float32))
+    (root / "not_exr.exr").write_text("hello")
+    (root / "pattern_strings.json").write_text(json.dumps({"intensities": ["a"] * 64}))
+    (root / "pattern_ragged.json").write_text(json.dumps({"intensities": [[1, 2, 3], [1, 2]] + [[0, 0, 0]] * 62}))
+    (root / "pattern_short.json").write_text(json.dumps({"intensities": [0.1] * 5}))
+    (root / "pattern_nan.json").write_text('{"intensities": [NaN' + ", 0.1" * 63 + "]}")
+    (root / "pattern_negative.json").write_text(json.dumps({"intensities": [-1.0] * 64}))
+    (root / "pattern_no_key.json").write_text(json.dumps({"leds": [0.1] * 64}))
+    (root / "pattern_off.json").write_text(json.dumps({"intensities": [0.0] * 64}))
+    np.save(root / "pattern_3d.npy", np.ones((2, 64, 3)))
+    (root / "broken.xml").write_text("<scene version='3.0.0'><shape")
+    (root / "calib_broken.json").write_text("{ nope")
+    (root / "calib_fields.json").write_text(json.dumps({"leds": "many"}))
+    (root / "a_file").write_text("I am a file, not a folder")
+    # Weights: a RelightNet folder whose safetensors is truncated, one whose config is not a RelightNet's
+    rn = root / "rn_truncated"
+    rn.mkdir()
+    (rn / "relightnet.json").write_text(json.dumps({"base_channels": 8}))
+    (rn / "relightnet.safetensors").write_bytes(b"\x10\x00\x00\x00\x00\x00\x00\x00{")
+    rn = root / "rn_config"
+    rn.mkdir()
+    (rn / "relightnet.json").write_text("[1, 2")
+    (rn / "relightnet.safetensors").write_bytes(b"")
+    return paths
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Family 1: bad numbers, options out of range
+# --------------------------------------------------------------------------------------------------------------
+
+OPTION_CASES = [
+    # fit
+    ("fit-iterations", ["fit", "{cap}", "--iterations", "-1"], ["--iterations", ">= 0"]),
+    ("fit-irls", ["fit", "{cap}", "--irls-iterations", "-1"], ["--irls-iterations"]),
+    ("fit-uv-zero", ["fit", "{cap}", "--uv-resolution", "0"], ["--uv-resolution"]),
+    ("fit-uv-negative", ["fit", "{cap}", "--uv-resolution", "-8"], ["--uv-resolution"]),
+    ("fit-lr-nan", ["fit", "{cap}", "--lr-albedo", "nan"], ["--lr-albedo", "finite"]),
+    ("fit-lr-negative", ["fit", "{cap}", "--lr-roughness", "-1"], ["--lr-roughness"]),
+    ("fit-smooth-nan", ["fit", "{cap}", "--smooth-albedo", "nan"], ["--smooth-albedo"]),
+    ("fit-smooth-negative", ["fit", "{cap}", "--smooth-roughness", "-0.1"], ["--smooth-roughness"]),
+    ("fit-min-view-cos", ["fit", "{cap}", "--min-view-cos", "2"], ["--min-view-cos"]),
+    ("fit-min-view-cos-inf", ["fit", "{cap}", "--min-view-cos", "inf"], ["--min-view-cos"]),
+    ("fit-candidates-empty", ["fit", "{cap}", "--roughness-candidates", ""], ["--roughness-candidates"]),
+    ("fit-candidates-nan", ["fit", "{cap}", "--roughness-candidates", "0.3,nan"], ["--roughness-candidates"]),
+    ("fit-candidates-range", ["fit", "{cap}", "--roughness-candidates", "0.3,1.5"], ["--roughness-candidates"]),
+    ("fit-candidates-text", ["fit", "{cap}", "--roughness-candidates", "rough"], ["--roughness-candidates"]),
+    ("fit-iterations-text", ["fit", "{cap}", "--iterations", "many"], ["--iterations"]),
+    # relight
+    ("relight-uv-zero", ["relight", TINY, "--olat", "0", "--uv-resolution", "0"], ["--uv-resolution"]),
+    ("relight-uv-negative", ["relight", TINY, "--olat", "0", "--uv-resolution", "-3"], ["--uv-resolution"]),
+    ("relight-exposure-nan", ["relight", TINY, "--olat", "0", "--exposure", "nan"], ["--exposure"]),
+    ("relight-exposure-zero", ["relight", TINY, "--olat", "0", "--exposure", "0"], ["--exposure"]),
+    ("relight-no-light", ["relight", TINY], ["--envmap"]),
+    ("relight-point-nan", ["relight", TINY, "--point-light", "nan,0,0"], ["--point-light"]),
+    ("relight-point-count", ["relight", TINY, "--point-light", "1,2"], ["--point-light"]),
+    ("relight-point-intensity", ["relight", TINY, "--point-light", "0,1,1", "--point-light-intensity", "-2"], ["--point-light-intensity"]),
+    (
+        "relight-point-intensity-nan",
+        ["relight", TINY, "--point-light", "0,1,1", "--point-light-intensity", "nan"],
+        ["--point-light-intensity"],
+    ),
+    ("relight-point-radius", ["relight", TINY, "--point-light", "0,1,1", "--point-light-radius", "-1"], ["--point-light-radius"]),
+    ("relight-frames", ["relight", TINY, "--olat", "0", "--frames", "99"], ["frame", "99"]),
+    ("relight-frames-text", ["relight", TINY, "--olat", "0", "--frames", "a:b"], ["--frames"]),
+    ("relight-camera", ["relight", TINY, "--olat", "0", "--cameras", "nope"], ["nope"]),
+    ("relight-olat", ["relight", TINY, "--olat", "999"], ["999"]),
+    ("relight-olat-negative", ["relight", TINY, "--olat", "-1"], ["-1"]),
+    ("relight-envmap-height", ["relight", TINY, "--olat", "0", "--envmap-height", "1"], ["--envmap-height"]),
+    ("relight-envmap-rotate", ["relight", TINY, "--olat", "0", "--envmap-rotate", "nan"], ["--envmap-rotate"]),
+    ("relight-platform-spp", ["relight", TINY, "--olat", "0", "--platform-spp", "0"], ["--platform-spp"]),
+    ("relight-platform-radius", ["relight", TINY, "--olat", "0", "--platform-radius", "-1"], ["--platform-radius"]),
+    ("relight-platform-reflectance", ["relight", TINY, "--olat", "0", "--platform-reflectance", "1.5"], ["--platform-reflectance"]),
+    ("relight-relightnet-missing", ["relight", TINY, "--olat", "0", "--stage", "relightnet"], ["--relightnet"]),
+    # render
+    ("render-seed", ["render", TINY, "--olat", "0", "--seed", "-5"], ["--seed"]),
+    ("render-spp", ["render", TINY, "--olat", "0", "--spp", "-5"], ["--spp"]),
+    ("render-spp-zero", ["render", TINY, "--olat", "0", "--spp", "0"], ["--spp"]),
+    ("render-frame", ["render", TINY, "--olat", "0", "--frame", "50"], ["frame 50"]),
+    ("render-frame-negative", ["render", TINY, "--olat", "0", "--frame", "-1"], ["frame -1"]),
+    ("render-camera", ["render", TINY, "--olat", "0", "--camera", "nope"], ["nope"]),
+    ("render-camera-index", ["render", TINY, "--olat", "0", "--camera", "77"], ["77"]),
+    ("render-olat", ["render", TINY, "--olat", "999"], ["999"]),
+    ("render-no-light", ["render", TINY], ["--envmap"]),
+    ("render-integrator", ["render", TINY, "--olat", "0", "--integrator", "volpath"], ["--integrator"]),
+    # rig
+    ("rig-radius-nan", ["rig", "--radius", "nan"], ["--radius"]),
+    ("rig-radius-negative", ["rig", "--radius", "-1"], ["--radius"]),
+    ("rig-leds", ["rig", "--num-leds", "0"], ["--num-leds"]),
+    ("rig-cameras", ["rig", "--num-cameras", "0"], ["--num-cameras"]),
+    ("rig-distance", ["rig", "--camera-distance", "0"], ["--camera-distance"]),
+    ("rig-width", ["rig", "--width", "0"], ["--width"]),
+    ("rig-height", ["rig", "--height", "-2"], ["--height"]),
+    ("rig-intensity", ["rig", "--max-led-intensity", "inf"], ["--max-led-intensity"]),
+    ("rig-calibration-missing", ["rig", "--from-calibration", "{root}/nope.json"], ["nope.json", "not found"]),
+    ("rig-calibration-broken", ["rig", "--from-calibration", "{root}/calib_broken.json"], ["calib_broken.json", "malformed JSON"]),
+    ("rig-calibration-fields", ["rig", "--from-calibration", "{root}/calib_fields.json"], ["calib_fields.json"]),
+    # scene, subject, envmaps
+    ("scene-spp", ["scene", "--rig", "{cap}/rig", "--subject", "{cap}/subject", "--spp", "-5"], ["--spp"]),
+    ("scene-rig-missing", ["scene", "--rig", "{root}/nope", "--subject", "{cap}/subject"], ["nope"]),
+    ("scene-subject-missing", ["scene", "--rig", "{cap}/rig", "--subject", "{root}/nope"], ["nope"]),
+    ("subject-frames", ["subject", "--kind", "tiny", "--frames", "0"], ["--frames"]),
+    ("subject-frames-per-clip", ["subject", "--frames-per-clip", "0"], ["--frames-per-clip"]),
+    ("subject-clip", ["subject", "--clips", "moonwalk"], ["moonwalk"]),
+    ("envmaps-train", ["envmaps", "--train", "-1"], ["--train"]),
+    ("envmaps-height", ["envmaps", "--height", "1"], ["--height"]),
+    # capture
+    ("capture-spp", ["capture", "--preset", "tiny", "--spp", "0"], ["--spp"]),
+    ("capture-spp-power", ["capture", "--preset", "tiny", "--spp", "5"], ["--spp"]),
+    ("capture-indirect-spp", ["capture", "--preset", "tiny", "--indirect-spp", "-4"], ["--indirect-spp"]),
+    ("capture-without", ["capture", "--preset", "tiny", "--without", "gravity"], ["gravity"]),
+    ("capture-test-envmap", ["capture", "--preset", "tiny", "--test-envmap", "{root}/nan.exr"], ["nan.exr", "NaN"]),
+    ("capture-preset", ["capture", "--preset", "huge"], ["--preset"]),
+    # train-relightnet
+    ("rn-steps", ["train-relightnet", "{cap}", "--fit", "{fit}", "--steps", "0"], ["--steps"]),
+    ("rn-lr", ["train-relightnet", "{cap}", "--fit", "{fit}", "--lr", "nan"], ["--lr"]),
+    ("rn-batch", ["train-relightnet", "{cap}", "--fit", "{fit}", "--batch-size", "0"], ["--batch-size"]),
+    ("rn-dropout", ["train-relightnet", "{cap}", "--fit", "{fit}", "--env-dropout", "1.5"], ["--env-dropout"]),
+    ("rn-dropout-nan", ["train-relightnet", "{cap}", "--fit", "{fit}", "--env-dropout", "nan"], ["--env-dropout"]),
+    ("rn-validate-every", ["train-relightnet", "{cap}", "--fit", "{fit}", "--validate-every", "0"], ["--validate-every"]),
+    ("rn-checkpoint-every", ["train-relightnet", "{cap}", "--fit", "{fit}", "--checkpoint-every", "0"], ["--checkpoint-every"]),
+    ("rn-channels", ["train-relightnet", "{cap}", "--fit", "{fit}", "--base-channels", "0"], ["--base-channels"]),
+    ("rn-patch", ["train-relightnet", "{cap}", "--fit", "{fit}", "--patch", "-1"], ["--patch"]),
+    ("rn-env-height", ["train-relightnet", "{cap}", "--fit", "{fit}", "--env-height", "1"], ["--env-height"]),
+    ("rn-views", ["train-relightnet", "{cap}", "--fit", "{fit}", "--max-train-views", "0"], ["--max-train-views"]),
+    ("rn-seed", ["train-relightnet", "{cap}", "--fit", "{fit}", "--seed", "-1"], ["--seed"]),
+    ("rn-weight-decay", ["train-relightnet", "{cap}", "--fit", "{fit}", "--weight-decay", "-1"], ["--weight-decay"]),
+    # refiner
+    ("rd-scale", ["refiner-data", "{cap}", "--fit", "{fit}", "--scale", "0"], ["--scale"]),
+    ("rd-scale-nan", ["refiner-data", "{cap}", "--fit", "{fit}", "--scale", "nan"], ["--scale"]),
+    ("rd-train-length", ["refiner-data", "{cap}", "--fit", "{fit}", "--train-length", "0"], ["--train-length"]),
+    ("rd-env-height", ["refiner-data", "{cap}", "--fit", "{fit}", "--env-height", "0"], ["--env-height"]),
+    ("rd-resolution", ["refiner-data", "--synthetic", "--resolution", "20"], ["--resolution"]),
+    ("rd-subjects", ["refiner-data", "--synthetic", "--subjects", "0"], ["--subjects"]),
+    ("rd-no-fit", ["refiner-data", "{cap}"], ["--fit"]),
+    ("tr-grad-accumulation", ["train-refiner", "{root}/nodata", "--grad-accumulation", "0"], ["--grad-accumulation"]),
+    ("tr-steps", ["train-refiner", "{root}/nodata", "--steps", "0"], ["--steps"]),
+    ("tr-lr", ["train-refiner", "{root}/nodata", "--lr", "nan"], ["--lr"]),
+    ("tr-checkpoint-every", ["train-refiner", "{root}/nodata", "--checkpoint-every", "0"], ["--checkpoint-every"]),
+    ("tr-lora-rank", ["train-refiner", "{root}/nodata", "--lora-rank", "-1"], ["--lora-rank"]),
+    ("tr-bank", ["train-refiner", "{root}/nodata", "--bank-per-level", "0"], ["--bank-per-level"]),
+    ("tr-env-blocks", ["train-refiner", "{root}/nodata", "--env-blocks", "one"], ["--env-blocks"]),
+    ("tr-seed", ["train-refiner", "{root}/nodata", "--seed", "-3"], ["--seed"]),
+    ("tr-data-missing", ["train-refiner", "{root}/nodata"], ["nodata"]),
+    ("tr-weights-missing", ["train-refiner", "{root}/nodata", "--size", "1.3B", "--weights", "{root}/noweights"], ["noweights"]),
+    ("refine-shift-nan", ["refine", "{root}/nodata", "--model", "{root}/nomodel", "--sequence", "s", "--shift", "nan"], ["--shift"]),
+    ("refine-shift-zero", ["refine", "{root}/nodata", "--model", "{root}/nomodel", "--sequence", "s", "--shift", "0"], ["--shift"]),
+    ("refine-steps", ["refine", "{root}/nodata", "--model", "{root}/nomodel", "--sequence", "s", "--steps", "0"], ["--steps"]),
+    ("refine-frames", ["refine", "{root}/nodata", "--model", "{root}/nomodel", "--sequence", "s", "--frames", "-1"], ["--frames"]),
+    ("refine-seed", ["refine", "{root}/nodata", "--model", "{root}/nomodel", "--sequence", "s", "--seed", "-1"], ["--seed"]),
+    (
+        "refine-eps",
+        ["refine", "{root}/nodata", "--model", "{root}/nomodel", "--sequence", "s", "--deflicker", "--filter-eps", "nan"],
+        ["--filter-eps"],
+    ),
+    (
+        "refine-radius",
+        ["refine", "{root}/nodata", "--model", "{root}/nomodel", "--sequence", "s", "--deflicker", "--filter-radius", "0"],
+        ["--filter-radius"],
+    ),
+    (
+        "refine-strength",
+        ["refine", "{root}/nodata", "--model", "{root}/nomodel", "--sequence", "s", "--deflicker", "--strength", "2"],
+        ["--strength"],
+    ),
+    (
+        "refine-platform",
+        ["refine", "{root}/nodata", "--model", "{root}/nomodel", "--sequence", "s", "--composite", "--platform-spp", "0"],
+        ["--platform-spp"],
+    ),
+    ("refine-model-missing", ["refine", "{root}/nodata", "--model", "{root}/nomodel", "--sequence", "s"], ["no"]),
+    # edit-texture, export-gltf, deflicker, eval
+    ("edit-color-nan", ["edit-texture", "--albedo", "{root}/albedo.exr", "--mask", "{root}/mask.exr", "--color", "nan,0,0"], ["--color"]),
+    ("edit-color-count", ["edit-texture", "--albedo", "{root}/albedo.exr", "--mask", "{root}/mask.exr", "--color", "1,0"], ["--color"]),
+    ("edit-color-range", ["edit-texture", "--albedo", "{root}/albedo.exr", "--mask", "{root}/mask.exr", "--color", "2,0,0"], ["--color"]),
+    (
+        "edit-opacity",
+        ["edit-texture", "--albedo", "{root}/albedo.exr", "--mask", "{root}/mask.exr", "--color", "1,0,0", "--opacity", "nan"],
+        ["--opacity"],
+    ),
+    ("edit-nothing", ["edit-texture", "--albedo", "{root}/albedo.exr"], ["--image"]),
+    (
+        "edit-albedo-nan",
+        ["edit-texture", "--albedo", "{root}/albedo_nan.exr", "--mask", "{root}/mask.exr", "--color", "1,0,0"],
+        ["albedo_nan.exr"],
+    ),
+    (
+        "edit-albedo-rect",
+        ["edit-texture", "--albedo", "{root}/albedo_rect.exr", "--mask", "{root}/mask.exr", "--color", "1,0,0"],
+        ["albedo_rect.exr"],
+    ),
+    (
+        "edit-mask-missing",
+        ["edit-texture", "--albedo", "{root}/albedo.exr", "--mask", "{root}/nomask.exr", "--color", "1,0,0"],
+        ["nomask.exr"],
+    ),
+    (
+        "edit-albedo-not-exr",
+        ["edit-texture", "--albedo", "{root}/not_exr.exr", "--mask", "{root}/mask.exr", "--color", "1,0,0"],
+        ["not_exr.exr"],
+    ),
+    (
+        "gltf-frames",
+        [
+            "export-gltf",
+            "--subject",
+            "{cap}/subject",
+            "--albedo",
+            "{fit}/albedo.exr",
+            "--roughness",
+            "{fit}/roughness.exr",
+            "--frames",
+            "0",
+        ],
+        ["--frames"],
+    ),
+    (
+        "gltf-subject",
+        ["export-gltf", "--subject", "{root}/nosubject", "--albedo", "{fit}/albedo.exr", "--roughness", "{fit}/roughness.exr"],
+        ["nosubject"],
+    ),
+    ("deflicker-eps", ["deflicker", "{root}", "--stable", "{root}", "--filter-eps", "-1"], ["--filter-eps"]),
+    ("deflicker-exposure", ["deflicker", "{root}", "--stable", "{root}", "--exposure", "nan"], ["--exposure"]),
+    ("deflicker-missing", ["deflicker", "{root}/noframes", "--stable", "{root}"], ["noframes"]),
+    ("eval-scale", ["eval", "--capture", "{cap}", "--fit", "{fit}", "--scale", "0"], ["--scale"]),
+    ("eval-frames", ["eval", "--capture", "{cap}", "--fit", "{fit}", "--frames", "some"], ["--frames"]),
+    ("eval-nothing", ["eval", "--fit", "{fit}"], ["--capture"]),
+    ("eval-lighting-spp", ["eval-lighting", "{cap}", "--fit", "{fit}", "--spp", "0"], ["--spp"]),
+    ("demo-preset", ["demo", "--preset", "huge"], ["--preset"]),
+    ("variant-cuda", ["render", TINY, "--olat", "0", "--variant", "cuda_ad_rgb"], ["cuda"]),
+    ("device-bogus", ["relight", TINY, "--olat", "0", "--device", "tpu:7"], ["--device"]),
+]
+
+
+def _fill(argv, paths: dict) -> list[str]:
+    return [str(a).format(**paths) for a in argv]
+
+
+@pytest.mark.parametrize("argv,needles", [pytest.param(a, n, id=i) for i, a, n in OPTION_CASES])
+def test_bad_option(argv, needles, inputs, capsys, tmp_path, llvm_variant):
+    out = tmp_path / "out"
+    from gra_mi.core.runtime import cuda_available
+
+    if "cuda_ad_rgb" in argv and cuda_available():
+        pytest.skip("a CUDA device works here")
+    assert_refused(_fill(argv, inputs) + ["--out", out], capsys, *needles, out=out)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Family 1: bad data in files (captures, fits, envmaps, patterns, textures, weights)
+# --------------------------------------------------------------------------------------------------------------
+
+DATA_CASES = [
+    ("image-all-nan", ["fit", "{cap_nan}"], ["frame_0001.exr", "NaN"]),
+    ("image-one-nan", ["fit", "{cap_one_nan}"], ["frame_0001.exr", "1 NaN"]),
+    ("image-negative", ["fit", "{cap_negative}"], ["frame_0001.exr", "negative"]),
+    ("image-inf", ["fit", "{cap_inf}"], ["frame_0001.exr", "inf"]),
+    ("image-half-size", ["fit", "{cap_half}"], ["frame_0001.exr", "160x120", "320x240"]),
+    ("image-rgb", ["fit", "{cap_rgb}"], ["frame_0001.exr", "RGBA"]),
+    ("image-mask-range", ["fit", "{cap_mask}"], ["frame_0001.exr", "alpha"]),
+    ("image-missing", ["fit", "{cap_missing_image}"], ["frame_0001.exr", "not found"]),
+    ("image-truncated", ["fit", "{cap_truncated}"], ["frame_0001.exr", "OpenEXR"]),
+    ("image-text", ["fit", "{cap_text_image}"], ["frame_0001.exr", "OpenEXR"]),
+    ("image-nan-relightnet", ["train-relightnet", "{cap_nan}", "--fit", "{fit}"], ["frame_0001.exr", "NaN"]),
+    ("image-half-refiner-data", ["refiner-data", "{cap_half}", "--fit", "{fit}"], ["frame_0001.exr", "320x240"]),
+    ("sequence-truncated", ["fit", "{cap_seq}"], ["sequence.npz"]),
+    ("capture-json-broken", ["fit", "{cap_json_broken}"], ["capture.json", "malformed JSON"]),
+    ("capture-json-format", ["fit", "{cap_json_format}"], ["capture.json", "format"]),
+    ("capture-json-missing", ["fit", "{cap_json_missing}"], ["capture.json", "frames", "missing"]),
+    ("capture-json-frame-str", ["fit", "{cap_json_frame_str}"], ["capture.json", "frames[0]"]),
+    ("capture-json-frame-num", ["fit", "{cap_json_frame_num}"], ["capture.json", "frames[0]", "frame"]),
+    ("capture-json-kind", ["fit", "{cap_json_kind}"], ["capture.json", "frames[0]", "disco"]),
+    ("capture-json-split", ["fit", "{cap_json_split}"], ["capture.json", "frames[0]", "val"]),
+    ("capture-json-cameras", ["fit", "{cap_json_cameras}"], ["capture.json", "train_cameras", "list of camera names"]),
+    ("capture-json-camera-name", ["fit", "{cap_json_camera_name}"], ["capture.json", "eval_cameras", "cam99"]),
+    ("capture-json-uv", ["fit", "{cap_json_uv}"], ["capture.json", "uv_resolution"]),
+    ("capture-json-uv-negative", ["fit", "{cap_json_uv_neg}"], ["capture.json", "uv_resolution"]),
+    ("capture-json-unknown", ["fit", "{cap_json_unknown}"], ["capture.json", "calibration_date"]),
+    ("capture-json-list", ["fit", "{cap_json_list}"], ["capture.json", "object"]),
+    ("capture-json-duplicate", ["fit", "{cap_json_dup}"], ["capture.json", "frame 0", "twice"]),
+    ("capture-missing", ["fit", "{root}/nocapture"], ["nocapture", "gra-mi capture"]),
+    ("capture-is-file", ["fit", "{root}/a_file"], ["a_file"]),
+    ("fit-nan-albedo", ["train-relightnet", "{cap}", "--fit", "{fit_nan}"], ["albedo.exr", "NaN"]),
+    ("fit-size-roughness", ["train-relightnet", "{cap}", "--fit", "{fit_size}"], ["roughness.exr"]),
+    ("fit-missing-roughness", ["train-relightnet", "{cap}", "--fit", "{fit_missing}"], ["roughness.exr", "not found"]),
+    ("fit-missing-eval", ["eval", "--capture", "{cap}", "--fit", "{fit_missing}"], ["roughness.exr"]),
+    ("envmap-nan", ["relight", TINY, "--envmap", "{root}/nan.exr"], ["nan.exr", "NaN"]),
+    ("envmap-square", ["relight", TINY, "--envmap", "{root}/square.exr"], ["square.exr", "twice as wide"]),
+    ("envmap-missing", ["relight", TINY, "--envmap", "{root}/none.exr"], ["none.exr", "not found"]),
+    ("envmap-not-exr", ["render", TINY, "--envmap", "{root}/not_exr.exr"], ["not_exr.exr"]),
+    ("pattern-strings", ["relight", TINY, "--pattern", "{root}/pattern_strings.json"], ["pattern_strings.json", "number"]),
+    ("pattern-ragged", ["relight", TINY, "--pattern", "{root}/pattern_ragged.json"], ["pattern_ragged.json"]),
+    ("pattern-short", ["render", TINY, "--pattern", "{root}/pattern_short.json"], ["pattern_short.json", "64"]),
+    ("pattern-nan", ["relight", TINY, "--pattern", "{root}/pattern_nan.json"], ["pattern_nan.json"]),
+    ("pattern-negative", ["relight", TINY, "--pattern", "{root}/pattern_negative.json"], ["pattern_negative.json"]),
+    ("pattern-no-key", ["relight", TINY, "--pattern", "{root}/pattern_no_key.json"], ["pattern_no_key.json", "intensities"]),
+    ("pattern-3d", ["relight", TINY, "--pattern", "{root}/pattern_3d.npy"], ["pattern_3d.npy"]),
+    ("scene-broken", ["relight", "{root}/broken.xml", "--olat", "0"], ["broken.xml", "malformed XML"]),
+    ("scene-missing", ["relight", "{root}/noscene.xml", "--olat", "0"], ["noscene.xml"]),
+    ("texture-nan", ["relight", TINY, "--olat", "0", "--albedo", "{root}/albedo_nan.exr"], ["albedo_nan.exr"]),
+    ("texture-rect", ["relight", TINY, "--olat", "0", "--roughness", "{root}/albedo_rect.exr"], ["albedo_rect.exr"]),
+    (
+        "relightnet-truncated",
+        ["relight", TINY, "--olat", "0", "--stage", "relightnet", "--relightnet", "{root}/rn_truncated"],
+        ["rn_truncated"],
+    ),
+    (
+        "relightnet-config",
+        ["relight", TINY, "--olat", "0", "--stage", "relightnet", "--relightnet", "{root}/rn_config"],
+        ["relightnet.json"],
+    ),
+    ("relightnet-missing", ["relight", TINY, "--olat", "0", "--stage", "relightnet", "--relightnet", "{root}/norn"], ["norn"]),
+]
+
+
+@pytest.mark.parametrize("argv,needles", [pytest.param(a, n, id=i) for i, a, n in DATA_CASES])
+def test_bad_data(argv, needles, inputs, capsys, tmp_path, llvm_variant):
+    out = tmp_path / "out"
+    # eval scores what it can and reports what it could not (exit 2): its report is complete, not partial
+    assert_refused(_fill(argv, inputs) + ["--out", out], capsys, *needles, out=None if argv[0] == "eval" else out)
