@@ -55,6 +55,8 @@ def _linked_copy(src: Path, dst: Path, copy: tuple[str, ...] = ()) -> Path:
     dst.mkdir(parents=True)
     for path in sorted(src.rglob("*")):
         rel = path.relative_to(src)
+        if path.name == ".gra-mi.lock":  # a lock belongs to the folder it locks (a copy makes a new one)
+            continue
         target = dst / rel
         if path.is_dir():
             target.mkdir(parents=True, exist_ok=True)
@@ -483,3 +485,133 @@ def test_bad_data(argv, needles, inputs, capsys, tmp_path, llvm_variant):
     out = tmp_path / "out"
     # eval scores what it can and reports what it could not (exit 2): its report is complete, not partial
     assert_refused(_fill(argv, inputs) + ["--out", out], capsys, *needles, out=None if argv[0] == "eval" else out)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Family 2: a resumable folder made by other inputs or options is refused, never mixed; one writer at a time
+# --------------------------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def made(inputs):
+    """Output folders as the pipeline leaves them (provenance.json included): the shared fit and capture, and a
+    capture whose images differ (same layout, other content)."""
+    root = inputs["root"]
+    other = _linked_copy(inputs["cap"], root / "cap_other", copy=("images/cam00/frame_0001.exr",))
+    image = read_exr(other / "images/cam00/frame_0001.exr")
+    image[..., :3] *= 0.9
+    write_exr(other / "images/cam00/frame_0001.exr", image)
+    return {**inputs, "cap_other": other, "fit_copy": _linked_copy(inputs["fit"], root / "fit_copy")}
+
+
+PROVENANCE_CASES = [
+    ("fit-other-capture", ["fit", "{cap_other}", "--out", "{fit_copy}"], ["provenance.json", "input capture", "--overwrite"]),
+    ("fit-other-candidates", ["fit", "{cap}", "--out", "{fit_copy}", "--roughness-candidates", "5"], ["roughness_candidates"]),
+    ("fit-other-uv", ["fit", "{cap}", "--out", "{fit_copy}", "--uv-resolution", "64"], ["resolution", "64 now"]),
+    ("fit-other-solver", ["fit", "{cap}", "--out", "{fit_copy}", "--solver", "closed-form"], ["solver"]),
+    ("fit-into-capture", ["fit", "{cap}", "--out", "{cap_other}"], ["command 'capture'", "now 'fit'"]),
+    ("capture-other-renderer", ["capture", "--preset", "tiny", "--renderer", "onebounce", "--out", "{cap_other}"], ["renderer"]),
+    ("capture-other-preset", ["capture", "--preset", "small", "--out", "{cap_other}"], ["preset: 'tiny' then, 'small' now"]),
+    ("relightnet-into-fit", ["train-relightnet", "{cap}", "--fit", "{fit}", "--out", "{fit_copy}"], ["command 'fit'"]),
+    ("fit-into-foreign", ["fit", "{cap}", "--out", "{root}"], ["not made by gra-mi"]),
+    ("fit-overwrite-foreign", ["fit", "{cap}", "--out", "{root}", "--overwrite"], ["only folders gra-mi made"]),
+    ("fit-out-is-file", ["fit", "{cap}", "--out", "{root}/a_file"], ["a_file", "is a file"]),
+    ("relightnet-out-is-file", ["train-relightnet", "{cap}", "--fit", "{fit}", "--out", "{root}/a_file"], ["a_file", "is a file"]),
+]
+
+
+@pytest.mark.parametrize("argv,needles", [pytest.param(a, n, id=i) for i, a, n in PROVENANCE_CASES])
+def test_folder_made_by_another_run(argv, needles, made, capsys, llvm_variant):
+    argv = _fill(argv, made)
+    out = Path(argv[argv.index("--out") + 1])
+    before = {p: p.stat().st_mtime_ns for p in out.rglob("*")} if out.is_dir() else None
+    assert_refused(argv, capsys, *needles)
+    if before is not None:  # nothing in the folder was touched
+        assert {p: p.stat().st_mtime_ns for p in out.rglob("*")} == before
+
+
+def test_second_writer_is_locked_out(made, capsys, tmp_path, llvm_variant):
+    """Two `train-refiner` (or any) runs on one folder: the second stops naming the first's pid."""
+    import fcntl
+
+    from gra_mi.core.provenance import LOCK
+
+    folder = tmp_path / "busy"
+    folder.mkdir()
+    with open(folder / LOCK, "w") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        fh.write("4242")
+        fh.flush()
+        assert_refused(["fit", made["cap"], "--out", folder], capsys, "another gra-mi process", "4242")
+
+
+def test_overwrite_starts_over_and_same_run_resumes(made, capsys, tmp_path, llvm_variant):
+    """--overwrite empties a folder gra-mi made; rerunning the same command there resumes (is not refused)."""
+    from gra_mi.core.provenance import PROVENANCE, claim_output
+
+    folder = tmp_path / "fit"
+    claim_output(folder, "fit", {"capture": made["cap_other"]}, {"solver": "adam"})
+    (folder / "old_result.exr").write_text("from the other run")
+    from gra_mi.core.provenance import release_folder
+
+    release_folder(folder)
+    code, lines = run(["fit", made["cap"], "--out", folder, "--overwrite", "--solver", "closed-form", "--irls-iterations", "0"], capsys)
+    assert code == 0, lines
+    assert not (folder / "old_result.exr").exists() and (folder / "albedo.exr").is_file()
+    record = json.loads((folder / PROVENANCE).read_text())
+    assert record["command"] == "fit" and record["config"]["solver"] == "closed-form"
+    code, lines = run(["fit", made["cap"], "--out", folder, "--solver", "closed-form", "--irls-iterations", "0"], capsys)
+    assert code == 0, lines
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Family 3: corrupt resumable state; lights that cannot light the subject (warned, not refused)
+# --------------------------------------------------------------------------------------------------------------
+
+
+def test_truncated_checkpoint_is_named(made, capsys, tmp_path, llvm_variant):
+    folder = _linked_copy(made["fit"], tmp_path / "fit", copy=("provenance.json",))
+    for name in ("checkpoint.npz", "optimize.npz"):
+        (folder / name).unlink(missing_ok=True)
+        (folder / name).write_bytes(b"PK\x03\x04 cut short by a full disk")
+    assert_refused(["fit", made["cap"], "--out", folder], capsys, "checkpoint.npz", "unreadable checkpoint", "--overwrite")
+
+
+@pytest.mark.parametrize(
+    "argv,warning",
+    [
+        pytest.param(["--point-light", "0,1,0"], "inside the subject", id="point-light-inside"),
+        pytest.param(["--pattern", "{root}/pattern_off.json"], "every LED is off", id="all-leds-off"),
+    ],
+)
+def test_lights_that_light_nothing_are_warned(argv, warning, inputs, capsys, caplog, tmp_path, llvm_variant):
+    code, lines = run(["relight", TINY, "--frames", "0", "--uv-resolution", "32", *_fill(argv, inputs), "--out", tmp_path / "r"], capsys)
+    assert code == 0, lines
+    assert any(warning in r.getMessage() for r in caplog.records), [r.getMessage() for r in caplog.records]
+
+
+def test_leds_inside_the_subject_are_warned(capsys, caplog, tmp_path, llvm_variant):
+    """A rig whose LED sphere is smaller than the subject: rendering says how many LEDs light nothing."""
+    rig = ["rig", "--out", tmp_path / "rig", "--radius", "0.3", "--camera-distance", "0.25", "--num-leds", "32", "--num-cameras", "2"]
+    assert run(rig, capsys)[0] == 0
+    assert run(["subject", "--kind", "tiny", "--frames", "1", "--out", tmp_path / "subject"], capsys)[0] == 0
+    scene = tmp_path / "scene.xml"
+    assert run(["scene", "--rig", tmp_path / "rig", "--subject", tmp_path / "subject", "--out", scene], capsys)[0] == 0
+    code, lines = run(["render", scene, "--pattern", tmp_path / "on.json", "--spp", "4", "--out", tmp_path / "r"], capsys)
+    assert code == 2 and "on.json" in lines[0]  # (a missing pattern first: then the real one)
+    (tmp_path / "on.json").write_text(json.dumps({"intensities": [1.0] * 32}))
+    code, lines = run(["render", scene, "--pattern", tmp_path / "on.json", "--spp", "4", "--out", tmp_path / "r"], capsys)
+    assert code == 0, lines
+    assert any("lit LEDs are inside the subject" in r.getMessage() for r in caplog.records)
+
+
+def test_writers_emit_what_readers_accept(capsys, tmp_path, llvm_variant):
+    """Paths with XML-special characters: the scene writer escapes them, and the scene loads and renders."""
+    odd = tmp_path / "a&b <c>"
+    assert run(["rig", "--out", odd / "rig", "--num-leds", "16", "--num-cameras", "1", "--width", "32", "--height", "24"], capsys)[0] == 0
+    assert run(["subject", "--kind", "tiny", "--frames", "1", "--out", odd / "subject"], capsys)[0] == 0
+    scene = odd / "scene.xml"
+    assert run(["scene", "--rig", odd / "rig", "--subject", odd / "subject", "--out", scene], capsys)[0] == 0
+    code, lines = run(["render", scene, "--olat", "3", "--spp", "4", "--out", odd / "r"], capsys)
+    assert code == 0, lines
+    assert len(list((odd / "r").glob("*.exr"))) == 1

@@ -131,7 +131,7 @@ def relight_batch(
     from gra_mi.relightnet.infer import render_view
     from gra_mi.render.relighter import Relighter
     from gra_mi.stage.envmap import background_plate, led_fidelity
-    from gra_mi.stage.scene import composite_over
+    from gra_mi.stage.scene import composite_over, lighting_warnings
 
     config = config or RelightConfig()
     config.validate()
@@ -180,9 +180,14 @@ def relight_batch(
         from gra_mi.render.composite import PlatformCompositor
 
         compositor = PlatformCompositor(ls.sequence, platform, keep=len(lights) * len(cams))
+    warned: set[tuple[int, str]] = set()
     for frame, name, cam in progress(jobs, description="relight"):
         light = lights[name]
         view = render_view(relighter, model, frame, cam.name, light.intensities, light.point_light, light.far_field(config.lighting_model))
+        if (frame, name) not in warned:  # said once per frame and lighting, not per camera
+            warned.add((frame, name))
+            for warning in lighting_warnings(ls, light.intensities, light.point_light):
+                logger.warning("%s: %s", name, warning)
         folder = out / name / cam.name
         write_exr(folder / f"frame_{frame:04d}.exr", view.image)
         shown = view.image[..., :3]

@@ -1060,6 +1060,7 @@ def _message(exc: GraMiInputError, flags: dict[str, str]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from gra_mi.core.provenance import discard_unused_claims
     from gra_mi.core.runtime import start_runtime
 
     words = sys.argv[1:] if argv is None else argv
@@ -1071,11 +1072,13 @@ def main(argv: list[str] | None = None) -> int:
         start_runtime(getattr(args, "variant", None), getattr(args, "device", None), mitsuba=command.mitsuba, torch=command.torch)
         code = command.run(args)
     except GraMiInputError as exc:
+        discard_unused_claims()
         if args.verbose:
             logger.exception("bad input")
         print(f"gra-mi {args.command}: error: {_message(exc, args.flags)}", file=sys.stderr)
         return 2
     except OSError as exc:  # an output that cannot be written (read-only, full disk, a file where a folder belongs)
+        discard_unused_claims()
         if args.verbose:
             logger.exception("file system error")
         print(f"gra-mi {args.command}: error: {exc.filename or ''}: {exc.strerror or exc}", file=sys.stderr)

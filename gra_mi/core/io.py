@@ -71,6 +71,15 @@ def save_figure(fig, path: str | Path, dpi: int = 110) -> None:
     pyplot().close(fig)
 
 
+def read_checkpoint_npz(path: str | Path) -> dict:
+    """A checkpoint's arrays; a truncated or foreign file is named with how to start over (not a traceback)."""
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return dict(data)
+    except Exception as exc:  # BadZipFile, EOFError, ValueError: cut short by a full disk or a killed copy
+        raise GraMiInputError(path, f"unreadable checkpoint ({str(exc)[:100]}); rerun with --overwrite to start over") from None
+
+
 def atomic_write_text(path: str | Path, text: str) -> None:
     with atomic_path(path) as tmp:
         tmp.write_text(text)

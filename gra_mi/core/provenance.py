@@ -24,8 +24,9 @@ from gra_mi.core.io import atomic_write_text
 PROVENANCE = "provenance.json"
 LOCK = ".gra-mi.lock"
 SMALL_FILE = 1 << 20  # inputs this small are hashed whole; larger ones by size and their first and last MiB
-SKIPPED = {PROVENANCE, LOCK, "cache", "checkpoint.pt", "checkpoint", "__pycache__"}  # what a run writes for itself
+SKIPPED = {PROVENANCE, LOCK, "cache", "checkpoint.pt", "checkpoint.npz", "optimize.npz", "__pycache__"}  # what a run writes for itself
 _HELD: dict[Path, int] = {}
+_FRESH: set[Path] = set()  # folders a claim created: removed again if the run stops before writing anything
 
 
 def content_id(path: str | Path) -> str | None:
@@ -111,6 +112,8 @@ def claim_output(
         "config": _plain(config),
     }
     path = folder / PROVENANCE
+    if not folder.exists():
+        _FRESH.add(folder.resolve())
     existing = [p for p in folder.iterdir() if p.name not in (LOCK,)] if folder.is_dir() else []
     if existing:
         if not path.is_file():
@@ -138,6 +141,16 @@ def claim_output(
     lock_folder(folder)
     atomic_write_text(path, json.dumps(record, indent=1) + "\n")
     return folder
+
+
+def discard_unused_claims() -> None:
+    """After a failed run: remove the folders its claims created that hold nothing but the claim (no partial
+    output is left by an error found after the claim, such as a corrupt input read later)."""
+    for folder in list(_FRESH):
+        if folder.is_dir() and {p.name for p in folder.iterdir()} <= {PROVENANCE, LOCK}:
+            release_folder(folder)
+            shutil.rmtree(folder, ignore_errors=True)
+        _FRESH.discard(folder)
 
 
 def _flat(config: dict, prefix: str = "") -> dict:

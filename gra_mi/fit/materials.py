@@ -36,7 +36,7 @@ import numpy as np
 
 from gra_mi.capture.dataset import Capture, load_observation
 from gra_mi.core.errors import GraMiParameterError
-from gra_mi.core.io import atomic_path
+from gra_mi.core.io import atomic_path, read_checkpoint_npz
 from gra_mi.fit.optimize import Evidence
 
 logger = logging.getLogger(__name__)
@@ -302,7 +302,7 @@ class MaterialFitter:
         m = self.atlas.num_texels
         start = time.perf_counter()
         checkpoint = None if out is None else out / "checkpoint.npz"
-        state = dict(np.load(checkpoint)) if checkpoint is not None and checkpoint.is_file() else {}
+        state = read_checkpoint_npz(checkpoint) if checkpoint is not None and checkpoint.is_file() else {}
         curve: list[tuple[float, float, str]] = [tuple(x) for x in json.loads(str(state["curve"]))] if "curve" in state else []
 
         def save(**arrays) -> None:

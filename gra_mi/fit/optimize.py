@@ -31,7 +31,7 @@ import mitsuba as mi
 import numpy as np
 
 from gra_mi.core.errors import GraMiInputError
-from gra_mi.core.io import atomic_path
+from gra_mi.core.io import atomic_path, read_checkpoint_npz
 from gra_mi.render.shading import TexelLedLoop
 
 FILL_STRENGTH = 0.1  # harmonic fill: highlight texels (confidence 1) move little, the others interpolate them
@@ -287,7 +287,7 @@ def optimize_maps(
     first = 0
     settings_json = json.dumps(asdict(settings), sort_keys=True)
     if checkpoint is not None and checkpoint.is_file():
-        state = dict(np.load(checkpoint))
+        state = read_checkpoint_npz(checkpoint)
         if str(state.get("settings", "")) != settings_json or state["roughness"].shape[0] != roughness.shape[0]:
             raise GraMiInputError(
                 checkpoint,

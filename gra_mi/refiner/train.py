@@ -281,10 +281,10 @@ def train_refiner(
     model_config = model_config or RefinerConfig()
     model_config.validate()  # before the dataset is read
     loop = TrainingLoop(Path(out), config.steps, config.checkpoint_every, config.log_every, "train refiner")
-    loop.claim("train-refiner", {"data": dataset_dir, "init": init}, {"train": asdict(config), "model": asdict(model_config)}, overwrite)
     device = torch.device(torch_device())
     out = Path(out)
     dataset = RefinerDataset(dataset_dir)
+    loop.claim("train-refiner", {"data": dataset_dir, "init": init}, {"train": asdict(config), "model": asdict(model_config)}, overwrite)
     model = VideoRefiner.load(init) if init is not None else VideoRefiner(model_config)
     model.to(device)
     window = model.config.window

@@ -175,12 +175,12 @@ def train_relightnet(capture_dir: str | Path, fit_dir: str | Path, out: str | Pa
 
     config.validate()
     loop = TrainingLoop(Path(out), config.steps, config.checkpoint_every, config.log_every, "train RelightNet")
-    loop.claim("train-relightnet", {"capture": capture_dir, "fit": fit_dir}, config, overwrite)
     ensure_mitsuba()
     device = torch_device()
     torch.manual_seed(config.seed)
     out = Path(out)
     capture, relighter = fitted_relighter(capture_dir, fit_dir, out / "cache" if loop.rank == 0 else None)
+    loop.claim("train-relightnet", {"capture": capture_dir, "fit": fit_dir}, config, overwrite)
     samples = build_samples(capture, relighter, config.env_height, device)
     mark_selection(samples, config.selection_views)
     train = [s for s in samples if s.split == "train"]

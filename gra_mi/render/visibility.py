@@ -93,8 +93,14 @@ class VisibilityCache:
             self.hits += 1
             return self._memory[key]
         path = None if self.folder is None else self.folder / f"vis_{key}.npy"
+        cached = None
         if path is not None and path.is_file():
-            bits = mi.UInt32(np.load(path))
+            try:
+                cached = np.load(path, allow_pickle=False)
+            except (ValueError, OSError, EOFError):  # a cache file cut short: trace again and rewrite it
+                cached = None
+        if cached is not None:
+            bits = mi.UInt32(cached)
             self.hits += 1
         else:
             bits = compute_visibility(scene, geom, led_positions, far_field, stage_center)

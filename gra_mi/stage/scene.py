@@ -349,9 +349,13 @@ def render_to_folder(
     ls = LightstageScene.load(scene_path, frame=frame)
     cam = ls.stage.camera(camera)
     if envmap is not None:
-        ls.set_envmap(envmap)
+        intensities = ls.set_envmap(envmap).radiant_intensity(ls.stage)
     else:
-        ls.set_pattern(drive(ls.stage))
+        pattern = drive(ls.stage)
+        ls.set_pattern(pattern)
+        intensities = validate_pattern(ls.stage, pattern) * ls.stage.gains
+    for warning in lighting_warnings(ls, intensities):
+        logger.warning("%s: %s", light_name, warning)
     image = render(ls, cam.name, integrator, spp, seed)
     stem = Path(out) / f"{cam.name}_f{frame:04d}_{light_name}"
     write_exr(stem.with_suffix(".exr"), image)
@@ -360,3 +364,41 @@ def render_to_folder(
         composite = composite_over(image, stage_background_plate(envmap, cam, ls.stage))
         write_png(stem.with_name(stem.name + "_composite.png"), composite, exposure=None)
     return stem
+
+
+AXES = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], np.float64)
+
+
+def points_inside_subject(ls: LightstageScene, points: np.ndarray) -> np.ndarray:
+    """Which points lie inside the subject's mesh at the current frame: rays along ±x, ±y, ±z (at least five of
+    six) leave it through a back face. A light there lights nothing."""
+    import drjit as dr
+    import mitsuba as mi
+
+    points = np.asarray(points, np.float64).reshape(-1, 3)
+    origins, directions = np.repeat(points, len(AXES), axis=0), np.tile(AXES, (len(points), 1))
+    ray = mi.Ray3f(mi.Point3f(*(origins.T.astype(np.float32))), mi.Vector3f(*(directions.T.astype(np.float32))))
+    si = ls.scene.ray_intersect(ray)
+    leaving = si.is_valid() & (dr.dot(si.n, ray.d) > 0)
+    return np.asarray(leaving, bool).reshape(len(points), len(AXES)).sum(axis=1) >= len(AXES) - 1
+
+
+def lighting_warnings(ls: LightstageScene, intensities: np.ndarray, point_light=None) -> list[str]:
+    """What makes a lighting of the current frame light nothing, in words: every LED off, lit LEDs inside the
+    subject (a rig too small or off centre), a point light inside the subject."""
+    said = []
+    lit = np.flatnonzero(np.asarray(intensities).max(axis=1) > 0)
+    if point_light is not None:
+        if points_inside_subject(ls, point_light.position)[0]:
+            said.append(
+                f"the point light at {np.round(point_light.position, 3).tolist()} m is inside the subject at frame {ls.frame}: it lights nothing"
+            )
+    elif not len(lit):
+        said.append("every LED is off: the render is black")
+    if len(lit):
+        inside = int(points_inside_subject(ls, ls.stage.led_positions[lit]).sum())
+        if inside:
+            said.append(
+                f"{inside} of {len(lit)} lit LEDs are inside the subject at frame {ls.frame}: they light nothing (check the rig's radius and centre)"
+            )
+    return said
