@@ -500,7 +500,9 @@ def made(inputs):
     other = _linked_copy(inputs["cap"], root / "cap_other", copy=("images/cam00/frame_0001.exr",))
     image = read_exr(other / "images/cam00/frame_0001.exr")
     image[..., :3] *= 0.9
+    image[: image.shape[0] // 2, :, :3] = 0  # other content, and another compressed size (what a run's id sees)
     write_exr(other / "images/cam00/frame_0001.exr", image)
+    assert (other / "images/cam00/frame_0001.exr").stat().st_size != (inputs["cap"] / "images/cam00/frame_0001.exr").stat().st_size
     return {**inputs, "cap_other": other, "fit_copy": _linked_copy(inputs["fit"], root / "fit_copy")}
 
 

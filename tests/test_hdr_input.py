@@ -191,7 +191,7 @@ def test_corrupt_exr_is_one_line(tmp_path, capsys):
 
 @pytest.mark.parametrize(
     ("option", "message"),
-    [(["--envmap-height", "1"], "--envmap-height: must be >= 2"), (["--envmap-rotate", "nan"], "--envmap-rotate: must be a finite")],
+    [(["--envmap-height", "1"], "--envmap-height: must be >= 2"), (["--envmap-rotate", "nan"], "--envmap-rotate: must be a finite number")],
 )
 def test_bad_envmap_options_name_the_flag(tmp_path, capsys, option, message):
     from gra_mi.core.io import write_exr

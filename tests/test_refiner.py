@@ -596,7 +596,7 @@ def test_bad_dataset_is_named(tmp_path):
     (tmp_path / "dataset.json").write_text(json.dumps({"format": "something-else"}))
     with pytest.raises(GraMiInputError, match="format"):
         RefinerDataset(tmp_path)
-    with pytest.raises(GraMiInputError, match="window must be 4k"):
+    with pytest.raises(GraMiInputError, match="window: must be 4k"):
         RefinerConfig(window=16).validate()
 
 

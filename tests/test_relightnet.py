@@ -202,9 +202,9 @@ def test_training_lowers_the_loss_validates_and_resumes(capture_and_fit, tmp_pat
     for name in ("relightnet.safetensors", "relightnet.json", "loss.png", "grid.png", "validation.md", "checkpoint.pt"):
         assert (tmp_path / "rn" / name).exists(), name
     assert (tmp_path / "rn" / "validation.png").exists() and (tmp_path / "rn" / "validation_log.csv").exists()
-    # Other options into the same folder: refused, naming the checkpoint and the option.
+    # Other options into the same folder: refused, naming the folder's provenance and the option.
     other = run_cli("train-relightnet", str(root / "cap"), "--fit", str(root / "fit"), "--out", str(tmp_path / "rn"), "--steps", "70")
-    assert other.returncode == 2 and "checkpoint.pt" in other.stderr and "lr" in other.stderr, other.stderr
+    assert other.returncode == 2 and "provenance.json" in other.stderr and "lr: 0.003 then" in other.stderr, other.stderr
     # Resume: more steps continue from the checkpoint (the log keeps its earlier rows).
     again = run_cli(
         "train-relightnet",

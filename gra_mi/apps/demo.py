@@ -126,7 +126,7 @@ def contact_sheet(images: list[list[np.ndarray]]) -> np.ndarray:
 # --------------------------------------------------------------------------------------------------------------
 
 
-def run_demo(preset_name: str, out: Path) -> Path:
+def run_demo(preset_name: str, out: Path, overwrite: bool = False) -> Path:
     from gra_mi.apps.gltf import export_glb
     from gra_mi.capture.synthetic import generate_capture
     from gra_mi.core.runtime import ensure_mitsuba, torch_device
@@ -138,8 +138,11 @@ def run_demo(preset_name: str, out: Path) -> Path:
     if preset_name not in PRESETS:
         raise GraMiParameterError("preset", f"unknown preset '{preset_name}', expected one of {sorted(PRESETS)}")
     preset = PRESETS[preset_name]
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    from gra_mi.core.provenance import claim_output
+
+    out = claim_output(
+        out, "demo", {}, {"preset": preset_name}, overwrite=overwrite, marker="config.json"
+    )  # a rerun resumes its own run only
     (out / "plots").mkdir(exist_ok=True)
     timings: dict[str, float] = {}
     chosen = ensure_mitsuba()

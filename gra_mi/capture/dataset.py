@@ -67,7 +67,7 @@ class Capture:
                 raise GraMiInputError(path, "missing", field=key)
         for key in ("train_cameras", "eval_cameras"):
             names = data[key]
-            if not isinstance(names, list) or not all(isinstance(n, str) for n in names) or (key == "train_cameras" and not names):
+            if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
                 raise GraMiInputError(path, f"expected a list of camera names, got {names!r}", field=key)
         uv = data["uv_resolution"]
         if not isinstance(uv, int) or isinstance(uv, bool) or uv < 1:

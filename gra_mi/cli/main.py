@@ -152,13 +152,14 @@ def _args_demo(p):
     p.add_argument(
         "--out", type=Path, default=Path("outputs/demo"), help="Output folder (renders, plots, report.md). Default: outputs/demo."
     )
+    _add_overwrite(p)
     _add_runtime(p, torch=True)
 
 
 def _cmd_demo(args) -> None:
     from gra_mi.apps.demo import run_demo
 
-    print(f"done: open {run_demo(args.preset, args.out)}")
+    print(f"done: open {run_demo(args.preset, args.out, args.overwrite)}")
 
 
 def _args_rig(p):
@@ -1065,7 +1066,10 @@ def main(argv: list[str] | None = None) -> int:
 
     words = sys.argv[1:] if argv is None else argv
     selected = next((w for w in words if not w.startswith("-")), None)
-    args = build_parser(selected if selected in COMMANDS else None).parse_args(argv)
+    try:
+        args = build_parser(selected if selected in COMMANDS else None).parse_args(argv)
+    except SystemExit as exc:  # --help (0) or a bad option, already said in one line (2)
+        return int(exc.code or 0)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     command = COMMANDS[args.command]
     try:

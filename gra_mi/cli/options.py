@@ -51,7 +51,7 @@ def finite_float(text: str) -> float:
     except ValueError:
         value = float("nan")
     if value != value or abs(value) == float("inf"):
-        raise argparse.ArgumentTypeError(f"expected a finite number, got '{text}'")
+        raise argparse.ArgumentTypeError(f"must be a finite number, got '{text}'")
     return value
 
 

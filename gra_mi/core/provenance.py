@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import logging
 import os
 import shutil
 from pathlib import Path
@@ -21,22 +22,39 @@ from pathlib import Path
 from gra_mi.core.errors import GraMiInputError
 from gra_mi.core.io import atomic_write_text
 
+logger = logging.getLogger(__name__)
+
 PROVENANCE = "provenance.json"
 LOCK = ".gra-mi.lock"
 SMALL_FILE = 1 << 20  # inputs this small are hashed whole; larger ones by size and their first and last MiB
 SKIPPED = {PROVENANCE, LOCK, "cache", "checkpoint.pt", "checkpoint.npz", "optimize.npz", "__pycache__"}  # what a run writes for itself
+REPORTS = {".json", ".md", ".png", ".csv", ".mp4", ".log", ".txt"}  # rewritten by a resume (timings, plots)
 _HELD: dict[Path, int] = {}
 _FRESH: set[Path] = set()  # folders a claim created: removed again if the run stops before writing anything
 
 
 def content_id(path: str | Path) -> str | None:
-    """A short hash of a file's or a folder's content (JSON files whole, other files by size and ends), None for
-    a path that does not exist. Copying or moving a capture keeps its id; changing any file changes it."""
+    """A short id of an input: for a folder a gra-mi run made, the run that made it (its provenance record: the
+    command, its inputs' ids and its config) and the names and sizes of its data files (a resumed run rewrites its
+    plots, logs and reports, which are left out, and keeps this id; an edited or missing data file changes it);
+    otherwise a hash of the content (small files whole, larger ones by size and ends). None for a missing path.
+    Copying or moving an input keeps its id."""
     path = Path(path)
     if not path.exists():
         return None
     digest = hashlib.sha256()
-    files = [path] if path.is_file() else sorted(p for p in path.rglob("*") if p.is_file() and not SKIPPED & set(p.relative_to(path).parts))
+    record = path / PROVENANCE
+    if path.is_dir() and record.is_file():
+        try:
+            made = json.loads(record.read_text())
+            digest.update(json.dumps({k: made.get(k) for k in ("command", "inputs", "config")}, sort_keys=True).encode())
+            for f in _files(path):
+                if f.suffix not in REPORTS:
+                    digest.update(f"{f.relative_to(path)}:{f.stat().st_size}\n".encode())
+            return "run:" + digest.hexdigest()[:16]
+        except ValueError:
+            pass  # unreadable: fall back to the content
+    files = [path] if path.is_file() else _files(path)
     for f in files:
         size = f.stat().st_size
         digest.update(f"{f.relative_to(path) if f != path else f.name}:{size}\n".encode())
@@ -48,6 +66,10 @@ def content_id(path: str | Path) -> str | None:
                 fh.seek(-SMALL_FILE, os.SEEK_END)
                 digest.update(fh.read())
     return digest.hexdigest()[:16]
+
+
+def _files(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.rglob("*") if p.is_file() and not SKIPPED & set(p.relative_to(folder).parts))
 
 
 def _plain(config) -> dict:
@@ -93,14 +115,19 @@ def claim_output(
     inputs: dict[str, str | Path | None],
     config=None,
     *,
+    marker: str | None = None,
     overwrite: bool = False,
     free: tuple[str, ...] = (),
+    restart: bool = False,
 ) -> Path:
     """Lock ``folder`` and check it was made by this same run (or is new, or empty); record what makes it.
 
     ``inputs``: name → path (its content id is recorded); ``config``: a dataclass or dict; ``free``: config keys
     allowed to differ on a resume. A folder made otherwise raises a :class:`GraMiInputError` naming the
     difference, unless ``overwrite``, which empties it first (only a folder gra-mi made: one with provenance.json).
+    ``restart``: a command whose output is not resumable state (``refine``) starts over in a folder that it made
+    itself with other inputs or options, instead of refusing. A folder an earlier gra-mi made (its ``marker`` file,
+    no provenance.json) is adopted: resumed as before, by the stage's own checks.
     """
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
@@ -115,18 +142,25 @@ def claim_output(
     if not folder.exists():
         _FRESH.add(folder.resolve())
     existing = [p for p in folder.iterdir() if p.name not in (LOCK,)] if folder.is_dir() else []
-    if existing:
-        if not path.is_file():
-            if not overwrite:
-                raise GraMiInputError(
-                    folder, "is not empty and was not made by gra-mi (no provenance.json); choose an empty or new output folder"
-                )
+    legacy = not path.is_file() and marker is not None and (folder / marker).is_file()  # an earlier gra-mi's output
+    if existing and not path.is_file() and not legacy:
+        if overwrite:
             raise GraMiInputError(folder, "--overwrite empties only folders gra-mi made (with provenance.json); this one has none")
+        raise GraMiInputError(folder, "is not empty and was not made by gra-mi (no provenance.json); choose an empty or new output folder")
+    if existing and legacy:
+        if overwrite:
+            _empty(folder)
+        else:
+            logger.warning("%s was made by an earlier gra-mi (no %s): resuming it without checking its inputs", folder, PROVENANCE)
+    elif existing:
         try:
             old = json.loads(path.read_text())
         except (OSError, ValueError) as exc:
             raise GraMiInputError(path, f"unreadable ({exc}); remove the folder or use --overwrite") from None
         differences = _differences(old, record, free)
+        if differences and restart and old.get("command") == command:
+            logger.info("%s: starting over (%s)", folder, "; ".join(differences))
+            overwrite = True
         if differences and not overwrite:
             raise GraMiInputError(
                 path,
@@ -134,13 +168,18 @@ def claim_output(
                 "Use --overwrite to start over, or choose another output folder",
             )
         if differences:
-            lock_folder(folder)
-            for p in folder.iterdir():
-                if p.name != LOCK:
-                    shutil.rmtree(p) if p.is_dir() and not p.is_symlink() else p.unlink()
+            _empty(folder)
     lock_folder(folder)
     atomic_write_text(path, json.dumps(record, indent=1) + "\n")
     return folder
+
+
+def _empty(folder: Path) -> None:
+    """Start over: remove everything in a folder gra-mi made (under its lock, so no one is writing)."""
+    lock_folder(folder)
+    for p in folder.iterdir():
+        if p.name != LOCK:
+            shutil.rmtree(p) if p.is_dir() and not p.is_symlink() else p.unlink()
 
 
 def discard_unused_claims() -> None:

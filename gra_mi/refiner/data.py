@@ -254,7 +254,7 @@ def synthetic_dataset(
 
     config = {"subjects": {str(k): list(v) for k, v in subjects.items()}, "frames": frames, "height": height, "width": width}
     config |= {"env_height": env_height, "test_frames": test_frames, "seed": seed}
-    folder = claim_output(folder, "refiner-data --synthetic", {}, config, overwrite=overwrite)
+    folder = claim_output(folder, "refiner-data --synthetic", {}, config, overwrite=overwrite, marker="dataset.json")
     entries = []
     k = seed
     for subject, (n_train, n_test) in subjects.items():
@@ -316,7 +316,7 @@ def dataset_from_capture(
     inputs = {"capture": capture_dir, "fit": fit_dir, "relightnet": relightnet_dir}
     out = Path(out)
     capture, relighter = fitted_relighter(capture_dir, fit_dir, cache_dir or out / "cache")
-    claim_output(out, "refiner-data", inputs, config, overwrite=overwrite)
+    claim_output(out, "refiner-data", inputs, config, overwrite=overwrite, marker="dataset.json")
     ls, stage = relighter.ls, relighter.ls.stage
     model = None
     if relightnet_dir is not None:
