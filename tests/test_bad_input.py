@@ -617,3 +617,26 @@ def test_writers_emit_what_readers_accept(capsys, tmp_path, llvm_variant):
     code, lines = run(["render", scene, "--olat", "3", "--spp", "4", "--out", odd / "r"], capsys)
     assert code == 0, lines
     assert len(list((odd / "r").glob("*.exr"))) == 1
+
+
+def test_full_disk_is_one_line_and_leaves_no_file(inputs, capsys, tmp_path, monkeypatch):
+    """A write that fails (here: ENOSPC when the finished file is moved into place) is one line, exit 2, and leaves
+    neither the file nor its temporary beside it."""
+    import errno
+
+    import gra_mi.core.io as io
+
+    def full(src, dst):
+        raise OSError(errno.ENOSPC, "No space left on device", str(dst))
+
+    monkeypatch.setattr(io.os, "replace", full)
+    out = tmp_path / "edited"
+    argv = ["edit-texture", "--albedo", inputs["root"] / "albedo.exr", "--mask", inputs["root"] / "mask.exr", "--color", "1,0,0"]
+    line = assert_refused([*argv, "--out", out / "red.exr"], capsys, "No space left on device")
+    assert "red" in line
+    assert not (out.exists() and any(out.rglob("*"))), sorted(out.rglob("*"))
+
+
+def test_output_path_that_is_a_file(inputs, capsys, llvm_variant):
+    """`--out` naming a file where a folder belongs: one line naming it (an OSError, not a traceback)."""
+    assert_refused(["render", TINY, "--olat", "0", "--spp", "4", "--out", inputs["root"] / "a_file"], capsys, "a_file")

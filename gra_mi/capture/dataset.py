@@ -72,8 +72,8 @@ class Capture:
         uv = data["uv_resolution"]
         if not isinstance(uv, int) or isinstance(uv, bool) or uv < 1:
             raise GraMiInputError(path, f"expected an integer >= 1, got {uv!r}", field="uv_resolution")
-        if not isinstance(data["frames"], list) or not data["frames"]:
-            raise GraMiInputError(path, "expected a non-empty list of frame entries", field="frames")
+        if not isinstance(data["frames"], list):
+            raise GraMiInputError(path, "expected a list of frame entries", field="frames")
         frames = [_frame_entry(path, i, f) for i, f in enumerate(data["frames"])]
         seen: dict[int, int] = {}
         for i, entry in enumerate(frames):

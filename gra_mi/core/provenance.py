@@ -28,7 +28,8 @@ PROVENANCE = "provenance.json"
 LOCK = ".gra-mi.lock"
 SMALL_FILE = 1 << 20  # inputs this small are hashed whole; larger ones by size and their first and last MiB
 SKIPPED = {PROVENANCE, LOCK, "cache", "checkpoint.pt", "checkpoint.npz", "optimize.npz", "__pycache__"}  # what a run writes for itself
-REPORTS = {".json", ".md", ".png", ".csv", ".mp4", ".log", ".txt"}  # rewritten by a resume (timings, plots)
+REPORTS = {".json", ".md", ".png", ".csv", ".mp4", ".log", ".txt", ".xml"}
+"""Left out of a run's id: rewritten by a resume (timings, plots) or derived later (eval-lighting's truth scene)."""
 _HELD: dict[Path, int] = {}
 _FRESH: set[Path] = set()  # folders a claim created: removed again if the run stops before writing anything
 
