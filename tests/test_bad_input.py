@@ -189,6 +189,33 @@ def inputs(path_traced_fit, tmp_path_factory):
     rn.mkdir()
     (rn / "relightnet.json").write_text("[1, 2")
     (rn / "relightnet.safetensors").write_bytes(b"")
+    rn = root / "rn_types"
+    rn.mkdir()
+    (rn / "relightnet.json").write_text(json.dumps({"format": 2, "base_channels": "16"}))
+    (rn / "relightnet.safetensors").write_bytes(b"")
+    # Refiner data (a tiny synthetic set) and broken copies of its dataset.json; refiner folders with a bad refiner.json
+    from gra_mi.refiner.data import synthetic_dataset
+
+    synthetic_dataset(root / "rd", {0: (1, 1)}, frames=5, height=16, width=16, env_height=4, test_frames=5)
+    good = json.loads((root / "rd" / "dataset.json").read_text())
+    for name, edit in {
+        "rd_list": lambda d: [d],
+        "rd_height": lambda d: {**d, "height": 20},
+        "rd_exposure": lambda d: {**d, "exposure": "bright"},
+        "rd_frames": lambda d: {**d, "sequences": [{**d["sequences"][0], "frames": 0}] + d["sequences"][1:]},
+        "rd_split": lambda d: {**d, "sequences": [{**d["sequences"][0], "split": "val"}] + d["sequences"][1:]},
+        "rd_twice": lambda d: {**d, "sequences": d["sequences"] + d["sequences"][:1]},
+    }.items():
+        folder = _linked_copy(root / "rd", root / name, copy=("dataset.json",))
+        (folder / "dataset.json").write_text(json.dumps(edit(json.loads(json.dumps(good)))))
+        paths[name] = folder
+    seq = _linked_copy(root / "rd", root / "rd_truncated", copy=(good["sequences"][0]["file"],))
+    (seq / good["sequences"][0]["file"]).write_bytes(b"\x10\x00\x00\x00\x00\x00\x00\x00{")
+    paths["rd_truncated"], paths["rd_first"] = seq, good["sequences"][0]["name"]
+    for name, text in {"model_window": {"format": "gra-mi-refiner/1", "window": "17"}, "model_list": [1, 2]}.items():
+        (root / name).mkdir()
+        (root / name / "refiner.json").write_text(json.dumps(text))
+        (root / name / "refiner.safetensors").write_bytes(b"")
     return paths
 
 
@@ -477,6 +504,24 @@ DATA_CASES = [
         ["relightnet.json"],
     ),
     ("relightnet-missing", ["relight", TINY, "--olat", "0", "--stage", "relightnet", "--relightnet", "{root}/norn"], ["norn"]),
+    (
+        "relightnet-types",
+        ["relight", TINY, "--olat", "0", "--stage", "relightnet", "--relightnet", "{root}/rn_types"],
+        ["base_channels", "integer"],
+    ),
+    ("refiner-data-list", ["train-refiner", "{rd_list}"], ["dataset.json", "format"]),
+    ("refiner-data-height", ["train-refiner", "{rd_height}"], ["dataset.json", "multiples of 16"]),
+    ("refiner-data-exposure", ["train-refiner", "{rd_exposure}"], ["dataset.json", "exposure", "finite number"]),
+    ("refiner-data-frames", ["train-refiner", "{rd_frames}"], ["dataset.json", "sequences[0].frames"]),
+    ("refiner-data-split", ["train-refiner", "{rd_split}"], ["dataset.json", "sequences[0].split"]),
+    ("refiner-data-twice", ["train-refiner", "{rd_twice}"], ["dataset.json", "listed twice"]),
+    ("refiner-data-truncated", ["train-refiner", "{rd_truncated}", "--steps", "1"], ["safetensors"]),
+    (
+        "refiner-json-types",
+        ["refine", "{root}/rd", "--model", "{root}/model_window", "--sequence", "{rd_first}"],
+        ["refiner.json", "window"],
+    ),
+    ("refiner-json-list", ["refine", "{root}/rd", "--model", "{root}/model_list", "--sequence", "{rd_first}"], ["refiner.json", "format"]),
 ]
 
 
@@ -515,7 +560,9 @@ PROVENANCE_CASES = [
     ("capture-other-renderer", ["capture", "--preset", "tiny", "--renderer", "onebounce", "--out", "{cap_other}"], ["renderer"]),
     ("capture-other-preset", ["capture", "--preset", "small", "--out", "{cap_other}"], ["preset: 'tiny' then, 'small' now"]),
     ("relightnet-into-fit", ["train-relightnet", "{cap}", "--fit", "{fit}", "--out", "{fit_copy}"], ["command 'fit'"]),
-    ("fit-into-foreign", ["fit", "{cap}", "--out", "{root}"], ["not made by gra-mi"]),
+    ("fit-into-foreign", ["fit", "{cap}", "--out", "{root}/cap_json_list/rig"], ["not made by gra-mi"]),
+    ("fit-into-its-capture", ["fit", "{cap}", "--out", "{cap}", "--overwrite"], ["is the capture input"]),
+    ("fit-around-its-capture", ["fit", "{cap}", "--out", "{cap}/..", "--overwrite"], ["holds it"]),
     ("fit-overwrite-foreign", ["fit", "{cap}", "--out", "{root}", "--overwrite"], ["only folders gra-mi made"]),
     ("fit-out-is-file", ["fit", "{cap}", "--out", "{root}/a_file"], ["a_file", "is a file"]),
     ("relightnet-out-is-file", ["train-relightnet", "{cap}", "--fit", "{fit}", "--out", "{root}/a_file"], ["a_file", "is a file"]),
@@ -640,3 +687,18 @@ def test_full_disk_is_one_line_and_leaves_no_file(inputs, capsys, tmp_path, monk
 def test_output_path_that_is_a_file(inputs, capsys, llvm_variant):
     """`--out` naming a file where a folder belongs: one line naming it (an OSError, not a traceback)."""
     assert_refused(["render", TINY, "--olat", "0", "--spp", "4", "--out", inputs["root"] / "a_file"], capsys, "a_file")
+
+
+@pytest.mark.parametrize("damage", ["truncated", "missing"])
+def test_shipped_weights_damaged_say_how_to_rebuild(damage, tmp_path, monkeypatch):
+    """The tiny VAE shipped in gra_mi/data: a damaged or missing file is named with the script that rebuilds it."""
+    import gra_mi.refiner.model as refiner_model
+    from gra_mi.core.errors import GraMiInputError
+
+    weights = tmp_path / "tiny_vae.safetensors"
+    if damage == "truncated":
+        weights.write_bytes(refiner_model.TINY_VAE_WEIGHTS.read_bytes()[:1000])
+    monkeypatch.setattr(refiner_model, "TINY_VAE_WEIGHTS", weights)
+    with pytest.raises(GraMiInputError, match="pretrain_tiny_vae.py") as error:
+        refiner_model.VideoRefiner(refiner_model.RefinerConfig())
+    assert str(weights) in str(error.value)

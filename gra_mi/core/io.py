@@ -71,6 +71,46 @@ def save_figure(fig, path: str | Path, dpi: int = 110) -> None:
     pyplot().close(fig)
 
 
+def json_field(path: str | Path, data: dict, key: str, kind: type, low: float | None = None, where: str = ""):
+    """``data[key]`` checked: present, of ``kind`` (int: not a bool or float; float: any finite number), >= ``low``.
+    Errors name the file and the field (``where`` prefixes nested fields: ``sequences[3].``)."""
+    import math
+
+    if not isinstance(data, dict):
+        raise GraMiInputError(path, f"expected a JSON object, got {type(data).__name__}", field=where.rstrip(".") or None)
+    if key not in data:
+        raise GraMiInputError(path, "missing", field=where + key)
+    value = data[key]
+    if kind is float:
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    elif kind is int:
+        ok = isinstance(value, int) and not isinstance(value, bool)
+    else:
+        ok = isinstance(value, kind)
+    if not ok or (low is not None and value < low):
+        expected = {float: "a finite number", int: "an integer", str: "a string", list: "a list"}.get(kind, kind.__name__)
+        raise GraMiInputError(path, f"expected {expected}{f' >= {low}' if low is not None else ''}, got {value!r}", field=where + key)
+    return value
+
+
+def check_config_types(cls, fields: dict, path: str | Path) -> None:
+    """Fields of a config dataclass read from JSON have their defaults' types (17 where an int is expected, not
+    "17"), so a hand-edited file fails here, naming the field, not deep inside the model."""
+    import dataclasses
+
+    for f in dataclasses.fields(cls):
+        if f.name not in fields:
+            continue
+        if f.default is not dataclasses.MISSING:
+            default = f.default
+        elif f.default_factory is not dataclasses.MISSING:
+            default = f.default_factory()
+        else:
+            continue
+        if default is not None:
+            json_field(path, fields, f.name, float if isinstance(default, float) else type(default))
+
+
 def read_checkpoint_npz(path: str | Path) -> dict:
     """A checkpoint's arrays; a truncated or foreign file is named with how to start over (not a traceback)."""
     try:

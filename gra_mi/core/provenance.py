@@ -26,7 +26,7 @@ logger = logging.getLogger(__name__)
 
 PROVENANCE = "provenance.json"
 LOCK = ".gra-mi.lock"
-SMALL_FILE = 1 << 20  # inputs this small are hashed whole; larger ones by size and their first and last MiB
+SMALL_FILE = 1 << 16  # inputs this small are hashed whole; larger ones by size and their first and last 64 KiB
 SKIPPED = {PROVENANCE, LOCK, "cache", "checkpoint.pt", "checkpoint.npz", "optimize.npz", "__pycache__"}  # what a run writes for itself
 REPORTS = {".json", ".md", ".png", ".csv", ".mp4", ".log", ".txt", ".xml"}
 """Left out of a run's id: rewritten by a resume (timings, plots) or derived later (eval-lighting's truth scene)."""
@@ -70,7 +70,14 @@ def content_id(path: str | Path) -> str | None:
 
 
 def _files(folder: Path) -> list[Path]:
-    return sorted(p for p in folder.rglob("*") if p.is_file() and not SKIPPED & set(p.relative_to(folder).parts))
+    """The files that make up an input folder: caches, checkpoints, the lock and the outputs of other runs nested
+    in it (``fit`` written into ``capture/fit``) are left out."""
+    nested = {p.parent for p in folder.rglob(PROVENANCE) if p.parent != folder}
+    return sorted(
+        p
+        for p in folder.rglob("*")
+        if p.is_file() and not SKIPPED & set(p.relative_to(folder).parts) and not any(n in p.parents for n in nested)
+    )
 
 
 def _plain(config) -> dict:
@@ -133,6 +140,9 @@ def claim_output(
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
         raise GraMiInputError(folder, "is a file; expected an output folder")
+    for name, given in inputs.items():  # --overwrite empties the output folder: never one holding an input
+        if given is not None and folder.resolve() in (Path(given).resolve(), *Path(given).resolve().parents):
+            raise GraMiInputError(folder, f"is the {name} input {given} or holds it; write the output to another folder")
     record = {
         "command": command,
         "inputs": {name: content_id(path) if path is not None else None for name, path in inputs.items()},

@@ -26,7 +26,7 @@ import torch
 import torch.nn.functional as F
 
 from gra_mi.core.errors import GraMiInputError
-from gra_mi.core.io import atomic_path, atomic_write_text, read_json
+from gra_mi.core.io import atomic_path, atomic_write_text, json_field, read_json
 
 DATA_FORMAT = "gra-mi-refiner-data/1"
 ENV_STOPS = 12.0
@@ -108,22 +108,25 @@ class RefinerDataset:
         self.folder = Path(folder)
         path = self.folder / "dataset.json"
         data = read_json(path, " (make one with `gra-mi refiner-data`)")
-        if data.get("format") != DATA_FORMAT:
-            raise GraMiInputError(path, f"field 'format': expected '{DATA_FORMAT}', got {data.get('format')!r}")
-        for key in ("height", "width", "exposure", "env_exposure", "sequences"):
-            if key not in data:
-                raise GraMiInputError(path, f"missing field '{key}'")
-        self.height, self.width = int(data["height"]), int(data["width"])
+        if not isinstance(data, dict) or data.get("format") != DATA_FORMAT:
+            got = data.get("format") if isinstance(data, dict) else data
+            raise GraMiInputError(path, f"field 'format': expected '{DATA_FORMAT}', got {got!r}")
+        self.height, self.width = (json_field(path, data, k, int, low=16) for k in ("height", "width"))
         if self.height % 16 or self.width % 16:
             raise GraMiInputError(path, f"fields 'height'/'width' must be multiples of 16, got {self.height}×{self.width}")
         self.crop = tuple(data.get("crop", [self.height, self.width]))
-        self.exposure, self.env_exposure = float(data["exposure"]), float(data["env_exposure"])
+        self.exposure, self.env_exposure = (json_field(path, data, k, float, low=1e-12) for k in ("exposure", "env_exposure"))
         self.meta = data
         self.sequences: dict[str, SequenceInfo] = {}
-        for i, s in enumerate(data["sequences"]):
-            missing = [k for k in ("name", "split", "frames", "file") if k not in s]
-            if missing:
-                raise GraMiInputError(path, f"sequences[{i}] lacks {missing}")
+        for i, s in enumerate(json_field(path, data, "sequences", list)):
+            where = f"sequences[{i}]."
+            for key, kind in (("name", str), ("split", str), ("file", str)):
+                json_field(path, s, key, kind, where=where)
+            json_field(path, s, "frames", int, low=1, where=where)
+            if s["split"] not in ("train", "test"):
+                raise GraMiInputError(path, f"expected 'train' or 'test', got {s['split']!r}", field=where + "split")
+            if s["name"] in self.sequences:
+                raise GraMiInputError(path, f"sequence '{s['name']}' is listed twice", field=where + "name")
             file = self.folder / s["file"]
             if not file.is_file():
                 raise GraMiInputError(file, f"sequence '{s['name']}' file not found")
@@ -139,7 +142,10 @@ class RefinerDataset:
 
         if name not in self.sequences:
             raise GraMiInputError(self.folder / "dataset.json", f"no sequence '{name}' (have {sorted(self.sequences)})")
-        return safe_open(str(self.sequences[name].file), framework="pt")
+        try:
+            return safe_open(str(self.sequences[name].file), framework="pt")
+        except Exception as exc:  # SafetensorError: cut short, or not a safetensors file
+            raise GraMiInputError(self.sequences[name].file, f"not a readable safetensors file ({str(exc)[:100]})") from None
 
     def window(self, name: str, start: int, length: int) -> dict[str, torch.Tensor]:
         """Frames [start, start + length) as (3, T, H, W) videos in [-1, 1]; frames past the end repeat the last one.

@@ -197,7 +197,14 @@ def _build_backbone(config: RefinerConfig):
             )
         from safetensors.torch import load_file
 
-        vae.load_state_dict(load_file(str(TINY_VAE_WEIGHTS)))  # a random VAE would decode noise: this one reconstructs
+        try:  # a random VAE would decode noise: this one reconstructs
+            vae.load_state_dict(load_file(str(TINY_VAE_WEIGHTS)))
+        except Exception as exc:  # truncated (SafetensorError) or of another config (RuntimeError)
+            raise GraMiInputError(
+                TINY_VAE_WEIGHTS,
+                f"corrupt or of another VAE config ({str(exc).strip().splitlines()[0][:120]}); reinstall gra-mi, or rebuild it with "
+                "pipelines/pretrain_tiny_vae.py",
+            ) from None
         return transformer, vae
     if not config.weights:
         raise GraMiInputError(
@@ -450,13 +457,14 @@ class VideoRefiner(nn.Module):
     def load(cls, folder: str | Path, **overrides) -> VideoRefiner:
         from safetensors.torch import load_file
 
-        from gra_mi.core.io import read_json
+        from gra_mi.core.io import check_config_types, read_json
 
         folder = Path(folder)
         data = read_json(folder / "refiner.json", " (a refiner trained with `gra-mi train-refiner`)")
-        if data.pop("format", None) != "gra-mi-refiner/1":
+        if not isinstance(data, dict) or data.pop("format", None) != "gra-mi-refiner/1":
             raise GraMiInputError(folder / "refiner.json", "field 'format': expected 'gra-mi-refiner/1'")
         known = RefinerConfig.__dataclass_fields__
+        check_config_types(RefinerConfig, data, folder / "refiner.json")
         config = RefinerConfig(**{k: v for k, v in {**data, **overrides}.items() if k in known})
         config.validate(folder / "refiner.json")
         model = cls(config)

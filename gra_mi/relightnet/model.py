@@ -241,7 +241,7 @@ class RelightNet(nn.Module):
         for name in ("relightnet.json", "relightnet.safetensors"):
             if not (folder / name).is_file():
                 raise GraMiInputError(folder / name, "file not found (train one with `gra-mi train-relightnet`)")
-        from gra_mi.core.io import read_json
+        from gra_mi.core.io import check_config_types, read_json
 
         fields = read_json(folder / "relightnet.json")
         if not isinstance(fields, dict) or fields.get("format") != FORMAT:
@@ -256,6 +256,7 @@ class RelightNet(nn.Module):
         gain = fields.get("output_gain", 1.0)
         if not (isinstance(gain, (int, float)) and math.isfinite(gain) and gain > 0):
             raise GraMiInputError(folder / "relightnet.json", f"must be a finite number > 0, got {gain!r}", field="output_gain")
+        check_config_types(RelightNetConfig, fields, folder / "relightnet.json")
         config = RelightNetConfig(**fields)
         model = cls(config)
         try:
