@@ -611,6 +611,9 @@ def test_overwrite_starts_over_and_same_run_resumes(made, capsys, tmp_path, llvm
     assert record["command"] == "fit" and record["config"]["solver"] == "closed-form"
     code, lines = run(["fit", made["cap"], "--out", folder, "--solver", "closed-form", "--irls-iterations", "0"], capsys)
     assert code == 0, lines
+    (folder / "left_over.txt").write_text("from before")  # --overwrite starts over even the same run
+    code, lines = run(["fit", made["cap"], "--out", folder, "--overwrite", "--solver", "closed-form", "--irls-iterations", "0"], capsys)
+    assert code == 0 and not (folder / "left_over.txt").exists() and (folder / "albedo.exr").is_file(), lines
 
 
 # --------------------------------------------------------------------------------------------------------------

@@ -137,8 +137,8 @@ def _add_overwrite(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--overwrite",
         action="store_true",
-        help="Start over in an output folder made by a different run (other inputs or options; its provenance.json says "
-        "which). Without it such a folder is refused; the same run resumes.",
+        help="Start over: empty the output folder first (only a folder gra-mi made). Without it, rerunning the same run "
+        "resumes, and a folder made by a different run (other inputs or options; its provenance.json says which) is refused.",
     )
 
 

@@ -132,7 +132,8 @@ def claim_output(
 
     ``inputs``: name → path (its content id is recorded); ``config``: a dataclass or dict; ``free``: config keys
     allowed to differ on a resume. A folder made otherwise raises a :class:`GraMiInputError` naming the
-    difference, unless ``overwrite``, which empties it first (only a folder gra-mi made: one with provenance.json).
+    difference. ``overwrite`` empties the folder first, whoever made it (only a folder gra-mi made: one with
+    provenance.json or the ``marker``), so the run starts over.
     ``restart``: a command whose output is not resumable state (``refine``) starts over in a folder that it made
     itself with other inputs or options, instead of refusing. A folder an earlier gra-mi made (its ``marker`` file,
     no provenance.json) is adopted: resumed as before, by the stage's own checks.
@@ -178,7 +179,7 @@ def claim_output(
                 f"this folder was made by another run ({'; '.join(differences)}): resuming would mix the two. "
                 "Use --overwrite to start over, or choose another output folder",
             )
-        if differences:
+        if overwrite:
             _empty(folder)
     lock_folder(folder)
     atomic_write_text(path, json.dumps(record, indent=1) + "\n")
