@@ -223,6 +223,12 @@ def inputs(path_traced_fit, tmp_path_factory):
 # Family 1: bad numbers, options out of range
 # --------------------------------------------------------------------------------------------------------------
 
+RN = ["train-relightnet", "{cap}", "--fit", "{fit}"]
+REFINE = ["refine", "{root}/nodata", "--model", "{root}/nomodel", "--sequence", "s"]  # options are checked before files
+RD = ["refiner-data", "{cap}", "--fit", "{fit}"]
+TR = ["train-refiner", "{root}/nodata"]
+EDIT = ["edit-texture", "--albedo", "{root}/albedo.exr", "--mask", "{root}/mask.exr"]
+
 OPTION_CASES = [
     # fit
     ("fit-iterations", ["fit", "{cap}", "--iterations", "-1"], ["--iterations", ">= 0"]),
@@ -306,70 +312,70 @@ OPTION_CASES = [
     ("capture-test-envmap", ["capture", "--preset", "tiny", "--test-envmap", "{root}/nan.exr"], ["nan.exr", "NaN"]),
     ("capture-preset", ["capture", "--preset", "huge"], ["--preset"]),
     # train-relightnet
-    ("rn-steps", ["train-relightnet", "{cap}", "--fit", "{fit}", "--steps", "0"], ["--steps"]),
-    ("rn-lr", ["train-relightnet", "{cap}", "--fit", "{fit}", "--lr", "nan"], ["--lr"]),
-    ("rn-batch", ["train-relightnet", "{cap}", "--fit", "{fit}", "--batch-size", "0"], ["--batch-size"]),
-    ("rn-dropout", ["train-relightnet", "{cap}", "--fit", "{fit}", "--env-dropout", "1.5"], ["--env-dropout"]),
-    ("rn-dropout-nan", ["train-relightnet", "{cap}", "--fit", "{fit}", "--env-dropout", "nan"], ["--env-dropout"]),
-    ("rn-validate-every", ["train-relightnet", "{cap}", "--fit", "{fit}", "--validate-every", "0"], ["--validate-every"]),
-    ("rn-checkpoint-every", ["train-relightnet", "{cap}", "--fit", "{fit}", "--checkpoint-every", "0"], ["--checkpoint-every"]),
-    ("rn-channels", ["train-relightnet", "{cap}", "--fit", "{fit}", "--base-channels", "0"], ["--base-channels"]),
-    ("rn-patch", ["train-relightnet", "{cap}", "--fit", "{fit}", "--patch", "-1"], ["--patch"]),
-    ("rn-env-height", ["train-relightnet", "{cap}", "--fit", "{fit}", "--env-height", "1"], ["--env-height"]),
-    ("rn-views", ["train-relightnet", "{cap}", "--fit", "{fit}", "--max-train-views", "0"], ["--max-train-views"]),
-    ("rn-seed", ["train-relightnet", "{cap}", "--fit", "{fit}", "--seed", "-1"], ["--seed"]),
-    ("rn-weight-decay", ["train-relightnet", "{cap}", "--fit", "{fit}", "--weight-decay", "-1"], ["--weight-decay"]),
+    ("rn-steps", [*RN, "--steps", "0"], ["--steps"]),
+    ("rn-lr", [*RN, "--lr", "nan"], ["--lr"]),
+    ("rn-batch", [*RN, "--batch-size", "0"], ["--batch-size"]),
+    ("rn-dropout", [*RN, "--env-dropout", "1.5"], ["--env-dropout"]),
+    ("rn-dropout-nan", [*RN, "--env-dropout", "nan"], ["--env-dropout"]),
+    ("rn-validate-every", [*RN, "--validate-every", "0"], ["--validate-every"]),
+    ("rn-checkpoint-every", [*RN, "--checkpoint-every", "0"], ["--checkpoint-every"]),
+    ("rn-channels", [*RN, "--base-channels", "0"], ["--base-channels"]),
+    ("rn-patch", [*RN, "--patch", "-1"], ["--patch"]),
+    ("rn-env-height", [*RN, "--env-height", "1"], ["--env-height"]),
+    ("rn-views", [*RN, "--max-train-views", "0"], ["--max-train-views"]),
+    ("rn-seed", [*RN, "--seed", "-1"], ["--seed"]),
+    ("rn-weight-decay", [*RN, "--weight-decay", "-1"], ["--weight-decay"]),
     # refiner
-    ("rd-scale", ["refiner-data", "{cap}", "--fit", "{fit}", "--scale", "0"], ["--scale"]),
-    ("rd-scale-nan", ["refiner-data", "{cap}", "--fit", "{fit}", "--scale", "nan"], ["--scale"]),
-    ("rd-train-length", ["refiner-data", "{cap}", "--fit", "{fit}", "--train-length", "0"], ["--train-length"]),
-    ("rd-env-height", ["refiner-data", "{cap}", "--fit", "{fit}", "--env-height", "0"], ["--env-height"]),
+    ("rd-scale", [*RD, "--scale", "0"], ["--scale"]),
+    ("rd-scale-nan", [*RD, "--scale", "nan"], ["--scale"]),
+    ("rd-train-length", [*RD, "--train-length", "0"], ["--train-length"]),
+    ("rd-env-height", [*RD, "--env-height", "0"], ["--env-height"]),
     ("rd-resolution", ["refiner-data", "--synthetic", "--resolution", "20"], ["--resolution"]),
     ("rd-subjects", ["refiner-data", "--synthetic", "--subjects", "0"], ["--subjects"]),
     ("rd-no-fit", ["refiner-data", "{cap}"], ["--fit"]),
-    ("tr-grad-accumulation", ["train-refiner", "{root}/nodata", "--grad-accumulation", "0"], ["--grad-accumulation"]),
-    ("tr-steps", ["train-refiner", "{root}/nodata", "--steps", "0"], ["--steps"]),
-    ("tr-lr", ["train-refiner", "{root}/nodata", "--lr", "nan"], ["--lr"]),
-    ("tr-checkpoint-every", ["train-refiner", "{root}/nodata", "--checkpoint-every", "0"], ["--checkpoint-every"]),
-    ("tr-lora-rank", ["train-refiner", "{root}/nodata", "--lora-rank", "-1"], ["--lora-rank"]),
-    ("tr-bank", ["train-refiner", "{root}/nodata", "--bank-per-level", "0"], ["--bank-per-level"]),
-    ("tr-env-blocks", ["train-refiner", "{root}/nodata", "--env-blocks", "one"], ["--env-blocks"]),
-    ("tr-seed", ["train-refiner", "{root}/nodata", "--seed", "-3"], ["--seed"]),
+    ("tr-grad-accumulation", [*TR, "--grad-accumulation", "0"], ["--grad-accumulation"]),
+    ("tr-steps", [*TR, "--steps", "0"], ["--steps"]),
+    ("tr-lr", [*TR, "--lr", "nan"], ["--lr"]),
+    ("tr-checkpoint-every", [*TR, "--checkpoint-every", "0"], ["--checkpoint-every"]),
+    ("tr-lora-rank", [*TR, "--lora-rank", "-1"], ["--lora-rank"]),
+    ("tr-bank", [*TR, "--bank-per-level", "0"], ["--bank-per-level"]),
+    ("tr-env-blocks", [*TR, "--env-blocks", "one"], ["--env-blocks"]),
+    ("tr-seed", [*TR, "--seed", "-3"], ["--seed"]),
     ("tr-data-missing", ["train-refiner", "{root}/nodata"], ["nodata"]),
-    ("tr-weights-missing", ["train-refiner", "{root}/nodata", "--size", "1.3B", "--weights", "{root}/noweights"], ["noweights"]),
-    ("refine-shift-nan", ["refine", "{root}/nodata", "--model", "{root}/nomodel", "--sequence", "s", "--shift", "nan"], ["--shift"]),
-    ("refine-shift-zero", ["refine", "{root}/nodata", "--model", "{root}/nomodel", "--sequence", "s", "--shift", "0"], ["--shift"]),
-    ("refine-steps", ["refine", "{root}/nodata", "--model", "{root}/nomodel", "--sequence", "s", "--steps", "0"], ["--steps"]),
-    ("refine-frames", ["refine", "{root}/nodata", "--model", "{root}/nomodel", "--sequence", "s", "--frames", "-1"], ["--frames"]),
-    ("refine-seed", ["refine", "{root}/nodata", "--model", "{root}/nomodel", "--sequence", "s", "--seed", "-1"], ["--seed"]),
+    ("tr-weights-missing", [*TR, "--size", "1.3B", "--weights", "{root}/noweights"], ["noweights"]),
+    ("refine-shift-nan", [*REFINE, "--shift", "nan"], ["--shift"]),
+    ("refine-shift-zero", [*REFINE, "--shift", "0"], ["--shift"]),
+    ("refine-steps", [*REFINE, "--steps", "0"], ["--steps"]),
+    ("refine-frames", [*REFINE, "--frames", "-1"], ["--frames"]),
+    ("refine-seed", [*REFINE, "--seed", "-1"], ["--seed"]),
     (
         "refine-eps",
-        ["refine", "{root}/nodata", "--model", "{root}/nomodel", "--sequence", "s", "--deflicker", "--filter-eps", "nan"],
+        [*REFINE, "--deflicker", "--filter-eps", "nan"],
         ["--filter-eps"],
     ),
     (
         "refine-radius",
-        ["refine", "{root}/nodata", "--model", "{root}/nomodel", "--sequence", "s", "--deflicker", "--filter-radius", "0"],
+        [*REFINE, "--deflicker", "--filter-radius", "0"],
         ["--filter-radius"],
     ),
     (
         "refine-strength",
-        ["refine", "{root}/nodata", "--model", "{root}/nomodel", "--sequence", "s", "--deflicker", "--strength", "2"],
+        [*REFINE, "--deflicker", "--strength", "2"],
         ["--strength"],
     ),
     (
         "refine-platform",
-        ["refine", "{root}/nodata", "--model", "{root}/nomodel", "--sequence", "s", "--composite", "--platform-spp", "0"],
+        [*REFINE, "--composite", "--platform-spp", "0"],
         ["--platform-spp"],
     ),
     ("refine-model-missing", ["refine", "{root}/nodata", "--model", "{root}/nomodel", "--sequence", "s"], ["no"]),
     # edit-texture, export-gltf, deflicker, eval
-    ("edit-color-nan", ["edit-texture", "--albedo", "{root}/albedo.exr", "--mask", "{root}/mask.exr", "--color", "nan,0,0"], ["--color"]),
-    ("edit-color-count", ["edit-texture", "--albedo", "{root}/albedo.exr", "--mask", "{root}/mask.exr", "--color", "1,0"], ["--color"]),
-    ("edit-color-range", ["edit-texture", "--albedo", "{root}/albedo.exr", "--mask", "{root}/mask.exr", "--color", "2,0,0"], ["--color"]),
+    ("edit-color-nan", [*EDIT, "--color", "nan,0,0"], ["--color"]),
+    ("edit-color-count", [*EDIT, "--color", "1,0"], ["--color"]),
+    ("edit-color-range", [*EDIT, "--color", "2,0,0"], ["--color"]),
     (
         "edit-opacity",
-        ["edit-texture", "--albedo", "{root}/albedo.exr", "--mask", "{root}/mask.exr", "--color", "1,0,0", "--opacity", "nan"],
+        [*EDIT, "--color", "1,0,0", "--opacity", "nan"],
         ["--opacity"],
     ),
     ("edit-nothing", ["edit-texture", "--albedo", "{root}/albedo.exr"], ["--image"]),
@@ -559,13 +565,13 @@ PROVENANCE_CASES = [
     ("fit-into-capture", ["fit", "{cap}", "--out", "{cap_other}"], ["command 'capture'", "now 'fit'"]),
     ("capture-other-renderer", ["capture", "--preset", "tiny", "--renderer", "onebounce", "--out", "{cap_other}"], ["renderer"]),
     ("capture-other-preset", ["capture", "--preset", "small", "--out", "{cap_other}"], ["preset: 'tiny' then, 'small' now"]),
-    ("relightnet-into-fit", ["train-relightnet", "{cap}", "--fit", "{fit}", "--out", "{fit_copy}"], ["command 'fit'"]),
+    ("relightnet-into-fit", [*RN, "--out", "{fit_copy}"], ["command 'fit'"]),
     ("fit-into-foreign", ["fit", "{cap}", "--out", "{root}/cap_json_list/rig"], ["not made by gra-mi"]),
     ("fit-into-its-capture", ["fit", "{cap}", "--out", "{cap}", "--overwrite"], ["is the capture input"]),
     ("fit-around-its-capture", ["fit", "{cap}", "--out", "{cap}/..", "--overwrite"], ["holds it"]),
     ("fit-overwrite-foreign", ["fit", "{cap}", "--out", "{root}", "--overwrite"], ["only folders gra-mi made"]),
     ("fit-out-is-file", ["fit", "{cap}", "--out", "{root}/a_file"], ["a_file", "is a file"]),
-    ("relightnet-out-is-file", ["train-relightnet", "{cap}", "--fit", "{fit}", "--out", "{root}/a_file"], ["a_file", "is a file"]),
+    ("relightnet-out-is-file", [*RN, "--out", "{root}/a_file"], ["a_file", "is a file"]),
 ]
 
 
@@ -621,6 +627,17 @@ def test_overwrite_starts_over_and_same_run_resumes(made, capsys, tmp_path, llvm
 # --------------------------------------------------------------------------------------------------------------
 
 
+def test_truncated_training_checkpoint_is_named(tmp_path):
+    """A torch training checkpoint cut short: named, with how to start over (RelightNet and refiner training)."""
+    from gra_mi.core.errors import GraMiInputError
+    from gra_mi.core.training import TrainingLoop
+
+    (tmp_path / "checkpoint.pt").write_bytes(b"PK\x03\x04 cut short")
+    with pytest.raises(GraMiInputError, match="unreadable checkpoint.*--overwrite") as error:
+        TrainingLoop(tmp_path, 10, 5, 5, "train").resume("cpu")
+    assert "checkpoint.pt" in str(error.value)
+
+
 def test_truncated_checkpoint_is_named(made, capsys, tmp_path, llvm_variant):
     folder = _linked_copy(made["fit"], tmp_path / "fit", copy=("provenance.json",))
     for name in ("checkpoint.npz", "optimize.npz"):
@@ -649,8 +666,6 @@ def test_leds_inside_the_subject_are_warned(capsys, caplog, tmp_path, llvm_varia
     assert run(["subject", "--kind", "tiny", "--frames", "1", "--out", tmp_path / "subject"], capsys)[0] == 0
     scene = tmp_path / "scene.xml"
     assert run(["scene", "--rig", tmp_path / "rig", "--subject", tmp_path / "subject", "--out", scene], capsys)[0] == 0
-    code, lines = run(["render", scene, "--pattern", tmp_path / "on.json", "--spp", "4", "--out", tmp_path / "r"], capsys)
-    assert code == 2 and "on.json" in lines[0]  # (a missing pattern first: then the real one)
     (tmp_path / "on.json").write_text(json.dumps({"intensities": [1.0] * 32}))
     code, lines = run(["render", scene, "--pattern", tmp_path / "on.json", "--spp", "4", "--out", tmp_path / "r"], capsys)
     assert code == 0, lines

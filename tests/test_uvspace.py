@@ -90,6 +90,12 @@ def test_cache_reuses_visibility_across_lighting_and_cameras(tiny, tmp_path):
     b = other.render(3, 0, uniform_pattern(tiny.stage, 0.5))
     assert other.cache.misses == 0
     np.testing.assert_array_equal(a.image, b.image)
+    # A cache file cut short (a full disk, a killed copy) is traced again and rewritten, not a crash.
+    for path in (tmp_path / "vis").glob("vis_*.npy"):
+        path.write_bytes(path.read_bytes()[:40])
+    third = Relighter(tiny, resolution=64, cache_dir=tmp_path / "vis")
+    np.testing.assert_array_equal(third.render(3, 0, uniform_pattern(tiny.stage, 0.5)).image, a.image)
+    assert third.cache.misses == 1
 
 
 def test_shading_is_linear_in_led_intensities_and_off_leds_cost_nothing(tiny):

@@ -38,15 +38,6 @@ def require_positive(values: dict[str, float]) -> None:
             raise GraMiParameterError(name, f"must be a finite number > 0, got {value}")
 
 
-def require_range(values: dict[str, float], low: float | None = None, high: float | None = None) -> None:
-    """Raise a :class:`GraMiParameterError` for the first value that is not a finite number in [low, high]."""
-    for name, value in values.items():
-        finite = value == value and abs(value) != float("inf")
-        if not finite or (low is not None and value < low) or (high is not None and value > high):
-            bounds = " and ".join(b for b in (f">= {low}" if low is not None else "", f"<= {high}" if high is not None else "") if b)
-            raise GraMiParameterError(name, f"must be a finite number{' ' + bounds if bounds else ''}, got {value}")
-
-
 def require_seed(seed: int, name: str = "seed") -> None:
     """Random seeds are unsigned (NumPy, torch and Mitsuba's samplers all refuse negatives)."""
     if not 0 <= seed < 2**32:
