@@ -1,17 +1,21 @@
 """Pretrain the tiny AutoencoderKLWan that stands in for Wan2.1's VAE on CPU (gra_mi/data/tiny_vae.safetensors).
 
 The refiner's tiny configuration needs a VAE that actually reconstructs (a random one decodes noise), as the real
-sizes have Wan2.1's pretrained VAE. This script trains the tiny config (70 k parameters) as a plain autoencoder
-(MSE on the posterior mean, which is what the refiner encodes with) on 5-frame clips (two latent frames: the causal first frame and one 4-frame group) of:
-procedural textured balls under changing light (gra_mi.refiner_data.synthetic_sequence), smooth random colour
-fields with moving edges, log-encoded envmaps, and, when given, the frames of a capture (``--capture``).
+sizes have Wan2.1's pretrained VAE. This script trains the tiny config (gra_mi.refiner.model.VAE_CONFIGS: 4× in space, 4× in time, 16 channels) as a
+plain autoencoder (MSE on the posterior mean, which is what the refiner encodes with, plus the same error after 4×
+area averaging) on 5-frame clips (two latent frames: the causal first frame and one 4-frame group) of: procedural
+textured balls under changing light (gra_mi.refiner.data.synthetic_sequence), smooth random colour fields with
+moving edges, log-encoded envmaps, and the subject crops of captures' training cameras (``--capture``, repeatable),
+cut as `gra-mi refiner-data` cuts them. It then measures the latents' per-channel mean and std, which the file
+carries in its metadata (the refiner normalises latents with them).
 
-    .venv/bin/python pipelines/pretrain_tiny_vae.py --minutes 12 --capture outputs/demo/capture
+    .venv/bin/python pipelines/pretrain_tiny_vae.py --minutes 30 --capture CAPTURE_A --capture CAPTURE_B
 
-With ``--capture``, only its training cameras' frames are trained on, and every ``--eval-every`` minutes the round
-trip (encode + decode) of its held-out cameras' test frames is scored as the refiner sees them (half resolution,
-display PSNR over the subject, and the temporal error of ``gra-mi eval``): the curve (CSV + PNG beside ``--out``)
-says what a model size and a training time buy. ``--minutes 0 --init FILE`` only scores FILE.
+Every ``--eval-every`` minutes the round trip (encode + decode) of the held-out cameras' test frames of ``--score``
+(default: the first capture) is scored as `gra-mi refine` delivers it (the crop's change put back into the
+half-resolution frames; display PSNR over the subject, and the temporal error of ``gra-mi eval``): the curve (CSV +
+PNG beside ``--out``) says what a model size and a training time buy. ``--minutes 0 --init FILE`` only scores FILE
+(and, with another ``--out``, writes it there with its latent statistics).
 """
 
 from __future__ import annotations
@@ -53,97 +57,108 @@ def procedural_clip(rng: np.random.Generator, size: int, frames: int) -> torch.T
     return torch.stack(out, 1)
 
 
-def capture_clips(folder: Path, size: int, frames: int):
-    """Half-resolution videos of the capture's training cameras (its held-out cameras are kept for scoring)."""
-    from gra_mi.capture.dataset import Capture
-    from gra_mi.core.io import read_exr
-    from gra_mi.refiner.data import image_to_video
-
-    clips = []
-    for name in Capture.load(folder).train_cameras:
-        cam = folder / "images" / name
-        files = sorted(cam.glob("frame_*.exr"))
-        imgs = [torch.from_numpy(read_exr(f)[..., :3]) for f in files]
-        if len(imgs) < frames:
-            continue
-        video = torch.stack(imgs).permute(3, 0, 1, 2)  # (3, N, H, W)
-        video = F.interpolate(video, scale_factor=0.5, mode="area")
-        exposure = 0.8 / max(float(torch.quantile(video.mean(0).flatten(), 0.99)), 1e-6)
-        clips.append(image_to_video(video, exposure))
-    return clips
-
-
-def held_out_frames(folder: Path, frames: int = 5) -> list[tuple[torch.Tensor, float]]:
-    """(linear video (3, T, H, W) at half resolution, padded to multiples of 16; its display exposure) of the first
-    ``frames`` test frames of each held-out camera."""
+def _capture_crops(folder: Path, cameras: str, frames: list[int] | None, zoom: float, scale: float = 0.5):
+    """Per camera of ``cameras`` ('train' or 'eval'): the subject crops as the refiner data cuts them
+    (gra_mi.refiner.data: a fixed box per camera, magnified ``zoom``× over ``scale``), linear (3, T, h, w), with the
+    whole frames at ``scale`` (T, fh, fw, 4), the box and the refiner data's exposure."""
     from gra_mi.capture.dataset import Capture, load_observation
-    from gra_mi.core.metrics import display_exposure
+    from gra_mi.refiner.data import crop_box, subject_boxes
 
     capture = Capture.load(folder)
-    test = [f.frame for f in capture.frames if f.split == "test"][:frames]
-    videos = []
-    for cam in capture.eval_cameras:
-        imgs = torch.stack([torch.from_numpy(load_observation(capture, cam, f)) for f in test]).permute(3, 0, 1, 2)
-        imgs = F.interpolate(imgs, scale_factor=0.5, mode="area")  # (4, T, H/2, W/2): what the refiner data holds
-        h, w = imgs.shape[-2:]
-        imgs = F.pad(imgs, (0, (-w) % 16, 0, (-h) % 16))
-        rgb, alpha = imgs[:3], imgs[3]
-        exposure = display_exposure(rgb[:, 0].permute(1, 2, 0).numpy(), alpha[0].numpy() > 0.5)
-        videos.append((rgb, alpha, exposure))
-    return videos
+    names = capture.train_cameras if cameras == "train" else capture.eval_cameras
+    out = []
+    for cam in names:
+        chosen = frames if frames is not None else [f.frame for f in capture.frames if f.split == "train"]
+        full = np.stack([load_observation(capture, cam, f) for f in chosen])
+        whole = F.interpolate(torch.from_numpy(full).permute(0, 3, 1, 2), scale_factor=scale, mode="area").permute(0, 2, 3, 1).numpy()
+        size, (box,) = subject_boxes([whole[..., 3] > 0.5], zoom)
+        crop = torch.from_numpy(crop_box(full[..., :3], box, scale, size)).permute(3, 0, 1, 2)
+        lum = crop.mean(0)
+        exposure = 0.25 / max(float(lum[lum > 0].median()), 1e-6)  # as the refiner data: the subject's median at 0.25
+        out.append((crop, whole, box, exposure))
+    return out
+
+
+def capture_clips(folder: Path, zoom: float) -> list[torch.Tensor]:
+    """The training cameras' subject crops as videos in [-1, 1] (the held-out cameras are kept for scoring)."""
+    from gra_mi.refiner.data import image_to_video
+
+    return [image_to_video(crop, exposure) for crop, _, _, exposure in _capture_crops(folder, "train", None, zoom)]
+
+
+def held_out_frames(folder: Path, zoom: float, frames: int = 5):
+    """The first ``frames`` test frames of each held-out camera, cut as the refiner data cuts them."""
+    from gra_mi.capture.dataset import Capture
+
+    test = [f.frame for f in Capture.load(folder).frames if f.split == "test"][:frames]
+    return _capture_crops(folder, "eval", test, zoom)
 
 
 @torch.no_grad()
 def round_trip_scores(vae, videos) -> tuple[float, float]:
-    """Mean display PSNR over the subject and mean temporal error of encode + decode on the held-out videos."""
+    """Mean display PSNR over the subject and mean temporal error of encode + decode on the held-out videos, in the
+    delivered frames (the crop's change put back, as `gra-mi refine` does)."""
     from gra_mi.core.metrics import compare, temporal_error
-    from gra_mi.refiner.data import image_to_video, video_to_image
+    from gra_mi.refiner.data import image_to_video, paste_box, video_to_image
 
     psnrs, temporals = [], []
-    for rgb, alpha, exposure in videos:
-        x = image_to_video(rgb, exposure)[None]  # as the refiner data shows frames: the 99th percentile at 0.8
+    for crop, whole, box, exposure in videos:
+        x = image_to_video(crop, exposure)[None]
         recon = video_to_image(vae.decode(vae.encode(x).latent_dist.mode()).sample[0], exposure)
-        frames = [recon[:, t].permute(1, 2, 0).numpy() for t in range(rgb.shape[1])]
-        truths = [rgb[:, t].permute(1, 2, 0).numpy() for t in range(rgb.shape[1])]
-        masks = [alpha[t].numpy() > 0.5 for t in range(rgb.shape[1])]
-        psnrs += [compare(f, t, m)["psnr"] for f, t, m in zip(frames, truths, masks, strict=True)]
-        temporals.append(temporal_error(frames, truths, masks, exposure))
+        change = (recon - video_to_image(x[0], exposure)).permute(1, 2, 3, 0).numpy()
+        truths = [w[..., :3] for w in whole]
+        results = [paste_box(t, c, box) for t, c in zip(truths, change, strict=True)]
+        masks = [w[..., 3] > 0.5 for w in whole]
+        psnrs += [compare(f, t, m)["psnr"] for f, t, m in zip(results, truths, masks, strict=True)]
+        temporals.append(temporal_error(results, truths, masks, exposure))
     return float(np.mean(psnrs)), float(np.mean(temporals))
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--minutes", type=float, default=12.0, help="Training time budget. Default: 12.")
-    parser.add_argument("--capture", type=Path, default=None, help="A capture folder whose frames join the training data.")
+    parser.add_argument(
+        "--capture",
+        type=Path,
+        action="append",
+        default=[],
+        help="A capture folder whose training cameras join the training data (repeatable).",
+    )
+    parser.add_argument(
+        "--score",
+        type=Path,
+        default=None,
+        help="A capture whose held-out cameras' test frames score the round trip. Default: the first --capture.",
+    )
+    parser.add_argument("--zoom", type=float, default=4.0, help="Subject crop magnification, as `gra-mi refiner-data --zoom`. Default: 4.")
+    parser.add_argument("--size", type=int, default=96, help="Training patch size in pixels. Default: 96.")
     parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parent.parent / "gra_mi" / "data" / "tiny_vae.safetensors")
     parser.add_argument("--seed", type=int, default=0, help="Random seed. Default: 0.")
-    parser.add_argument("--base-dim", type=int, default=None, help="Channels of the first stage. Default: the shipped config's.")
-    parser.add_argument("--dim-mult", default=None, help="Channel multipliers per stage, e.g. 1,2,2,2. Default: the shipped config's.")
+    parser.add_argument("--hidden", type=int, default=None, help="Channels of the convolutional branches. Default: the shipped config's.")
     parser.add_argument("--lr", type=float, default=1e-3, help="Peak learning rate (cosine decay over the budget). Default: 1e-3.")
     parser.add_argument("--init", type=Path, default=None, help="Start from these weights (with --minutes 0: only score them).")
     parser.add_argument("--eval-every", type=float, default=2.0, help="Minutes between held-out scores (with --capture). Default: 2.")
     args = parser.parse_args()
-    from diffusers import AutoencoderKLWan
     from safetensors.torch import load_file, save_file
 
     from gra_mi.refiner.model import VAE_CONFIGS
+    from gra_mi.refiner.tiny_vae import TinyVideoAutoencoder
 
     torch.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
     config = dict(VAE_CONFIGS["tiny"])
-    if args.base_dim is not None:
-        config["base_dim"] = args.base_dim
-    if args.dim_mult is not None:
-        config["dim_mult"] = [int(m) for m in args.dim_mult.split(",")]
-    vae = AutoencoderKLWan(**config)
+    if args.hidden is not None:
+        config["hidden"] = args.hidden
+    vae = TinyVideoAutoencoder(**config)
     if args.init is not None:
         vae.load_state_dict(load_file(str(args.init)))
     parameters = sum(p.numel() for p in vae.parameters())
     print(f"VAE {config}: {parameters / 1e3:.0f} k parameters", flush=True)
     opt = torch.optim.Adam(vae.parameters(), lr=args.lr)
-    size, frames = 64, 5
-    captured = capture_clips(args.capture, size, frames) if args.capture else []
-    held_out = held_out_frames(args.capture) if args.capture else []
+    size, frames = args.size, 5
+    captured = [clip for folder in args.capture for clip in capture_clips(folder, args.zoom)]
+    scored = args.score or (args.capture[0] if args.capture else None)
+    held_out = held_out_frames(scored, args.zoom) if scored else []
     curve: list[tuple[float, int, float, float]] = []
 
     def score(elapsed: float) -> None:
@@ -162,18 +177,22 @@ def main() -> None:
             next_score += args.eval_every * 60
         batch = []
         for _ in range(2):
-            if captured and rng.random() < 0.4:
+            if captured and rng.random() < 0.6:
                 v = captured[int(rng.integers(len(captured)))]
                 s = int(rng.integers(v.shape[1] - frames + 1))
-                i, j = int(rng.integers(v.shape[2] - size + 1)), int(rng.integers(v.shape[3] - size + 1))
-                batch.append(v[:, s : s + frames, i : i + size, j : j + size])
+                i, j = int(rng.integers(max(v.shape[2] - size, 0) + 1)), int(rng.integers(max(v.shape[3] - size, 0) + 1))
+                clip = v[:, s : s + frames, i : i + size, j : j + size]
+                clip = F.pad(clip, (0, size - clip.shape[3], 0, size - clip.shape[2]), value=-1.0)  # black past the crop
+                batch.append(clip)
             else:
                 batch.append(procedural_clip(rng, size, frames))
         x = torch.stack(batch)
         for group in opt.param_groups:  # cosine decay over the time budget
             group["lr"] = args.lr * (0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * min((time.perf_counter() - t0) / budget, 1))))
         recon = vae.decode(vae.encode(x).latent_dist.mode()).sample
-        loss = F.mse_loss(recon, x)
+        # + the error after 4× area averaging (what survives the crop's way back into the delivered frames; zero at
+        # the exact start, and kept there)
+        loss = F.mse_loss(recon, x) + 10 * F.mse_loss(F.avg_pool3d(recon, (1, 4, 4)), F.avg_pool3d(x, (1, 4, 4)))
         opt.zero_grad()
         loss.backward()
         torch.nn.utils.clip_grad_norm_(vae.parameters(), 1.0)
@@ -195,12 +214,34 @@ def main() -> None:
             xlabel="training minutes (2 CPU cores)", ylabel="held-out round trip PSNR (dB)", title=f"{parameters / 1e3:.0f} k parameters"
         )
         save_figure(fig, args.out.with_suffix(".png"))
-    if args.minutes > 0:
+    if args.minutes > 0 or (args.init is not None and args.out.resolve() != args.init.resolve()):
+        import json
+
         from gra_mi.core.io import atomic_path
 
+        mean, std = latent_statistics(vae, captured, rng)
+        meta = {"latents_mean": json.dumps(mean), "latents_std": json.dumps(std)}
         with atomic_path(args.out) as tmp:
-            save_file({k: v.contiguous() for k, v in vae.state_dict().items()}, str(tmp))
+            save_file({k: v.contiguous() for k, v in vae.state_dict().items()}, str(tmp), metadata=meta)
         print(f"wrote {args.out} after {step} steps")
+
+
+@torch.no_grad()
+def latent_statistics(vae, clips: list[torch.Tensor], rng: np.random.Generator, count: int = 24) -> tuple[list[float], list[float]]:
+    """Per-channel mean and std of the latents (the refiner normalises with them, as diffusers with Wan2.1's): over
+    17-frame windows of the capture clips, or procedural clips without any."""
+    vae.eval()
+    latents = []
+    for i in range(count):
+        if clips:
+            v = clips[i % len(clips)]
+            s = int(rng.integers(max(v.shape[1] - 17, 0) + 1))
+            x = v[None, :, s : s + 17]
+        else:
+            x = procedural_clip(rng, 96, 17)[None]
+        latents.append(vae.encode(x).latent_dist.mode()[0].flatten(1))
+    z = torch.cat(latents, dim=1)
+    return [round(float(m), 5) for m in z.mean(1)], [round(max(float(d), 1e-3), 5) for d in z.std(1)]
 
 
 if __name__ == "__main__":

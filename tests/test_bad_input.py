@@ -708,15 +708,19 @@ def test_output_path_that_is_a_file(inputs, capsys, llvm_variant):
 
 
 @pytest.mark.parametrize("damage", ["truncated", "missing"])
-def test_shipped_weights_damaged_say_how_to_rebuild(damage, tmp_path, monkeypatch):
-    """The tiny VAE shipped in gra_mi/data: a damaged or missing file is named with the script that rebuilds it."""
+@pytest.mark.parametrize(
+    ("attribute", "script"), [("TINY_VAE_WEIGHTS", "pretrain_tiny_vae.py"), ("TINY_PRIOR_WEIGHTS", "pretrain_tiny_refiner.py")]
+)
+def test_shipped_weights_damaged_say_how_to_rebuild(damage, attribute, script, tmp_path, monkeypatch):
+    """The tiny VAE and the tiny refiner prior shipped in gra_mi/data: a damaged or missing file is named with the
+    script that rebuilds it."""
     import gra_mi.refiner.model as refiner_model
     from gra_mi.core.errors import GraMiInputError
 
-    weights = tmp_path / "tiny_vae.safetensors"
+    weights = tmp_path / getattr(refiner_model, attribute).name
     if damage == "truncated":
-        weights.write_bytes(refiner_model.TINY_VAE_WEIGHTS.read_bytes()[:1000])
-    monkeypatch.setattr(refiner_model, "TINY_VAE_WEIGHTS", weights)
-    with pytest.raises(GraMiInputError, match="pretrain_tiny_vae.py") as error:
+        weights.write_bytes(getattr(refiner_model, attribute).read_bytes()[:1000])
+    monkeypatch.setattr(refiner_model, attribute, weights)
+    with pytest.raises(GraMiInputError, match=script) as error:
         refiner_model.VideoRefiner(refiner_model.RefinerConfig())
     assert str(weights) in str(error.value)

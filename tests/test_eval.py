@@ -426,9 +426,8 @@ def tiny_run(path_traced_fit, tmp_path_factory):
     dataset_from_capture(run / "capture", run / "fit", run / "refiner" / "data", run / "relightnet", scale=0.25, test_length=20)
     data = RefinerDataset(run / "refiner" / "data")
     name = data.names("test")[0]
-    crop_h, crop_w = data.crop
-    coarse = data.linear_frames(name, "coarse", 0, 20).numpy()[:, :crop_h, :crop_w]
-    target = data.linear_frames(name, "target", 0, 20).numpy()[:, :crop_h, :crop_w]
+    coarse = [data.delivered(name, i, "coarse") for i in range(20)]  # the whole frames (the refiner sees a subject crop)
+    target = [data.delivered(name, i, "target") for i in range(20)]
     folder = run / "refiner" / "refined" / name
     for i in range(20):
         refined = (target[i] * (1 + 0.2 * (-1) ** i)).astype(np.float32)

@@ -34,7 +34,13 @@ def _inputs(model: VideoRefiner, frames: int = 17, size: int = 32, seeded: int =
 
 @pytest.fixture(scope="module")
 def model():
-    return VideoRefiner(RefinerConfig())
+    return VideoRefiner(RefinerConfig(prior=False))  # random DiT weights, seeded: the stock model is rebuilt below
+
+
+# A stand-in for Wan2.1's VAE with the tiny transformer's layout (4× in space, so 16 + 16 + 4 × 4 VACE channels).
+WAN_VAE_STANDIN = dict(
+    base_dim=8, z_dim=16, dim_mult=[1, 1, 1], num_res_blocks=1, attn_scales=[], temperal_downsample=[True, True], scale_factor_spatial=4
+)
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -155,7 +161,7 @@ def test_control_and_mask_layout_match_diffusers_pipeline(model):
         expected = torch.cat(
             [pipe.prepare_video_latents(video, mask3, [[ref[0]]], None, torch.device("cpu")), pipe.prepare_masks(mask3, [[ref[0]]])], dim=1
         )
-        assert control.shape == expected.shape == (1, 96, 6, 4, 4)
+        assert control.shape == expected.shape == (1, 48, 6, 8, 8)
         torch.testing.assert_close(control, expected, atol=1e-5, rtol=1e-5)
         # the reference is latent frame 0 with a zero mask; 5 seed frames leave one latent mask frame inactive (nearest-exact)
         frame_mask = control[0, 32:].amax(dim=(0, 2, 3))
@@ -443,15 +449,9 @@ def _local_wan_folder(folder, text_dim: int = 32):
     from tokenizers import Tokenizer, models, pre_tokenizers
     from transformers import PreTrainedTokenizerFast, UMT5Config, UMT5EncoderModel
 
-    from gra_mi.refiner.model import TINY_VAE_WEIGHTS, VAE_CONFIGS
-
     torch.manual_seed(3)
     WanVACETransformer3DModel(**TRANSFORMER_CONFIGS["tiny"]).save_pretrained(folder / "transformer")
-    vae = AutoencoderKLWan(**VAE_CONFIGS["tiny"])
-    from safetensors.torch import load_file
-
-    vae.load_state_dict(load_file(str(TINY_VAE_WEIGHTS)))
-    vae.save_pretrained(folder / "vae")
+    AutoencoderKLWan(**WAN_VAE_STANDIN).save_pretrained(folder / "vae")
     words = ["<pad>", "</s>", "<unk>", "a", "person", "photorealistic", "studio", "lighting", ","]
     tok = Tokenizer(models.WordLevel({w: i for i, w in enumerate(words)}, unk_token="<unk>"))
     tok.pre_tokenizer = pre_tokenizers.WhitespaceSplit()
@@ -546,16 +546,15 @@ def test_real_size_from_original_checkpoints(tmp_path, monkeypatch):
     import gra_mi.refiner.model as rm
 
     monkeypatch.setitem(rm.TRANSFORMER_CONFIGS, "1.3B", TRANSFORMER_CONFIGS["tiny"])
-    monkeypatch.setattr(diffusers, "AutoencoderKLWan", lambda: AutoencoderKLWan(**rm.VAE_CONFIGS["tiny"]))
+    monkeypatch.setattr(diffusers, "AutoencoderKLWan", lambda: AutoencoderKLWan(**WAN_VAE_STANDIN))
     monkeypatch.setattr(single_file_utils, "convert_wan_vae_to_diffusers", lambda state: state)
     torch.manual_seed(5)
     source = WanVACETransformer3DModel(**TRANSFORMER_CONFIGS["tiny"])
     original = _to_original_wan_keys({k: v.contiguous() for k, v in source.state_dict().items()})
     assert single_file_utils.convert_wan_transformer_to_diffusers(dict(original)).keys() == source.state_dict().keys()
     save_file(original, str(tmp_path / "wan_vace.safetensors"))
-    from safetensors.torch import load_file
 
-    save_file(load_file(str(rm.TINY_VAE_WEIGHTS)), str(tmp_path / "vae.safetensors"))
+    save_file(AutoencoderKLWan(**WAN_VAE_STANDIN).state_dict(), str(tmp_path / "vae.safetensors"))
     prompt = tmp_path / "prompt.safetensors"
     save_file({"prompt_embeds": torch.randn(1, 8, 32)}, str(prompt))
     config = dict(size="1.3B", weights=str(tmp_path / "wan_vace.safetensors"), prompt_embeds=str(prompt), dtype="bfloat16")
@@ -641,10 +640,11 @@ def test_vae_pretraining_script_trains_scores_and_writes_loadable_weights(path_t
     import subprocess
     import sys
 
-    from diffusers import AutoencoderKLWan
+    from safetensors import safe_open
     from safetensors.torch import load_file
 
     from gra_mi.refiner.model import VAE_CONFIGS
+    from gra_mi.refiner.tiny_vae import TinyVideoAutoencoder
 
     out = tmp_path / "vae.safetensors"
     script = Path(__file__).resolve().parent.parent / "pipelines" / "pretrain_tiny_vae.py"
@@ -654,4 +654,138 @@ def test_vae_pretraining_script_trains_scores_and_writes_loadable_weights(path_t
     rows = out.with_suffix(".csv").read_text().splitlines()
     assert rows[0] == "seconds,steps,held_out_psnr_db,held_out_temporal" and len(rows) >= 3
     assert all(np.isfinite(float(r.split(",")[2])) for r in rows[1:]) and out.with_suffix(".png").is_file()
-    AutoencoderKLWan(**VAE_CONFIGS["tiny"]).load_state_dict(load_file(str(out)))
+    with safe_open(str(out), framework="pt") as f:
+        stats = {k: json.loads(v) for k, v in f.metadata().items()}
+    assert len(stats["latents_mean"]) == len(stats["latents_std"]) == 16 and min(stats["latents_std"]) > 0
+    TinyVideoAutoencoder(**VAE_CONFIGS["tiny"], **stats).load_state_dict(load_file(str(out)))
+    # the exact start holds the delivered frames to well above the 30 dB goal before any training
+    first = float(rows[1].split(",")[2])
+    assert first > 30, rows
+
+
+def test_refiner_prior_script_trains_and_the_refiner_loads_its_prior(tmp_path, monkeypatch):
+    """pipelines/pretrain_tiny_refiner.py end to end on a few steps (on synthetic data): every DiT weight trains, and
+    the exported prior is what a tiny refiner starts from."""
+    import subprocess
+    import sys
+
+    from safetensors.torch import load_file
+
+    import gra_mi.refiner.model as rm
+
+    data = synthetic_dataset(tmp_path / "data", {0: (2, 0)}, frames=17, height=32, width=32)
+    out = tmp_path / "prior.safetensors"
+    script = Path(__file__).resolve().parent.parent / "pipelines" / "pretrain_tiny_refiner.py"
+    args = [sys.executable, str(script), "--data", str(data.folder), "--steps", "2", "--work", str(tmp_path / "work"), "--out", str(out)]
+    done = subprocess.run(args, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    prior = load_file(str(out))
+    assert not any(k.startswith("vae.") or "lora_" in k for k in prior) and "prompt_embeds" in prior
+    fresh = VideoRefiner(RefinerConfig(prior=False))
+    moved = [k for k, v in prior.items() if k.startswith("transformer.blocks.0.") and not torch.equal(v, fresh.state_dict()[k])]
+    assert moved, "pretraining trains the main DiT blocks, not only the adapters"
+    monkeypatch.setattr(rm, "TINY_PRIOR_WEIGHTS", out)
+    model = VideoRefiner(RefinerConfig(lora_rank=4))
+    state = model.state_dict()
+    for key, value in prior.items():  # under LoRA, a main-block linear's weight sits in base_layer
+        head, _, leaf = key.rpartition(".")
+        mine = state[key] if key in state else state[f"{head}.base_layer.{leaf}"]
+        assert torch.equal(mine, value.to(mine.dtype)), key  # stored in float16
+    # a prior of another config is named with the script that rebuilds it
+    from safetensors.torch import save_file
+
+    save_file({k: v[..., :1].contiguous() for k, v in prior.items()}, str(tmp_path / "bad.safetensors"))
+    monkeypatch.setattr(rm, "TINY_PRIOR_WEIGHTS", tmp_path / "bad.safetensors")
+    with pytest.raises(GraMiInputError, match="pretrain_tiny_refiner.py"):
+        VideoRefiner(RefinerConfig())
+
+
+# --------------------------------------------------------------------------------------------------------------
+# The tiny VAE and the subject crop
+# --------------------------------------------------------------------------------------------------------------
+
+
+def test_tiny_vae_starts_exact_in_block_means_and_is_causal():
+    """At initialisation the round trip is each frame's 4 × 4 block mean (float64 NumPy reference); latent frame 0
+    holds pixel frame 0 alone and frame k ≥ 1 frames 4k − 3 … 4k, as Wan's causal VAE."""
+    from gra_mi.refiner.tiny_vae import TinyVideoAutoencoder
+
+    vae = TinyVideoAutoencoder()
+    g = torch.Generator().manual_seed(0)
+    video = torch.rand(1, 3, 9, 16, 24, generator=g) * 2 - 1
+    with torch.no_grad():
+        z = vae.encode(video).latent_dist.mode()
+        back = vae.decode(z).sample
+    assert z.shape == (1, 16, 3, 4, 6) and back.shape == video.shape
+    v = video.double().numpy()
+    means = v.reshape(1, 3, 9, 4, 4, 6, 4).mean(axis=(4, 6))
+    expected = np.repeat(np.repeat(means, 4, axis=3), 4, axis=4)
+    np.testing.assert_allclose(back.double().numpy(), expected, atol=1e-6)
+    # channels 0..11 are the block means of (colour, frame in the group): latent frame 1 is frames 1-4
+    np.testing.assert_allclose(z[0, 0, 1].numpy(), means[0, 0, 1], atol=1e-6)
+    np.testing.assert_allclose(z[0, 4 * 2 + 3, 2].numpy(), means[0, 2, 8], atol=1e-6)
+    with torch.no_grad():  # causal, also once the branches have weights: later frames leave earlier latents alone
+        for branch in (vae.encode_branch, vae.decode_branch):
+            branch[-1].weight.normal_(std=0.05)
+        later = video.clone()
+        later[:, :, 5:] = 0
+        a, b = vae.encode(video).latent_dist.mode(), vae.encode(later).latent_dist.mode()
+    assert torch.equal(a[:, :, :2], b[:, :, :2]) and not torch.equal(a[:, :, 2], b[:, :, 2])
+    with pytest.raises(ValueError, match="multiples of 4"):
+        vae.encode(torch.zeros(1, 3, 5, 18, 16))
+
+
+def test_subject_crop_goes_back_exactly():
+    """A box magnified 4× lines 4 × 4 crop pixels up with one delivered pixel: a change that keeps every block mean
+    (the tiny VAE's start) leaves the delivered frame as it was, to float precision; a constant change comes back
+    as itself inside the box and nothing outside."""
+    from gra_mi.refiner.data import crop_box, paste_box, subject_boxes
+
+    rng = np.random.default_rng(2)
+    full = rng.uniform(0, 2, (2, 64, 80, 3)).astype(np.float32)  # capture resolution
+    frames = full.reshape(2, 32, 2, 40, 2, 3).mean(axis=(2, 4))  # delivered at scale 0.5 (area)
+    masks = np.zeros((2, 32, 40), bool)
+    masks[0, 5:20, 10:17] = masks[1, 8:25, 12:19] = True
+    size, (box,) = subject_boxes([masks], zoom=4)
+    y0, x0, y1, x1 = box
+    assert size == ((y1 - y0) * 4, (x1 - x0) * 4) and size[0] % 16 == 0 and size[1] % 16 == 0
+    assert y0 <= 5 and y1 >= 25 and x0 <= 10 and x1 >= 19
+    crops = crop_box(full, box, 0.5, size)
+    assert crops.shape == (2, *size, 3)
+    h, w = size
+    blocks = crops.reshape(2, h // 4, 4, w // 4, 4, 3).mean(axis=(2, 4), keepdims=True)
+    kept = np.broadcast_to(blocks, (2, h // 4, 4, w // 4, 4, 3)).reshape(crops.shape)
+    for i in range(2):
+        np.testing.assert_allclose(paste_box(frames[i], kept[i] - crops[i], box), frames[i], atol=1e-5)
+    shifted = paste_box(frames[0], np.full((h, w, 3), 0.25, np.float32), box)
+    inside = np.zeros((32, 40), bool)
+    inside[max(y0, 0) : y1, max(x0, 0) : x1] = True
+    np.testing.assert_allclose(shifted[inside] - frames[0][inside], 0.25, atol=1e-6)
+    assert np.array_equal(shifted[~inside], frames[0][~inside])
+    # the crop samples the capture image where the box says: a crop of a ramp is the ramp
+    ramp = np.broadcast_to(np.arange(80, dtype=np.float32)[None, None, :, None], (1, 64, 80, 3))
+    crop = crop_box(ramp, box, 0.5, size)[0, 0, :, 0]
+    centres = (x0 + (np.arange(w) + 0.5) / 4) / 0.5 - 0.5  # capture pixel coordinates of the crop's pixel centres
+    inner = (centres > 0) & (centres < 79)
+    np.testing.assert_allclose(crop[inner], centres[inner], atol=1e-4)
+
+
+def test_residual_flow_space_round_trips_and_keeps_the_given_frames(model):
+    """Tiny size: the flow runs on (latents − the input's latents) / residual_scale. The base is the reference and the
+    seed frames where the mask keeps them, the coarse input's latents elsewhere; a zero residual is the input."""
+    for seeded in (0, 5):
+        latents, control, _, (video, mask, ref) = _inputs(model, seeded=seeded, seed=seeded)
+        base = model.base_latents(control)
+        given = 1 + (seeded - 1) // 4 + 1 if seeded else 1  # the reference (+ the seed frames' latent frame)
+        assert torch.equal(base[:, :, :given], control[:, :16, :given])
+        assert torch.equal(base[:, :, given:], control[:, 16:32, given:])
+        torch.testing.assert_close(model.from_flow(model.to_flow(latents, control), control), latents, atol=1e-5, rtol=1e-5)
+        assert torch.equal(model.from_flow(torch.zeros_like(latents), control), base)
+    assert model.residual_scale == model.config.residual_scale > 0
+    model.config.size = "1.3B"  # real sizes: the flow runs on the latents (Wan's prior models them)
+    try:
+        assert model.residual_scale == 0.0 and torch.equal(model.to_flow(latents, control), latents)
+    finally:
+        model.config.size = "tiny"
+    with pytest.raises(GraMiInputError, match="residual_scale"):
+        RefinerConfig(residual_scale=-1.0).validate("refiner.json")

@@ -499,7 +499,18 @@ def _args_refiner_data(p):
     )
     p.add_argument("--out", type=Path, required=True, help="Output folder (dataset.json + sequences/).")
     p.add_argument(
-        "--scale", type=finite_float, default=d["scale"], help=f"Image scale before padding to multiples of 16. Default: {d['scale']}."
+        "--scale",
+        type=finite_float,
+        default=d["scale"],
+        help=f"Capture images → the delivered (and evaluated) frames. Default: {d['scale']}.",
+    )
+    p.add_argument(
+        "--zoom",
+        type=finite_float,
+        default=d["zoom"],
+        help="The refiner works on a fixed box around the subject per sequence, magnified this many times over --scale "
+        "(cut from the full-resolution images); its change goes back into the delivered frames. 0: whole frames, padded "
+        f"to multiples of 16. Default: {d['zoom']}.",
     )
     p.add_argument(
         "--env-height", type=int, default=d["env_height"], help=f"Camera-space envmap height (width = 2x). Default: {d['env_height']}."
@@ -559,6 +570,7 @@ def _cmd_refiner_data(args) -> None:
             args.train_length,
             args.test_length,
             overwrite=args.overwrite,
+            zoom=args.zoom or None,
         )
     print(f"wrote {len(ds.sequences)} sequences ({ds.height}x{ds.width}) to {ds.folder}")
 
@@ -592,7 +604,7 @@ def _args_train_refiner(p):
     add_config_options(
         p,
         RefinerConfig,
-        ["size", "dtype", "lora_rank", "env_blocks", "seed"],
+        ["size", "dtype", "lora_rank", "env_blocks", "prior", "seed"],
         choices={"size": sorted(TRANSFORMER_CONFIGS), "dtype": ["float32", "bfloat16"]},
         parsers={"env_blocks": _parse_blocks},
     )
@@ -620,7 +632,7 @@ def _args_refine(p):
     p.add_argument("--model", type=Path, required=True, help="Trained refiner folder (from `gra-mi train-refiner`).")
     p.add_argument("--sequence", default=None, help="Sequence name (default: the first test sequence).")
     p.add_argument("--out", type=Path, default=Path("outputs/refined"), help="Output folder. Default: outputs/refined.")
-    add_config_options(p, RefineConfig, ["steps", "shift", "seed", "frames", "fuse_lora"])
+    add_config_options(p, RefineConfig, ["steps", "shift", "denoise", "seed", "frames", "fuse_lora"])
     add_config_options(p, Joins, ["handoff", "pin", "crossfade"])
     p.add_argument(
         "--deflicker",

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from gra_mi.core.errors import GraMiInputError
+from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.io import atomic_path, atomic_write_text, json_field, read_json
 
 DATA_FORMAT = "gra-mi-refiner-data/1"
@@ -99,6 +99,8 @@ class SequenceInfo:
     subject: str
     file: Path
     has_target: bool
+    box: tuple[int, int, int, int] | None = None
+    """The subject crop in the delivered frames (y0, x0, y1, x1); None: the sequence holds whole frames."""
 
 
 class RefinerDataset:
@@ -130,8 +132,23 @@ class RefinerDataset:
             file = self.folder / s["file"]
             if not file.is_file():
                 raise GraMiInputError(file, f"sequence '{s['name']}' file not found")
+            box = s.get("box")
+            if box is not None and not (
+                isinstance(box, list) and len(box) == 4 and all(isinstance(v, int) for v in box) and box[2] > box[0] and box[3] > box[1]
+            ):
+                raise GraMiInputError(
+                    path, f"expected [y0, x0, y1, x1] integers with y1 > y0 and x1 > x0, got {box!r}", field=where + "box"
+                )
+            if box is not None and "frame" not in data:
+                raise GraMiInputError(path, "sequences with a 'box' need the delivered frame size 'frame': [height, width]", field="frame")
             self.sequences[s["name"]] = SequenceInfo(
-                s["name"], s["split"], int(s["frames"]), s.get("subject", ""), file, bool(s.get("has_target", True))
+                s["name"],
+                s["split"],
+                int(s["frames"]),
+                s.get("subject", ""),
+                file,
+                bool(s.get("has_target", True)),
+                tuple(box) if box else None,
             )
 
     def names(self, split: str | None = None) -> list[str]:
@@ -174,6 +191,18 @@ class RefinerDataset:
     def linear_frames(self, name: str, key: str, start: int, stop: int) -> torch.Tensor:
         with self._open(name) as f:
             return f.get_slice(key)[start:stop]
+
+    def delivered(self, name: str, index: int, key: str, image: np.ndarray | None = None) -> np.ndarray:
+        """Frame ``index`` of ``key`` (coarse or target) as delivered (the whole frame, linear), with the refiner's
+        ``image`` of that frame in place of the stored one: for a subject crop, its change from the stored crop goes
+        back into the stored whole frame; for whole frames, the padding is cut off."""
+        ch, cw = self.crop
+        stored = self.linear_frames(name, key, index, index + 1)[0].numpy()
+        box = self.sequences[name].box
+        if box is None:
+            return (stored if image is None else image)[:ch, :cw]
+        frame = self.linear_frames(name, f"{key}_frame", index, index + 1)[0].numpy()
+        return frame if image is None else paste_box(frame, image - stored, box)
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -279,6 +308,77 @@ def synthetic_dataset(
 # --------------------------------------------------------------------------------------------------------------
 
 
+# The subject crop. At the evaluation scale the subject spans only some 50 × 55 pixels of a demo frame, which a
+# VAE that shrinks images 4× or 8× keeps as a few latent cells. The refiner therefore works on a fixed box around
+# the subject (one per sequence: no crop motion to flicker), cut from the full-resolution images and magnified
+# ``zoom``× relative to the evaluation scale; its output goes back into the frame as a residual (what it changed,
+# area-averaged back down), so a refiner that changes nothing returns its input exactly.
+
+
+def _mask_extent(masks: np.ndarray) -> tuple[int, int, int, int]:
+    ys, xs = np.nonzero(np.asarray(masks).any(axis=0))
+    if len(ys) == 0:  # no subject in view: the whole frame
+        return 0, 0, masks.shape[1], masks.shape[2]
+    return int(ys.min()), int(xs.min()), int(ys.max()) + 1, int(xs.max()) + 1
+
+
+def subject_boxes(masks: list[np.ndarray], zoom: float, margin: float = 0.08) -> tuple[tuple[int, int], list[tuple[int, int, int, int]]]:
+    """One crop size for several sequences and each one's box: ``masks`` (N, fh, fw) per sequence at the evaluation
+    scale → ((h, w) of the crops, multiples of 16; [(y0, x0, y1, x1)] at the evaluation scale, centred on the union of
+    the sequence's masks, grown by ``margin`` of the tallest subject each side; a box may reach past the frame).
+
+    With zoom 1, 2, 4, 8 or 16 the boxes are exactly crop size / zoom, so each crop pixel is a whole fraction of a frame
+    pixel (the tiny VAE's 4 × 4 blocks then sit inside frame pixels at zoom 4)."""
+    extents = [_mask_extent(m) for m in masks]
+    tallest = max(max(y1 - y0, x1 - x0) for y0, x0, y1, x1 in extents)
+    need = (
+        max(y1 - y0 for y0, _, y1, _ in extents) + 2 * margin * tallest,
+        max(x1 - x0 for _, x0, _, x1 in extents) + 2 * margin * tallest,
+    )
+    if zoom == int(zoom) and 16 % int(zoom) == 0:
+        step = 16 // int(zoom)
+        box = tuple(int(math.ceil(n / step) * step) for n in need)
+        size = (box[0] * int(zoom), box[1] * int(zoom))
+    else:
+        size = tuple(int(math.ceil(n * zoom / 16) * 16) for n in need)
+        box = tuple(int(math.ceil(n / zoom)) for n in size)
+    boxes = []
+    for y0, x0, y1, x1 in extents:
+        top, left = int(round((y0 + y1 - box[0]) / 2)), int(round((x0 + x1 - box[1]) / 2))
+        boxes.append((top, left, top + box[0], left + box[1]))
+    return size, boxes
+
+
+def crop_box(images: np.ndarray, box: tuple[int, int, int, int], scale: float, size: tuple[int, int]) -> np.ndarray:
+    """Cut ``box`` (at the evaluation scale: capture pixels × ``scale``) out of full-resolution ``images`` (N, H, W, C)
+    and resample it to ``size`` (h, w): bilinear, after an area pre-filter when the crop shrinks. Zeros past the frame."""
+    t = torch.from_numpy(np.ascontiguousarray(images, dtype=np.float32)).permute(0, 3, 1, 2)
+    y0, x0, y1, x1 = box
+    shrink = int(min((y1 - y0) / scale / size[0], (x1 - x0) / scale / size[1]))
+    if shrink >= 2:  # keep bilinear sampling from aliasing
+        t = F.avg_pool2d(t, shrink, ceil_mode=True)
+        scale *= shrink
+    h, w = t.shape[-2:]
+    # pixel centres of the output, in the source's normalised coordinates (align_corners=False)
+    ys = (y0 + (torch.arange(size[0], dtype=torch.float64) + 0.5) * (y1 - y0) / size[0]) / scale / h * 2 - 1
+    xs = (x0 + (torch.arange(size[1], dtype=torch.float64) + 0.5) * (x1 - x0) / size[1]) / scale / w * 2 - 1
+    grid = torch.stack(torch.meshgrid(ys, xs, indexing="ij")[::-1], dim=-1)[None].expand(t.shape[0], -1, -1, -1)
+    out = F.grid_sample(t, grid.float(), mode="bilinear", padding_mode="zeros", align_corners=False)
+    return out.permute(0, 2, 3, 1).numpy()
+
+
+def paste_box(frame: np.ndarray, change: np.ndarray, box: tuple[int, int, int, int]) -> np.ndarray:
+    """``frame`` (fh, fw, C) at the evaluation scale plus ``change`` (h, w, C) on the crop, area-averaged into ``box``."""
+    y0, x0, y1, x1 = box
+    t = torch.from_numpy(np.ascontiguousarray(change, dtype=np.float32)).permute(2, 0, 1)[None]
+    t = F.interpolate(t, size=(y1 - y0, x1 - x0), mode="area")[0].permute(1, 2, 0).numpy()
+    out = np.array(frame, dtype=np.float32, copy=True)
+    fh, fw = out.shape[:2]
+    cy0, cx0, cy1, cx1 = max(y0, 0), max(x0, 0), min(y1, fh), min(x1, fw)
+    out[cy0:cy1, cx0:cx1] += t[cy0 - y0 : cy1 - y0, cx0 - x0 : cx1 - x0]
+    return out
+
+
 def _resize_pad(image: np.ndarray, scale: float) -> tuple[np.ndarray, tuple[int, int]]:
     from gra_mi.refiner.model import pad_to_multiple
 
@@ -302,11 +402,16 @@ def dataset_from_capture(
     test_length: int = 41,
     cache_dir: str | Path | None = None,
     overwrite: bool = False,
+    zoom: float | None = 4.0,
 ) -> RefinerDataset:
     """Sequences per camera: training cameras over the training frames, held-out cameras over the test frames.
 
     Coarse frames are RelightNet renders (``relightnet_dir``) or the microfacet render; targets are the captured images.
     The capture's clips loop, so a sequence shorter than ``train_length``/``test_length`` is played again from its start.
+    ``scale``: capture images → the frames the refined video is delivered (and evaluated) at. ``zoom``: the refiner
+    sees a fixed box around the subject per sequence, magnified this many times over ``scale`` (the sequences then
+    also hold the whole frames, ``coarse_frame``/``target_frame``, and dataset.json each sequence's ``box``);
+    None: the whole frames, padded to multiples of 16.
     """
     from gra_mi.capture.dataset import load_observation
     from gra_mi.core.progress import progress
@@ -318,7 +423,9 @@ def dataset_from_capture(
     ensure_mitsuba()
     from gra_mi.core.provenance import claim_output
 
-    config = {"scale": scale, "env_height": env_height, "train_length": train_length, "test_length": test_length}
+    if zoom is not None and not zoom >= 1:
+        raise GraMiParameterError("zoom", f"must be >= 1 (or off), got {zoom}")
+    config = {"scale": scale, "env_height": env_height, "train_length": train_length, "test_length": test_length, "zoom": zoom}
     inputs = {"capture": capture_dir, "fit": fit_dir, "relightnet": relightnet_dir}
     out = Path(out)
     capture, relighter = fitted_relighter(capture_dir, fit_dir, cache_dir or out / "cache")
@@ -343,16 +450,34 @@ def dataset_from_capture(
     jobs += [("test", cam, [f for f in capture.frames if f.split == "test"], test_length) for cam in capture.eval_cameras]
     raw: list[tuple[str, str, dict]] = []
     for split, cam, entries, length in progress(jobs, description="refiner sequences"):
-        unique = {
-            "coarse": [_resize_pad(coarse_render(e, cam), scale)[0] for e in entries],
-            "target": [_resize_pad(load_observation(capture, cam, e.frame), scale)[0] for e in entries],
-            "env": [camera_env(e, cam) for e in entries],
+        full = {  # capture resolution: the source of the crops
+            "coarse": [coarse_render(e, cam)[..., :3] for e in entries],
+            "target": [load_observation(capture, cam, e.frame) for e in entries],
         }
+        full["reference"] = load_observation(capture, cam, uniform.frame)
+        unique = {k: [_resize_pad(v, scale)[0] for v in full[k]] for k in ("coarse", "target")}
+        unique["env"] = [camera_env(e, cam) for e in entries]
         order = [i % len(entries) for i in range(max(length, len(entries)))]
         seq = {k: np.stack([v[i] for i in order]) for k, v in unique.items()}
-        seq["reference"], crop = _resize_pad(load_observation(capture, cam, uniform.frame), scale)
+        seq["reference"], crop = _resize_pad(full["reference"], scale)
         seq["reference_env"] = camera_env(uniform, cam)
+        if zoom is not None:
+            alpha = np.stack([_resize_pad(t[..., 3:].repeat(3, -1), scale)[0][: crop[0], : crop[1], 0] for t in full["target"]])
+            seq["full"] = full | {"masks": (alpha > 0.5) | (seq["coarse"][: len(entries), : crop[0], : crop[1]].max(-1) > 0)}
         raw.append((split, cam, seq, [entries[i].frame for i in order]))
+    boxes: dict[str, tuple[int, int, int, int]] = {}
+    if zoom is not None:  # one crop size for the whole dataset
+        size, found = subject_boxes([seq["full"]["masks"] for _, _, seq, _ in raw], zoom)
+        for (split, cam, seq, _), box in zip(raw, found, strict=True):
+            full = seq.pop("full")
+            boxes[f"{split}_{cam}"] = box
+            n = len(full["coarse"])
+            order = [i % n for i in range(len(seq["coarse"]))]
+            seq["coarse_frame"] = seq["coarse"][:, : crop[0], : crop[1]]
+            seq["target_frame"] = seq["target"][:, : crop[0], : crop[1]]
+            seq["coarse"] = crop_box(np.stack(full["coarse"]), box, scale, size)[order]
+            seq["target"] = crop_box(np.stack([t[..., :3] for t in full["target"]]), box, scale, size)[order]
+            seq["reference"] = crop_box(full["reference"][None, ..., :3], box, scale, size)[0]
     targets = np.concatenate([s["target"].reshape(-1, 3) for _, _, s, _ in raw])
     lum = targets.mean(axis=1)
     # the subject's median radiance to 0.25 (≈ mid-grey after sRGB): robust to the path tracer's fireflies and to
@@ -372,6 +497,7 @@ def dataset_from_capture(
                 "file": write_sequence(out, name, seq),
                 "camera": cam,
                 "capture_frames": capture_frames,  # the capture frame shown in each sequence frame (clips loop)
+                **({"box": list(boxes[name])} if boxes else {}),
             }
         )
     h, w = raw[0][2]["coarse"].shape[1:3]
@@ -380,12 +506,13 @@ def dataset_from_capture(
         entries,
         h,
         w,
-        crop,
+        (h, w) if boxes else crop,
         exposure,
         env_exposure,
         source=str(capture.folder),
         coarse="relightnet" if model is not None else "microfacet",
         scale=scale,
         fps=ls.sequence.fps,
+        **({"zoom": zoom, "frame": list(crop)} if boxes else {}),
     )
     return RefinerDataset(out)

@@ -52,18 +52,28 @@ def euler_sample(
     shift: float,
     generator: torch.Generator,
     known: torch.Tensor | None = None,
+    start: torch.Tensor | None = None,
+    denoise: float = 1.0,
 ) -> torch.Tensor:
     """Integrate dx/dσ = v(x, σ) from σ = 1 (noise) to 0 with Euler steps (as FlowMatchEulerDiscreteScheduler).
 
     known (1, 16, K, h, w): latents of the first K latent frames, which are given (the reference and the handed-off
     seed frames). They follow their exact flow path x_σ = (1 − σ)·z + σ·ε at every step instead of the model's
     estimate — the inputs the refiner saw for them in training — so the frames it generates continue what was given.
+
+    denoise < 1 (with ``start``, the latents of the coarse input): the last ``denoise`` of the schedule only, from
+    ``start`` noised to that level (SDEdit; diffusers' img2img ``strength``): the result keeps the input's layout.
     """
     sigmas = sampling_sigmas(steps, shift).to(torch.float32)
     noise = torch.randn(shape, generator=generator).to(model.device)
-    x = noise
+    first = 0
+    if denoise < 1:
+        first = min(int(round(steps * (1 - denoise))), steps - 1)
+        x = (1 - sigmas[first]) * start + sigmas[first] * noise
+    else:
+        x = noise
     k = 0 if known is None else known.shape[2]
-    for i in range(steps):
+    for i in range(first, steps):
         if k:
             x[:, :, :k] = (1 - sigmas[i]) * known + sigmas[i] * noise[:, :, :k]
         v = model(x, sigmas[i : i + 1].to(model.device), control, env)

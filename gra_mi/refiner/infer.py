@@ -70,6 +70,9 @@ class RefineConfig:
     """Euler steps per window."""
     shift: float = 3.0
     """Wan time shift of the sampling schedule (1 = none)."""
+    denoise: float = 1.0
+    """How much of the sampling schedule runs. 1: all of it, from noise (the paper). Below 1: the last part only,
+    from the coarse input's latents noised to that point (SDEdit): the refiner keeps the input's layout."""
     seed: int = 0
     """Seed of the first window (each window uses seed + its index)."""
     frames: int | None = None
@@ -81,6 +84,8 @@ class RefineConfig:
 
     def validate(self) -> None:
         require_positive({"steps": self.steps, "shift": self.shift})
+        if not 0 < self.denoise <= 1:
+            raise GraMiParameterError("denoise", f"must be in (0, 1], got {self.denoise}")
         require_seed(self.seed)
         if self.frames is not None:
             require_positive({"frames": self.frames})
@@ -118,9 +123,12 @@ def rollout(
         )
         env = model.env_tokens(env_latents)
         # The inactive latents of the seed frames are their encoding alone (the VAE is causal in time).
-        known = control[:, :16, : 1 + latent_frames(seeded)] if joins.pin else None
+        given = 1 + latent_frames(seeded)  # the reference and the seed frames
+        known = model.to_flow(control[:, :16], control)[:, :, :given] if joins.pin else None
         generator = torch.Generator().manual_seed(seed + k)  # a new seed per window
-        latents = euler_sample(model, (1, 16, *control.shape[2:]), control, env, steps, shift, generator, known)
+        from_input = model.to_flow(model.base_latents(control), control)  # the reference, then the input's latents
+        x = euler_sample(model, (1, 16, *control.shape[2:]), control, env, steps, shift, generator, known, from_input, config.denoise)
+        latents = model.from_flow(x, control)
         video = model.decode(latents[:, :, 1:])[0]  # drop the reference frame
         if k > 0 and joins.crossfade:  # the previous window held its last frames back
             for i in range(min(carry, total - start)):
@@ -259,9 +267,10 @@ def refine_to_folder(
         deflickered_mp4 = streams.enter_context(Mp4Stream(out / "deflickered" / "deflickered.mp4", fps)) if deflicker is not None else None
         composite_mp4 = streams.enter_context(Mp4Stream(out / "composite.mp4", fps)) if compose is not None else None
         for frame in progress(rollout(model, dataset, sequence, config, frames=total), description=f"refine {sequence}", total=total):
-            image = video_to_image(frame.video, exposure).permute(1, 2, 0).numpy()[:ch, :cw]
+            # the whole frame, with the refined subject crop (if the data has one) put back
+            image = dataset.delivered(sequence, frame.index, "coarse", video_to_image(frame.video, exposure).permute(1, 2, 0).numpy())
             shown = ((frame.video.permute(1, 2, 0).numpy()[:ch, :cw] + 1) / 2).clip(0, 1)
-            coarse = dataset.linear_frames(sequence, "coarse", frame.index, frame.index + 1)[0].numpy()[:ch, :cw]
+            coarse = dataset.delivered(sequence, frame.index, "coarse")
             if write_exr_frames:
                 write_exr(out / "frames" / f"frame_{frame.index:04d}.exr", image)
                 write_png(out / "frames" / f"frame_{frame.index:04d}.png", image, exposure=exposure)
@@ -274,7 +283,7 @@ def refine_to_folder(
                 write_png(out / "deflickered" / f"frame_{frame.index:04d}.png", corrected, exposure=exposure)
                 deflickered_mp4.append(corrected, exposure)
             if info.has_target:
-                target = dataset.linear_frames(sequence, "target", frame.index, frame.index + 1)[0].numpy()[:ch, :cw]
+                target = dataset.delivered(sequence, frame.index, "target")
                 panels.append(target)
                 subject = _subject(coarse, target)
                 row["psnr_coarse"] = _psnr(coarse, target, subject)
@@ -324,9 +333,9 @@ def refine_to_folder(
         if vae_round_trip_psnr:
             psnr = []
             for index, video in vae_round_trip(model, dataset, sequence, total):
-                image = video_to_image(video, exposure).permute(1, 2, 0).numpy()[:ch, :cw]
-                target = dataset.linear_frames(sequence, "target", index, index + 1)[0].numpy()[:ch, :cw]
-                coarse = dataset.linear_frames(sequence, "coarse", index, index + 1)[0].numpy()[:ch, :cw]
+                image = dataset.delivered(sequence, index, "target", video_to_image(video, exposure).permute(1, 2, 0).numpy())
+                target = dataset.delivered(sequence, index, "target")
+                coarse = dataset.delivered(sequence, index, "coarse")
                 psnr.append(_psnr(image, target, _subject(coarse, target)))
             summary["psnr_vae_round_trip"] = float(np.mean(psnr))
     summary["per_frame"] = rows

@@ -1,8 +1,10 @@
 """The video refiner's model (paper Sec. 3.3): diffusers' WAN2.1-VACE with LoRA and atemporal envmap attention.
 
-- Backbone: diffusers' ``WanVACETransformer3DModel`` and ``AutoencoderKLWan``, untouched (no fork). Sizes: ``tiny``
-  (random weights, seeded: tests, CI, the CPU demo) and the real ``1.3B`` / ``14B`` configurations, whose weights are
-  read from a local diffusers folder or an original-format checkpoint — never downloaded.
+- Backbone: diffusers' ``WanVACETransformer3DModel`` and ``AutoencoderKLWan``, untouched (no fork). Sizes: the real
+  ``1.3B`` / ``14B`` configurations, whose weights are read from a local diffusers folder or an original-format
+  checkpoint — never downloaded; and ``tiny`` (tests, CI, the CPU demo): a 4-block DiT whose shipped prior was
+  pretrained on another subject (pipelines/pretrain_tiny_refiner.py), with a tiny VAE of the same interface that
+  keeps the image (gra_mi.refiner.tiny_vae, pipelines/pretrain_tiny_vae.py).
 - Trainable parts (paper Supp. "WAN2.1-VACE Finetuning"): LoRA (peft) on the main DiT blocks only, the VACE adapter
   (``vace_blocks`` + ``vace_patch_embedding``) in full, and new **atemporal cross-attention** layers: each latent
   frame's tokens attend only to the tokens of its own envmap latent (camera-space envmaps through the same VAE,
@@ -35,9 +37,9 @@ logger = logging.getLogger(__name__)
 # Real configurations (Wan-AI/Wan2.1-VACE-{1.3B,14B}-diffusers transformer/config.json).
 TRANSFORMER_CONFIGS = {
     "tiny": dict(
-        patch_size=(1, 2, 2), num_attention_heads=2, attention_head_dim=48, in_channels=16, out_channels=16, text_dim=32,
-        freq_dim=32, ffn_dim=192, num_layers=4, cross_attn_norm=True, qk_norm="rms_norm_across_heads", eps=1e-6,
-        rope_max_seq_len=64, vace_layers=[0, 2], vace_in_channels=96,
+        patch_size=(1, 4, 4), num_attention_heads=4, attention_head_dim=64, in_channels=16, out_channels=16, text_dim=32,
+        freq_dim=32, ffn_dim=512, num_layers=4, cross_attn_norm=True, qk_norm="rms_norm_across_heads", eps=1e-6,
+        rope_max_seq_len=64, vace_layers=[0, 2], vace_in_channels=48,  # 16 + 16 latents + a 4×4 mask (its VAE is 4×)
     ),
     "1.3B": dict(
         patch_size=(1, 2, 2), num_attention_heads=12, attention_head_dim=128, in_channels=16, out_channels=16, text_dim=4096,
@@ -50,15 +52,20 @@ TRANSFORMER_CONFIGS = {
         rope_max_seq_len=1024, vace_layers=list(range(0, 40, 5)), vace_in_channels=96,
     ),
 }  # fmt: skip
-# The real VAE is diffusers' default AutoencoderKLWan; z_dim 16 keeps its latent mean/std valid for the tiny one.
+# The real VAE is diffusers' default AutoencoderKLWan (8× in space, 4× in time, 16 channels). The tiny one
+# (gra_mi.refiner.tiny_vae) has its interface, time factor and channels (so windows of 4k + 1 frames carry over) but
+# shrinks images 4× and starts as an exact block-mean codec: it keeps the image (README, video refiner).
 VAE_CONFIGS = {
-    "tiny": dict(base_dim=8, z_dim=16, dim_mult=[1, 1, 1, 1], num_res_blocks=1, attn_scales=[], temperal_downsample=[False, True, True]),
+    "tiny": dict(z_dim=16, spatial=4, temporal=4, hidden=64),
     "1.3B": {},
     "14B": {},
 }
 TINY_VAE_WEIGHTS = Path(__file__).resolve().parent.parent / "data" / "tiny_vae.safetensors"
-"""The tiny VAE pretrained as an autoencoder by pipelines/pretrain_tiny_vae.py (70 k parameters, shipped)."""
-TEMPORAL_FACTOR, SPATIAL_FACTOR = 4, 8  # the causal VAE: 4k + 1 frames → k + 1 latent frames, 8× smaller images
+"""The tiny VAE pretrained as an autoencoder by pipelines/pretrain_tiny_vae.py (shipped)."""
+TINY_PRIOR_WEIGHTS = Path(__file__).resolve().parent.parent / "data" / "tiny_refiner_prior.safetensors"
+"""The tiny DiT (with its VACE and envmap layers) pretrained by pipelines/pretrain_tiny_refiner.py on another subject
+(shipped): what the tiny refiner fine-tunes, as the real sizes fine-tune Wan2.1-VACE."""
+TEMPORAL_FACTOR = 4  # the causal VAE: 4k + 1 frames → k + 1 latent frames (the spatial factor is the VAE's config)
 LORA_TARGETS = r"blocks\.\d+\.(attn1|attn2)\.(to_q|to_k|to_v|to_out\.0)|blocks\.\d+\.ffn\.net\.(0\.proj|2)"
 """Main DiT blocks only (the regex is matched against the whole module name, so ``vace_blocks.*`` is excluded)."""
 
@@ -87,6 +94,13 @@ class RefinerConfig:
     seed: int = 0
     """Random seed of the new weights."""
     prompt_length: int = 8
+    residual_scale: float = 0.1
+    """Size tiny: the flow runs on the residual (target latents − the coarse input's latents) / residual_scale, so a
+    refiner that has learnt nothing returns its input, not noise; 0: on the latents themselves, as the real sizes
+    always do (their pretrained Wan prior models natural video latents; the paper)."""
+    prior: bool = True
+    """The tiny size's DiT starts from the shipped prior, pretrained on another subject (pipelines/pretrain_tiny_refiner.py);
+    off: from random weights."""
     dtype: str = "float32"
     """Transformer dtype (float32 or bfloat16; the VAE stays float32)."""
     extra: dict = field(default_factory=dict)
@@ -109,6 +123,8 @@ class RefinerConfig:
             bad("env_blocks", f"{self.env_blocks} must be block indices in [0, {layers})")
         if self.lora_rank < 0:
             bad("lora_rank", f"must be >= 0 (0: no LoRA), got {self.lora_rank}")
+        if not (math.isfinite(self.residual_scale) and self.residual_scale >= 0):
+            bad("residual_scale", f"must be >= 0 (0: flow on the latents), got {self.residual_scale}")
         if not 0 <= self.seed < 2**32:
             bad("seed", f"must be an integer in [0, 2^32), got {self.seed}")
         if self.dtype not in ("float32", "bfloat16"):
@@ -187,17 +203,24 @@ def cast_transformer(transformer, dtype: torch.dtype):
 def _build_backbone(config: RefinerConfig):
     from diffusers import AutoencoderKLWan, WanVACETransformer3DModel
 
+    from gra_mi.refiner.tiny_vae import TinyVideoAutoencoder
+
     if config.size == "tiny":
         torch.manual_seed(config.seed)
         transformer = WanVACETransformer3DModel(**TRANSFORMER_CONFIGS["tiny"])  # random: a stand-in for pretrained weights
-        vae = AutoencoderKLWan(**VAE_CONFIGS["tiny"])
         if not TINY_VAE_WEIGHTS.is_file():
             raise GraMiInputError(
                 TINY_VAE_WEIGHTS, "missing: the pretrained tiny VAE ships with gra-mi (make it with pipelines/pretrain_tiny_vae.py)"
             )
+        from safetensors import safe_open
         from safetensors.torch import load_file
 
         try:  # a random VAE would decode noise: this one reconstructs
+            with safe_open(str(TINY_VAE_WEIGHTS), framework="pt") as f:
+                meta = f.metadata() or {}
+            # its own latent statistics (the pretraining measures them), so normalised latents have unit variance
+            stats = {k: json.loads(meta[k]) for k in ("latents_mean", "latents_std") if k in meta}
+            vae = TinyVideoAutoencoder(**VAE_CONFIGS["tiny"], **stats)
             vae.load_state_dict(load_file(str(TINY_VAE_WEIGHTS)))
         except Exception as exc:  # truncated (SafetensorError) or of another config (RuntimeError)
             raise GraMiInputError(
@@ -296,10 +319,13 @@ class VideoRefiner(nn.Module):
         blocks = range(tcfg.num_layers) if config.env_blocks is None else config.env_blocks
         self.env_attention = nn.ModuleDict({str(i): AtemporalCrossAttention(dim, config.env_heads) for i in blocks})
         self._env_tokens: torch.Tensor | None = None
+        self._zero_latents: dict[tuple, torch.Tensor] = {}  # the encoding of an all-zero video, by shape
         self._inference_only = False  # set by prepare_for_inference
         for i in blocks:
             self.transformer.blocks[i].register_forward_hook(self._env_hook(str(i)))
         self.register_buffer("prompt_embeds", self._prompt_embeds(), persistent=True)
+        if config.size == "tiny" and config.prior and backbone is None:
+            self._load_prior()
         if lora and config.lora_rank > 0:
             from peft import LoraConfig
 
@@ -312,6 +338,26 @@ class VideoRefiner(nn.Module):
         latents_std = torch.tensor(self.vae.config.latents_std, dtype=torch.float32).view(1, z_dim, 1, 1, 1)
         self.register_buffer("latents_mean", latents_mean, persistent=False)
         self.register_buffer("latents_std", latents_std, persistent=False)
+
+    def _load_prior(self) -> None:
+        """The shipped tiny prior: every DiT weight, the envmap layers it has, and the prompt embedding it learnt with."""
+        from safetensors.torch import load_file
+
+        rebuild = "reinstall gra-mi, or rebuild it with pipelines/pretrain_tiny_refiner.py"
+        if not TINY_PRIOR_WEIGHTS.is_file():
+            raise GraMiInputError(TINY_PRIOR_WEIGHTS, f"missing: the pretrained tiny refiner ships with gra-mi ({rebuild})")
+        mine = self.state_dict()
+        try:
+            state = load_file(str(TINY_PRIOR_WEIGHTS))
+            wanted = {k: v for k, v in state.items() if k in mine and not k.startswith("vae.")}
+            missing = [k for k in mine if k.startswith("transformer.") and k not in wanted]
+            if missing:
+                raise RuntimeError(f"{len(missing)} DiT weights missing, e.g. {missing[:2]}")
+            self.load_state_dict(wanted, strict=False)
+        except Exception as exc:  # truncated (SafetensorError), another config (RuntimeError: shapes, missing weights)
+            raise GraMiInputError(
+                TINY_PRIOR_WEIGHTS, f"corrupt or of another refiner config ({str(exc).strip().splitlines()[0][:120]}); {rebuild}"
+            ) from None
 
     def _prompt_embeds(self) -> torch.Tensor:
         text_dim = self.transformer.config.text_dim
@@ -364,13 +410,23 @@ class VideoRefiner(nn.Module):
         return video.clamp(-1, 1)
 
     def control(self, video: torch.Tensor, mask: torch.Tensor, reference: torch.Tensor | None) -> torch.Tensor:
-        """VACE context (B, 96, F', h, w) exactly as ``WanVACEPipeline``: [inactive latents, reactive latents, 8×8 mask].
+        """VACE context (B, 32 + s², F', h, w) exactly as ``WanVACEPipeline``: [inactive latents, reactive latents, s×s
+        mask], s the VAE's spatial factor (8 for Wan2.1's: 96 channels).
 
         video (B, 3, T, H, W) in [-1, 1]; mask (B, 1, T, H, W), 1 = reactive (refine), 0 = inactive (keep);
         reference (B, 3, H, W) or None: one extra leading frame (its latent, zeros, a zero mask).
         """
         mask = (mask > 0.5).to(video.dtype)
-        latents = torch.cat([self.encode(video * (1 - mask)), self.encode(video * mask)], dim=1)
+        inactive = video * (1 - mask)
+        # No seed frames (most windows): the inactive video is all zeros, whose encoding depends on its shape only.
+        key = tuple(inactive.shape)
+        if not bool(inactive.any()):
+            if key not in self._zero_latents:
+                self._zero_latents = {key: self.encode(inactive)}
+            inactive_latents = self._zero_latents[key].to(video.device)
+        else:
+            inactive_latents = self.encode(inactive)
+        latents = torch.cat([inactive_latents, self.encode(video * mask)], dim=1)
         masks = self.latent_mask(mask)
         if reference is not None:
             ref = self.encode(reference[:, :, None])
@@ -379,13 +435,36 @@ class VideoRefiner(nn.Module):
         return torch.cat([latents, masks], dim=1)
 
     def latent_mask(self, mask: torch.Tensor) -> torch.Tensor:
-        """(B, 1, T, H, W) → (B, 64, F', H/8, W/8): space-to-depth 8×8, nearest-exact in time (diffusers' prepare_masks)."""
+        """(B, 1, T, H, W) → (B, s², F', H/s, W/s): space-to-depth s×s, nearest-exact in time (diffusers' prepare_masks)."""
         b, _, t, h, w = mask.shape
-        s, p = SPATIAL_FACTOR, self.transformer.config.patch_size[1]
+        s, p = self.vae.config.scale_factor_spatial, self.transformer.config.patch_size[1]
         nh, nw = h // (s * p) * p, w // (s * p) * p
         m = mask[:, 0].reshape(b, t, nh, s, nw, s).permute(0, 3, 5, 1, 2, 4).flatten(1, 2)
         frames = (t + TEMPORAL_FACTOR - 1) // TEMPORAL_FACTOR
         return F.interpolate(m, size=(frames, nh, nw), mode="nearest-exact")
+
+    # -- what the flow runs on ----------------------------------------------------------------------------------
+
+    @property
+    def residual_scale(self) -> float:
+        return self.config.residual_scale if self.config.size == "tiny" else 0.0
+
+    def base_latents(self, control: torch.Tensor) -> torch.Tensor:
+        """The latents the flow starts from in residual mode: per latent frame the given (inactive) latents where the
+        mask keeps them — the reference, seed frames — and the coarse input's (reactive) latents elsewhere."""
+        keep = control[:, 32:].mean(dim=1, keepdim=True)  # the latent mask, 1 = reactive
+        return keep * control[:, 16:32] + (1 - keep) * control[:, :16]
+
+    def to_flow(self, latents: torch.Tensor, control: torch.Tensor) -> torch.Tensor:
+        """Latents → the space the flow runs in (the latents, or the residual over the coarse input, scaled)."""
+        if not self.residual_scale:
+            return latents
+        return (latents - self.base_latents(control)) / self.residual_scale
+
+    def from_flow(self, x: torch.Tensor, control: torch.Tensor) -> torch.Tensor:
+        if not self.residual_scale:
+            return x
+        return self.base_latents(control) + self.residual_scale * x
 
     def env_latents(self, envmaps: torch.Tensor, reference_env: torch.Tensor | None) -> torch.Tensor:
         """Camera-space envmaps (B, 3, T, h, w) in [-1, 1] (+ the reference's (B, 3, h, w), a leading frame) → VAE latents."""

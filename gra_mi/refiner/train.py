@@ -55,6 +55,9 @@ class RefinerTrainConfig:
     noise_error_prob: float = 0.01
     latent_error_prob: float = 0.9
     inactive_error_prob: float = 0.9
+    train_base: bool = False
+    """Train every DiT weight too (pretraining a prior: pipelines/pretrain_tiny_refiner.py), not only LoRA, VACE and
+    the envmap layers (the paper's fine-tuning)."""
     error_recycling: bool = True
     """Error recycling (paper Eq. 13-15); off: plain flow matching (an ablation)."""
     bank_grid: int = 50
@@ -212,7 +215,8 @@ def flow_matching_loss(
     if sigma is None:
         sigma = float(shift_sigma(float(rng.random()), config.train_shift))
     level = int(torch.argmin((grid - sigma).abs()))
-    clean, control = enc.clean, enc.control
+    control = enc.control
+    clean = core.to_flow(enc.clean, control)  # the latents, or the residual over the coarse input (tiny)
     if noise is None:
         noise = torch.randn(clean.shape, generator=generator)
     noise = noise.to(clean.device)
@@ -232,7 +236,8 @@ def flow_matching_loss(
                 clean_in = clean
             if rng.random() < config.inactive_error_prob:
                 control = control.clone()
-                control[:, :16, 1:] += e1[:, :, 1:]  # the inactive latents (not the reference frame)
+                # the inactive latents (not the reference frame); the bank holds flow-space residuals
+                control[:, :16, 1:] += e1[:, :, 1:] * (core.residual_scale or 1.0)
                 injected.append("inactive")
         else:
             clean_in = clean
@@ -286,6 +291,8 @@ def train_refiner(
     dataset = RefinerDataset(dataset_dir)
     loop.claim("train-refiner", {"data": dataset_dir, "init": init}, {"train": asdict(config), "model": asdict(model_config)}, overwrite)
     model = VideoRefiner.load(init) if init is not None else VideoRefiner(model_config)
+    if config.train_base:
+        model.transformer.requires_grad_(True)
     model.to(device)
     window = model.config.window
     items = _windows(dataset, window, "train")
