@@ -11,7 +11,7 @@ Protocol (docs/evaluation.md):
   middle frame of each 17-frame refiner window (``window-middles``), or on all frames (``all``); the temporal
   metric and FVD use every frame.
 - **One mask** per frame for every stage: the truth's alpha ≥ 0.5 (:func:`gra_mi.core.metrics.subject_mask`), at
-  one resolution for all stages (the refiner's frames when a video stage is scored, the capture's otherwise).
+  one resolution for all stages (the refiner's delivered frames when a video stage is scored, the capture's otherwise).
 - **Metrics**: display PSNR and SSIM (:func:`gra_mi.core.metrics.compare`), LDR-ꟻLIP, the temporal error
   (:func:`gra_mi.core.metrics.temporal_error`), and LPIPS / FVD when their weights are given
   (:mod:`gra_mi.eval.perceptual`).
