@@ -205,6 +205,8 @@ def inputs(path_traced_fit, tmp_path_factory):
         "rd_frames": lambda d: {**d, "sequences": [{**d["sequences"][0], "frames": 0}] + d["sequences"][1:]},
         "rd_split": lambda d: {**d, "sequences": [{**d["sequences"][0], "split": "val"}] + d["sequences"][1:]},
         "rd_twice": lambda d: {**d, "sequences": d["sequences"] + d["sequences"][:1]},
+        "rd_box": lambda d: {**d, "frame": [16, 16], "sequences": [{**d["sequences"][0], "box": [4, 4, 2, 9]}] + d["sequences"][1:]},
+        "rd_box_frame": lambda d: {**d, "sequences": [{**d["sequences"][0], "box": [0, 0, 4, 4]}] + d["sequences"][1:]},
     }.items():
         folder = _linked_copy(root / "rd", root / name, copy=("dataset.json",))
         (folder / "dataset.json").write_text(json.dumps(edit(json.loads(json.dumps(good)))))
@@ -212,7 +214,12 @@ def inputs(path_traced_fit, tmp_path_factory):
     seq = _linked_copy(root / "rd", root / "rd_truncated", copy=(good["sequences"][0]["file"],))
     (seq / good["sequences"][0]["file"]).write_bytes(b"\x10\x00\x00\x00\x00\x00\x00\x00{")
     paths["rd_truncated"], paths["rd_first"] = seq, good["sequences"][0]["name"]
-    for name, text in {"model_window": {"format": "gra-mi-refiner/1", "window": "17"}, "model_list": [1, 2]}.items():
+    models = {
+        "model_window": {"format": "gra-mi-refiner/1", "window": "17"},
+        "model_list": [1, 2],
+        "model_residual": {"format": "gra-mi-refiner/1", "residual_scale": -0.1},
+    }
+    for name, text in models.items():
         (root / name).mkdir()
         (root / name / "refiner.json").write_text(json.dumps(text))
         (root / name / "refiner.safetensors").write_bytes(b"")
@@ -330,6 +337,8 @@ OPTION_CASES = [
     ("rd-scale-nan", [*RD, "--scale", "nan"], ["--scale"]),
     ("rd-train-length", [*RD, "--train-length", "0"], ["--train-length"]),
     ("rd-env-height", [*RD, "--env-height", "0"], ["--env-height"]),
+    ("rd-zoom", [*RD, "--zoom", "0.5"], ["--zoom"]),
+    ("rd-zoom-nan", [*RD, "--zoom", "nan"], ["--zoom"]),
     ("rd-resolution", ["refiner-data", "--synthetic", "--resolution", "20"], ["--resolution"]),
     ("rd-subjects", ["refiner-data", "--synthetic", "--subjects", "0"], ["--subjects"]),
     ("rd-no-fit", ["refiner-data", "{cap}"], ["--fit"]),
@@ -346,6 +355,8 @@ OPTION_CASES = [
     ("refine-shift-nan", [*REFINE, "--shift", "nan"], ["--shift"]),
     ("refine-shift-zero", [*REFINE, "--shift", "0"], ["--shift"]),
     ("refine-steps", [*REFINE, "--steps", "0"], ["--steps"]),
+    ("refine-denoise", [*REFINE, "--denoise", "1.5"], ["--denoise"]),
+    ("refine-denoise-nan", [*REFINE, "--denoise", "nan"], ["--denoise"]),
     ("refine-frames", [*REFINE, "--frames", "-1"], ["--frames"]),
     ("refine-seed", [*REFINE, "--seed", "-1"], ["--seed"]),
     (
@@ -521,11 +532,18 @@ DATA_CASES = [
     ("refiner-data-frames", ["train-refiner", "{rd_frames}"], ["dataset.json", "sequences[0].frames"]),
     ("refiner-data-split", ["train-refiner", "{rd_split}"], ["dataset.json", "sequences[0].split"]),
     ("refiner-data-twice", ["train-refiner", "{rd_twice}"], ["dataset.json", "listed twice"]),
+    ("refiner-data-box", ["train-refiner", "{rd_box}"], ["dataset.json", "sequences[0].box"]),
+    ("refiner-data-box-frame", ["train-refiner", "{rd_box_frame}"], ["dataset.json", "frame"]),
     ("refiner-data-truncated", ["train-refiner", "{rd_truncated}", "--steps", "1"], ["safetensors"]),
     (
         "refiner-json-types",
         ["refine", "{root}/rd", "--model", "{root}/model_window", "--sequence", "{rd_first}"],
         ["refiner.json", "window"],
+    ),
+    (
+        "refiner-json-residual",
+        ["refine", "{root}/rd", "--model", "{root}/model_residual", "--sequence", "{rd_first}"],
+        ["refiner.json", "residual_scale"],
     ),
     ("refiner-json-list", ["refine", "{root}/rd", "--model", "{root}/model_list", "--sequence", "{rd_first}"], ["refiner.json", "format"]),
 ]

@@ -546,6 +546,8 @@ def _cmd_refiner_data(args) -> None:
     require_positive({"subjects": args.subjects, "sequences": args.sequences, "resolution": args.resolution})
     if args.env_height < 4:
         raise GraMiParameterError("env_height", f"must be >= 4 (lat-long rows), got {args.env_height}")
+    if args.zoom != 0 and not args.zoom >= 1:  # before the capture and fit are read
+        raise GraMiParameterError("zoom", f"must be >= 1 (or 0: whole frames), got {args.zoom}")
     if args.synthetic:
         from gra_mi.refiner.data import synthetic_dataset
 
