@@ -462,6 +462,28 @@ def test_eval_scores_every_stage_with_one_protocol(tiny_run, tmp_path):
     assert rows[0].startswith("stage,split,status,psnr") and len(rows) == 5
 
 
+def test_refiner_data_trains_on_relit_frames_and_passes_highlights_through(tiny_run):
+    """The refiner's training sequences hold the capture's relit frames only (never a uniformly lit tracking frame);
+    a refiner that returns what it was shown (the crop clipped at its video range's white) delivers the stored whole
+    frame exactly, highlights above that white included."""
+    from gra_mi.capture.dataset import Capture
+    from gra_mi.refiner.data import RefinerDataset
+
+    data = RefinerDataset(tiny_run / "refiner" / "data")
+    kinds = {f.frame: f.kind for f in Capture.load(tiny_run / "capture").frames}
+    assert "uniform" in kinds.values()
+    for entry in data.meta["sequences"]:
+        if entry["split"] == "train":
+            assert {kinds[f] for f in entry["capture_frames"]} <= {"envmap", "pattern"}, entry["name"]
+    name = data.names("test")[0]
+    stored = data.linear_frames(name, "coarse", 3, 4)[0].numpy()
+    lit = stored.max(axis=-1) > 0
+    data.exposure = 1.0 / float(np.median(stored[lit]))  # half the subject above white: many clipped pixels
+    shown = np.clip(stored, 0.0, 1.0 / data.exposure)
+    assert (stored > shown).mean() > 0.05
+    np.testing.assert_allclose(data.delivered(name, 3, "coarse", shown), data.delivered(name, 3, "coarse"), atol=1e-6)
+
+
 def test_eval_says_what_it_skipped_and_why(tiny_run, tmp_path, capsys):
     """Missing stages are skipped and named; a folder the user pointed to that cannot be scored is exit 2 with one
     line naming the file, while the other stages are still scored."""

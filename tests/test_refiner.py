@@ -384,18 +384,18 @@ def test_handoff_frames_are_the_previous_windows_output(trained, monkeypatch):
 
     model = VideoRefiner.load(trained["root"] / "model")
     seen, decoded = [], []
-    real_conditioning, real_decode = infer.conditioning, model.decode
+    real_conditioning, real_decode = infer.conditioning, model.decode_output
 
     def spy(model, coarse, mask, *rest):
         seen.append((coarse.clone(), mask.clone()))
         return real_conditioning(model, coarse, mask, *rest)
 
-    def decode(latents):
-        decoded.append(real_decode(latents)[0])
-        return decoded[-1][None]
+    def decode(*args):  # each window's refined video
+        decoded.append(real_decode(*args))
+        return decoded[-1]
 
     monkeypatch.setattr(infer, "conditioning", spy)
-    monkeypatch.setattr(model, "decode", decode)
+    monkeypatch.setattr(model, "decode_output", decode)
     frames = list(infer.rollout(model, trained["a"], "s0_test00", steps=2, frames=29))
     assert len(seen) == 2 and len(decoded) == 2 and [f.index for f in frames] == list(range(29))
     second_coarse, second_mask = seen[1]
@@ -408,6 +408,20 @@ def test_handoff_frames_are_the_previous_windows_output(trained, monkeypatch):
 
     cut = list(infer.rollout(model, trained["a"], "s0_test00", steps=2, frames=29, joins=infer.Joins(crossfade=False)))
     torch.testing.assert_close(torch.stack([f.video for f in cut[12:17]], dim=1), decoded[2][:, 12:])
+
+
+def test_a_zero_residual_returns_the_input_exactly(trained, monkeypatch):
+    """Tiny size (residual flow): the refined window is the input plus the decoded change from what the input's own
+    latents decode to, so a sampler that finds no residual returns the input itself, not its VAE round trip."""
+    import gra_mi.refiner.infer as infer
+
+    model = VideoRefiner.load(trained["root"] / "model")
+    monkeypatch.setattr(infer, "euler_sample", lambda model, shape, *rest: torch.zeros(shape))
+    frames = list(infer.rollout(model, trained["a"], "s0_test00", steps=2, frames=17))
+    coarse = trained["a"].window("s0_test00", 0, 17)["coarse"]
+    torch.testing.assert_close(torch.stack([f.video for f in frames], dim=1), coarse.clamp(-1, 1), atol=1e-6, rtol=0)
+    roundtrip = model.decode(model.encode(coarse[None]))[0]
+    assert (roundtrip - coarse).abs().mean() > 1e-3  # the VAE alone would not have returned it
 
 
 def test_few_shot_identity_adaptation(trained):

@@ -297,9 +297,9 @@ def _refiner_verdict(refiner: dict) -> str:
         said.append(f"The refined video is within 0.4 dB of its input ({refined - coarse:+.2f} dB).")
     else:
         said.append(
-            f"The refined video is {coarse - refined:.1f} dB below its input (goal: within 0.4 dB): the tiny DiT prior, "
-            "pretrained on one other subject for 22 CPU minutes, does not carry over to this one, and a few hundred CPU "
-            "steps of fine-tuning do not close the gap (README, video refiner: the measurements and what it would take)."
+            f"The refined video is {coarse - refined:.1f} dB below its input (goal: within 0.4 dB): what the truth adds to "
+            "the RelightNet render is mostly detail the tiny refiner cannot predict from this capture's few relit frames, "
+            "so the detail it samples is its own (README, known limitations: the measurements and what it would take)."
         )
     return " ".join(said)
 

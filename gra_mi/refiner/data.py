@@ -195,14 +195,20 @@ class RefinerDataset:
     def delivered(self, name: str, index: int, key: str, image: np.ndarray | None = None) -> np.ndarray:
         """Frame ``index`` of ``key`` (coarse or target) as delivered (the whole frame, linear), with the refiner's
         ``image`` of that frame in place of the stored one: for a subject crop, its change from the stored crop goes
-        back into the stored whole frame; for whole frames, the padding is cut off."""
+        back into the stored whole frame; for whole frames, the padding is cut off.
+
+        The change is taken from what the refiner was shown: the stored frame clipped at its video range's white
+        (:func:`image_to_video`). Highlights above it, which the refiner cannot see or make, pass through from the
+        stored frame, so a refiner that returns what it was shown delivers the stored frame exactly."""
         ch, cw = self.crop
         stored = self.linear_frames(name, key, index, index + 1)[0].numpy()
         box = self.sequences[name].box
+        if image is not None:
+            change = image - np.clip(stored, 0.0, 1.0 / self.exposure)
         if box is None:
-            return (stored if image is None else image)[:ch, :cw]
+            return (stored if image is None else stored + change)[:ch, :cw]
         frame = self.linear_frames(name, f"{key}_frame", index, index + 1)[0].numpy()
-        return frame if image is None else paste_box(frame, image - stored, box)
+        return frame if image is None else paste_box(frame, change, box)
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -446,7 +452,12 @@ def dataset_from_capture(
     uniform = next((f for f in capture.frames if f.split == "train" and f.kind == "uniform"), None)
     if uniform is None:
         raise GraMiInputError(capture.folder / "capture.json", "no uniformly lit training frame to serve as the neutral reference")
-    jobs = [("train", cam, [f for f in capture.frames if f.split == "train"], train_length) for cam in capture.train_cameras]
+    # Training sequences hold the relit frames only: the refiner never refines a uniformly lit tracking frame, and
+    # with them in, every other training frame is a flash that the 4-frame latents must mix with the relit ones.
+    relit = [f for f in capture.frames if f.split == "train" and f.kind != "uniform"]
+    if not relit:
+        raise GraMiInputError(capture.folder / "capture.json", "no relit (envmap or pattern) training frame to train the refiner on")
+    jobs = [("train", cam, relit, train_length) for cam in capture.train_cameras]
     jobs += [("test", cam, [f for f in capture.frames if f.split == "test"], test_length) for cam in capture.eval_cameras]
     raw: list[tuple[str, str, dict]] = []
     for split, cam, entries, length in progress(jobs, description="refiner sequences"):
@@ -479,10 +490,12 @@ def dataset_from_capture(
             seq["target"] = crop_box(np.stack([t[..., :3] for t in full["target"]]), box, scale, size)[order]
             seq["reference"] = crop_box(full["reference"][None, ..., :3], box, scale, size)[0]
     targets = np.concatenate([s["target"].reshape(-1, 3) for _, _, s, _ in raw])
-    lum = targets.mean(axis=1)
-    # the subject's median radiance to 0.25 (≈ mid-grey after sRGB): robust to the path tracer's fireflies and to
-    # the background, which a high percentile is not
-    exposure = 0.25 / max(float(np.median(lum[lum > 0])), 1e-6)
+    lum = targets.mean(axis=1)[targets.max(axis=1) > 0]  # the subject, not the background
+    # the subject's median radiance to 0.25 (≈ mid-grey after sRGB), unless that clips more than 1 % of it: the
+    # refiner sees nothing above white (its highlights pass through from the input). Percentiles of the subject, not
+    # the maximum: robust to the path tracer's fireflies.
+    peak = targets.max(axis=1)[targets.max(axis=1) > 0]
+    exposure = min(0.25 / max(float(np.median(lum)), 1e-6), 1.0 / max(float(np.quantile(peak, 0.99)), 1e-6))
     envs = np.concatenate([s["env"].reshape(-1, 3) for _, _, s, _ in raw])
     env_exposure = 1.0 / max(float(envs.mean()), 1e-6)
     entries = []

@@ -128,8 +128,7 @@ def rollout(
         generator = torch.Generator().manual_seed(seed + k)  # a new seed per window
         from_input = model.to_flow(model.base_latents(control), control)  # the reference, then the input's latents
         x = euler_sample(model, (1, 16, *control.shape[2:]), control, env, steps, shift, generator, known, from_input, config.denoise)
-        latents = model.from_flow(x, control)
-        video = model.decode(latents[:, :, 1:])[0]  # drop the reference frame
+        video = model.decode_output(model.from_flow(x, control), control, coarse)
         if k > 0 and joins.crossfade:  # the previous window held its last frames back
             for i in range(min(carry, total - start)):
                 alpha = (i + 1) / (carry + 1)

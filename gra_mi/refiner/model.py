@@ -466,6 +466,15 @@ class VideoRefiner(nn.Module):
             return x
         return self.base_latents(control) + self.residual_scale * x
 
+    def decode_output(self, latents: torch.Tensor, control: torch.Tensor, coarse: torch.Tensor) -> torch.Tensor:
+        """Sampled latents (reference frame first) → the refined window (3, T, H, W) in [-1, 1]. Residual flow: the
+        decoded change from the base (what the input's own latents decode to), added to the input ``coarse`` itself,
+        so that what the VAE loses on the input is not charged to the output and a zero residual returns the input."""
+        video = self.decode(latents[:, :, 1:])[0]  # drop the reference frame
+        if not self.residual_scale:
+            return video
+        return (coarse + video - self.decode(self.base_latents(control)[:, :, 1:])[0]).clamp(-1, 1)
+
     def env_latents(self, envmaps: torch.Tensor, reference_env: torch.Tensor | None) -> torch.Tensor:
         """Camera-space envmaps (B, 3, T, h, w) in [-1, 1] (+ the reference's (B, 3, h, w), a leading frame) → VAE latents."""
         latents = self.encode(envmaps)
