@@ -12,7 +12,7 @@ import torch
 from gra_mi.core.errors import GraMiInputError
 from gra_mi.refiner.data import RefinerDataset, env_to_video, image_to_video, synthetic_dataset, video_to_image
 from gra_mi.refiner.flow import noisy_latent, recycling_residuals, sampling_sigmas, velocity_target
-from gra_mi.refiner.model import TRANSFORMER_CONFIGS, AtemporalCrossAttention, RefinerConfig, VideoRefiner
+from gra_mi.refiner.model import TRANSFORMER_CONFIGS, AtemporalCrossAttention, RefinerConfig, VideoRefiner, latent_frames
 from gra_mi.refiner.train import ErrorBank, RefinerTrainConfig, augment, pan_zoom, train_refiner, validation_loss
 
 torch.set_num_threads(2)
@@ -412,16 +412,51 @@ def test_handoff_frames_are_the_previous_windows_output(trained, monkeypatch):
 
 def test_a_zero_residual_returns_the_input_exactly(trained, monkeypatch):
     """Tiny size (residual flow): the refined window is the input plus the decoded change from what the input's own
-    latents decode to, so a sampler that finds no residual returns the input itself, not its VAE round trip."""
+    latents decode to, so a sampler that finds no residual returns the input itself, not its VAE round trip — over
+    a hand-off too, where the seed frames are given."""
     import gra_mi.refiner.infer as infer
 
     model = VideoRefiner.load(trained["root"] / "model")
     monkeypatch.setattr(infer, "euler_sample", lambda model, shape, *rest: torch.zeros(shape))
-    frames = list(infer.rollout(model, trained["a"], "s0_test00", steps=2, frames=17))
-    coarse = trained["a"].window("s0_test00", 0, 17)["coarse"]
-    torch.testing.assert_close(torch.stack([f.video for f in frames], dim=1), coarse.clamp(-1, 1), atol=1e-6, rtol=0)
-    roundtrip = model.decode(model.encode(coarse[None]))[0]
-    assert (roundtrip - coarse).abs().mean() > 1e-3  # the VAE alone would not have returned it
+    frames = list(infer.rollout(model, trained["a"], "s0_test00", steps=2, frames=29))  # two windows
+    coarse = trained["a"].window("s0_test00", 0, 29)["coarse"]
+    torch.testing.assert_close(torch.stack([f.video for f in frames], dim=1), coarse.clamp(-1, 1), atol=1e-5, rtol=0)
+    roundtrip = model.decode(model.encode(coarse[None, :, :17]))[0]
+    assert (roundtrip - coarse[:, :17]).abs().mean() > 1e-3  # the VAE alone would not have returned it
+
+
+def test_mean_estimate_error_against_the_input(trained, monkeypatch):
+    """A flow that predicts a zero residual (velocity = the noise) estimates the input's latents: ratio exactly 1; one
+    that predicts the target's residual exactly: ratio 0. The trained model's ratio is finite and positive."""
+    from gra_mi.refiner.train import encode_window, mean_estimate_error
+
+    model = VideoRefiner.load(trained["root"] / "model")
+    measured = mean_estimate_error(model, trained["a"], "test", max_windows=2)
+    assert measured["windows"] == 2 and measured["input"] > 0 and 0 < measured["ratio"] < 100
+    monkeypatch.setattr(model, "forward", lambda x, sigma, control, env: x)
+    assert mean_estimate_error(model, trained["a"], "test", max_windows=2)["ratio"] == pytest.approx(1.0, abs=1e-6)
+    targets = {}  # the exact residual of each window, looked up by its control
+    for begin in (0, 12):
+        enc = encode_window(model, trained["a"].window("s0_test00", begin, 17), 0)
+        targets[float(enc.control.sum())] = model.to_flow(enc.clean, enc.control, enc.given)
+    monkeypatch.setattr(model, "forward", lambda x, sigma, control, env: x - targets[float(control.sum())])
+    exact = mean_estimate_error(model, trained["a"], "test", max_windows=2)
+    assert exact["estimate"] < 1e-8 * exact["input"]
+
+
+def test_data_curve_script_runs_and_writes_its_table(tmp_path):
+    """pipelines/refiner_data_curve.py end to end on one tiny size: the CSV, the plot and the table."""
+    import subprocess
+    import sys
+
+    script = Path(__file__).resolve().parent.parent / "pipelines" / "refiner_data_curve.py"
+    args = ["--work", str(tmp_path), "--sequences", "2", "--steps", "2", "--resolution", "32", "--test-frames", "17", "--sample-steps", "2"]
+    done = subprocess.run([sys.executable, str(script), *args], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    rows = (tmp_path / "curve.csv").read_text().splitlines()
+    assert rows[0] == "sequences,ratio,psnr_input,psnr_refined,minutes" and len(rows) == 2
+    assert all(np.isfinite(float(v)) for v in rows[1].split(","))
+    assert (tmp_path / "curve.png").is_file() and "| 2 |" in (tmp_path / "curve.md").read_text()
 
 
 def test_few_shot_identity_adaptation(trained):
@@ -803,6 +838,16 @@ def test_residual_flow_space_round_trips_and_keeps_the_given_frames(model):
         assert torch.equal(base[:, :, ~kept], control[:, 16:32, ~kept])
         torch.testing.assert_close(model.from_flow(model.to_flow(latents, control), control), latents, atol=1e-5, rtol=1e-5)
         assert torch.equal(model.from_flow(torch.zeros_like(latents), control), base)
+        # the given latent frames (reference, seed frames 0 and 1-4) take the inactive latents whatever the mask says
+        given = 1 + latent_frames(seeded)
+        assert given == (1 if seeded == 0 else 3)
+        with_given = model.base_latents(control, given)
+        assert torch.equal(with_given[:, :, :given], control[:, :16, :given])
+        assert torch.equal(with_given[:, :, given:], base[:, :, given:])
+        if seeded:  # the mask alone would take the reactive latents of a blank video for seed frames 1-4
+            assert not torch.equal(with_given[:, :, 2], base[:, :, 2])
+        zero = torch.zeros_like(latents)
+        assert torch.equal(model.from_flow(zero, control, given), with_given) and torch.equal(model.to_flow(with_given, control, given), zero)
     assert model.residual_scale == model.config.residual_scale > 0
     model.config.size = "1.3B"  # real sizes: the flow runs on the latents (Wan's prior models them)
     try:

@@ -124,11 +124,11 @@ def rollout(
         env = model.env_tokens(env_latents)
         # The inactive latents of the seed frames are their encoding alone (the VAE is causal in time).
         given = 1 + latent_frames(seeded)  # the reference and the seed frames
-        known = model.to_flow(control[:, :16], control)[:, :, :given] if joins.pin else None
+        known = model.to_flow(control[:, :16], control, given)[:, :, :given] if joins.pin else None
         generator = torch.Generator().manual_seed(seed + k)  # a new seed per window
-        from_input = model.to_flow(model.base_latents(control), control)  # the reference, then the input's latents
+        from_input = model.to_flow(model.base_latents(control, given), control, given)  # the given, then the input's latents
         x = euler_sample(model, (1, 16, *control.shape[2:]), control, env, steps, shift, generator, known, from_input, config.denoise)
-        video = model.decode_output(model.from_flow(x, control), control, coarse)
+        video = model.decode_output(model.from_flow(x, control, given), control, coarse, given)
         if k > 0 and joins.crossfade:  # the previous window held its last frames back
             for i in range(min(carry, total - start)):
                 alpha = (i + 1) / (carry + 1)

@@ -449,31 +449,38 @@ class VideoRefiner(nn.Module):
     def residual_scale(self) -> float:
         return self.config.residual_scale if self.config.size == "tiny" else 0.0
 
-    def base_latents(self, control: torch.Tensor) -> torch.Tensor:
+    def base_latents(self, control: torch.Tensor, given: int = 0) -> torch.Tensor:
         """The latents the flow starts from in residual mode: per latent frame the given (inactive) latents where the
-        mask keeps them — the reference, seed frames — and the coarse input's (reactive) latents elsewhere."""
-        keep = control[:, 32:].mean(dim=1, keepdim=True)  # the latent mask, 1 = reactive
-        return keep * control[:, 16:32] + (1 - keep) * control[:, :16]
+        mask keeps them — the reference, seed frames — and the coarse input's (reactive) latents elsewhere.
 
-    def to_flow(self, latents: torch.Tensor, control: torch.Tensor) -> torch.Tensor:
+        ``given``: the leading latent frames that are given (the reference and the seed frames' latents) take the
+        inactive latents whatever the mask says: diffusers' nearest-exact latent mask marks the latent frame of seed
+        frames 1–4 reactive, whose reactive latents are then those of a blank video."""
+        keep = control[:, 32:].mean(dim=1, keepdim=True)  # the latent mask, 1 = reactive
+        base = keep * control[:, 16:32] + (1 - keep) * control[:, :16]
+        if given:
+            base = torch.cat([control[:, :16, :given], base[:, :, given:]], dim=2)
+        return base
+
+    def to_flow(self, latents: torch.Tensor, control: torch.Tensor, given: int = 0) -> torch.Tensor:
         """Latents → the space the flow runs in (the latents, or the residual over the coarse input, scaled)."""
         if not self.residual_scale:
             return latents
-        return (latents - self.base_latents(control)) / self.residual_scale
+        return (latents - self.base_latents(control, given)) / self.residual_scale
 
-    def from_flow(self, x: torch.Tensor, control: torch.Tensor) -> torch.Tensor:
+    def from_flow(self, x: torch.Tensor, control: torch.Tensor, given: int = 0) -> torch.Tensor:
         if not self.residual_scale:
             return x
-        return self.base_latents(control) + self.residual_scale * x
+        return self.base_latents(control, given) + self.residual_scale * x
 
-    def decode_output(self, latents: torch.Tensor, control: torch.Tensor, coarse: torch.Tensor) -> torch.Tensor:
+    def decode_output(self, latents: torch.Tensor, control: torch.Tensor, coarse: torch.Tensor, given: int = 0) -> torch.Tensor:
         """Sampled latents (reference frame first) → the refined window (3, T, H, W) in [-1, 1]. Residual flow: the
         decoded change from the base (what the input's own latents decode to), added to the input ``coarse`` itself,
         so that what the VAE loses on the input is not charged to the output and a zero residual returns the input."""
         video = self.decode(latents[:, :, 1:])[0]  # drop the reference frame
         if not self.residual_scale:
             return video
-        return (coarse + video - self.decode(self.base_latents(control)[:, :, 1:])[0]).clamp(-1, 1)
+        return (coarse + video - self.decode(self.base_latents(control, given)[:, :, 1:])[0]).clamp(-1, 1)
 
     def env_latents(self, envmaps: torch.Tensor, reference_env: torch.Tensor | None) -> torch.Tensor:
         """Camera-space envmaps (B, 3, T, h, w) in [-1, 1] (+ the reference's (B, 3, h, w), a leading frame) → VAE latents."""
