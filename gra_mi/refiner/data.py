@@ -490,12 +490,12 @@ def dataset_from_capture(
             seq["target"] = crop_box(np.stack([t[..., :3] for t in full["target"]]), box, scale, size)[order]
             seq["reference"] = crop_box(full["reference"][None, ..., :3], box, scale, size)[0]
     targets = np.concatenate([s["target"].reshape(-1, 3) for _, _, s, _ in raw])
-    lum = targets.mean(axis=1)[targets.max(axis=1) > 0]  # the subject, not the background
+    subject = targets[targets.max(axis=1) > 0]  # not the background
     # the subject's median radiance to 0.25 (≈ mid-grey after sRGB), unless that clips more than 1 % of it: the
     # refiner sees nothing above white (its highlights pass through from the input). Percentiles of the subject, not
-    # the maximum: robust to the path tracer's fireflies.
-    peak = targets.max(axis=1)[targets.max(axis=1) > 0]
-    exposure = min(0.25 / max(float(np.median(lum)), 1e-6), 1.0 / max(float(np.quantile(peak, 0.99)), 1e-6))
+    # its maximum: robust to the path tracer's fireflies.
+    median, peak = float(np.median(subject.mean(axis=1))), float(np.quantile(subject.max(axis=1), 0.99))
+    exposure = min(0.25 / max(median, 1e-6), 1.0 / max(peak, 1e-6))
     envs = np.concatenate([s["env"].reshape(-1, 3) for _, _, s, _ in raw])
     env_exposure = 1.0 / max(float(envs.mean()), 1e-6)
     entries = []

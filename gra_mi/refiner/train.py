@@ -405,7 +405,7 @@ def mean_estimate_error(model: VideoRefiner, dataset: RefinerDataset, split: str
     items = items[:: max(1, len(items) // max_windows)][:max_windows]
     if not items:
         raise GraMiInputError(dataset.folder / "dataset.json", f"no '{split}' sequence with targets")
-    estimate, given = [], []
+    estimate, unchanged = [], []
     for i, (name, begin) in enumerate(items):
         win = {k: v.to(model.device) for k, v in dataset.window(name, begin, model.config.window).items()}
         enc = encode_window(model, win, 0)
@@ -413,6 +413,6 @@ def mean_estimate_error(model: VideoRefiner, dataset: RefinerDataset, split: str
         one = torch.ones(1, device=model.device)
         flow = noise - model(noise, one, enc.control, model.env_tokens(enc.env_latents))
         estimate.append(float(((model.from_flow(flow, enc.control, enc.given) - enc.clean)[:, :, 1:] ** 2).mean()))
-        given.append(float(((model.base_latents(enc.control, enc.given) - enc.clean)[:, :, 1:] ** 2).mean()))
-    e, g = float(np.mean(estimate)), float(np.mean(given))
-    return {"estimate": e, "input": g, "ratio": e / g, "windows": len(items)}
+        unchanged.append(float(((model.base_latents(enc.control, enc.given) - enc.clean)[:, :, 1:] ** 2).mean()))
+    e, u = float(np.mean(estimate)), float(np.mean(unchanged))
+    return {"estimate": e, "input": u, "ratio": e / u, "windows": len(items)}
