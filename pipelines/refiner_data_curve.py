@@ -7,8 +7,8 @@ the shipped prior (every DiT weight, plain flow matching), then measured on the 
 - ``ratio``: its clean-latent estimate from pure noise (σ = 1: the target's conditional mean as the model sees it)
   against the target, relative to the input's own latents (:func:`gra_mi.refiner.train.mean_estimate_error`).
   Below 1 it predicts part of what the input misses;
-- the refined video against its input (`gra-mi refine`, display PSNR over the subject), which is at best level
-  with the input while the ratio is ≥ 1.
+- the refined video against its input (`gra-mi refine`; display PSNR, ꟻLIP and the temporal error over the
+  subject, as `gra-mi eval`), which is at best level with the input while the ratio is ≥ 1.
 
 Writes ``--work``/curve.csv and curve.png and prints the table (README, known limitations).
 
@@ -58,26 +58,51 @@ def main() -> None:
             train_refiner(data.folder, model_dir, config, RefinerConfig())
         known = mean_estimate_error(VideoRefiner.load(model_dir), data, "test")
         test = data.names("test")[0]
-        refined = refine_to_folder(model_dir, data.folder, test, args.work / f"refined_{n}", steps=args.sample_steps, overwrite=True)
-        rows.append(
-            {
-                "sequences": n,
-                "ratio": known["ratio"],
-                "psnr_input": refined["psnr_coarse"],
-                "psnr_refined": refined["psnr_refined"],
-                "minutes": (time.perf_counter() - t0) / 60,
-            }
-        )
+        folder = args.work / f"refined_{n}"
+        refine_to_folder(model_dir, data.folder, test, folder, steps=args.sample_steps, overwrite=True)
+        scores = _scores(data, test, folder)
+        rows.append({"sequences": n, "ratio": known["ratio"], **scores, "minutes": (time.perf_counter() - t0) / 60})
         print(json.dumps(rows[-1]), flush=True)
     with open(args.work / "curve.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
     _plot(rows, args.work / "curve.png")
-    table = ["| training sequences | estimate / input (σ = 1) | refined − input (dB) | minutes |", "|---|---|---|---|"]
-    table += [f"| {r['sequences']} | {r['ratio']:.3f} | {r['psnr_refined'] - r['psnr_input']:+.2f} | {r['minutes']:.1f} |" for r in rows]
+    table = [
+        "| training sequences | estimate / input (σ = 1) | refined − input (dB) | ꟻLIP input → refined | temporal input → refined | minutes |",
+        "|---|---|---|---|---|---|",
+    ]
+    table += [
+        f"| {r['sequences']} | {r['ratio']:.3f} | {r['psnr_refined'] - r['psnr_input']:+.2f} | {r['flip_input']:.4f} → "
+        f"{r['flip_refined']:.4f} | {r['temporal_input']:.4f} → {r['temporal_refined']:.4f} | {r['minutes']:.1f} |"
+        for r in rows
+    ]
     atomic_write_text(args.work / "curve.md", "\n".join(table) + "\n")
     print("\n".join(table))
+
+
+def _scores(data, sequence: str, folder: Path) -> dict:
+    """Display PSNR, ꟻLIP and the temporal error of the input and the refined frames against the truth, as
+    `gra-mi eval` computes them (gra_mi.core.metrics), over the subject of each frame."""
+    import numpy as np
+
+    from gra_mi.core.io import read_exr
+    from gra_mi.core.metrics import compare, flip, temporal_error
+
+    n = len(list((folder / "frames").glob("*.exr")))
+    truth = [data.delivered(sequence, i, "target") for i in range(n)]
+    videos = {
+        "input": [data.delivered(sequence, i, "coarse") for i in range(n)],
+        "refined": [read_exr(folder / "frames" / f"frame_{i:04d}.exr")[..., :3] for i in range(n)],
+    }
+    masks = [(c.max(axis=-1) > 0) | (t.max(axis=-1) > 0) for c, t in zip(videos["input"], truth, strict=True)]
+    out = {}
+    for key, frames in videos.items():
+        triples = list(zip(frames, truth, masks, strict=True))
+        out[f"psnr_{key}"] = float(np.mean([compare(f, t, m)["psnr"] for f, t, m in triples]))
+        out[f"flip_{key}"] = float(np.mean([flip(f, t, m) for f, t, m in triples]))
+        out[f"temporal_{key}"] = temporal_error(frames, truth, masks, data.exposure)
+    return out
 
 
 def _plot(rows: list[dict], path: Path) -> None:

@@ -454,7 +454,8 @@ def test_data_curve_script_runs_and_writes_its_table(tmp_path):
     done = subprocess.run([sys.executable, str(script), *args], capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-2000:]
     rows = (tmp_path / "curve.csv").read_text().splitlines()
-    assert rows[0] == "sequences,ratio,psnr_input,psnr_refined,minutes" and len(rows) == 2
+    header = "sequences,ratio,psnr_input,flip_input,temporal_input,psnr_refined,flip_refined,temporal_refined,minutes"
+    assert rows[0] == header and len(rows) == 2
     assert all(np.isfinite(float(v)) for v in rows[1].split(","))
     assert (tmp_path / "curve.png").is_file() and "| 2 |" in (tmp_path / "curve.md").read_text()
 
