@@ -91,7 +91,8 @@ def main() -> None:
     model_dir = args.work / "model"
     # Plain flow matching, as a base model is pretrained: error recycling feeds the model its own errors, which
     # from random weights swamp what it must first learn (copy the control through); the fine-tuning recycles.
-    config = RefinerTrainConfig(steps=args.steps, lr=args.lr, seed=args.seed, train_base=True, error_recycling=False)
+    # a prior is fine-tuned before anything is delivered: the mix is chosen then, not here
+    config = RefinerTrainConfig(steps=args.steps, lr=args.lr, seed=args.seed, train_base=True, error_recycling=False, choose_mix=False)
     train_refiner(data, model_dir, config, RefinerConfig(prior=False, lora_rank=0, seed=args.seed), init=args.init)
     trained = time.perf_counter() - t0 - made
     counts = export_prior(model_dir, args.out)

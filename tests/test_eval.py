@@ -463,18 +463,24 @@ def test_eval_scores_every_stage_with_one_protocol(tiny_run, tmp_path):
 
 
 def test_refiner_data_trains_on_relit_frames_and_passes_highlights_through(tiny_run):
-    """The refiner's training sequences hold the capture's relit frames only (never a uniformly lit tracking frame);
-    a refiner that returns what it was shown (the crop clipped at its video range's white) delivers the stored whole
-    frame exactly, highlights above that white included."""
+    """The refiner's training sequences hold the capture's relit frames only (never a uniformly lit tracking frame),
+    its selection sequence the held-out lighting on a training camera; a refiner that returns what it was shown (the
+    crop clipped at its video range's white) delivers the stored whole frame exactly, highlights above that white
+    included, and so does flicker correction of a frame that needs none."""
     from gra_mi.capture.dataset import Capture
     from gra_mi.refiner.data import RefinerDataset
 
     data = RefinerDataset(tiny_run / "refiner" / "data")
-    kinds = {f.frame: f.kind for f in Capture.load(tiny_run / "capture").frames}
+    capture = Capture.load(tiny_run / "capture")
+    kinds = {f.frame: f.kind for f in capture.frames}
     assert "uniform" in kinds.values()
     for entry in data.meta["sequences"]:
         if entry["split"] == "train":
             assert {kinds[f] for f in entry["capture_frames"]} <= {"envmap", "pattern"}, entry["name"]
+    # the mix is chosen on the held-out lighting seen by the first training camera: not trained on, not evaluated
+    held_out = {f.frame for f in capture.frames if f.split == "test"}
+    (selection,) = [e for e in data.meta["sequences"] if e["split"] == "selection"]
+    assert selection["camera"] == capture.train_cameras[0] and set(selection["capture_frames"]) <= held_out
     name = data.names("test")[0]
     stored = data.linear_frames(name, "coarse", 3, 4)[0].numpy()
     lit = stored.max(axis=-1) > 0
@@ -482,6 +488,10 @@ def test_refiner_data_trains_on_relit_frames_and_passes_highlights_through(tiny_
     shown = np.clip(stored, 0.0, 1.0 / data.exposure)
     assert (stored > shown).mean() > 0.05
     np.testing.assert_allclose(data.delivered(name, 3, "coarse", shown), data.delivered(name, 3, "coarse"), atol=1e-6)
+    # flicker correction passes them through too: a frame that is its own stable render comes back as it was
+    from gra_mi.refiner.deflicker import DeflickerConfig, deflicker_frame
+
+    np.testing.assert_allclose(deflicker_frame(stored, stored, data.exposure, DeflickerConfig()), stored, rtol=1e-5, atol=1e-6)
 
 
 def test_eval_says_what_it_skipped_and_why(tiny_run, tmp_path, capsys):

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from gra_mi.core.errors import GraMiInputError
+from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.refiner.data import RefinerDataset, env_to_video, image_to_video, synthetic_dataset, video_to_image
 from gra_mi.refiner.flow import noisy_latent, recycling_residuals, sampling_sigmas, velocity_target
 from gra_mi.refiner.model import TRANSFORMER_CONFIGS, AtemporalCrossAttention, RefinerConfig, VideoRefiner, latent_frames
@@ -425,6 +425,113 @@ def test_a_zero_residual_returns_the_input_exactly(trained, monkeypatch):
     assert (roundtrip - coarse[:, :17]).abs().mean() > 1e-3  # the VAE alone would not have returned it
 
 
+def test_mix_blends_the_refiners_change_and_zero_samples_nothing(trained, monkeypatch):
+    """Mix s delivers input + s·(refined − input) (the model's own mix by default); mix 0 delivers the
+    input exactly without sampling, and refine.json says which mix it used."""
+    import gra_mi.refiner.infer as infer
+
+    model = VideoRefiner.load(trained["root"] / "model")
+    assert model.config.mix == 1.0  # trained on data without a selection sequence
+    coarse = trained["a"].window("s0_test00", 0, 41)["coarse"]
+    full = torch.stack([f.video for f in infer.rollout(model, trained["a"], "s0_test00", steps=2, frames=17)], dim=1)
+    half = torch.stack([f.video for f in infer.rollout(model, trained["a"], "s0_test00", steps=2, frames=17, mix=0.5)], dim=1)
+    torch.testing.assert_close(half, coarse[:, :17] + 0.5 * (full - coarse[:, :17]))
+    model.config.mix = 0.5
+    own = torch.stack([f.video for f in infer.rollout(model, trained["a"], "s0_test00", steps=2, frames=17)], dim=1)
+    torch.testing.assert_close(own, half)
+
+    def no_sampling(*args, **kwargs):
+        raise AssertionError("mix 0 must not sample")
+
+    monkeypatch.setattr(infer, "euler_sample", no_sampling)
+    none = list(infer.rollout(model, trained["a"], "s0_test00", mix=0.0))
+    assert [f.index for f in none] == list(range(41))
+    torch.testing.assert_close(torch.stack([f.video for f in none], dim=1), coarse, atol=0, rtol=0)
+    summary = infer.refine_to_folder(
+        trained["root"] / "model",
+        trained["root"] / "data_a",
+        "s0_test00",
+        trained["root"] / "s0",
+        mix=0.0,
+        frames=5,
+        vae_round_trip_psnr=False,
+    )
+    assert summary["mix"] == 0.0 and summary["psnr_refined"] == pytest.approx(summary["psnr_coarse"], abs=1e-3)
+    with pytest.raises(GraMiParameterError, match="mix"):
+        list(infer.rollout(model, trained["a"], "s0_test00", mix=1.5))
+
+
+def test_mix_choice_follows_the_refined_videos_goal():
+    """A mix qualifies with PSNR at most 0.4 dB below the input's and ꟻLIP and temporal error no worse; the
+    qualifying one with the lowest ꟻLIP is kept (ties: the smaller); the input itself always qualifies."""
+    from gra_mi.refiner.mix import MixScore as S
+    from gra_mi.refiner.mix import choose_mix
+
+    base = S(0.0, 30.0, 0.10, 0.020)
+    assert choose_mix([base, S(0.5, 29.9, 0.11, 0.019), S(1.0, 31.0, 0.09, 0.030)]).mix == 0  # ꟻLIP / temporal worse
+    assert choose_mix([base, S(0.5, 29.7, 0.09, 0.019), S(1.0, 29.5, 0.08, 0.018)]).mix == 0.5  # 1 gives up 0.5 dB
+    assert choose_mix([base, S(0.25, 30.1, 0.09, 0.02), S(0.5, 30.2, 0.09, 0.02)]).mix == 0.25
+    with pytest.raises(ValueError, match="mix 0"):
+        choose_mix([S(1.0, 30.0, 0.1, 0.02)])
+
+
+def test_mix_scores_a_perfect_and_a_noisy_refiner(tmp_path, monkeypatch):
+    """On the selection sequence, a stand-in refiner that returns the truth is kept at mix 1 and one that adds
+    noise to its input at 0; the mix-0 row is the input's own PSNR against the truth."""
+    from types import SimpleNamespace
+
+    import gra_mi.refiner.infer as infer
+    from gra_mi.core.metrics import compare
+    from gra_mi.refiner.mix import MIXES, choose_mix, mix_scores
+
+    data = synthetic_dataset(tmp_path / "data", {0: (1, 0, 1)}, frames=17, height=32, width=32, env_height=16, test_frames=17)
+    name = data.names("selection")[0]
+    window = data.window(name, 0, 17)
+    model = SimpleNamespace(config=SimpleNamespace(window=17))
+
+    def stand_in(video):
+        def rollout(model, dataset, sequence, **options):
+            assert options["mix"] == 1.0 and options["frames"] == 17
+            return (infer.RefinedFrame(i, video[:, i], 0) for i in range(17))
+
+        return rollout
+
+    monkeypatch.setattr(infer, "rollout", stand_in(window["target"]))
+    perfect = mix_scores(model, data, [name], steps=2, shift=3.0)
+    assert [s.mix for s in perfect] == list(MIXES) and choose_mix(perfect).mix == 1.0
+    truth = [data.delivered(name, i, "target") for i in range(17)]
+    coarse = [data.delivered(name, i, "coarse") for i in range(17)]
+    masks = [infer._subject(c, t) for c, t in zip(coarse, truth, strict=True)]
+    unchanged = np.mean([compare(c, t, m)["psnr"] for c, t, m in zip(coarse, truth, masks, strict=True)])
+    assert perfect[0].psnr == pytest.approx(unchanged, abs=1e-3) and perfect[-1].psnr > unchanged + 10
+    noise = torch.randn(window["coarse"].shape, generator=torch.Generator().manual_seed(0))
+    monkeypatch.setattr(infer, "rollout", stand_in((window["coarse"] + 0.1 * noise).clamp(-1, 1)))
+    assert choose_mix(mix_scores(model, data, [name], steps=2, shift=3.0)).mix == 0.0
+
+
+def test_training_chooses_the_mix_on_the_selection_sequences(tmp_path):
+    """Training with a selection sequence scores every mix on it and keeps the choice in refiner.json (which
+    `refine` then uses), train.json and mix.md; the selection sequence is not trained on."""
+    from gra_mi.refiner.mix import MIXES
+    from gra_mi.refiner.train import _windows
+
+    data = synthetic_dataset(tmp_path / "data", {0: (2, 1, 1)}, frames=17, height=32, width=32, env_height=16, test_frames=17)
+    assert data.names("selection") == ["s0_selection00"]
+    assert {n for n, _ in _windows(data, 17, "train")} == {"s0_train00", "s0_train01"}
+    config = RefinerTrainConfig(steps=2, checkpoint_every=1000, selection_steps=2)
+    train_refiner(data.folder, tmp_path / "model", config, RefinerConfig(lora_rank=4))
+    summary = json.loads((tmp_path / "model" / "train.json").read_text())["mix"]
+    assert [s["mix"] for s in summary["scores"]] == list(MIXES) and summary["sequences"] == ["s0_selection00"]
+    assert summary["chosen"] in MIXES
+    assert VideoRefiner.load(tmp_path / "model").config.mix == summary["chosen"]
+    assert (tmp_path / "model" / "mix.md").is_file() and (tmp_path / "model" / "mix.png").is_file()
+    off = RefinerTrainConfig(steps=2, checkpoint_every=1000, choose_mix=False)
+    train_refiner(data.folder, tmp_path / "off", off, RefinerConfig(lora_rank=4))
+    assert json.loads((tmp_path / "off" / "train.json").read_text())["mix"] == {"chosen": 1.0, "why": "switched off"}
+    with pytest.raises(GraMiInputError, match="mix"):
+        VideoRefiner.load(tmp_path / "model", mix=2.0)
+
+
 def test_mean_estimate_error_against_the_input(trained, monkeypatch):
     """A flow that predicts a zero residual (velocity = the noise) estimates the input's latents: ratio exactly 1; one
     that predicts the target's residual exactly: ratio 0. The trained model's ratio is finite and positive."""
@@ -663,9 +770,10 @@ def test_cli_end_to_end(tmp_path):
     data, model, out = tmp_path / "data", tmp_path / "model", tmp_path / "refined"
     assert main(["refiner-data", "--synthetic", "--out", str(data), "--sequences", "2", "--resolution", "32", "--test-length", "21"]) == 0
     assert main(["train-refiner", str(data), "--out", str(model), "--steps", "3", "--lora-rank", "4", "--env-blocks", "1,3"]) == 0
-    assert main(["refine", str(data), "--model", str(model), "--out", str(out), "--steps", "2"]) == 0
+    assert json.loads((model / "train.json").read_text())["mix"]["sequences"] == ["s0_selection00"]  # chosen on it
+    assert main(["refine", str(data), "--model", str(model), "--out", str(out), "--steps", "2", "--mix", "1"]) == 0
     summary = json.loads((out / "refine.json").read_text())
-    assert summary["frames"] == 21 and summary["windows"] == 2
+    assert summary["frames"] == 21 and summary["windows"] == 2 and summary["mix"] == 1.0
     # flicker correction beside the refined frames; composites need data made from a capture (named, exit 2)
     assert main(["refine", str(data), "--model", str(model), "--out", str(out), "--steps", "2", "--deflicker", "--frames", "3"]) == 0
     summary = json.loads((out / "refine.json").read_text())

@@ -553,7 +553,7 @@ def _cmd_refiner_data(args) -> None:
 
         if args.resolution % 16:
             raise GraMiParameterError("resolution", f"must be a multiple of 16, got {args.resolution}")
-        subjects = {s: (args.sequences, 1) for s in range(args.subjects)}
+        subjects = {s: (args.sequences, 1, 1) for s in range(args.subjects)}
         ds = synthetic_dataset(
             args.out, subjects, 17, args.resolution, args.resolution, args.env_height, args.test_length, overwrite=args.overwrite
         )
@@ -611,7 +611,19 @@ def _args_train_refiner(p):
         parsers={"env_blocks": _parse_blocks},
     )
     add_config_options(
-        p, RefinerTrainConfig, ["steps", "lr", "grad_accumulation", "error_recycling", "bank_per_level", "checkpoint_every", "seed"]
+        p,
+        RefinerTrainConfig,
+        [
+            "steps",
+            "lr",
+            "grad_accumulation",
+            "error_recycling",
+            "bank_per_level",
+            "checkpoint_every",
+            "seed",
+            "choose_mix",
+            "selection_steps",
+        ],
     )
     _add_overwrite(p)
     _add_device(p)
@@ -634,7 +646,7 @@ def _args_refine(p):
     p.add_argument("--model", type=Path, required=True, help="Trained refiner folder (from `gra-mi train-refiner`).")
     p.add_argument("--sequence", default=None, help="Sequence name (default: the first test sequence).")
     p.add_argument("--out", type=Path, default=Path("outputs/refined"), help="Output folder. Default: outputs/refined.")
-    add_config_options(p, RefineConfig, ["steps", "shift", "denoise", "seed", "frames", "fuse_lora"])
+    add_config_options(p, RefineConfig, ["steps", "shift", "denoise", "mix", "seed", "frames", "fuse_lora"])
     add_config_options(p, Joins, ["handoff", "pin", "crossfade"])
     p.add_argument(
         "--deflicker",

@@ -29,6 +29,9 @@ from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.io import atomic_path, atomic_write_text, json_field, read_json
 
 DATA_FORMAT = "gra-mi-refiner-data/1"
+SPLITS = ("train", "selection", "test")
+"""Sequence splits: trained on; held out to choose the refiner's mix (:mod:`gra_mi.refiner.mix`);
+held out for the evaluation."""
 ENV_STOPS = 12.0
 
 
@@ -125,8 +128,8 @@ class RefinerDataset:
             for key, kind in (("name", str), ("split", str), ("file", str)):
                 json_field(path, s, key, kind, where=where)
             json_field(path, s, "frames", int, low=1, where=where)
-            if s["split"] not in ("train", "test"):
-                raise GraMiInputError(path, f"expected 'train' or 'test', got {s['split']!r}", field=where + "split")
+            if s["split"] not in SPLITS:
+                raise GraMiInputError(path, f"expected one of {', '.join(SPLITS)}, got {s['split']!r}", field=where + "split")
             if s["name"] in self.sequences:
                 raise GraMiInputError(path, f"sequence '{s['name']}' is listed twice", field=where + "name")
             file = self.folder / s["file"]
@@ -290,7 +293,8 @@ def synthetic_dataset(
     seed: int = 0,
     overwrite: bool = False,
 ) -> RefinerDataset:
-    """subjects: subject seed → (number of training sequences, number of test sequences of ``test_frames``)."""
+    """subjects: subject seed → (number of training sequences, number of test sequences of ``test_frames``[, number
+    of selection sequences of ``test_frames``])."""
     from gra_mi.core.provenance import claim_output
 
     config = {"subjects": {str(k): list(v) for k, v in subjects.items()}, "frames": frames, "height": height, "width": width}
@@ -298,8 +302,9 @@ def synthetic_dataset(
     folder = claim_output(folder, "refiner-data --synthetic", {}, config, overwrite=overwrite, marker="dataset.json")
     entries = []
     k = seed
-    for subject, (n_train, n_test) in subjects.items():
-        for split, count, length in (("train", n_train, frames), ("test", n_test, test_frames or frames)):
+    for subject, (n_train, n_test, *n_selection) in subjects.items():
+        counts = (("train", n_train, frames), ("test", n_test, test_frames or frames))
+        for split, count, length in counts + (("selection", sum(n_selection), test_frames or frames),):
             for i in range(count):
                 name = f"s{subject}_{split}{i:02d}"
                 k += 1
@@ -457,8 +462,12 @@ def dataset_from_capture(
     relit = [f for f in capture.frames if f.split == "train" and f.kind != "uniform"]
     if not relit:
         raise GraMiInputError(capture.folder / "capture.json", "no relit (envmap or pattern) training frame to train the refiner on")
+    held_out = [f for f in capture.frames if f.split == "test"]
     jobs = [("train", cam, relit, train_length) for cam in capture.train_cameras]
-    jobs += [("test", cam, [f for f in capture.frames if f.split == "test"], test_length) for cam in capture.eval_cameras]
+    # The held-out lighting on the first training camera (RelightNet's "novel lighting" view): a continuous video
+    # that training never sees and the evaluation never scores, on which training chooses the refiner's mix.
+    jobs += [("selection", cam, held_out, test_length) for cam in capture.train_cameras[:1] if held_out]
+    jobs += [("test", cam, held_out, test_length) for cam in capture.eval_cameras]
     raw: list[tuple[str, str, dict]] = []
     for split, cam, entries, length in progress(jobs, description="refiner sequences"):
         full = {  # capture resolution: the source of the crops

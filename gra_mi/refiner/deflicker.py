@@ -67,7 +67,8 @@ def deflicker_frame(frame: np.ndarray, stable: np.ndarray, exposure: float, conf
     k = 2 * config.filter_radius + 1
     low_x = guided_blur(x, x, k, config.filter_eps, border_type="reflect")
     low_c = guided_blur(x, c, k, config.filter_eps, border_type="reflect")
-    out = _decode(x + config.strength * (low_c - low_x), exposure)
+    # the correction as a change, so what lies above the display's white (clipped in x) passes through
+    out = frame[..., :3] + (_decode(x + config.strength * (low_c - low_x), exposure) - _decode(x, exposure))
     if frame.shape[-1] > 3:
         out = np.concatenate([out, frame[..., 3:]], axis=-1)
     return out

@@ -73,6 +73,9 @@ class RefineConfig:
     denoise: float = 1.0
     """How much of the sampling schedule runs. 1: all of it, from noise (the paper). Below 1: the last part only,
     from the coarse input's latents noised to that point (SDEdit): the refiner keeps the input's layout."""
+    mix: float | None = None
+    """The fraction of the refiner's change delivered, input + mix·(refined − input), in [0, 1]; default: the
+    model's own, chosen when it was trained (refiner.json). 0 delivers the input and samples nothing."""
     seed: int = 0
     """Seed of the first window (each window uses seed + its index)."""
     frames: int | None = None
@@ -86,6 +89,8 @@ class RefineConfig:
         require_positive({"steps": self.steps, "shift": self.shift})
         if not 0 < self.denoise <= 1:
             raise GraMiParameterError("denoise", f"must be in (0, 1], got {self.denoise}")
+        if self.mix is not None and not 0 <= self.mix <= 1:
+            raise GraMiParameterError("mix", f"must be in [0, 1], got {self.mix}")
         require_seed(self.seed)
         if self.frames is not None:
             require_positive({"frames": self.frames})
@@ -108,6 +113,13 @@ def rollout(
     if not 0 < total <= info.frames:
         raise GraMiParameterError("frames", f"sequence '{sequence}' has {info.frames} frames, asked for {total}")
     window, carry = model.config.window, model.config.handoff
+    mix = model.config.mix if config.mix is None else config.mix
+    if mix == 0:  # the input, delivered as it is: nothing to sample
+        for k, start in enumerate(range(0, total, window)):
+            coarse = dataset.window(sequence, start, window)["coarse"]
+            for i in range(min(window, total - start)):
+                yield RefinedFrame(start + i, coarse[:, i].clone(), k)
+        return
     carried: torch.Tensor | None = None  # (3, handoff, H, W): the previous window's last frames
     starts = window_starts(total, window, carry)
     for k, start in enumerate(starts):
@@ -129,6 +141,8 @@ def rollout(
         from_input = model.to_flow(model.base_latents(control, given), control, given)  # the given, then the input's latents
         x = euler_sample(model, (1, 16, *control.shape[2:]), control, env, steps, shift, generator, known, from_input, config.denoise)
         video = model.decode_output(model.from_flow(x, control, given), control, coarse, given)
+        if mix < 1:  # the handed-off frames are what was delivered, so the next window continues them
+            video = coarse + mix * (video - coarse)
         if k > 0 and joins.crossfade:  # the previous window held its last frames back
             for i in range(min(carry, total - start)):
                 alpha = (i + 1) / (carry + 1)
@@ -313,6 +327,7 @@ def refine_to_folder(
         "steps": steps,
         "shift": shift,
         "seed": seed,
+        "mix": model.config.mix if config.mix is None else config.mix,
         "seconds": seconds,
         "frames_per_second": len(rows) / seconds,
         "joins": {"handoff": joins.handoff, "pin": joins.pin, "crossfade": joins.crossfade},

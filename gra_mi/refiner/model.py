@@ -103,6 +103,9 @@ class RefinerConfig:
     off: from random weights."""
     dtype: str = "float32"
     """Transformer dtype (float32 or bfloat16; the VAE stays float32)."""
+    mix: float = 1.0
+    """The fraction of the refiner's change delivered: input + mix·(refined − input). Training chooses it on the
+    data's selection sequences (:mod:`gra_mi.refiner.mix`); 1 (the refiner's output as it is) without them."""
     extra: dict = field(default_factory=dict)
 
     def validate(self, source: str | Path | None = None) -> None:
@@ -129,6 +132,8 @@ class RefinerConfig:
             bad("seed", f"must be an integer in [0, 2^32), got {self.seed}")
         if self.dtype not in ("float32", "bfloat16"):
             bad("dtype", f"must be float32 or bfloat16, got '{self.dtype}'")
+        if not 0 <= self.mix <= 1:  # NaN fails too
+            bad("mix", f"must be in [0, 1], got {self.mix}")
         for name in ("weights", "vae_weights", "prompt_embeds"):
             path = getattr(self, name)
             if path is not None and not Path(path).exists():

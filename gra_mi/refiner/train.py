@@ -73,12 +73,17 @@ class RefinerTrainConfig:
     """Steps per row of the training log."""
     latent_cache: int = 256
     """Encoded windows kept in memory (only un-augmented ones repeat)."""
+    choose_mix: bool = True
+    """After training, choose on the data's selection sequences how much of the refiner's change to deliver (table:
+    OUT/mix.md); off, or without selection sequences: all of it (mix 1)."""
+    selection_steps: int = 20
+    """Euler steps of the selection rollouts (use what `gra-mi refine --steps` will)."""
 
     def validate(self) -> None:
         require_positive({"steps": self.steps, "lr": self.lr, "grad_accumulation": self.grad_accumulation})
         require_positive({"bank_grid": self.bank_grid, "bank_per_level": self.bank_per_level})
         require_positive({"checkpoint_every": self.checkpoint_every, "log_every": self.log_every})
-        require_positive({"train_shift": self.train_shift, "sample_shift": self.sample_shift})
+        require_positive({"train_shift": self.train_shift, "sample_shift": self.sample_shift, "selection_steps": self.selection_steps})
         require_seed(self.seed)
 
 
@@ -348,6 +353,7 @@ def train_refiner(
     if not loop.finish():
         return out
     log_rows = loop.log_rows
+    mix = _choose_mix(model, dataset, config, out)
     model.save(out)
     write_training_log(
         out,
@@ -364,10 +370,29 @@ def train_refiner(
         "final_loss": log_rows[-1][1] if log_rows else None,
         "first_loss": log_rows[0][1] if log_rows else None,
         "error_bank": {"residuals": len(banks[1]), "bytes": banks[0].nbytes() + banks[1].nbytes()},
+        "mix": mix,
         "config": asdict(config),
     }
     atomic_write_text(out / "train.json", json.dumps(summary, indent=1) + "\n")
     return out
+
+
+def _choose_mix(model: VideoRefiner, dataset: RefinerDataset, config: RefinerTrainConfig, out: Path) -> dict:
+    """Set ``model.config.mix`` from the selection sequences (:mod:`gra_mi.refiner.mix`); what train.json records."""
+    from gra_mi.refiner.mix import PSNR_BUDGET, choose_mix, mix_scores, write_mix_report
+
+    sequences = [n for n in dataset.names("selection") if dataset.sequences[n].has_target]
+    if not (config.choose_mix and sequences):
+        model.config.mix = 1.0
+        why = "switched off" if not config.choose_mix else "the data has no selection sequence"
+        logger.info("refiner mix 1 (%s): the refiner's output is delivered as it is", why)
+        return {"chosen": 1.0, "why": why}
+    model.eval()
+    scores = mix_scores(model, dataset, sequences, config.selection_steps, config.sample_shift, config.seed)
+    chosen = choose_mix(scores, PSNR_BUDGET)
+    model.config.mix = chosen.mix
+    logger.info("refiner mix %g, chosen on %s (mix.md)", chosen.mix, ", ".join(sequences))
+    return write_mix_report(out, scores, chosen, sequences, PSNR_BUDGET)
 
 
 @torch.no_grad()
