@@ -471,6 +471,8 @@ def test_mix_choice_follows_the_refined_videos_goal():
     assert choose_mix([base, S(0.5, 29.9, 0.11, 0.019), S(1.0, 31.0, 0.09, 0.030)]).mix == 0  # ꟻLIP / temporal worse
     assert choose_mix([base, S(0.5, 29.7, 0.09, 0.019), S(1.0, 29.5, 0.08, 0.018)]).mix == 0.5  # 1 gives up 0.5 dB
     assert choose_mix([base, S(0.25, 30.1, 0.09, 0.02), S(0.5, 30.2, 0.09, 0.02)]).mix == 0.25
+    one_frame = [S(0.0, 30.0, 0.10, float("nan")), S(1.0, 30.0, 0.09, float("nan"))]  # no temporal error to compare
+    assert choose_mix(one_frame).mix == 1.0 and choose_mix(one_frame[:1]).mix == 0.0
     with pytest.raises(ValueError, match="mix 0"):
         choose_mix([S(1.0, 30.0, 0.1, 0.02)])
 
@@ -764,7 +766,7 @@ def test_bad_dataset_is_named(tmp_path):
         RefinerConfig(window=16).validate()
 
 
-def test_cli_end_to_end(tmp_path):
+def test_cli_end_to_end(tmp_path, capsys):
     from gra_mi.cli import main
 
     data, model, out = tmp_path / "data", tmp_path / "model", tmp_path / "refined"
@@ -778,6 +780,9 @@ def test_cli_end_to_end(tmp_path):
     assert main(["refine", str(data), "--model", str(model), "--out", str(out), "--steps", "2", "--deflicker", "--frames", "3"]) == 0
     summary = json.loads((out / "refine.json").read_text())
     assert summary["deflicker"]["filter_eps"] == 0.05 and "psnr_deflickered" in summary
+    capsys.readouterr()
+    assert main(["refine", str(data), "--model", str(model), "--out", str(tmp_path / "m"), "--mix", "0", "--frames", "2"]) == 0
+    assert "delivered the input unchanged: mix 0 (--mix)" in capsys.readouterr().out
     assert (out / "deflickered" / "frame_0002.exr").is_file() and (out / "deflickered" / "deflickered.mp4").is_file()
     assert main(["refine", str(data), "--model", str(model), "--out", str(tmp_path / "c"), "--composite"]) == 2
     assert main(["train-refiner", str(data), "--out", str(tmp_path / "x"), "--size", "1.3B"]) == 2

@@ -716,6 +716,11 @@ def _cmd_refine(args) -> None:
     print(
         f"refined {summary['frames']} frames in {summary['windows']} windows ({summary['frames_per_second']:.2f} frames/s) into {args.out}"
     )
+    if summary["mix"] < 1:
+        said = "the input unchanged" if summary["mix"] == 0 else f"{summary['mix']:g} of the refiner's change"
+        print(
+            f"delivered {said}: mix {summary['mix']:g} ({'--mix' if args.mix is not None else 'chosen in training: ' + str(Path(args.model) / 'mix.md')})"
+        )
 
 
 def _args_refiner_prompt(p):

@@ -35,7 +35,10 @@ class MixScore:
     temporal: float
 
     def qualifies(self, unchanged: MixScore, psnr_budget: float) -> bool:
-        return self.psnr >= unchanged.psnr - psnr_budget and self.flip <= unchanged.flip and self.temporal <= unchanged.temporal
+        if self is unchanged:
+            return True
+        steady = not np.isfinite(unchanged.temporal) or self.temporal <= unchanged.temporal  # NaN: a one-frame sequence
+        return self.psnr >= unchanged.psnr - psnr_budget and self.flip <= unchanged.flip and steady
 
 
 def choose_mix(scores: list[MixScore], psnr_budget: float = PSNR_BUDGET) -> MixScore:
