@@ -142,6 +142,8 @@ def test_demo_tiny_runs_end_to_end(tmp_path):
         "| envmaps/train/train_0000.exr |",
         "## Ground-truth noise",
         "## Video refiner",
+        "| delivered: input + s·(refined − input), s = ",  # the mix chosen on the selection sequence, and its table
+        "| mix | PSNR (dB) | ꟻLIP | temporal (%) |",
         "Near-field",
         "+ RelightNet PSNR",
     ):
@@ -155,6 +157,7 @@ def test_demo_tiny_runs_end_to_end(tmp_path):
         "contact_truth_vs_relit.png",
         "avatar.glb",
         "refiner/model/refiner.safetensors",
+        "refiner/model/mix.md",
         "refiner/refined/test_cam07/comparison.mp4",
         "refiner/refined/test_cam07/refine.json",
         "refiner/refined/test_cam07/deflickered/deflickered.mp4",
@@ -170,6 +173,25 @@ def test_demo_tiny_runs_end_to_end(tmp_path):
     before = {p: p.stat().st_mtime_ns for p in images}
     assert run_cli("demo", "--preset", "tiny", "--out", str(tmp_path / "demo")).returncode == 0
     assert renders and all(p.stat().st_mtime_ns == t for p, t in before.items())
+
+
+def test_demo_with_an_olat_test_sequence_first(tmp_path):
+    """A capture whose first held-out sequence is lit by an LED pattern (no environment): the demo shows and composites
+    its environment-lit sequence instead (it failed on the pattern's missing envmap before)."""
+    script = (
+        "import sys; from dataclasses import replace; from pathlib import Path; "
+        "from gra_mi.capture import synthetic; from gra_mi.apps.demo import run_demo; "
+        "synthetic.PRESETS['tiny'] = replace(synthetic.PRESETS['tiny'], test_clips=['tiny', 'tiny'], test_lighting=['olat', 'envmap']); "
+        "run_demo('tiny', Path(sys.argv[1]))"
+    )
+    env = {**os.environ, "GRA_MI_QUIET": "1"}
+    out = subprocess.run([sys.executable, "-c", script, str(tmp_path / "demo")], capture_output=True, text=True, env=env, timeout=900)
+    assert out.returncode == 0, out.stderr[-3000:]
+    from gra_mi.capture.dataset import Capture
+
+    frames = Capture.load(tmp_path / "demo" / "capture").frames
+    assert [f.kind for f in frames if f.split == "test"][0] == "pattern"
+    assert (tmp_path / "demo" / "composite.png").is_file() and (tmp_path / "demo" / "report.md").is_file()
 
 
 def test_envmap_sweep_pipeline(tmp_path):

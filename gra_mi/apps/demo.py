@@ -160,7 +160,7 @@ def run_demo(preset_name: str, out: Path, overwrite: bool = False) -> Path:
 
     # 2. Envmaps onto LEDs (their irradiance fidelity is in capture.json) ------------------------------------------------------------
     train_env = next(f.envmap for f in capture.frames if f.kind == "envmap" and f.split == "train")
-    test_env = next(f.envmap for f in capture.frames if f.split == "test")
+    test_env = next(f.envmap for f in capture.frames if f.split == "test" and f.envmap is not None)
     lights = {Path(p).stem: load_envmap(capture.folder / p) for p in (train_env, test_env)}
     with _timed(timings, "envmap→LED"):
         for name, env in lights.items():
@@ -216,7 +216,8 @@ def run_demo(preset_name: str, out: Path, overwrite: bool = False) -> Path:
         cam = stage.camera(capture.eval_cameras[0])
         compositor = PlatformCompositor(ls.sequence, PlatformConfig(spp=preset.platform_spp))
         frames = []
-        for entry in test_frames:
+        lit = [f for f in test_frames if f.envmap is not None]  # an OLAT test sequence has no environment to stand in
+        for entry in [f for f in lit if f.sequence == lit[0].sequence]:  # the first held-out environment sequence
             env = load_envmap(capture.folder / entry.envmap)
             image = render_view(relighter, net, entry.frame, cam.name, capture.lighting(stage, entry)).image
             frames.append(compositor(image, entry.frame, cam, env, envmap_to_leds(env, stage).scale, entry.envmap))
@@ -268,7 +269,8 @@ def relight_test_frames(capture, relighter, test_frames, out: Path) -> list[tupl
     from gra_mi.stage.scene import composite_over
 
     stage = relighter.ls.stage
-    shown_frames = [test_frames[0], test_frames[len(test_frames) // 2]]
+    lit = [f for f in test_frames if f.envmap is not None]  # shown over their environment's background plate
+    shown_frames = [lit[0], lit[len(lit) // 2]]
     cameras = [capture.train_cameras[0], capture.eval_cameras[0]]
     rows, metrics = [], []
     for entry in progress(test_frames, description="relight test frames"):
