@@ -307,8 +307,11 @@ def _refiner_verdict(refiner: dict) -> str:
             "On the selection sequence no mix above 0 kept the PSNR within 0.4 dB of the input's with a ꟻLIP and "
             "temporal error no worse, so the refiner delivers its input unchanged."
         )
-    elif refined >= coarse - 0.4:
-        said.append(f"The delivered video is within 0.4 dB of its input ({refined - coarse:+.2f} dB).")
+    else:
+        within = "within" if refined >= coarse - 0.4 else "not within"
+        said.append(
+            f"The delivered video (mix {refiner['train']['mix']['chosen']:g}) is {within} 0.4 dB of its input ({refined - coarse:+.2f} dB)."
+        )
     return " ".join(said)
 
 
