@@ -350,6 +350,7 @@ OPTION_CASES = [
     ("tr-bank", [*TR, "--bank-per-level", "0"], ["--bank-per-level"]),
     ("tr-env-blocks", [*TR, "--env-blocks", "one"], ["--env-blocks"]),
     ("tr-seed", [*TR, "--seed", "-3"], ["--seed"]),
+    ("tr-selection-steps", [*TR, "--selection-steps", "0"], ["--selection-steps"]),
     ("tr-data-missing", ["train-refiner", "{root}/nodata"], ["nodata"]),
     ("tr-weights-missing", [*TR, "--size", "1.3B", "--weights", "{root}/noweights"], ["noweights"]),
     ("refine-shift-nan", [*REFINE, "--shift", "nan"], ["--shift"]),
@@ -357,6 +358,8 @@ OPTION_CASES = [
     ("refine-steps", [*REFINE, "--steps", "0"], ["--steps"]),
     ("refine-denoise", [*REFINE, "--denoise", "1.5"], ["--denoise"]),
     ("refine-denoise-nan", [*REFINE, "--denoise", "nan"], ["--denoise"]),
+    ("refine-mix", [*REFINE, "--mix", "1.5"], ["--mix"]),
+    ("refine-mix-nan", [*REFINE, "--mix", "nan"], ["--mix"]),
     ("refine-frames", [*REFINE, "--frames", "-1"], ["--frames"]),
     ("refine-seed", [*REFINE, "--seed", "-1"], ["--seed"]),
     (

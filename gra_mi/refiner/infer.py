@@ -95,6 +95,10 @@ class RefineConfig:
         if self.frames is not None:
             require_positive({"frames": self.frames})
 
+    def mix_for(self, model: VideoRefiner) -> float:
+        """The mix delivered: this config's, or else the model's own (chosen in training)."""
+        return model.config.mix if self.mix is None else self.mix
+
 
 @torch.no_grad()
 def rollout(
@@ -113,7 +117,7 @@ def rollout(
     if not 0 < total <= info.frames:
         raise GraMiParameterError("frames", f"sequence '{sequence}' has {info.frames} frames, asked for {total}")
     window, carry = model.config.window, model.config.handoff
-    mix = model.config.mix if config.mix is None else config.mix
+    mix = config.mix_for(model)
     if mix == 0:  # the input, delivered as it is: nothing to sample
         for k, start in enumerate(range(0, total, window)):
             coarse = dataset.window(sequence, start, window)["coarse"]
@@ -327,7 +331,7 @@ def refine_to_folder(
         "steps": steps,
         "shift": shift,
         "seed": seed,
-        "mix": model.config.mix if config.mix is None else config.mix,
+        "mix": config.mix_for(model),
         "seconds": seconds,
         "frames_per_second": len(rows) / seconds,
         "joins": {"handoff": joins.handoff, "pin": joins.pin, "crossfade": joins.crossfade},
