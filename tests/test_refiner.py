@@ -594,6 +594,54 @@ def test_resume_equals_an_uninterrupted_run(tmp_path):
         torch.testing.assert_close(a[name], b[name], atol=1e-6, rtol=1e-5)
 
 
+def test_divergence_keeps_the_last_finite_weights_and_is_recorded(tmp_path, monkeypatch):
+    """Weights poisoned with NaN after the 4th update: the loss at step 4 is NaN, training stops there, the weights
+    of the last finite snapshot (step 3, the checkpoint cadence) are saved and loadable, train.json says where, and the
+    mix is chosen on a finite refiner."""
+    data = synthetic_dataset(tmp_path / "data", {0: (2, 1, 1)}, frames=17, height=32, width=32, env_height=16, test_frames=17)
+    original, calls = torch.optim.AdamW.step, []
+
+    def poisoned_step(self, *a, **k):
+        result = original(self, *a, **k)
+        calls.append(1)
+        if len(calls) == 4:
+            with torch.no_grad():
+                for p in self.param_groups[0]["params"]:
+                    p.fill_(float("nan"))
+        return result
+
+    monkeypatch.setattr(torch.optim.AdamW, "step", poisoned_step)
+    config = RefinerTrainConfig(steps=8, checkpoint_every=3, log_every=1, selection_steps=2)
+    train_refiner(data.folder, tmp_path / "model", config, RefinerConfig(lora_rank=4))
+    summary = json.loads((tmp_path / "model" / "train.json").read_text())
+    assert summary["diverged"]["step"] == 4 and summary["diverged"]["kept_step"] == 3 and len(calls) == 4
+    model = VideoRefiner.load(tmp_path / "model")
+    assert all(bool(torch.isfinite(t).all()) for t in model.trainable_state().values())
+    assert all(np.isfinite(s["psnr"]) for s in summary["mix"]["scores"])
+
+
+def test_non_finite_refiner_scores_never_qualify():
+    from gra_mi.refiner.mix import MixScore, choose_mix
+
+    scores = [MixScore(0.0, 30.0, 0.1, 0.02), MixScore(0.5, float("nan"), float("nan"), float("nan")), MixScore(1.0, 31.0, float("nan"), 0.01)]
+    assert choose_mix(scores).mix == 0.0
+
+
+def test_weights_with_nan_are_refused_by_name(tmp_path):
+    from safetensors.torch import save_file
+
+    model = VideoRefiner(RefinerConfig(lora_rank=4))
+    model.save(tmp_path / "m")
+    state = {k: v.clone() for k, v in model.state_dict().items()}
+    next(v for v in state.values() if v.is_floating_point()).fill_(float("nan"))
+    save_file({k: v.contiguous() for k, v in state.items()}, str(tmp_path / "m" / "refiner.safetensors"))
+    with pytest.raises(GraMiInputError, match="non-finite"):
+        VideoRefiner.load(tmp_path / "m")
+    (tmp_path / "m" / "refiner.safetensors").write_bytes(b"")
+    with pytest.raises(GraMiInputError, match="unreadable"):
+        VideoRefiner.load(tmp_path / "m")
+
+
 # --------------------------------------------------------------------------------------------------------------
 # Real sizes and inputs
 # --------------------------------------------------------------------------------------------------------------

@@ -233,14 +233,21 @@ def test_training_lowers_the_loss_validates_and_resumes(capture_and_fit, tmp_pat
 
 
 def test_a_run_that_makes_images_worse_ships_the_microfacet_render(capture_and_fit, tmp_path):
-    """A learning rate far too high wrecks the network; validation keeps step 0, whose output is the coarse render."""
+    """A learning rate far too high wrecks the network: it either gets worse or diverges to NaN (which of the two
+    depends on the fit's last bits, which thread order moves). Either way validation keeps step 0, whose output is
+    the coarse render, and a divergence is recorded with its step."""
     root = capture_and_fit
     args = ["--out", str(tmp_path / "bad"), "--steps", "20", "--lr", "0.5", "--weight-decay", "0", "--validate-every", "10"]
     out = run_cli("train-relightnet", str(root / "cap"), "--fit", str(root / "fit"), *args)
     assert out.returncode == 0, out.stderr
     report = json.loads((tmp_path / "bad" / "validation.json").read_text())
     scores = {row["step"]: row["score"] for row in report["validation"]}
-    assert sorted(scores) == [0, 10, 20] and min(scores[10], scores[20]) > scores[0], "the run did make things worse"
+    assert all(np.isfinite(v) for v in scores.values()), "a non-finite validation is never logged as a score"
+    if report["diverged"] is None:
+        assert sorted(scores) == [0, 10, 20] and min(scores[10], scores[20]) > scores[0], "the run did make things worse"
+    else:
+        assert 0 < report["diverged"]["step"] <= 20 and "diverged" in out.stderr
+        assert all(step < report["diverged"]["step"] for step in scores)
     assert report["kept_step"] == 0
     for split in report["splits"].values():
         assert split["relightnet"]["psnr"] == pytest.approx(split["microfacet"]["psnr"], abs=1e-3)
@@ -257,3 +264,37 @@ def test_ddp_training_with_two_processes(capture_and_fit, tmp_path):
     out = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900)
     assert out.returncode == 0, out.stderr[-3000:]
     assert (tmp_path / "ddp" / "relightnet.safetensors").exists() and (tmp_path / "ddp" / "validation.json").exists()
+
+
+def test_divergence_stops_training_keeps_finite_weights_and_is_recorded(capture_and_fit, tmp_path, monkeypatch):
+    """A run whose weights become NaN after the 6th update stops at step 6 (the loss is NaN there), keeps the best
+    finite validation, records where it diverged (validation.json, validation.md, the checkpoint) and refuses to be
+    continued with more steps."""
+    from gra_mi.core.errors import GraMiInputError
+    from gra_mi.relightnet.model import RelightNet
+    from gra_mi.relightnet.train import TrainConfig, train_relightnet
+
+    original, calls = torch.optim.AdamW.step, []
+
+    def poisoned_step(self, *a, **k):
+        result = original(self, *a, **k)
+        calls.append(1)
+        if len(calls) == 6:
+            with torch.no_grad():
+                self.param_groups[0]["params"][0].fill_(float("nan"))
+        return result
+
+    monkeypatch.setattr(torch.optim.AdamW, "step", poisoned_step)
+    root, out = capture_and_fit, tmp_path / "nan"
+    config = TrainConfig(steps=12, lr=1e-3, validate_every=4, checkpoint_every=4)
+    train_relightnet(root / "cap", root / "fit", out, config)
+    report = json.loads((out / "validation.json").read_text())
+    assert report["diverged"] == {"step": 6, "what": "the training loss"}
+    assert [row["step"] for row in report["validation"]] == [0, 4] and report["kept_step"] in (0, 4)
+    assert len(calls) == 6, "no update after the non-finite loss"
+    model = RelightNet.load(out)  # refuses non-finite weights
+    assert all(bool(torch.isfinite(p).all()) for p in model.parameters())
+    assert "Training diverged at step 6" in (out / "validation.md").read_text()
+    assert torch.load(out / "checkpoint.pt", weights_only=False)["divergence"]["step"] == 6
+    with pytest.raises(GraMiInputError, match="diverged at step 6"):
+        train_relightnet(root / "cap", root / "fit", out, TrainConfig(steps=16, lr=1e-3, validate_every=4, checkpoint_every=4))

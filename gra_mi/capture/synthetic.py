@@ -135,13 +135,14 @@ def ground_truth_maps(atlas, vertex_colors: np.ndarray, rest_vertices: np.ndarra
 
 def wrinkle_normal_map(cloth: np.ndarray, amplitude: float, seed: int = 0) -> np.ndarray:
     """A tangent-space normal map (values in [0, 1]) of wrinkle bands on cloth, of the given slope amplitude."""
+    cloth = cloth if cloth.ndim == 2 else cloth[..., 0]  # (R, R) or (R, R, C): the first channel is the mask
     r = cloth.shape[0]
     rng = np.random.default_rng(seed)
     c = (np.arange(r) + 0.5) / r
     u, v = np.meshgrid(c, c, indexing="xy")
     angle, freq = rng.uniform(0, math.pi), 24.0
     phase = 2 * math.pi * freq * (u * math.cos(angle) + v * math.sin(angle))
-    slope = amplitude * np.cos(phase) * cloth[..., 0]
+    slope = amplitude * np.cos(phase) * cloth
     n = np.stack([-slope * math.cos(angle), -slope * math.sin(angle), np.ones_like(slope)], axis=-1)
     n /= np.linalg.norm(n, axis=-1, keepdims=True)
     return (0.5 + 0.5 * n).astype(np.float32)
@@ -150,6 +151,24 @@ def wrinkle_normal_map(cloth: np.ndarray, amplitude: float, seed: int = 0) -> np
 def wrinkle_amplitude(frame: int, num_frames: int) -> float:
     """Pose-dependent: wrinkles deepen and relax with the motion's phase."""
     return 0.1 + 0.5 * abs(math.sin(2 * math.pi * frame / max(num_frames, 1)))
+
+
+def frame_normal_map(cloth: np.ndarray, frame: int, num_frames: int) -> np.ndarray:
+    """The wrinkle normal map of ``frame``: the one the capture's images and every truth rendered later use."""
+    return wrinkle_normal_map(cloth, wrinkle_amplitude(frame, num_frames))
+
+
+def pose_wrinkles(params, cloth: np.ndarray, frame: int, num_frames: int) -> bool:
+    """Set ``frame``'s wrinkles on a ground-truth scene's ``normalmap`` BSDF (``mi.traverse`` parameters); False when
+    the scene has none (a one-bounce ground truth)."""
+    import mitsuba as mi
+
+    key = next((k for k in params.keys() if k.endswith("normalmap.data")), None)
+    if key is None:
+        return False
+    params[key] = mi.TensorXf(frame_normal_map(cloth, frame, num_frames))
+    params.update()
+    return True
 
 
 ONEBOUNCE_BSDF = """<bsdf type="gra_microfacet" id="gt_material">
@@ -436,13 +455,10 @@ def generate_capture(
         atomic_write_text(out / "scene_gt.xml", subject_scene_xml("rig", "subject", spp=preset.spp, bsdf_xml=GT_BSDF))
         gt_renderer = GroundTruthRenderer(**sample_counts)
     source = LightstageScene.load(out / "scene_gt.xml")
-    normal_key = next((k for k in source.params.keys() if k.endswith("normalmap.data")), None)
 
     def pose(frame: int) -> None:
-        if source.set_frame(frame) and normal_key is not None and "wrinkles" not in without:  # wrinkles follow the pose
-            amplitude = wrinkle_amplitude(frame, ls.sequence.num_frames)
-            source.params[normal_key] = mi.TensorXf(wrinkle_normal_map(maps["cloth"], amplitude))
-            source.params.update()
+        if source.set_frame(frame) and "wrinkles" not in without:  # wrinkles follow the pose
+            pose_wrinkles(source.params, maps["cloth"], frame, ls.sequence.num_frames)
 
     jobs = [(entry, cam) for entry in capture.frames for cam in stage.cameras]
     lit = None  # the frame whose lighting is set: jobs run frame-major, so each frame's envmap is mapped once
@@ -466,14 +482,17 @@ def generate_capture(
 # The truth under any environment: the capture's subject and materials, lit by an envmap instead of the LEDs
 # --------------------------------------------------------------------------------------------------------------
 
-ENVMAP_TRUTH_SCENE = "scene_gt_envmap.xml"
 LEDS_INCLUDE = '<include filename="rig/leds.xml"/>'
+TRUTH_VERSION = 2
+"""Bumped when the envmap truth changes (2: the frame's wrinkles, which version 1 left flat): cached truths of
+another version are rendered again."""
 
 
-def envmap_truth_scene(capture: Capture) -> Path:
-    """Write ``scene_gt_envmap.xml`` beside the capture's ``scene_gt.xml``: the same subject, true materials and
-    cameras, with an ``envmap`` emitter (``-Denvmap=FILE``, Mitsuba's lat-long convention, which is gra-mi's) in place
-    of the LEDs. What relighting under an environment should reproduce: the environment itself, at infinity."""
+def envmap_truth_xml(capture: Capture) -> str:
+    """The capture's ``scene_gt.xml`` with an ``envmap`` emitter (``-Denvmap=FILE``, Mitsuba's lat-long convention,
+    which is gra-mi's) in place of the LEDs: the same subject, true materials and cameras. What relighting under an
+    environment should reproduce: the environment itself, at infinity. Loaded from memory (:func:`load_envmap_truth`),
+    so scoring never writes into the capture."""
     source = capture.folder / "scene_gt.xml"
     if not source.is_file():
         raise GraMiInputError(source, "missing: the envmap truth needs the capture's ground-truth scene (make it with `gra-mi capture`)")
@@ -484,9 +503,33 @@ def envmap_truth_scene(capture: Capture) -> Path:
         '<default name="envmap" value="envmap.exr"/>\n'
         '    <emitter type="envmap" id="environment"><string name="filename" value="$envmap"/></emitter>'
     )
-    path = capture.folder / ENVMAP_TRUTH_SCENE
-    atomic_write_text(path, text.replace(LEDS_INCLUDE, emitter))
-    return path
+    return text.replace(LEDS_INCLUDE, emitter)
+
+
+def load_envmap_truth(capture: Capture, envmap_path: Path, frame: int):
+    """The envmap truth scene of ``frame`` (:func:`envmap_truth_xml`), posed: the frame's mesh and, unless the capture
+    was made without them, the frame's wrinkles (:func:`pose_wrinkles`, as the capture's own images have them)."""
+    import mitsuba as mi
+
+    from gra_mi.core.io import read_exr
+    from gra_mi.stage import scene_keys as keys
+
+    resolver = mi.file_resolver()
+    saved = mi.FileResolver(resolver)
+    resolver.prepend(str(capture.folder.resolve()))  # the scene's relative paths (rig/, subject/, gt/)
+    try:
+        scene = mi.load_string(
+            envmap_truth_xml(capture), parallel=False, **{keys.PARAM_FRAME: keys.frame_param(frame), "envmap": str(envmap_path)}
+        )
+    finally:
+        resolver.clear()
+        for i in range(len(saved)):
+            resolver.append(saved[i])
+    cloth = capture.folder / "gt" / "cloth.exr"
+    if "wrinkles" not in capture.ground_truth.get("without", []) and cloth.is_file():
+        num_frames = int(np.load(capture.folder / "subject" / "sequence.npz")["vertices"].shape[0])
+        pose_wrinkles(mi.traverse(scene), read_exr(cloth), frame, num_frames)
+    return scene
 
 
 def render_envmap_truth(
@@ -501,31 +544,20 @@ def render_envmap_truth(
 
     import mitsuba as mi
 
-    from gra_mi.core.io import read_exr
     from gra_mi.core.runtime import ensure_mitsuba
-    from gra_mi.stage import scene_keys as keys
 
     ensure_mitsuba()
-    without = capture.ground_truth.get("without", [])
     max_depth = int(capture.ground_truth.get("max_depth", 4))
-    scene_path = envmap_truth_scene(capture)
     with tempfile.TemporaryDirectory() as tmp:
         env_path = Path(tmp) / "envmap.exr"
         write_exr(env_path, np.asarray(envmap, np.float32)[..., :3])
-        scene = mi.load_file(str(scene_path), parallel=False, **{keys.PARAM_FRAME: keys.frame_param(frame), "envmap": str(env_path)})
-    params = mi.traverse(scene)
-    normal_key = next((k for k in params.keys() if k.endswith("normalmap.data")), None)
-    if normal_key is not None and "wrinkles" not in without and (capture.folder / "gt" / "cloth.exr").is_file():
-        cloth = read_exr(capture.folder / "gt" / "cloth.exr")[..., 0]
-        num_frames = int(np.load(capture.folder / "subject" / "sequence.npz")["vertices"].shape[0])
-        params[normal_key] = mi.TensorXf(wrinkle_normal_map(cloth, wrinkle_amplitude(frame, num_frames)))
-        params.update()
+        scene = load_envmap_truth(capture, env_path, frame)
     integrator = mi.load_dict({"type": "path", "max_depth": max(max_depth, 2), "hide_emitters": True})
     sensors = {s.id(): i for i, s in enumerate(scene.sensors())}
     out = {}
     for name in cameras:
         if name not in sensors:
-            raise GraMiParameterError("cameras", f"no camera '{name}' in {scene_path}; it has {', '.join(sensors)}")
+            raise GraMiParameterError("cameras", f"no camera '{name}' in {capture.folder / 'scene_gt.xml'}; it has {', '.join(sensors)}")
         image = mi.render(scene, sensor=sensors[name], integrator=integrator, spp=spp, seed=seed + frame)
         out[name] = np.array(image, dtype=np.float32)
     return out

@@ -105,15 +105,27 @@ def to_display(image: np.ndarray, exposure: float) -> np.ndarray:
     return np.where(rgb <= 0.0031308, 12.92 * rgb, 1.055 * np.power(rgb, 1.0 / 2.4) - 0.055)
 
 
+def display_psnr(image: np.ndarray, reference: np.ndarray, mask: np.ndarray) -> float:
+    """The PSNR of :func:`compare` alone (both images shown at the truth's exposure); NaN if ``image`` is not finite
+    on the mask (a broken render scores as broken, not as the black its display shows)."""
+    if not np.isfinite(_masked(image, mask)).all():
+        return float("nan")
+    exposure = display_exposure(reference, mask)
+    return psnr(to_display(image, exposure), to_display(reference, exposure), mask, peak=1.0)
+
+
 def compare(image: np.ndarray, reference: np.ndarray, mask: np.ndarray | None = None) -> dict[str, float]:
     """The comparison every report prints: display PSNR, display SSIM and brightness error of ``image`` against the
-    truth ``reference`` over ``mask`` (None: :func:`subject_mask` of the reference). See the module doc."""
+    truth ``reference`` over ``mask`` (None: :func:`subject_mask` of the reference). See the module doc. Every score
+    is NaN when ``image`` is not finite on the mask."""
     mask = subject_mask(reference) if mask is None else np.asarray(mask, bool)
+    if not np.isfinite(_masked(image, mask)).all():
+        return {"psnr": float("nan"), "ssim": float("nan"), "brightness": float("nan")}
     exposure = display_exposure(reference, mask)
     shown, truth = to_display(image, exposure), to_display(reference, exposure)
     outside = ~mask[..., None]
     return {
-        "psnr": psnr(shown, truth, mask, peak=1.0),
+        "psnr": display_psnr(image, reference, mask),
         "ssim": ssim(np.where(outside, 0.0, shown), np.where(outside, 0.0, truth), mask, peak=1.0),
         "brightness": brightness_error(image, reference, mask),
     }

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import logging
+import math
 import os
 import time
 from collections.abc import Callable, Iterator
@@ -61,6 +62,8 @@ class TrainingLoop:
     - ``steps`` yields the remaining step indices (a progress bar on rank 0); after each step it appends the mean of the
       losses given to ``add_loss`` to the log every ``log_every`` steps and, on rank 0, writes a checkpoint every
       ``checkpoint_every`` steps (atomic) from ``state_of()``;
+    - ``diverged`` says, on every process alike, whether a loss or score has become non-finite: the stage stops there
+      and keeps its last finite weights; ``divergence`` records the step and what went non-finite (checkpoint too);
     - ``finish`` writes the last checkpoint, waits for every process and says whether this one should write outputs.
     """
 
@@ -75,6 +78,7 @@ class TrainingLoop:
         self._state_of = dict
         self._row_extra = tuple
         self._t0 = time.perf_counter()
+        self.divergence: dict | None = None
 
     def claim(self, command: str, inputs: dict, config, overwrite: bool = False) -> None:
         """Check and record what makes ``out`` (:func:`gra_mi.core.provenance.claim_output`; the step count and
@@ -99,6 +103,15 @@ class TrainingLoop:
                 self.checkpoint, f"unreadable checkpoint ({str(exc)[:120]}); rerun with --overwrite to start over"
             ) from None
         self.start, self.log_rows = state["step"], state["log"]
+        self.divergence = state.get("divergence")
+        if self.divergence is not None and self.start < self.total_steps:
+            from gra_mi.core.errors import GraMiInputError
+
+            raise GraMiInputError(
+                self.checkpoint,
+                f"this run diverged at step {self.divergence['step']} ({self.divergence['what']}) and cannot be continued; "
+                "rerun with --overwrite (and a lower --lr)",
+            )
         logger.info("%s: resuming from step %d", self.description, self.start)
         return state
 
@@ -107,6 +120,31 @@ class TrainingLoop:
 
     def add_loss(self, value: float) -> None:
         self._losses.append(value)
+
+    def mark_diverged(self, step: int, what: str) -> None:
+        """Record (once) that ``what`` became non-finite at ``step``; on rank 0 alone (validation) the next
+        :meth:`diverged` call tells every process."""
+        if self.divergence is None:
+            self.divergence = {"step": int(step), "what": what}
+            logger.warning(
+                "%s diverged at step %d: %s is not finite; training stops there and keeps its last finite weights "
+                "(lower --lr)", self.description, step, what,
+            )  # fmt: skip
+
+    def diverged(self, step: int, value: float, what: str = "the training loss") -> bool:
+        """Whether ``value`` (this process's loss) or any other process's is non-finite, or a divergence was marked:
+        the same answer on every process, so that all of them stop at the same step."""
+        bad = not math.isfinite(value) or self.divergence is not None
+        if self.world > 1:
+            device = "cuda" if torch.distributed.get_backend() == "nccl" else "cpu"
+            flag = torch.tensor([float(bad)], device=device)
+            torch.distributed.all_reduce(flag, op=torch.distributed.ReduceOp.MAX)
+            if flag.item() > 0 and not bad:
+                what = "the training loss of another process"
+            bad = bool(flag.item() > 0)
+        if bad:
+            self.mark_diverged(step, what)
+        return bad
 
     def steps(self, state_of: Callable[[], dict], row_extra: Callable[[], tuple] = tuple) -> Iterator[int]:
         """Step indices from the resumed one on; ``state_of()`` is what a checkpoint holds besides step and log,
@@ -129,7 +167,7 @@ class TrainingLoop:
         if self.rank != 0:
             return
         with atomic_path(self.checkpoint) as tmp:
-            torch.save({**self._state_of(), "step": step, "log": self.log_rows}, tmp)
+            torch.save({**self._state_of(), "step": step, "log": self.log_rows, "divergence": self.divergence}, tmp)
 
     def finish(self) -> bool:
         """Last checkpoint, then a barrier; True on the process that writes the outputs (rank 0)."""

@@ -56,10 +56,10 @@ class EnvmapAccuracyConfig:
 
 def _cached_truth(out: Path, capture, env: np.ndarray, name: str, frame: int, cameras: list[str], spp: int) -> dict[str, np.ndarray]:
     """The truth renders, kept under ``out/truth/NAME`` with what made them (reused when everything agrees)."""
-    from gra_mi.capture.synthetic import render_envmap_truth
+    from gra_mi.capture.synthetic import TRUTH_VERSION, render_envmap_truth
 
     folder = out / "truth" / name
-    record = {"frame": frame, "spp": spp, "envmap_sum": float(np.asarray(env, np.float64).sum()), "capture": str(capture.folder.resolve())}
+    record = {"version": TRUTH_VERSION, "frame": frame, "spp": spp, "envmap_sum": float(np.asarray(env, np.float64).sum()), "capture": str(capture.folder.resolve())}
     meta = folder / "truth.json"
     paths = {cam: folder / f"{cam}.exr" for cam in cameras}
     if meta.is_file() and json.loads(meta.read_text()) == record and all(p.is_file() for p in paths.values()):

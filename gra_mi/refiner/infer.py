@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive, require_seed
+from gra_mi.core.metrics import display_psnr
 from gra_mi.refiner.data import RefinerDataset, video_to_image
 from gra_mi.refiner.deflicker import DeflickerConfig, deflicker_frame
 from gra_mi.refiner.flow import euler_sample
@@ -185,13 +186,6 @@ def _subject(coarse: np.ndarray, target: np.ndarray) -> np.ndarray:
     return (coarse.max(axis=-1) > 0) | (target.max(axis=-1) > 0)
 
 
-def _psnr(a: np.ndarray, b: np.ndarray, subject: np.ndarray) -> float:
-    """The one display PSNR (:func:`gra_mi.core.metrics.compare`) of linear frames over the subject."""
-    from gra_mi.core.metrics import compare
-
-    return compare(a, b, subject)["psnr"]
-
-
 def _capture_compositor(dataset: RefinerDataset, sequence: str, platform: PlatformConfig):
     """(sequence frame, linear image) → the image over its environment on a platform: for data made from a capture,
     whose dataset.json names the capture, the camera and the capture frame of each sequence frame."""
@@ -303,10 +297,10 @@ def refine_to_folder(
                 target = dataset.delivered(sequence, frame.index, "target")
                 panels.append(target)
                 subject = _subject(coarse, target)
-                row["psnr_coarse"] = _psnr(coarse, target, subject)
-                row["psnr_refined"] = _psnr(image, target, subject)
+                row["psnr_coarse"] = display_psnr(coarse, target, subject)
+                row["psnr_refined"] = display_psnr(image, target, subject)
                 if deflicker is not None:
-                    row["psnr_deflickered"] = _psnr(corrected, target, subject)
+                    row["psnr_deflickered"] = display_psnr(corrected, target, subject)
             comparison_mp4.append(np.concatenate(panels, axis=1), exposure)
             if compose is not None:
                 composite_mp4.append(compose(frame.index, corrected if deflicker is not None else image), exposure)
@@ -354,7 +348,7 @@ def refine_to_folder(
                 image = dataset.delivered(sequence, index, "target", video_to_image(video, exposure).permute(1, 2, 0).numpy())
                 target = dataset.delivered(sequence, index, "target")
                 coarse = dataset.delivered(sequence, index, "coarse")
-                psnr.append(_psnr(image, target, _subject(coarse, target)))
+                psnr.append(display_psnr(image, target, _subject(coarse, target)))
             summary["psnr_vae_round_trip"] = float(np.mean(psnr))
     summary["per_frame"] = rows
     atomic_write_text(out / "refine.json", json.dumps(summary, indent=1) + "\n")

@@ -37,7 +37,10 @@ class MixScore:
     def qualifies(self, unchanged: MixScore, psnr_budget: float) -> bool:
         if self is unchanged:
             return True
-        steady = not np.isfinite(unchanged.temporal) or self.temporal <= unchanged.temporal  # NaN: a one-frame sequence
+        one_frame = not np.isfinite(unchanged.temporal)  # a one-frame sequence has no temporal error
+        if not np.all(np.isfinite([self.psnr, self.flip] + ([] if one_frame else [self.temporal]))):
+            return False  # a refiner whose output is not finite (diverged weights) never qualifies
+        steady = one_frame or self.temporal <= unchanged.temporal
         return self.psnr >= unchanged.psnr - psnr_budget and self.flip <= unchanged.flip and steady
 
 

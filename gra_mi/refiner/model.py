@@ -555,9 +555,8 @@ class VideoRefiner(nn.Module):
 
     @classmethod
     def load(cls, folder: str | Path, **overrides) -> VideoRefiner:
-        from safetensors.torch import load_file
-
         from gra_mi.core.io import check_config_types, read_json
+        from gra_mi.core.weights import read_weights
 
         folder = Path(folder)
         data = read_json(folder / "refiner.json", " (a refiner trained with `gra-mi train-refiner`)")
@@ -569,11 +568,10 @@ class VideoRefiner(nn.Module):
         config.validate(folder / "refiner.json")
         model = cls(config)
         weights = folder / "refiner.safetensors"
-        if not weights.is_file():
-            raise GraMiInputError(weights, "file not found")
+        tensors = read_weights(weights, " (train one with `gra-mi train-refiner`)")
         try:
-            missing, unexpected = model.load_state_dict(load_file(str(weights)), strict=False)
-        except Exception as exc:  # truncated file (SafetensorError) or tensors of another size (RuntimeError)
+            missing, unexpected = model.load_state_dict(tensors, strict=False)
+        except RuntimeError as exc:  # tensors of another size
             first = str(exc).strip().splitlines()[0][:200]
             raise GraMiInputError(weights, f"cannot load these weights into the refiner of refiner.json ({first})") from None
         trainable = {n for n, p in model.named_parameters() if p.requires_grad}

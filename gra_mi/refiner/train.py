@@ -326,8 +326,10 @@ def train_refiner(
             "banks": [b.state() for b in banks] if config.error_recycling else None,
         }
 
+    good = _finite_snapshot(model, loop.start)  # the weights a divergence falls back to
     for step in loop.steps(state_of, row_extra=lambda: (len(banks[1]),)):
         optimizer.zero_grad(set_to_none=True)
+        losses = []
         for micro in range(config.grad_accumulation):
             rng = np.random.default_rng([config.seed, loop.rank, step, micro])  # resumable: the draw depends on the step only
             generator = torch.Generator().manual_seed(int(rng.integers(2**62)))
@@ -347,9 +349,20 @@ def train_refiner(
                         cache.popitem(last=False)
             result = flow_matching_loss(ddp, enc, config, rng, generator, banks if config.error_recycling else None)
             (result.loss / config.grad_accumulation).backward()
-            loop.add_loss(float(result.loss.detach()))
-        torch.nn.utils.clip_grad_norm_(model.trainable_parameters(), 1.0)
+            losses.append(float(result.loss.detach()))
+        norm = float(torch.nn.utils.clip_grad_norm_(model.trainable_parameters(), 1.0))
+        if loop.diverged(step, max(losses) + norm, "the flow-matching loss or its gradient"):
+            break
+        if step % config.checkpoint_every == 0:
+            good = _finite_snapshot(model, step) or good  # these weights gave a finite loss and gradient
+        for value in losses:
+            loop.add_loss(value)
         optimizer.step()
+    if loop.divergence is None and not all(bool(torch.isfinite(p).all()) for p in model.trainable_parameters()):
+        loop.mark_diverged(config.steps, "the weights after the last step")
+    if loop.divergence is not None:
+        model.load_state_dict(good[1], strict=False)  # never keep non-finite weights (the checkpoint holds these too)
+        loop.divergence["kept_step"] = good[0]
     if not loop.finish():
         return out
     log_rows = loop.log_rows
@@ -371,10 +384,17 @@ def train_refiner(
         "first_loss": log_rows[0][1] if log_rows else None,
         "error_bank": {"residuals": len(banks[1]), "bytes": banks[0].nbytes() + banks[1].nbytes()},
         "mix": mix,
+        "diverged": loop.divergence,
         "config": asdict(config),
     }
     atomic_write_text(out / "train.json", json.dumps(summary, indent=1) + "\n")
     return out
+
+
+def _finite_snapshot(model: VideoRefiner, step: int) -> tuple[int, dict] | None:
+    """(step, a copy of the trainable weights) if they are all finite, else None."""
+    state = {k: v.clone() for k, v in model.trainable_state().items()}
+    return (step, state) if all(bool(torch.isfinite(v).all()) for v in state.values()) else None
 
 
 def _choose_mix(model: VideoRefiner, dataset: RefinerDataset, config: RefinerTrainConfig, out: Path) -> dict:

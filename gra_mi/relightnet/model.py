@@ -235,7 +235,7 @@ class RelightNet(nn.Module):
 
     @classmethod
     def load(cls, folder: str | Path, device: str = "cpu") -> RelightNet:
-        from safetensors.torch import load_file
+        from gra_mi.core.weights import read_weights
 
         folder = Path(folder)
         for name in ("relightnet.json", "relightnet.safetensors"):
@@ -259,9 +259,10 @@ class RelightNet(nn.Module):
         check_config_types(RelightNetConfig, fields, folder / "relightnet.json")
         config = RelightNetConfig(**fields)
         model = cls(config)
+        tensors = read_weights(folder / "relightnet.safetensors", " (train one with `gra-mi train-relightnet`)")
         try:
-            model.load_state_dict(load_file(str(folder / "relightnet.safetensors")))
-        except (RuntimeError, OSError, ValueError) as exc:  # truncated file, or weights of another config
+            model.load_state_dict(tensors)
+        except RuntimeError as exc:  # weights of another config
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
             raise GraMiInputError(folder / "relightnet.safetensors", f"cannot load the weights ({first})") from None
         return model.to(device).eval()

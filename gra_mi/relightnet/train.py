@@ -215,14 +215,19 @@ def train_relightnet(capture_dir: str | Path, fit_dir: str | Path, out: str | Pa
     def run_validation(step: int) -> None:
         nonlocal best
         row = selection_scores(model, selection, step)
-        validation_rows.append(row)
         # A capture without held-out views has nothing to select on: the latest weights are kept.
         score = row["score"] if selection else -float(step)
+        if not (np.isfinite(score) and all_finite(model)):
+            loop.mark_diverged(step, "the weights" if np.isfinite(score) else "the validation score")
+            return  # never kept, nor logged (validation.json's "diverged" says where)
+        validation_rows.append(row)
         if best is None or score < best["score"]:
             best = {"step": step, "score": score, "model": {k: v.detach().clone() for k, v in model.state_dict().items()}}
 
     if best is None and loop.rank == 0:
         run_validation(0)  # the untrained network is the microfacet render: the baseline every later step must beat
+        if best is None:
+            raise GraMiInputError(Path(fit_dir), "the microfacet render of the selection views is not finite (non-finite maps or images?)")
 
     def state_of() -> dict:
         return {
@@ -245,12 +250,16 @@ def train_relightnet(capture_dir: str | Path, fit_dir: str | Path, out: str | Pa
         scale = exposure(batch.features[:, :3], batch.mask).detach()
         loss = normalised_l1(sample_texture(texture, batch.grid), batch.target, batch.pixels, scale)
         loss.backward()
+        if loop.diverged(step, float(loss.detach())):
+            break  # the weights that validated best (step 0 at worst: the microfacet render) are kept
         optimizer.step()
         loop.add_loss(float(loss.detach()))  # the log keeps the mean since its last row: one batch per step is noisy
         if loop.rank == 0 and ((step + 1) % config.validate_every == 0 or step + 1 == config.steps):
             model.eval()
             run_validation(step + 1)
             model.train()
+    if loop.divergence is not None:
+        model.load_state_dict(best["model"])  # what the last checkpoint keeps, too: no non-finite weights
     if not loop.finish():
         return out
     model.load_state_dict(best["model"])
@@ -260,8 +269,12 @@ def train_relightnet(capture_dir: str | Path, fit_dir: str | Path, out: str | Pa
     model.save(out)
     write_training_log(out, ["step", "l1", "seconds"], loop.log_rows, "RelightNet training", "L1 / exposure (training views)")
     write_validation_curve(out, validation_rows, best["step"])
-    validate(model.eval(), samples, out, best["step"], validation_rows)
+    validate(model.eval(), samples, out, best["step"], validation_rows, loop.divergence)
     return out / "validation.md"
+
+
+def all_finite(model: torch.nn.Module) -> bool:
+    return all(bool(torch.isfinite(p).all()) for p in model.parameters())
 
 
 @torch.no_grad()
@@ -333,7 +346,9 @@ def write_validation_curve(out: Path, rows: list[dict], best_step: int) -> None:
 
 
 @torch.no_grad()
-def validate(model: RelightNet, samples: list[Sample], out: Path, best_step: int = 0, validation_rows: list | None = None) -> dict:
+def validate(
+    model: RelightNet, samples: list[Sample], out: Path, best_step: int = 0, validation_rows: list | None = None, divergence: dict | None = None
+) -> dict:
     """Ablation on every split: microfacet only vs + RelightNet (PSNR, SSIM, brightness error), views that chose the
     weights reported apart from the rest, and an image grid."""
     results: dict[str, dict[str, list]] = {}
@@ -364,7 +379,10 @@ def validate(model: RelightNet, samples: list[Sample], out: Path, best_step: int
         }
         for split, methods in sorted(results.items(), key=lambda kv: (kv[0] != "train", "selection" in kv[0], kv[0]))
     }
-    report = {"splits": summary, "kept_step": best_step, "output_gain": model.config.output_gain, "validation": validation_rows or []}
+    report = {
+        "splits": summary, "kept_step": best_step, "output_gain": model.config.output_gain,
+        "validation": validation_rows or [], "diverged": divergence,
+    }  # fmt: skip
     atomic_write_text(out / "validation.json", json.dumps(report, indent=1) + "\n")
     kept = "the untrained network, i.e. the microfacet render itself" if best_step == 0 else f"step {best_step}"
     lines = [
@@ -386,6 +404,12 @@ def validate(model: RelightNet, samples: list[Sample], out: Path, best_step: int
             f"| {split} | {a['views']} | {a['psnr']:.2f} | {a['ssim']:.4f} | {100 * a['brightness']:+.1f} % "
             f"| {b['psnr']:.2f} | {b['ssim']:.4f} | {100 * b['brightness']:+.1f} % |"
         )
+    if divergence is not None:
+        lines += [
+            "",
+            f"**Training diverged at step {divergence['step']}** ({divergence['what']} became non-finite) and stopped there;",
+            f"the weights kept are those of step {best_step}, the best finite validation. Lower `--lr` and rerun with `--overwrite`.",
+        ]
     lines += ["", "Validation during training:", "", "![validation](validation.png)", ""]
     lines += ["Grid (held-out views): ground truth | microfacet | RelightNet", "", "![grid](grid.png)", "", "![loss](loss.png)"]
     atomic_write_text(out / "validation.md", "\n".join(lines) + "\n")
