@@ -623,7 +623,11 @@ def test_divergence_keeps_the_last_finite_weights_and_is_recorded(tmp_path, monk
 def test_non_finite_refiner_scores_never_qualify():
     from gra_mi.refiner.mix import MixScore, choose_mix
 
-    scores = [MixScore(0.0, 30.0, 0.1, 0.02), MixScore(0.5, float("nan"), float("nan"), float("nan")), MixScore(1.0, 31.0, float("nan"), 0.01)]
+    scores = [
+        MixScore(0.0, 30.0, 0.1, 0.02),
+        MixScore(0.5, float("nan"), float("nan"), float("nan")),
+        MixScore(1.0, 31.0, float("nan"), 0.01),
+    ]
     assert choose_mix(scores).mix == 0.0
 
 

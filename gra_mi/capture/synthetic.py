@@ -446,7 +446,6 @@ def generate_capture(
     capture.save()
 
     # 3. Render (image space: the fit works in UV space, so the ground truth takes another code path) ------
-    import mitsuba as mi
 
     if renderer == "onebounce":
         atomic_write_text(out / "scene_gt.xml", subject_scene_xml("rig", "subject", spp=preset.spp, bsdf_xml=ONEBOUNCE_BSDF))

@@ -59,7 +59,13 @@ def _cached_truth(out: Path, capture, env: np.ndarray, name: str, frame: int, ca
     from gra_mi.capture.synthetic import TRUTH_VERSION, render_envmap_truth
 
     folder = out / "truth" / name
-    record = {"version": TRUTH_VERSION, "frame": frame, "spp": spp, "envmap_sum": float(np.asarray(env, np.float64).sum()), "capture": str(capture.folder.resolve())}
+    record = {
+        "version": TRUTH_VERSION,
+        "frame": frame,
+        "spp": spp,
+        "envmap_sum": float(np.asarray(env, np.float64).sum()),
+        "capture": str(capture.folder.resolve()),
+    }
     meta = folder / "truth.json"
     paths = {cam: folder / f"{cam}.exr" for cam in cameras}
     if meta.is_file() and json.loads(meta.read_text()) == record and all(p.is_file() for p in paths.values()):

@@ -347,7 +347,12 @@ def write_validation_curve(out: Path, rows: list[dict], best_step: int) -> None:
 
 @torch.no_grad()
 def validate(
-    model: RelightNet, samples: list[Sample], out: Path, best_step: int = 0, validation_rows: list | None = None, divergence: dict | None = None
+    model: RelightNet,
+    samples: list[Sample],
+    out: Path,
+    best_step: int = 0,
+    validation_rows: list | None = None,
+    divergence: dict | None = None,
 ) -> dict:
     """Ablation on every split: microfacet only vs + RelightNet (PSNR, SSIM, brightness error), views that chose the
     weights reported apart from the rest, and an image grid."""
