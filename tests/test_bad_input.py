@@ -575,11 +575,30 @@ def made(inputs):
     image[: image.shape[0] // 2, :, :3] = 0  # other content, and another compressed size (what a run's id sees)
     write_exr(other / "images/cam00/frame_0001.exr", image)
     assert (other / "images/cam00/frame_0001.exr").stat().st_size != (inputs["cap"] / "images/cam00/frame_0001.exr").stat().st_size
-    return {**inputs, "cap_other": other, "fit_copy": _linked_copy(inputs["fit"], root / "fit_copy")}
+    # The same capture with its calibration or capture record edited in place (same sizes: only content differs)
+    edited = {}
+    for name, rel in (("cap_calib", "rig/calibration.json"), ("cap_record", "capture.json")):
+        folder = _linked_copy(inputs["cap"], root / name, copy=(rel,))
+        text = (folder / rel).read_text()
+        digit = next(i for i, c in enumerate(text) if c in "123456789" and text[i - 1] == ".")  # a decimal digit
+        (folder / rel).write_text(text[:digit] + str(int(text[digit]) % 9 + 1) + text[digit + 1 :])
+        assert (folder / rel).stat().st_size == (inputs["cap"] / rel).stat().st_size
+        edited[name] = folder
+    # Users' folders that hold a file named like a gra-mi output: never emptied by --overwrite
+    for name, marker in (("user_fit", "fit.json"), ("user_rn", "checkpoint.pt")):
+        (root / name).mkdir()
+        (root / name / marker).write_text("mine")
+        (root / name / "notes.txt").write_text("mine too")
+    return {**inputs, **edited, "cap_other": other, "fit_copy": _linked_copy(inputs["fit"], root / "fit_copy")}
 
 
 PROVENANCE_CASES = [
     ("fit-other-capture", ["fit", "{cap_other}", "--out", "{fit_copy}"], ["provenance.json", "input capture", "--overwrite"]),
+    ("fit-edited-calibration", ["fit", "{cap_calib}", "--out", "{fit_copy}"], ["provenance.json", "input capture"]),
+    ("fit-edited-capture-record", ["fit", "{cap_record}", "--out", "{fit_copy}"], ["provenance.json", "input capture"]),
+    ("overwrite-users-fit-json", ["fit", "{cap}", "--out", "{root}/user_fit", "--overwrite"], ["user_fit", "only folders gra-mi made"]),
+    ("overwrite-users-checkpoint", [*RN, "--out", "{root}/user_rn", "--overwrite"], ["user_rn", "only folders gra-mi made"]),
+    ("resume-users-checkpoint", [*RN, "--out", "{root}/user_rn"], ["user_rn", "not made by gra-mi"]),
     ("fit-other-candidates", ["fit", "{cap}", "--out", "{fit_copy}", "--roughness-candidates", "5"], ["roughness_candidates"]),
     ("fit-other-uv", ["fit", "{cap}", "--out", "{fit_copy}", "--uv-resolution", "64"], ["resolution", "64 now"]),
     ("fit-other-solver", ["fit", "{cap}", "--out", "{fit_copy}", "--solver", "closed-form"], ["solver"]),

@@ -160,6 +160,30 @@ def test_dwa_ringing_is_repaired_with_flux_kept(caplog):
     np.testing.assert_allclose(repaired[far], env[far], rtol=1e-5)  # the rest of the map is untouched
 
 
+def test_a_sun_whose_colour_compression_destroyed_is_warned_about(tmp_path, caplog):
+    """Two real maps had a sun of (0, 0, 11800) after DWA compression, which lights the subject violet. A bright
+    source with a channel at exactly zero is warned about, naming the file and the pixel; intact suns (this test's,
+    a deep-orange one, the reference maps) are not."""
+    from gra_mi.stage.envmap_library import REFERENCE_MAPS, reference_map
+
+    env = sky_with_sun(64)
+    env[16, 21] = [0.0, 0.0, 11800.0]
+    env[16, 22] = [0.0, 0.0, 9000.0]
+    write_openexr(tmp_path / "violet.exr", env, OpenEXR.ZIP_COMPRESSION, half=False, interleaved=False)
+    with caplog.at_level(logging.WARNING):
+        em.load_envmap(tmp_path / "violet.exr")
+    assert "violet.exr: 2 very bright pixel(s) have a colour channel at zero" in caplog.text
+    assert "row 16, column 21 = (0, 0, 1.18e+04)" in caplog.text and "lossy (DWA)" in caplog.text
+    caplog.clear()
+    orange = sky_with_sun(64)
+    orange[16, 21] = [11800.0, 2500.0, 40.0]
+    intact = [sky_with_sun(64), orange] + [reference_map(name, 64) for name in REFERENCE_MAPS]
+    with caplog.at_level(logging.WARNING):
+        for k, image in enumerate(intact):
+            em.validate_envmap(image, f"intact{k}.exr")
+    assert "very bright" not in caplog.text
+
+
 @pytest.mark.parametrize(
     ("image", "message"),
     [

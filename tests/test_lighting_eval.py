@@ -150,6 +150,7 @@ def test_relight_picks_the_lighting_model_by_intent(tmp_path, llvm_variant):
     np.testing.assert_array_equal(images["auto"]["sun"], images["far"]["sun"])
     np.testing.assert_array_equal(images["auto"]["olat004"], images["near"]["olat004"])
     assert np.abs(images["near"]["sun"] - images["far"]["sun"]).max() > 1e-3, "the two models differ on a 1.2 m rig"
+    assert not (tmp_path / "auto" / "envmap_fidelity.json").exists(), "the fidelity check runs only when asked"
     with pytest.raises(GraMiParameterError, match="lighting_model"):
         RelightConfig(lighting_model="infinite").validate()
 

@@ -275,6 +275,7 @@ def test_relight_cli(tmp_path, llvm_variant):
         "64",
         "--save-uv",
         "--background",
+        "--fidelity",
         "--out",
         str(tmp_path / "r"),
     )

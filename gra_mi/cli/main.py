@@ -804,7 +804,7 @@ def _args_relight(p):
     add_config_options(
         p,
         RelightConfig,
-        ["uv_resolution", "lighting_model", "save_uv", "background", "composite", "exposure"],
+        ["uv_resolution", "lighting_model", "save_uv", "background", "composite", "exposure", "fidelity"],
         choices={"lighting_model": list(LIGHTING_MODELS)},
     )
     _add_platform_options(p)

@@ -28,8 +28,12 @@ PROVENANCE = "provenance.json"
 LOCK = ".gra-mi.lock"
 SMALL_FILE = 1 << 16  # inputs this small are hashed whole; larger ones by size and their first and last 64 KiB
 SKIPPED = {PROVENANCE, LOCK, "cache", "checkpoint.pt", "checkpoint.npz", "optimize.npz", "__pycache__"}  # what a run writes for itself
-REPORTS = {".json", ".md", ".png", ".csv", ".mp4", ".log", ".txt", ".xml"}
-"""Left out of a run's id: rewritten by a resume (timings, plots) or derived later (eval-lighting's truth scene)."""
+REPORTS = {".json", ".md", ".png", ".csv", ".mp4", ".log", ".txt"}
+"""Left out of a run's id: rewritten by a resume (timings, plots, scores)."""
+DATA_TEXT = {"capture.json", "calibration.json", "dataset.json", "relightnet.json", "refiner.json", "index.json"}
+"""JSON files that are data, not reports: part of a run's id with their whole content (with scene XML), so that an
+edited calibration or capture record is a different input even where its size is unchanged."""
+DERIVED = {"scene_gt_envmap.xml"}  # written into captures by gra-mi before 0.1.0's eval-lighting read the truth from memory
 _HELD: dict[Path, int] = {}
 _FRESH: set[Path] = set()  # folders a claim created: removed again if the run stops before writing anything
 
@@ -38,7 +42,8 @@ def content_id(path: str | Path) -> str | None:
     """A short id of an input: for a folder a gra-mi run made, the run that made it (its provenance record: the
     command, its inputs' ids and its config) and the names and sizes of its data files (a resumed run rewrites its
     plots, logs and reports, which are left out, and keeps this id; an edited or missing data file changes it);
-    otherwise a hash of the content (small files whole, larger ones by size and ends). None for a missing path.
+    otherwise a hash of the content (small files whole, larger ones by size and ends). The data JSON and scene XML of
+    a run's folder count with their content (:data:`DATA_TEXT`). None for a missing path.
     Copying or moving an input keeps its id."""
     path = Path(path)
     if not path.exists():
@@ -50,8 +55,11 @@ def content_id(path: str | Path) -> str | None:
             made = json.loads(record.read_text())
             digest.update(json.dumps({k: made.get(k) for k in ("command", "inputs", "config")}, sort_keys=True).encode())
             for f in _files(path):
-                if f.suffix not in REPORTS:
+                text = f.name in DATA_TEXT or (f.suffix == ".xml" and f.name not in DERIVED)
+                if f.suffix not in REPORTS or text:
                     digest.update(f"{f.relative_to(path)}:{f.stat().st_size}\n".encode())
+                if text:
+                    digest.update(f.read_bytes())
             return "run:" + digest.hexdigest()[:16]
         except ValueError:
             pass  # unreadable: fall back to the content
@@ -123,7 +131,6 @@ def claim_output(
     inputs: dict[str, str | Path | None],
     config=None,
     *,
-    marker: str | None = None,
     overwrite: bool = False,
     free: tuple[str, ...] = (),
     restart: bool = False,
@@ -133,10 +140,10 @@ def claim_output(
     ``inputs``: name → path (its content id is recorded); ``config``: a dataclass or dict; ``free``: config keys
     allowed to differ on a resume. A folder made otherwise raises a :class:`GraMiInputError` naming the
     difference. ``overwrite`` empties the folder first, whoever made it (only a folder gra-mi made: one with
-    provenance.json or the ``marker``), so the run starts over.
+    provenance.json; a file a user's folder happens to share with gra-mi's outputs, ``checkpoint.pt`` or
+    ``fit.json``, never makes it gra-mi's), so the run starts over.
     ``restart``: a command whose output is not resumable state (``refine``) starts over in a folder that it made
-    itself with other inputs or options, instead of refusing. A folder an earlier gra-mi made (its ``marker`` file,
-    no provenance.json) is adopted: resumed as before, by the stage's own checks.
+    itself with other inputs or options, instead of refusing.
     """
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
@@ -154,17 +161,11 @@ def claim_output(
     if not folder.exists():
         _FRESH.add(folder.resolve())
     existing = [p for p in folder.iterdir() if p.name not in (LOCK,)] if folder.is_dir() else []
-    legacy = not path.is_file() and marker is not None and (folder / marker).is_file()  # an earlier gra-mi's output
-    if existing and not path.is_file() and not legacy:
+    if existing and not path.is_file():
         if overwrite:
             raise GraMiInputError(folder, "--overwrite empties only folders gra-mi made (with provenance.json); this one has none")
         raise GraMiInputError(folder, "is not empty and was not made by gra-mi (no provenance.json); choose an empty or new output folder")
-    if existing and legacy:
-        if overwrite:
-            _empty(folder)
-        else:
-            logger.warning("%s was made by an earlier gra-mi (no %s): resuming it without checking its inputs", folder, PROVENANCE)
-    elif existing:
+    if existing:
         try:
             old = json.loads(path.read_text())
         except (OSError, ValueError) as exc:

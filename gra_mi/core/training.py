@@ -86,7 +86,7 @@ class TrainingLoop:
         from gra_mi.core.provenance import claim_output
 
         if self.rank == 0:
-            claim_output(self.out, command, inputs, config, overwrite=overwrite, free=TRAINING_CADENCE, marker=self.checkpoint.name)
+            claim_output(self.out, command, inputs, config, overwrite=overwrite, free=TRAINING_CADENCE)
         if self.world > 1:
             torch.distributed.barrier()
 

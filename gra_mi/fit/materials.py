@@ -402,7 +402,7 @@ def run_fit(capture_dir: str | Path, out: str | Path, config: FitConfig, overwri
     capture = Capture.load(capture_dir)
     capture.check_images()
     ensure_mitsuba()
-    out = claim_output(out, "fit", {"capture": capture_dir}, config, overwrite=overwrite, marker="fit.json")
+    out = claim_output(out, "fit", {"capture": capture_dir}, config, overwrite=overwrite)
     fitter = MaterialFitter(capture, config, cache_dir=out / "cache")
     result = fitter.fit(out)
     from gra_mi.fit.report import write_fit_outputs

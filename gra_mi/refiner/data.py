@@ -299,7 +299,7 @@ def synthetic_dataset(
 
     config = {"subjects": {str(k): list(v) for k, v in subjects.items()}, "frames": frames, "height": height, "width": width}
     config |= {"env_height": env_height, "test_frames": test_frames, "seed": seed}
-    folder = claim_output(folder, "refiner-data --synthetic", {}, config, overwrite=overwrite, marker="dataset.json")
+    folder = claim_output(folder, "refiner-data --synthetic", {}, config, overwrite=overwrite)
     entries = []
     k = seed
     for subject, (n_train, n_test, *n_selection) in subjects.items():
@@ -440,7 +440,7 @@ def dataset_from_capture(
     inputs = {"capture": capture_dir, "fit": fit_dir, "relightnet": relightnet_dir}
     out = Path(out)
     capture, relighter = fitted_relighter(capture_dir, fit_dir, cache_dir or out / "cache")
-    claim_output(out, "refiner-data", inputs, config, overwrite=overwrite, marker="dataset.json")
+    claim_output(out, "refiner-data", inputs, config, overwrite=overwrite)
     ls, stage = relighter.ls, relighter.ls.stage
     model = None
     if relightnet_dir is not None:

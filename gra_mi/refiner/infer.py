@@ -261,7 +261,7 @@ def refine_to_folder(
 
     said = {"sequence": sequence, "refine": asdict(config), "deflicker": asdict(deflicker) if deflicker else None}
     said["composite"] = asdict(composite) if composite else None
-    claim_output(out, "refine", {"model": model_dir, "data": dataset_dir}, said, overwrite=overwrite, restart=True, marker="refine.json")
+    claim_output(out, "refine", {"model": model_dir, "data": dataset_dir}, said, overwrite=overwrite, restart=True)
     compose = _capture_compositor(dataset, sequence, composite) if composite is not None else None
     model = VideoRefiner.load(model_dir).to(torch.device(torch_device())).prepare_for_inference(fuse_lora)
     info = dataset.sequences[sequence]

@@ -185,11 +185,42 @@ def shift_longitude(image: np.ndarray, shift: float) -> np.ndarray:
     return ((1.0 - frac) * rolled + frac * np.roll(rolled, -1, axis=1)).astype(image.dtype)
 
 
+BRIGHT_FACTOR = 100.0
+"""A pixel is "very bright" (a light source) at this many times the map's median brightness (max channel)."""
+
+
+def destroyed_colour(image: np.ndarray) -> np.ndarray:
+    """Mask of very bright pixels (:data:`BRIGHT_FACTOR`) with a colour channel at or below zero: the signature of a
+    light source whose colour lossy (DWA) compression destroyed (seen in real maps: a sun of (0, 0, 11800), which
+    lights a subject violet). Real light sources, even a deep-orange sun, keep every channel above zero."""
+    peak = image.max(axis=2)
+    lit = peak[peak > 0]
+    if lit.size == 0:
+        return np.zeros(peak.shape, bool)
+    return (peak > BRIGHT_FACTOR * float(np.median(lit))) & (image.min(axis=2) <= 0)
+
+
+def _warn_destroyed_colour(image: np.ndarray, source: str) -> None:
+    bad = destroyed_colour(image)
+    if not bad.any():
+        return
+    h, w = image.shape[:2]
+    flux = np.maximum(image, 0).astype(np.float64).sum(axis=2) * pixel_solid_angles(h, w)
+    row, col = np.unravel_index(np.argmax(np.where(bad, image.max(axis=2), -np.inf)), bad.shape)
+    rgb = ", ".join(f"{v:.4g}" for v in image[row, col])
+    logger.warning(
+        "%s: %d very bright pixel(s) have a colour channel at zero (brightest: row %d, column %d = (%s)), carrying "
+        "%.0f %% of the map's light: the signature of a light source destroyed by lossy (DWA) compression, which "
+        "would light the subject in that false colour. Re-export the map losslessly (ZIP/PIZ) or repaint the source.",
+        source, int(bad.sum()), row, col, rgb, 100 * flux[bad].sum() / max(flux.sum(), 1e-300),
+    )  # fmt: skip
+
+
 def validate_envmap(image: np.ndarray, source: str = "<envmap>", repair: bool = False) -> np.ndarray:
     """Check shape (lat-long: W = 2 H, 1/3/4 channels) and values; return an (H, W, 3) float32 copy.
 
     Negative values (lossy compression's ringing) are removed with the flux kept (:func:`repair_negative_flux`)
-    and a one-line warning. NaN/Inf raise :class:`GraMiInputError`, or with ``repair=True`` become 0 (NaN, −Inf)
+    and a one-line warning; a light source with a channel at zero is warned about (:func:`destroyed_colour`). NaN/Inf raise :class:`GraMiInputError`, or with ``repair=True`` become 0 (NaN, −Inf)
     and the largest finite value (+Inf), with a warning. A map with no positive energy is an error.
     """
     image = np.asarray(image)
@@ -211,6 +242,7 @@ def validate_envmap(image: np.ndarray, source: str = "<envmap>", repair: bool = 
         top = float(finite.max()) if finite.size else 0.0
         image = np.nan_to_num(image, nan=0.0, posinf=top, neginf=0.0)
         logger.warning("%s: repaired %s", source, issues.describe())
+    _warn_destroyed_colour(image, source)  # before the ringing is removed: the destroyed channels are <= 0 there
     negative = image < 0
     if negative.any():
         low = float(image.min())
