@@ -163,6 +163,7 @@ def inputs(path_traced_fit, tmp_path_factory):
     write_exr(root / "nan.exr", np.where(np.arange(16 * 32 * 3).reshape(16, 32, 3) == 5, np.nan, 1).astype(np.float32))
     write_exr(root / "square.exr", np.ones((8, 8, 3), np.float32))
     write_exr(root / "white.exr", np.ones((8, 16, 3), np.float32))
+    write_exr(root / "sub" / "white.exr", np.full((8, 16, 3), 2.0, np.float32))
     write_exr(root / "albedo_nan.exr", np.full((16, 16, 3), np.nan, np.float32))
     write_exr(root / "albedo_rect.exr", np.full((16, 8, 3), 0.5, np.float32))
     write_exr(root / "albedo.exr", np.full((16, 16, 3), 0.5, np.float32))
@@ -180,6 +181,16 @@ def inputs(path_traced_fit, tmp_path_factory):
     (root / "calib_broken.json").write_text("{ nope")
     (root / "calib_fields.json").write_text(json.dumps({"leds": "many"}))
     (root / "a_file").write_text("I am a file, not a folder")
+    # Rigs: every LED at one point, an absurd image size, a calibration that its scene's LED XML disagrees with
+    calib = json.loads((SCENES / "rigs" / "tiny" / "calibration.json").read_text())
+    one_point = {**calib, "leds": [{**led, "position": calib["leds"][0]["position"]} for led in calib["leds"]]}
+    (root / "calib_one_point.json").write_text(json.dumps(one_point))
+    huge = {**calib, "cameras": [{**calib["cameras"][0], "image_size": [2_000_000, 1_000_000]}]}
+    (root / "calib_huge.json").write_text(json.dumps(huge))
+    moved = _linked_copy(SCENES, root / "scenes_moved", copy=("rigs/tiny/calibration.json",))
+    shifted = json.loads(json.dumps(calib))
+    shifted["leds"][3]["position"][0] += 0.05  # one LED moved 5 cm in the calibration only
+    (moved / "rigs" / "tiny" / "calibration.json").write_text(json.dumps(shifted))
     # Weights: a RelightNet folder whose safetensors is truncated, one whose config is not a RelightNet's
     rn = root / "rn_truncated"
     rn.mkdir()
@@ -270,6 +281,15 @@ OPTION_CASES = [
     ("relight-point-radius", ["relight", TINY, "--point-light", "0,1,1", "--point-light-radius", "-1"], ["--point-light-radius"]),
     ("relight-frames", ["relight", TINY, "--olat", "0", "--frames", "99"], ["frame", "99"]),
     ("relight-frames-text", ["relight", TINY, "--olat", "0", "--frames", "a:b"], ["--frames"]),
+    ("relight-frames-item", ["relight", TINY, "--olat", "0", "--frames", "1,x"], ["--frames", "1,x"]),
+    ("relight-frames-empty", ["relight", TINY, "--olat", "0", "--frames", "5:2"], ["--frames", "selects nothing"]),
+    ("relight-cameras-empty", ["relight", TINY, "--olat", "0", "--cameras", ","], ["--cameras", "selects nothing"]),
+    (
+        "relight-envmap-same-name",
+        ["relight", TINY, "--envmap", "{root}/white.exr", "--envmap", "{root}/sub/white.exr"],
+        ["--envmap", "white"],
+    ),
+    ("render-variant-scalar", ["render", TINY, "--olat", "0", "--variant", "scalar_rgb"], ["--variant", "scalar_rgb"]),
     ("relight-camera", ["relight", TINY, "--olat", "0", "--cameras", "nope"], ["nope"]),
     ("relight-olat", ["relight", TINY, "--olat", "999"], ["999"]),
     ("relight-olat-negative", ["relight", TINY, "--olat", "-1"], ["-1"]),
@@ -302,6 +322,9 @@ OPTION_CASES = [
     ("rig-calibration-missing", ["rig", "--from-calibration", "{root}/nope.json"], ["nope.json", "not found"]),
     ("rig-calibration-broken", ["rig", "--from-calibration", "{root}/calib_broken.json"], ["calib_broken.json", "malformed JSON"]),
     ("rig-calibration-fields", ["rig", "--from-calibration", "{root}/calib_fields.json"], ["calib_fields.json"]),
+    ("rig-leds-one-point", ["rig", "--from-calibration", "{root}/calib_one_point.json"], ["calib_one_point.json", "same position"]),
+    ("rig-image-size-absurd", ["rig", "--from-calibration", "{root}/calib_huge.json"], ["calib_huge.json", "image_size"]),
+    ("scene-calibration-disagrees", ["relight", "{root}/scenes_moved/tiny_lightstage.xml", "--olat", "0"], ["LED 3", "calibration"]),
     # scene, subject, envmaps
     ("scene-spp", ["scene", "--rig", "{cap}/rig", "--subject", "{cap}/subject", "--spp", "-5"], ["--spp"]),
     ("scene-rig-missing", ["scene", "--rig", "{root}/nope", "--subject", "{cap}/subject"], ["nope"]),

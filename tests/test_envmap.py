@@ -140,3 +140,18 @@ def test_sky_sun_flux_is_independent_of_azimuth(llvm_variant):
     row, col = np.unravel_index(np.argmax(b.sum(-1)), b.shape[:2])
     u, v = em.direction_to_uv(sun_direction(SkyParams(30, 135, 3, 0.2)))
     assert abs(col - (u * 64 - 0.5)) <= 1 and abs(row - v * 31) <= 1
+
+
+@pytest.mark.parametrize("positions", [[[0, 3, 0], [0, -1, 0]], [[2, 1, 0], [0, 1, 2], [-2, 1, 0], [0, 1, -2]]], ids=["two", "one-plane"])
+def test_degenerate_rigs_map_envmaps_onto_nearest_leds(positions, default_stage, caplog):
+    """Rigs whose LEDs span no convex hull (two LEDs; a ring in one plane) fall back to nearest-LED cells with a
+    warning, and keep the map's flux, instead of stopping in Qhull."""
+    from dataclasses import replace
+
+    stage = replace(default_stage, led_positions=np.array(positions, np.float64), led_normals=None, led_gains=None)
+    env = np.ones((16, 32, 3), np.float32)
+    with caplog.at_level(logging.WARNING):
+        lighting = em.envmap_to_leds(env, stage, normalize=False)
+    assert "nearest-LED (Voronoi) cells" in caplog.text
+    flux = (lighting.radiant_intensity(stage) / stage.led_distances()[:, None] ** 2).sum(axis=0)
+    np.testing.assert_allclose(flux, 4 * np.pi, rtol=1e-6)  # a white sky of radiance 1 carries 4π W/m² in all

@@ -98,6 +98,9 @@ def test_radiance_hdr_flat_and_mitsuba_written(tmp_path, llvm_variant):
         (b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y 4 +X 8\n\x02\x02\x00\x08", "corrupt or truncated"),
         (b"#?RADIANCE\nFORMAT=32-bit_rle_xyze\n\n-Y 4 +X 8\n", "32-bit_rle_rgbe"),
         (b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n+Y 4 +X 8\n", "resolution line"),
+        (b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y four +X 8\n" + bytes(128), "integer sizes"),
+        (b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y -4 +X 8\n" + bytes(128), "must be >= 1"),
+        (b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y 100000 +X 200000\n" + bytes(128), "corrupt or truncated"),
     ],
 )
 def test_bad_hdr_files_name_the_file(tmp_path, content, message):

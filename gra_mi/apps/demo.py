@@ -140,9 +140,7 @@ def run_demo(preset_name: str, out: Path, overwrite: bool = False) -> Path:
     preset = PRESETS[preset_name]
     from gra_mi.core.provenance import claim_output
 
-    out = claim_output(
-        out, "demo", {}, {"preset": preset_name}, overwrite=overwrite
-    )  # a rerun resumes its own run only
+    out = claim_output(out, "demo", {}, {"preset": preset_name}, overwrite=overwrite)  # a rerun resumes its own run only
     (out / "plots").mkdir(exist_ok=True)
     timings: dict[str, float] = {}
     chosen = ensure_mitsuba()

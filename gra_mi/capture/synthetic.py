@@ -364,9 +364,7 @@ def generate_capture(
     envmap_ids = {
         name: hashlib.sha256(np.ascontiguousarray(env, np.float32).tobytes()).hexdigest()[:16] for name, env in (test_envmaps or {}).items()
     }
-    claim_output(
-        out, "capture", {}, {"preset": preset_name, **record, "test_envmaps": envmap_ids}, overwrite=overwrite
-    )
+    claim_output(out, "capture", {}, {"preset": preset_name, **record, "test_envmaps": envmap_ids}, overwrite=overwrite)
     previous = Capture.load(out) if (out / "capture.json").is_file() else None
     if previous is not None:
         rendered = {k: previous.ground_truth.get(k) for k in ("renderer", "spp", "indirect_spp", "max_depth", "without")}

@@ -19,6 +19,7 @@ from pathlib import Path
 
 from gra_mi.cli.options import add_config_options, config_from_args, finite_float, option_flags
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive, require_seed
+from gra_mi.core.runtime import SUPPORTED_VARIANTS
 
 logger = logging.getLogger("gra_mi")
 
@@ -31,7 +32,7 @@ def _defaults(fn: Callable) -> dict[str, object]:
 def _add_runtime(p: argparse.ArgumentParser, torch: bool = False) -> None:
     p.add_argument(
         "--variant",
-        choices=["llvm_ad_rgb", "cuda_ad_rgb", "scalar_rgb"],
+        choices=list(SUPPORTED_VARIANTS),
         default=None,
         help="Mitsuba variant. Default: cuda_ad_rgb where a CUDA GPU works, else llvm_ad_rgb (CPU).",
     )
@@ -106,17 +107,27 @@ def _parse_blocks(text: str) -> list[int] | None:
         raise argparse.ArgumentTypeError(f"expected 'all', 'none' or a comma list of block indices, got '{text}'") from None
 
 
-def _parse_list(text: str, count: int, parameter: str) -> list[str]:
-    """'all', 'A:B' (B excluded) or a comma list."""
+def _parse_list(text: str, count: int, parameter: str, integers: bool = False) -> list:
+    """'all', 'A:B' (B excluded) or a comma list; an empty selection (``5:2``, ``,``) is an error, not a run that
+    writes nothing."""
     if text == "all":
-        return [str(i) for i in range(count)]
-    if ":" in text:
+        items = [str(i) for i in range(count)]
+    elif ":" in text:
         a, b = text.split(":", 1)
         try:
-            return [str(i) for i in range(int(a or 0), int(b) if b else count)]
+            items = [str(i) for i in range(int(a or 0), int(b) if b else count)]
         except ValueError:
             raise GraMiParameterError(parameter, f"expected A:B with integers, got '{text}'") from None
-    return [t.strip() for t in text.split(",") if t.strip()]
+    else:
+        items = [t.strip() for t in text.split(",") if t.strip()]
+    if not items:
+        raise GraMiParameterError(parameter, f"'{text}' selects nothing (of {count})")
+    if integers:
+        try:
+            return [int(t) for t in items]
+        except ValueError:
+            raise GraMiParameterError(parameter, f"expected integers, 'A:B' or 'all', got '{text}'") from None
+    return items
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -827,13 +838,17 @@ def _cmd_relight(args) -> None:
     config = config_from_args(RelightConfig, args)
     config.validate()  # before any file is read
     point_light = parse_point_light(args.point_light, args.point_light_intensity, args.point_light_radius) if args.point_light else None
+    for option, paths in (("envmap", args.envmap), ("pattern", args.pattern)):
+        stems = [p.stem for p in paths]
+        if twice := sorted({s for s in stems if stems.count(s) > 1}):
+            raise GraMiParameterError(option, f"two files named '{twice[0]}' would write to one folder {args.out / twice[0]}; rename one")
     load = _envmap_loader(args)
     envmaps = {p.stem: load(p) for p in args.envmap}
     albedo = load_texture(args.albedo, 3, "albedo") if args.albedo else None
     roughness = load_texture(args.roughness, 1, "roughness") if args.roughness else None
     ls = LightstageScene.load(args.scene)
     lights = collect_lights(ls.stage, envmaps, args.olat, {p.stem: load_pattern(ls.stage, p) for p in args.pattern}, point_light)
-    frames = [int(f) for f in _parse_list(args.frames, ls.sequence.num_frames, "frames")]
+    frames = _parse_list(args.frames, ls.sequence.num_frames, "frames", integers=True)
     cameras = _parse_list(args.cameras, len(ls.stage.cameras), "cameras")
     summary = relight_batch(
         ls,

@@ -199,8 +199,16 @@ def read_rgbe(path: str | Path) -> np.ndarray:
     size = data[end + 2 : eol].decode("latin-1").split()
     if len(size) != 4 or size[0] != "-Y" or size[2] != "+X":
         raise GraMiInputError(path, f"expected the resolution line '-Y H +X W', got {' '.join(size)!r}")
-    height, width = int(size[1]), int(size[3])
+    try:
+        height, width = int(size[1]), int(size[3])
+    except ValueError:
+        raise GraMiInputError(path, f"the resolution line '-Y H +X W' needs integer sizes, got {' '.join(size)!r}") from None
+    if height < 1 or width < 1:
+        raise GraMiInputError(path, f"the resolution line declares a {width}x{height} image; sizes must be >= 1")
     body = np.frombuffer(data, dtype=np.uint8, offset=eol + 1)
+    row_bytes = min(4 * width, 4 + 4 * 2 * -(-width // 127))  # flat, or run-length encoded: 4 channels of 127-pixel runs
+    if height * row_bytes > len(body):  # checked before the pixels are allocated (a corrupt header can declare terabytes)
+        raise GraMiInputError(path, f"declares a {width}x{height} image but holds only {len(body)} bytes of pixels: corrupt or truncated")
     pixels = np.empty((height, width, 4), dtype=np.uint8)
     pos = 0
     try:

@@ -23,7 +23,8 @@ from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 
 logger = logging.getLogger(__name__)
 
-SUPPORTED_VARIANTS = ("llvm_ad_rgb", "cuda_ad_rgb", "scalar_rgb")
+SUPPORTED_VARIANTS = ("llvm_ad_rgb", "cuda_ad_rgb")
+"""The JIT variants: gra-mi's kernels (visibility, shading, rasterisation, the fit) are vectorised Dr.Jit code."""
 MIN_LLVM_MAJOR = 16
 LLVM_HELP = (
     "Dr.Jit 1.5's LLVM backend needs libLLVM >= 16 (Debian 12 ships 14/15, which crash with "

@@ -302,9 +302,12 @@ def led_triangle_weights(directions: np.ndarray, led_directions: np.ndarray, chu
 
     Raises ValueError when the LEDs do not surround the stage centre (then no such triangle exists everywhere).
     """
-    from scipy.spatial import ConvexHull
+    from scipy.spatial import ConvexHull, QhullError
 
-    hull = ConvexHull(led_directions)
+    try:
+        hull = ConvexHull(led_directions)
+    except (QhullError, ValueError) as exc:  # fewer than 4 LEDs, or all in one plane: no hull to look through
+        raise ValueError(f"the LED directions span no convex hull ({str(exc).splitlines()[0][:80]})") from None
     normals, offsets = hull.equations[:, :3], hull.equations[:, 3]
     if np.any(offsets >= -1e-6):
         raise ValueError("the LEDs do not surround the stage centre")
@@ -360,8 +363,8 @@ def envmap_to_leds(envmap: np.ndarray, stage: Lightstage, normalize: bool = True
     if cells == "triangle":
         try:
             index, weights = led_triangle_weights(directions, led_dirs)
-        except ValueError:
-            logger.warning("LEDs do not surround the stage centre: using nearest-LED (Voronoi) cells")
+        except ValueError as exc:
+            logger.warning("LEDs do not surround the stage centre (%s): using nearest-LED (Voronoi) cells", exc)
             cells = "voronoi"
     if cells == "voronoi":
         index = nearest_led(directions, led_dirs)[:, None]

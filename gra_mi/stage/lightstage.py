@@ -370,6 +370,15 @@ def lightstage_from_dict(data: dict, source: str = "<calibration>") -> Lightstag
     distances = np.linalg.norm(positions - center, axis=1)
     if np.any(distances < 1e-6):
         raise GraMiInputError(source, "an LED sits at the stage centre", field=f"leds[{int(np.argmin(distances))}].position")
+    if len(positions) > 1:
+        from scipy.spatial import cKDTree
+
+        pairs = sorted(cKDTree(positions).query_pairs(1e-6))
+        if pairs:
+            i, j = pairs[0]
+            raise GraMiInputError(
+                source, f"LEDs {i} and {j} are at the same position ({len(pairs)} such pair(s))", field=f"leds[{j}].position"
+            )
 
     cams = data.get("cameras")
     if not isinstance(cams, list) or not cams:
@@ -380,8 +389,10 @@ def lightstage_from_dict(data: dict, source: str = "<calibration>") -> Lightstag
         if not isinstance(cam, dict):
             raise GraMiInputError(source, "expected an object", field=where)
         size = cam.get("image_size")
-        if not (isinstance(size, list) and len(size) == 2 and all(isinstance(s, int) and s > 0 for s in size)):
-            raise GraMiInputError(source, f"expected [width, height] as positive integers, got {size!r}", field=f"{where}.image_size")
+        if not (isinstance(size, list) and len(size) == 2 and all(isinstance(s, int) and 0 < s <= MAX_IMAGE_SIDE for s in size)):
+            raise GraMiInputError(
+                source, f"expected [width, height] as integers in [1, {MAX_IMAGE_SIDE}], got {size!r}", field=f"{where}.image_size"
+            )
         intr = cam.get("intrinsics")
         if not isinstance(intr, dict):
             raise GraMiInputError(source, "missing or not an object", field=f"{where}.intrinsics")
@@ -419,6 +430,10 @@ def lightstage_from_dict(data: dict, source: str = "<calibration>") -> Lightstag
         led_gains=np.stack(gains) if has_gain else None,
         max_led_intensity=max_intensity,
     )
+
+
+MAX_IMAGE_SIDE = 16384
+"""The largest image side a calibration may give (Mitsuba's film allocates it whole; no real camera is larger)."""
 
 
 def load_calibration(path: str | Path) -> Lightstage:

@@ -221,6 +221,16 @@ class LightstageScene:
         n_leds = sum(1 for e in self.scene.emitters() if e.id().startswith(keys.LED_PREFIX))
         if n_leds != self.stage.num_leds:
             raise GraMiInputError(self.path, f"{n_leds} LED emitters in the scene but {self.stage.num_leds} in the calibration")
+        positions = np.array([np.ravel(self.params[keys.led_position(i)]) for i in range(n_leds)], np.float64)
+        far = np.linalg.norm(positions - self.stage.led_positions, axis=1)
+        if far.max() > 1e-4:
+            k = int(np.argmax(far))
+            raise GraMiInputError(
+                self.path,
+                f"the scene's LED {k} is at {np.round(positions[k], 4).tolist()} but the calibration puts it at "
+                f"{np.round(self.stage.led_positions[k], 4).tolist()} ({int((far > 1e-4).sum())} LEDs disagree): the LEDs' XML "
+                "and calibration.json come from different rigs; rewrite them with `gra-mi rig --from-calibration`",
+            )
         n_vertices = self.params[keys.SUBJECT_POSITIONS].shape[0] // 3
         if n_vertices != self.sequence.num_vertices:
             raise GraMiInputError(self.path, f"mesh has {n_vertices} vertices, sequence has {self.sequence.num_vertices}")
