@@ -148,6 +148,15 @@ def inputs(path_traced_fit, tmp_path_factory):
     raw = (cap / "subject" / "sequence.npz").read_bytes()
     (seq / "subject" / "sequence.npz").write_bytes(raw[: len(raw) // 2])
     paths["cap_seq"] = seq
+    # Tracked meshes with zero normals, and with vertex positions stored as strings
+    arrays = dict(np.load(cap / "subject" / "sequence.npz"))
+    for name, edit in (
+        ("cap_seq_normals", {"normals": np.zeros_like(arrays["normals"])}),
+        ("cap_seq_strings", {"vertices": arrays["vertices"].astype(str)}),
+    ):
+        folder = _linked_copy(cap, root / name, copy=("subject/sequence.npz",))
+        np.savez(folder / "subject" / "sequence.npz", **{**arrays, **edit})
+        paths[name] = folder
 
     # Fits: a NaN albedo, a wrong-size roughness, a missing one
     for name, edit in (
@@ -181,6 +190,15 @@ def inputs(path_traced_fit, tmp_path_factory):
     (root / "calib_broken.json").write_text("{ nope")
     (root / "calib_fields.json").write_text(json.dumps({"leds": "many"}))
     (root / "a_file").write_text("I am a file, not a folder")
+    # Frames to deflicker: good ones, one with a NaN, one of another size (the third: found after two good ones)
+    for folder, edit in (("defl_frames", None), ("defl_stable", None), ("defl_nan", "nan"), ("defl_size", "size")):
+        for k in range(3):
+            frame = np.full((8, 8, 4), 0.5, np.float32)
+            if k == 2 and edit == "nan":
+                frame[3, 3, 1] = np.nan
+            if k == 2 and edit == "size":
+                frame = frame[:6]
+            write_exr(root / folder / f"frame_{k:04d}.exr", frame)
     # Rigs: every LED at one point, an absurd image size, a calibration that its scene's LED XML disagrees with
     calib = json.loads((SCENES / "rigs" / "tiny" / "calibration.json").read_text())
     one_point = {**calib, "leds": [{**led, "position": calib["leds"][0]["position"]} for led in calib["leds"]]}
@@ -417,6 +435,11 @@ OPTION_CASES = [
     ),
     ("edit-nothing", ["edit-texture", "--albedo", "{root}/albedo.exr"], ["--image"]),
     (
+        "edit-layer-nan",
+        ["edit-texture", "--albedo", "{root}/albedo.exr", "--image", "{root}/albedo_nan.exr"],
+        ["albedo_nan.exr", "non-finite"],
+    ),
+    (
         "edit-albedo-nan",
         ["edit-texture", "--albedo", "{root}/albedo_nan.exr", "--mask", "{root}/mask.exr", "--color", "1,0,0"],
         ["albedo_nan.exr"],
@@ -459,6 +482,8 @@ OPTION_CASES = [
     ("deflicker-eps", ["deflicker", "{root}", "--stable", "{root}", "--filter-eps", "-1"], ["--filter-eps"]),
     ("deflicker-exposure", ["deflicker", "{root}", "--stable", "{root}", "--exposure", "nan"], ["--exposure"]),
     ("deflicker-missing", ["deflicker", "{root}/noframes", "--stable", "{root}"], ["noframes"]),
+    ("deflicker-nan", ["deflicker", "{root}/defl_nan", "--stable", "{root}/defl_stable"], ["frame_0002.exr", "non-finite"]),
+    ("deflicker-size-late", ["deflicker", "{root}/defl_size", "--stable", "{root}/defl_stable"], ["frame_0002.exr", "8×8"]),
     ("eval-scale", ["eval", "--capture", "{cap}", "--fit", "{fit}", "--scale", "0"], ["--scale"]),
     ("eval-frames", ["eval", "--capture", "{cap}", "--fit", "{fit}", "--frames", "some"], ["--frames"]),
     ("eval-nothing", ["eval", "--fit", "{fit}"], ["--capture"]),
@@ -501,6 +526,8 @@ DATA_CASES = [
     ("image-nan-relightnet", ["train-relightnet", "{cap_nan}", "--fit", "{fit}"], ["frame_0001.exr", "NaN"]),
     ("image-half-refiner-data", ["refiner-data", "{cap_half}", "--fit", "{fit}"], ["frame_0001.exr", "320x240"]),
     ("sequence-truncated", ["fit", "{cap_seq}"], ["sequence.npz"]),
+    ("sequence-zero-normals", ["fit", "{cap_seq_normals}"], ["sequence.npz", "normals", "zero-length"]),
+    ("sequence-string-vertices", ["fit", "{cap_seq_strings}"], ["sequence.npz", "vertices", "dtype"]),
     ("capture-json-broken", ["fit", "{cap_json_broken}"], ["capture.json", "malformed JSON"]),
     ("capture-json-format", ["fit", "{cap_json_format}"], ["capture.json", "format"]),
     ("capture-json-missing", ["fit", "{cap_json_missing}"], ["capture.json", "frames", "missing"]),
@@ -646,6 +673,15 @@ def test_folder_made_by_another_run(argv, needles, made, capsys, llvm_variant):
     assert_refused(argv, capsys, *needles)
     if before is not None:  # nothing in the folder was touched
         assert {p: p.stat().st_mtime_ns for p in out.rglob("*")} == before
+
+
+def test_deflicker_never_writes_over_its_input(inputs, capsys):
+    frames = inputs["root"] / "defl_frames"
+    before = {p: p.read_bytes() for p in frames.iterdir()}
+    for folder in ("defl_frames", "defl_stable"):
+        argv = ["deflicker", frames, "--stable", inputs["root"] / "defl_stable", "--out", inputs["root"] / folder]
+        assert_refused(argv, capsys, folder, "overwrite their input")
+    assert {p: p.read_bytes() for p in frames.iterdir()} == before
 
 
 def test_second_writer_is_locked_out(made, capsys, tmp_path, llvm_variant):

@@ -67,6 +67,9 @@ def edit_albedo(
             raise GraMiInputError(source, f"expected an RGB or RGBA image, got {layer.shape[2]} channels")
         weight = (layer[..., 3:4] if layer.shape[2] == 4 else np.ones((r, r, 1))) * opacity
         paint = layer[..., :3]
+        bad = int((~np.isfinite(paint)).sum())
+        if bad:  # np.clip would keep a NaN: it would reach the albedo and every render of it
+            raise GraMiInputError(source, f"{bad} non-finite (NaN/Inf) colour values in the edit layer")
     elif mask is not None and color is not None:
         weight = _fit_resolution(mask, r, source)[..., :1] * opacity
         paint = np.broadcast_to(np.asarray(color, np.float32), (r, r, 3))

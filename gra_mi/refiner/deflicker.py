@@ -121,14 +121,16 @@ def deflicker_folder(
             stable_dir, f"--stable: {len(stable)} frames, but {frames_dir} has {len(frames)}; one stable frame per frame expected"
         )
     out = Path(out)
+    for name, given in (("frames", frames_dir), ("--stable", stable_dir)):
+        if out.resolve() == Path(given).resolve():
+            raise GraMiInputError(out, f"is the {name} folder: the corrected frames would overwrite their input; choose another --out")
+    pairs = list(zip(frames, stable, strict=True))
+    for path, guide_path in progress(pairs, description="deflicker: checking frames"):  # nothing written before all pass
+        _check_pair(path, read_frame(path), guide_path, read_frame(guide_path))
     written = []
     with Mp4Stream(out / "deflickered.mp4", 24.0) as mp4:
-        for path, guide_path in progress(list(zip(frames, stable, strict=True)), description="deflicker"):
+        for path, guide_path in progress(pairs, description="deflicker"):
             frame, guide = read_frame(path), read_frame(guide_path)
-            if frame.shape[:2] != guide.shape[:2]:
-                raise GraMiInputError(
-                    guide_path, f"{guide.shape[1]}×{guide.shape[0]} pixels, but {path.name} is {frame.shape[1]}×{frame.shape[0]}"
-                )
             if exposure is None:
                 exposure = display_exposure(guide, guide[..., :3].max(axis=-1) > 0)
             corrected = deflicker_frame(frame, guide, exposure, config)
@@ -137,3 +139,13 @@ def deflicker_folder(
             mp4.append(corrected, exposure)
             written.append(out / f"{path.stem}.exr")
     return written
+
+
+def _check_pair(path: Path, frame: np.ndarray, guide_path: Path, guide: np.ndarray) -> None:
+    """A frame and its stable render: the same size, and finite (a NaN would pass through the guided filter)."""
+    if frame.shape[:2] != guide.shape[:2]:
+        raise GraMiInputError(guide_path, f"{guide.shape[1]}×{guide.shape[0]} pixels, but {path.name} is {frame.shape[1]}×{frame.shape[0]}")
+    for source, image in ((path, frame), (guide_path, guide)):
+        bad = int((~np.isfinite(image[..., :3])).sum())
+        if bad:
+            raise GraMiInputError(source, f"{bad} non-finite (NaN/Inf) pixel values")

@@ -69,6 +69,15 @@ def split_uv_seams(faces: np.ndarray, face_uv_indices: np.ndarray) -> tuple[np.n
 
 def validate_sequence(seq: MeshSequence, source: str = "<sequence>") -> None:
     """Raise :class:`GraMiInputError` unless the sequence is a well-formed tracked mesh."""
+    arrays = {"vertices": seq.vertices, "normals": seq.normals, "uvs": seq.uvs, "faces": seq.faces}
+    if seq.vertex_colors is not None:
+        arrays["vertex_colors"] = seq.vertex_colors
+    for name, array in arrays.items():
+        kinds = "iu" if name == "faces" else "fiu"
+        if np.asarray(array).dtype.kind not in kinds:
+            raise GraMiInputError(
+                source, f"expected {'integers' if name == 'faces' else 'numbers'}, got dtype {np.asarray(array).dtype}", field=name
+            )
     v = np.asarray(seq.vertices)
     if v.ndim != 3 or v.shape[2] != 3 or v.shape[0] < 1:
         raise GraMiInputError(source, f"expected (frames, vertices, 3), got {v.shape}", field="vertices")
@@ -79,6 +88,12 @@ def validate_sequence(seq: MeshSequence, source: str = "<sequence>") -> None:
         raise GraMiInputError(source, f"normals {seq.normals.shape} do not match vertices {v.shape}", field="normals")
     if not np.isfinite(seq.normals).all():
         raise GraMiInputError(source, "non-finite normals", field="normals")
+    flat = np.linalg.norm(seq.normals, axis=-1) < 1e-6
+    if flat.any():  # a zero normal shades black and turns no LED's light towards the surface
+        frame = int(np.argmax(flat.any(axis=1)))
+        raise GraMiInputError(
+            source, f"{int(flat.sum())} zero-length vertex normals (first in frame {frame}); recompute them from the faces", field="normals"
+        )
     if seq.uvs.shape != (v.shape[1], 2):
         raise GraMiInputError(source, f"expected ({v.shape[1]}, 2) UVs, got {seq.uvs.shape}", field="uvs")
     if not np.isfinite(seq.uvs).all() or seq.uvs.min() < 0 or seq.uvs.max() > 1:
