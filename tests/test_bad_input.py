@@ -243,6 +243,19 @@ def inputs(path_traced_fit, tmp_path_factory):
     seq = _linked_copy(root / "rd", root / "rd_truncated", copy=(good["sequences"][0]["file"],))
     (seq / good["sequences"][0]["file"]).write_bytes(b"\x10\x00\x00\x00\x00\x00\x00\x00{")
     paths["rd_truncated"], paths["rd_first"] = seq, good["sequences"][0]["name"]
+    # A sequence file without its envmaps, and a dataset.json that claims more frames than the file holds
+    from safetensors.torch import load_file, save_file
+
+    first_file = good["sequences"][0]["file"]
+    noenv = _linked_copy(root / "rd", root / "rd_noenv", copy=(first_file,))
+    save_file({k: v for k, v in load_file(str(root / "rd" / first_file)).items() if k != "env"}, str(noenv / first_file))
+    more = _linked_copy(root / "rd", root / "rd_more", copy=("dataset.json",))
+    (more / "dataset.json").write_text(json.dumps({**good, "sequences": [{**good["sequences"][0], "frames": 99}] + good["sequences"][1:]}))
+    paths["rd_noenv"], paths["rd_more"] = noenv, more
+    # A RelightNet of another UV resolution than the shared fit's
+    from gra_mi.relightnet.model import RelightNet, RelightNetConfig
+
+    RelightNet(RelightNetConfig(resolution=64, base_channels=4)).save(root / "rn_64")
     models = {
         "model_window": {"format": "gra-mi-refiner/1", "window": "17"},
         "model_list": [1, 2],
@@ -588,6 +601,13 @@ DATA_CASES = [
     ("refiner-data-box", ["train-refiner", "{rd_box}"], ["dataset.json", "sequences[0].box"]),
     ("refiner-data-box-frame", ["train-refiner", "{rd_box_frame}"], ["dataset.json", "frame"]),
     ("refiner-data-truncated", ["train-refiner", "{rd_truncated}", "--steps", "1"], ["safetensors"]),
+    ("refiner-data-no-env", ["train-refiner", "{rd_noenv}", "--steps", "1"], ["missing tensor", "env"]),
+    (
+        "refiner-data-more-frames",
+        ["refine", "{rd_more}", "--model", "{root}/nomodel", "--sequence", "{rd_first}"],
+        ["holds 5 frames", "99"],
+    ),
+    ("refiner-data-relightnet-size", [*RD, "--relightnet", "{root}/rn_64"], ["relightnet.json", "64²", "32²"]),
     (
         "refiner-json-types",
         ["refine", "{root}/rd", "--model", "{root}/model_window", "--sequence", "{rd_first}"],
@@ -673,6 +693,18 @@ def test_folder_made_by_another_run(argv, needles, made, capsys, llvm_variant):
     assert_refused(argv, capsys, *needles)
     if before is not None:  # nothing in the folder was touched
         assert {p: p.stat().st_mtime_ns for p in out.rglob("*")} == before
+
+
+def test_fit_with_no_texel_seen_by_three_cameras_reports_it(inputs, capsys, tmp_path, llvm_variant):
+    """Two training cameras: a valid fit, whose report scores no texel against the truth (it once crashed there)."""
+    data = json.loads((inputs["cap"] / "capture.json").read_text())
+    cap = _linked_copy(inputs["cap"], tmp_path / "cap", copy=("capture.json",))
+    (cap / "capture.json").write_text(json.dumps({**data, "train_cameras": data["train_cameras"][:2]}))
+    code, lines = run(["fit", cap, "--out", tmp_path / "fit", "--iterations", "5"], capsys)
+    assert code == 0, lines
+    report = json.loads((tmp_path / "fit" / "fit.json").read_text())
+    assert not report["scored_texels"] and report["map_curve"] == []
+    assert "texels seen by ≥ 3 cameras (scored below): 0" in (tmp_path / "fit" / "fit_report.md").read_text()
 
 
 def test_deflicker_never_writes_over_its_input(inputs, capsys):

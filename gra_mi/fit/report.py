@@ -182,7 +182,8 @@ def write_fit_outputs(fitter, result, out: Path) -> Path:
         scored = result.observed_cameras >= SCORED_MIN_CAMERAS
         for t, a, r in result.snapshots:
             e = map_errors(a[scored], r[scored], true_albedo[scored], true_rough[scored])
-            map_curve.append((t, e["roughness_mae"], e["albedo_rel_median"]))
+            if e:  # empty when no texel is seen by enough cameras to be scored
+                map_curve.append((t, e["roughness_mae"], e["albedo_rel_median"]))
     _plot_convergence(result, map_curve, out / "convergence.png")
     if truth is not None:
         _plot_maps_vs_truth(fitter, result, out / "maps_vs_truth.png")

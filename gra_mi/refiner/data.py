@@ -154,6 +154,22 @@ class RefinerDataset:
                 tuple(box) if box else None,
             )
 
+    def check(self, names: list[str] | None = None) -> None:
+        """Open each sequence's file (default: all) and check it holds what dataset.json says (its tensors, enough
+        frames), so that a command stops before it writes anything rather than part-way through."""
+        for name in self.sequences if names is None else names:
+            info = self.sequences[name]
+            with self._open(name) as f:
+                need = {"coarse", "env", "reference", "reference_env"} | ({"target"} if info.has_target else set())
+                if missing := sorted(need - set(f.keys())):
+                    raise GraMiInputError(info.file, f"missing tensor(s) {', '.join(missing)} (expected {', '.join(sorted(need))})")
+                for key in sorted(need - {"reference", "reference_env"}):
+                    held = f.get_slice(key).get_shape()[0]
+                    if held < info.frames:
+                        raise GraMiInputError(
+                            info.file, f"'{key}' holds {held} frames, but dataset.json says sequence '{name}' has {info.frames}"
+                        )
+
     def names(self, split: str | None = None) -> list[str]:
         return [n for n, s in self.sequences.items() if split is None or s.split == split]
 
@@ -440,13 +456,20 @@ def dataset_from_capture(
     inputs = {"capture": capture_dir, "fit": fit_dir, "relightnet": relightnet_dir}
     out = Path(out)
     capture, relighter = fitted_relighter(capture_dir, fit_dir, cache_dir or out / "cache")
-    claim_output(out, "refiner-data", inputs, config, overwrite=overwrite)
-    ls, stage = relighter.ls, relighter.ls.stage
     model = None
-    if relightnet_dir is not None:
+    if relightnet_dir is not None:  # loaded and checked before the output folder is claimed
         from gra_mi.relightnet.model import RelightNet
 
         model = RelightNet.load(relightnet_dir, torch_device())
+        if model.config.resolution != relighter.albedo_tex.shape[0]:
+            raise GraMiInputError(
+                Path(relightnet_dir) / "relightnet.json",
+                f"RelightNet runs at {model.config.resolution}², the fit in {fit_dir} at {relighter.albedo_tex.shape[0]}²: "
+                "train RelightNet on this fit",
+                field="resolution",
+            )
+    claim_output(out, "refiner-data", inputs, config, overwrite=overwrite)
+    ls, stage = relighter.ls, relighter.ls.stage
 
     def coarse_render(entry, cam):
         return render_view(relighter, model, entry.frame, cam, capture.lighting(stage, entry)).image

@@ -259,6 +259,7 @@ def refine_to_folder(
         raise GraMiParameterError("sequence", f"no sequence '{sequence}' in {dataset.folder} (have {sorted(dataset.sequences)})")
     from gra_mi.core.provenance import claim_output
 
+    dataset.check([sequence])
     said = {"sequence": sequence, "refine": asdict(config), "deflicker": asdict(deflicker) if deflicker else None}
     said["composite"] = asdict(composite) if composite else None
     claim_output(out, "refine", {"model": model_dir, "data": dataset_dir}, said, overwrite=overwrite, restart=True)

@@ -294,6 +294,7 @@ def train_refiner(
     device = torch.device(torch_device())
     out = Path(out)
     dataset = RefinerDataset(dataset_dir)
+    dataset.check()
     loop.claim("train-refiner", {"data": dataset_dir, "init": init}, {"train": asdict(config), "model": asdict(model_config)}, overwrite)
     model = VideoRefiner.load(init) if init is not None else VideoRefiner(model_config)
     if config.train_base:
