@@ -252,6 +252,11 @@ def inputs(path_traced_fit, tmp_path_factory):
     more = _linked_copy(root / "rd", root / "rd_more", copy=("dataset.json",))
     (more / "dataset.json").write_text(json.dumps({**good, "sequences": [{**good["sequences"][0], "frames": 99}] + good["sequences"][1:]}))
     paths["rd_noenv"], paths["rd_more"] = noenv, more
+    # A run folder (as `gra-mi demo` lays it out) whose fit lost its roughness map
+    (root / "run_broken").mkdir()
+    (root / "run_broken" / "capture").symlink_to(cap)
+    (root / "run_broken" / "fit").symlink_to(paths["fit_missing"])
+    paths["run_broken"] = root / "run_broken"
     # A RelightNet of another UV resolution than the shared fit's
     from gra_mi.relightnet.model import RelightNet, RelightNetConfig
 
@@ -561,6 +566,7 @@ DATA_CASES = [
     ("fit-size-roughness", ["train-relightnet", "{cap}", "--fit", "{fit_size}"], ["roughness.exr"]),
     ("fit-missing-roughness", ["train-relightnet", "{cap}", "--fit", "{fit_missing}"], ["roughness.exr", "not found"]),
     ("fit-missing-eval", ["eval", "--capture", "{cap}", "--fit", "{fit_missing}"], ["roughness.exr"]),
+    ("eval-run-with-broken-fit", ["eval", "{run_broken}"], ["roughness.exr"]),
     ("envmap-nan", ["relight", TINY, "--envmap", "{root}/nan.exr"], ["nan.exr", "NaN"]),
     ("envmap-square", ["relight", TINY, "--envmap", "{root}/square.exr"], ["square.exr", "twice as wide"]),
     ("envmap-missing", ["relight", TINY, "--envmap", "{root}/none.exr"], ["none.exr", "not found"]),
@@ -707,6 +713,15 @@ def test_fit_with_no_texel_seen_by_three_cameras_reports_it(inputs, capsys, tmp_
     assert "texels seen by ≥ 3 cameras (scored below): 0" in (tmp_path / "fit" / "fit_report.md").read_text()
 
 
+@pytest.mark.parametrize("flag", ["--lpips-weights", "--i3d-weights"])
+def test_bad_perceptual_weights_stop_eval_before_any_work(flag, inputs, capsys, tmp_path, llvm_variant):
+    out = tmp_path / "eval"
+    assert_refused(
+        ["eval", "--capture", inputs["cap"], "--fit", inputs["fit"], flag, inputs["root"] / "a_file", "--out", out], capsys, "a_file"
+    )
+    assert not out.exists(), "nothing evaluated, nothing written"
+
+
 def test_deflicker_never_writes_over_its_input(inputs, capsys):
     frames = inputs["root"] / "defl_frames"
     before = {p: p.read_bytes() for p in frames.iterdir()}
@@ -813,6 +828,12 @@ def test_writers_emit_what_readers_accept(capsys, tmp_path, llvm_variant):
     code, lines = run(["render", scene, "--olat", "3", "--spp", "4", "--out", odd / "r"], capsys)
     assert code == 0, lines
     assert len(list((odd / "r").glob("*.exr"))) == 1
+    # The scene file outside the odd folder: its relative paths then hold the odd characters themselves
+    elsewhere = tmp_path / "plain" / "scene.xml"
+    assert run(["scene", "--rig", odd / "rig", "--subject", odd / "subject", "--out", elsewhere], capsys)[0] == 0
+    assert "a&amp;b &lt;c&gt;/rig" in elsewhere.read_text()
+    code, lines = run(["render", elsewhere, "--olat", "3", "--spp", "4", "--out", tmp_path / "r2"], capsys)
+    assert code == 0, lines
 
 
 def test_full_disk_is_one_line_and_leaves_no_file(inputs, capsys, tmp_path, monkeypatch):

@@ -291,7 +291,7 @@ def bench_mitsuba_direct(b: BenchSetup) -> None:
     """Mitsuba's own ``direct`` integrator with the same BSDF and LEDs: the generic peer, at several spp."""
     import mitsuba as mi
 
-    from gra_mi.stage.scene import camera_xml
+    from gra_mi.stage.scene import camera_xml, xml_attribute
 
     write_exr(b.work / "albedo.exr", b.albedo_tex)
     write_exr(b.work / "rough.exr", b.rough_tex)
@@ -301,9 +301,9 @@ def bench_mitsuba_direct(b: BenchSetup) -> None:
         for q, i in zip(b.stage.led_positions, b.intensities, strict=True)
     )
     xml = (
-        f'<scene version="3.0.0">{camera_xml(b.cam, "1")}{emitters}<shape type="ply"><string name="filename" value="{ply}"/>'
-        f'<bsdf type="gra_microfacet"><texture type="bitmap" name="albedo"><string name="filename" value="{b.work / "albedo.exr"}"/></texture>'
-        f'<texture type="bitmap" name="roughness"><string name="filename" value="{b.work / "rough.exr"}"/></texture></bsdf></shape></scene>'
+        f'<scene version="3.0.0">{camera_xml(b.cam, "1")}{emitters}<shape type="ply"><string name="filename" value="{xml_attribute(ply)}"/>'
+        f'<bsdf type="gra_microfacet"><texture type="bitmap" name="albedo"><string name="filename" value="{xml_attribute(b.work / "albedo.exr")}"/></texture>'
+        f'<texture type="bitmap" name="roughness"><string name="filename" value="{xml_attribute(b.work / "rough.exr")}"/></texture></bsdf></shape></scene>'
     )
     scene = mi.load_string(xml)
     integrator = mi.load_dict({"type": "direct", "emitter_samples": 1, "bsdf_samples": 0})

@@ -93,7 +93,12 @@ class EvalInputs:
         if not run.is_dir():
             raise GraMiInputError(run, "run folder not found")
         refined = run / "refiner" / "refined"
-        return cls(run / "capture", run / "fit", run / "relightnet", run / "refiner" / "data", [refined] if refined.is_dir() else [])
+        inputs = cls(run / "capture", run / "fit", run / "relightnet", run / "refiner" / "data", [refined] if refined.is_dir() else [])
+        # A stage folder the run holds is one the user points to: if it cannot be scored, that is a problem (exit 2);
+        # a stage the run never made is skipped and said so.
+        present = {"fit": inputs.fit, "relightnet": inputs.relightnet, "refiner_data": inputs.refiner_data}
+        inputs.explicit |= {name for name, folder in present.items() if folder.is_dir()}
+        return inputs
 
 
 def frame_selection(count: int, how: str) -> list[int]:
@@ -186,6 +191,16 @@ def _splits(capture, dataset, refined: dict[str, Path]) -> list[Split]:
     return splits
 
 
+def _perceptual_models(config: EvalConfig):
+    """(LPIPS, I3D) from the weights the config names (None where not asked for)."""
+    from gra_mi.eval.perceptual import load_i3d, load_lpips
+
+    return (
+        load_lpips(config.lpips_weights) if config.lpips_weights else None,
+        load_i3d(config.i3d_weights) if config.i3d_weights else None,
+    )
+
+
 def evaluate(inputs: EvalInputs, out: str | Path, config: EvalConfig | None = None) -> dict:
     """Score every stage found in ``inputs`` on every split; write the table, contact sheets and videos under ``out``.
     Returns the eval.json content; its ``problems`` lists what the user pointed to that could not be evaluated."""
@@ -194,6 +209,7 @@ def evaluate(inputs: EvalInputs, out: str | Path, config: EvalConfig | None = No
 
     config = config or EvalConfig()
     config.validate()
+    lpips_model, i3d = _perceptual_models(config)  # a bad weights file stops here, before any work
     ensure_mitsuba()
     out = Path(out)
     problems: list[str] = []
@@ -252,21 +268,6 @@ def evaluate(inputs: EvalInputs, out: str | Path, config: EvalConfig | None = No
     scale = config.scale
     if scale is None:
         scale = float(dataset.meta.get("scale", dataset.crop[1] / capture_width(capture))) if refined else 1.0
-    lpips_model = i3d = None
-    if config.lpips_weights:
-        try:
-            from gra_mi.eval.perceptual import load_lpips
-
-            lpips_model = load_lpips(config.lpips_weights)
-        except GraMiInputError as exc:
-            problems.append(str(exc))
-    if config.i3d_weights:
-        try:
-            from gra_mi.eval.perceptual import load_i3d
-
-            i3d = load_i3d(config.i3d_weights)
-        except GraMiInputError as exc:
-            problems.append(str(exc))
 
     # Frames of every stage, split by split ---------------------------------------------------------------------
     from gra_mi.capture.dataset import load_observation

@@ -127,12 +127,21 @@ PREVIEW_BSDF = """<bsdf type="diffuse">
         </bsdf>"""
 
 
+def xml_attribute(text: str) -> str:
+    """``text`` escaped for a double-quoted XML attribute value."""
+    from xml.sax.saxutils import escape
+
+    return escape(str(text), {'"': "&quot;"})
+
+
 def subject_scene_xml(rig_dir: str, subject_dir: str, frame: int = 0, spp: int = 64, bsdf_xml: str = PREVIEW_BSDF) -> str:
     """A lightstage scene: the rig's LEDs and cameras plus the subject mesh of frame ``$frame``.
 
     Paths are relative to the scene file. By default the subject uses Mitsuba's ``diffuse`` BSDF with the
-    sequence's per-vertex base colour, so stock integrators render it as is; ``bsdf_xml`` replaces it.
+    sequence's per-vertex base colour, so stock integrators render it as is; ``bsdf_xml`` replaces it. Paths may
+    hold any character (``&``, ``<``, quotes): they are escaped as XML attribute values.
     """
+    rig_dir, subject_dir = xml_attribute(rig_dir), xml_attribute(subject_dir)
     return f"""<scene version="3.0.0">
     <!-- A gra-mi lightstage scene. Parameters: -D{keys.PARAM_FRAME}=0007 selects the frame's mesh,
          -D{keys.PARAM_SUBJECT}=DIR the tracked mesh sequence, -D{keys.PARAM_SPP}=N the samples per pixel.
