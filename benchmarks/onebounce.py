@@ -155,15 +155,17 @@ def main(argv: list[str] | None = None) -> int:
     # 3. Equal-error comparison with Mitsuba's direct integrator ---------------------------------------------
     write_exr(tmp / "albedo.exr", relighter.albedo_tex)
     ply = subject / "frames" / f"frame_{frame:04d}.ply"
-    emitters = "".join(
-        f'<emitter type="point"><point name="position" value="{", ".join(map(str, q))}"/><rgb name="intensity" value="{", ".join(map(str, i))}"/></emitter>'
-        for q, i in zip(stage.led_positions, intensities[1], strict=True)
-    )
-    from gra_mi.stage.scene import camera_xml
+    from gra_mi.stage.scene import camera_xml, led_sampling_weights, xml_attribute
 
+    # The stock integrator run as a user would: LEDs picked in proportion to their power (gra-mi's own scenes do).
+    emitters = "".join(
+        f'<emitter type="point"><point name="position" value="{", ".join(map(str, q))}"/><rgb name="intensity" value="{", ".join(map(str, i))}"/>'
+        f'<float name="sampling_weight" value="{w:.9g}"/></emitter>'
+        for q, i, w in zip(stage.led_positions, intensities[1], led_sampling_weights(intensities[1]), strict=True)
+    )
     xml = (
-        f'<scene version="3.0.0">{camera_xml(cam, "1")}{emitters}<shape type="ply"><string name="filename" value="{ply}"/>'
-        f'<bsdf type="gra_microfacet"><texture type="bitmap" name="albedo"><string name="filename" value="{tmp / "albedo.exr"}"/></texture>'
+        f'<scene version="3.0.0">{camera_xml(cam, "1")}{emitters}<shape type="ply"><string name="filename" value="{xml_attribute(ply)}"/>'
+        f'<bsdf type="gra_microfacet"><texture type="bitmap" name="albedo"><string name="filename" value="{xml_attribute(tmp / "albedo.exr")}"/></texture>'
         '<float name="roughness" value="0.5"/></bsdf></shape></scene>'
     )
     scene = mi.load_string(xml)

@@ -130,7 +130,7 @@ def test_adam_fit_resumes_where_it_stopped(onebounce_capture, tmp_path, monkeypa
     # An interrupted Adam run resumes from its checkpoint and ends where an uninterrupted run ends.
     from gra_mi.capture.dataset import Capture
     from gra_mi.fit import optimize
-    from gra_mi.fit.materials import FitConfig, MaterialFitter
+    from gra_mi.fit.materials import RUN_TO_RUN, FitConfig, MaterialFitter
 
     capture = Capture.load(onebounce_capture)
     config = FitConfig(roughness_candidates=5, irls_iterations=1, iterations=20)
@@ -150,8 +150,9 @@ def test_adam_fit_resumes_where_it_stopped(onebounce_capture, tmp_path, monkeypa
         MaterialFitter(capture, config).fit(tmp_path / "resumed")
     monkeypatch.setattr(optimize.Adam, "step", step)
     resumed = MaterialFitter(capture, config).fit(tmp_path / "resumed")
-    np.testing.assert_allclose(resumed.albedo, whole.albedo, atol=1e-4)
-    np.testing.assert_allclose(resumed.roughness, whole.roughness, atol=1e-4)
+    # Within the fit's run-to-run spread (thread-order gradient sums; two uninterrupted runs differ as much)
+    np.testing.assert_allclose(resumed.albedo, whole.albedo, atol=RUN_TO_RUN)
+    np.testing.assert_allclose(resumed.roughness, whole.roughness, atol=RUN_TO_RUN)
     # The checkpoint belongs to its settings: other options are refused, naming the file.
     with pytest.raises(GraMiInputError, match="optimize.npz"):
         MaterialFitter(capture, FitConfig(roughness_candidates=5, irls_iterations=1, iterations=30)).fit(tmp_path / "resumed")

@@ -291,14 +291,15 @@ def bench_mitsuba_direct(b: BenchSetup) -> None:
     """Mitsuba's own ``direct`` integrator with the same BSDF and LEDs: the generic peer, at several spp."""
     import mitsuba as mi
 
-    from gra_mi.stage.scene import camera_xml, xml_attribute
+    from gra_mi.stage.scene import camera_xml, led_sampling_weights, xml_attribute
 
     write_exr(b.work / "albedo.exr", b.albedo_tex)
     write_exr(b.work / "rough.exr", b.rough_tex)
     ply = b.work / "subject" / "frames" / f"frame_{b.frame:04d}.ply"
     emitters = "".join(
-        f'<emitter type="point"><point name="position" value="{", ".join(map(str, q))}"/><rgb name="intensity" value="{", ".join(map(str, i))}"/></emitter>'
-        for q, i in zip(b.stage.led_positions, b.intensities, strict=True)
+        f'<emitter type="point"><point name="position" value="{", ".join(map(str, q))}"/><rgb name="intensity" value="{", ".join(map(str, i))}"/>'
+        f'<float name="sampling_weight" value="{w:.9g}"/></emitter>'  # LEDs picked by power, as gra-mi's own scenes do
+        for q, i, w in zip(b.stage.led_positions, b.intensities, led_sampling_weights(b.intensities), strict=True)
     )
     xml = (
         f'<scene version="3.0.0">{camera_xml(b.cam, "1")}{emitters}<shape type="ply"><string name="filename" value="{xml_attribute(ply)}"/>'

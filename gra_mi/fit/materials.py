@@ -49,6 +49,12 @@ ALBEDO_FILL_STRENGTH = 0.01  # texels no camera saw take their neighbours' close
 
 SOLVERS = ("adam", "closed-form")
 
+RUN_TO_RUN = 2e-3
+"""How far two runs of the same fit may differ per texel (albedo and roughness). Not bit-reproducible by design:
+Dr.Jit's CPU and GPU backends sum the gradient's scatter-add over texels with threads, in whatever order they
+finish, and Adam's step (a ratio of moments) turns last-bit differences into up to ~1e-4 (3 runs of `tiny`) and
+6e-4 (`small`) after its iterations; a resumed fit is compared with an uninterrupted one within this bound."""
+
 
 @dataclass
 class FitConfig:

@@ -127,6 +127,14 @@ PREVIEW_BSDF = """<bsdf type="diffuse">
         </bsdf>"""
 
 
+def led_sampling_weights(intensities: np.ndarray) -> np.ndarray:
+    """Each LED's ``sampling_weight`` for Mitsuba's emitter sampling: its power (mean radiant intensity), relative to
+    the brightest. Path tracers then pick an LED in proportion to its power: with a sun, a few LEDs carry nearly all
+    the light, and picking among all of them uniformly is what made fireflies. LEDs that are off are never picked."""
+    power = np.asarray(intensities, np.float64).mean(axis=1)
+    return power / power.max() if power.max() > 0 else np.ones_like(power)
+
+
 def xml_attribute(text: str) -> str:
     """``text`` escaped for a double-quoted XML attribute value."""
     from xml.sax.saxutils import escape
@@ -266,10 +274,7 @@ class LightstageScene:
         import mitsuba as mi
 
         intensities = validate_pattern(self.stage, intensities, source="LED intensities")
-        # Path tracers pick an LED in proportion to its power: with a sun, a few LEDs carry nearly all the light,
-        # and picking among all of them uniformly is what made fireflies. LEDs that are off are never picked.
-        power = intensities.mean(axis=1)
-        weights = power / power.max() if power.max() > 0 else np.ones_like(power)
+        weights = led_sampling_weights(intensities)
         for i, value in enumerate(intensities):
             self.params[keys.led_intensity(i)] = mi.Color3f(*(float(x) for x in value))
             self.params[keys.led_sampling_weight(i)] = float(weights[i])
