@@ -818,6 +818,21 @@ def test_leds_inside_the_subject_are_warned(capsys, caplog, tmp_path, llvm_varia
     assert any("lit LEDs are inside the subject" in r.getMessage() for r in caplog.records)
 
 
+def test_a_rig_inside_the_subject_warns_far_field_relights(capsys, caplog, tmp_path, llvm_variant):
+    """Every LED inside the body: far field still lights the subject (from the LEDs' directions) but at a small rig's
+    irradiance, hundreds of times brighter than on a real stage; the warning says so."""
+    rig = ["rig", "--out", tmp_path / "rig", "--radius", "0.08", "--camera-distance", "0.05", "--num-leds", "32", "--num-cameras", "2"]
+    assert run(rig, capsys)[0] == 0
+    assert run(["subject", "--kind", "tiny", "--frames", "1", "--out", tmp_path / "subject"], capsys)[0] == 0
+    scene = tmp_path / "scene.xml"
+    assert run(["scene", "--rig", tmp_path / "rig", "--subject", tmp_path / "subject", "--out", scene], capsys)[0] == 0
+    write_exr(tmp_path / "sky.exr", np.ones((16, 32, 3), np.float32))
+    code, lines = run(["relight", scene, "--envmap", tmp_path / "sky.exr", "--uv-resolution", "32", "--out", tmp_path / "r"], capsys)
+    assert code == 0, lines
+    said = [r.getMessage() for r in caplog.records if "inside the subject" in r.getMessage()]
+    assert said and "32 of 32" in said[0] and "far brighter" in said[0], said
+
+
 def test_writers_emit_what_readers_accept(capsys, tmp_path, llvm_variant):
     """Paths with XML-special characters: the scene writer escapes them, and the scene loads and renders."""
     odd = tmp_path / "a&b <c>"

@@ -192,7 +192,7 @@ def relight_batch(
         view = render_view(relighter, model, frame, cam.name, light.intensities, light.point_light, light.far_field(config.lighting_model))
         if (frame, name) not in warned:  # said once per frame and lighting, not per camera
             warned.add((frame, name))
-            for warning in lighting_warnings(ls, light.intensities, light.point_light):
+            for warning in lighting_warnings(ls, light.intensities, light.point_light, light.far_field(config.lighting_model)):
                 logger.warning("%s: %s", name, warning)
         folder = out / name / cam.name
         write_exr(folder / f"frame_{frame:04d}.exr", view.image)

@@ -407,9 +407,10 @@ def points_inside_subject(ls: LightstageScene, points: np.ndarray) -> np.ndarray
     return np.asarray(leaving, bool).reshape(len(points), len(AXES)).sum(axis=1) >= len(AXES) - 1
 
 
-def lighting_warnings(ls: LightstageScene, intensities: np.ndarray, point_light=None) -> list[str]:
-    """What makes a lighting of the current frame light nothing, in words: every LED off, lit LEDs inside the
-    subject (a rig too small or off centre), a point light inside the subject."""
+def lighting_warnings(ls: LightstageScene, intensities: np.ndarray, point_light=None, far_field: bool = False) -> list[str]:
+    """What makes a lighting of the current frame light nothing, or not as meant, in words: every LED off, lit LEDs
+    inside the subject (a rig too small or off centre), a point light inside the subject. Far field, LEDs inside the
+    subject still light it, from their directions, but at the irradiance such a small rig makes at full drive."""
     said = []
     lit = np.flatnonzero(np.asarray(intensities).max(axis=1) > 0)
     if point_light is not None:
@@ -421,7 +422,14 @@ def lighting_warnings(ls: LightstageScene, intensities: np.ndarray, point_light=
         said.append("every LED is off: the render is black")
     if len(lit):
         inside = int(points_inside_subject(ls, ls.stage.led_positions[lit]).sum())
-        if inside:
+        if inside and far_field:
+            radius = float(np.median(ls.stage.led_distances()))
+            said.append(
+                f"{inside} of {len(lit)} lit LEDs are inside the subject at frame {ls.frame}: the rig ({radius:.2f} m) is smaller than the "
+                "subject; far field lights from the LEDs' directions, at the irradiance of LEDs this close at full drive, "
+                "so the render is far brighter than the same map on a real stage (check the rig's radius and centre)"
+            )
+        elif inside:
             said.append(
                 f"{inside} of {len(lit)} lit LEDs are inside the subject at frame {ls.frame}: they light nothing (check the rig's radius and centre)"
             )
