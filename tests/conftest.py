@@ -62,3 +62,23 @@ def path_traced_fit(tmp_path_factory):
     generate_capture(root / "cap", "tiny", measure_noise=False)
     run_fit(root / "cap", root / "fit", FitConfig())
     return root
+
+
+def poison_optimizer_after(monkeypatch, updates: int) -> list:
+    """Make every AdamW fill its parameters with NaN right after its ``updates``-th step (a diverging run, on cue).
+    Returns the list that counts the steps taken."""
+    import torch
+
+    original, calls = torch.optim.AdamW.step, []
+
+    def poisoned_step(self, *a, **k):
+        result = original(self, *a, **k)
+        calls.append(1)
+        if len(calls) == updates:
+            with torch.no_grad():
+                for param in self.param_groups[0]["params"]:
+                    param.fill_(float("nan"))
+        return result
+
+    monkeypatch.setattr(torch.optim.AdamW, "step", poisoned_step)
+    return calls

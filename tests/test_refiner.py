@@ -15,6 +15,8 @@ from gra_mi.refiner.flow import noisy_latent, recycling_residuals, sampling_sigm
 from gra_mi.refiner.model import TRANSFORMER_CONFIGS, AtemporalCrossAttention, RefinerConfig, VideoRefiner, latent_frames
 from gra_mi.refiner.train import ErrorBank, RefinerTrainConfig, augment, pan_zoom, train_refiner, validation_loss
 
+from .conftest import poison_optimizer_after
+
 torch.set_num_threads(2)
 
 
@@ -599,18 +601,7 @@ def test_divergence_keeps_the_last_finite_weights_and_is_recorded(tmp_path, monk
     of the last finite snapshot (step 3, the checkpoint cadence) are saved and loadable, train.json says where, and the
     mix is chosen on a finite refiner."""
     data = synthetic_dataset(tmp_path / "data", {0: (2, 1, 1)}, frames=17, height=32, width=32, env_height=16, test_frames=17)
-    original, calls = torch.optim.AdamW.step, []
-
-    def poisoned_step(self, *a, **k):
-        result = original(self, *a, **k)
-        calls.append(1)
-        if len(calls) == 4:
-            with torch.no_grad():
-                for p in self.param_groups[0]["params"]:
-                    p.fill_(float("nan"))
-        return result
-
-    monkeypatch.setattr(torch.optim.AdamW, "step", poisoned_step)
+    calls = poison_optimizer_after(monkeypatch, 4)
     config = RefinerTrainConfig(steps=8, checkpoint_every=3, log_every=1, selection_steps=2)
     train_refiner(data.folder, tmp_path / "model", config, RefinerConfig(lora_rank=4))
     summary = json.loads((tmp_path / "model" / "train.json").read_text())

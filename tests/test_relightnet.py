@@ -14,6 +14,7 @@ import torch
 from gra_mi.relightnet.model import AttentionBlock, RelightNet, RelightNetConfig
 from gra_mi.render.bridge import IN_CHANNELS
 
+from .conftest import poison_optimizer_after
 from .test_cli import run_cli
 
 
@@ -274,17 +275,7 @@ def test_divergence_stops_training_keeps_finite_weights_and_is_recorded(capture_
     from gra_mi.relightnet.model import RelightNet
     from gra_mi.relightnet.train import TrainConfig, train_relightnet
 
-    original, calls = torch.optim.AdamW.step, []
-
-    def poisoned_step(self, *a, **k):
-        result = original(self, *a, **k)
-        calls.append(1)
-        if len(calls) == 6:
-            with torch.no_grad():
-                self.param_groups[0]["params"][0].fill_(float("nan"))
-        return result
-
-    monkeypatch.setattr(torch.optim.AdamW, "step", poisoned_step)
+    calls = poison_optimizer_after(monkeypatch, 6)
     root, out = capture_and_fit, tmp_path / "nan"
     config = TrainConfig(steps=12, lr=1e-3, validate_every=4, checkpoint_every=4)
     train_relightnet(root / "cap", root / "fit", out, config)
