@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 import torch
 
+from gra_mi.core.color import to_display
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
-from gra_mi.core.metrics import compare, flip, temporal_error, to_display
+from gra_mi.core.metrics import compare, flip, temporal_error
 
 EXPOSURE = 1.0
 
@@ -38,7 +39,8 @@ def test_display_psnr_of_a_known_shift():
     truth_display = 0.5 + 0.1 * (moving_video(1)[0] - 0.5)  # little contrast: nothing clips at the display exposure
     truth = np.concatenate([from_display(truth_display), np.ones((*truth_display.shape[:2], 1))], -1)
     # the truth's display exposure is p99 → 0.8; shift in that display space
-    from gra_mi.core.metrics import display_exposure, subject_mask
+    from gra_mi.core.color import display_exposure
+    from gra_mi.core.metrics import subject_mask
 
     exposure = display_exposure(truth, subject_mask(truth))
     shown = to_display(truth, exposure)
@@ -88,7 +90,7 @@ def test_flip_of_uniform_images_matches_the_papers_colour_pipeline(a, b):
     assert mean == pytest.approx(_flip_uniform_reference(a, b), abs=2e-3)
     # through gra-mi: linear images whose display (exposure 0.8 at the 99th percentile) is the same pair
     truth = np.concatenate([from_display(ref), np.ones((24, 24, 1))], -1)
-    from gra_mi.core.metrics import display_exposure
+    from gra_mi.core.color import display_exposure
 
     exposure = display_exposure(truth)
     image = from_display(test, exposure) * 1.0

@@ -15,8 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
+from gra_mi.core.color import display_exposure
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
-from gra_mi.core.io import atomic_path, atomic_write_text, auto_exposure, write_exr, write_mp4, write_png
+from gra_mi.core.io import atomic_path, atomic_write_text, write_exr, write_mp4, write_png
 from gra_mi.core.progress import progress
 from gra_mi.stage.scene import LightstageScene
 
@@ -203,7 +204,7 @@ def relight_batch(
             shown = composite_over(view.image, background_plate(light.envmap, cam) * light.plate_scale)
         key = (name, cam.name)
         if key not in exposures:
-            exposures[key] = config.exposure if config.exposure is not None else 0.8 * auto_exposure(view.image)
+            exposures[key] = config.exposure if config.exposure is not None else display_exposure(view.image)
         write_png(folder / f"frame_{frame:04d}.png", shown, exposure=exposures[key])
         videos.setdefault(key, []).append(shown)
         if config.save_uv:

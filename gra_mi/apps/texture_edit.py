@@ -16,8 +16,9 @@ from gra_mi.core.io import read_exr, write_exr, write_png
 
 def read_edit_image(path: str | Path) -> np.ndarray:
     """An edit layer as linear float (H, W, C): EXR as is, PNG/JPEG decoded from sRGB (alpha kept linear)."""
-    import colour
     import imageio.v3 as iio
+
+    from gra_mi.core.color import srgb_decode
 
     path = Path(path)
     if not path.is_file():
@@ -32,7 +33,7 @@ def read_edit_image(path: str | Path) -> np.ndarray:
         image = image[..., None]
     channels = image.shape[2]
     if channels >= 3:
-        image[..., :3] = colour.cctf_decoding(image[..., :3], function="sRGB")
+        image[..., :3] = srgb_decode(image[..., :3])
     return image
 
 

@@ -280,31 +280,27 @@ def read_hdr_image(path: str | Path) -> np.ndarray:
 
 
 def to_srgb8(image: np.ndarray, exposure: float = 1.0) -> np.ndarray:
-    """Linear Rec.709 radiance → 8-bit sRGB preview (clipped; alpha passed through linearly)."""
-    import colour
+    """Linear Rec.709 radiance → 8-bit sRGB preview (:func:`gra_mi.core.color.to_display`: clipped, NaN black, +Inf
+    white; alpha passed through linearly)."""
+    from gra_mi.core.color import to_display
 
-    image = np.nan_to_num(np.asarray(image, dtype=np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    image = np.asarray(image, dtype=np.float32)
     if image.ndim == 2:
         image = image[..., None]
     if image.shape[2] == 1:
         image = np.repeat(image, 3, axis=2)
-    rgb = np.clip(image[..., :3] * exposure, 0.0, 1.0)
-    encoded = colour.cctf_encoding(rgb, function="sRGB")
-    out = [encoded]
+    out = [to_display(image, exposure)]
     if image.shape[2] == 4:
-        out.append(np.clip(image[..., 3:4], 0.0, 1.0))
+        out.append(np.clip(np.nan_to_num(image[..., 3:4]), 0.0, 1.0))
     return (np.concatenate(out, axis=2) * 255.0 + 0.5).astype(np.uint8)
 
 
-def auto_exposure(image: np.ndarray, percentile: float = 99.0) -> float:
-    """Exposure that maps the given percentile of the (finite, positive) luminance to 1."""
-    rgb = np.asarray(image, dtype=np.float32)[..., :3]
-    lum = rgb.mean(axis=-1)
-    lum = lum[np.isfinite(lum) & (lum > 0)]
-    if lum.size == 0:
-        return 1.0
-    top = float(np.percentile(lum, percentile))
-    return 1.0 / top if top > 0 else 1.0
+def auto_exposure(image: np.ndarray) -> float:
+    """Exposure that maps the 99th percentile of the (finite, positive) luminance to 1
+    (:func:`gra_mi.core.color.display_exposure` at level 1)."""
+    from gra_mi.core.color import display_exposure
+
+    return display_exposure(image, level=1.0)
 
 
 def write_png(path: str | Path, image: np.ndarray, exposure: float | None = 1.0) -> None:

@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from gra_mi.core.color import display_exposure, to_display
+
 
 def _masked(image: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
     rgb = np.asarray(image, np.float64)[..., :3]
@@ -79,30 +81,12 @@ def brightness_error(image: np.ndarray, reference: np.ndarray, mask: np.ndarray 
     return float(_masked(image, mask).sum()) / total - 1.0 if total > 0 else 0.0
 
 
-DISPLAY_PERCENTILE = 99.0
-DISPLAY_LEVEL = 0.8
-
-
 def subject_mask(reference: np.ndarray) -> np.ndarray:
     """The pixels the truth's subject covers: alpha ≥ 0.5 (RGBA), else any positive channel (RGB)."""
     reference = np.asarray(reference)
     if reference.shape[-1] >= 4:
         return reference[..., 3] >= 0.5
     return reference[..., :3].max(axis=-1) > 0
-
-
-def display_exposure(reference: np.ndarray, mask: np.ndarray | None = None) -> float:
-    """The exposure both images are shown at: the truth's 99th-percentile luminance (mean RGB) over the mask → 0.8."""
-    lum = _masked(reference, mask).mean(axis=1)
-    lum = lum[np.isfinite(lum) & (lum > 0)]
-    top = float(np.percentile(lum, DISPLAY_PERCENTILE)) if lum.size else 0.0
-    return DISPLAY_LEVEL / top if top > 0 else 1.0
-
-
-def to_display(image: np.ndarray, exposure: float) -> np.ndarray:
-    """Linear RGB → what a screen shows: × exposure, clipped to [0, 1], sRGB-encoded, (H, W, 3) float64."""
-    rgb = np.clip(np.nan_to_num(np.asarray(image, np.float64)[..., :3] * exposure, nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0)
-    return np.where(rgb <= 0.0031308, 12.92 * rgb, 1.055 * np.power(rgb, 1.0 / 2.4) - 0.055)
 
 
 def display_psnr(image: np.ndarray, reference: np.ndarray, mask: np.ndarray) -> float:

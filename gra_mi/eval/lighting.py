@@ -21,9 +21,10 @@ from pathlib import Path
 
 import numpy as np
 
+from gra_mi.core.color import display_exposure
 from gra_mi.core.errors import GraMiParameterError
 from gra_mi.core.io import atomic_write_text, pyplot, read_exr, save_figure, to_srgb8, write_exr
-from gra_mi.core.metrics import compare, display_exposure, subject_mask
+from gra_mi.core.metrics import compare, subject_mask
 from gra_mi.core.progress import progress
 
 TRUTH_SPP = 256

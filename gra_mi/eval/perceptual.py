@@ -130,7 +130,7 @@ def load_lpips(paths: list[str | Path], device: str = "cpu") -> LPIPS:
 
 def lpips_distance(model: LPIPS, image: np.ndarray, reference: np.ndarray, mask: np.ndarray, exposure: float) -> float:
     """Mean LPIPS over the mask, both images shown at ``exposure`` (:func:`gra_mi.core.metrics.to_display`)."""
-    from gra_mi.core.metrics import to_display
+    from gra_mi.core.color import to_display
 
     device = next(model.parameters()).device
 

@@ -271,7 +271,8 @@ def evaluate(inputs: EvalInputs, out: str | Path, config: EvalConfig | None = No
 
     # Frames of every stage, split by split ---------------------------------------------------------------------
     from gra_mi.capture.dataset import load_observation
-    from gra_mi.core.metrics import display_exposure, subject_mask
+    from gra_mi.core.color import display_exposure
+    from gra_mi.core.metrics import subject_mask
     from gra_mi.core.progress import progress
     from gra_mi.relightnet.infer import render_view
 
@@ -415,7 +416,7 @@ def _score(images, truths, masks, exposure, scored: list[int], lpips_model) -> d
         row = compare(images[i], truths[i], masks[i])
         row["flip"] = flip(images[i], truths[i], masks[i])
         if lpips_model is not None:
-            from gra_mi.core.metrics import display_exposure
+            from gra_mi.core.color import display_exposure
             from gra_mi.eval.perceptual import lpips_distance
 
             row["lpips"] = lpips_distance(lpips_model, images[i], truths[i], masks[i], display_exposure(truths[i], masks[i]))
@@ -428,7 +429,7 @@ def _score(images, truths, masks, exposure, scored: list[int], lpips_model) -> d
 
 def _fvd(i3d, results: dict[str, StageResult], videos: dict) -> None:
     """FVD of each stage against the truth over all splits' 17-frame clips (non-overlapping, from frame 0)."""
-    from gra_mi.core.metrics import to_display
+    from gra_mi.core.color import to_display
     from gra_mi.eval.perceptual import frechet_distance, i3d_features
 
     for stage in STAGES:
@@ -447,8 +448,9 @@ def _fvd(i3d, results: dict[str, StageResult], videos: dict) -> None:
 
 def _contact_sheet(path: Path, frames: dict, truths, masks, exposure: float, scored: list[int], split: str) -> None:
     """Truth and each stage at the middle scored frame, their ꟻLIP maps below."""
+    from gra_mi.core.color import to_display
     from gra_mi.core.io import pyplot, save_figure
-    from gra_mi.core.metrics import flip_map, to_display
+    from gra_mi.core.metrics import flip_map
 
     i = scored[len(scored) // 2]
     stages = [s for s in STAGES if s in frames]

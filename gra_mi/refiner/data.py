@@ -25,6 +25,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from gra_mi.core.color import srgb_decode, srgb_encode
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.io import atomic_path, atomic_write_text, json_field, read_json
 
@@ -40,21 +41,13 @@ ENV_STOPS = 12.0
 # --------------------------------------------------------------------------------------------------------------
 
 
-def _srgb_encode(x: torch.Tensor) -> torch.Tensor:
-    return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp(min=0.0031308) ** (1 / 2.4) - 0.055)
-
-
-def _srgb_decode(y: torch.Tensor) -> torch.Tensor:
-    return torch.where(y <= 0.04045, y / 12.92, ((y.clamp(min=0.04045) + 0.055) / 1.055) ** 2.4)
-
-
 def image_to_video(linear: torch.Tensor, exposure: float) -> torch.Tensor:
-    return 2 * _srgb_encode((linear * exposure).clamp(0, 1)) - 1
+    return 2 * srgb_encode((linear * exposure).clamp(0, 1)) - 1
 
 
 def video_to_image(video: torch.Tensor, exposure: float) -> torch.Tensor:
     """Inverse of :func:`image_to_video` (exact below the clipping point)."""
-    return _srgb_decode(((video + 1) / 2).clamp(0, 1)) / exposure
+    return srgb_decode(((video + 1) / 2).clamp(0, 1)) / exposure
 
 
 def env_to_video(env: torch.Tensor, env_exposure: float) -> torch.Tensor:

@@ -43,14 +43,15 @@ class DeflickerConfig:
 
 
 def _encode(linear: np.ndarray, exposure: float) -> torch.Tensor:
-    from gra_mi.core.metrics import to_display
+    from gra_mi.core.color import to_display
 
     return torch.from_numpy(to_display(linear, exposure)).float().permute(2, 0, 1)[None]
 
 
 def _decode(display: torch.Tensor, exposure: float) -> np.ndarray:
-    y = display.clamp(0, 1)[0].permute(1, 2, 0).double().numpy()
-    return (np.where(y <= 0.04045, y / 12.92, ((y + 0.055) / 1.055) ** 2.4) / exposure).astype(np.float32)
+    from gra_mi.core.color import srgb_decode
+
+    return (srgb_decode(display[0].permute(1, 2, 0).double().numpy()) / exposure).astype(np.float32)
 
 
 def deflicker_frame(frame: np.ndarray, stable: np.ndarray, exposure: float, config: DeflickerConfig | None = None) -> np.ndarray:
@@ -99,7 +100,9 @@ def read_frame(path: Path) -> np.ndarray:
         raise GraMiInputError(path, f"not a readable PNG ({exc})") from None
     if pixels.ndim == 2:
         pixels = np.repeat(pixels[..., None], 3, axis=-1)
-    rgb = np.where(pixels[..., :3] <= 0.04045, pixels[..., :3] / 12.92, ((pixels[..., :3] + 0.055) / 1.055) ** 2.4)
+    from gra_mi.core.color import srgb_decode
+
+    rgb = srgb_decode(pixels[..., :3])
     return np.concatenate([rgb, pixels[..., 3:]], axis=-1).astype(np.float32)
 
 
@@ -108,9 +111,9 @@ def deflicker_folder(
 ) -> list[Path]:
     """``gra-mi deflicker``: correct every frame in ``frames_dir`` with the frame of the same position (sorted names)
     in ``stable_dir``; writes ``out/NAME.exr`` + ``.png`` and ``deflickered.mp4``. ``exposure`` None: the one that
-    shows the first stable frame's 99th percentile at 0.8 (:func:`gra_mi.core.metrics.display_exposure`)."""
+    shows the first stable frame's 99th percentile at 0.8 (:func:`gra_mi.core.color.display_exposure`)."""
+    from gra_mi.core.color import display_exposure
     from gra_mi.core.io import Mp4Stream, write_exr, write_png
-    from gra_mi.core.metrics import display_exposure
     from gra_mi.core.progress import progress
 
     config = config or DeflickerConfig()
