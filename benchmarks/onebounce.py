@@ -63,6 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     import mitsuba as mi
 
     from gra_mi.core.io import atomic_write_text, write_exr
+    from gra_mi.render.leds import LedLayout
     from gra_mi.render.plugins import register_plugins
     from gra_mi.render.rasterize import rasterize_to_camera
     from gra_mi.render.relighter import Relighter
@@ -94,7 +95,7 @@ def main(argv: list[str] | None = None) -> int:
     def new_frame_visibility():
         f = next(frames)
         ls.set_frame(f)
-        bits = compute_visibility(ls.scene, relighter.geometry(f), stage.led_positions)
+        bits = compute_visibility(ls.scene, relighter.geometry(f), LedLayout.of(stage))
         dr.eval(bits)
         return f
 
@@ -116,7 +117,7 @@ def main(argv: list[str] | None = None) -> int:
     ray = mi.Ray3f(mi.Point3f(*origins.T), mi.Vector3f(*dirs.T), mi.Float(maxts))
     dr.eval(ray)
     t_raw, _ = timed(lambda: dr.eval(ls.scene.ray_test(ray, coherent=True)), repeats)
-    t_trace, _ = timed(lambda: compute_visibility(ls.scene, geom, stage.led_positions), repeats)
+    t_trace, _ = timed(lambda: compute_visibility(ls.scene, geom, LedLayout.of(stage)), repeats)
     n_rays = origins.shape[0]
     rows.append(
         (
@@ -141,7 +142,7 @@ def main(argv: list[str] | None = None) -> int:
     def shade():
         i = next(counter) % len(intensities)
         return shade_texels(
-            geom, relighter.visibility(frame), stage.led_positions, intensities[i], relighter.albedo, relighter.roughness, cam.position
+            geom, relighter.visibility(frame), LedLayout.of(stage), intensities[i], relighter.albedo, relighter.roughness, cam.position
         )
 
     shade()  # compile
@@ -174,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
     reference = np.array(mi.render(scene, integrator=onebounce, spp=ref_spp, seed=99))
     mask = (reference[..., 3] > 0.999) & (image_uv[..., 3] > 0.5)
     shading = shade_texels(
-        geom, relighter.visibility(frame), stage.led_positions, intensities[1], relighter.albedo, relighter.roughness, cam.position
+        geom, relighter.visibility(frame), LedLayout.of(stage), intensities[1], relighter.albedo, relighter.roughness, cam.position
     )
     ours = rasterize_to_camera(ls, cam, relighter.atlas.scatter(shading.radiance), relighter.atlas.mask)
     err_ours = relative_rmse(ours, reference, mask)
@@ -207,15 +208,7 @@ def main(argv: list[str] | None = None) -> int:
     # 4. Far field vs near field -----------------------------------------------------------------------------
     far = Relighter(ls, args.uv_resolution, far_field=True)
     far_shading = shade_texels(
-        far.geometry(frame),
-        far.visibility(frame),
-        stage.led_positions,
-        intensities[1],
-        far.albedo,
-        far.roughness,
-        cam.position,
-        True,
-        stage.center,
+        far.geometry(frame), far.visibility(frame), far.leds(), intensities[1], far.albedo, far.roughness, cam.position
     )
     lit = shading.radiance.sum(axis=1) > 0
     far_err = float(np.mean(np.abs(far_shading.radiance - shading.radiance)[lit]) / np.mean(shading.radiance[lit]))

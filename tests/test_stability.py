@@ -105,6 +105,7 @@ def _texels(points, normals, geo_normals):
 
 
 def test_shading_normal_disagreeing_with_geometry_does_not_leak_light(plugins):
+    from gra_mi.render.leds import LedLayout
     from gra_mi.render.shading import shade_texels
     from gra_mi.render.visibility import compute_visibility
 
@@ -115,18 +116,20 @@ def test_shading_normal_disagreeing_with_geometry_does_not_leak_light(plugins):
     intensity = np.ones((3, 3))
     scene = _plane_scene(leds, intensity)
     geom = _texels([[0.0, 0.0, 0.0]], n, [[0.0, 1.0, 0.0]])
-    bits = int(np.array(compute_visibility(scene, geom, leds))[0])
+    layout = LedLayout(leds, np.zeros(3))
+    bits = int(np.array(compute_visibility(scene, geom, layout))[0])
     assert bits == 0b100, bin(bits)
     for k in range(3):
         one = np.zeros((3, 3))
         one[k] = 1.0
         radiance = shade_texels(
-            geom, compute_visibility(scene, geom, leds), leds, one, np.full((1, 3), 0.5), np.full(1, 0.4), [0.0, 2.0, 2.0]
+            geom, compute_visibility(scene, geom, layout), layout, one, np.full((1, 3), 0.5), np.full(1, 0.4), [0.0, 2.0, 2.0]
         ).radiance
         assert np.isfinite(radiance).all() and (radiance.max() > 0) == (k == 2)
 
 
 def test_led_almost_touching_the_surface(plugins):
+    from gra_mi.render.leds import LedLayout
     from gra_mi.render.shading import shade_texels
     from gra_mi.render.visibility import compute_visibility
 
@@ -135,10 +138,12 @@ def test_led_almost_touching_the_surface(plugins):
         scene = _plane_scene(led, np.ones((1, 3)))
         p = np.array([[0.01, 0.0, 0.0]])  # a texel next to the LED's foot point
         geom = _texels(p, [[0.0, 1.0, 0.0]], [[0.0, 1.0, 0.0]])
-        vis = compute_visibility(scene, geom, led)
+        vis = compute_visibility(scene, geom, LedLayout(led, np.zeros(3)))
         assert int(np.array(vis)[0]) == 1
         cam = np.array([0.0, 1.0, 1.0])
-        radiance = shade_texels(geom, vis, led, np.ones((1, 3)), np.full((1, 3), 0.6), np.full(1, 0.5), cam).radiance
+        radiance = shade_texels(
+            geom, vis, LedLayout(led, np.zeros(3)), np.ones((1, 3)), np.full((1, 3), 0.6), np.full(1, 0.5), cam
+        ).radiance
         to_led = led - p
         d2 = np.sum(to_led**2)
         wo = to_led / np.sqrt(d2)

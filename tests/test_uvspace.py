@@ -41,17 +41,39 @@ def test_atlas_covers_the_uv_layout(tiny):
     np.testing.assert_allclose(baked[atlas.mask][:, 1], np.broadcast_to(centres[:, None], (64, 64))[atlas.mask], atol=1e-5)
 
 
+def test_visibility_cache_keys_the_whole_led_layout(tiny, tmp_path):
+    """Positions, stage centre and near/far field all change the bits, so all three key the cache: a far-field rig
+    with another centre (the same LED positions) is traced again, never served the first one's bits."""
+    from gra_mi.render.atlas import TexelGeometry, UVAtlas
+    from gra_mi.render.leds import LedLayout
+    from gra_mi.render.visibility import VisibilityCache, compute_visibility
+
+    seq = tiny.sequence
+    geom = TexelGeometry.from_frame(UVAtlas.build(seq.faces, seq.uvs, 32), seq.vertices[2], seq.normals[2])
+    near, far = LedLayout.of(tiny.stage), LedLayout.of(tiny.stage, far_field=True)
+    moved = LedLayout(tiny.stage.led_positions, tiny.stage.center + np.array([0.0, 0.8, 0.0]), far_field=True)
+    assert len({near.digest, far.digest, moved.digest}) == 3
+    cache = VisibilityCache(tmp_path)
+    bits = {name: np.array(cache.get(tiny.scene, geom, leds)) for name, leds in (("far", far), ("moved", moved))}
+    assert cache.misses == 2 and not np.array_equal(bits["far"], bits["moved"])
+    np.testing.assert_array_equal(bits["moved"], np.array(compute_visibility(tiny.scene, geom, moved)))
+    again = VisibilityCache(tmp_path)  # from disk
+    np.testing.assert_array_equal(np.array(again.get(tiny.scene, geom, moved)), bits["moved"])
+    assert again.hits == 1
+
+
 def test_visibility_matches_one_ray_per_pair(tiny):
     import mitsuba as mi
 
     from gra_mi.render.atlas import TexelGeometry, UVAtlas
+    from gra_mi.render.leds import LedLayout
     from gra_mi.render.visibility import RAY_EPSILON, compute_visibility
 
     seq = tiny.sequence
     atlas = UVAtlas.build(seq.faces, seq.uvs, 64)
     geom = TexelGeometry.from_frame(atlas, seq.vertices[2], seq.normals[2])
     leds = tiny.stage.led_positions
-    bits = np.array(compute_visibility(tiny.scene, geom, leds)).reshape(-1, atlas.num_texels)
+    bits = np.array(compute_visibility(tiny.scene, geom, LedLayout.of(tiny.stage))).reshape(-1, atlas.num_texels)
     # Reference: texel-major rays built in NumPy, one scene.ray_test per (texel, LED) pair.
     rng = np.random.default_rng(0)
     texels = rng.choice(atlas.num_texels, 300, replace=False)

@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from gra_mi.core.io import atomic_write_text, write_exr, write_png
+from gra_mi.render.leds import LedLayout
 
 logger = logging.getLogger(__name__)
 
@@ -182,7 +183,7 @@ class BenchSetup:
         from gra_mi.render.visibility import compute_visibility
 
         self.ls.set_frame(f)
-        return compute_visibility(self.ls.scene, self.geometry(res, f), self.stage.led_positions, far, self.stage.center)
+        return compute_visibility(self.ls.scene, self.geometry(res, f), LedLayout.of(self.stage, far))
 
     def materials(self, res: int) -> tuple[np.ndarray, np.ndarray]:
         a = self.atlas(res)
@@ -199,7 +200,7 @@ class BenchSetup:
         alb, rough = self.materials(res)
         leds = self.intensities if leds is None else leds
         self.ls.set_frame(self.frame)
-        shading = shade_texels(geom, vis, self.stage.led_positions, leds, alb, rough, self.cam.position, far, self.stage.center)
+        shading = shade_texels(geom, vis, LedLayout.of(self.stage, far), leds, alb, rough, self.cam.position)
         return rasterize_to_camera(self.ls, self.cam, a.scatter(store(shading.radiance)), a.mask)
 
     def cache_mb(self, res: int, geometry_bytes_per_texel: int = 36) -> float:
@@ -229,7 +230,7 @@ def bench_led_sampling(b: BenchSetup, k: int) -> None:
 
 def bench_low_visibility(b: BenchSetup, low: int) -> None:
     t_low, bits = b.timed(
-        lambda: upsample_visibility(b.visibility(low, b.frame), b.atlas(low), b.atlas(b.R), b.ls.scene, b.ref_geom, b.stage.led_positions)
+        lambda: upsample_visibility(b.visibility(low, b.frame), b.atlas(low), b.atlas(b.R), b.ls.scene, b.ref_geom, LedLayout.of(b.stage))
     )
     t, img = b.timed(lambda: b.render(b.R, b.ref_geom, bits))
     mb = b.cache_mb(low, 0) + b.cache_mb(b.R, 36) - b.cache_mb(b.R, 0)
@@ -258,7 +259,7 @@ def bench_antialiasing(b: BenchSetup) -> None:
     alb, rough = b.materials(b.R)
     b.ls.set_frame(b.frame)
     t_shade, shading = b.timed(
-        lambda: shade_texels(b.ref_geom, b.ref_vis, b.stage.led_positions, b.intensities, alb, rough, b.cam.position, False, b.stage.center)
+        lambda: shade_texels(b.ref_geom, b.ref_vis, LedLayout.of(b.stage), b.intensities, alb, rough, b.cam.position)
     )
     texture = a.scatter(shading.radiance)
     _, exact = b.timed(lambda: rasterize_to_camera(b.ls, b.cam, texture, a.mask, 8))
@@ -350,7 +351,7 @@ def run_bench(out: Path, preset_name: str = "full") -> Path:
     return _write_report(out, preset_name, chosen, stage, b.atlas(R).num_texels, b.results)
 
 
-def upsample_visibility(bits_low, atlas_low, atlas_high, scene, geom_high, led_positions):
+def upsample_visibility(bits_low, atlas_low, atlas_high, scene, geom_high, leds):
     """Visibility of each full-resolution texel taken from the low-resolution texel that contains it.
 
     Texels whose low-resolution cell is empty (chart borders) are traced at full resolution.
@@ -374,7 +375,7 @@ def upsample_visibility(bits_low, atlas_low, atlas_high, scene, geom_high, led_p
             *(type(v)(*[mi.Float(np.array(c)[missing]) for c in v]) for v in (geom_high.position, geom_high.normal, geom_high.geo_normal)),
             geom_high.digest,
         )
-        high[:, missing] = np.array(compute_visibility(scene, sub, led_positions), dtype=np.uint32).reshape(-1, missing.size)
+        high[:, missing] = np.array(compute_visibility(scene, sub, leds), dtype=np.uint32).reshape(-1, missing.size)
     out = mi.UInt32(np.ascontiguousarray(high).ravel())
     dr.eval(out)
     return out

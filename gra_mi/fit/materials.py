@@ -207,7 +207,7 @@ class MaterialFitter:
         key = (view.frame, view.camera)
         if key not in self._loops:
             self._loops[key] = TexelLedLoop.build(
-                self.relighter.geometry(view.frame), self.relighter.visibility(view.frame), view.texels, self.stage.led_positions,
+                self.relighter.geometry(view.frame), self.relighter.visibility(view.frame, False), view.texels, self.relighter.leds(False),
                 self._lighting[view.frame], self.stage.camera(view.camera).position,
             )  # fmt: skip
         diffuse, spec = self._loops[key].run(mi.Float(np.asarray(roughness, np.float32)[view.texels]))

@@ -141,7 +141,7 @@ def build_batches(fitter, min_view_cos: float = 0.0, progress_bar: bool = True) 
             continue
         lanes, entry_lane = np.unique(tex, return_inverse=True)
         loop = TexelLedLoop.build(
-            fitter.relighter.geometry(frame_index), fitter.relighter.visibility(frame_index), lanes, fitter.stage.led_positions,
+            fitter.relighter.geometry(frame_index), fitter.relighter.visibility(frame_index, False), lanes, fitter.relighter.leds(False),
             fitter._lighting[frame_index], cam.position,
         )  # fmt: skip
         diffuse, _ = loop.run(dr.full(mi.Float, 0.5, loop.count))  # the diffuse part does not depend on roughness

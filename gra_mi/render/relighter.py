@@ -16,6 +16,7 @@ import numpy as np
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.io import read_exr
 from gra_mi.render.atlas import TexelGeometry, UVAtlas
+from gra_mi.render.leds import LedLayout
 from gra_mi.render.point_light import PointLight, point_light_visibility, shade_point_light
 from gra_mi.render.rasterize import rasterize_to_camera
 from gra_mi.render.shading import TexelShading, led_cell_roughness, shade_texels
@@ -83,9 +84,9 @@ class Relighter:
         self._geometry: dict[int, TexelGeometry] = {}
         self._point_light_vis: dict[tuple, object] = {}
 
-    @property
-    def led_positions(self) -> np.ndarray:
-        return self.ls.stage.led_positions
+    def leds(self, far_field: bool | None = None) -> LedLayout:
+        """The rig's LEDs, lit near or far field (None: the relighter's own setting)."""
+        return LedLayout.of(self.ls.stage, self.far_field if far_field is None else far_field)
 
     def geometry(self, frame: int) -> TexelGeometry:
         if frame not in self._geometry:
@@ -95,8 +96,7 @@ class Relighter:
 
     def visibility(self, frame: int, far_field: bool | None = None):
         self.ls.set_frame(frame)  # the scene's mesh must be this frame's to trace against
-        far_field = self.far_field if far_field is None else far_field
-        return self.cache.get(self.ls.scene, self.geometry(frame), self.led_positions, far_field, self.ls.stage.center)
+        return self.cache.get(self.ls.scene, self.geometry(frame), self.leds(far_field))
 
     def render(
         self,
@@ -133,9 +133,7 @@ class Relighter:
         stage = self.ls.stage
         # Far field: the LEDs sample an environment, so each lobe is widened to the LEDs' spacing (no sparkles).
         roughness = led_cell_roughness(self.roughness, stage.num_leds) if far_field else self.roughness
-        shading = shade_texels(
-            geom, vis, self.led_positions, led_intensities, self.albedo, roughness, cam.position, far_field, stage.center
-        )
+        shading = shade_texels(geom, vis, self.leds(far_field), led_intensities, self.albedo, roughness, cam.position)
         self.ls.set_frame(frame)
         if point_light is not None:
             key = (frame, tuple(point_light.position), point_light.radius)

@@ -13,6 +13,7 @@ import numpy as np
 
 from gra_mi.render import brdf
 from gra_mi.render.atlas import TexelGeometry
+from gra_mi.render.leds import LedLayout
 
 
 @dataclass
@@ -27,13 +28,11 @@ class TexelShading:
 def shade_texels(
     geom: TexelGeometry,
     visibility: mi.UInt32 | None,
-    led_positions: np.ndarray,
+    leds: LedLayout,
     led_intensities: np.ndarray,
     albedo: np.ndarray,
     roughness: np.ndarray,
     camera_position: np.ndarray,
-    far_field: bool = False,
-    stage_center: np.ndarray | None = None,
 ) -> TexelShading:
     """Outgoing radiance of every valid texel toward ``camera_position`` (paper Eq. 1, one bounce).
 
@@ -41,7 +40,7 @@ def shade_texels(
     ``visibility`` may be None when every LED is off.
     """
     m = dr.width(geom.position)
-    words, on_words, pos, inten = led_loop_inputs(led_positions, led_intensities, far_field, stage_center)
+    words, on_words, pos, inten = led_loop_inputs(leds, led_intensities)
 
     p, n = geom.position, geom.normal
     frame = mi.Frame3f(n)
@@ -49,7 +48,7 @@ def shade_texels(
     wi = frame.to_local(view)
     if np.max(led_intensities, initial=0.0) > 0:
         diffuse, spec = _led_sum(
-            m, words, visibility, on_words, pos, inten, p, frame, wi, mi.Float(np.asarray(roughness, np.float32)), far_field
+            m, words, visibility, on_words, pos, inten, p, frame, wi, mi.Float(np.asarray(roughness, np.float32)), leds.far_field
         )
     else:  # every LED off: nothing to do
         diffuse, spec = dr.zeros(mi.Color3f, m), dr.zeros(mi.Color3f, m)
@@ -80,12 +79,14 @@ class TexelLedLoop:
         geom: TexelGeometry,
         visibility: mi.UInt32,
         texels: np.ndarray,
-        led_positions: np.ndarray,
+        leds: LedLayout,
         led_intensities: np.ndarray,
         camera_position,
     ) -> TexelLedLoop:
+        if leds.far_field:
+            raise ValueError("the fit's LED loop reproduces the capture: near field only")
         m = dr.width(geom.position)
-        words, on_words, led_pos, led_int = led_loop_inputs(led_positions, led_intensities)
+        words, on_words, led_pos, led_int = led_loop_inputs(leds, led_intensities)
         t = mi.UInt32(np.asarray(texels, np.uint32))
         position = dr.gather(mi.Point3f, geom.position, t)
         frame = mi.Frame3f(dr.gather(mi.Vector3f, geom.normal, t))
@@ -115,19 +116,12 @@ def led_cell_roughness(roughness: np.ndarray, num_leds: int) -> np.ndarray:
     return np.minimum(np.sqrt(np.sqrt(alpha**2 + 1.0 / num_leds)), np.maximum(roughness, 1.0)).astype(np.float32)
 
 
-def led_loop_inputs(
-    led_positions: np.ndarray, led_intensities: np.ndarray, far_field: bool = False, stage_center: np.ndarray | None = None
-) -> tuple[int, mi.UInt32, mi.Point3f, mi.Color3f]:
+def led_loop_inputs(leds: LedLayout, led_intensities: np.ndarray) -> tuple[int, mi.UInt32, mi.Point3f, mi.Color3f]:
     """What :func:`_led_sum` needs of the LEDs: (visibility words per texel, the mask of LEDs that are on in the same
-    word layout, LED positions (far field: unit directions), intensities (far field: divided by d² at the centre))."""
-    num_leds = led_positions.shape[0]
+    word layout, LED targets and intensities as :meth:`LedLayout.as_lights` gives them)."""
+    num_leds = leds.num_leds
     on = np.max(led_intensities, axis=1) > 0
-    pos, inten = np.asarray(led_positions, np.float64), np.asarray(led_intensities, np.float64)
-    if far_field:
-        center = np.zeros(3) if stage_center is None else stage_center
-        offset = pos - center
-        r2 = np.sum(offset**2, axis=1, keepdims=True)
-        pos, inten = offset / np.sqrt(r2), inten / r2
+    pos, inten = leds.as_lights(led_intensities)
     # One bit per LED that is on, in the same word layout as the visibility: off LEDs are masked out of every
     # texel's word before the loop, so they cost nothing.
     words = (num_leds + 31) // 32

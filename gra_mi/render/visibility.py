@@ -5,7 +5,6 @@ so :class:`VisibilityCache` reuses it across envmaps, cameras, materials and fit
 
 from __future__ import annotations
 
-import hashlib
 from pathlib import Path
 
 import drjit as dr
@@ -14,34 +13,25 @@ import numpy as np
 
 from gra_mi.core.io import atomic_path
 from gra_mi.render.atlas import TexelGeometry
+from gra_mi.render.leds import LedLayout
 
 # Shadow rays start this far (metres) off the surface along the geometric normal, and stop this far short of the
 # LED: enough to clear float32 self-intersection on a 2 m stage, far below a texel's size (~3 mm at 512²).
 RAY_EPSILON = 1e-4
 
 
-def led_layout_digest(led_positions: np.ndarray, far_field: bool) -> str:
-    return hashlib.sha1(np.ascontiguousarray(led_positions, np.float32).tobytes() + bytes([far_field])).hexdigest()[:16]
-
-
-def compute_visibility(
-    scene: mi.Scene, geom: TexelGeometry, led_positions: np.ndarray, far_field: bool = False, stage_center: np.ndarray | None = None
-) -> mi.UInt32:
+def compute_visibility(scene: mi.Scene, geom: TexelGeometry, leds: LedLayout) -> mi.UInt32:
     """Bit-packed visibility, word-major: bit (k % 32) of word ``(k // 32) * M + t`` is LED k at texel t.
 
     Rays are traced LED-major (all texels for one LED, then the next) in groups of 32 LEDs per kernel, which keeps
-    them coherent; pairs below the texel's horizon (shading or geometric) trace nothing.
+    them coherent; pairs below the texel's horizon (shading or geometric) trace nothing. Far field, each ray goes
+    towards the LED's direction from the stage centre, unbounded.
     """
     m = dr.width(geom.position)
-    num_leds = led_positions.shape[0]
+    num_leds, far_field = leds.num_leds, leds.far_field
     words = (num_leds + 31) // 32
     bits = dr.zeros(mi.UInt32, words * m)
-    if far_field:
-        center = np.zeros(3) if stage_center is None else stage_center
-        targets = led_positions - center
-        targets /= np.linalg.norm(targets, axis=1, keepdims=True)
-    else:
-        targets = led_positions
+    targets, _ = leds.as_lights(np.zeros((num_leds, 3)))
     target_arr = mi.Point3f(*targets.T.astype(np.float32))
     for w in range(words):
         group = min(32, num_leds - 32 * w)
@@ -72,7 +62,7 @@ def compute_visibility(
 
 
 class VisibilityCache:
-    """Visibility bits per (frame geometry, LED layout): in memory, and on disk under ``folder`` if given."""
+    """Visibility bits per (frame geometry, :class:`LedLayout`): in memory, and on disk under ``folder`` if given."""
 
     def __init__(self, folder: str | Path | None = None):
         self.folder = None if folder is None else Path(folder)
@@ -80,15 +70,8 @@ class VisibilityCache:
         self.hits = 0
         self.misses = 0
 
-    def get(
-        self,
-        scene: mi.Scene,
-        geom: TexelGeometry,
-        led_positions: np.ndarray,
-        far_field: bool = False,
-        stage_center: np.ndarray | None = None,
-    ) -> mi.UInt32:
-        key = f"{geom.digest}_{led_layout_digest(led_positions, far_field)}"
+    def get(self, scene: mi.Scene, geom: TexelGeometry, leds: LedLayout) -> mi.UInt32:
+        key = f"{geom.digest}_{leds.digest}"
         if key in self._memory:
             self.hits += 1
             return self._memory[key]
@@ -103,7 +86,7 @@ class VisibilityCache:
             bits = mi.UInt32(cached)
             self.hits += 1
         else:
-            bits = compute_visibility(scene, geom, led_positions, far_field, stage_center)
+            bits = compute_visibility(scene, geom, leds)
             self.misses += 1
             if path is not None:
                 with atomic_path(path) as tmp:

@@ -36,6 +36,8 @@ import mitsuba as mi
 import numpy as np
 from mitsuba.python.ad.integrators.common import RBIntegrator
 
+from gra_mi.render.leds import LedLayout
+
 
 def point_lights(scene: mi.Scene) -> tuple[np.ndarray, np.ndarray]:
     """Positions (L, 3) and radiant intensities (L, 3) of the scene's point emitters, in emitter order."""
@@ -55,16 +57,12 @@ def point_lights(scene: mi.Scene) -> tuple[np.ndarray, np.ndarray]:
 class LedArrays:
     """The LEDs that are on, as Dr.Jit arrays (``count`` is a Python int: the loop length)."""
 
-    def __init__(self, positions: np.ndarray, intensities: np.ndarray, far_field: bool, center: np.ndarray):
+    def __init__(self, leds: LedLayout, intensities: np.ndarray):
         on = np.flatnonzero(np.max(intensities, axis=1) > 0)
         self.count = int(on.size)
         self.index = mi.UInt32(on.astype(np.uint32))
-        pos, inten = positions[on], intensities[on]
-        if far_field:
-            # Directional lights: direction from the stage centre, irradiance I / r² as measured there.
-            offset = pos - center
-            r2 = np.sum(offset**2, axis=1, keepdims=True)
-            pos, inten = offset / np.sqrt(r2), inten / r2
+        pos, inten = leds.as_lights(intensities)  # far field: directions from the stage centre, irradiance there
+        pos, inten = pos[on], inten[on]
         self.position = mi.Point3f(*(pos.T.astype(np.float32))) if self.count else mi.Point3f()
         self.intensity = mi.Color3f(*(inten.T.astype(np.float32))) if self.count else mi.Color3f()
 
@@ -101,7 +99,7 @@ class GraOneBounce(RBIntegrator):
 
     def prepare_leds(self, scene: mi.Scene) -> LedArrays:
         positions, intensities = point_lights(scene)
-        return LedArrays(positions, intensities, self.far_field, self.stage_center)
+        return LedArrays(LedLayout(positions, self.stage_center, self.far_field), intensities)
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         self._leds = self.prepare_leds(scene)
