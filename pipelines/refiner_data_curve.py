@@ -10,7 +10,7 @@ the shipped prior (every DiT weight, plain flow matching), then measured on the 
 - the refined video against its input (`gra-mi refine`; display PSNR, ꟻLIP and the temporal error over the
   subject, as `gra-mi eval`), which is at best level with the input while the ratio is ≥ 1.
 
-Writes ``--work``/curve.csv and curve.png and prints the table (README, known limitations).
+Writes ``--work``/curve.csv and curve.png and prints the table (docs/results/limitations.md).
 
     .venv/bin/python pipelines/refiner_data_curve.py --sequences 8 32 128 --steps 1500
 """

@@ -107,16 +107,20 @@ def test_capture_json_frame_errors_name_the_entry(tmp_path, field):
 
 def test_sample_counts_are_checked_and_a_resume_keeps_its_settings(tmp_path, llvm_variant, capsys):
     from gra_mi.cli import main
+    from gra_mi.core.provenance import claim_output, release_folder
 
     assert main(["capture", "--preset", "tiny", "--out", str(tmp_path / "a"), "--spp", "8"]) == 2
     assert "--spp: must be a power of 4" in capsys.readouterr().err
     assert not (tmp_path / "a").exists()
-    out = tmp_path / "b"
+    out = tmp_path / "b"  # a capture an earlier run started with other sample counts: never resumed with these
+    earlier = {"preset": "tiny", "renderer": "path", "spp": 1024, "indirect_spp": 16, "max_depth": 4, "test_envmaps": {}}
+    claim_output(out, "capture", {}, earlier)
+    release_folder(out)
     (out / "images" / "cam00").mkdir(parents=True)
-    (out / "images" / "cam00" / "frame_0000.exr").write_bytes(b"")  # one image of an earlier run
-    Capture(out, "tiny", "path", 32, [], [], [], {"renderer": "path", "spp": 16, "indirect_spp": 16, "max_depth": 4}).save()
+    (out / "images" / "cam00" / "frame_0000.exr").write_bytes(b"")  # one image of the earlier run
     assert main(["capture", "--preset", "tiny", "--out", str(out)]) == 2
-    assert "this capture was rendered with" in capsys.readouterr().err
+    assert "spp: 1024 then" in capsys.readouterr().err
+    assert (out / "images" / "cam00" / "frame_0000.exr").is_file()
 
 
 def test_olat_test_frames_light_one_led(tmp_path, default_stage):

@@ -194,7 +194,7 @@ def test_bad_fit_inputs(onebounce_capture, tmp_path):
 def test_path_traced_capture_and_fit(tmp_path):
     # Recovery on the richer ground truth (path tracing, principled + sheen, wrinkles), not on the fit's own model.
     # On `tiny` (32² texels, 64 LEDs) the Adam fit must clearly beat the closed form on both maps, stay near the
-    # constant guess on roughness (wrinkles hold it back: README, material fitting) and relight held-out views.
+    # constant guess on roughness (wrinkles hold it back: docs/results/fit.md) and relight held-out views.
     # The maps are scored as fitted: the brightness calibration (on by default, tested in test_lighting_eval) moves
     # into the albedo the light the one-bounce model leaves out, which is not the material.
     out = run_cli("capture", "--preset", "tiny", "--out", str(tmp_path / "cap"))

@@ -298,7 +298,7 @@ def _refiner_verdict(refiner: dict) -> str:
         said.append(
             f"The refiner's own output is {coarse - own:.1f} dB below its input (goal: within 0.4 dB): what the truth adds to "
             "the RelightNet render is mostly detail the tiny refiner cannot predict from this capture's few relit frames, "
-            "so the detail it samples is its own (README, known limitations: the measurements and what it would take)."
+            "so the detail it samples is its own (docs/results/limitations.md: the measurements and what it would take)."
         )
     if refiner["train"]["mix"]["chosen"] == 0:
         said.append(

@@ -322,7 +322,7 @@ def generate_capture(
     on its frame, so a resumed capture equals an uninterrupted one). ``measure_noise``: measure the ground truth's
     noise (:func:`measure_ground_truth_noise`) into ``capture.json``. ``test_envmaps`` (name → validated lat-long
     map): the user's own held-out lighting, in place of the first procedural test envmaps. ``spp``/``indirect_spp``
-    override the preset's sample counts (powers of 4): more samples, less noise (README: what 2 % costs).
+    override the preset's sample counts (powers of 4): more samples, less noise (docs/results/capture.md: what 2 % costs).
     ``without``: effects of the path-traced ground truth to leave out (:data:`ABLATABLE_EFFECTS`), to measure what
     each one costs the fit. ``overwrite``: empty a folder made by another run first (else it is refused)."""
     from gra_mi.core.progress import progress
@@ -365,15 +365,9 @@ def generate_capture(
         name: hashlib.sha256(np.ascontiguousarray(env, np.float32).tobytes()).hexdigest()[:16] for name, env in (test_envmaps or {}).items()
     }
     claim_output(out, "capture", {}, {"preset": preset_name, **record, "test_envmaps": envmap_ids}, overwrite=overwrite)
+    # A resume with other sample counts or renderer would mix two estimators: the claim above refuses it (the record
+    # is part of the config); a resume of the same run keeps what it measured.
     previous = Capture.load(out) if (out / "capture.json").is_file() else None
-    if previous is not None:
-        rendered = {k: previous.ground_truth.get(k) for k in ("renderer", "spp", "indirect_spp", "max_depth", "without")}
-        asked = {k: record.get(k) for k in rendered}
-        if rendered != asked and any((out / "images").rglob("*.exr")):  # a resume must not mix two estimators
-            how = f"with {rendered}" if previous.ground_truth else "by an earlier gra-mi (no ground_truth record)"
-            raise GraMiInputError(
-                out / "capture.json", f"this capture was rendered {how}, not {asked}: resume it with those, or use a new folder"
-            )
 
     # 1. Rig, subject, lighting ----------------------------------------------------------------------------
     stage = default_lightstage(

@@ -356,7 +356,7 @@ def _args_capture(p):
         "--without",
         default="",
         help="Effects to leave out of the path-traced ground truth, comma-separated: sheen, wrinkles, interreflection. "
-        "Fitting such captures shows what each effect costs the one-bounce fit (README, material fitting).",
+        "Fitting such captures shows what each effect costs the one-bounce fit (docs/results/fit.md).",
     )
     p.add_argument(
         "--test-envmap",

@@ -4,7 +4,7 @@ Each window of ``window`` (17) frames is sampled from noise with an Euler ODE so
 shift ``shift``) and a new seed per window. The first window refines all its frames; every later window starts
 ``window − handoff`` frames further on, and its first ``handoff`` (5) frames are the previous window's decoded
 output, re-encoded as inactive (mask 0) VACE frames — the seed frames the refiner was trained to continue. Two
-things make the joins continuous (``Joins``; measured in refine.json and in the README): the given latents (the
+things make the joins continuous (``Joins``; measured in refine.json and in docs/results/refiner.md): the given latents (the
 reference and the seed frames) are pinned to their exact flow path while sampling, the input the refiner saw for
 them in training, so what it generates continues them; and the handed-off frames are shown as a cross-fade from
 the previous window's version to their re-generation, which hides the VAE round trip of the hand-off. Only one

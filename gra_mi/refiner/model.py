@@ -54,7 +54,7 @@ TRANSFORMER_CONFIGS = {
 }  # fmt: skip
 # The real VAE is diffusers' default AutoencoderKLWan (8× in space, 4× in time, 16 channels). The tiny one
 # (gra_mi.refiner.tiny_vae) has its interface, time factor and channels (so windows of 4k + 1 frames carry over) but
-# shrinks images 4× and starts as an exact block-mean codec: it keeps the image (README, video refiner).
+# shrinks images 4× and starts as an exact block-mean codec: it keeps the image (docs/results/refiner.md).
 VAE_CONFIGS = {
     "tiny": dict(z_dim=16, spatial=4, temporal=4, hidden=64),
     "1.3B": {},

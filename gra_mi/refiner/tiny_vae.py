@@ -2,7 +2,7 @@
 
 Why not a small ``AutoencoderKLWan``: its round trip is learnt from scratch, and on two CPU cores it stays far from
 the image (measured on the demo's held-out frames: 10.8 dB for a 71 k-parameter one, 10.6 dB for a 3.2 M-parameter
-one after 25 minutes; README, video refiner), so it lost more than every other stage together. This codec starts
+one after 25 minutes; docs/results/refiner.md), so it lost more than every other stage together. This codec starts
 as an exact one and learns only what lies above it:
 
 - Causal in time as Wan's VAE: latent frame 0 holds pixel frame 0 alone (as a group of 4 copies), latent frame
