@@ -522,12 +522,12 @@ def test_eval_says_what_it_skipped_and_why(tiny_run, tmp_path, capsys):
     report = json.loads((tmp_path / "b" / "eval.json").read_text())
     assert report["stages"]["RelightNet"]["splits"] and "skipped" in report["stages"]["refined"]["splits"][name]
 
-    # LPIPS weights that are not LPIPS weights: named, exit 2, everything else scored
+    # LPIPS weights that are not LPIPS weights: named, exit 2, before any work (nothing evaluated, nothing written)
     (tmp_path / "w.pth").write_text("junk")
     assert main(["eval", str(run), "--lpips-weights", str(tmp_path / "w.pth"), "--out", str(tmp_path / "c")]) == 2
     err = capsys.readouterr().err
     assert "w.pth" in err and "--lpips-weights" in err
-    assert json.loads((tmp_path / "c" / "eval.json").read_text())["stages"]["refined"]["status"] == "done"
+    assert not (tmp_path / "c").exists()
     assert main(["eval", str(run), "--frames", "every3"]) == 2
     assert "--frames" in capsys.readouterr().err
     assert main(["eval", "--fit", str(run / "fit")]) == 2
