@@ -175,7 +175,7 @@ def test_bad_fit_inputs(onebounce_capture, tmp_path):
     import shutil
 
     from gra_mi.core.io import write_exr
-    from gra_mi.render.relighter import fitted_relighter
+    from gra_mi.fit.fitted import fitted_relighter
 
     fit = tmp_path / "fit"
     fit.mkdir()

@@ -117,7 +117,7 @@ def test_fit_calibrates_the_training_views_total_light(path_traced_fit):
     model leaves interreflections out, and L1 fits medians): renders of them are within 2 % of the capture."""
     from gra_mi.capture.dataset import Capture, load_observation
     from gra_mi.core.metrics import subject_mask
-    from gra_mi.render.relighter import fitted_relighter
+    from gra_mi.fit.fitted import fitted_relighter
 
     root = path_traced_fit
     fit = json.loads((root / "fit" / "fit.json").read_text())

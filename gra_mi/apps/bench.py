@@ -318,7 +318,7 @@ def bench_mitsuba_direct(b: BenchSetup) -> None:
 def run_bench(out: Path, preset_name: str = "full") -> Path:
     """Every approximation of the one-bounce render against the exact one: time, amortised time, memory, error."""
     from gra_mi.core.progress import progress
-    from gra_mi.core.runtime import ensure_mitsuba
+    from gra_mi.render.runtime import ensure_mitsuba
 
     chosen = ensure_mitsuba()
     preset = PRESETS[preset_name]

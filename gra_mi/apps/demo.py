@@ -129,10 +129,11 @@ def contact_sheet(images: list[list[np.ndarray]]) -> np.ndarray:
 def run_demo(preset_name: str, out: Path, overwrite: bool = False) -> Path:
     from gra_mi.apps.gltf import export_glb
     from gra_mi.capture.synthetic import generate_capture
-    from gra_mi.core.runtime import ensure_mitsuba, torch_device
+    from gra_mi.core.runtime import torch_device
     from gra_mi.fit.materials import FitConfig, run_fit
     from gra_mi.render.point_light import PointLight, conditioning_envmap, conditioning_pattern
     from gra_mi.render.relighter import Relighter
+    from gra_mi.render.runtime import ensure_mitsuba
     from gra_mi.stage.envmap import envmap_to_leds, load_envmap
 
     if preset_name not in PRESETS:

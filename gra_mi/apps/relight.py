@@ -131,9 +131,10 @@ def relight_batch(
     to UV and roughness 0.5. ``platform``: the :class:`gra_mi.render.composite.PlatformConfig` of ``config.composite``.
     Everything is checked before the first file is written.
     """
-    from gra_mi.core.runtime import ensure_mitsuba, torch_device
+    from gra_mi.core.runtime import torch_device
     from gra_mi.relightnet.infer import render_view
     from gra_mi.render.relighter import Relighter
+    from gra_mi.render.runtime import ensure_mitsuba
     from gra_mi.stage.envmap import background_plate, led_fidelity
     from gra_mi.stage.scene import composite_over, lighting_warnings
 

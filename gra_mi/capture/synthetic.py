@@ -241,7 +241,7 @@ class GroundTruthRenderer:
     def __post_init__(self):
         import mitsuba as mi
 
-        from gra_mi.core.runtime import ensure_mitsuba
+        from gra_mi.render.runtime import ensure_mitsuba
 
         ensure_mitsuba()  # registers gra_onebounce for the variant
         self.direct = mi.load_dict({"type": "gra_onebounce"})
@@ -326,8 +326,8 @@ def generate_capture(
     ``without``: effects of the path-traced ground truth to leave out (:data:`ABLATABLE_EFFECTS`), to measure what
     each one costs the fit. ``overwrite``: empty a folder made by another run first (else it is refused)."""
     from gra_mi.core.progress import progress
-    from gra_mi.core.runtime import ensure_mitsuba
     from gra_mi.render.atlas import UVAtlas
+    from gra_mi.render.runtime import ensure_mitsuba
     from gra_mi.stage.envmap import downsample_envmap
     from gra_mi.stage.envmap_library import write_envmap_set
     from gra_mi.stage.lightstage import default_lightstage
@@ -535,7 +535,7 @@ def render_envmap_truth(
 
     import mitsuba as mi
 
-    from gra_mi.core.runtime import ensure_mitsuba
+    from gra_mi.render.runtime import ensure_mitsuba
 
     ensure_mitsuba()
     max_depth = int(capture.ground_truth.get("max_depth", 4))

@@ -1108,7 +1108,7 @@ def _message(exc: GraMiInputError, flags: dict[str, str]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     from gra_mi.core.provenance import discard_unused_claims
-    from gra_mi.core.runtime import start_runtime
+    from gra_mi.render.runtime import start_runtime
 
     words = sys.argv[1:] if argv is None else argv
     selected = next((w for w in words if not w.startswith("-")), None)

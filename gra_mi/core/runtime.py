@@ -115,7 +115,7 @@ class Runtime:
     torch_device: str | None = None
 
 
-_RUNTIME = Runtime()  # one per process, like Mitsuba's own variant
+RUNTIME = Runtime()  # one per process, like Mitsuba's own variant
 
 
 def pick_torch_device(requested: str | None = None) -> str:
@@ -131,34 +131,8 @@ def pick_torch_device(requested: str | None = None) -> str:
     return requested
 
 
-def start_runtime(variant: str | None = None, device: str | None = None, *, mitsuba: bool = True, torch: bool = False) -> Runtime:
-    """Start what a command needs, once: the Mitsuba variant with the plugins registered (``mitsuba``) and the torch
-    device (``torch``). ``None`` means automatic: the GPU where one works."""
-    if mitsuba:
-        from gra_mi.render.plugins import register_plugins
-
-        _RUNTIME.variant = choose_variant(variant)
-        register_plugins()
-    if torch:
-        _RUNTIME.torch_device = pick_torch_device(device)
-    return _RUNTIME
-
-
-def ensure_mitsuba() -> str:
-    """The Mitsuba variant for library code: the one already set (by :func:`start_runtime` or a test), else the
-    automatic choice; gra-mi's plugins are registered for it either way."""
-    import mitsuba as mi
-
-    if mi.variant() is None:
-        return start_runtime().variant
-    from gra_mi.render.plugins import register_plugins
-
-    register_plugins()
-    return mi.variant()
-
-
 def torch_device() -> str:
     """The torch device for library code: the one this command started with, else the automatic choice."""
-    if _RUNTIME.torch_device is None:
-        _RUNTIME.torch_device = pick_torch_device()
-    return _RUNTIME.torch_device
+    if RUNTIME.torch_device is None:
+        RUNTIME.torch_device = pick_torch_device()
+    return RUNTIME.torch_device

@@ -88,9 +88,11 @@ def envmap_accuracy(
     """Score every lighting model on every reference map and camera; write ``accuracy.json``, ``accuracy.md``,
     ``contact_sheet.png`` (truth | each model, per map) and every render (EXR) under ``out``. Returns the rows
     (one per map and model, averaged over the cameras)."""
-    from gra_mi.core.runtime import ensure_mitsuba, torch_device
+    from gra_mi.core.runtime import torch_device
+    from gra_mi.fit.fitted import fitted_relighter
     from gra_mi.relightnet.infer import render_view
-    from gra_mi.render.relighter import Relighter, fitted_relighter, load_texture
+    from gra_mi.render.relighter import Relighter, load_texture
+    from gra_mi.render.runtime import ensure_mitsuba
     from gra_mi.stage.envmap import envmap_to_leds
     from gra_mi.stage.envmap_library import reference_map
 

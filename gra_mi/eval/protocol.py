@@ -205,7 +205,7 @@ def evaluate(inputs: EvalInputs, out: str | Path, config: EvalConfig | None = No
     """Score every stage found in ``inputs`` on every split; write the table, contact sheets and videos under ``out``.
     Returns the eval.json content; its ``problems`` lists what the user pointed to that could not be evaluated."""
     from gra_mi.capture.dataset import Capture
-    from gra_mi.core.runtime import ensure_mitsuba
+    from gra_mi.render.runtime import ensure_mitsuba
 
     config = config or EvalConfig()
     config.validate()
@@ -225,7 +225,7 @@ def evaluate(inputs: EvalInputs, out: str | Path, config: EvalConfig | None = No
     relighter = model = dataset = None
     refined: dict[str, Path] = {}
     try:
-        from gra_mi.render.relighter import fitted_relighter
+        from gra_mi.fit.fitted import fitted_relighter
 
         if inputs.fit is None or not (inputs.fit / "albedo.exr").is_file():
             raise GraMiInputError(inputs.fit or "--fit", "no albedo.exr (a fit folder from `gra-mi fit`)")

@@ -157,8 +157,8 @@ def sample_image(image: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndar
 
 class MaterialFitter:
     def __init__(self, capture: Capture, config: FitConfig, cache_dir: str | Path | None = None):
-        from gra_mi.core.runtime import ensure_mitsuba
         from gra_mi.render.relighter import Relighter
+        from gra_mi.render.runtime import ensure_mitsuba
         from gra_mi.stage.scene import LightstageScene
 
         ensure_mitsuba()
@@ -402,7 +402,7 @@ def run_fit(capture_dir: str | Path, out: str | Path, config: FitConfig, overwri
     """Fit ``config``'s maps to a capture into ``out`` (resumes a run of the same capture and config there; a folder
     made by another refuses, or with ``overwrite`` starts over)."""
     from gra_mi.core.provenance import claim_output
-    from gra_mi.core.runtime import ensure_mitsuba
+    from gra_mi.render.runtime import ensure_mitsuba
 
     config.validate()
     capture = Capture.load(capture_dir)

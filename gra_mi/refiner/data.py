@@ -435,9 +435,10 @@ def dataset_from_capture(
     """
     from gra_mi.capture.dataset import load_observation
     from gra_mi.core.progress import progress
-    from gra_mi.core.runtime import ensure_mitsuba, torch_device
+    from gra_mi.core.runtime import torch_device
+    from gra_mi.fit.fitted import fitted_relighter
     from gra_mi.relightnet.infer import render_view
-    from gra_mi.render.relighter import fitted_relighter
+    from gra_mi.render.runtime import ensure_mitsuba
     from gra_mi.stage.envmap import leds_to_envmap, to_camera_space
 
     ensure_mitsuba()

@@ -170,8 +170,9 @@ def image_metrics(image: torch.Tensor, target: torch.Tensor, pixels: torch.Tenso
 def train_relightnet(capture_dir: str | Path, fit_dir: str | Path, out: str | Path, config: TrainConfig, overwrite: bool = False) -> Path:
     """Train RelightNet into ``out``; a rerun with the same inputs and config resumes (``steps`` may grow), a folder
     made by another run is refused (``overwrite``: start over)."""
-    from gra_mi.core.runtime import ensure_mitsuba, torch_device
-    from gra_mi.render.relighter import fitted_relighter
+    from gra_mi.core.runtime import torch_device
+    from gra_mi.fit.fitted import fitted_relighter
+    from gra_mi.render.runtime import ensure_mitsuba
 
     config.validate()
     loop = TrainingLoop(Path(out), config.steps, config.checkpoint_every, config.log_every, "train RelightNet")

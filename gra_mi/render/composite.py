@@ -60,7 +60,7 @@ def platform_layer(sequence, frame: int, camera, envmap: np.ndarray, config: Pla
     scale), the environment itself hidden (alpha 0)."""
     import mitsuba as mi
 
-    from gra_mi.core.runtime import ensure_mitsuba
+    from gra_mi.render.runtime import ensure_mitsuba
     from gra_mi.stage.scene import camera_sensor_dict
 
     ensure_mitsuba()

@@ -154,22 +154,3 @@ class Relighter:
             "view_dir": self.atlas.scatter(view.shading.view_dir),
             "mask": self.atlas.mask[..., None].astype(np.float32),
         }
-
-
-def fitted_relighter(capture_dir: str | Path, fit_dir: str | Path, cache_dir: str | Path | None = None):
-    """(capture, relighter) for a capture and its fitted maps (``gra-mi fit``): what RelightNet and the refiner train on."""
-    from gra_mi.capture.dataset import Capture
-
-    capture = Capture.load(capture_dir)
-    capture.check_images()
-    fit_dir = Path(fit_dir)
-    albedo = load_texture(fit_dir / "albedo.exr", 3, "albedo")
-    roughness = load_texture(fit_dir / "roughness.exr", 1, "roughness")
-    if roughness.shape[:2] != albedo.shape[:2]:
-        raise GraMiInputError(
-            fit_dir / "roughness.exr",
-            f"{roughness.shape[0]}² but albedo.exr is {albedo.shape[0]}²: the maps of one fit share a resolution (refit, or resample both)",
-            field="resolution",
-        )
-    ls = LightstageScene.load(capture.folder / "scene.xml")
-    return capture, Relighter(ls, albedo=albedo, roughness=roughness, cache_dir=cache_dir)

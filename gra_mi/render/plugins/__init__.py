@@ -15,7 +15,7 @@ def register_plugins() -> None:
 
     variant = mi.variant()
     if variant is None:
-        raise RuntimeError("choose a Mitsuba variant first (gra_mi.core.runtime.start_runtime)")
+        raise RuntimeError("choose a Mitsuba variant first (gra_mi.render.runtime.start_runtime)")
     if variant in _registered:
         return
     from gra_mi.render.plugins.microfacet import register as register_bsdf
