@@ -218,6 +218,22 @@ def test_envmap_sweep_pipeline(tmp_path):
     assert (tmp_path / "sweep" / "contact_sheet.png").exists() and (tmp_path / "sweep" / "test_0001.exr").exists()
 
 
+def test_bench_conclusions_follow_the_numbers():
+    """The bench report's conclusions are computed from its results, not written in advance."""
+    from gra_mi.apps.bench import Result, conclusions
+
+    rows = [
+        Result("LEDs", "all", 10, 10, 1, 0.0, 99, 0.0),
+        Result("LEDs", "k=16", 2, 2, 1, 0.05, 30, 0.1),
+        Result("LEDs", "k=64", 5, 5, 1, 0.005, 40, 0.01),
+        Result("UV", "64²", 1, 1, 1, 0.2, 20, 0.3),
+    ]
+    lines = conclusions(rows, {1, 2, 3})
+    assert lines[0] == "- **LEDs**: cheapest k=16 (2 ms, error 5.00 %); fastest within 1 % error: k=64 (5 ms)."
+    assert lines[1] == "- **UV**: cheapest 64² (1 ms, error 20.00 %); none within 1 % error."
+    assert lines[-1].endswith("64² (UV), k=16 (LEDs), k=64 (LEDs).")
+
+
 def test_bench_quick_writes_report(tmp_path):
     out = run_cli("bench", "--quick", "--out", str(tmp_path / "bench"))
     assert out.returncode == 0, out.stderr

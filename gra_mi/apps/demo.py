@@ -14,7 +14,7 @@ from __future__ import annotations
 import json
 import logging
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +26,7 @@ from gra_mi.core.metrics import compare, mean_l1, subject_mask
 logger = logging.getLogger(__name__)
 
 
-@dataclass
+@dataclass(kw_only=True, frozen=True)
 class DemoPreset:
     name: str
     capture: str  # capture preset
@@ -38,13 +38,18 @@ class DemoPreset:
     refiner_euler_steps: int
     lighting_spp: int  # samples per pixel of the path-traced truth under the reference environments
     platform_spp: int  # samples per pixel of the platform layer of the composites
-    stages_not_built: list[str] = field(default_factory=list)
 
 
 PRESETS = {
-    "tiny": DemoPreset("tiny", "tiny", "onebounce", 5, 20, 0.25, 20, 4, 16, 4),
-    "small": DemoPreset("small", "small", "path", 11, 1000, 0.5, 100, 10, 256, 32),
-}
+    "tiny": DemoPreset(
+        name="tiny", capture="tiny", renderer="onebounce", roughness_candidates=5, relightnet_steps=20, refiner_scale=0.25,
+        refiner_steps=20, refiner_euler_steps=4, lighting_spp=16, platform_spp=4,
+    ),
+    "small": DemoPreset(
+        name="small", capture="small", renderer="path", roughness_candidates=11, relightnet_steps=1000, refiner_scale=0.5,
+        refiner_steps=100, refiner_euler_steps=10, lighting_spp=256, platform_spp=32,
+    ),
+}  # fmt: skip
 
 
 def _timed(timings: dict, name: str):
@@ -418,7 +423,6 @@ def _report(
         "|---|---|---|",
     ]
     lines += [f"| {name} | done | {seconds:.1f} |" for name, seconds in timings.items()]
-    lines += [f"| {name} | not built yet | – |" for name in preset.stages_not_built]
     lines += [
         "",
         "Rig: ![rig](plots/rig.png)",

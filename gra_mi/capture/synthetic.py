@@ -34,7 +34,7 @@ from gra_mi.core.provenance import claim_output
 logger = logging.getLogger(__name__)
 
 
-@dataclass
+@dataclass(kw_only=True, frozen=True)
 class CapturePreset:
     name: str
     subject: str  # "tiny" or "anny"
@@ -64,31 +64,30 @@ class CapturePreset:
 
 
 PRESETS = {
-    "tiny": CapturePreset("tiny", "tiny", ["tiny"], ["tiny"], 6, 64, 8, 1, 320, 240, 1.2, 32, 32, 4, 16),
-    "small": CapturePreset("small", "anny", ["walk"], ["squat"], 8, 331, 8, 2, 256, 135, 1.8, 256, 64, 16, 64),
+    "tiny": CapturePreset(
+        name="tiny", subject="tiny", train_clips=["tiny"], test_clips=["tiny"], frames_per_clip=6, num_leds=64,
+        num_cameras=8, eval_cameras=1, width=320, height=240, camera_distance=1.2, uv_resolution=32, envmap_height=32,
+        spp=4, indirect_spp=16,
+    ),
+    "small": CapturePreset(
+        name="small", subject="anny", train_clips=["walk"], test_clips=["squat"], frames_per_clip=8, num_leds=331,
+        num_cameras=8, eval_cameras=2, width=256, height=135, camera_distance=1.8, uv_resolution=256, envmap_height=64,
+        spp=16, indirect_spp=64,
+    ),
     # 48 training envmaps over three motions; test: two held-out envmaps and one OLAT (out of distribution).
     "medium": CapturePreset(
-        "medium",
-        "anny",
-        ["walk", "arm_raise", "turn"],
-        ["squat", "walk", "arm_raise"],
-        32,
-        331,
-        8,
-        2,
-        192,
-        108,
-        1.8,
-        256,
-        64,
-        16,
-        64,
-        test_frames_per_clip=17,
+        name="medium", subject="anny", train_clips=["walk", "arm_raise", "turn"], test_clips=["squat", "walk", "arm_raise"],
+        frames_per_clip=32, num_leds=331, num_cameras=8, eval_cameras=2, width=192, height=108, camera_distance=1.8,
+        uv_resolution=256, envmap_height=64, spp=16, indirect_spp=64, test_frames_per_clip=17,
         test_lighting=["envmap", "envmap", "olat"],
     ),
     # The paper's protocol: 40 cameras at 1024x540, interleaved full-on / relit frames (a GPU's work).
-    "full": CapturePreset("full", "anny", ["walk", "arm_raise", "turn"], ["squat"], 24, 331, 40, 3, 1024, 540, 1.8, 512, 128, 64, 256),
-}
+    "full": CapturePreset(
+        name="full", subject="anny", train_clips=["walk", "arm_raise", "turn"], test_clips=["squat"], frames_per_clip=24,
+        num_leds=331, num_cameras=40, eval_cameras=3, width=1024, height=540, camera_distance=1.8, uv_resolution=512,
+        envmap_height=128, spp=64, indirect_spp=256,
+    ),
+}  # fmt: skip
 
 ABLATABLE_EFFECTS = ("sheen", "wrinkles", "interreflection")  # what the one-bounce model does not explain
 
@@ -163,7 +162,9 @@ def pose_wrinkles(params, cloth: np.ndarray, frame: int, num_frames: int) -> boo
     the scene has none (a one-bounce ground truth)."""
     import mitsuba as mi
 
-    key = next((k for k in params.keys() if k.endswith("normalmap.data")), None)
+    from gra_mi.stage import scene_keys as keys
+
+    key = next((k for k in params.keys() if k.endswith(keys.NORMALMAP_DATA_SUFFIX)), None)
     if key is None:
         return False
     params[key] = mi.TensorXf(frame_normal_map(cloth, frame, num_frames))
@@ -439,12 +440,9 @@ def generate_capture(
 
     # 3. Render (image space: the fit works in UV space, so the ground truth takes another code path) ------
 
-    if renderer == "onebounce":
-        atomic_write_text(out / "scene_gt.xml", subject_scene_xml("rig", "subject", spp=preset.spp, bsdf_xml=ONEBOUNCE_BSDF))
-        gt_renderer = GroundTruthRenderer(**sample_counts)
-    else:
-        atomic_write_text(out / "scene_gt.xml", subject_scene_xml("rig", "subject", spp=preset.spp, bsdf_xml=GT_BSDF))
-        gt_renderer = GroundTruthRenderer(**sample_counts)
+    bsdf = ONEBOUNCE_BSDF if renderer == "onebounce" else GT_BSDF
+    atomic_write_text(out / "scene_gt.xml", subject_scene_xml("rig", "subject", spp=preset.spp, bsdf_xml=bsdf))
+    gt_renderer = GroundTruthRenderer(**sample_counts)
     source = LightstageScene.load(out / "scene_gt.xml")
 
     def pose(frame: int) -> None:

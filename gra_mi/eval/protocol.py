@@ -40,7 +40,6 @@ from gra_mi.render.composite import PlatformConfig
 logger = logging.getLogger(__name__)
 
 FRAME_SELECTIONS = ("every10", "window-middles", "all")
-WINDOW, HANDOFF = 17, 5  # the refiner's window and hand-off (gra_mi.refiner.infer.window_starts)
 STAGES = ("microfacet", "RelightNet", "refined", "deflickered")
 STAGE_TITLES = {
     "microfacet": "microfacet (fitted maps)",
@@ -108,8 +107,10 @@ def frame_selection(count: int, how: str) -> list[int]:
     if how == "every10":
         return list(range(0, count, 10))
     from gra_mi.refiner.infer import window_starts
+    from gra_mi.refiner.model import RefinerConfig
 
-    return [s + WINDOW // 2 for s in window_starts(count, WINDOW, HANDOFF) if s + WINDOW // 2 < count]
+    window, handoff = RefinerConfig.window, RefinerConfig.handoff  # the refiner's own windows (their defaults)
+    return [s + window // 2 for s in window_starts(count, window, handoff) if s + window // 2 < count]
 
 
 def _downscale(image: np.ndarray, scale: float) -> np.ndarray:
@@ -428,19 +429,21 @@ def _score(images, truths, masks, exposure, scored: list[int], lpips_model) -> d
 
 
 def _fvd(i3d, results: dict[str, StageResult], videos: dict) -> None:
-    """FVD of each stage against the truth over all splits' 17-frame clips (non-overlapping, from frame 0)."""
+    """FVD of each stage against the truth over all splits' clips of the refiner's window (non-overlapping, from 0)."""
     from gra_mi.core.color import to_display
     from gra_mi.eval.perceptual import frechet_distance, i3d_features
+    from gra_mi.refiner.model import RefinerConfig
 
+    window = RefinerConfig.window  # FVD's clips: the refiner's windows
     for stage in STAGES:
         real, fake = [], []
         for video in videos.values():
             frames, exposure = video["frames"], video["exposure"]
             if stage not in frames:
                 continue
-            for start in range(0, len(frames["truth"]) - WINDOW + 1, WINDOW):
-                real.append(np.stack([to_display(f, exposure) for f in frames["truth"][start : start + WINDOW]]))
-                fake.append(np.stack([to_display(f, exposure) for f in frames[stage][start : start + WINDOW]]))
+            for start in range(0, len(frames["truth"]) - window + 1, window):
+                real.append(np.stack([to_display(f, exposure) for f in frames["truth"][start : start + window]]))
+                fake.append(np.stack([to_display(f, exposure) for f in frames[stage][start : start + window]]))
         if len(real) >= 2:
             results[stage].fvd = frechet_distance(i3d_features(i3d, real), i3d_features(i3d, fake))
             results[stage].fvd_clips = len(real)

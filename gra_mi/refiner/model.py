@@ -22,7 +22,7 @@ import json
 import logging
 import math
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -106,7 +106,6 @@ class RefinerConfig:
     mix: float = 1.0
     """The fraction of the refiner's change delivered: input + mix·(refined − input). Training chooses it on the
     data's selection sequences (:mod:`gra_mi.refiner.mix`); 1 (the refiner's output as it is) without them."""
-    extra: dict = field(default_factory=dict)
 
     def validate(self, source: str | Path | None = None) -> None:
         """Check every field; ``source``: the refiner.json these came from (errors then name it and the field;

@@ -334,15 +334,3 @@ def reference_map(name: str, height: int = 64) -> np.ndarray:
     else:
         raise ValueError(f"reference map must be one of {REFERENCE_MAPS}, got {name!r}")
     return image
-
-
-def write_reference_maps(out_dir: str | Path, height: int = 64) -> dict[str, Path]:
-    """Write every :func:`reference_map` as EXR + PNG preview: name → EXR path."""
-    out_dir = Path(out_dir)
-    paths = {}
-    for name in REFERENCE_MAPS:
-        image = reference_map(name, height)
-        paths[name] = out_dir / f"{name}.exr"
-        write_exr(paths[name], image)
-        write_png(out_dir / f"{name}.png", image, exposure=None)
-    return paths

@@ -10,6 +10,8 @@ SUBJECT_ID = "subject"
 SUBJECT_POSITIONS = f"{SUBJECT_ID}.vertex_positions"
 SUBJECT_NORMALS = f"{SUBJECT_ID}.vertex_normals"
 LED_PREFIX = "led_"
+NORMALMAP_DATA_SUFFIX = "normalmap.data"
+"""The traverse key of a ``normalmap`` BSDF's texture ends so (the capture's ground truth poses its wrinkles there)."""
 
 # Scene-file parameters ($name in the XML, passed to mi.load_file as keyword arguments).
 PARAM_SUBJECT = "subject"  # folder of the tracked mesh sequence, relative to the scene file

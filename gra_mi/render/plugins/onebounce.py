@@ -13,9 +13,6 @@ about Microfacet Rendering").
    * - ``stage_center``
      - point
      - Where the far-field directions and irradiances are measured. Default: (0, 1, 0).
-   * - ``hide_background``
-     - bool
-     - Alpha is coverage of the subject (always true here: LEDs are invisible points). Default: true.
 
 At each camera hit the integrator sums over the scene's ``point`` emitters (the LEDs):
 
