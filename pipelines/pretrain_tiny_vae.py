@@ -9,12 +9,13 @@ moving edges, log-encoded envmaps, and the subject crops of captures' training c
 cut as `gra-mi refiner-data` cuts them. It then measures the latents' per-channel mean and std, which the file
 carries in its metadata (the refiner normalises latents with them).
 
-    .venv/bin/python pipelines/pretrain_tiny_vae.py --minutes 30 --capture CAPTURE_A --capture CAPTURE_B
+    .venv/bin/python pipelines/pretrain_tiny_vae.py --steps 3000 --capture CAPTURE_A --capture CAPTURE_B
 
-Every ``--eval-every`` minutes the round trip (encode + decode) of the held-out cameras' test frames of ``--score``
+Every ``--eval-every`` steps the round trip (encode + decode) of the held-out cameras' test frames of ``--score``
 (default: the first capture) is scored as `gra-mi refine` delivers it (the crop's change put back into the
 half-resolution frames; display PSNR over the subject, and the temporal error of ``gra-mi eval``): the curve (CSV +
-PNG beside ``--out``) says what a model size and a training time buy. ``--minutes 0 --init FILE`` only scores FILE
+PNG beside ``--out``, with the seconds each point took) says what a model size and training buy. The budget is in steps,
+so a run is the same run on any machine. ``--steps 0 --init FILE`` only scores FILE
 (and, with another ``--out``, writes it there with its latent statistics).
 """
 
@@ -116,7 +117,7 @@ def round_trip_scores(vae, videos) -> tuple[float, float]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--minutes", type=float, default=12.0, help="Training time budget. Default: 12.")
+    parser.add_argument("--steps", type=int, default=3000, help="Optimisation steps (about 12 minutes on 2 cores). Default: 3000.")
     parser.add_argument(
         "--capture",
         type=Path,
@@ -135,10 +136,12 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parent.parent / "gra_mi" / "data" / "tiny_vae.safetensors")
     parser.add_argument("--seed", type=int, default=0, help="Random seed. Default: 0.")
     parser.add_argument("--hidden", type=int, default=None, help="Channels of the convolutional branches. Default: the shipped config's.")
-    parser.add_argument("--lr", type=float, default=1e-3, help="Peak learning rate (cosine decay over the budget). Default: 1e-3.")
-    parser.add_argument("--init", type=Path, default=None, help="Start from these weights (with --minutes 0: only score them).")
-    parser.add_argument("--eval-every", type=float, default=2.0, help="Minutes between held-out scores (with --capture). Default: 2.")
+    parser.add_argument("--lr", type=float, default=1e-3, help="Peak learning rate (cosine decay over the steps). Default: 1e-3.")
+    parser.add_argument("--init", type=Path, default=None, help="Start from these weights (with --steps 0: only score them).")
+    parser.add_argument("--eval-every", type=int, default=500, help="Steps between held-out scores (with --capture). Default: 500.")
     args = parser.parse_args()
+    if args.steps < 0 or args.eval_every < 1:
+        parser.error(f"--steps must be >= 0 and --eval-every >= 1, got {args.steps} and {args.eval_every}")
     from safetensors.torch import load_file, save_file
 
     from gra_mi.refiner.model import VAE_CONFIGS
@@ -169,12 +172,9 @@ def main() -> None:
             print(f"held out: {elapsed:.0f} s, step {step}: PSNR {curve[-1][2]:.2f} dB, temporal {curve[-1][3]:.2f}", flush=True)
 
     t0, step = time.perf_counter(), 0
-    budget = args.minutes * 60
-    next_score = 0.0
-    while time.perf_counter() - t0 < budget:
-        if time.perf_counter() - t0 >= next_score:
+    while step < args.steps:
+        if step % args.eval_every == 0:
             score(time.perf_counter() - t0)
-            next_score += args.eval_every * 60
         batch = []
         for _ in range(2):
             if captured and rng.random() < 0.6:
@@ -187,8 +187,8 @@ def main() -> None:
             else:
                 batch.append(procedural_clip(rng, size, frames))
         x = torch.stack(batch)
-        for group in opt.param_groups:  # cosine decay over the time budget
-            group["lr"] = args.lr * (0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * min((time.perf_counter() - t0) / budget, 1))))
+        for group in opt.param_groups:  # cosine decay over the steps
+            group["lr"] = args.lr * (0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * step / args.steps)))
         recon = vae.decode(vae.encode(x).latent_dist.mode()).sample
         # + the error after 4× area averaging (what survives the crop's way back into the delivered frames; zero at
         # the exact start, and kept there)
@@ -214,7 +214,7 @@ def main() -> None:
             xlabel="training minutes (2 CPU cores)", ylabel="held-out round trip PSNR (dB)", title=f"{parameters / 1e3:.0f} k parameters"
         )
         save_figure(fig, args.out.with_suffix(".png"))
-    if args.minutes > 0 or (args.init is not None and args.out.resolve() != args.init.resolve()):
+    if args.steps > 0 or (args.init is not None and args.out.resolve() != args.init.resolve()):
         import json
 
         from gra_mi.core.io import atomic_path

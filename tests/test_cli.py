@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from gra_mi.cli import COMMANDS, build_parser
 from gra_mi.core.io import read_exr, write_exr
@@ -127,6 +128,7 @@ def test_rig_scene_subject_commands_compose(tmp_path):
     assert out.returncode == 0, out.stderr
 
 
+@pytest.mark.slow
 def test_demo_tiny_runs_end_to_end(tmp_path):
     out = run_cli("demo", "--preset", "tiny", "--out", str(tmp_path / "demo"))
     assert out.returncode == 0, out.stderr
@@ -175,6 +177,7 @@ def test_demo_tiny_runs_end_to_end(tmp_path):
     assert renders and all(p.stat().st_mtime_ns == t for p, t in before.items())
 
 
+@pytest.mark.slow
 def test_demo_with_an_olat_test_sequence_first(tmp_path):
     """A capture whose first held-out sequence is lit by an LED pattern (no environment): the demo shows and composites
     its environment-lit sequence instead (it failed on the pattern's missing envmap before)."""
@@ -194,6 +197,7 @@ def test_demo_with_an_olat_test_sequence_first(tmp_path):
     assert (tmp_path / "demo" / "composite.png").is_file() and (tmp_path / "demo" / "report.md").is_file()
 
 
+@pytest.mark.slow
 def test_envmap_sweep_pipeline(tmp_path):
     repo = SCENES.parent
     assert run_cli("envmaps", "--out", str(tmp_path / "env"), "--train", "0", "--test", "2", "--height", "16").returncode == 0
@@ -234,6 +238,7 @@ def test_bench_conclusions_follow_the_numbers():
     assert lines[-1].endswith("64² (UV), k=16 (LEDs), k=64 (LEDs).")
 
 
+@pytest.mark.slow
 def test_bench_quick_writes_report(tmp_path):
     out = run_cli("bench", "--quick", "--out", str(tmp_path / "bench"))
     assert out.returncode == 0, out.stderr

@@ -92,6 +92,7 @@ def test_relight_cli_point_light(tmp_path):
     assert bad.returncode == 2 and "X,Y,Z" in bad.stderr
 
 
+@pytest.mark.slow
 def test_near_field_pipeline(tmp_path):
     import os
     import subprocess

@@ -15,7 +15,7 @@ from gra_mi.refiner.flow import noisy_latent, recycling_residuals, sampling_sigm
 from gra_mi.refiner.model import TRANSFORMER_CONFIGS, AtemporalCrossAttention, RefinerConfig, VideoRefiner, latent_frames
 from gra_mi.refiner.train import ErrorBank, RefinerTrainConfig, augment, pan_zoom, train_refiner, validation_loss
 
-from .conftest import poison_optimizer_after
+from .conftest import free_port, poison_optimizer_after
 
 torch.set_num_threads(2)
 
@@ -555,6 +555,7 @@ def test_mean_estimate_error_against_the_input(trained, monkeypatch):
     assert exact["estimate"] < 1e-8 * exact["input"]
 
 
+@pytest.mark.slow
 def test_data_curve_script_runs_and_writes_its_table(tmp_path):
     """pipelines/refiner_data_curve.py end to end on one tiny size: the CSV, the plot and the table."""
     import subprocess
@@ -831,6 +832,7 @@ def test_cli_end_to_end(tmp_path, capsys):
     assert main(["train-refiner", str(data), "--out", str(tmp_path / "x"), "--size", "1.3B"]) == 2
 
 
+@pytest.mark.slow
 def test_ddp_training_with_two_processes(tmp_path):
     import os
     import subprocess
@@ -839,7 +841,7 @@ def test_ddp_training_with_two_processes(tmp_path):
     data = synthetic_dataset(tmp_path / "data", {0: (2, 0)}, frames=17, height=32, width=32)
     env = {**os.environ, "GRA_MI_QUIET": "1", "OMP_NUM_THREADS": "1"}
     cmd = [
-        sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port", "29531", "-m", "gra_mi.cli",
+        sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port", str(free_port()), "-m", "gra_mi.cli",
         "train-refiner", str(data.folder), "--out", str(tmp_path / "ddp"), "--steps", "4", "--checkpoint-every", "2",
     ]  # fmt: skip
     out = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
@@ -847,6 +849,7 @@ def test_ddp_training_with_two_processes(tmp_path):
     assert (tmp_path / "ddp" / "refiner.safetensors").exists() and (tmp_path / "ddp" / "train.json").exists()
 
 
+@pytest.mark.slow
 def test_vae_pretraining_script_trains_scores_and_writes_loadable_weights(path_traced_fit, tmp_path):
     """pipelines/pretrain_tiny_vae.py end to end on a few steps: training cameras only, the held-out round-trip
     curve (CSV + PNG), and weights the refiner's tiny VAE config loads."""
@@ -861,7 +864,7 @@ def test_vae_pretraining_script_trains_scores_and_writes_loadable_weights(path_t
 
     out = tmp_path / "vae.safetensors"
     script = Path(__file__).resolve().parent.parent / "pipelines" / "pretrain_tiny_vae.py"
-    args = [sys.executable, str(script), "--minutes", "0.1", "--eval-every", "0.05", "--capture", str(path_traced_fit / "cap")]
+    args = [sys.executable, str(script), "--steps", "6", "--eval-every", "3", "--capture", str(path_traced_fit / "cap")]
     done = subprocess.run([*args, "--out", str(out)], capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-2000:]
     rows = out.with_suffix(".csv").read_text().splitlines()
@@ -876,6 +879,7 @@ def test_vae_pretraining_script_trains_scores_and_writes_loadable_weights(path_t
     assert first > 30, rows
 
 
+@pytest.mark.slow
 def test_refiner_prior_script_trains_and_the_refiner_loads_its_prior(tmp_path, monkeypatch):
     """pipelines/pretrain_tiny_refiner.py end to end on a few steps (on synthetic data): every DiT weight trains, and
     the exported prior is what a tiny refiner starts from."""

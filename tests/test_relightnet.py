@@ -14,7 +14,7 @@ import torch
 from gra_mi.relightnet.model import AttentionBlock, RelightNet, RelightNetConfig
 from gra_mi.render.bridge import IN_CHANNELS
 
-from .conftest import poison_optimizer_after
+from .conftest import free_port, poison_optimizer_after
 from .test_cli import run_cli
 
 
@@ -255,11 +255,12 @@ def test_a_run_that_makes_images_worse_ships_the_microfacet_render(capture_and_f
     assert "microfacet render itself" in (tmp_path / "bad" / "validation.md").read_text()
 
 
+@pytest.mark.slow
 def test_ddp_training_with_two_processes(capture_and_fit, tmp_path):
     root = capture_and_fit
     env = {**os.environ, "GRA_MI_QUIET": "1", "OMP_NUM_THREADS": "1"}
     cmd = [
-        sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port", "29517", "-m", "gra_mi.cli",
+        sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port", str(free_port()), "-m", "gra_mi.cli",
         "train-relightnet", str(root / "cap"), "--fit", str(root / "fit"), "--out", str(tmp_path / "ddp"), "--steps", "6", "--checkpoint-every", "3",
     ]  # fmt: skip
     out = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900)
