@@ -212,7 +212,7 @@ def inputs(path_traced_fit, tmp_path_factory):
     # Weights: a RelightNet folder whose safetensors is truncated, one whose config is not a RelightNet's
     rn = root / "rn_truncated"
     rn.mkdir()
-    (rn / "relightnet.json").write_text(json.dumps({"base_channels": 8}))
+    (rn / "relightnet.json").write_text(json.dumps({"format": "gra-mi-relightnet/2", "base_channels": 8}))
     (rn / "relightnet.safetensors").write_bytes(b"\x10\x00\x00\x00\x00\x00\x00\x00{")
     rn = root / "rn_config"
     rn.mkdir()
@@ -220,7 +220,11 @@ def inputs(path_traced_fit, tmp_path_factory):
     (rn / "relightnet.safetensors").write_bytes(b"")
     rn = root / "rn_types"
     rn.mkdir()
-    (rn / "relightnet.json").write_text(json.dumps({"format": 2, "base_channels": "16"}))
+    (rn / "relightnet.json").write_text(json.dumps({"format": "gra-mi-relightnet/2", "base_channels": "16"}))
+    rn = root / "rn_format_2"  # what gra-mi wrote before the format became a string: named, with the fix
+    rn.mkdir()
+    (rn / "relightnet.json").write_text(json.dumps({"format": 2}))
+    (rn / "relightnet.safetensors").write_bytes(b"")
     (rn / "relightnet.safetensors").write_bytes(b"")
     # Refiner data (a tiny synthetic set) and broken copies of its dataset.json; refiner folders with a bad refiner.json
     from gra_mi.refiner.data import synthetic_dataset
@@ -263,6 +267,7 @@ def inputs(path_traced_fit, tmp_path_factory):
     RelightNet(RelightNetConfig(resolution=64, base_channels=4)).save(root / "rn_64")
     models = {
         "model_window": {"format": "gra-mi-refiner/1", "window": "17"},
+        "model_unknown": {"format": "gra-mi-refiner/1", "colour": 1},
         "model_list": [1, 2],
         "model_residual": {"format": "gra-mi-refiner/1", "residual_scale": -0.1},
     }
@@ -585,7 +590,7 @@ DATA_CASES = [
     (
         "relightnet-truncated",
         ["relight", TINY, "--olat", "0", "--stage", "relightnet", "--relightnet", "{root}/rn_truncated"],
-        ["rn_truncated"],
+        ["rn_truncated", "relightnet.safetensors", "unreadable"],
     ),
     (
         "relightnet-config",
@@ -597,6 +602,11 @@ DATA_CASES = [
         "relightnet-types",
         ["relight", TINY, "--olat", "0", "--stage", "relightnet", "--relightnet", "{root}/rn_types"],
         ["base_channels", "integer"],
+    ),
+    (
+        "relightnet-format-int",
+        ["relight", TINY, "--olat", "0", "--stage", "relightnet", "--relightnet", "{root}/rn_format_2"],
+        ["relightnet.json", "format", "gra-mi-relightnet/2"],
     ),
     ("refiner-data-list", ["train-refiner", "{rd_list}"], ["dataset.json", "format"]),
     ("refiner-data-height", ["train-refiner", "{rd_height}"], ["dataset.json", "multiples of 16"]),
@@ -623,6 +633,11 @@ DATA_CASES = [
         "refiner-json-residual",
         ["refine", "{root}/rd", "--model", "{root}/model_residual", "--sequence", "{rd_first}"],
         ["refiner.json", "residual_scale"],
+    ),
+    (
+        "refiner-json-unknown",
+        ["refine", "{root}/rd", "--model", "{root}/model_unknown", "--sequence", "{rd_first}"],
+        ["refiner.json", "unknown keys", "colour"],
     ),
     ("refiner-json-list", ["refine", "{root}/rd", "--model", "{root}/model_list", "--sequence", "{rd_first}"], ["refiner.json", "format"]),
 ]

@@ -22,7 +22,7 @@ import json
 import logging
 import math
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -538,36 +538,23 @@ class VideoRefiner(nn.Module):
 
     def save(self, folder: str | Path) -> None:
         """``refiner.json`` + ``refiner.safetensors`` (trainable weights; a tiny model also stores its base weights)."""
-        from safetensors.torch import save_file
-
-        from gra_mi.core.io import atomic_path, atomic_write_text
+        from gra_mi.core.weights import write_model
 
         if self._inference_only:
             raise RuntimeError("this refiner was prepared for inference (LoRA folded into the DiT): save it before that")
-        folder = Path(folder)
-        state = self.trainable_state()
-        if self.config.size == "tiny":
-            state = {n: t.detach().cpu().contiguous() for n, t in self.state_dict().items()}
-        with atomic_path(folder / "refiner.safetensors") as tmp:
-            save_file(state, str(tmp))
-        atomic_write_text(folder / "refiner.json", json.dumps({"format": "gra-mi-refiner/1", **asdict(self.config)}, indent=1) + "\n")
+        state = self.state_dict() if self.config.size == "tiny" else self.trainable_state()
+        write_model(folder, "refiner", FORMAT, self.config, state)
 
     @classmethod
     def load(cls, folder: str | Path, **overrides) -> VideoRefiner:
-        from gra_mi.core.io import check_config_types, read_json
-        from gra_mi.core.weights import read_weights
+        from gra_mi.core.weights import read_model_config, read_weights
 
         folder = Path(folder)
-        data = read_json(folder / "refiner.json", " (a refiner trained with `gra-mi train-refiner`)")
-        if not isinstance(data, dict) or data.pop("format", None) != "gra-mi-refiner/1":
-            raise GraMiInputError(folder / "refiner.json", "field 'format': expected 'gra-mi-refiner/1'")
-        known = RefinerConfig.__dataclass_fields__
-        check_config_types(RefinerConfig, data, folder / "refiner.json")
-        config = RefinerConfig(**{k: v for k, v in {**data, **overrides}.items() if k in known})
+        config = read_model_config(folder / "refiner.json", RefinerConfig, FORMAT, HINT, retired=RETIRED_KEYS, **overrides)
         config.validate(folder / "refiner.json")
         model = cls(config)
         weights = folder / "refiner.safetensors"
-        tensors = read_weights(weights, " (train one with `gra-mi train-refiner`)")
+        tensors = read_weights(weights, HINT)
         try:
             missing, unexpected = model.load_state_dict(tensors, strict=False)
         except RuntimeError as exc:  # tensors of another size
@@ -579,6 +566,13 @@ class VideoRefiner(nn.Module):
                 weights, f"does not match the refiner config: missing {sorted(trainable & set(missing))[:3]}, unexpected {unexpected[:3]}"
             )
         return model
+
+
+FORMAT = "gra-mi-refiner/1"
+"""refiner.json's format (:func:`gra_mi.core.weights.write_model`)."""
+RETIRED_KEYS = frozenset({"extra"})
+"""Fields refiner.json files from before 2026-12-02 hold that the config no longer has (ignored on load)."""
+HINT = " (train one with `gra-mi train-refiner`)"
 
 
 def seed_mask(frames: int, height: int, width: int, seeded: int) -> torch.Tensor:

@@ -23,9 +23,8 @@ Weights are saved as safetensors with the config as JSON beside them (``relightn
 
 from __future__ import annotations
 
-import json
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -35,7 +34,10 @@ from torch import nn
 from gra_mi.core.errors import GraMiInputError
 from gra_mi.render.bridge import IN_CHANNELS
 
-FORMAT = 2  # 1: additive absolute-radiance output (before exposure invariance); refused on load
+FORMAT = "gra-mi-relightnet/2"
+"""relightnet.json's format. 2: exposure-invariant output (1, additive absolute radiance, is refused). Files that a
+gra-mi before 2026-12-02 wrote say ``"format": 2``: the same model, refused until the line reads this string."""
+HINT = " (train one with `gra-mi train-relightnet`)"
 
 TOP_LEVEL = 128  # the automatic patch puts the UNet's top level here
 MAX_LOG_GAIN = 3.0  # the gain stays within e^±3: a correction, not a new image
@@ -65,8 +67,6 @@ class RelightNetConfig:
     """One gain on the output, fitted after training (:func:`gra_mi.relightnet.train.calibrate_output_gain`) so
     that the training views keep their total light: L1 learns each pixel's median, and the light the coarse render
     misses is one-sided, so the network alone comes out a few per cent too dark."""
-
-    format: int = FORMAT
 
     def __post_init__(self):
         if self.patch is None:
@@ -223,43 +223,21 @@ class RelightNet(nn.Module):
     # ------------------------------------------------------------------------------------------------------
 
     def save(self, folder: str | Path) -> None:
-        from safetensors.torch import save_file
+        from gra_mi.core.weights import write_model
 
-        from gra_mi.core.io import atomic_path, atomic_write_text
-
-        folder = Path(folder)
-        folder.mkdir(parents=True, exist_ok=True)
-        with atomic_path(folder / "relightnet.safetensors") as tmp:
-            save_file({k: v.detach().cpu().contiguous() for k, v in self.state_dict().items()}, str(tmp))
-        atomic_write_text(folder / "relightnet.json", json.dumps(asdict(self.config), indent=1) + "\n")
+        write_model(folder, "relightnet", FORMAT, self.config, self.state_dict())
 
     @classmethod
     def load(cls, folder: str | Path, device: str = "cpu") -> RelightNet:
-        from gra_mi.core.weights import read_weights
+        from gra_mi.core.weights import read_model_config, read_weights
 
         folder = Path(folder)
-        for name in ("relightnet.json", "relightnet.safetensors"):
-            if not (folder / name).is_file():
-                raise GraMiInputError(folder / name, "file not found (train one with `gra-mi train-relightnet`)")
-        from gra_mi.core.io import check_config_types, read_json
-
-        fields = read_json(folder / "relightnet.json")
-        if not isinstance(fields, dict) or fields.get("format") != FORMAT:
-            raise GraMiInputError(
-                folder / "relightnet.json",
-                f"format {fields.get('format', 1) if isinstance(fields, dict) else '?'}, this gra-mi reads "
-                f"format {FORMAT} (exposure-invariant output): retrain with `gra-mi train-relightnet`",
-            )
-        known = set(RelightNetConfig.__dataclass_fields__)
-        if unknown := set(fields) - known:
-            raise GraMiInputError(folder / "relightnet.json", f"unknown keys {sorted(unknown)}; expected some of {sorted(known)}")
-        gain = fields.get("output_gain", 1.0)
-        if not (isinstance(gain, (int, float)) and math.isfinite(gain) and gain > 0):
+        config = read_model_config(folder / "relightnet.json", RelightNetConfig, FORMAT, HINT)
+        gain = config.output_gain
+        if not (math.isfinite(gain) and gain > 0):
             raise GraMiInputError(folder / "relightnet.json", f"must be a finite number > 0, got {gain!r}", field="output_gain")
-        check_config_types(RelightNetConfig, fields, folder / "relightnet.json")
-        config = RelightNetConfig(**fields)
         model = cls(config)
-        tensors = read_weights(folder / "relightnet.safetensors", " (train one with `gra-mi train-relightnet`)")
+        tensors = read_weights(folder / "relightnet.safetensors", HINT)
         try:
             model.load_state_dict(tensors)
         except RuntimeError as exc:  # weights of another config
