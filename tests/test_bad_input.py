@@ -221,6 +221,10 @@ def inputs(path_traced_fit, tmp_path_factory):
     rn = root / "rn_types"
     rn.mkdir()
     (rn / "relightnet.json").write_text(json.dumps({"format": "gra-mi-relightnet/2", "base_channels": "16"}))
+    rn = root / "rn_empty"
+    rn.mkdir()
+    (rn / "relightnet.json").write_text(json.dumps({"format": "gra-mi-relightnet/2"}))
+    (rn / "relightnet.safetensors").write_bytes(b"")
     rn = root / "rn_format_2"  # what gra-mi wrote before the format became a string: named, with the fix
     rn.mkdir()
     (rn / "relightnet.json").write_text(json.dumps({"format": 2}))
@@ -602,6 +606,11 @@ DATA_CASES = [
         "relightnet-types",
         ["relight", TINY, "--olat", "0", "--stage", "relightnet", "--relightnet", "{root}/rn_types"],
         ["base_channels", "integer"],
+    ),
+    (
+        "relightnet-empty-weights",
+        ["relight", TINY, "--olat", "0", "--stage", "relightnet", "--relightnet", "{root}/rn_empty"],
+        ["relightnet.safetensors", "unreadable"],
     ),
     (
         "relightnet-format-int",

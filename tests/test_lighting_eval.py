@@ -63,7 +63,10 @@ def test_far_field_relights_environments_as_the_path_traced_truth(path_traced_fi
 
     root = path_traced_fit
     cameras = [f"cam{i:02d}" for i in range(8)]
+    before = {p: p.stat().st_mtime_ns for p in (root / "cap").rglob("*") if p.name != ".gra-mi.lock"}
     rows = envmap_accuracy(root / "cap", root / "fit", root / "acc", config=EnvmapAccuracyConfig(spp=64, cameras=cameras))
+    after = {p: p.stat().st_mtime_ns for p in (root / "cap").rglob("*") if p.name != ".gra-mi.lock"}
+    assert after == before, "scoring writes nothing into the capture it scores (a read-only capture works)"
     by = {(r["map"], r["method"]): r for r in rows}
     for name in REFERENCE_MAPS:
         near, far = by[(name, "near field")], by[(name, "far field")]
