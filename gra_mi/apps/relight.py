@@ -131,17 +131,12 @@ def relight_batch(
     to UV and roughness 0.5. ``platform``: the :class:`gra_mi.render.composite.PlatformConfig` of ``config.composite``.
     Everything is checked before the first file is written.
     """
-    from gra_mi.core.runtime import torch_device
     from gra_mi.relightnet.infer import render_view
-    from gra_mi.render.relighter import Relighter
     from gra_mi.render.runtime import ensure_mitsuba
-    from gra_mi.stage.envmap import background_plate, led_fidelity
-    from gra_mi.stage.scene import composite_over, lighting_warnings
+    from gra_mi.stage.scene import lighting_warnings
 
     config = config or RelightConfig()
     config.validate()
-    if stage not in STAGES:
-        raise GraMiParameterError("stage", f"expected one of {STAGES}, got '{stage}'")
     ensure_mitsuba()
     out = Path(out)
     ls = scene if isinstance(scene, LightstageScene) else LightstageScene.load(scene)
@@ -150,7 +145,39 @@ def relight_batch(
         if not 0 <= f < ls.sequence.num_frames:
             raise GraMiParameterError("frames", f"frame {f} out of range [0, {ls.sequence.num_frames})")
     cams = [ls.stage.camera(c) for c in (cameras or [0])]
-    model, resolution = None, config.uv_resolution
+    model, relighter = _stage_model(ls, stage, relightnet_dir, albedo, roughness, config.uv_resolution, vis_cache)
+    if config.fidelity:
+        _write_fidelity(out, lights, ls.stage)
+    point_light = next((light.point_light for light in lights.values() if light.point_light is not None), None)
+    if point_light is not None:
+        _write_point_light_conditioning(out, ls.stage, ls.scene, point_light)
+    previews = _Previews(out, config, ls, keep=len(lights) * len(cams), platform=platform)
+    jobs = [(f, name, cam) for f in frames for name in lights for cam in cams]  # frame-major: one trace per frame
+    warned: set[tuple[int, str]] = set()
+    for frame, name, cam in progress(jobs, description="relight"):
+        light = lights[name]
+        far = light.far_field(config.lighting_model)
+        view = render_view(relighter, model, frame, cam.name, light.intensities, light.point_light, far)
+        if (frame, name) not in warned:  # said once per frame and lighting, not per camera
+            warned.add((frame, name))
+            for warning in lighting_warnings(ls, light.intensities, light.point_light, far):
+                logger.warning("%s: %s", name, warning)
+        previews.add(frame, name, cam, light, view)
+        if config.save_uv:
+            _write_uv(out / name / cam.name, frame, relighter, view)
+    if len(frames) > 1:
+        previews.write_videos(ls.sequence.fps)
+    return RelightSummary(len(jobs), out, relighter.cache.misses, relighter.cache.hits)
+
+
+def _stage_model(ls, stage: str, relightnet_dir, albedo, roughness, uv_resolution: int, vis_cache):
+    """(RelightNet or None, the relighter at its resolution) for ``stage``, checked against the maps."""
+    from gra_mi.core.runtime import torch_device
+    from gra_mi.render.relighter import Relighter
+
+    if stage not in STAGES:
+        raise GraMiParameterError("stage", f"expected one of {STAGES}, got '{stage}'")
+    model, resolution = None, uv_resolution
     if stage == "relightnet":
         if relightnet_dir is None:
             raise GraMiParameterError("relightnet", "the relightnet stage needs the folder of a trained RelightNet")
@@ -160,59 +187,62 @@ def relight_batch(
         if albedo is not None and albedo.shape[0] != model.config.resolution:
             raise GraMiInputError("albedo", f"RelightNet runs at {model.config.resolution}², the albedo is {albedo.shape[0]}²")
         resolution = model.config.resolution
-    relighter = Relighter(ls, resolution, albedo, roughness, cache_dir=vis_cache)
+    return model, Relighter(ls, resolution, albedo, roughness, cache_dir=vis_cache)
 
-    # How well 331 (or L) LEDs can stand in for each envmap: irradiance error over 256 normals, next to the optimum.
-    # Asked for only: it costs several times a relight (an NNLS over 1,024 normals per map).
-    fidelity = {}
-    if config.fidelity:
-        fidelity = {name: led_fidelity(light.envmap, ls.stage) for name, light in lights.items() if light.envmap is not None}
+
+def _write_fidelity(out: Path, lights: dict[str, Light], stage) -> None:
+    """How well the LEDs stand in for each envmap (irradiance error over 256 normals, next to the NNLS optimum):
+    logged and written to ``envmap_fidelity.json``. Asked for only: it costs several times a relight."""
+    from gra_mi.stage.envmap import led_fidelity
+
+    fidelity = {name: led_fidelity(light.envmap, stage) for name, light in lights.items() if light.envmap is not None}
     for name, f in fidelity.items():
         logger.info(
             "%s on the LEDs: irradiance error mean %.2f %%, max %.2f %% over %d normals",
-            name,
-            100 * f["mean_rel_error"],
-            100 * f["max_rel_error"],
-            f["normals"],
-        )
+            name, 100 * f["mean_rel_error"], 100 * f["max_rel_error"], f["normals"],
+        )  # fmt: skip
     if fidelity:
         atomic_write_text(out / "envmap_fidelity.json", json.dumps(fidelity, indent=1) + "\n")
-    point_light = next((light.point_light for light in lights.values() if light.point_light is not None), None)
-    if point_light is not None:
-        _write_point_light_conditioning(out, ls.stage, ls.scene, point_light)
-    videos: dict[tuple[str, str], list] = {}
-    exposures: dict[tuple[str, str], float] = {}
-    jobs = [(f, name, cam) for f in frames for name in lights for cam in cams]  # frame-major: one trace per frame
-    compositor = None
-    if config.composite:
-        from gra_mi.render.composite import PlatformCompositor
 
-        compositor = PlatformCompositor(ls.sequence, platform, keep=len(lights) * len(cams))
-    warned: set[tuple[int, str]] = set()
-    for frame, name, cam in progress(jobs, description="relight"):
-        light = lights[name]
-        view = render_view(relighter, model, frame, cam.name, light.intensities, light.point_light, light.far_field(config.lighting_model))
-        if (frame, name) not in warned:  # said once per frame and lighting, not per camera
-            warned.add((frame, name))
-            for warning in lighting_warnings(ls, light.intensities, light.point_light, light.far_field(config.lighting_model)):
-                logger.warning("%s: %s", name, warning)
-        folder = out / name / cam.name
+
+def _write_uv(folder: Path, frame: int, relighter, view) -> None:
+    """``--save-uv``: the UV-space radiance and RelightNet's per-texel inputs of one view, as EXR."""
+    write_exr(folder / f"uv_radiance_{frame:04d}.exr", relighter.atlas.scatter(view.shading.radiance))
+    for channel, texture in relighter.texel_inputs(view).items():
+        write_exr(folder / f"uv_{channel}_{frame:04d}.exr", texture)
+
+
+class _Previews:
+    """Each view as EXR (linear) and PNG (one exposure per light and camera, over the background plate or a platform
+    if asked), and the MP4 of each light and camera at the end."""
+
+    def __init__(self, out: Path, config: RelightConfig, ls, keep: int, platform=None):
+        self.out, self.config = out, config
+        self.videos: dict[tuple[str, str], list] = {}
+        self.exposures: dict[tuple[str, str], float] = {}
+        self.compositor = None
+        if config.composite:
+            from gra_mi.render.composite import PlatformCompositor
+
+            self.compositor = PlatformCompositor(ls.sequence, platform, keep=keep)
+
+    def add(self, frame: int, name: str, cam, light: Light, view) -> None:
+        from gra_mi.stage.envmap import background_plate
+        from gra_mi.stage.scene import composite_over
+
+        folder = self.out / name / cam.name
         write_exr(folder / f"frame_{frame:04d}.exr", view.image)
         shown = view.image[..., :3]
-        if compositor is not None and light.envmap is not None:
-            shown = compositor(view.image, frame, cam, light.envmap, light.plate_scale, name)
-        elif config.background and light.envmap is not None:
+        if self.compositor is not None and light.envmap is not None:
+            shown = self.compositor(view.image, frame, cam, light.envmap, light.plate_scale, name)
+        elif self.config.background and light.envmap is not None:
             shown = composite_over(view.image, background_plate(light.envmap, cam) * light.plate_scale)
         key = (name, cam.name)
-        if key not in exposures:
-            exposures[key] = config.exposure if config.exposure is not None else display_exposure(view.image)
-        write_png(folder / f"frame_{frame:04d}.png", shown, exposure=exposures[key])
-        videos.setdefault(key, []).append(shown)
-        if config.save_uv:
-            write_exr(folder / f"uv_radiance_{frame:04d}.exr", relighter.atlas.scatter(view.shading.radiance))
-            for channel, texture in relighter.texel_inputs(view).items():
-                write_exr(folder / f"uv_{channel}_{frame:04d}.exr", texture)
-    if len(frames) > 1:
-        for (name, cam_name), images in videos.items():
-            write_mp4(out / name / f"{cam_name}.mp4", images, fps=ls.sequence.fps, exposure=exposures[(name, cam_name)])
-    return RelightSummary(len(jobs), out, relighter.cache.misses, relighter.cache.hits)
+        if key not in self.exposures:
+            self.exposures[key] = self.config.exposure if self.config.exposure is not None else display_exposure(view.image)
+        write_png(folder / f"frame_{frame:04d}.png", shown, exposure=self.exposures[key])
+        self.videos.setdefault(key, []).append(shown)
+
+    def write_videos(self, fps: float) -> None:
+        for (name, cam_name), images in self.videos.items():
+            write_mp4(self.out / name / f"{cam_name}.mp4", images, fps=fps, exposure=self.exposures[(name, cam_name)])

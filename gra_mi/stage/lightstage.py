@@ -342,8 +342,23 @@ def lightstage_from_dict(data: dict, source: str = "<calibration>") -> Lightstag
     center = _vector(stage.get("center"), 3, source, "stage.center")
     radius = _number(stage, "radius", source, "stage.")
     max_intensity = _number(stage, "max_led_intensity", source, "stage.") if "max_led_intensity" in stage else 1.0
+    positions, normals, gains = _read_leds(data.get("leds"), center, source)
+    cams = data.get("cameras")
+    if not isinstance(cams, list) or not cams:
+        raise GraMiInputError(source, "expected a non-empty list of cameras", field="cameras")
+    cameras = [_read_camera(cam, i, source) for i, cam in enumerate(cams)]
+    names = [c.name for c in cameras]
+    if len(set(names)) != len(names):
+        raise GraMiInputError(source, "camera names must be unique", field="cameras")
+    return Lightstage(
+        led_positions=positions, cameras=cameras, center=center, radius=radius, led_normals=normals, led_gains=gains,
+        max_led_intensity=max_intensity,
+    )  # fmt: skip
 
-    leds = data.get("leds")
+
+def _read_leds(leds, center: np.ndarray, source: str) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """(positions, normals or None, gains or None) of the calibration's ``leds``, checked: finite, unit normals,
+    non-negative gains, given for all LEDs or none, no LED at the centre, no two at one position."""
     if not isinstance(leds, list) or not leds:
         raise GraMiInputError(source, "expected a non-empty list of LEDs", field="leds")
     positions, normals, gains = [], [], []
@@ -379,57 +394,44 @@ def lightstage_from_dict(data: dict, source: str = "<calibration>") -> Lightstag
             raise GraMiInputError(
                 source, f"LEDs {i} and {j} are at the same position ({len(pairs)} such pair(s))", field=f"leds[{j}].position"
             )
+    return positions, (np.stack(normals) if has_normal else None), (np.stack(gains) if has_gain else None)
 
-    cams = data.get("cameras")
-    if not isinstance(cams, list) or not cams:
-        raise GraMiInputError(source, "expected a non-empty list of cameras", field="cameras")
-    cameras = []
-    for i, cam in enumerate(cams):
-        where = f"cameras[{i}]"
-        if not isinstance(cam, dict):
-            raise GraMiInputError(source, "expected an object", field=where)
-        size = cam.get("image_size")
-        if not (isinstance(size, list) and len(size) == 2 and all(isinstance(s, int) and 0 < s <= MAX_IMAGE_SIDE for s in size)):
-            raise GraMiInputError(
-                source, f"expected [width, height] as integers in [1, {MAX_IMAGE_SIDE}], got {size!r}", field=f"{where}.image_size"
-            )
-        intr = cam.get("intrinsics")
-        if not isinstance(intr, dict):
-            raise GraMiInputError(source, "missing or not an object", field=f"{where}.intrinsics")
-        fx = _number(intr, "fx", source, f"{where}.intrinsics.")
-        fy = _number(intr, "fy", source, f"{where}.intrinsics.")
-        cx = _number(intr, "cx", source, f"{where}.intrinsics.", positive=False)
-        cy = _number(intr, "cy", source, f"{where}.intrinsics.", positive=False)
-        if abs(fx - fy) > 1e-3 * fx:
-            raise GraMiInputError(
-                source,
-                f"non-square pixels (fx={fx}, fy={fy}) are not supported by Mitsuba's perspective sensor",
-                field=f"{where}.intrinsics",
-            )
-        try:
-            m = np.asarray(cam.get("camera_to_world"), dtype=np.float64)
-        except (TypeError, ValueError):
-            m = np.zeros(0)
-        if m.shape != (4, 4) or not np.all(np.isfinite(m)):
-            raise GraMiInputError(source, "expected a finite 4x4 matrix", field=f"{where}.camera_to_world")
-        r = m[:3, :3]
-        if not np.allclose(r.T @ r, np.eye(3), atol=1e-4) or np.linalg.det(r) < 0 or not np.allclose(m[3], [0, 0, 0, 1]):
-            raise GraMiInputError(
-                source, "rotation part must be orthonormal with det +1 and last row [0,0,0,1]", field=f"{where}.camera_to_world"
-            )
-        cameras.append(Camera(str(cam.get("name", f"cam{i:02d}")), size[0], size[1], fx, fy, cx, cy, m))
-    names = [c.name for c in cameras]
-    if len(set(names)) != len(names):
-        raise GraMiInputError(source, "camera names must be unique", field="cameras")
-    return Lightstage(
-        led_positions=positions,
-        cameras=cameras,
-        center=center,
-        radius=radius,
-        led_normals=np.stack(normals) if has_normal else None,
-        led_gains=np.stack(gains) if has_gain else None,
-        max_led_intensity=max_intensity,
-    )
+
+def _read_camera(cam, i: int, source: str) -> Camera:
+    """Camera ``i`` of the calibration, checked: image size, intrinsics (square pixels), a rigid camera-to-world."""
+    where = f"cameras[{i}]"
+    if not isinstance(cam, dict):
+        raise GraMiInputError(source, "expected an object", field=where)
+    size = cam.get("image_size")
+    if not (isinstance(size, list) and len(size) == 2 and all(isinstance(s, int) and 0 < s <= MAX_IMAGE_SIDE for s in size)):
+        raise GraMiInputError(
+            source, f"expected [width, height] as integers in [1, {MAX_IMAGE_SIDE}], got {size!r}", field=f"{where}.image_size"
+        )
+    intr = cam.get("intrinsics")
+    if not isinstance(intr, dict):
+        raise GraMiInputError(source, "missing or not an object", field=f"{where}.intrinsics")
+    fx = _number(intr, "fx", source, f"{where}.intrinsics.")
+    fy = _number(intr, "fy", source, f"{where}.intrinsics.")
+    cx = _number(intr, "cx", source, f"{where}.intrinsics.", positive=False)
+    cy = _number(intr, "cy", source, f"{where}.intrinsics.", positive=False)
+    if abs(fx - fy) > 1e-3 * fx:
+        raise GraMiInputError(
+            source,
+            f"non-square pixels (fx={fx}, fy={fy}) are not supported by Mitsuba's perspective sensor",
+            field=f"{where}.intrinsics",
+        )
+    try:
+        m = np.asarray(cam.get("camera_to_world"), dtype=np.float64)
+    except (TypeError, ValueError):
+        m = np.zeros(0)
+    if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+        raise GraMiInputError(source, "expected a finite 4x4 matrix", field=f"{where}.camera_to_world")
+    r = m[:3, :3]
+    if not np.allclose(r.T @ r, np.eye(3), atol=1e-4) or np.linalg.det(r) < 0 or not np.allclose(m[3], [0, 0, 0, 1]):
+        raise GraMiInputError(
+            source, "rotation part must be orthonormal with det +1 and last row [0,0,0,1]", field=f"{where}.camera_to_world"
+        )
+    return Camera(str(cam.get("name", f"cam{i:02d}")), size[0], size[1], fx, fy, cx, cy, m)
 
 
 MAX_IMAGE_SIDE = 16384
