@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import json
 import logging
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -184,93 +184,115 @@ def train_relightnet(capture_dir: str | Path, fit_dir: str | Path, out: str | Pa
     loop.claim("train-relightnet", {"capture": capture_dir, "fit": fit_dir}, config, overwrite)
     samples = build_samples(capture, relighter, config.env_height, device)
     mark_selection(samples, config.selection_views)
-    train = [s for s in samples if s.split == "train"]
+    train = [s for s in samples if s.split == "train"][: config.max_train_views or None]
     if not train:
         raise GraMiInputError(capture.folder / "capture.json", "no training views")
-    if config.max_train_views:
-        train = train[: config.max_train_views]
     mine = train[loop.rank :: loop.world]  # each process its share
-    selection = [s for s in samples if s.selection]
-
     net_config = RelightNetConfig(
         resolution=relighter.albedo_tex.shape[0], base_channels=config.base_channels, env_height=config.env_height, patch=config.patch
     )
     model = RelightNet(net_config).to(device)
     optimizer = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
-    state = loop.resume(device)
-    if state is not None:
-        before = {k: v for k, v in state.get("config", {}).items() if k != "steps"}  # more steps extend a run
-        now = {k: v for k, v in asdict(config).items() if k != "steps"}
-        if before != now:
-            changed = sorted(k for k in now.keys() | before.keys() if before.get(k) != now.get(k))
-            raise GraMiInputError(
-                loop.checkpoint, f"was written with other training options ({', '.join(changed)}); use another --out, or delete it"
-            )
-        model.load_state_dict(state["model"])
-        optimizer.load_state_dict(state["optimizer"])
-        best, validation_rows = state["best"], state["validation"]
-    else:
-        best, validation_rows = None, []
-    ddp = loop.parallel(model)
-
-    def run_validation(step: int) -> None:
-        nonlocal best
-        row = selection_scores(model, selection, step)
-        # A capture without held-out views has nothing to select on: the latest weights are kept.
-        score = row["score"] if selection else -float(step)
-        if not (np.isfinite(score) and all_finite(model)):
-            loop.mark_diverged(step, "the weights" if np.isfinite(score) else "the validation score")
-            return  # never kept, nor logged (validation.json's "diverged" says where)
-        validation_rows.append(row)
-        if best is None or score < best["score"]:
-            best = {"step": step, "score": score, "model": {k: v.detach().clone() for k, v in model.state_dict().items()}}
-
-    if best is None and loop.rank == 0:
-        run_validation(0)  # the untrained network is the microfacet render: the baseline every later step must beat
-        if best is None:
+    selector = Selector(model, [s for s in samples if s.selection], loop)
+    _resume(loop, model, optimizer, selector, config, device)
+    if selector.best is None and loop.rank == 0:
+        selector(0)  # the untrained network is the microfacet render: the baseline every later step must beat
+        if selector.best is None:
             raise GraMiInputError(Path(fit_dir), "the microfacet render of the selection views is not finite (non-finite maps or images?)")
+    ddp = loop.parallel(model)
 
     def state_of() -> dict:
         return {
             "model": model.state_dict(), "optimizer": optimizer.state_dict(), "config": asdict(config),
-            "best": best, "validation": validation_rows,
+            "best": selector.best, "validation": selector.rows,
         }  # fmt: skip
 
     for step in loop.steps(state_of):
-        # Stateless schedule and sample order (functions of the step): a resumed run sees what an uninterrupted one does.
-        for group in optimizer.param_groups:
-            group["lr"] = config.learning_rate(step)
-        order = np.random.default_rng([config.seed, loop.rank, step]).choice(len(mine), min(config.batch_size, len(mine)), replace=False)
-        batch = stack([mine[k] for k in order])
-        drop = (
-            torch.rand(len(order), generator=torch.Generator().manual_seed((config.seed * 1_000_003 + step) * 64 + loop.rank))
-            < config.env_dropout
-        )
-        optimizer.zero_grad(set_to_none=True)
-        texture = ddp(batch.features, batch.env, batch.mask, drop.to(device))
-        scale = exposure(batch.features[:, :3], batch.mask).detach()
-        loss = normalised_l1(sample_texture(texture, batch.grid), batch.target, batch.pixels, scale)
-        loss.backward()
-        if loop.diverged(step, float(loss.detach())):
-            break  # the weights that validated best (step 0 at worst: the microfacet render) are kept
-        optimizer.step()
-        loop.add_loss(float(loss.detach()))  # the log keeps the mean since its last row: one batch per step is noisy
+        if not _train_step(step, config, loop, ddp, optimizer, mine, device):
+            break  # diverged: the weights that validated best (step 0 at worst: the microfacet render) are kept
         if loop.rank == 0 and ((step + 1) % config.validate_every == 0 or step + 1 == config.steps):
             model.eval()
-            run_validation(step + 1)
+            selector(step + 1)
             model.train()
     if loop.divergence is not None:
-        model.load_state_dict(best["model"])  # what the last checkpoint keeps, too: no non-finite weights
+        model.load_state_dict(selector.best["model"])  # what the last checkpoint keeps, too: no non-finite weights
     if not loop.finish():
         return out
+    return _write_outputs(out, model, selector, train, samples, loop)
+
+
+@dataclass
+class Selector:
+    """Validation on the selection views, and the weights that scored best so far (step 0, the microfacet render,
+    included): a step whose score or weights are not finite marks the run diverged and is never kept."""
+
+    model: RelightNet
+    views: list[Sample]
+    loop: TrainingLoop
+    best: dict | None = None
+    rows: list[dict] = field(default_factory=list)
+
+    def __call__(self, step: int) -> None:
+        row = selection_scores(self.model, self.views, step)
+        # A capture without held-out views has nothing to select on: the latest weights are kept.
+        score = row["score"] if self.views else -float(step)
+        if not (np.isfinite(score) and all_finite(self.model)):
+            self.loop.mark_diverged(step, "the weights" if np.isfinite(score) else "the validation score")
+            return  # never kept, nor logged (validation.json's "diverged" says where)
+        self.rows.append(row)
+        if self.best is None or score < self.best["score"]:
+            self.best = {"step": step, "score": score, "model": {k: v.detach().clone() for k, v in self.model.state_dict().items()}}
+
+
+def _resume(loop: TrainingLoop, model, optimizer, selector: Selector, config: TrainConfig, device) -> None:
+    """Carry on from ``checkpoint.pt`` if there is one: the same options (more steps extend a run) or a named refusal."""
+    state = loop.resume(device)
+    if state is None:
+        return
+    before = {k: v for k, v in state.get("config", {}).items() if k != "steps"}
+    now = {k: v for k, v in asdict(config).items() if k != "steps"}
+    if before != now:
+        changed = sorted(k for k in now.keys() | before.keys() if before.get(k) != now.get(k))
+        raise GraMiInputError(
+            loop.checkpoint, f"was written with other training options ({', '.join(changed)}); use another --out, or delete it"
+        )
+    model.load_state_dict(state["model"])
+    optimizer.load_state_dict(state["optimizer"])
+    selector.best, selector.rows = state["best"], state["validation"]
+
+
+def _train_step(step: int, config: TrainConfig, loop: TrainingLoop, ddp, optimizer, mine: list[Sample], device) -> bool:
+    """One optimisation step on this process's views; False (and no update) when the loss is not finite anywhere.
+    The schedule and sample order are functions of the step: a resumed run sees what an uninterrupted one does."""
+    for group in optimizer.param_groups:
+        group["lr"] = config.learning_rate(step)
+    order = np.random.default_rng([config.seed, loop.rank, step]).choice(len(mine), min(config.batch_size, len(mine)), replace=False)
+    batch = stack([mine[k] for k in order])
+    seed = (config.seed * 1_000_003 + step) * 64 + loop.rank
+    drop = torch.rand(len(order), generator=torch.Generator().manual_seed(seed)) < config.env_dropout
+    optimizer.zero_grad(set_to_none=True)
+    texture = ddp(batch.features, batch.env, batch.mask, drop.to(device))
+    scale = exposure(batch.features[:, :3], batch.mask).detach()
+    loss = normalised_l1(sample_texture(texture, batch.grid), batch.target, batch.pixels, scale)
+    loss.backward()
+    if loop.diverged(step, float(loss.detach())):
+        return False
+    optimizer.step()
+    loop.add_loss(float(loss.detach()))  # the log keeps the mean since its last row: one batch per step is noisy
+    return True
+
+
+def _write_outputs(out: Path, model: RelightNet, selector: Selector, train: list[Sample], samples: list[Sample], loop) -> Path:
+    """The kept weights with their output gain, the logs, the validation curve and the ablation report."""
+    best = selector.best
     model.load_state_dict(best["model"])
     # Step 0 is the microfacet render itself, shipped as is (its brightness is the fit's calibration).
     model.config.output_gain = calibrate_output_gain(model.eval(), train) if best["step"] > 0 else 1.0
     logger.info("RelightNet output gain (the training views' total light): %.4f", model.config.output_gain)
     model.save(out)
     write_training_log(out, ["step", "l1", "seconds"], loop.log_rows, "RelightNet training", "L1 / exposure (training views)")
-    write_validation_curve(out, validation_rows, best["step"])
-    validate(model.eval(), samples, out, best["step"], validation_rows, loop.divergence)
+    write_validation_curve(out, selector.rows, best["step"])
+    validate(model.eval(), samples, out, best["step"], selector.rows, loop.divergence)
     return out / "validation.md"
 
 
