@@ -300,14 +300,9 @@ def train_refiner(
     if config.train_base:
         model.transformer.requires_grad_(True)
     model.to(device)
-    window = model.config.window
-    items = _windows(dataset, window, "train")
-    if not items:
-        raise GraMiInputError(Path(dataset_dir) / "dataset.json", "no training sequence with targets")
-    short = [n for n in dataset.names("train") if dataset.sequences[n].frames < window]
-    if short:
-        logger.warning("sequences shorter than the %d-frame window repeat their last frame: %s", window, short)
-    mine = items[loop.rank :: loop.world]
+    windows = WindowSource(
+        dataset, model, config, device, _training_windows(dataset, model.config.window, dataset_dir)[loop.rank :: loop.world]
+    )
     optimizer = torch.optim.AdamW(model.trainable_parameters(), lr=config.lr, weight_decay=0.0)
     banks = (ErrorBank(config.bank_grid, config.bank_per_level), ErrorBank(config.bank_grid, config.bank_per_level))
     state = loop.resume(device)
@@ -317,40 +312,17 @@ def train_refiner(
         if state.get("banks") is not None:
             banks = tuple(ErrorBank.from_state(b) for b in state["banks"])
     ddp = loop.parallel(model)
-    cache: OrderedDict = OrderedDict()
 
     def state_of() -> dict:
         return {
-            "trainable": model.trainable_state(),
-            "optimizer": optimizer.state_dict(),
-            "config": asdict(config),
+            "trainable": model.trainable_state(), "optimizer": optimizer.state_dict(), "config": asdict(config),
             "banks": [b.state() for b in banks] if config.error_recycling else None,
-        }
+        }  # fmt: skip
 
     good = _finite_snapshot(model, loop.start)  # the weights a divergence falls back to
     for step in loop.steps(state_of, row_extra=lambda: (len(banks[1]),)):
         optimizer.zero_grad(set_to_none=True)
-        losses = []
-        for micro in range(config.grad_accumulation):
-            rng = np.random.default_rng([config.seed, loop.rank, step, micro])  # resumable: the draw depends on the step only
-            generator = torch.Generator().manual_seed(int(rng.integers(2**62)))
-            name, begin = mine[int(rng.integers(len(mine)))]
-            raw = dataset.window(name, begin, window)
-            win, augmented = augment(raw, config, rng)
-            seeded = model.config.handoff if rng.random() < config.seed_frames_prob else 0
-            key = (name, begin, seeded)
-            if not augmented and key in cache:
-                enc = cache[key]
-                cache.move_to_end(key)
-            else:
-                enc = encode_window(model, {k: v.to(device) for k, v in win.items()}, seeded)
-                if not augmented:
-                    cache[key] = enc
-                    while len(cache) > config.latent_cache:
-                        cache.popitem(last=False)
-            result = flow_matching_loss(ddp, enc, config, rng, generator, banks if config.error_recycling else None)
-            (result.loss / config.grad_accumulation).backward()
-            losses.append(float(result.loss.detach()))
+        losses = [_accumulate(ddp, windows, config, banks, loop.rank, step, micro) for micro in range(config.grad_accumulation)]
         norm = float(torch.nn.utils.clip_grad_norm_(model.trainable_parameters(), 1.0))
         if loop.diverged(step, max(losses) + norm, "the flow-matching loss or its gradient"):
             break
@@ -366,28 +338,69 @@ def train_refiner(
         loop.divergence["kept_step"] = good[0]
     if not loop.finish():
         return out
+    return _write_outputs(out, model, dataset, config, loop, banks, {"dataset": str(dataset_dir), "init": str(init) if init else None})
+
+
+def _training_windows(dataset: RefinerDataset, window: int, dataset_dir) -> list[tuple[str, int]]:
+    items = _windows(dataset, window, "train")
+    if not items:
+        raise GraMiInputError(Path(dataset_dir) / "dataset.json", "no training sequence with targets")
+    short = [n for n in dataset.names("train") if dataset.sequences[n].frames < window]
+    if short:
+        logger.warning("sequences shorter than the %d-frame window repeat their last frame: %s", window, short)
+    return items
+
+
+class WindowSource:
+    """This process's training windows, drawn, augmented and encoded; un-augmented encodings are kept (up to
+    ``config.latent_cache``), since only those repeat."""
+
+    def __init__(self, dataset: RefinerDataset, model: VideoRefiner, config: RefinerTrainConfig, device, items: list[tuple[str, int]]):
+        self.dataset, self.model, self.config, self.device, self.items = dataset, model, config, device, items
+        self.cache: OrderedDict = OrderedDict()
+
+    def draw(self, rng: np.random.Generator) -> Encoded:
+        name, begin = self.items[int(rng.integers(len(self.items)))]
+        raw = self.dataset.window(name, begin, self.model.config.window)
+        win, augmented = augment(raw, self.config, rng)
+        seeded = self.model.config.handoff if rng.random() < self.config.seed_frames_prob else 0
+        key = (name, begin, seeded)
+        if not augmented and key in self.cache:
+            self.cache.move_to_end(key)
+            return self.cache[key]
+        enc = encode_window(self.model, {k: v.to(self.device) for k, v in win.items()}, seeded)
+        if not augmented:
+            self.cache[key] = enc
+            while len(self.cache) > self.config.latent_cache:
+                self.cache.popitem(last=False)
+        return enc
+
+
+def _accumulate(ddp, windows: WindowSource, config: RefinerTrainConfig, banks, rank: int, step: int, micro: int) -> float:
+    """One window's flow-matching loss, its gradient accumulated; the draw depends on the step only (resumable)."""
+    rng = np.random.default_rng([config.seed, rank, step, micro])
+    generator = torch.Generator().manual_seed(int(rng.integers(2**62)))
+    enc = windows.draw(rng)
+    result = flow_matching_loss(ddp, enc, config, rng, generator, banks if config.error_recycling else None)
+    (result.loss / config.grad_accumulation).backward()
+    return float(result.loss.detach())
+
+
+def _write_outputs(out: Path, model: VideoRefiner, dataset: RefinerDataset, config: RefinerTrainConfig, loop, banks, inputs: dict) -> Path:
+    """The mix chosen on the selection sequences, the weights, the training log and ``train.json``."""
     log_rows = loop.log_rows
     mix = _choose_mix(model, dataset, config, out)
     model.save(out)
     write_training_log(
-        out,
-        ["step", "flow_matching_loss", "seconds", "error_bank_residuals"],
-        log_rows,
-        "Video refiner training",
+        out, ["step", "flow_matching_loss", "seconds", "error_bank_residuals"], log_rows, "Video refiner training",
         "flow-matching loss (MSE, latent)",
-    )
+    )  # fmt: skip
     summary = {
-        "steps": config.steps,
-        "dataset": str(dataset_dir),
-        "init": str(init) if init else None,
-        "parameters": parameter_counts(model),
-        "final_loss": log_rows[-1][1] if log_rows else None,
-        "first_loss": log_rows[0][1] if log_rows else None,
+        "steps": config.steps, **inputs, "parameters": parameter_counts(model),
+        "final_loss": log_rows[-1][1] if log_rows else None, "first_loss": log_rows[0][1] if log_rows else None,
         "error_bank": {"residuals": len(banks[1]), "bytes": banks[0].nbytes() + banks[1].nbytes()},
-        "mix": mix,
-        "diverged": loop.divergence,
-        "config": asdict(config),
-    }
+        "mix": mix, "diverged": loop.divergence, "config": asdict(config),
+    }  # fmt: skip
     atomic_write_text(out / "train.json", json.dumps(summary, indent=1) + "\n")
     return out
 
