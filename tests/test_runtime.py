@@ -16,7 +16,7 @@ from gra_mi.core.errors import GraMiParameterError
 @pytest.fixture
 def fresh_runtime(monkeypatch):
     """A process that has not started a runtime yet (each CLI call is a new process in real use)."""
-    monkeypatch.setattr(runtime, "_RUNTIME", runtime.Runtime())
+    monkeypatch.setattr(runtime, "RUNTIME", runtime.Runtime())
 
 
 def _spy(monkeypatch, module, name: str, seen: dict, result):
@@ -38,7 +38,7 @@ def test_torch_commands_use_the_gpu_when_torch_sees_one(monkeypatch, tmp_path, f
     _spy(monkeypatch, train, "train_refiner", seen, tmp_path)
     _spy(monkeypatch, infer, "refine_to_folder", seen, {"frames": 1, "windows": 1, "frames_per_second": 1.0, "mix": 1.0})
     assert main(["train-refiner", str(tmp_path), "--out", str(tmp_path / "m")]) == 0
-    monkeypatch.setattr(runtime, "_RUNTIME", runtime.Runtime())
+    monkeypatch.setattr(runtime, "RUNTIME", runtime.Runtime())
     assert main(["refine", str(tmp_path), "--model", str(tmp_path), "--sequence", "s"]) == 0
     assert seen == {"train_refiner": "cuda", "refine_to_folder": "cuda"}
 
@@ -55,7 +55,7 @@ def test_device_option_overrides_and_variant_is_independent(monkeypatch, tmp_pat
     _spy(monkeypatch, train, "train_relightnet", seen, tmp_path / "validation.md")
     assert main(["train-relightnet", str(tmp_path), "--fit", str(tmp_path)]) == 0
     assert seen["train_relightnet"] == "cuda" and mi.variant() == "llvm_ad_rgb"
-    monkeypatch.setattr(runtime, "_RUNTIME", runtime.Runtime())
+    monkeypatch.setattr(runtime, "RUNTIME", runtime.Runtime())
     assert main(["train-relightnet", str(tmp_path), "--fit", str(tmp_path), "--device", "cpu"]) == 0
     assert seen["train_relightnet"] == "cpu"
 
