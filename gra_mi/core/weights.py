@@ -54,6 +54,8 @@ def read_model_config(path: str | Path, cls, format_id: str, hint: str = "", ret
     """The config dataclass ``cls`` from a model's JSON (:func:`write_model`): its ``format`` must be ``format_id``,
     every key must be a field (``retired``: fields an earlier version wrote and this one no longer has, ignored), and
     every value must have its default's type. ``overrides`` replace fields. Each failure names the file and field."""
+    import dataclasses
+
     from gra_mi.core.io import check_config_types, read_json
 
     path = Path(path)
@@ -63,7 +65,7 @@ def read_model_config(path: str | Path, cls, format_id: str, hint: str = "", ret
     found = data.pop("format", None)
     if found != format_id:
         raise GraMiInputError(path, f"expected {format_id!r}, got {found!r}{hint}", field="format")
-    known = {f.name for f in __import__("dataclasses").fields(cls)}
+    known = {f.name for f in dataclasses.fields(cls)}
     if unknown := sorted(set(data) - known - retired):
         raise GraMiInputError(path, f"unknown keys {unknown}; expected some of {sorted(known)}")
     data = {k: v for k, v in data.items() if k in known}
