@@ -109,7 +109,7 @@ def compare(image: np.ndarray, reference: np.ndarray, mask: np.ndarray | None = 
     shown, truth = to_display(image, exposure), to_display(reference, exposure)
     outside = ~mask[..., None]
     return {
-        "psnr": display_psnr(image, reference, mask),
+        "psnr": psnr(shown, truth, mask, peak=1.0),  # display_psnr's value, from the images already shown
         "ssim": ssim(np.where(outside, 0.0, shown), np.where(outside, 0.0, truth), mask, peak=1.0),
         "brightness": brightness_error(image, reference, mask),
     }
