@@ -40,7 +40,7 @@ def main(argv: list[str] | None = None) -> int:
     import mitsuba as mi
 
     from gra_mi.capture.dataset import Capture, load_observation
-    from gra_mi.capture.synthetic import PRESETS, generate_capture
+    from gra_mi.capture.synthetic import PRESETS, CaptureConfig, generate_capture
     from gra_mi.core.io import atomic_write_text, write_exr
     from gra_mi.fit.materials import FitConfig, MaterialFitter
     from gra_mi.render.plugins import register_plugins
@@ -51,7 +51,7 @@ def main(argv: list[str] | None = None) -> int:
     capture_dir = args.capture or work / "capture"
     t = time.perf_counter()
     if args.capture is None:
-        generate_capture(capture_dir, args.preset, "path")
+        generate_capture(capture_dir, CaptureConfig(preset=args.preset))
     t_capture = time.perf_counter() - t
     capture = Capture.load(capture_dir)
     rows = []

@@ -53,13 +53,13 @@ def default_stage():
 def path_traced_fit(tmp_path_factory):
     """The tiny preset's path-traced capture (``cap/``) and its material fit (``fit/``), shared by every module
     that scores against the physical truth (lighting models, the evaluation protocol)."""
-    from gra_mi.capture.synthetic import generate_capture
+    from gra_mi.capture.synthetic import CaptureConfig, generate_capture
     from gra_mi.core.runtime import choose_variant
     from gra_mi.fit.materials import FitConfig, run_fit
 
     choose_variant("llvm_ad_rgb")
     root = tmp_path_factory.mktemp("path_traced_fit")
-    generate_capture(root / "cap", "tiny", measure_noise=False)
+    generate_capture(root / "cap", CaptureConfig(preset="tiny", measure_noise=False))
     run_fit(root / "cap", root / "fit", FitConfig())
     return root
 

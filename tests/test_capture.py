@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from gra_mi.capture.dataset import Capture
-from gra_mi.capture.synthetic import PRESETS, GroundTruthRenderer, _schedule, generate_capture
+from gra_mi.capture.synthetic import PRESETS, CaptureConfig, GroundTruthRenderer, _schedule, generate_capture
 from gra_mi.core.metrics import relative_rmse
 from gra_mi.stage import scene_keys as keys
 from tests.conftest import SCENES
@@ -71,13 +71,13 @@ def test_medium_preset_lighting_plan():
 
 def test_interrupted_capture_resumes_with_identical_images(tmp_path, llvm_variant):
     out = tmp_path / "cap"
-    capture = generate_capture(out, "tiny", measure_noise=False)
+    capture = generate_capture(out, CaptureConfig(preset="tiny", measure_noise=False))
     images = sorted((out / "images").rglob("*.exr"))
     assert len(images) == len(capture.frames) * 8
     kept = {p: p.read_bytes() for p in images}
     for p in images[5:8]:  # as if the run had stopped before these
         p.unlink()
-    again = generate_capture(out, "tiny", measure_noise=False)
+    again = generate_capture(out, CaptureConfig(preset="tiny", measure_noise=False))
     assert again.frames == capture.frames
     for p, data in kept.items():
         assert p.read_bytes() == data, p

@@ -412,7 +412,7 @@ def tiny_run(path_traced_fit, tmp_path_factory):
 
     from gra_mi.core.io import atomic_write_text, write_exr
     from gra_mi.core.runtime import choose_variant
-    from gra_mi.refiner.data import RefinerDataset, dataset_from_capture
+    from gra_mi.refiner.data import CaptureSequencesConfig, RefinerDataset, dataset_from_capture
     from gra_mi.refiner.deflicker import DeflickerConfig, deflicker_frame
     from gra_mi.relightnet.model import RelightNet, RelightNetConfig
 
@@ -425,7 +425,13 @@ def tiny_run(path_traced_fit, tmp_path_factory):
     from gra_mi.core.io import read_exr
 
     RelightNet(RelightNetConfig(resolution=read_exr(run / "fit" / "albedo.exr").shape[0])).save(run / "relightnet")
-    dataset_from_capture(run / "capture", run / "fit", run / "refiner" / "data", run / "relightnet", scale=0.25, test_length=20)
+    dataset_from_capture(
+        run / "capture",
+        run / "fit",
+        run / "refiner" / "data",
+        relightnet_dir=run / "relightnet",
+        config=CaptureSequencesConfig(scale=0.25, test_length=20),
+    )
     data = RefinerDataset(run / "refiner" / "data")
     name = data.names("test")[0]
     coarse = [data.delivered(name, i, "coarse") for i in range(20)]  # the whole frames (the refiner sees a subject crop)

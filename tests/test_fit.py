@@ -14,12 +14,12 @@ from .test_cli import run_cli
 
 @pytest.fixture(scope="module")
 def onebounce_capture(tmp_path_factory):
-    from gra_mi.capture.synthetic import generate_capture
+    from gra_mi.capture.synthetic import CaptureConfig, generate_capture
     from gra_mi.core.runtime import choose_variant
 
     choose_variant("llvm_ad_rgb")
     out = tmp_path_factory.mktemp("capture")
-    generate_capture(out, "tiny", "onebounce")
+    generate_capture(out, CaptureConfig(preset="tiny", renderer="onebounce"))
     return out
 
 

@@ -148,7 +148,9 @@ def test_relight_picks_the_lighting_model_by_intent(tmp_path, llvm_variant):
     lights = collect_lights(ls.stage, {"sun": reference_map("sun", 16)}, [4], {})
     images = {}
     for model in ("auto", "near", "far"):
-        relight_batch(ls, tmp_path / model, lights, [1], ["cam00"], RelightConfig(uv_resolution=32, lighting_model=model))
+        relight_batch(
+            ls, tmp_path / model, lights, frames=[1], cameras=["cam00"], config=RelightConfig(uv_resolution=32, lighting_model=model)
+        )
         images[model] = {name: read_exr(tmp_path / model / name / "cam00" / "frame_0001.exr") for name in ("sun", "olat004")}
     np.testing.assert_array_equal(images["auto"]["sun"], images["far"]["sun"])
     np.testing.assert_array_equal(images["auto"]["olat004"], images["near"]["olat004"])

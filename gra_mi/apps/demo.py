@@ -133,7 +133,7 @@ def contact_sheet(images: list[list[np.ndarray]]) -> np.ndarray:
 
 def run_demo(preset_name: str, out: Path, overwrite: bool = False) -> Path:
     from gra_mi.apps.gltf import export_glb
-    from gra_mi.capture.synthetic import generate_capture
+    from gra_mi.capture.synthetic import CaptureConfig, generate_capture
     from gra_mi.core.runtime import torch_device
     from gra_mi.fit.materials import FitConfig, run_fit
     from gra_mi.render.point_light import PointLight, conditioning_envmap, conditioning_pattern
@@ -155,7 +155,7 @@ def run_demo(preset_name: str, out: Path, overwrite: bool = False) -> Path:
 
     # 1. Capture -------------------------------------------------------------------------------------------
     with _timed(timings, f"capture ({preset.capture}, {preset.renderer} ground truth)"):
-        capture = generate_capture(out / "capture", preset.capture, preset.renderer)
+        capture = generate_capture(out / "capture", CaptureConfig(preset=preset.capture, renderer=preset.renderer))
     from gra_mi.stage.scene import LightstageScene
 
     ls = LightstageScene.load(capture.folder / "scene.xml")
@@ -339,7 +339,7 @@ def _mix_table(mix: dict) -> list[str]:
 
 def _refiner_stage(preset: DemoPreset, capture, out: Path, timings: dict) -> dict:
     """RelightNet renders → refiner sequences → train the tiny refiner → roll it over a held-out sequence."""
-    from gra_mi.refiner.data import RefinerDataset, dataset_from_capture
+    from gra_mi.refiner.data import CaptureSequencesConfig, RefinerDataset, dataset_from_capture
     from gra_mi.refiner.deflicker import DeflickerConfig
     from gra_mi.refiner.infer import refine_to_folder
     from gra_mi.refiner.train import RefinerTrainConfig, train_refiner
@@ -353,8 +353,8 @@ def _refiner_stage(preset: DemoPreset, capture, out: Path, timings: dict) -> dic
                 capture.folder,
                 out / "fit",
                 data_dir,
-                out / "relightnet",
-                preset.refiner_scale,
+                relightnet_dir=out / "relightnet",
+                config=CaptureSequencesConfig(scale=preset.refiner_scale),
                 cache_dir=out / "cache" / "visibility",
             )
     with _timed(timings, f"video refiner training (tiny, {preset.refiner_steps} steps)"):

@@ -10,12 +10,13 @@ from __future__ import annotations
 
 import json
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from gra_mi.core.color import display_exposure
+from gra_mi.core.config import option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.io import atomic_path, atomic_write_text, write_exr, write_mp4, write_png
 from gra_mi.core.progress import progress
@@ -27,11 +28,13 @@ STAGES = ("microfacet", "relightnet")
 LIGHTING_MODELS = ("auto", "far", "near")
 
 
-@dataclass
+@dataclass(kw_only=True)
 class RelightConfig:
+    stage: str = field(default="microfacet", metadata=option(choices=STAGES))
+    """microfacet: the one-bounce render; relightnet: passed through a trained RelightNet (needs --relightnet)."""
     uv_resolution: int = 512
     """UV texture resolution when no albedo texture is given (the paper's)."""
-    lighting_model: str = "auto"
+    lighting_model: str = field(default="auto", metadata=option(choices=LIGHTING_MODELS))
     """How the LEDs light the subject. far: as an environment at infinity (directions and irradiance from the stage
     centre): what relighting under an HDRI means. near: as the stage's point LEDs where they are: how a capture was
     lit. auto: far for envmaps, near for OLATs and LED patterns (docs/accuracy.md, lighting models)."""
@@ -49,12 +52,25 @@ class RelightConfig:
     error over 256 normals next to the NNLS optimum; about 9 s per map on 2 cores with 331 LEDs)."""
 
     def validate(self) -> None:
+        if self.stage not in STAGES:
+            raise GraMiParameterError("stage", f"expected one of {STAGES}, got '{self.stage}'")
         if self.lighting_model not in LIGHTING_MODELS:
             raise GraMiParameterError("lighting_model", f"expected one of {', '.join(LIGHTING_MODELS)}, got '{self.lighting_model}'")
         if self.uv_resolution < 1:
             raise GraMiParameterError("uv_resolution", f"must be >= 1, got {self.uv_resolution}")
         if self.exposure is not None and not (np.isfinite(self.exposure) and self.exposure > 0):
             raise GraMiParameterError("exposure", f"must be a positive number, got {self.exposure}")
+
+
+@dataclass
+class SubjectMaps:
+    """What the subject is rendered with: its material maps (None: the vertex colours baked to UV, roughness 0.5), a
+    trained RelightNet for ``stage="relightnet"``, and a folder to keep per-frame visibility in across runs."""
+
+    albedo: np.ndarray | None = None
+    roughness: np.ndarray | None = None
+    relightnet: Path | None = None
+    vis_cache: Path | None = None
 
 
 @dataclass
@@ -115,21 +131,18 @@ def relight_batch(
     scene: str | Path | LightstageScene,
     out: str | Path,
     lights: dict[str, Light],
+    *,
     frames: list[int] | None = None,
     cameras: list[str] | None = None,
     config: RelightConfig | None = None,
-    stage: str = "microfacet",
-    relightnet_dir: str | Path | None = None,
-    albedo: np.ndarray | None = None,
-    roughness: np.ndarray | None = None,
-    vis_cache: str | Path | None = None,
+    maps: SubjectMaps | None = None,
     platform=None,
 ) -> RelightSummary:
-    """Render every (frame, light, camera) of ``scene`` (a path or a loaded scene) (+ ``envmap_fidelity.json`` if asked) into ``out/LIGHT/CAMERA/frame_NNNN.{exr,png}`` (+ ``CAMERA.mp4``).
+    """Render every (frame, light, camera) of ``scene`` (a path or a loaded scene) (+ ``envmap_fidelity.json`` if asked)
+    into ``out/LIGHT/CAMERA/frame_NNNN.{exr,png}`` (+ ``CAMERA.mp4``).
 
-    ``frames``/``cameras`` None: all frames, camera 0. ``albedo``/``roughness`` None: the subject's vertex colours baked
-    to UV and roughness 0.5. ``platform``: the :class:`gra_mi.render.composite.PlatformConfig` of ``config.composite``.
-    Everything is checked before the first file is written.
+    ``frames``/``cameras`` None: all frames, camera 0. ``platform``: the :class:`gra_mi.render.composite.PlatformConfig`
+    of ``config.composite``. Everything is checked before the first file is written.
     """
     from gra_mi.relightnet.infer import render_view
     from gra_mi.render.runtime import ensure_mitsuba
@@ -145,7 +158,7 @@ def relight_batch(
         if not 0 <= f < ls.sequence.num_frames:
             raise GraMiParameterError("frames", f"frame {f} out of range [0, {ls.sequence.num_frames})")
     cams = [ls.stage.camera(c) for c in (cameras or [0])]
-    model, relighter = _stage_model(ls, stage, relightnet_dir, albedo, roughness, config.uv_resolution, vis_cache)
+    model, relighter = _stage_model(ls, config, maps or SubjectMaps())
     if config.fidelity:
         _write_fidelity(out, lights, ls.stage)
     point_light = next((light.point_light for light in lights.values() if light.point_light is not None), None)
@@ -170,24 +183,22 @@ def relight_batch(
     return RelightSummary(len(jobs), out, relighter.cache.misses, relighter.cache.hits)
 
 
-def _stage_model(ls, stage: str, relightnet_dir, albedo, roughness, uv_resolution: int, vis_cache):
-    """(RelightNet or None, the relighter at its resolution) for ``stage``, checked against the maps."""
+def _stage_model(ls, config: RelightConfig, maps: SubjectMaps):
+    """(RelightNet or None, the relighter at its resolution) for ``config.stage``, checked against the maps."""
     from gra_mi.core.runtime import torch_device
     from gra_mi.render.relighter import Relighter
 
-    if stage not in STAGES:
-        raise GraMiParameterError("stage", f"expected one of {STAGES}, got '{stage}'")
-    model, resolution = None, uv_resolution
-    if stage == "relightnet":
-        if relightnet_dir is None:
+    model, resolution = None, config.uv_resolution
+    if config.stage == "relightnet":
+        if maps.relightnet is None:
             raise GraMiParameterError("relightnet", "the relightnet stage needs the folder of a trained RelightNet")
         from gra_mi.relightnet.model import RelightNet
 
-        model = RelightNet.load(relightnet_dir, torch_device())
-        if albedo is not None and albedo.shape[0] != model.config.resolution:
-            raise GraMiInputError("albedo", f"RelightNet runs at {model.config.resolution}², the albedo is {albedo.shape[0]}²")
+        model = RelightNet.load(maps.relightnet, torch_device())
+        if maps.albedo is not None and maps.albedo.shape[0] != model.config.resolution:
+            raise GraMiInputError("albedo", f"RelightNet runs at {model.config.resolution}², the albedo is {maps.albedo.shape[0]}²")
         resolution = model.config.resolution
-    return model, Relighter(ls, resolution, albedo, roughness, cache_dir=vis_cache)
+    return model, Relighter(ls, resolution, maps.albedo, maps.roughness, cache_dir=maps.vis_cache)
 
 
 def _write_fidelity(out: Path, lights: dict[str, Light], stage) -> None:
@@ -246,3 +257,26 @@ class _Previews:
     def write_videos(self, fps: float) -> None:
         for (name, cam_name), images in self.videos.items():
             write_mp4(self.out / name / f"{cam_name}.mp4", images, fps=fps, exposure=self.exposures[(name, cam_name)])
+
+
+def select(text: str, count: int, parameter: str, integers: bool = False) -> list:
+    """``--frames``/``--cameras``: 'all', 'A:B' (B excluded) or a comma list; an empty selection (``5:2``, ``,``) is an
+    error, not a run that writes nothing."""
+    if text == "all":
+        items = [str(i) for i in range(count)]
+    elif ":" in text:
+        a, b = text.split(":", 1)
+        try:
+            items = [str(i) for i in range(int(a or 0), int(b) if b else count)]
+        except ValueError:
+            raise GraMiParameterError(parameter, f"expected A:B with integers, got '{text}'") from None
+    else:
+        items = [t.strip() for t in text.split(",") if t.strip()]
+    if not items:
+        raise GraMiParameterError(parameter, f"'{text}' selects nothing (of {count})")
+    if integers:
+        try:
+            return [int(t) for t in items]
+        except ValueError:
+            raise GraMiParameterError(parameter, f"expected integers, 'A:B' or 'all', got '{text}'") from None
+    return items

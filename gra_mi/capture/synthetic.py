@@ -21,15 +21,18 @@ import hashlib
 import json
 import logging
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 from gra_mi.capture.dataset import Capture, FrameLighting
+from gra_mi.core.config import comma_list, option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.io import atomic_write_text, write_exr, write_png
 from gra_mi.core.provenance import claim_output
+from gra_mi.stage.lightstage import default_lightstage
+from gra_mi.subject.sequence import save_sequence, tiny_subject
 
 logger = logging.getLogger(__name__)
 
@@ -89,6 +92,7 @@ PRESETS = {
     ),
 }  # fmt: skip
 
+RENDERERS = ("path", "onebounce")
 ABLATABLE_EFFECTS = ("sheen", "wrinkles", "interreflection")  # what the one-bounce model does not explain
 
 OLAT_KEY_DIRECTION = np.array([0.5, 0.6, 0.62])  # the test OLAT: a key light front-left and above the subject
@@ -308,102 +312,155 @@ def measure_ground_truth_noise(capture: Capture, source, renderer: GroundTruthRe
     return out
 
 
+@dataclass(kw_only=True)
+class CaptureConfig:
+    """A synthetic capture (:func:`generate_capture`)."""
+
+    preset: str = field(default="small", metadata=option(choices=tuple(sorted(PRESETS))))
+    """tiny: CI, seconds; small: the demo, minutes; medium: 48 training envmaps, 8 cameras, OLAT test, about 15
+    minutes on 2 cores; full: 40 cameras at 1024x540, 512² UV (a GPU's work)."""
+    renderer: str = field(default="path", metadata=option(choices=RENDERERS))
+    """Ground truth: Mitsuba path tracing of a richer material (default), or gra-mi's one-bounce model (recovery tests)."""
+    spp: int | None = None
+    """Samples per pixel of the exact direct light (a power of 4). Default: the preset's."""
+    indirect_spp: int | None = None
+    """Path samples per pixel of the interreflections (a power of 4). Default: the preset's."""
+    without: list[str] = field(default_factory=list, metadata=option(parse=comma_list))
+    """Effects to leave out of the path-traced ground truth, comma-separated: sheen, wrinkles, interreflection.
+    Fitting such captures shows what each effect costs the one-bounce fit (docs/results/fit.md)."""
+    measure_noise: bool = True
+    """Measure the ground truth's noise against 4x the samples on a few views (capture.json)."""
+
+    def validate(self) -> None:
+        if self.preset not in PRESETS:
+            raise GraMiParameterError("preset", f"unknown preset '{self.preset}', expected one of {sorted(PRESETS)}")
+        if self.renderer not in RENDERERS:
+            raise GraMiParameterError("renderer", f"expected 'path' or 'onebounce', got '{self.renderer}'")
+        for name in ("spp", "indirect_spp"):
+            value = getattr(self, name)
+            if value is not None and (value < 1 or 4 ** round(math.log(value, 4)) != value):
+                raise GraMiParameterError(
+                    name, f"must be a power of 4 (the low-discrepancy sampler's counts: 4, 16, 64, 256, ...), got {value}"
+                )
+        unknown = sorted(set(self.without) - set(ABLATABLE_EFFECTS))
+        if unknown or (self.without and self.renderer != "path"):
+            raise GraMiParameterError(
+                "without",
+                f"expected effects of the path-traced ground truth among {', '.join(ABLATABLE_EFFECTS)}, got {', '.join(self.without)}",
+            )
+
+    def resolved(self) -> CapturePreset:
+        """The preset with this run's sample counts."""
+        preset = PRESETS[self.preset]
+        return replace(preset, spp=self.spp or preset.spp, indirect_spp=self.indirect_spp or preset.indirect_spp)
+
+    def record(self) -> dict:
+        """How the ground truth is rendered (renderer, sample counts, effects left out): part of the run's identity,
+        since a resume with other counts would mix two estimators."""
+        preset = self.resolved()
+        if self.renderer == "onebounce":  # deterministic lighting, samples only anti-alias
+            counts = {"spp": 16, "indirect_spp": 0, "max_depth": 2}
+        elif "interreflection" in self.without:
+            counts = {"spp": preset.spp, "indirect_spp": 0, "max_depth": 2}
+        else:
+            counts = {"spp": preset.spp, "indirect_spp": preset.indirect_spp, "max_depth": preset.max_depth}
+        return {"renderer": self.renderer, **counts, **({"without": sorted(self.without)} if self.without else {})}
+
+
 def generate_capture(
-    out: str | Path,
-    preset_name: str = "small",
-    renderer: str = "path",
-    measure_noise: bool = True,
-    test_envmaps: dict[str, np.ndarray] | None = None,
-    spp: int | None = None,
-    indirect_spp: int | None = None,
-    without: tuple[str, ...] = (),
-    overwrite: bool = False,
+    out: str | Path, config: CaptureConfig | None = None, *, test_envmaps: dict[str, np.ndarray] | None = None, overwrite: bool = False
 ) -> Capture:
     """Write a synthetic capture; rerunning resumes (existing images are kept, and each image's samples depend only
-    on its frame, so a resumed capture equals an uninterrupted one). ``measure_noise``: measure the ground truth's
-    noise (:func:`measure_ground_truth_noise`) into ``capture.json``. ``test_envmaps`` (name → validated lat-long
-    map): the user's own held-out lighting, in place of the first procedural test envmaps. ``spp``/``indirect_spp``
-    override the preset's sample counts (powers of 4): more samples, less noise (docs/results/capture.md: what 2 % costs).
-    ``without``: effects of the path-traced ground truth to leave out (:data:`ABLATABLE_EFFECTS`), to measure what
-    each one costs the fit. ``overwrite``: empty a folder made by another run first (else it is refused)."""
-    from gra_mi.core.progress import progress
-    from gra_mi.render.atlas import UVAtlas
+    on its frame, so a resumed capture equals an uninterrupted one). ``test_envmaps`` (name → validated lat-long
+    map): the user's own held-out lighting, in place of the first procedural test envmaps. ``overwrite``: empty a
+    folder made by another run first (else it is refused)."""
     from gra_mi.render.runtime import ensure_mitsuba
-    from gra_mi.stage.envmap import downsample_envmap
-    from gra_mi.stage.envmap_library import write_envmap_set
-    from gra_mi.stage.lightstage import default_lightstage
-    from gra_mi.stage.scene import LightstageScene, subject_scene_xml, write_rig
-    from gra_mi.subject.sequence import save_sequence, tiny_subject
+    from gra_mi.stage.scene import write_rig
 
-    if preset_name not in PRESETS:
-        raise GraMiParameterError("preset", f"unknown preset '{preset_name}', expected one of {sorted(PRESETS)}")
-    if renderer not in ("path", "onebounce"):
-        raise GraMiParameterError("renderer", f"expected 'path' or 'onebounce', got '{renderer}'")
-    preset = PRESETS[preset_name]
-    for name, value in (("spp", spp), ("indirect_spp", indirect_spp)):
-        if value is not None and (value < 1 or 4 ** round(math.log(value, 4)) != value):
-            raise GraMiParameterError(
-                name, f"must be a power of 4 (the low-discrepancy sampler's counts: 4, 16, 64, 256, ...), got {value}"
-            )
-    preset = replace(preset, spp=spp or preset.spp, indirect_spp=indirect_spp or preset.indirect_spp)
-    out = Path(out)
+    config = config or CaptureConfig()
+    config.validate()
+    preset, record, out = config.resolved(), config.record(), Path(out)
     ensure_mitsuba()
-    # onebounce: deterministic lighting, samples only anti-alias
-    unknown = sorted(set(without) - set(ABLATABLE_EFFECTS))
-    if unknown or (without and renderer != "path"):
-        raise GraMiParameterError(
-            "without", f"expected effects of the path-traced ground truth among {', '.join(ABLATABLE_EFFECTS)}, got {', '.join(without)}"
-        )
-    sample_counts = (
-        {"spp": 16, "indirect_spp": 0, "max_depth": 2}
-        if renderer == "onebounce" or "interreflection" in without
-        else {"spp": preset.spp, "indirect_spp": preset.indirect_spp, "max_depth": preset.max_depth}
-    )
-    if renderer == "path" and "interreflection" in without:
-        sample_counts["spp"] = preset.spp
-    record = {"renderer": renderer, **sample_counts, **({"without": sorted(without)} if without else {})}
     envmap_ids = {
         name: hashlib.sha256(np.ascontiguousarray(env, np.float32).tobytes()).hexdigest()[:16] for name, env in (test_envmaps or {}).items()
     }
-    claim_output(out, "capture", {}, {"preset": preset_name, **record, "test_envmaps": envmap_ids}, overwrite=overwrite)
-    # A resume with other sample counts or renderer would mix two estimators: the claim above refuses it (the record
-    # is part of the config); a resume of the same run keeps what it measured.
-    previous = Capture.load(out) if (out / "capture.json").is_file() else None
+    claim_output(out, "capture", {}, {"preset": config.preset, **record, "test_envmaps": envmap_ids}, overwrite=overwrite)
+    previous = Capture.load(out) if (out / "capture.json").is_file() else None  # a resume keeps what it measured
 
-    # 1. Rig, subject, lighting ----------------------------------------------------------------------------
     stage = default_lightstage(
-        preset.num_leds, num_cameras=preset.num_cameras, camera_distance=preset.camera_distance, width=preset.width, height=preset.height
+        num_leds=preset.num_leds,
+        num_cameras=preset.num_cameras,
+        camera_distance=preset.camera_distance,
+        width=preset.width,
+        height=preset.height,
     )
     write_rig(stage, out / "rig")
-    if not (out / "subject" / "sequence.npz").is_file():
-        frames_per_clip = [preset.frames_per_clip] * len(preset.train_clips) + [preset.test_frames()] * len(preset.test_clips)
-        if preset.subject == "tiny":
-            seq = tiny_subject(sum(frames_per_clip))
-        else:
-            from gra_mi.subject.anny_body import anny_sequence
+    _write_subject(preset, out)
+    train_env, test_sources = _write_lighting(preset, stage, out, test_envmaps or {})
+    maps = _write_true_maps(preset, out, config.without)
+    capture = Capture(
+        out,
+        preset.name,
+        config.renderer,
+        preset.uv_resolution,
+        [c.name for c in stage.cameras[: len(stage.cameras) - preset.eval_cameras]],
+        [c.name for c in stage.cameras[len(stage.cameras) - preset.eval_cameras :]],
+        _schedule(preset, train_env, test_sources),
+        ground_truth=dict(record),
+    )
+    _measure_fidelity(capture, stage, previous)
+    _render_images(capture, stage, config, record, maps)
+    return capture
 
-            seq = anny_sequence(preset.train_clips + preset.test_clips, frames_per_clip)
-        save_sequence(seq, out / "subject")
+
+def _write_subject(preset: CapturePreset, out: Path) -> None:
+    if (out / "subject" / "sequence.npz").is_file():
+        return
+    frames_per_clip = [preset.frames_per_clip] * len(preset.train_clips) + [preset.test_frames()] * len(preset.test_clips)
+    if preset.subject == "tiny":
+        seq = tiny_subject(sum(frames_per_clip))
+    else:
+        from gra_mi.subject.anny_body import anny_sequence
+
+        seq = anny_sequence(preset.train_clips + preset.test_clips, frames_per_clip)
+    save_sequence(seq, out / "subject")
+
+
+def _write_lighting(
+    preset: CapturePreset, stage, out: Path, user_envmaps: dict[str, np.ndarray]
+) -> tuple[list[str], list[tuple[str, str]]]:
+    """The training envmaps, and each test clip's lighting: the user's maps first, then procedural ones, or the test
+    OLAT. Also the scene file of the capture's rig and subject."""
+    from gra_mi.stage.envmap import downsample_envmap
+    from gra_mi.stage.envmap_library import write_envmap_set
+    from gra_mi.stage.scene import subject_scene_xml
+
     n_relit = len(preset.train_clips) * (preset.frames_per_clip // 2)
     train_env = [str(p.relative_to(out)) for p in write_envmap_set(out / "envmaps", "train", max(n_relit, 1), preset.envmap_height)]
     test_kinds = preset.test_lightings()
     n_test_env = sum(k == "envmap" for k in test_kinds)
-    user = list((test_envmaps or {}).items())
-    if len(user) > n_test_env:
+    if len(user_envmaps) > n_test_env:
         raise GraMiParameterError(
-            "test_envmap", f"the {preset.name} preset has {n_test_env} envmap-lit test sequence(s), got {len(user)} maps"
+            "test_envmap", f"the {preset.name} preset has {n_test_env} envmap-lit test sequence(s), got {len(user_envmaps)} maps"
         )
     user_paths = []
-    for name, image in user:
+    for name, image in user_envmaps.items():
         user_paths.append(f"envmaps/test/user_{name}.exr")
         write_exr(out / user_paths[-1], downsample_envmap(image, preset.envmap_height))
         write_png((out / user_paths[-1]).with_suffix(".png"), image, exposure=None)
-    procedural = write_envmap_set(out / "envmaps", "test", n_test_env - len(user), preset.envmap_height) if n_test_env > len(user) else []
+    remaining = n_test_env - len(user_envmaps)
+    procedural = write_envmap_set(out / "envmaps", "test", remaining, preset.envmap_height) if remaining > 0 else []
     test_env = iter(user_paths + [str(p.relative_to(out)) for p in procedural])
     test_sources = [("envmap", next(test_env)) if k == "envmap" else ("pattern", _write_test_olat(stage, out)) for k in test_kinds]
     atomic_write_text(out / "scene.xml", subject_scene_xml("rig", "subject"))
+    return train_env, test_sources
 
-    # 2. Ground-truth material ---------------------------------------------------------------------------
+
+def _write_true_maps(preset: CapturePreset, out: Path, without: list[str]) -> dict[str, np.ndarray]:
+    """The ground-truth material in UV space (gt/*.exr): albedo, roughness, sheen, the cloth regions, a flat normal map."""
+    from gra_mi.render.atlas import UVAtlas
+    from gra_mi.stage.scene import LightstageScene
+
     ls = LightstageScene.load(out / "scene.xml")
     atlas = UVAtlas.build(ls.sequence.faces, ls.sequence.uvs, preset.uv_resolution)
     colors = ls.sequence.vertex_colors if ls.sequence.vertex_colors is not None else np.full((ls.sequence.num_vertices, 3), 0.5, np.float32)
@@ -414,44 +471,46 @@ def generate_capture(
     write_exr(out / "gt" / "cloth.exr", maps["cloth"])  # the material regions (reports score skin and cloth apart)
     write_png(out / "gt" / "albedo.png", maps["albedo"])
     write_exr(out / "gt" / "normal_map.exr", wrinkle_normal_map(maps["cloth"], 0.0))
+    return {**maps, "num_frames": ls.sequence.num_frames}
 
-    capture = Capture(
-        out,
-        preset.name,
-        renderer,
-        preset.uv_resolution,
-        [c.name for c in stage.cameras[: len(stage.cameras) - preset.eval_cameras]],
-        [c.name for c in stage.cameras[len(stage.cameras) - preset.eval_cameras :]],
-        _schedule(preset, train_env, test_sources),
-        ground_truth=dict(record),
-    )
+
+def _measure_fidelity(capture: Capture, stage, previous: Capture | None) -> None:
+    """How well the LEDs reproduce each envmap (capture.json), kept from a previous run of the same capture."""
+    from gra_mi.core.progress import progress
+    from gra_mi.stage.envmap import led_fidelity, load_envmap
+
     if previous is not None:
         for key in ("noise", "envmap_fidelity"):
             if key in previous.ground_truth:
                 capture.ground_truth[key] = previous.ground_truth[key]
     if "envmap_fidelity" not in capture.ground_truth:
-        from gra_mi.stage.envmap import led_fidelity, load_envmap
-
         envmaps = sorted({f.envmap for f in capture.frames if f.envmap})
         capture.ground_truth["envmap_fidelity"] = {
-            name: led_fidelity(load_envmap(out / name), stage) for name in progress(envmaps, description="envmap -> LED fidelity")
+            name: led_fidelity(load_envmap(capture.folder / name), stage)
+            for name in progress(envmaps, description="envmap -> LED fidelity")
         }
     capture.save()
 
-    # 3. Render (image space: the fit works in UV space, so the ground truth takes another code path) ------
 
-    bsdf = ONEBOUNCE_BSDF if renderer == "onebounce" else GT_BSDF
+def _render_images(capture: Capture, stage, config: CaptureConfig, record: dict, maps: dict) -> None:
+    """Every camera of every frame, rendered in image space (the fit works in UV space, so the ground truth takes
+    another code path); images already on disk are kept. Then the noise of the estimate, once."""
+    from gra_mi.core.progress import progress
+    from gra_mi.stage.scene import LightstageScene, subject_scene_xml
+
+    out, preset = capture.folder, config.resolved()
+    bsdf = ONEBOUNCE_BSDF if config.renderer == "onebounce" else GT_BSDF
     atomic_write_text(out / "scene_gt.xml", subject_scene_xml("rig", "subject", spp=preset.spp, bsdf_xml=bsdf))
-    gt_renderer = GroundTruthRenderer(**sample_counts)
+    gt_renderer = GroundTruthRenderer(spp=record["spp"], indirect_spp=record["indirect_spp"], max_depth=record["max_depth"])
     source = LightstageScene.load(out / "scene_gt.xml")
 
     def pose(frame: int) -> None:
-        if source.set_frame(frame) and "wrinkles" not in without:  # wrinkles follow the pose
-            pose_wrinkles(source.params, maps["cloth"], frame, ls.sequence.num_frames)
+        if source.set_frame(frame) and "wrinkles" not in config.without:  # wrinkles follow the pose
+            pose_wrinkles(source.params, maps["cloth"], frame, maps["num_frames"])
 
     jobs = [(entry, cam) for entry in capture.frames for cam in stage.cameras]
     lit = None  # the frame whose lighting is set: jobs run frame-major, so each frame's envmap is mapped once
-    for entry, cam in progress(jobs, description=f"capture ({renderer})"):
+    for entry, cam in progress(jobs, description=f"capture ({config.renderer})"):
         path = capture.image_path(cam.name, entry.frame)
         if path.is_file():
             continue
@@ -460,11 +519,10 @@ def generate_capture(
             source.set_led_intensities(capture.lighting(stage, entry))
             lit = entry.frame
         write_exr(path, gt_renderer.render(source.scene, source.sensor_index(cam.name), seed=entry.frame))
-    if measure_noise and renderer == "path" and "noise" not in capture.ground_truth:
+    if config.measure_noise and config.renderer == "path" and "noise" not in capture.ground_truth:
         logger.info("measuring the ground truth's noise against %dx the samples", NOISE_REFERENCE_FACTOR)
         capture.ground_truth["noise"] = measure_ground_truth_noise(capture, source, gt_renderer, stage.cameras[0].name, pose)
         capture.save()
-    return capture
 
 
 # --------------------------------------------------------------------------------------------------------------

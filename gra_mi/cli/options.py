@@ -1,47 +1,17 @@
-"""Command-line options made from the typed configs, so that a default and its help live in one place.
-
-A config is a dataclass whose fields carry their help as a docstring right under them (as in nerfstudio); this
-module turns chosen fields into argparse options (``steps`` → ``--steps``, a ``False`` bool → ``--flag``, a
-``True`` bool → ``--no-flag``, ``X | None`` → an optional ``X``) and reads them back into the config.
-"""
+"""Command-line options generated from the typed configs (:mod:`gra_mi.core.config`): every field of a command's config
+becomes one option (``steps`` → ``--steps``, a ``False`` bool → ``--flag``, a ``True`` bool → ``--no-flag``,
+``X | None`` → an optional ``X``, a field without a default → a required one), a nested config's fields are options
+of the same command, and :func:`config_from_args` reads them all back into the config."""
 
 from __future__ import annotations
 
 import argparse
-import ast
 import dataclasses
-import inspect
-import textwrap
 import types
 import typing
-from collections.abc import Callable, Iterable
+from pathlib import Path
 
-
-def field_help(cls) -> dict[str, str]:
-    """The docstring under each field of a dataclass, whitespace collapsed (fields without one are left out)."""
-    docs: dict[str, str] = {}
-    for klass in reversed(cls.__mro__):
-        if not dataclasses.is_dataclass(klass):
-            continue
-        body = ast.parse(textwrap.dedent(inspect.getsource(klass))).body[0].body
-        for node, after in zip(body, body[1:], strict=False):
-            if (
-                isinstance(node, ast.AnnAssign)
-                and isinstance(node.target, ast.Name)
-                and isinstance(after, ast.Expr)
-                and isinstance(after.value, ast.Constant)
-                and isinstance(after.value.value, str)
-            ):
-                docs[node.target.id] = " ".join(after.value.value.split())
-    return docs
-
-
-def _value_type(annotation) -> tuple[type, bool]:
-    """(the scalar type, whether None is allowed) of ``int``, ``float | None``, ``str``…"""
-    if isinstance(annotation, types.UnionType) or typing.get_origin(annotation) is typing.Union:
-        args = [a for a in typing.get_args(annotation) if a is not type(None)]
-        return args[0], True
-    return annotation, False
+from gra_mi.core.config import Option, field_help, option_of
 
 
 def finite_float(text: str) -> float:
@@ -55,55 +25,113 @@ def finite_float(text: str) -> float:
     return value
 
 
-def flag_name(field_name: str) -> str:
-    return "--" + field_name.replace("_", "-")
+def _value_type(annotation) -> tuple[object, bool]:
+    """(the type without None, whether None is allowed) of ``int``, ``float | None``, ``list[Path]``…"""
+    if isinstance(annotation, types.UnionType) or typing.get_origin(annotation) is typing.Union:
+        args = [a for a in typing.get_args(annotation) if a is not type(None)]
+        return args[0], True
+    return annotation, False
 
 
-def add_config_options(
-    parser: argparse.ArgumentParser,
-    cls,
-    names: Iterable[str],
-    *,
-    flags: dict[str, str] | None = None,
-    parsers: dict[str, Callable[[str], object]] | None = None,
-    choices: dict[str, list] | None = None,
-    help_extra: dict[str, str] | None = None,
-) -> None:
-    """Add one option per named field of ``cls``; ``dest`` is the field name, the default is the dataclass's."""
-    flags, parsers, choices, help_extra = flags or {}, parsers or {}, choices or {}, help_extra or {}
-    docs, hints = field_help(cls), typing.get_type_hints(cls)
-    fields = {f.name: f for f in dataclasses.fields(cls)}
+def _default(f: dataclasses.Field):
+    if f.default is not dataclasses.MISSING:
+        return f.default
+    if f.default_factory is not dataclasses.MISSING:  # type: ignore[misc]
+        return f.default_factory()  # type: ignore[misc]
+    return dataclasses.MISSING
+
+
+def _nested(kind) -> bool:
+    return isinstance(kind, type) and dataclasses.is_dataclass(kind)
+
+
+def add_config(parser: argparse.ArgumentParser, cls, *, only: tuple[str, ...] | None = None, renames: dict | None = None) -> None:
+    """One option per field of ``cls`` (or the ``only`` ones); ``dest`` is the field's name. A field another config of
+    the same command already added (the seed) is one option that sets both."""
+    docs, hints, renames = field_help(cls), typing.get_type_hints(cls), renames or {}
     existing = {a.dest for a in parser._actions}
-    for name in names:
-        if name in existing:  # shared by two configs (e.g. the seed): one option sets both
+    own = cls.__dict__.get("__annotations__", {})
+    for f in sorted(dataclasses.fields(cls), key=lambda f: f.name not in own):  # inherited (--overwrite) last
+        if (only is not None and f.name not in only) or f.name in existing:
             continue
-        f = fields[name]
-        default = f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
-        kind, optional = _value_type(hints[name])
-        text = " ".join(t for t in (docs.get(name, ""), help_extra.get(name, "")) if t).replace("%", "%%")  # argparse formats help
-        if kind is bool:
-            flag = flags.get(name, flag_name(name) if not default else "--no-" + name.replace("_", "-"))
-            action = "store_false" if default else "store_true"
-            parser.add_argument(flag, dest=name, action=action, default=default, help=f"Switch off: {text}" if default else text)
+        spelling, (kind, _) = option_of(f), _value_type(hints[f.name])
+        if _nested(kind):
+            add_config(parser, kind, only=spelling.fields, renames=dict(spelling.renames))
             continue
-        shown = "" if "default" in text.lower() else f" Default: {'automatic' if default is None else default}."
-        parser.add_argument(
-            flags.get(name, flag_name(name)),
-            dest=name,
-            type=parsers.get(name, finite_float if kind is float else kind),
-            default=default,
-            choices=choices.get(name),
-            metavar=None if name in choices else name.upper(),
-            help=f"{text}{shown}".strip(),
-        )
+        if f.name in renames:
+            spelling = dataclasses.replace(spelling, flag=renames[f.name])
+        _add_field(parser, f, kind, spelling, docs.get(f.name, ""))
 
 
-def config_from_args(cls, args: argparse.Namespace, **fixed):
-    """A ``cls`` from the options :func:`add_config_options` added (fields not on the command line keep their default)."""
-    values = {f.name: getattr(args, f.name) for f in dataclasses.fields(cls) if hasattr(args, f.name)}
-    return cls(**{**values, **fixed})
+def _add_field(parser: argparse.ArgumentParser, f: dataclasses.Field, kind, spelling: Option, text: str) -> None:
+    default = _default(f)
+    text = text.replace("%", "%%")  # argparse formats help
+    flag = spelling.flag or "--" + f.name.replace("_", "-")
+    if kind is bool:
+        flag = spelling.flag or (flag if not default else "--no-" + f.name.replace("_", "-"))
+        action = "store_false" if default else "store_true"
+        parser.add_argument(flag, dest=f.name, action=action, default=default, help=f"Switch off: {text}" if default else text)
+        return
+    item = typing.get_args(kind)[0] if spelling.repeat else kind
+    convert = spelling.parse or (finite_float if item is float else item)
+    required = default is dataclasses.MISSING
+    unset = "none" if item in (Path, str) else "automatic"
+    shown = "" if required or "default" in text.lower() else f" Default: {unset if default is None else _shown(default)}."
+    common = {"type": convert, "choices": spelling.choices, "help": f"{text}{shown}".strip()}
+    if spelling.repeat:
+        common["action"] = "append"
+    if spelling.positional:
+        nargs = None if required else "?"
+        parser.add_argument(f.name, nargs=nargs, default=None if required else default, metavar=f.name.upper(), **common)
+        return
+    metavar = spelling.metavar or (None if spelling.choices else flag.lstrip("-").replace("-", "_").upper())
+    extra = {"required": True} if required else {"default": default}
+    parser.add_argument(flag, dest=f.name, metavar=metavar, **extra, **common)
+
+
+def _shown(default) -> str:
+    if isinstance(default, list | tuple):
+        return ",".join(str(d) for d in default) if default else "none"
+    return str(default) if not isinstance(default, Path) else default.as_posix()
+
+
+def config_from_args(cls, args: argparse.Namespace, only: tuple[str, ...] | None = None):
+    """A ``cls`` from the options :func:`add_config` added; nested configs are built the same way, and fields that are
+    not options keep their defaults."""
+    hints, values = typing.get_type_hints(cls), {}
+    for f in dataclasses.fields(cls):
+        kind, _ = _value_type(hints[f.name])
+        if only is not None and f.name not in only:
+            continue
+        if _nested(kind):
+            values[f.name] = config_from_args(kind, args, option_of(f).fields)
+        elif hasattr(args, f.name):
+            value = getattr(args, f.name)
+            values[f.name] = list(value) if isinstance(value, list) else value  # an appended default is not shared
+    return cls(**values)
 
 
 def option_flags(parser: argparse.ArgumentParser) -> dict[str, str]:
     """dest → the flag a user types, for naming parameters in error messages."""
     return {a.dest: max(a.option_strings, key=len) for a in parser._actions if a.option_strings}
+
+
+@dataclasses.dataclass(kw_only=True)
+class CommandConfig:
+    """A command's config: its inputs, output and options, validated before anything is read or written."""
+
+    def validate(self) -> None:
+        """The configs it holds validate themselves; a command adds its own checks."""
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if dataclasses.is_dataclass(value) and hasattr(value, "validate"):
+                value.validate()
+
+
+@dataclasses.dataclass(kw_only=True)
+class Restartable(CommandConfig):
+    """A command whose output folder remembers the run that made it (core/provenance.py)."""
+
+    overwrite: bool = False
+    """Start over: empty the output folder first (only a folder gra-mi made). Without it, rerunning the same run
+    resumes, and a folder made by a different run (other inputs or options; its provenance.json says which) is refused."""

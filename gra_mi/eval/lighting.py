@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from gra_mi.core.color import display_exposure
+from gra_mi.core.config import comma_list, option
 from gra_mi.core.errors import GraMiParameterError
 from gra_mi.core.io import atomic_write_text, pyplot, read_exr, save_figure, to_srgb8, write_exr
 from gra_mi.core.metrics import compare, subject_mask
@@ -32,11 +33,11 @@ TRUTH_SPP = 256
 
 @dataclass
 class EnvmapAccuracyConfig:
-    maps: list[str] = field(default_factory=lambda: ["sun", "studio", "interior", "night"])
+    maps: list[str] = field(default_factory=lambda: ["sun", "studio", "interior", "night"], metadata=option(parse=comma_list))
     """Reference maps to relight under, comma-separated, among sun, studio, interior, night (envmap_library.reference_map)."""
     frame: int | None = None
     """Subject frame (default: the first frame of the first test sequence)."""
-    cameras: list[str] | None = None
+    cameras: list[str] | None = field(default=None, metadata=option(parse=comma_list))
     """Cameras to score, comma-separated names (default: the capture's held-out cameras)."""
     spp: int = TRUTH_SPP
     """Samples per pixel of the path-traced truth."""

@@ -34,8 +34,9 @@ from pathlib import Path
 
 import numpy as np
 
+from gra_mi.core.config import option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
-from gra_mi.render.composite import PlatformConfig
+from gra_mi.render.composite import PLATFORM_FLAGS, PlatformConfig
 
 logger = logging.getLogger(__name__)
 
@@ -51,18 +52,20 @@ STAGE_TITLES = {
 
 @dataclass
 class EvalConfig:
-    frames: str = "every10"
+    frames: str = field(default="every10", metadata=option(choices=FRAME_SELECTIONS))
     """Frames scored per sequence: every10 (every 10th frame, the paper's protocol), window-middles (the middle frame
     of each 17-frame refiner window) or all. The temporal metric and FVD always use every frame."""
     scale: float | None = None
     """Capture images → evaluation resolution (default: the refiner data's scale when a video stage is scored, else 1)."""
-    lpips_weights: list[str] | None = None
-    """LPIPS weights on disk (AlexNet backbone + lpips heads: files or a folder); none: no LPIPS column."""
+    lpips_weights: list[str] | None = field(default=None, metadata=option(repeat=True))
+    """LPIPS weights on disk: torchvision's alexnet-owt-7be5be79.pth and the lpips package's weights/v0.1/alex.pth
+    (repeat the flag, or give their folder), or one lpips.LPIPS(net='alex') state dict. Never downloaded; none: no
+    LPIPS column."""
     i3d_weights: str | None = None
     """TorchScript I3D (i3d_torchscript.pt, the usual FVD feature network) on disk; default none: no FVD column."""
     composite: bool = False
     """Also write the side-by-side videos over the environment on a platform with the subject's shadow."""
-    platform: PlatformConfig = field(default_factory=PlatformConfig)
+    platform: PlatformConfig = field(default_factory=PlatformConfig, metadata=option(renames=PLATFORM_FLAGS))
     """The platform of the composites (gra_mi.render.composite)."""
 
     def validate(self) -> None:

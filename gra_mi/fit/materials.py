@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from gra_mi.capture.dataset import Capture, load_observation
+from gra_mi.core.config import option
 from gra_mi.core.errors import GraMiParameterError
 from gra_mi.core.io import atomic_path, read_checkpoint_npz
 from gra_mi.fit.optimize import Evidence
@@ -58,7 +59,7 @@ finish, and Adam's step (a ratio of moments) turns last-bit differences into up 
 
 @dataclass
 class FitConfig:
-    solver: str = "adam"
+    solver: str = field(default="adam", metadata=option(choices=SOLVERS))
     """adam: the closed-form solution, then Dr.Jit + Adam on the maps against the images with the surface prior;
     closed-form: the per-texel grid search and L1 reweighting alone (no prior; fast, noisy roughness)."""
     iterations: int = 60
@@ -78,7 +79,7 @@ class FitConfig:
     """Closed form: roughness values tried on a uniform grid over [0, 1] before per-texel refinement."""
     irls_iterations: int = 3
     """Closed form: L1 reweighting iterations after the least-squares solution (0: plain least squares)."""
-    resolution: int | None = None
+    resolution: int | None = field(default=None, metadata=option(flag="--uv-resolution"))
     """UV resolution of the fitted maps (default: the capture's)."""
     calibrate_brightness: bool = True
     """After the fit, scale the albedo (one gain per channel) so that renders of the training views hold the captured

@@ -26,7 +26,7 @@ import torch
 import torch.nn.functional as F
 
 from gra_mi.core.color import srgb_decode, srgb_encode
-from gra_mi.core.errors import GraMiInputError, GraMiParameterError
+from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive
 from gra_mi.core.io import atomic_path, atomic_write_text, json_field, read_json
 
 DATA_FORMAT = "gra-mi-refiner-data/1"
@@ -411,135 +411,75 @@ def _resize_pad(image: np.ndarray, scale: float) -> tuple[np.ndarray, tuple[int,
     return t[0].permute(1, 2, 0).numpy(), (h, w)
 
 
+@dataclass(kw_only=True)
+class CaptureSequencesConfig:
+    """How a capture becomes the refiner's sequences (:func:`dataset_from_capture`)."""
+
+    scale: float = 0.5
+    """Capture images → the delivered (and evaluated) frames."""
+    zoom: float = 4.0
+    """The refiner works on a fixed box around the subject per sequence, magnified this many times over --scale (cut
+    from the full-resolution images); its change goes back into the delivered frames. 0: whole frames, padded to
+    multiples of 16."""
+    env_height: int = 16
+    """Camera-space envmap height (width = 2x)."""
+    train_length: int = 24
+    """Frames per training sequence (looping clips repeat)."""
+    test_length: int = 41
+    """Frames per test sequence (41 = three 17-frame windows)."""
+
+    def validate(self) -> None:
+        require_positive({"scale": self.scale, "train_length": self.train_length, "test_length": self.test_length})
+        if self.env_height < 4:
+            raise GraMiParameterError("env_height", f"must be >= 4 (lat-long rows), got {self.env_height}")
+        if self.zoom != 0 and not self.zoom >= 1:
+            raise GraMiParameterError("zoom", f"must be >= 1 (or 0: whole frames), got {self.zoom}")
+
+    def record(self) -> dict:
+        """The run's identity in provenance.json (zoom 0 is recorded as None, whole frames)."""
+        return {"scale": self.scale, "env_height": self.env_height, "train_length": self.train_length} | {
+            "test_length": self.test_length,
+            "zoom": self.zoom or None,
+        }
+
+
 def dataset_from_capture(
     capture_dir: str | Path,
     fit_dir: str | Path,
     out: str | Path,
+    *,
     relightnet_dir: str | Path | None = None,
-    scale: float = 0.5,
-    env_height: int = 16,
-    train_length: int = 24,
-    test_length: int = 41,
+    config: CaptureSequencesConfig | None = None,
     cache_dir: str | Path | None = None,
     overwrite: bool = False,
-    zoom: float | None = 4.0,
 ) -> RefinerDataset:
     """Sequences per camera: training cameras over the training frames, held-out cameras over the test frames.
 
     Coarse frames are RelightNet renders (``relightnet_dir``) or the microfacet render; targets are the captured images.
-    The capture's clips loop, so a sequence shorter than ``train_length``/``test_length`` is played again from its start.
-    ``scale``: capture images → the frames the refined video is delivered (and evaluated) at. ``zoom``: the refiner
-    sees a fixed box around the subject per sequence, magnified this many times over ``scale`` (the sequences then
-    also hold the whole frames, ``coarse_frame``/``target_frame``, and dataset.json each sequence's ``box``);
-    None: the whole frames, padded to multiples of 16.
+    The capture's clips loop, so a sequence shorter than its length is played again from its start. With a zoom, the
+    sequences also hold the whole frames (``coarse_frame``/``target_frame``) and dataset.json each sequence's ``box``.
     """
-    from gra_mi.capture.dataset import load_observation
     from gra_mi.core.progress import progress
-    from gra_mi.core.runtime import torch_device
-    from gra_mi.fit.fitted import fitted_relighter
-    from gra_mi.relightnet.infer import render_view
-    from gra_mi.render.runtime import ensure_mitsuba
-    from gra_mi.stage.envmap import leds_to_envmap, to_camera_space
-
-    ensure_mitsuba()
     from gra_mi.core.provenance import claim_output
+    from gra_mi.render.runtime import ensure_mitsuba
 
-    if zoom is not None and not zoom >= 1:
-        raise GraMiParameterError("zoom", f"must be >= 1 (or off), got {zoom}")
-    config = {"scale": scale, "env_height": env_height, "train_length": train_length, "test_length": test_length, "zoom": zoom}
-    inputs = {"capture": capture_dir, "fit": fit_dir, "relightnet": relightnet_dir}
+    config = config or CaptureSequencesConfig()
+    config.validate()
+    ensure_mitsuba()
     out = Path(out)
-    capture, relighter = fitted_relighter(capture_dir, fit_dir, cache_dir or out / "cache")
-    model = None
-    if relightnet_dir is not None:  # loaded and checked before the output folder is claimed
-        from gra_mi.relightnet.model import RelightNet
-
-        model = RelightNet.load(relightnet_dir, torch_device())
-        if model.config.resolution != relighter.albedo_tex.shape[0]:
-            raise GraMiInputError(
-                Path(relightnet_dir) / "relightnet.json",
-                f"RelightNet runs at {model.config.resolution}², the fit in {fit_dir} at {relighter.albedo_tex.shape[0]}²: "
-                "train RelightNet on this fit",
-                field="resolution",
-            )
-    claim_output(out, "refiner-data", inputs, config, overwrite=overwrite)
-    ls, stage = relighter.ls, relighter.ls.stage
-
-    def coarse_render(entry, cam):
-        return render_view(relighter, model, entry.frame, cam, capture.lighting(stage, entry)).image
-
-    def camera_env(entry, cam):
-        return to_camera_space(leds_to_envmap(stage, capture.lighting(stage, entry), env_height), stage.camera(cam), supersample=1)
-
-    uniform = next((f for f in capture.frames if f.split == "train" and f.kind == "uniform"), None)
-    if uniform is None:
-        raise GraMiInputError(capture.folder / "capture.json", "no uniformly lit training frame to serve as the neutral reference")
-    # Training sequences hold the relit frames only: the refiner never refines a uniformly lit tracking frame, and
-    # with them in, every other training frame is a flash that the 4-frame latents must mix with the relit ones.
-    relit = [f for f in capture.frames if f.split == "train" and f.kind != "uniform"]
-    if not relit:
-        raise GraMiInputError(capture.folder / "capture.json", "no relit (envmap or pattern) training frame to train the refiner on")
-    held_out = [f for f in capture.frames if f.split == "test"]
-    jobs = [("train", cam, relit, train_length) for cam in capture.train_cameras]
-    # The held-out lighting on the first training camera (RelightNet's "novel lighting" view): a continuous video
-    # that training never sees and the evaluation never scores, on which training chooses the refiner's mix.
-    jobs += [("selection", cam, held_out, test_length) for cam in capture.train_cameras[:1] if held_out]
-    jobs += [("test", cam, held_out, test_length) for cam in capture.eval_cameras]
-    raw: list[tuple[str, str, dict]] = []
-    for split, cam, entries, length in progress(jobs, description="refiner sequences"):
-        full = {  # capture resolution: the source of the crops
-            "coarse": [coarse_render(e, cam)[..., :3] for e in entries],
-            "target": [load_observation(capture, cam, e.frame) for e in entries],
-        }
-        full["reference"] = load_observation(capture, cam, uniform.frame)
-        unique = {k: [_resize_pad(v, scale)[0] for v in full[k]] for k in ("coarse", "target")}
-        unique["env"] = [camera_env(e, cam) for e in entries]
-        order = [i % len(entries) for i in range(max(length, len(entries)))]
-        seq = {k: np.stack([v[i] for i in order]) for k, v in unique.items()}
-        seq["reference"], crop = _resize_pad(full["reference"], scale)
-        seq["reference_env"] = camera_env(uniform, cam)
-        if zoom is not None:
-            alpha = np.stack([_resize_pad(t[..., 3:].repeat(3, -1), scale)[0][: crop[0], : crop[1], 0] for t in full["target"]])
-            seq["full"] = full | {"masks": (alpha > 0.5) | (seq["coarse"][: len(entries), : crop[0], : crop[1]].max(-1) > 0)}
-        raw.append((split, cam, seq, [entries[i].frame for i in order]))
-    boxes: dict[str, tuple[int, int, int, int]] = {}
-    if zoom is not None:  # one crop size for the whole dataset
-        size, found = subject_boxes([seq["full"]["masks"] for _, _, seq, _ in raw], zoom)
-        for (split, cam, seq, _), box in zip(raw, found, strict=True):
-            full = seq.pop("full")
-            boxes[f"{split}_{cam}"] = box
-            n = len(full["coarse"])
-            order = [i % n for i in range(len(seq["coarse"]))]
-            seq["coarse_frame"] = seq["coarse"][:, : crop[0], : crop[1]]
-            seq["target_frame"] = seq["target"][:, : crop[0], : crop[1]]
-            seq["coarse"] = crop_box(np.stack(full["coarse"]), box, scale, size)[order]
-            seq["target"] = crop_box(np.stack([t[..., :3] for t in full["target"]]), box, scale, size)[order]
-            seq["reference"] = crop_box(full["reference"][None, ..., :3], box, scale, size)[0]
-    targets = np.concatenate([s["target"].reshape(-1, 3) for _, _, s, _ in raw])
-    subject = targets[targets.max(axis=1) > 0]  # not the background
-    # the subject's median radiance to 0.25 (≈ mid-grey after sRGB), unless that clips more than 1 % of it: the
-    # refiner sees nothing above white (its highlights pass through from the input). Percentiles of the subject, not
-    # its maximum: robust to the path tracer's fireflies.
-    median, peak = float(np.median(subject.mean(axis=1))), float(np.quantile(subject.max(axis=1), 0.99))
-    exposure = min(0.25 / max(median, 1e-6), 1.0 / max(peak, 1e-6))
-    envs = np.concatenate([s["env"].reshape(-1, 3) for _, _, s, _ in raw])
-    env_exposure = 1.0 / max(float(envs.mean()), 1e-6)
-    entries = []
-    for split, cam, seq, capture_frames in raw:
-        name = f"{split}_{cam}"
-        entries.append(
-            {
-                "name": name,
-                "split": split,
-                "frames": len(seq["coarse"]),
-                "subject": f"capture:{capture.preset}",
-                "file": write_sequence(out, name, seq),
-                "camera": cam,
-                "capture_frames": capture_frames,  # the capture frame shown in each sequence frame (clips loop)
-                **({"box": list(boxes[name])} if boxes else {}),
-            }
-        )
+    capture, relighter, model = _coarse_stages(capture_dir, fit_dir, relightnet_dir, cache_dir or out / "cache")
+    inputs = {"capture": capture_dir, "fit": fit_dir, "relightnet": relightnet_dir}
+    claim_output(out, "refiner-data", inputs, config.record(), overwrite=overwrite)
+    uniform, jobs = _sequence_jobs(capture, config)
+    raw = [
+        (split, cam, *_capture_sequence(capture, relighter, model, cam, entries, length, uniform, config))
+        for split, cam, entries, length in progress(jobs, description="refiner sequences")
+    ]
+    crop = raw[0][3]
+    boxes = _zoom_to_subject(raw, config) if config.zoom else {}
+    entries = [_entry(split, cam, seq, frames, capture, out, boxes) for split, cam, seq, _, frames in raw]
     h, w = raw[0][2]["coarse"].shape[1:3]
+    exposure, env_exposure = _exposures([seq for _, _, seq, _, _ in raw])
     write_dataset_json(
         out,
         entries,
@@ -550,8 +490,123 @@ def dataset_from_capture(
         env_exposure,
         source=str(capture.folder),
         coarse="relightnet" if model is not None else "microfacet",
-        scale=scale,
-        fps=ls.sequence.fps,
-        **({"zoom": zoom, "frame": list(crop)} if boxes else {}),
+        scale=config.scale,
+        fps=relighter.ls.sequence.fps,
+        **({"zoom": config.zoom, "frame": list(crop)} if boxes else {}),
     )
     return RefinerDataset(out)
+
+
+def _coarse_stages(capture_dir, fit_dir, relightnet_dir, cache_dir):
+    """(capture, its fitted relighter, RelightNet or None), loaded and checked before the output folder is claimed."""
+    from gra_mi.core.runtime import torch_device
+    from gra_mi.fit.fitted import fitted_relighter
+
+    capture, relighter = fitted_relighter(capture_dir, fit_dir, cache_dir)
+    if relightnet_dir is None:
+        return capture, relighter, None
+    from gra_mi.relightnet.model import RelightNet
+
+    model = RelightNet.load(relightnet_dir, torch_device())
+    if model.config.resolution != relighter.albedo_tex.shape[0]:
+        raise GraMiInputError(
+            Path(relightnet_dir) / "relightnet.json",
+            f"RelightNet runs at {model.config.resolution}², the fit in {fit_dir} at {relighter.albedo_tex.shape[0]}²: "
+            "train RelightNet on this fit",
+            field="resolution",
+        )
+    return capture, relighter, model
+
+
+def _sequence_jobs(capture, config: CaptureSequencesConfig):
+    """(the neutral reference frame, [(split, camera, capture frames, length)])."""
+    uniform = next((f for f in capture.frames if f.split == "train" and f.kind == "uniform"), None)
+    if uniform is None:
+        raise GraMiInputError(capture.folder / "capture.json", "no uniformly lit training frame to serve as the neutral reference")
+    # Training sequences hold the relit frames only: the refiner never refines a uniformly lit tracking frame, and
+    # with them in, every other training frame is a flash that the 4-frame latents must mix with the relit ones.
+    relit = [f for f in capture.frames if f.split == "train" and f.kind != "uniform"]
+    if not relit:
+        raise GraMiInputError(capture.folder / "capture.json", "no relit (envmap or pattern) training frame to train the refiner on")
+    held_out = [f for f in capture.frames if f.split == "test"]
+    jobs = [("train", cam, relit, config.train_length) for cam in capture.train_cameras]
+    # The held-out lighting on the first training camera (RelightNet's "novel lighting" view): a continuous video
+    # that training never sees and the evaluation never scores, on which training chooses the refiner's mix.
+    jobs += [("selection", cam, held_out, config.test_length) for cam in capture.train_cameras[:1] if held_out]
+    jobs += [("test", cam, held_out, config.test_length) for cam in capture.eval_cameras]
+    return uniform, jobs
+
+
+def _capture_sequence(capture, relighter, model, cam: str, entries, length: int, uniform, config: CaptureSequencesConfig):
+    """(the sequence's arrays at the delivered scale, the frame's size before padding, the capture frame of each
+    sequence frame); with a zoom, also the full-resolution frames and subject masks the boxes are cut from."""
+    from gra_mi.capture.dataset import load_observation
+    from gra_mi.relightnet.infer import render_view
+    from gra_mi.stage.envmap import leds_to_envmap, to_camera_space
+
+    stage, scale = relighter.ls.stage, config.scale
+
+    def camera_env(entry):
+        lighting = leds_to_envmap(stage, capture.lighting(stage, entry), config.env_height)
+        return to_camera_space(lighting, stage.camera(cam), supersample=1)
+
+    full = {  # capture resolution: the source of the crops
+        "coarse": [render_view(relighter, model, e.frame, cam, capture.lighting(stage, e)).image[..., :3] for e in entries],
+        "target": [load_observation(capture, cam, e.frame) for e in entries],
+        "reference": load_observation(capture, cam, uniform.frame),
+    }
+    unique = {k: [_resize_pad(v, scale)[0] for v in full[k]] for k in ("coarse", "target")}
+    unique["env"] = [camera_env(e) for e in entries]
+    order = [i % len(entries) for i in range(max(length, len(entries)))]
+    seq = {k: np.stack([v[i] for i in order]) for k, v in unique.items()}
+    seq["reference"], crop = _resize_pad(full["reference"], scale)
+    seq["reference_env"] = camera_env(uniform)
+    if config.zoom:
+        alpha = np.stack([_resize_pad(t[..., 3:].repeat(3, -1), scale)[0][: crop[0], : crop[1], 0] for t in full["target"]])
+        seq["full"] = full | {"masks": (alpha > 0.5) | (seq["coarse"][: len(entries), : crop[0], : crop[1]].max(-1) > 0)}
+    return seq, crop, [entries[i].frame for i in order]
+
+
+def _zoom_to_subject(raw, config: CaptureSequencesConfig) -> dict[str, tuple[int, int, int, int]]:
+    """Cut every sequence to its box around the subject, one crop size for the whole dataset; the whole frames stay
+    as ``coarse_frame``/``target_frame``. Returns each sequence's box."""
+    scale, crop = config.scale, raw[0][3]
+    size, found = subject_boxes([seq["full"]["masks"] for _, _, seq, _, _ in raw], config.zoom)
+    boxes = {}
+    for (split, cam, seq, _, _), box in zip(raw, found, strict=True):
+        full = seq.pop("full")
+        boxes[f"{split}_{cam}"] = box
+        n = len(full["coarse"])
+        order = [i % n for i in range(len(seq["coarse"]))]
+        seq["coarse_frame"] = seq["coarse"][:, : crop[0], : crop[1]]
+        seq["target_frame"] = seq["target"][:, : crop[0], : crop[1]]
+        seq["coarse"] = crop_box(np.stack(full["coarse"]), box, scale, size)[order]
+        seq["target"] = crop_box(np.stack([t[..., :3] for t in full["target"]]), box, scale, size)[order]
+        seq["reference"] = crop_box(full["reference"][None, ..., :3], box, scale, size)[0]
+    return boxes
+
+
+def _exposures(sequences: list[dict]) -> tuple[float, float]:
+    """(image exposure, envmap exposure) of the whole dataset. The subject's median radiance goes to 0.25 (≈ mid-grey
+    after sRGB), unless that clips more than 1 % of it: the refiner sees nothing above white (its highlights pass
+    through from the input). Percentiles of the subject, not its maximum: robust to the path tracer's fireflies."""
+    targets = np.concatenate([s["target"].reshape(-1, 3) for s in sequences])
+    subject = targets[targets.max(axis=1) > 0]  # not the background
+    median, peak = float(np.median(subject.mean(axis=1))), float(np.quantile(subject.max(axis=1), 0.99))
+    envs = np.concatenate([s["env"].reshape(-1, 3) for s in sequences])
+    return min(0.25 / max(median, 1e-6), 1.0 / max(peak, 1e-6)), 1.0 / max(float(envs.mean()), 1e-6)
+
+
+def _entry(split: str, cam: str, seq: dict, capture_frames: list[int], capture, out: Path, boxes: dict) -> dict:
+    """Write one sequence; its dataset.json entry."""
+    name = f"{split}_{cam}"
+    return {
+        "name": name,
+        "split": split,
+        "frames": len(seq["coarse"]),
+        "subject": f"capture:{capture.preset}",
+        "file": write_sequence(out, name, seq),
+        "camera": cam,
+        "capture_frames": capture_frames,  # the capture frame shown in each sequence frame (clips loop)
+        **({"box": list(boxes[name])} if boxes else {}),
+    }

@@ -22,7 +22,7 @@ import json
 import logging
 import math
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +30,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from gra_mi.core.config import option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 
 logger = logging.getLogger(__name__)
@@ -70,9 +71,23 @@ LORA_TARGETS = r"blocks\.\d+\.(attn1|attn2)\.(to_q|to_k|to_v|to_out\.0)|blocks\.
 """Main DiT blocks only (the regex is matched against the whole module name, so ``vace_blocks.*`` is excluded)."""
 
 
+def parse_blocks(text: str) -> list[int] | None:
+    """``--env-blocks``: 'all' (None), 'none' ([]) or a comma list of block indices."""
+    import argparse
+
+    if text == "all":
+        return None
+    if text == "none":
+        return []
+    try:
+        return [int(b) for b in text.split(",") if b.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected 'all', 'none' or a comma list of block indices, got '{text}'") from None
+
+
 @dataclass
 class RefinerConfig:
-    size: str = "tiny"
+    size: str = field(default="tiny", metadata=option(choices=tuple(sorted(TRANSFORMER_CONFIGS))))
     """Model size. tiny: random weights, CPU. Real sizes (1.3B, 14B) need their weights."""
     weights: str | None = None
     """Real sizes: a local diffusers folder (with transformer/ and vae/) or an original-format .safetensors/.pth checkpoint
@@ -83,7 +98,7 @@ class RefinerConfig:
     """Real sizes: a .safetensors file with `prompt_embeds` (1, L, 4096) computed once by `gra-mi refiner-prompt`."""
     lora_rank: int = 32
     """LoRA rank on the main DiT blocks."""
-    env_blocks: list[int] | None = None
+    env_blocks: list[int] | None = field(default=None, metadata=option(parse=parse_blocks))
     """Main blocks followed by atemporal envmap cross-attention: 'all', 'none' or a comma list; default: all."""
     env_heads: int = 2
     env_mlp_hidden: int = 64
@@ -101,7 +116,7 @@ class RefinerConfig:
     prior: bool = True
     """The tiny size's DiT starts from the shipped prior, pretrained on another subject (pipelines/pretrain_tiny_refiner.py);
     off: from random weights."""
-    dtype: str = "float32"
+    dtype: str = field(default="float32", metadata=option(choices=("float32", "bfloat16")))
     """Transformer dtype (float32 or bfloat16; the VAE stays float32)."""
     mix: float = 1.0
     """The fraction of the refiner's change delivered: input + mix·(refined − input). Training chooses it on the

@@ -25,6 +25,8 @@ from gra_mi.core.errors import GraMiParameterError, require_positive
 
 @dataclass
 class PlatformConfig:
+    """The platform under a composite: a grey disc under the subject, path-traced under the envmap with its shadow."""
+
     radius: float = 0.6
     """Platform disc radius (m), centred under the subject's mean position over the sequence."""
     thickness: float = 0.06
@@ -38,6 +40,10 @@ class PlatformConfig:
         require_positive({"radius": self.radius, "thickness": self.thickness, "spp": self.spp})
         if not 0.0 <= self.reflectance <= 1.0:
             raise GraMiParameterError("reflectance", f"must be in [0, 1], got {self.reflectance}")
+
+
+PLATFORM_FLAGS = tuple((name, f"--platform-{name}") for name in ("radius", "thickness", "reflectance", "spp"))
+"""How a command that also has its own ``--spp`` spells the platform's options."""
 
 
 def _subject_mesh(vertices: np.ndarray, faces: np.ndarray):

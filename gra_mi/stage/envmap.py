@@ -17,12 +17,13 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from gra_mi.core.errors import GraMiInputError
+from gra_mi.core.config import option
+from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.stage.lightstage import Camera, Lightstage
 
 logger = logging.getLogger(__name__)
@@ -280,6 +281,31 @@ def load_envmap(
     # A counter-clockwise turn moves light from u to u - angle/360 (see :func:`rotate`), so out(u) = in(u + angle/360).
     shift = ENVMAP_CONVENTIONS[convention] + rotate_deg / 360.0
     return shift_longitude(image, shift) if shift % 1.0 else image
+
+
+@dataclass
+class EnvmapOptions:
+    """How the user's HDR maps are read (:func:`load_envmap`): the options every command that takes envmaps shares."""
+
+    envmap_convention: str = field(default="mitsuba", metadata=option(choices=tuple(sorted(ENVMAP_CONVENTIONS))))
+    """Which tool's lat-long layout the envmaps follow: mitsuba/gra-mi (image centre = +Z), blender/polyhaven or
+    threejs/gltf (centre = +X after the usual Y-up conversion); see docs/conventions.md."""
+    envmap_rotate: float = 0.0
+    """Turn the envmaps about the up axis by this many degrees (counter-clockwise seen from above)."""
+    envmap_height: int = DEFAULT_ENVMAP_HEIGHT
+    """Larger envmaps are downsampled to this many rows, flux kept, before the LED mapping."""
+    repair_envmap: bool = False
+    """Replace NaN/Inf envmap pixels (with a warning) instead of stopping. Negative pixels (lossy-compression ringing)
+    are always removed with the flux kept, with a warning."""
+
+    def validate(self) -> None:
+        if self.envmap_height < 2:
+            raise GraMiParameterError("envmap_height", f"must be >= 2, got {self.envmap_height}")
+        if not math.isfinite(self.envmap_rotate):
+            raise GraMiParameterError("envmap_rotate", f"must be a finite angle in degrees, got {self.envmap_rotate}")
+
+    def load(self, path: str | Path) -> np.ndarray:
+        return load_envmap(path, self.repair_envmap, self.envmap_convention, self.envmap_rotate, self.envmap_height)
 
 
 # --------------------------------------------------------------------------------------------------------------

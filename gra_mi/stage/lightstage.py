@@ -186,33 +186,53 @@ def camera_rings(
     return cameras
 
 
-def default_lightstage(
-    num_leds: int = 331,
-    radius: float = 2.0,
-    num_cameras: int = 40,
-    camera_distance: float = 1.8,
-    width: int = 1024,
-    height: int = 540,
-    center: tuple[float, float, float] = (0.0, 1.0, 0.0),
-    max_led_intensity: float = 4.0,
-) -> Lightstage:
-    """The default rig: LEDs evenly over a sphere (Fibonacci spiral), cameras on four rings."""
-    require_positive(
-        {"num_leds": num_leds, "num_cameras": num_cameras, "width": width, "height": height}
-        | {"radius": radius, "camera_distance": camera_distance, "max_led_intensity": max_led_intensity}
-    )
-    if camera_distance >= radius:
-        raise GraMiInputError("rig", f"cameras ({camera_distance} m) must stand inside the LED sphere ({radius} m)")
-    c = np.asarray(center, dtype=np.float64)
-    directions = fibonacci_sphere(num_leds)
-    return Lightstage(
-        led_positions=c + radius * directions,
-        led_normals=-directions,
-        cameras=camera_rings(num_cameras, camera_distance, target=c - np.array([0.0, 0.1, 0.0]), width=width, height=height),
-        center=c,
-        radius=radius,
-        max_led_intensity=max_led_intensity,
-    )
+@dataclass(kw_only=True)
+class RigLayout:
+    """The default rig's layout (:func:`default_lightstage`)."""
+
+    num_leds: int = 331
+    """LEDs spread evenly over the sphere (Fibonacci spiral)."""
+    radius: float = 2.0
+    """LED sphere radius in metres."""
+    num_cameras: int = 40
+    """Cameras on four rings at several heights."""
+    camera_distance: float = 1.8
+    """Camera distance from the stage centre in metres."""
+    width: int = 1024
+    """Image width in pixels."""
+    height: int = 540
+    """Image height in pixels."""
+    max_led_intensity: float = 4.0
+    """Radiant intensity (W/sr) of a fully driven LED; envmaps are normalised to it."""
+    center: tuple[float, float, float] = (0.0, 1.0, 0.0)
+    """The stage centre (metres, Y up): the sphere's centre; cameras aim 10 cm below it."""
+
+    def validate(self) -> None:
+        require_positive(
+            {"num_leds": self.num_leds, "num_cameras": self.num_cameras, "width": self.width, "height": self.height}
+            | {"radius": self.radius, "camera_distance": self.camera_distance, "max_led_intensity": self.max_led_intensity}
+        )
+        if self.camera_distance >= self.radius:
+            raise GraMiInputError("rig", f"cameras ({self.camera_distance} m) must stand inside the LED sphere ({self.radius} m)")
+
+    def build(self) -> Lightstage:
+        self.validate()
+        c = np.asarray(self.center, dtype=np.float64)
+        directions = fibonacci_sphere(self.num_leds)
+        target = c - np.array([0.0, 0.1, 0.0])
+        return Lightstage(
+            led_positions=c + self.radius * directions,
+            led_normals=-directions,
+            cameras=camera_rings(self.num_cameras, self.camera_distance, target=target, width=self.width, height=self.height),
+            center=c,
+            radius=self.radius,
+            max_led_intensity=self.max_led_intensity,
+        )
+
+
+def default_lightstage(**layout) -> Lightstage:
+    """The default rig: LEDs evenly over a sphere (Fibonacci spiral), cameras on four rings (keywords: :class:`RigLayout`)."""
+    return RigLayout(**layout).build()
 
 
 # --------------------------------------------------------------------------------------------------------------

@@ -18,7 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from gra_mi.core.errors import GraMiInputError, GraMiParameterError
+from gra_mi.core.config import option
+from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_seed
 from gra_mi.core.io import atomic_write_text
 from gra_mi.stage import scene_keys as keys
 from gra_mi.stage.envmap import LedLighting, envmap_to_leds
@@ -352,26 +353,41 @@ def composite_over(render_rgba: np.ndarray, plate: np.ndarray) -> np.ndarray:
     return render_rgba[..., :3] + (1.0 - alpha) * plate
 
 
+@dataclass(kw_only=True)
+class RenderConfig:
+    """One view with a stock Mitsuba integrator (:func:`render_to_folder`)."""
+
+    frame: int = 0
+    """Frame of the subject sequence."""
+    camera: str = "0"
+    """Camera index or name."""
+    integrator: str = field(default="direct", metadata=option(choices=("direct", "path")))
+    """Mitsuba integrator."""
+    spp: int = 64
+    """Samples per pixel (the low-discrepancy sampler rounds up to a power of 4)."""
+    seed: int = 0
+    """Sampler seed."""
+    background: bool = False
+    """Also write a preview composited over the envmap's background plate."""
+
+    def validate(self) -> None:
+        if self.spp < 1:
+            raise GraMiParameterError("spp", f"must be >= 1, got {self.spp}")
+        if self.integrator not in ("direct", "path"):
+            raise GraMiParameterError("integrator", f"expected 'direct' or 'path', got {self.integrator!r}")
+        require_seed(self.seed)
+
+
 def render_to_folder(
-    scene_path: str | Path,
-    out: str | Path,
-    frame: int,
-    camera: int | str,
-    light_name: str,
-    envmap: np.ndarray | None = None,
-    drive=None,
-    integrator: str = "direct",
-    spp: int = 64,
-    seed: int = 0,
-    background: bool = False,
+    *, scene_path: str | Path, out: str | Path, light_name: str, config: RenderConfig, envmap: np.ndarray | None = None, drive=None
 ) -> Path:
     """``gra-mi render``: one view with a stock Mitsuba integrator, lit by ``envmap`` or by ``drive(stage)`` (LED drive
     values), as ``out/CAMERA_fFRAME_LIGHT.{exr,png}`` (+ ``_composite.png`` over the envmap's plate). Returns the stem."""
     from gra_mi.core.io import write_exr, write_png
     from gra_mi.stage.envmap import stage_background_plate
 
-    ls = LightstageScene.load(scene_path, frame=frame)
-    cam = ls.stage.camera(camera)
+    ls = LightstageScene.load(scene_path, frame=config.frame)
+    cam = ls.stage.camera(config.camera)
     if envmap is not None:
         intensities = ls.set_envmap(envmap).radiant_intensity(ls.stage)
     else:
@@ -380,11 +396,11 @@ def render_to_folder(
         intensities = validate_pattern(ls.stage, pattern) * ls.stage.gains
     for warning in lighting_warnings(ls, intensities):
         logger.warning("%s: %s", light_name, warning)
-    image = render(ls, cam.name, integrator, spp, seed)
-    stem = Path(out) / f"{cam.name}_f{frame:04d}_{light_name}"
+    image = render(ls, cam.name, config.integrator, config.spp, config.seed)
+    stem = Path(out) / f"{cam.name}_f{config.frame:04d}_{light_name}"
     write_exr(stem.with_suffix(".exr"), image)
     write_png(stem.with_suffix(".png"), image, exposure=None)
-    if background and envmap is not None:
+    if config.background and envmap is not None:
         composite = composite_over(image, stage_background_plate(envmap, cam, ls.stage))
         write_png(stem.with_name(stem.name + "_composite.png"), composite, exposure=None)
     return stem

@@ -1,0 +1,193 @@
+"""Commands that build the stage and its data: ``rig``, ``envmaps``, ``subject``, ``scene``, ``render``, ``capture``."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from gra_mi.capture.synthetic import CaptureConfig
+from gra_mi.cli.options import CommandConfig, Restartable
+from gra_mi.core.config import comma_list, option
+from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive
+from gra_mi.stage.envmap import EnvmapOptions
+from gra_mi.stage.lightstage import RigLayout
+from gra_mi.stage.scene import RenderConfig
+from gra_mi.subject.anny_body import MOTION_CLIPS
+
+RIG_OPTIONS = ("num_leds", "radius", "num_cameras", "camera_distance", "width", "height", "max_led_intensity")
+
+
+@dataclass(kw_only=True)
+class RigCommand(CommandConfig):
+    out: Path
+    """Folder to write the rig into."""
+    from_calibration: Path | None = None
+    """Make the XML from an existing calibration JSON instead of the default layout."""
+    layout: RigLayout = field(default_factory=RigLayout, metadata=option(fields=RIG_OPTIONS))
+
+
+def run_rig(c: RigCommand) -> None:
+    from gra_mi.stage.lightstage import load_calibration
+    from gra_mi.stage.scene import write_rig
+
+    stage = load_calibration(c.from_calibration) if c.from_calibration else c.layout.build()
+    folder = write_rig(stage, c.out)
+    print(f"wrote rig with {stage.num_leds} LEDs and {len(stage.cameras)} cameras to {folder}")
+
+
+@dataclass(kw_only=True)
+class EnvmapsCommand(CommandConfig):
+    out: Path
+    """Folder; maps go to OUT/train and OUT/test."""
+    train: int = 16
+    """Number of training envmaps."""
+    test: int = 4
+    """Number of held-out test envmaps (disjoint seeds)."""
+    height: int = 128
+    """Lat-long height in pixels (width = 2x)."""
+
+    def validate(self) -> None:
+        for split in ("train", "test"):
+            if getattr(self, split) < 0:
+                raise GraMiParameterError(split, "must be >= 0")
+        if self.height < 4:
+            raise GraMiParameterError("height", f"must be >= 4 (lat-long rows), got {self.height}")
+
+
+def run_envmaps(c: EnvmapsCommand) -> None:
+    from gra_mi.stage.envmap_library import write_envmap_set
+
+    for split, count in (("train", c.train), ("test", c.test)):
+        paths = write_envmap_set(c.out, split, count, c.height)
+        print(f"{split}: {len(paths)} envmaps in {c.out / split}")
+
+
+def _clips(text: str) -> list[str]:
+    import argparse
+
+    clips = comma_list(text)
+    unknown = [name for name in clips if name not in MOTION_CLIPS]
+    if unknown or not clips:
+        raise argparse.ArgumentTypeError(f"unknown clip(s) {unknown}; choose from {sorted(MOTION_CLIPS)}")
+    return clips
+
+
+@dataclass(kw_only=True)
+class SubjectCommand(CommandConfig):
+    out: Path
+    """Folder to write the sequence into."""
+    kind: str = field(default="anny", metadata=option(choices=("anny", "tiny")))
+    """anny: the MakeHuman-based body; tiny: a ~450-triangle procedural subject for tests."""
+    clips: list[str] = field(default_factory=lambda: ["walk", "arm_raise", "turn", "squat"], metadata=option(parse=_clips))
+    """Comma-separated motion clips for anny (walk, arm_raise, turn, squat), played in order."""
+    frames_per_clip: int | None = None
+    """Frames per clip loop (default: each clip's own, 24-48)."""
+    frames: int = 8
+    """Frames for --kind tiny."""
+
+    def validate(self) -> None:
+        require_positive({"frames": self.frames})
+        if self.frames_per_clip is not None:
+            require_positive({"frames_per_clip": self.frames_per_clip})
+
+
+def run_subject(c: SubjectCommand) -> None:
+    from gra_mi.subject.sequence import save_sequence, tiny_subject
+
+    if c.kind == "tiny":
+        seq = tiny_subject(c.frames)
+    else:
+        from gra_mi.subject.anny_body import anny_sequence
+
+        seq = anny_sequence(c.clips, c.frames_per_clip)
+    save_sequence(seq, c.out)
+    print(f"wrote {seq.num_frames} frames, {seq.num_vertices} vertices, {len(seq.faces)} triangles to {c.out}")
+
+
+@dataclass(kw_only=True)
+class SceneCommand(CommandConfig):
+    out: Path
+    """Scene XML file to write."""
+    rig: Path
+    """Rig folder (from `gra-mi rig`)."""
+    subject: Path
+    """Sequence folder (from `gra-mi subject`)."""
+    spp: int = 64
+    """Default samples per pixel written into the scene."""
+
+
+def run_scene(c: SceneCommand) -> None:
+    from gra_mi.stage.scene import write_scene_file
+
+    print(f"wrote {write_scene_file(c.out, c.rig, c.subject, c.spp)}")
+
+
+@dataclass(kw_only=True)
+class RenderCommand(CommandConfig):
+    scene: Path = field(metadata=option(positional=True))
+    """Scene XML (e.g. scenes/tiny_lightstage.xml)."""
+    envmap: Path | None = None
+    """Lat-long HDR map (OpenEXR or Radiance .hdr) mapped onto the LEDs (one of --envmap, --olat, --pattern)."""
+    olat: int | None = None
+    """Light one LED (index) at the stage maximum."""
+    pattern: Path | None = None
+    """LED drive values: JSON {"intensities": [[r,g,b],...]} or .npy of shape (L,) or (L,3)."""
+    render: RenderConfig = field(default_factory=RenderConfig)
+    envmaps: EnvmapOptions = field(default_factory=EnvmapOptions)
+    out: Path = Path("outputs/render")
+    """Output folder."""
+
+    def validate(self) -> None:
+        given = [name for name in ("envmap", "olat", "pattern") if getattr(self, name) is not None]
+        if len(given) != 1:
+            raise GraMiInputError("lighting", f"give exactly one of --envmap, --olat or --pattern (got {len(given)})")
+        super().validate()
+
+
+def run_render(c: RenderCommand) -> None:
+    from gra_mi.stage.lightstage import load_pattern, olat_pattern
+    from gra_mi.stage.scene import render_to_folder
+
+    if c.envmap is not None:
+        light, envmap, drive = c.envmap.stem, c.envmaps.load(c.envmap), None
+    elif c.olat is not None:
+        light, envmap, drive = f"olat{c.olat:03d}", None, lambda stage: olat_pattern(stage, c.olat)
+    else:
+        light, envmap, drive = c.pattern.stem, None, lambda stage: load_pattern(stage, c.pattern)
+    stem = render_to_folder(scene_path=c.scene, out=c.out, light_name=light, config=c.render, envmap=envmap, drive=drive)
+    print(f"wrote {stem}.exr")
+
+
+@dataclass(kw_only=True)
+class CaptureCommand(Restartable):
+    out: Path
+    """Capture folder (layout: docs/data-format.md). Rerunning resumes."""
+    capture: CaptureConfig = field(default_factory=CaptureConfig)
+    test_envmap: list[Path] = field(default_factory=list, metadata=option(repeat=True))
+    """Your own HDR map (OpenEXR or .hdr) as held-out test lighting, in place of a procedural one (repeatable)."""
+    envmaps: EnvmapOptions = field(default_factory=EnvmapOptions)
+
+    def validate(self) -> None:
+        super().validate()
+        stems = [path.stem for path in self.test_envmap]
+        if len(set(stems)) != len(stems):
+            raise GraMiParameterError("test_envmap", f"two maps share a name ({stems}); the capture stores them by name")
+
+
+def run_capture(c: CaptureCommand) -> None:
+    from gra_mi.capture.synthetic import generate_capture
+
+    test_envmaps = {path.stem: c.envmaps.load(path) for path in c.test_envmap}
+    capture = generate_capture(c.out, c.capture, test_envmaps=test_envmaps, overwrite=c.overwrite)
+    n = len(capture.frames) * (len(capture.train_cameras) + len(capture.eval_cameras))
+    print(f"wrote {n} images of {len(capture.frames)} frames to {c.out}")
+
+
+COMMANDS = {
+    "rig": (RigCommand, run_rig),
+    "envmaps": (EnvmapsCommand, run_envmaps),
+    "subject": (SubjectCommand, run_subject),
+    "scene": (SceneCommand, run_scene),
+    "render": (RenderCommand, run_render),
+    "capture": (CaptureCommand, run_capture),
+}

@@ -1,0 +1,186 @@
+"""Commands on the physics-based texture: ``fit``, ``edit-texture``, ``export-gltf``, ``relight``, ``eval-lighting``."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from gra_mi.apps.relight import RelightConfig
+from gra_mi.cli.options import CommandConfig, Restartable
+from gra_mi.core.config import option
+from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive
+from gra_mi.eval.lighting import EnvmapAccuracyConfig
+from gra_mi.fit.materials import FitConfig
+from gra_mi.render.composite import PLATFORM_FLAGS, PlatformConfig
+from gra_mi.stage.envmap import EnvmapOptions
+
+
+@dataclass(kw_only=True)
+class FitCommand(Restartable):
+    capture: Path = field(metadata=option(positional=True))
+    """Capture folder (from `gra-mi capture` or converted real data)."""
+    out: Path = Path("outputs/fit")
+    """Output folder; holds a checkpoint, so rerunning resumes."""
+    fit: FitConfig = field(default_factory=FitConfig)
+
+
+def run_fit(c: FitCommand) -> None:
+    from gra_mi.fit.materials import run_fit as fit
+
+    _, report = fit(c.capture, c.out, c.fit, c.overwrite)
+    print(f"done: open {report}")
+
+
+@dataclass(kw_only=True)
+class EditTextureCommand(CommandConfig):
+    albedo: Path
+    """Albedo UV texture to edit (square RGB EXR, e.g. from `gra-mi fit`)."""
+    image: Path | None = None
+    """Edit layer (PNG in sRGB, or EXR in linear), RGB or RGBA: alpha says where it applies."""
+    mask: Path | None = None
+    """UV mask (PNG or EXR, single channel in [0,1]) for --color."""
+    color: str | None = None
+    """Linear RGB albedo r,g,b in [0,1] painted where --mask is set."""
+    opacity: float = 1.0
+    """Strength of the edit in [0, 1]."""
+    out: Path
+    """Edited albedo EXR to write (a PNG preview is written beside it)."""
+
+    def validate(self) -> None:
+        if self.image is None and (self.mask is None or self.color is None):
+            raise GraMiInputError("edit-texture", "give --image, or --mask with --color")
+
+
+def run_edit_texture(c: EditTextureCommand) -> None:
+    from gra_mi.apps.texture_edit import edit_albedo_file, parse_color
+
+    color = parse_color(c.color) if c.color is not None else None
+    edit_albedo_file(c.albedo, c.out, c.image, c.mask, color, c.opacity)
+    print(f"wrote {c.out}; re-render with: gra-mi relight SCENE --albedo {c.out} ...")
+
+
+@dataclass(kw_only=True)
+class ExportGltfCommand(CommandConfig):
+    subject: Path
+    """Tracked mesh sequence folder (e.g. CAPTURE/subject)."""
+    albedo: Path
+    """Albedo UV texture (EXR), e.g. from `gra-mi fit`."""
+    roughness: Path
+    """Roughness UV texture (EXR), e.g. from `gra-mi fit`."""
+    frames: int | None = None
+    """Frames to include as morph targets (default: all)."""
+    out: Path
+    """The .glb file to write."""
+
+    def validate(self) -> None:
+        if self.frames is not None:
+            require_positive({"frames": self.frames})
+
+
+def run_export_gltf(c: ExportGltfCommand) -> None:
+    from gra_mi.apps.gltf import export_glb
+    from gra_mi.render.relighter import load_texture
+    from gra_mi.subject.sequence import load_sequence
+
+    albedo, roughness = load_texture(c.albedo, 3, "albedo"), load_texture(c.roughness, 1, "roughness")
+    print(f"wrote {export_glb(c.out, load_sequence(c.subject), albedo, roughness, c.frames)}")
+
+
+@dataclass(kw_only=True)
+class RelightCommand(CommandConfig):
+    scene: Path = field(metadata=option(positional=True))
+    """Lightstage scene XML (e.g. scenes/tiny_lightstage.xml)."""
+    frames: str = "all"
+    """Frames: 'all', 'A:B' (B excluded) or a comma list."""
+    cameras: str = "0"
+    """Cameras: 'all' or a comma list of indices or names."""
+    envmap: list[Path] = field(default_factory=list, metadata=option(repeat=True))
+    """Lat-long HDR map (OpenEXR or Radiance .hdr) mapped onto the LEDs (repeatable)."""
+    olat: list[int] = field(default_factory=list, metadata=option(repeat=True))
+    """Light one LED (index) at the stage maximum (repeatable)."""
+    pattern: list[Path] = field(default_factory=list, metadata=option(repeat=True))
+    """LED drive values, JSON or .npy (repeatable; see docs/data-format.md)."""
+    point_light: str | None = field(default=None, metadata=option(metavar="X,Y,Z"))
+    """A near-field point light at X,Y,Z metres (LEDs off); also writes its envmap conditioning."""
+    point_light_intensity: float = 2.0
+    """Radiant intensity of the point light in W/sr."""
+    point_light_radius: float = 0.03
+    """Radius of the point light's sphere in metres (soft shadows)."""
+    relightnet: Path | None = None
+    """Folder with relightnet.safetensors + relightnet.json (from `gra-mi train-relightnet`)."""
+    albedo: Path | None = None
+    """Albedo UV texture (square RGB EXR in [0,1]). Default: the subject's vertex colours baked to UV."""
+    roughness: Path | None = None
+    """Roughness UV texture (square single-channel EXR in [0,1]). Default: 0.5 everywhere."""
+    vis_cache: Path | None = None
+    """Folder to keep per-frame visibility in (reused across runs). Default: memory only."""
+    relight: RelightConfig = field(default_factory=RelightConfig)
+    envmaps: EnvmapOptions = field(default_factory=EnvmapOptions)
+    platform: PlatformConfig = field(default_factory=PlatformConfig, metadata=option(renames=PLATFORM_FLAGS))
+    out: Path = Path("outputs/relight")
+    """Output folder."""
+
+    def validate(self) -> None:
+        if not (self.envmap or self.olat or self.pattern or self.point_light):
+            raise GraMiInputError("lighting", "give at least one --envmap, --olat, --pattern or --point-light")
+        super().validate()
+        for name, paths in (("envmap", self.envmap), ("pattern", self.pattern)):
+            stems = [p.stem for p in paths]
+            if twice := sorted({s for s in stems if stems.count(s) > 1}):
+                raise GraMiParameterError(name, f"two files named '{twice[0]}' would write to one folder {self.out / twice[0]}; rename one")
+
+
+def run_relight(c: RelightCommand) -> None:
+    from gra_mi.apps.relight import SubjectMaps, collect_lights, relight_batch, select
+    from gra_mi.render.point_light import parse_point_light
+    from gra_mi.render.relighter import load_texture
+    from gra_mi.stage.lightstage import load_pattern
+    from gra_mi.stage.scene import LightstageScene
+
+    point_light = parse_point_light(c.point_light, c.point_light_intensity, c.point_light_radius) if c.point_light else None
+    envmaps = {p.stem: c.envmaps.load(p) for p in c.envmap}
+    maps = SubjectMaps(
+        albedo=load_texture(c.albedo, 3, "albedo") if c.albedo else None,
+        roughness=load_texture(c.roughness, 1, "roughness") if c.roughness else None,
+        relightnet=c.relightnet,
+        vis_cache=c.vis_cache,
+    )
+    ls = LightstageScene.load(c.scene)
+    lights = collect_lights(ls.stage, envmaps, c.olat, {p.stem: load_pattern(ls.stage, p) for p in c.pattern}, point_light)
+    frames = select(c.frames, ls.sequence.num_frames, "frames", integers=True)
+    cameras = select(c.cameras, len(ls.stage.cameras), "cameras")
+    summary = relight_batch(ls, c.out, lights, frames=frames, cameras=cameras, config=c.relight, maps=maps, platform=c.platform)
+    print(
+        f"wrote {summary.renders} renders to {summary.out} (visibility traced {summary.visibility_traced} time(s), once per "
+        f"frame and lighting model; reused {summary.visibility_reused} times)"
+    )
+
+
+@dataclass(kw_only=True)
+class EvalLightingCommand(CommandConfig):
+    capture: Path = field(metadata=option(positional=True))
+    """Capture folder made by `gra-mi capture` (its scene_gt.xml holds the true materials)."""
+    fit: Path
+    """Fit folder (albedo.exr, roughness.exr from `gra-mi fit`)."""
+    relightnet: Path | None = None
+    """A trained RelightNet folder: also score RelightNet on the far-field render."""
+    accuracy: EnvmapAccuracyConfig = field(default_factory=EnvmapAccuracyConfig)
+    out: Path = Path("outputs/lighting")
+    """Output folder."""
+
+
+def run_eval_lighting(c: EvalLightingCommand) -> None:
+    from gra_mi.eval.lighting import envmap_accuracy
+
+    envmap_accuracy(c.capture, c.fit, c.out, c.relightnet, c.accuracy)
+    print((c.out / "accuracy.md").read_text())
+    print(f"done: open {c.out / 'accuracy.md'}")
+
+
+COMMANDS = {
+    "fit": (FitCommand, run_fit),
+    "edit-texture": (EditTextureCommand, run_edit_texture),
+    "export-gltf": (ExportGltfCommand, run_export_gltf),
+    "relight": (RelightCommand, run_relight),
+    "eval-lighting": (EvalLightingCommand, run_eval_lighting),
+}

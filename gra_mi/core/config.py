@@ -1,0 +1,67 @@
+"""Configs: dataclasses whose fields carry their help as a docstring right under them (as in nerfstudio), and, where
+the command line spells them differently, an :func:`option` in their metadata. ``gra_mi.cli`` builds every command's
+options from these, so a default, its help and its spelling are written once, next to the code that uses them."""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+import inspect
+import textwrap
+from collections.abc import Callable
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Option:
+    """How a config field appears on the command line (the defaults: ``--field-name``, typed from its annotation)."""
+
+    flag: str | None = None
+    """The option's name where it is not ``--field-name`` (``--uv-resolution``)."""
+    positional: bool = False
+    """An argument without a flag (an input folder); optional when the field has a default."""
+    parse: Callable[[str], object] | None = None
+    """Turns the typed text into the value (comma lists, 'all'); raise ``argparse.ArgumentTypeError`` to refuse."""
+    choices: tuple | None = None
+    """The values allowed (shown in --help)."""
+    repeat: bool = False
+    """A list field whose option may be given several times, each adding one item."""
+    metavar: str | None = None
+    """The placeholder shown in --help (``X,Y,Z``)."""
+    fields: tuple[str, ...] | None = None
+    """For a nested config: which of its fields are options (default: all of them)."""
+    renames: tuple[tuple[str, str], ...] = ()
+    """For a nested config: (field, flag) pairs for its fields spelled differently here (``radius`` → ``--platform-radius``)."""
+
+
+def option(**spelling) -> dict:
+    """Field metadata: ``field(default=…, metadata=option(flag="--uv-resolution"))``."""
+    return {"option": Option(**spelling)}
+
+
+def option_of(f: dataclasses.Field) -> Option:
+    return f.metadata.get("option", Option())
+
+
+def field_help(cls) -> dict[str, str]:
+    """The docstring under each field of a dataclass, whitespace collapsed (fields without one are left out)."""
+    docs: dict[str, str] = {}
+    for klass in reversed(cls.__mro__):
+        if not dataclasses.is_dataclass(klass):
+            continue
+        body = ast.parse(textwrap.dedent(inspect.getsource(klass))).body[0].body
+        for node, after in zip(body, body[1:], strict=False):
+            if (
+                isinstance(node, ast.AnnAssign)
+                and isinstance(node.target, ast.Name)
+                and isinstance(after, ast.Expr)
+                and isinstance(after.value, ast.Constant)
+                and isinstance(after.value.value, str)
+            ):
+                docs[node.target.id] = " ".join(after.value.value.split())
+    return docs
+
+
+def comma_list(text: str) -> list[str]:
+    """``a, b,c`` → ``["a", "b", "c"]`` (empty items dropped): the parser of list-valued options."""
+    return [t.strip() for t in text.split(",") if t.strip()]
