@@ -26,8 +26,9 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from gra_mi.refiner.config import RefinerConfig
 from gra_mi.refiner.data import RefinerDataset, synthetic_dataset
-from gra_mi.refiner.model import RefinerConfig, VideoRefiner, parameter_counts
+from gra_mi.refiner.model import VideoRefiner, parameter_counts
 from gra_mi.refiner.train import ErrorBank, RefinerTrainConfig, encode_window, flow_matching_loss
 
 
@@ -77,9 +78,11 @@ def real_window(
     from diffusers import AutoencoderKLWan, WanVACETransformer3DModel
     from safetensors.torch import save_file
 
+    from gra_mi.refiner.conditioning import conditioning, seed_mask
+    from gra_mi.refiner.config import TRANSFORMER_CONFIGS
     from gra_mi.refiner.flow import euler_sample
     from gra_mi.refiner.infer import rollout
-    from gra_mi.refiner.model import TRANSFORMER_CONFIGS, cast_transformer, conditioning, default_dtype, seed_mask
+    from gra_mi.refiner.loading import cast_transformer, default_dtype
 
     cuda = device == "cuda"
 

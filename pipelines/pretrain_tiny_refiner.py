@@ -82,7 +82,7 @@ def main() -> None:
         "--init", type=Path, default=None, help="Continue from this training folder (a refiner folder) instead of random weights."
     )
     args = parser.parse_args()
-    from gra_mi.refiner.model import RefinerConfig
+    from gra_mi.refiner.config import RefinerConfig
     from gra_mi.refiner.train import RefinerTrainConfig, train_refiner
 
     t0 = time.perf_counter()

@@ -1,7 +1,7 @@
 """Pretrain the tiny AutoencoderKLWan that stands in for Wan2.1's VAE on CPU (gra_mi/data/tiny_vae.safetensors).
 
 The refiner's tiny configuration needs a VAE that actually reconstructs (a random one decodes noise), as the real
-sizes have Wan2.1's pretrained VAE. This script trains the tiny config (gra_mi.refiner.model.VAE_CONFIGS: 4× in space, 4× in time, 16 channels) as a
+sizes have Wan2.1's pretrained VAE. This script trains the tiny config (gra_mi.refiner.config.VAE_CONFIGS: 4× in space, 4× in time, 16 channels) as a
 plain autoencoder (MSE on the posterior mean, which is what the refiner encodes with, plus the same error after 4×
 area averaging) on 5-frame clips (two latent frames: the causal first frame and one 4-frame group) of: procedural
 textured balls under changing light (gra_mi.refiner.data.synthetic_sequence), smooth random colour fields with
@@ -144,7 +144,7 @@ def main() -> None:
         parser.error(f"--steps must be >= 0 and --eval-every >= 1, got {args.steps} and {args.eval_every}")
     from safetensors.torch import load_file, save_file
 
-    from gra_mi.refiner.model import VAE_CONFIGS
+    from gra_mi.refiner.config import VAE_CONFIGS
     from gra_mi.refiner.tiny_vae import TinyVideoAutoencoder
 
     torch.manual_seed(args.seed)

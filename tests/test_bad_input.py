@@ -900,18 +900,24 @@ def test_output_path_that_is_a_file(inputs, capsys, llvm_variant):
 
 @pytest.mark.parametrize("damage", ["truncated", "missing"])
 @pytest.mark.parametrize(
-    ("attribute", "script"), [("TINY_VAE_WEIGHTS", "pretrain_tiny_vae.py"), ("TINY_PRIOR_WEIGHTS", "pretrain_tiny_refiner.py")]
+    ("attribute", "script"),
+    [("loading.TINY_VAE_WEIGHTS", "pretrain_tiny_vae.py"), ("model.TINY_PRIOR_WEIGHTS", "pretrain_tiny_refiner.py")],
 )
 def test_shipped_weights_damaged_say_how_to_rebuild(damage, attribute, script, tmp_path, monkeypatch):
     """The tiny VAE and the tiny refiner prior shipped in gra_mi/data: a damaged or missing file is named with the
     script that rebuilds it."""
-    import gra_mi.refiner.model as refiner_model
-    from gra_mi.core.errors import GraMiInputError
+    import importlib
 
-    weights = tmp_path / getattr(refiner_model, attribute).name
+    from gra_mi.core.errors import GraMiInputError
+    from gra_mi.refiner.config import RefinerConfig
+    from gra_mi.refiner.model import VideoRefiner
+
+    module_name, attribute = attribute.split(".")  # the module that reads the file
+    module = importlib.import_module(f"gra_mi.refiner.{module_name}")
+    weights = tmp_path / getattr(module, attribute).name
     if damage == "truncated":
-        weights.write_bytes(getattr(refiner_model, attribute).read_bytes()[:1000])
-    monkeypatch.setattr(refiner_model, attribute, weights)
+        weights.write_bytes(getattr(module, attribute).read_bytes()[:1000])
+    monkeypatch.setattr(module, attribute, weights)
     with pytest.raises(GraMiInputError, match=script) as error:
-        refiner_model.VideoRefiner(refiner_model.RefinerConfig())
+        VideoRefiner(RefinerConfig())
     assert str(weights) in str(error.value)

@@ -136,7 +136,7 @@ def test_adam_fit_resumes_where_it_stopped(onebounce_capture, tmp_path, monkeypa
     config = FitConfig(roughness_candidates=5, irls_iterations=1, iterations=20)
     whole = MaterialFitter(capture, config).fit(tmp_path / "whole")
 
-    step = optimize.Adam.step
+    step = optimize.MapOptimizer.step
     calls = {"n": 0}
 
     def interrupted(self, *args):
@@ -145,10 +145,10 @@ def test_adam_fit_resumes_where_it_stopped(onebounce_capture, tmp_path, monkeypa
             raise KeyboardInterrupt
         return step(self, *args)
 
-    monkeypatch.setattr(optimize.Adam, "step", interrupted)
+    monkeypatch.setattr(optimize.MapOptimizer, "step", interrupted)
     with pytest.raises(KeyboardInterrupt):
         MaterialFitter(capture, config).fit(tmp_path / "resumed")
-    monkeypatch.setattr(optimize.Adam, "step", step)
+    monkeypatch.setattr(optimize.MapOptimizer, "step", step)
     resumed = MaterialFitter(capture, config).fit(tmp_path / "resumed")
     # Within the fit's run-to-run spread (thread-order gradient sums; two uninterrupted runs differ as much)
     np.testing.assert_allclose(resumed.albedo, whole.albedo, atol=RUN_TO_RUN)

@@ -10,9 +10,11 @@ import pytest
 import torch
 
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
+from gra_mi.refiner.conditioning import latent_frames
+from gra_mi.refiner.config import TRANSFORMER_CONFIGS, RefinerConfig
 from gra_mi.refiner.data import RefinerDataset, env_to_video, image_to_video, synthetic_dataset, video_to_image
 from gra_mi.refiner.flow import noisy_latent, recycling_residuals, sampling_sigmas, velocity_target
-from gra_mi.refiner.model import TRANSFORMER_CONFIGS, AtemporalCrossAttention, RefinerConfig, VideoRefiner, latent_frames
+from gra_mi.refiner.model import AtemporalCrossAttention, VideoRefiner
 from gra_mi.refiner.train import ErrorBank, RefinerTrainConfig, augment, pan_zoom, train_refiner, validation_loss
 
 from .conftest import free_port, poison_optimizer_after
@@ -676,8 +678,8 @@ def test_real_size_from_a_local_diffusers_folder(tmp_path, monkeypatch):
     """The real-size path end to end on a tiny folder standing in for WAN2.1-VACE-1.3B-diffusers: `gra-mi
     refiner-prompt`, from_pretrained in bfloat16 (fp32-kept modules as `cast_transformer` keeps them), LoRA + envmap
     layers, a training step, save/load of the trainable weights, and a refined window."""
-    import gra_mi.refiner.model as rm
     from gra_mi.cli import main
+    from gra_mi.refiner.loading import cast_transformer
 
     wan = tmp_path / "wan"
     _local_wan_folder(wan)
@@ -690,12 +692,12 @@ def test_real_size_from_a_local_diffusers_folder(tmp_path, monkeypatch):
     # The real 1.3B's weights are the wrong size for this folder: a clear error, not a silently different model.
     with pytest.raises(GraMiInputError, match="num_layers"):
         VideoRefiner(RefinerConfig(size="1.3B", weights=str(wan), prompt_embeds=str(prompt)))
-    monkeypatch.setitem(rm.TRANSFORMER_CONFIGS, "1.3B", TRANSFORMER_CONFIGS["tiny"])
+    monkeypatch.setitem(TRANSFORMER_CONFIGS, "1.3B", TRANSFORMER_CONFIGS["tiny"])
     config = RefinerConfig(size="1.3B", weights=str(wan), prompt_embeds=str(prompt), dtype="bfloat16", lora_rank=4)
     model = VideoRefiner(config)
     from diffusers import WanVACETransformer3DModel
 
-    reference = rm.cast_transformer(WanVACETransformer3DModel(**TRANSFORMER_CONFIGS["tiny"]), torch.bfloat16)
+    reference = cast_transformer(WanVACETransformer3DModel(**TRANSFORMER_CONFIGS["tiny"]), torch.bfloat16)
     dtypes = {n.replace(".base_layer", ""): p.dtype for n, p in model.transformer.named_parameters() if "lora_" not in n}
     assert dtypes == {n: p.dtype for n, p in reference.named_parameters()}
     assert {d for n, d in dtypes.items() if "scale_shift_table" in n} == {torch.float32}
@@ -753,9 +755,7 @@ def test_real_size_from_original_checkpoints(tmp_path, monkeypatch):
     from diffusers.loaders import single_file_utils
     from safetensors.torch import save_file
 
-    import gra_mi.refiner.model as rm
-
-    monkeypatch.setitem(rm.TRANSFORMER_CONFIGS, "1.3B", TRANSFORMER_CONFIGS["tiny"])
+    monkeypatch.setitem(TRANSFORMER_CONFIGS, "1.3B", TRANSFORMER_CONFIGS["tiny"])
     monkeypatch.setattr(diffusers, "AutoencoderKLWan", lambda: AutoencoderKLWan(**WAN_VAE_STANDIN))
     monkeypatch.setattr(single_file_utils, "convert_wan_vae_to_diffusers", lambda state: state)
     torch.manual_seed(5)
@@ -790,7 +790,7 @@ def test_real_configs_lora_size():
     from diffusers import WanVACETransformer3DModel
     from peft import LoraConfig
 
-    from gra_mi.refiner.model import LORA_TARGETS
+    from gra_mi.refiner.config import LORA_TARGETS
 
     with torch.device("meta"):
         model = WanVACETransformer3DModel(**TRANSFORMER_CONFIGS["1.3B"])
@@ -859,7 +859,7 @@ def test_vae_pretraining_script_trains_scores_and_writes_loadable_weights(path_t
     from safetensors import safe_open
     from safetensors.torch import load_file
 
-    from gra_mi.refiner.model import VAE_CONFIGS
+    from gra_mi.refiner.config import VAE_CONFIGS
     from gra_mi.refiner.tiny_vae import TinyVideoAutoencoder
 
     out = tmp_path / "vae.safetensors"

@@ -10,10 +10,10 @@ from pathlib import Path
 from gra_mi.cli.options import CommandConfig, Restartable
 from gra_mi.core.config import option
 from gra_mi.core.errors import GraMiParameterError, require_positive
+from gra_mi.refiner.config import RefinerConfig
 from gra_mi.refiner.data import CaptureSequencesConfig
 from gra_mi.refiner.deflicker import DeflickerConfig
 from gra_mi.refiner.infer import RefineConfig
-from gra_mi.refiner.model import RefinerConfig
 from gra_mi.refiner.train import RefinerTrainConfig
 from gra_mi.relightnet.train import TrainConfig
 from gra_mi.render.composite import PLATFORM_FLAGS, PlatformConfig
@@ -158,7 +158,7 @@ class RefinerPromptCommand(CommandConfig):
 
 
 def run_refiner_prompt(c: RefinerPromptCommand) -> None:
-    from gra_mi.refiner.model import cache_prompt_embedding
+    from gra_mi.refiner.loading import cache_prompt_embedding
 
     print(f"wrote {cache_prompt_embedding(c.pipeline, c.prompt, c.out)}")
 

@@ -89,10 +89,6 @@ def envmap_accuracy(
     """Score every lighting model on every reference map and camera; write ``accuracy.json``, ``accuracy.md``,
     ``contact_sheet.png`` (truth | each model, per map) and every render (EXR) under ``out``. Returns the rows
     (one per map and model, averaged over the cameras)."""
-    from gra_mi.core.runtime import torch_device
-    from gra_mi.fit.fitted import fitted_relighter
-    from gra_mi.relightnet.infer import render_view
-    from gra_mi.render.relighter import Relighter, load_texture
     from gra_mi.render.runtime import ensure_mitsuba
     from gra_mi.stage.envmap import envmap_to_leds
     from gra_mi.stage.envmap_library import reference_map
@@ -101,18 +97,52 @@ def envmap_accuracy(
     config.validate()
     ensure_mitsuba()
     out = Path(out)
+    capture, methods = _lighting_models(capture_dir, fit_dir, relightnet_dir)
+    ls = methods[0][1].ls
+    frame, cameras = _views(config, capture, ls)
+    rows, sheet = [], []
+    for name in progress(config.maps, description="reference maps"):
+        env = reference_map(name, config.map_height)
+        lighting = envmap_to_leds(env, ls.stage)
+        # The LEDs are normalised to the stage's maximum; the truth's environment takes the same factor.
+        truths = _cached_truth(out, capture, env * lighting.scale, name, frame, cameras, config.spp)
+        shown = [truths[cameras[0]]]
+        for method in methods:
+            row, image = _score_method(method, name, frame, cameras, lighting.radiant_intensity(ls.stage), truths, out)
+            rows.append(row)
+            shown.append(image)
+        sheet.append(_sheet_row(shown))
+    summary = _summarise(rows, [m for m, *_ in methods])
+    record = {"frame": frame, "cameras": cameras, "spp": config.spp, "rows": rows, "summary": summary}
+    atomic_write_text(out / "accuracy.json", json.dumps(record, indent=1) + "\n")
+    atomic_write_text(out / "accuracy.md", accuracy_markdown(rows, summary, frame, cameras, config.spp))
+    _write_sheet(out / "contact_sheet.png", sheet, config.maps, ["truth (path-traced)"] + [m for m, *_ in methods])
+    return rows
+
+
+def _lighting_models(capture_dir, fit_dir, relightnet_dir):
+    """(capture, [(name, relighter, RelightNet or None, far field)]): near and far field with the fitted maps, far
+    field with the true maps, and RelightNet on the far-field render when given."""
+    from gra_mi.core.runtime import torch_device
+    from gra_mi.fit.fitted import fitted_relighter
+    from gra_mi.render.relighter import Relighter, load_texture
+
     capture, fitted = fitted_relighter(capture_dir, fit_dir)
-    ls = fitted.ls
     truth_maps = Relighter(
-        ls,
+        fitted.ls,
         albedo=load_texture(capture.folder / "gt" / "albedo.exr", 3, "albedo"),
         roughness=load_texture(capture.folder / "gt" / "roughness.exr", 1, "roughness"),
     )
-    model = None
+    methods = [("near field", fitted, None, False), ("far field", fitted, None, True), ("far field, true maps", truth_maps, None, True)]
     if relightnet_dir is not None:
         from gra_mi.relightnet.model import RelightNet
 
-        model = RelightNet.load(relightnet_dir, torch_device())
+        methods.append(("RelightNet (far field)", fitted, RelightNet.load(relightnet_dir, torch_device()), True))
+    return capture, methods
+
+
+def _views(config: EnvmapAccuracyConfig, capture, ls) -> tuple[int, list[str]]:
+    """The frame and cameras scored, checked against the capture."""
     frame = config.frame if config.frame is not None else next((f.frame for f in capture.frames if f.split == "test"), 0)
     cameras = config.cameras or capture.eval_cameras
     if not 0 <= frame < ls.sequence.num_frames:
@@ -121,53 +151,36 @@ def envmap_accuracy(
     unknown = [c for c in cameras if c not in known]
     if unknown:
         raise GraMiParameterError("cameras", f"no camera {', '.join(unknown)} in {capture.folder}; it has {', '.join(known)}")
-    methods = [("near field", fitted, None, False), ("far field", fitted, None, True), ("far field, true maps", truth_maps, None, True)]
-    if model is not None:
-        methods.append(("RelightNet (far field)", fitted, model, True))
+    return frame, cameras
 
-    rows, sheet = [], []
-    for name in progress(config.maps, description="reference maps"):
-        env = reference_map(name, config.map_height)
-        lighting = envmap_to_leds(env, ls.stage)
-        # The LEDs are normalised to the stage's maximum; the truth's environment takes the same factor.
-        truths = _cached_truth(out, capture, env * lighting.scale, name, frame, cameras, config.spp)
-        intensities = lighting.radiant_intensity(ls.stage)
-        first = cameras[0]
-        shown = [truths[first]]
-        for method, relighter, net, far in methods:
-            scores, seconds, negative = [], [], 0
-            for cam in cameras:
-                start = time.perf_counter()
-                image = render_view(relighter, net, frame, cam, intensities, far_field=far).image
-                seconds.append(time.perf_counter() - start)
-                scores.append(compare(image, truths[cam]))
-                negative += int(((image[..., :3] < 0).any(axis=-1) & (image[..., 3] > 0)).sum())
-                slug = method.replace(",", "").replace(" ", "_").replace("(", "").replace(")", "")
-                write_exr(out / "renders" / name / slug / f"{cam}.exr", image)
-                if cam == first:
-                    shown.append(image)
-            rows.append(
-                {
-                    "map": name,
-                    "method": method,
-                    "psnr": float(np.mean([s["psnr"] for s in scores])),
-                    "ssim": float(np.mean([s["ssim"] for s in scores])),
-                    "brightness": float(np.mean([s["brightness"] for s in scores])),
-                    "worst_brightness": float(max((s["brightness"] for s in scores), key=abs)),
-                    "negative_pixels": negative,
-                    "seconds_per_view": float(np.median(seconds[1:] if len(seconds) > 1 else seconds)),
-                    "cameras": len(cameras),
-                }
-            )
-        sheet.append(_sheet_row(shown))
-    summary = _summarise(rows, [m for m, *_ in methods])
-    atomic_write_text(
-        out / "accuracy.json",
-        json.dumps({"frame": frame, "cameras": cameras, "spp": config.spp, "rows": rows, "summary": summary}, indent=1) + "\n",
-    )
-    atomic_write_text(out / "accuracy.md", accuracy_markdown(rows, summary, frame, cameras, config.spp))
-    _write_sheet(out / "contact_sheet.png", sheet, config.maps, ["truth (path-traced)"] + [m for m, *_ in methods])
-    return rows
+
+def _score_method(method, name: str, frame: int, cameras: list[str], intensities, truths: dict, out: Path) -> tuple[dict, np.ndarray]:
+    """One lighting model under one map on every camera, against the truth: its row, and its first camera's image."""
+    from gra_mi.relightnet.infer import render_view
+
+    label, relighter, net, far = method
+    scores, seconds, negative, first = [], [], 0, None
+    slug = label.replace(",", "").replace(" ", "_").replace("(", "").replace(")", "")
+    for cam in cameras:
+        start = time.perf_counter()
+        image = render_view(relighter, net, frame, cam, intensities, far_field=far).image
+        seconds.append(time.perf_counter() - start)
+        scores.append(compare(image, truths[cam]))
+        negative += int(((image[..., :3] < 0).any(axis=-1) & (image[..., 3] > 0)).sum())
+        write_exr(out / "renders" / name / slug / f"{cam}.exr", image)
+        first = image if first is None else first
+    row = {
+        "map": name,
+        "method": label,
+        "psnr": float(np.mean([s["psnr"] for s in scores])),
+        "ssim": float(np.mean([s["ssim"] for s in scores])),
+        "brightness": float(np.mean([s["brightness"] for s in scores])),
+        "worst_brightness": float(max((s["brightness"] for s in scores), key=abs)),
+        "negative_pixels": negative,
+        "seconds_per_view": float(np.median(seconds[1:] if len(seconds) > 1 else seconds)),
+        "cameras": len(cameras),
+    }
+    return row, first
 
 
 def _sheet_row(images: list[np.ndarray]) -> np.ndarray:

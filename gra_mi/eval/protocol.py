@@ -109,8 +109,8 @@ def frame_selection(count: int, how: str) -> list[int]:
         return list(range(count))
     if how == "every10":
         return list(range(0, count, 10))
+    from gra_mi.refiner.config import RefinerConfig
     from gra_mi.refiner.infer import window_starts
-    from gra_mi.refiner.model import RefinerConfig
 
     window, handoff = RefinerConfig.window, RefinerConfig.handoff  # the refiner's own windows (their defaults)
     return [s + window // 2 for s in window_starts(count, window, handoff) if s + window // 2 < count]
@@ -209,6 +209,8 @@ def evaluate(inputs: EvalInputs, out: str | Path, config: EvalConfig | None = No
     """Score every stage found in ``inputs`` on every split; write the table, contact sheets and videos under ``out``.
     Returns the eval.json content; its ``problems`` lists what the user pointed to that could not be evaluated."""
     from gra_mi.capture.dataset import Capture
+    from gra_mi.core.io import atomic_write_text
+    from gra_mi.core.progress import progress
     from gra_mi.render.runtime import ensure_mitsuba
 
     config = config or EvalConfig()
@@ -216,42 +218,82 @@ def evaluate(inputs: EvalInputs, out: str | Path, config: EvalConfig | None = No
     lpips_model, i3d = _perceptual_models(config)  # a bad weights file stops here, before any work
     ensure_mitsuba()
     out = Path(out)
-    problems: list[str] = []
     capture = Capture.load(inputs.capture)
-    results = {s: StageResult(s) for s in STAGES}
+    status = _Status(inputs)
+    relighter, model = _texture_stages(inputs, capture, out, status)
+    dataset, refined = _video_stages(inputs, status)
+    splits = _splits(capture, dataset if refined else None, refined)
+    scale = config.scale
+    if scale is None:
+        scale = float(dataset.meta.get("scale", dataset.crop[1] / capture_width(capture))) if refined else 1.0
+    frames_of = _Frames(capture, relighter, model, scale)
+    videos = {}
+    for split in progress(splits, description="evaluate splits"):
+        frames = frames_of.split(split, status)
+        videos[split.name] = _score_split(split, frames, status.results, config, lpips_model, out)
+    _settle(status.results, splits, videos, frames_of.seconds)
+    if i3d is not None:
+        _fvd(i3d, status.results, videos)
+    composited = _write_videos(out / "videos", videos, splits, capture, relighter, scale, config)
+    report = {
+        "protocol": _protocol(config, scale, splits, capture, videos)
+        | {"lpips": lpips_model is not None, "fvd": i3d is not None, "composited": composited},
+        "stages": {s: asdict(r) for s, r in status.results.items()},
+        "problems": status.problems,
+    }
+    atomic_write_text(out / "eval.json", json.dumps(report, indent=1, default=float) + "\n")
+    atomic_write_text(out / "eval.csv", eval_csv(report))
+    atomic_write_text(out / "eval.md", eval_markdown(report))
+    return report
 
-    def skip(stage: str, why: str, source: str | None = None) -> None:
-        results[stage].status = f"skipped: {why}"
-        if source is not None and source in inputs.explicit and why not in problems:
-            problems.append(why)
 
-    # What each stage needs, checked before any work -----------------------------------------------------------
-    relighter = model = dataset = None
-    refined: dict[str, Path] = {}
+class _Status:
+    """Each stage's result, and the problems: what the user pointed to that could not be scored (exit 2)."""
+
+    def __init__(self, inputs: EvalInputs):
+        self.inputs, self.problems = inputs, []
+        self.results = {s: StageResult(s) for s in STAGES}
+
+    def skip(self, stage: str, why: str, source: str | None = None) -> None:
+        self.results[stage].status = f"skipped: {why}"
+        if source is not None and source in self.inputs.explicit:
+            self.problem(why)
+
+    def problem(self, why: str) -> None:
+        if why not in self.problems:
+            self.problems.append(why)
+
+
+def _texture_stages(inputs: EvalInputs, capture, out: Path, status: _Status):
+    """(the fitted relighter, RelightNet), None for a stage that cannot be scored (said in ``status``)."""
+    from gra_mi.fit.fitted import fitted_relighter
+
     try:
-        from gra_mi.fit.fitted import fitted_relighter
-
         if inputs.fit is None or not (inputs.fit / "albedo.exr").is_file():
             raise GraMiInputError(inputs.fit or "--fit", "no albedo.exr (a fit folder from `gra-mi fit`)")
         _, relighter = fitted_relighter(capture.folder, inputs.fit, out / "cache")
     except GraMiInputError as exc:
         for stage in ("microfacet", "RelightNet"):
-            skip(stage, str(exc), "fit")
-    if relighter is not None:
-        try:
-            from gra_mi.core.runtime import torch_device
-            from gra_mi.relightnet.model import RelightNet
-
-            if inputs.relightnet is None or not (inputs.relightnet / "relightnet.json").is_file():
-                raise GraMiInputError(inputs.relightnet or "--relightnet", "no relightnet.json (a folder from `gra-mi train-relightnet`)")
-            model = RelightNet.load(inputs.relightnet, torch_device())
-        except GraMiInputError as exc:
-            skip("RelightNet", str(exc), "relightnet")
-    else:
-        results["RelightNet"].status = results["microfacet"].status
+            status.skip(stage, str(exc), "fit")
+        return None, None
     try:
-        from gra_mi.refiner.data import RefinerDataset
+        from gra_mi.core.runtime import torch_device
+        from gra_mi.relightnet.model import RelightNet
 
+        if inputs.relightnet is None or not (inputs.relightnet / "relightnet.json").is_file():
+            raise GraMiInputError(inputs.relightnet or "--relightnet", "no relightnet.json (a folder from `gra-mi train-relightnet`)")
+        return relighter, RelightNet.load(inputs.relightnet, torch_device())
+    except GraMiInputError as exc:
+        status.skip("RelightNet", str(exc), "relightnet")
+        return relighter, None
+
+
+def _video_stages(inputs: EvalInputs, status: _Status):
+    """(the refiner's dataset, sequence name → refined folder); refined sequences need the dataset for their frames."""
+    from gra_mi.refiner.data import RefinerDataset
+
+    dataset = None
+    try:
         if inputs.refiner_data is not None and (inputs.refiner_data / "dataset.json").is_file():
             dataset = RefinerDataset(inputs.refiner_data)
         elif "refiner_data" in inputs.explicit:
@@ -262,126 +304,119 @@ def evaluate(inputs: EvalInputs, out: str | Path, config: EvalConfig | None = No
                 next(iter(refined.values())), "refined frames need the refiner's data (--refiner-data) to know their frames"
             )
     except GraMiInputError as exc:
-        refined = {}
-        skip("refined", str(exc))
+        status.skip("refined", str(exc))
         if {"refined", "refiner_data"} & inputs.explicit:
-            problems.append(str(exc))
-    if not refined and results["refined"].status == "done":
-        results["refined"].status = "skipped: no refined sequence (`gra-mi refine`)"
-    splits = _splits(capture, dataset if refined else None, refined)
-    scale = config.scale
-    if scale is None:
-        scale = float(dataset.meta.get("scale", dataset.crop[1] / capture_width(capture))) if refined else 1.0
+            status.problem(str(exc))
+        return dataset, {}
+    if not refined and status.results["refined"].status == "done":
+        status.results["refined"].status = "skipped: no refined sequence (`gra-mi refine`)"
+    return dataset, refined
 
-    # Frames of every stage, split by split ---------------------------------------------------------------------
-    from gra_mi.capture.dataset import load_observation
+
+class _Frames:
+    """Every stage's frames of a split at the evaluation scale; truths and renders are cached across splits (the
+    same view often appears in several) and each render is timed."""
+
+    def __init__(self, capture, relighter, model, scale: float):
+        self.capture, self.relighter, self.model, self.scale = capture, relighter, model, scale
+        self.entries = {f.frame: f for f in capture.frames}
+        self.cache: dict[tuple, np.ndarray] = {}
+        self.seconds: dict[str, list[float]] = {"microfacet": [], "RelightNet": []}
+
+    def truths(self, split: Split) -> list[np.ndarray]:
+        from gra_mi.capture.dataset import load_observation
+
+        for f in split.capture_frames:
+            if ("truth", split.camera, f) not in self.cache:
+                self.cache["truth", split.camera, f] = _downscale(load_observation(self.capture, split.camera, f), self.scale)
+        return [self.cache["truth", split.camera, f] for f in split.capture_frames]
+
+    def rendered(self, stage: str, split: Split) -> list[np.ndarray]:
+        from gra_mi.relightnet.infer import render_view
+
+        net = self.model if stage == "RelightNet" else None
+        for f in split.capture_frames:
+            if (stage, split.camera, f) not in self.cache:
+                start = time.perf_counter()
+                lighting = self.capture.lighting(self.relighter.ls.stage, self.entries[f])
+                image = render_view(self.relighter, net, f, split.camera, lighting).image
+                self.seconds[stage].append(time.perf_counter() - start)
+                self.cache[stage, split.camera, f] = _downscale(image, self.scale)
+        return [self.cache[stage, split.camera, f] for f in split.capture_frames]
+
+    def split(self, split: Split, status: _Status) -> dict[str, list[np.ndarray]]:
+        """Stage → frames (``truth`` too) of the stages that can be scored on this split."""
+        results, truths = status.results, self.truths(split)
+        frames = {"truth": truths}
+        for stage in ("microfacet", "RelightNet"):
+            if results[stage].status == "done":
+                frames[stage] = self.rendered(stage, split)
+        if split.refined_dir is None or results["refined"].status != "done":
+            return frames
+        for stage, folder in (("refined", split.refined_dir / "frames"), ("deflickered", split.refined_dir / "deflickered")):
+            if stage == "deflickered" and not folder.is_dir():
+                break
+            loaded = _read_sequence(folder, len(truths), truths[0].shape[:2])
+            if isinstance(loaded, str):  # unreadable: said, and the flicker correction of it is not scored
+                results[stage].splits[split.name] = {"skipped": loaded}
+                if stage == "deflickered" or "refined" in status.inputs.explicit:
+                    status.problem(loaded)
+                break
+            frames[stage] = loaded
+        return frames
+
+
+def _score_split(split: Split, frames: dict, results: dict, config: EvalConfig, lpips_model, out: Path) -> dict:
+    """Score each stage's frames of one split against the truth, write its contact sheet; what the videos need."""
     from gra_mi.core.color import display_exposure
     from gra_mi.core.metrics import subject_mask
-    from gra_mi.core.progress import progress
-    from gra_mi.relightnet.infer import render_view
 
-    entries = {f.frame: f for f in capture.frames}
-    truth_cache: dict[tuple[str, int], np.ndarray] = {}
-    render_cache: dict[tuple[str, str, int], np.ndarray] = {}
-    render_seconds: dict[str, list[float]] = {"microfacet": [], "RelightNet": []}
-    videos: dict[str, dict[str, list[np.ndarray]]] = {}
-    for split in progress(splits, description="evaluate splits"):
-        truths = []
-        for f in split.capture_frames:
-            key = (split.camera, f)
-            if key not in truth_cache:
-                truth_cache[key] = _downscale(load_observation(capture, split.camera, f), scale)
-            truths.append(truth_cache[key])
-        frames = {"truth": truths}
+    truths = frames["truth"]
+    masks = [subject_mask(t) for t in truths]
+    exposure = float(np.median([display_exposure(t, m) for t, m in zip(truths, masks, strict=True)]))
+    scored = frame_selection(len(truths), config.frames)
+    for stage in STAGES:
+        if stage in frames:
+            results[stage].splits[split.name] = _score(frames[stage], truths, masks, exposure, scored, lpips_model)
+    _contact_sheet(out / f"contact_{split.name}.png", frames, truths, masks, exposure, scored, split.name)
+    return {"frames": frames, "exposure": exposure, "coverage": frames.get("microfacet", frames.get("RelightNet"))}
 
-        def rendered(stage: str, net, split=split) -> list[np.ndarray]:
-            images = []
-            for f in split.capture_frames:
-                key = (stage, split.camera, f)
-                if key not in render_cache:
-                    start = time.perf_counter()
-                    image = render_view(relighter, net, f, split.camera, capture.lighting(relighter.ls.stage, entries[f])).image
-                    render_seconds[stage].append(time.perf_counter() - start)
-                    render_cache[key] = _downscale(image, scale)
-                images.append(render_cache[key])
-            return images
 
-        if results["microfacet"].status == "done":
-            frames["microfacet"] = rendered("microfacet", None)
-        if results["RelightNet"].status == "done":
-            frames["RelightNet"] = rendered("RelightNet", model)
-        if split.refined_dir is not None and results["refined"].status == "done":
-            loaded = _read_sequence(split.refined_dir / "frames", len(truths), truths[0].shape[:2])
-            if isinstance(loaded, str):
-                results["refined"].splits[split.name] = {"skipped": loaded}
-                if "refined" in inputs.explicit:
-                    problems.append(loaded)
-            else:
-                frames["refined"] = loaded
-                if (split.refined_dir / "deflickered").is_dir():
-                    loaded = _read_sequence(split.refined_dir / "deflickered", len(truths), truths[0].shape[:2])
-                    if isinstance(loaded, str):
-                        results["deflickered"].splits[split.name] = {"skipped": loaded}
-                        problems.append(loaded)
-                    else:
-                        frames["deflickered"] = loaded
-        coverage = frames.get("microfacet", frames.get("RelightNet"))
-        masks = [subject_mask(t) for t in truths]
-        exposure = float(np.median([display_exposure(t, m) for t, m in zip(truths, masks, strict=True)]))
-        for stage in STAGES:
-            if stage in frames:
-                results[stage].splits[split.name] = _score(
-                    frames[stage], truths, masks, exposure, frame_selection(len(truths), config.frames), lpips_model
-                )
-        videos[split.name] = {"frames": frames, "exposure": exposure, "coverage": coverage}
-        _contact_sheet(
-            out / f"contact_{split.name}.png", frames, truths, masks, exposure, frame_selection(len(truths), config.frames), split.name
-        )
+def _settle(results: dict, splits: list[Split], videos: dict, seconds: dict[str, list[float]]) -> None:
+    """Statuses that only the whole run shows, and each stage's seconds per frame."""
+    from gra_mi.core.io import read_json
+
     if not any("deflickered" in v["frames"] for v in videos.values()) and not results["deflickered"].splits:
         results["deflickered"].status = "skipped: no deflickered frames (`gra-mi refine --deflicker` or `gra-mi deflicker`)"
     for stage in ("microfacet", "RelightNet"):
-        if render_seconds[stage]:
-            results[stage].seconds_per_frame = float(np.median(render_seconds[stage]))
+        if seconds[stage]:
+            results[stage].seconds_per_frame = float(np.median(seconds[stage]))
+    if results["refined"].status != "done":
+        return
     for split in splits:
-        if split.refined_dir is not None and results["refined"].status == "done":
-            from gra_mi.core.io import read_json
-
+        if split.refined_dir is not None:
             fps = read_json(split.refined_dir / "refine.json").get("frames_per_second")
             results["refined"].seconds_per_frame = 1.0 / fps if fps else None
-    if results["refined"].status == "done" and not any(s in results["refined"].splits for s in (sp.name for sp in splits)):
+    if not any(split.name in results["refined"].splits for split in splits):
         results["refined"].status = "skipped: no refined sequence matches a held-out camera"
-    if i3d is not None:
-        _fvd(i3d, results, videos)
 
-    # Outputs ---------------------------------------------------------------------------------------------------
-    composited = _write_videos(out / "videos", videos, splits, capture, relighter, scale, config)
-    report = {
-        "protocol": {
-            "frames": config.frames,
-            "scale": scale,
-            "resolution": list(next(iter(videos.values()))["frames"]["truth"][0].shape[1::-1]),
-            "splits": {
-                s.name: {
-                    "camera": s.camera,
-                    "lighting": _lighting_said(capture, s.capture_frames),
-                    "frames": len(s.capture_frames),
-                    "scored": frame_selection(len(s.capture_frames), config.frames),
-                }
-                for s in splits
-            },
-            "lpips": lpips_model is not None,
-            "fvd": i3d is not None,
-            "composited": composited,
+
+def _protocol(config: EvalConfig, scale: float, splits: list[Split], capture, videos: dict) -> dict:
+    """What was scored, at what resolution, on which splits (eval.json's ``protocol``)."""
+    return {
+        "frames": config.frames,
+        "scale": scale,
+        "resolution": list(next(iter(videos.values()))["frames"]["truth"][0].shape[1::-1]),
+        "splits": {
+            s.name: {
+                "camera": s.camera,
+                "lighting": _lighting_said(capture, s.capture_frames),
+                "frames": len(s.capture_frames),
+                "scored": frame_selection(len(s.capture_frames), config.frames),
+            }
+            for s in splits
         },
-        "stages": {s: asdict(r) for s, r in results.items()},
-        "problems": problems,
     }
-    from gra_mi.core.io import atomic_write_text
-
-    atomic_write_text(out / "eval.json", json.dumps(report, indent=1, default=float) + "\n")
-    atomic_write_text(out / "eval.csv", eval_csv(report))
-    atomic_write_text(out / "eval.md", eval_markdown(report))
-    return report
 
 
 def capture_width(capture) -> int:
@@ -435,7 +470,7 @@ def _fvd(i3d, results: dict[str, StageResult], videos: dict) -> None:
     """FVD of each stage against the truth over all splits' clips of the refiner's window (non-overlapping, from 0)."""
     from gra_mi.core.color import to_display
     from gra_mi.eval.perceptual import frechet_distance, i3d_features
-    from gra_mi.refiner.model import RefinerConfig
+    from gra_mi.refiner.config import RefinerConfig
 
     window = RefinerConfig.window  # FVD's clips: the refiner's windows
     for stage in STAGES:

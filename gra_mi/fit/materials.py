@@ -303,11 +303,7 @@ class MaterialFitter:
 
     def fit_closed_form(self, out: Path | None = None) -> FitResult:
         """Roughness grid with closed-form albedo per texel, then L1 by reweighting (checkpointed)."""
-        from gra_mi.core.progress import progress
-
-        cfg = self.config
-        m = self.atlas.num_texels
-        start = time.perf_counter()
+        cfg, m, start = self.config, self.atlas.num_texels, time.perf_counter()
         checkpoint = None if out is None else out / "checkpoint.npz"
         state = read_checkpoint_npz(checkpoint) if checkpoint is not None and checkpoint.is_file() else {}
         curve: list[tuple[float, float, str]] = [tuple(x) for x in json.loads(str(state["curve"]))] if "curve" in state else []
@@ -326,49 +322,49 @@ class MaterialFitter:
                 if v.camera == cam:
                     seen[v.texels] = True
             cameras_seen += seen
-
-        # 2. Roughness grid with closed-form albedo -----------------------------------------------------------
         grid = np.linspace(0.0, 1.0, cfg.roughness_candidates)
         if "grid_error" not in state:
-            s_dd, s_do, s_oo = np.zeros((m, 3)), np.zeros((m, 3)), np.zeros((m, 3))
-            s_ds, s_ss, s_os = (np.zeros((len(grid), m, 3)) for _ in range(3))
-            for g, r in enumerate(progress(list(grid), description="roughness grid")):
-                for v in views:
-                    d, s = self.parts(v, np.full(m, r, np.float32))
-                    o = v.observed.astype(np.float64)
-                    if g == 0:
-                        np.add.at(s_dd, v.texels, d * d)
-                        np.add.at(s_do, v.texels, d * o)
-                        np.add.at(s_oo, v.texels, o * o)
-                    np.add.at(s_ds[g], v.texels, d * s)
-                    np.add.at(s_ss[g], v.texels, s * s)
-                    np.add.at(s_os[g], v.texels, o * s)
-            with np.errstate(invalid="ignore", divide="ignore"):
-                albedo_g = np.clip((s_do[None] - s_ds) / s_dd[None], 0.0, 1.0)
-            albedo_g = np.where(s_dd[None] > 0, albedo_g, DEFAULT_ALBEDO)
-            error_g = (s_oo[None] - 2 * albedo_g * s_do[None] + albedo_g**2 * s_dd[None] + s_ss - 2 * s_os + 2 * albedo_g * s_ds).sum(
-                axis=2
-            )
-            save(grid_error=error_g)
-        error_g = state["grid_error"]
-        best = np.argmin(error_g, axis=0)
-        # Parabola through the best candidate and its neighbours (clamped to the grid's ends).
-        lo, hi = np.clip(best - 1, 0, len(grid) - 1), np.clip(best + 1, 0, len(grid) - 1)
-        e0, e1, e2 = (error_g[idx, np.arange(m)] for idx in (lo, best, hi))
-        curvature = e0 - 2 * e1 + e2
-        step = grid[1] - grid[0]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            shift = np.where((curvature > 1e-30) & (lo != best) & (hi != best), 0.5 * (e0 - e2) / curvature, 0.0)
-        roughness = np.clip(grid[best] + np.clip(shift, -1, 1) * step, 0.0, 1.0).astype(np.float32)
-        observed = cameras_seen > 0
-        roughness[~observed] = DEFAULT_ROUGHNESS
+            save(grid_error=self._grid_error(views, grid))
+        roughness = _refine_on_grid(state["grid_error"], grid)
+        roughness[cameras_seen == 0] = DEFAULT_ROUGHNESS
         curve.append((time.perf_counter() - start, float("nan"), "roughness grid"))
+        albedo, per_view = self._albedo_irls(views, roughness, curve, start, save)
+        albedo_map = self.atlas.scatter(albedo.astype(np.float32), fill=DEFAULT_ALBEDO)
+        return FitResult(albedo_map, self.atlas.scatter(roughness[:, None], fill=DEFAULT_ROUGHNESS), cameras_seen, curve, per_view)
 
-        # 3. Albedo at the chosen roughness: least squares, then L1 by reweighting ---------------------------
+    def _grid_error(self, views, grid: np.ndarray) -> np.ndarray:
+        """(candidates, M) squared error of each roughness candidate with its closed-form (least-squares) albedo."""
+        from gra_mi.core.progress import progress
+
+        m = self.atlas.num_texels
+        s_dd, s_do, s_oo = np.zeros((m, 3)), np.zeros((m, 3)), np.zeros((m, 3))
+        s_ds, s_ss, s_os = (np.zeros((len(grid), m, 3)) for _ in range(3))
+        for g, r in enumerate(progress(list(grid), description="roughness grid")):
+            for v in views:
+                d, s = self.parts(v, np.full(m, r, np.float32))
+                o = v.observed.astype(np.float64)
+                if g == 0:
+                    np.add.at(s_dd, v.texels, d * d)
+                    np.add.at(s_do, v.texels, d * o)
+                    np.add.at(s_oo, v.texels, o * o)
+                np.add.at(s_ds[g], v.texels, d * s)
+                np.add.at(s_ss[g], v.texels, s * s)
+                np.add.at(s_os[g], v.texels, o * s)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            albedo_g = np.clip((s_do[None] - s_ds) / s_dd[None], 0.0, 1.0)
+        albedo_g = np.where(s_dd[None] > 0, albedo_g, DEFAULT_ALBEDO)
+        error = s_oo[None] - 2 * albedo_g * s_do[None] + albedo_g**2 * s_dd[None] + s_ss - 2 * s_os + 2 * albedo_g * s_ds
+        return error.sum(axis=2)
+
+    def _albedo_irls(self, views, roughness: np.ndarray, curve: list, start: float, save) -> tuple[np.ndarray, dict[str, float]]:
+        """Albedo at the chosen roughness: least squares, then L1 by reweighting; and each view's mean L1."""
+        from gra_mi.core.progress import progress
+
+        m = self.atlas.num_texels
         cache = [self.parts(v, roughness) for v in progress(views, description="albedo")]
         weights = [np.ones_like(v.observed, dtype=np.float64) for v in views]
         albedo = np.full((m, 3), DEFAULT_ALBEDO)
-        for it in range(cfg.irls_iterations + 1):
+        for it in range(self.config.irls_iterations + 1):
             num, den = np.zeros((m, 3)), np.zeros((m, 3))
             for v, (d, s), w in zip(views, cache, weights, strict=True):
                 np.add.at(num, v.texels, w * d * (v.observed - s))
@@ -383,20 +379,25 @@ class MaterialFitter:
                 weights[k] = 1.0 / np.maximum(residual, L1_DELTA)
             curve.append((time.perf_counter() - start, total / max(count, 1), "least squares" if it == 0 else f"L1 reweighting {it}"))
             save(albedo=albedo, roughness=roughness)
+        per_view = {
+            f"{v.camera}/frame_{v.frame:04d}": float(np.mean(np.abs(v.observed - (albedo[v.texels] * d + s))))
+            if v.texels.size
+            else float("nan")
+            for v, (d, s) in zip(views, cache, strict=True)
+        }
+        return albedo, per_view
 
-        per_view = {}
-        for v, (d, s) in zip(views, cache, strict=True):
-            per_view[f"{v.camera}/frame_{v.frame:04d}"] = (
-                float(np.mean(np.abs(v.observed - (albedo[v.texels] * d + s)))) if v.texels.size else float("nan")
-            )
-        result = FitResult(
-            self.atlas.scatter(albedo.astype(np.float32), fill=DEFAULT_ALBEDO),
-            self.atlas.scatter(roughness[:, None], fill=DEFAULT_ROUGHNESS),
-            cameras_seen,
-            curve,
-            per_view,
-        )
-        return result
+
+def _refine_on_grid(error: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """Per texel, the minimum of the parabola through the best candidate and its neighbours (clamped to the grid)."""
+    m = error.shape[1]
+    best = np.argmin(error, axis=0)
+    lo, hi = np.clip(best - 1, 0, len(grid) - 1), np.clip(best + 1, 0, len(grid) - 1)
+    e0, e1, e2 = (error[idx, np.arange(m)] for idx in (lo, best, hi))
+    curvature = e0 - 2 * e1 + e2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        shift = np.where((curvature > 1e-30) & (lo != best) & (hi != best), 0.5 * (e0 - e2) / curvature, 0.0)
+    return np.clip(grid[best] + np.clip(shift, -1, 1) * (grid[1] - grid[0]), 0.0, 1.0).astype(np.float32)
 
 
 def run_fit(capture_dir: str | Path, out: str | Path, config: FitConfig, overwrite: bool = False) -> tuple[FitResult, Path]:

@@ -15,8 +15,8 @@
 - texels without highlight evidence (and, for albedo, texels no view saw) are not moved by Adam: they take the
   prior's harmonic interpolation of their neighbours (:meth:`~gra_mi.fit.prior.SurfaceGraph.filler`), refreshed
   every checkpoint;
-- Adam (own, 10 lines, so that its state is checkpointed and a resumed run ends where an uninterrupted one does),
-  with the learning rate decaying to a tenth, full batch (deterministic).
+- Dr.Jit's Adam (``drjit.opt.Adam``, its moments checkpointed so that a resumed run ends where an uninterrupted one
+  does), with the learning rate decaying to a tenth, full batch.
 """
 
 from __future__ import annotations
@@ -205,43 +205,6 @@ def gather_evidence(batches: list[ViewBatch], albedo: np.ndarray, roughness: np.
     return Evidence(views, highlights, information)
 
 
-class Adam:
-    """Adam (Kingma & Ba 2015) on Dr.Jit arrays, with its state as plain arrays for checkpoints."""
-
-    def __init__(self, beta1: float = 0.9, beta2: float = 0.999, eps: float = 1e-8):
-        self.beta1, self.beta2, self.eps = beta1, beta2, eps
-        self.t = 0
-        self.m: dict = {}
-        self.v: dict = {}
-
-    def step(self, params: dict, grads: dict, lr: dict) -> dict:
-        self.t += 1
-        out = {}
-        for key, value in params.items():
-            g = grads[key]
-            m = dr.lerp(g, self.m.get(key, dr.zeros(type(g), dr.width(g))), self.beta1)
-            v = dr.lerp(dr.square(g), self.v.get(key, dr.zeros(type(g), dr.width(g))), self.beta2)
-            self.m[key], self.v[key] = m, v
-            m_hat = m / (1.0 - self.beta1**self.t)
-            v_hat = v / (1.0 - self.beta2**self.t)
-            out[key] = value - lr[key] * m_hat / (dr.sqrt(v_hat) + self.eps)
-        return out
-
-    def state(self) -> dict[str, np.ndarray]:
-        state = {"adam_t": np.array(self.t)}
-        for key in self.m:
-            state[f"adam_m_{key}"] = np.array(self.m[key])
-            state[f"adam_v_{key}"] = np.array(self.v[key])
-        return state
-
-    def load(self, state: dict, types: dict[str, type]) -> None:
-        self.t = int(state["adam_t"])
-        for key, tp in types.items():
-            if f"adam_m_{key}" in state:
-                self.m[key] = tp(state[f"adam_m_{key}"])
-                self.v[key] = tp(state[f"adam_v_{key}"])
-
-
 @dataclass
 class OptimizeSettings:
     iterations: int
@@ -250,6 +213,9 @@ class OptimizeSettings:
     smooth_albedo: float
     smooth_roughness: float
     checkpoint_every: int = 10
+
+
+OPTIMIZER = "drjit.opt.Adam"  # part of a checkpoint's settings: one of another optimiser is refused, not resumed
 
 
 def optimize_maps(
@@ -265,115 +231,143 @@ def optimize_maps(
     clock_offset: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray, list[tuple[float, float, float, str]], list[tuple[float, np.ndarray, np.ndarray]]]:
     """Adam on the (M, 3) albedo of ``observed`` texels and the (M,) roughness of those ``has_highlight``; the others
-    take the prior's interpolation of their neighbours (refreshed at every checkpoint). Returns the maps, the curve (seconds, data L1, total loss, label) and
-    the maps at each checkpoint (seconds, albedo, roughness), for time-to-error curves.
+    take the prior's interpolation of their neighbours (refreshed at every checkpoint). Returns the maps, the curve
+    (seconds, data L1, total loss, label) and the maps at each checkpoint (seconds, albedo, roughness), for
+    time-to-error curves.
 
-    ``checkpoint`` (an .npz) is written every ``checkpoint_every`` iterations and at the end; a run finding one
-    resumes from it.
+    ``checkpoint`` (an .npz) is written every ``checkpoint_every`` iterations and at the end, with Adam's moments; a
+    run finding one resumes from it.
     """
     from gra_mi.core.progress import progress
 
-    start = time.perf_counter() - clock_offset
-    n_obs = sum(b.pixels for b in batches)
-    ei, ej = mi.UInt32(graph.i.astype(np.uint32)), mi.UInt32(graph.j.astype(np.uint32))
-    n_edges = max(graph.num_edges, 1)
-    gate_all = mi.Float(has_highlight.astype(np.float32))
-    gates = [dr.gather(mi.Float, gate_all, b.texels) for b in batches]
-    types = {"albedo": mi.Color3f, "roughness": mi.Float}
-    params = {"albedo": mi.Color3f(*albedo.T.astype(np.float32)), "roughness": mi.Float(roughness.astype(np.float32))}
-    adam = Adam()
-    curve: list[tuple[float, float, float, str]] = []
-    snapshots: list[tuple[float, np.ndarray, np.ndarray]] = []
-    first = 0
-    settings_json = json.dumps(asdict(settings), sort_keys=True)
-    if checkpoint is not None and checkpoint.is_file():
-        state = read_checkpoint_npz(checkpoint)
-        if str(state.get("settings", "")) != settings_json or state["roughness"].shape[0] != roughness.shape[0]:
-            raise GraMiInputError(
-                checkpoint,
-                f"this fit was started with {state.get('settings', 'other settings')} on {state['roughness'].shape[0]} texels, "
-                f"not {settings_json} on {roughness.shape[0]}: rerun with those options, or use a new --out folder",
-                field="settings",
-            )
-        params = {"albedo": mi.Color3f(*state["albedo"].T), "roughness": mi.Float(state["roughness"])}
-        adam.load(state, types)
-        curve = [tuple(c) for c in json.loads(str(state["curve"]))]
-        first = int(state["iteration"])
-        snapshots = [
-            (float(t), state[f"snapshot_albedo_{k}"], state[f"snapshot_roughness_{k}"]) for k, t in enumerate(state["snapshot_times"])
-        ]
-        start = time.perf_counter() - (curve[-1][0] if curve else 0.0)
+    run = MapOptimizer(batches, graph, observed, has_highlight, settings)
+    run.set_maps(albedo, roughness)
+    first = run.resume(checkpoint, roughness.shape[0]) if checkpoint is not None and checkpoint.is_file() else 0
+    run.start = time.perf_counter() - (run.curve[-1][0] if run.curve else clock_offset)
+    if not run.curve:
+        run.record("initial")
+    iterations = range(first, settings.iterations)
+    for it in progress(list(iterations), description="optimise maps") if progress_bar else iterations:
+        run.step(it)
+        done = it + 1
+        if done % settings.checkpoint_every == 0 or done == settings.iterations:
+            run.record(f"Adam {done}")
+            if checkpoint is not None:
+                run.save(checkpoint, done)
+    albedo_now, roughness_now = run.maps()
+    return albedo_now, roughness_now, run.curve, run.snapshots
 
-    def save(iteration: int) -> None:
-        if checkpoint is None:
-            return
-        arrays = {"albedo": np.array(params["albedo"]).T.reshape(-1, 3), "roughness": np.array(params["roughness"])}
-        arrays["snapshot_times"] = np.array([t for t, _, _ in snapshots])
-        for k, (_, a, r) in enumerate(snapshots):
-            arrays[f"snapshot_albedo_{k}"], arrays[f"snapshot_roughness_{k}"] = a, r
-        with atomic_path(checkpoint) as tmp, open(tmp, "wb") as fh:
-            np.savez(fh, **arrays, **adam.state(), iteration=np.array(iteration), curve=json.dumps(curve), settings=settings_json)
 
-    def loss_and_grads(with_grad: bool):
-        a, r = mi.Color3f(params["albedo"]), mi.Float(params["roughness"])
-        if with_grad:
-            dr.enable_grad(a, r)
+class MapOptimizer:
+    """The loss of :func:`optimize_maps` and Dr.Jit's Adam on the two maps (``mask_updates``: a texel without a
+    gradient keeps its moments), with the texels the data does not constrain held at the prior's fill."""
+
+    def __init__(self, batches: list[ViewBatch], graph, observed: np.ndarray, has_highlight: np.ndarray, settings: OptimizeSettings):
+        self.batches, self.settings, self.observed, self.has_highlight = batches, settings, observed, has_highlight
+        self.n_obs = sum(b.pixels for b in batches)
+        self.ei, self.ej = mi.UInt32(graph.i.astype(np.uint32)), mi.UInt32(graph.j.astype(np.uint32))
+        self.n_edges = max(graph.num_edges, 1)
+        gate_all = mi.Float(has_highlight.astype(np.float32))
+        self.gates = [dr.gather(mi.Float, gate_all, b.texels) for b in batches]
+        # Texels the data does not constrain (no highlight: roughness; never seen: albedo) are not moved by Adam, whose
+        # normalised steps would make them wander on the prior's tiny gradient; they take the harmonic interpolation
+        # of their neighbours, refreshed as the others move.
+        self.fill_roughness = graph.filler(has_highlight.astype(np.float64), FILL_STRENGTH)
+        self.fill_albedo = graph.filler(observed.astype(np.float64), FILL_STRENGTH)
+        self.free = {"albedo": mi.Bool(observed), "roughness": mi.Bool(has_highlight)}
+        self.adam = dr.opt.Adam(lr=1.0, mask_updates=True)
+        self.settings_json = json.dumps({**asdict(settings), "optimizer": OPTIMIZER}, sort_keys=True)
+        self.curve: list[tuple[float, float, float, str]] = []
+        self.snapshots: list[tuple[float, np.ndarray, np.ndarray]] = []
+        self.start = time.perf_counter()
+
+    def set_maps(self, albedo: np.ndarray, roughness: np.ndarray) -> None:
+        self.adam["albedo"] = mi.Color3f(*np.asarray(albedo, np.float32).reshape(-1, 3).T)
+        self.adam["roughness"] = mi.Float(np.asarray(roughness, np.float32))
+
+    def maps(self) -> tuple[np.ndarray, np.ndarray]:
+        return np.array(self.adam["albedo"]).T.reshape(-1, 3), np.array(self.adam["roughness"])
+
+    def loss(self, with_grad: bool) -> tuple[float, float]:
+        """(data L1, total loss) at the current maps; with the gradient on the maps for Adam's next step."""
+        a, r = self.adam["albedo"], self.adam["roughness"]
+        if not with_grad:
+            a, r = dr.detach(a), dr.detach(r)
         data = mi.Float(0.0)
-        for b, gate in zip(batches, gates, strict=True):
+        for b, gate in zip(self.batches, self.gates, strict=True):
             r_t = dr.gather(mi.Float, r, b.texels)
             spec, dspec = b.specular(dr.detach(r_t))
             # S(r) to first order around the current roughness: the value S, the derivative ∂S/∂r (the LED loop's
             # analytic one) for texels with highlight evidence, 0 for the others.
             radiance = dr.gather(mi.Color3f, a, b.texels) * b.diffuse + spec + dspec * (gate * (r_t - dr.detach(r_t)))
             residual = dr.abs(b.to_pixels(radiance) - b.observed)
-            data += dr.sum(residual.x + residual.y + residual.z) * (b.weight / (3.0 * n_obs))
-        prior = settings.smooth_roughness * dr.sum(dr.square(dr.gather(mi.Float, r, ei) - dr.gather(mi.Float, r, ej)))
-        prior += settings.smooth_albedo * dr.sum(dr.squared_norm(dr.gather(mi.Color3f, a, ei) - dr.gather(mi.Color3f, a, ej)))
-        loss = data + prior / n_edges
-        if not with_grad:
-            return float(data[0]), float(loss[0]), None
-        dr.backward(loss)
-        return float(data[0]), float(loss[0]), {"albedo": dr.grad(a), "roughness": dr.grad(r)}
+            data += dr.sum(residual.x + residual.y + residual.z) * (b.weight / (3.0 * self.n_obs))
+        s, ei, ej = self.settings, self.ei, self.ej
+        prior = s.smooth_roughness * dr.sum(dr.square(dr.gather(mi.Float, r, ei) - dr.gather(mi.Float, r, ej)))
+        prior += s.smooth_albedo * dr.sum(dr.squared_norm(dr.gather(mi.Color3f, a, ei) - dr.gather(mi.Color3f, a, ej)))
+        loss = data + prior / self.n_edges
+        if with_grad:
+            dr.backward(loss)
+        return float(data[0]), float(loss[0])
 
-    # Texels the data does not constrain (no highlight: roughness; never seen: albedo) are not moved by Adam, whose
-    # normalised steps would make them wander on the prior's tiny gradient; they take the harmonic interpolation of
-    # their neighbours, refreshed as the others move.
-    fill_roughness = graph.filler(has_highlight.astype(np.float64), FILL_STRENGTH)
-    fill_albedo = graph.filler(observed.astype(np.float64), FILL_STRENGTH)
-    free = {"albedo": mi.Bool(observed), "roughness": mi.Bool(has_highlight)}
+    def step(self, iteration: int) -> None:
+        """One Adam step, the learning rate decaying to a tenth over the run; values clipped to [0, 1], and the
+        texels Adam does not move kept."""
+        self.loss(with_grad=True)
+        decay = 0.1 ** (iteration / max(self.settings.iterations - 1, 1))
+        self.adam.set_learning_rate({"albedo": self.settings.lr_albedo * decay, "roughness": self.settings.lr_roughness * decay})
+        before = {k: dr.detach(self.adam[k]) for k in self.free}
+        self.adam.step()
+        for key, free in self.free.items():
+            self.adam[key] = dr.select(free, dr.clip(dr.detach(self.adam[key]), 0.0, 1.0), before[key])
+        dr.eval(self.adam["albedo"], self.adam["roughness"])
 
-    def refill() -> None:
+    def refill(self) -> None:
+        albedo, roughness = self.maps()
+        observed, has_highlight = self.observed, self.has_highlight
         if has_highlight.any() and not has_highlight.all():
-            r = np.array(params["roughness"])
-            filled = np.clip(fill_roughness(r, float(np.median(r[has_highlight])))[:, 0], 0.0, 1.0)
-            params["roughness"] = mi.Float(np.where(has_highlight, r, filled).astype(np.float32))
+            filled = np.clip(self.fill_roughness(roughness, float(np.median(roughness[has_highlight])))[:, 0], 0.0, 1.0)
+            roughness = np.where(has_highlight, roughness, filled)
         if observed.any() and not observed.all():
-            a = np.array(params["albedo"]).T.reshape(-1, 3)
-            filled = np.clip(fill_albedo(a, float(np.median(a[observed]))), 0.0, 1.0)
-            params["albedo"] = mi.Color3f(*np.where(observed[:, None], a, filled).T.astype(np.float32))
+            filled = np.clip(self.fill_albedo(albedo, float(np.median(albedo[observed]))), 0.0, 1.0)
+            albedo = np.where(observed[:, None], albedo, filled)
+        self.set_maps(albedo, roughness)  # same shapes: Adam's moments are kept
 
-    def snapshot() -> None:
-        albedo_now = np.array(params["albedo"]).T.reshape(-1, 3).astype(np.float32)
-        snapshots.append((curve[-1][0], albedo_now, np.array(params["roughness"]).astype(np.float32)))
+    def record(self, label: str) -> None:
+        """Refill, then a point of the curve and a snapshot of the maps."""
+        self.refill()
+        data, loss = self.loss(with_grad=False)
+        self.curve.append((time.perf_counter() - self.start, data, loss, label))
+        albedo, roughness = self.maps()
+        self.snapshots.append((self.curve[-1][0], albedo.astype(np.float32), roughness.astype(np.float32)))
 
-    if not curve:
-        refill()
-        data, loss, _ = loss_and_grads(False)
-        curve.append((time.perf_counter() - start, data, loss, "initial"))
-        snapshot()
-    iterations = range(first, settings.iterations)
-    for it in progress(list(iterations), description="optimise maps") if progress_bar else iterations:
-        _, _, grads = loss_and_grads(True)
-        decay = 0.1 ** (it / max(settings.iterations - 1, 1))  # the learning rate falls to a tenth
-        lr = {"albedo": settings.lr_albedo * decay, "roughness": settings.lr_roughness * decay}
-        stepped = adam.step(params, grads, lr)
-        params = {k: dr.select(free[k], dr.clip(stepped[k], 0.0, 1.0), params[k]) for k in params}
-        dr.eval(params, adam.m, adam.v)
-        done = it + 1
-        if done % settings.checkpoint_every == 0 or done == settings.iterations:
-            refill()
-            data, loss, _ = loss_and_grads(False)
-            curve.append((time.perf_counter() - start, data, loss, f"Adam {done}"))
-            snapshot()
-            save(done)
-    return np.array(params["albedo"]).T.reshape(-1, 3), np.array(params["roughness"]), curve, snapshots
+    def save(self, checkpoint: Path, iteration: int) -> None:
+        albedo, roughness = self.maps()
+        arrays = {"albedo": albedo, "roughness": roughness, "snapshot_times": np.array([t for t, _, _ in self.snapshots])}
+        for k, (_, a, r) in enumerate(self.snapshots):
+            arrays[f"snapshot_albedo_{k}"], arrays[f"snapshot_roughness_{k}"] = a, r
+        for key in self.free:
+            t, m, v, _ = self.adam.state[key][3]
+            arrays |= {f"adam_t_{key}": np.array(t), f"adam_m_{key}": np.array(m), f"adam_v_{key}": np.array(v)}
+        with atomic_path(checkpoint) as tmp, open(tmp, "wb") as fh:
+            np.savez(fh, **arrays, iteration=np.array(iteration), curve=json.dumps(self.curve), settings=self.settings_json)
+
+    def resume(self, checkpoint: Path, texels: int) -> int:
+        """The maps, Adam's moments, curve and snapshots of ``checkpoint``; returns the iteration to continue from."""
+        state = read_checkpoint_npz(checkpoint)
+        if str(state.get("settings", "")) != self.settings_json or state["roughness"].shape[0] != texels:
+            raise GraMiInputError(
+                checkpoint,
+                f"this fit was started with {state.get('settings', 'other settings')} on {state['roughness'].shape[0]} texels, "
+                f"not {self.settings_json} on {texels}: rerun with those options, or use a new --out folder",
+                field="settings",
+            )
+        self.set_maps(state["albedo"], state["roughness"])
+        for key, kind in (("albedo", mi.Color3f), ("roughness", mi.Float)):
+            value, promoted, lr, (_, _, _, v_max) = self.adam.state[key]
+            moments = (mi.UInt32(state[f"adam_t_{key}"]), kind(state[f"adam_m_{key}"]), kind(state[f"adam_v_{key}"]), v_max)
+            self.adam.state[key] = (value, promoted, lr, moments)
+        self.curve = [tuple(c) for c in json.loads(str(state["curve"]))]
+        times = state["snapshot_times"]
+        self.snapshots = [(float(t), state[f"snapshot_albedo_{k}"], state[f"snapshot_roughness_{k}"]) for k, t in enumerate(times)]
+        return int(state["iteration"])

@@ -160,9 +160,20 @@ def _table(ours: dict, baseline: dict, counts: dict) -> list[str]:
 
 
 def write_fit_outputs(fitter, result, out: Path) -> Path:
-    """Everything a fit folder holds besides its checkpoints; returns the report's path."""
+    """Everything a fit folder holds besides its checkpoints: the maps, the confidence map, plots, fit.json (the
+    record) and fit_report.md (rendered from it); returns the report's path."""
     out.mkdir(parents=True, exist_ok=True)
-    atlas = fitter.atlas
+    _write_maps(fitter.atlas, result, out)
+    record = fit_record(fitter, result, out)
+    _plot_convergence(result, record["map_curve"], out / "convergence.png")
+    if _true_maps(fitter) is not None:
+        _plot_maps_vs_truth(fitter, result, out / "maps_vs_truth.png")
+    atomic_write_text(out / "fit.json", json.dumps(record, indent=1) + "\n")
+    atomic_write_text(out / "fit_report.md", fit_markdown(record))
+    return out / "fit_report.md"
+
+
+def _write_maps(atlas, result, out: Path) -> None:
     write_exr(out / "albedo.exr", result.albedo)
     write_exr(out / "roughness.exr", result.roughness)
     write_png(out / "albedo.png", result.albedo)
@@ -174,9 +185,12 @@ def write_fit_outputs(fitter, result, out: Path) -> Path:
         preview = np.stack([ev.views / max(ev.views.max(), 1), np.minimum(ev.highlights / 4.0, 1.0), np.zeros_like(ev.views)], axis=1)
         write_png(out / "confidence.png", atlas.scatter(preview.astype(np.float32)))
 
+
+def fit_record(fitter, result, out: Path) -> dict:
+    """fit.json: the maps against the truth (and the constant baseline), relighting the held-out lighting, the
+    convergence, and what the views said about the texels."""
     ours, baseline, counts = score_maps(fitter, result)
-    truth = _true_maps(fitter)
-    map_curve = []
+    truth, map_curve = _true_maps(fitter), []
     if truth is not None and result.snapshots:
         true_albedo, true_rough, _ = truth
         scored = result.observed_cameras >= SCORED_MIN_CAMERAS
@@ -184,94 +198,79 @@ def write_fit_outputs(fitter, result, out: Path) -> Path:
             e = map_errors(a[scored], r[scored], true_albedo[scored], true_rough[scored])
             if e:  # empty when no texel is seen by enough cameras to be scored
                 map_curve.append((t, e["roughness_mae"], e["albedo_rel_median"]))
-    _plot_convergence(result, map_curve, out / "convergence.png")
-    if truth is not None:
-        _plot_maps_vs_truth(fitter, result, out / "maps_vs_truth.png")
-    relight = relight_scores(fitter, result, out / "cache")
+    ev = result.evidence
+    seen = None if ev is None else ev.views > 0
+    return {
+        "config": asdict(fitter.config),
+        "metrics": dict(ours.get("all", {})),
+        "regions": ours,
+        "baseline": baseline,
+        "scored_texels": counts,
+        "relight": relight_scores(fitter, result, out / "cache"),
+        "loss_curve": result.loss_curve,
+        "loss_measure": result.loss_measure,
+        "map_curve": map_curve,
+        "never_observed": int(np.sum(result.observed_cameras == 0)),
+        "albedo_gain": None if result.albedo_gain is None else [float(g) for g in result.albedo_gain],
+        "capture": {"folder": str(fitter.capture.folder), "renderer": fitter.capture.renderer}
+        | {"training_frames": len(fitter.train), "training_cameras": len(fitter.capture.train_cameras)},
+        "texels": fitter.atlas.num_texels,
+        "resolution": fitter.atlas.resolution,
+        "scored_min_cameras": SCORED_MIN_CAMERAS,
+        "well_seen_texels": int(np.sum(result.observed_cameras >= SCORED_MIN_CAMERAS)),
+        "without_highlights": None if ev is None else [int(np.sum(seen & (ev.highlights == 0))), int(seen.sum())],
+        "per_view_l1": result.per_view_l1,
+    }
 
-    m = atlas.num_texels
-    never = int(np.sum(result.observed_cameras == 0))
-    cfg = fitter.config
+
+def fit_markdown(r: dict) -> str:
+    """fit_report.md from the record."""
+    cfg, m, never, k = r["config"], r["texels"], r["never_observed"], r["scored_min_cameras"]
     lines = [
         "# Material fit",
         "",
-        f"Capture `{fitter.capture.folder}` ({fitter.capture.renderer} ground truth); {m} texels at {atlas.resolution}²; "
-        f"{len(fitter.train)} training frames × {len(fitter.capture.train_cameras)} cameras; solver `{cfg.solver}`"
-        + (f" ({cfg.iterations} Adam iterations)." if cfg.solver == "adam" else "."),
+        f"Capture `{r['capture']['folder']}` ({r['capture']['renderer']} ground truth); {m} texels at {r['resolution']}²; "
+        f"{r['capture']['training_frames']} training frames × {r['capture']['training_cameras']} cameras; solver `{cfg['solver']}`"
+        + (f" ({cfg['iterations']} Adam iterations)." if cfg["solver"] == "adam" else "."),
         "",
         f"- texels never observed: {never} ({100 * never / m:.1f} %)"
-        + (", filled from their neighbours" if ev is not None else ", kept at the defaults"),
-        f"- texels seen by ≥ {SCORED_MIN_CAMERAS} cameras (scored below): {int(np.sum(result.observed_cameras >= SCORED_MIN_CAMERAS))}",
+        + (", filled from their neighbours" if r["without_highlights"] is not None else ", kept at the defaults"),
+        f"- texels seen by ≥ {k} cameras (scored below): {r['well_seen_texels']}",
     ]
-    if result.albedo_gain is not None:
+    if r["albedo_gain"] is not None:
         lines.append(
-            f"- brightness calibration: albedo × ({', '.join(f'{g:.3f}' for g in result.albedo_gain)}) (R, G, B) so that the training "
+            f"- brightness calibration: albedo × ({', '.join(f'{g:.3f}' for g in r['albedo_gain'])}) (R, G, B) so that the training "
             "views' renders hold the captured total light (L1 alone leaves them too dark by the light the model leaves out)"
         )
-    if ev is not None:
-        seen = ev.views > 0
-        no_highlight = int(np.sum(seen & (ev.highlights == 0)))
+    if r["without_highlights"] is not None:
+        no_highlight, seen = r["without_highlights"]
         lines.append(
             f"- observed texels without highlight evidence (roughness from their neighbours): {no_highlight} "
-            f"({100 * no_highlight / max(int(seen.sum()), 1):.1f} %); confidence map: `confidence.exr` (views, highlights, "
+            f"({100 * no_highlight / max(seen, 1):.1f} %); confidence map: `confidence.exr` (views, highlights, "
             "information), preview `confidence.png` (red: views, green: highlights)"
         )
-    if ours:
+    if r["regions"]:
         lines += [
             "",
-            f"## Against the true maps (texels seen by ≥ {SCORED_MIN_CAMERAS} cameras)",
+            f"## Against the true maps (texels seen by ≥ {k} cameras)",
             "",
             "The baseline knows nothing: every texel gets the true map's median.",
             "",
         ]
-        lines += _table(ours, baseline, counts)
-        lines += ["", "![truth | fit | error](maps_vs_truth.png)"]
-    if relight:
+        lines += _table(r["regions"], r["baseline"], r["scored_texels"]) + ["", "![truth | fit | error](maps_vs_truth.png)"]
+    if r["relight"]:
+        lines += ["", "## Relighting the held-out lighting with the fitted maps (one bounce)", ""]
+        lines += ["Display PSNR and brightness error over the subject (docs/accuracy.md, one comparison for every report).", ""]
+        lines += ["| cameras | images | PSNR (dB) | brightness | mean L1 |", "|---|---|---|---|---|"]
         lines += [
-            "",
-            "## Relighting the held-out lighting with the fitted maps (one bounce)",
-            "",
-            "Display PSNR and brightness error over the subject (docs/accuracy.md, one comparison for every report).",
-            "",
-            "| cameras | images | PSNR (dB) | brightness | mean L1 |",
+            f"| {c} | {v['images']} | {v['psnr']:.2f} | {100 * v['brightness']:+.1f} % | {v['l1']:.5f} |" for c, v in r["relight"].items()
         ]
-        lines += ["|---|---|---|---|---|"] + [
-            f"| {k} | {v['images']} | {v['psnr']:.2f} | {100 * v['brightness']:+.1f} % | {v['l1']:.5f} |" for k, v in relight.items()
-        ]
-    lines += [
-        "",
-        "## Convergence (time to error)",
-        "",
-        "![convergence](convergence.png)",
-        "",
-        f"| time (s) | mean L1 ({result.loss_measure}) | stage |",
-    ]
-    lines += ["|---|---|---|"] + [f"| {t:.1f} | {loss:.5f} | {name} |" for t, loss, name in result.loss_curve]
-    if map_curve:
+    lines += ["", "## Convergence (time to error)", "", "![convergence](convergence.png)", ""]
+    lines += [f"| time (s) | mean L1 ({r['loss_measure']}) | stage |", "|---|---|---|"]
+    lines += [f"| {t:.1f} | {loss:.5f} | {name} |" for t, loss, name in r["loss_curve"]]
+    if r["map_curve"]:
         lines += ["", "| time (s) | roughness MAE | albedo median relative error |", "|---|---|---|"]
-        lines += [f"| {t:.1f} | {r:.4f} | {a:.4f} |" for t, r, a in map_curve]
+        lines += [f"| {t:.1f} | {rough:.4f} | {a:.4f} |" for t, rough, a in r["map_curve"]]
     lines += ["", "## Per view (mean L1)", "", "| view | L1 |", "|---|---|"]
-    lines += [f"| {k} | {v:.5f} |" for k, v in sorted(result.per_view_l1.items())]
-    atomic_write_text(out / "fit_report.md", "\n".join(lines) + "\n")
-    flat = {k: v for k, v in ours.get("all", {}).items()}
-    atomic_write_text(
-        out / "fit.json",
-        json.dumps(
-            {
-                "config": asdict(cfg),
-                "metrics": flat,
-                "regions": ours,
-                "baseline": baseline,
-                "scored_texels": counts,
-                "relight": relight,
-                "loss_curve": result.loss_curve,
-                "loss_measure": result.loss_measure,
-                "map_curve": map_curve,
-                "never_observed": never,
-                "albedo_gain": None if result.albedo_gain is None else [float(g) for g in result.albedo_gain],
-            },
-            indent=1,
-        )
-        + "\n",
-    )
-    return out / "fit_report.md"
+    lines += [f"| {view} | {v:.5f} |" for view, v in sorted(r["per_view_l1"].items())]
+    return "\n".join(lines) + "\n"

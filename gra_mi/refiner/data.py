@@ -400,7 +400,7 @@ def paste_box(frame: np.ndarray, change: np.ndarray, box: tuple[int, int, int, i
 
 
 def _resize_pad(image: np.ndarray, scale: float) -> tuple[np.ndarray, tuple[int, int]]:
-    from gra_mi.refiner.model import pad_to_multiple
+    from gra_mi.refiner.conditioning import pad_to_multiple
 
     t = torch.from_numpy(np.ascontiguousarray(image[..., :3])).permute(2, 0, 1)[None]
     if scale != 1.0:

@@ -28,10 +28,11 @@ import torch
 
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive, require_seed
 from gra_mi.core.metrics import display_psnr
+from gra_mi.refiner.conditioning import conditioning, latent_frames, seed_mask
 from gra_mi.refiner.data import RefinerDataset, video_to_image
 from gra_mi.refiner.deflicker import DeflickerConfig, deflicker_frame
 from gra_mi.refiner.flow import euler_sample
-from gra_mi.refiner.model import VideoRefiner, conditioning, latent_frames, seed_mask
+from gra_mi.refiner.model import VideoRefiner
 from gra_mi.render.composite import PlatformConfig
 
 logger = logging.getLogger(__name__)
@@ -141,7 +142,7 @@ def rollout(
         env = model.env_tokens(env_latents)
         # The inactive latents of the seed frames are their encoding alone (the VAE is causal in time).
         given = 1 + latent_frames(seeded)  # the reference and the seed frames
-        known = model.to_flow(control[:, :16], control, given)[:, :, :given] if joins.pin else None
+        known = model.to_flow(model.channels.inactive(control), control, given)[:, :, :given] if joins.pin else None
         generator = torch.Generator().manual_seed(seed + k)  # a new seed per window
         from_input = model.to_flow(model.base_latents(control, given), control, given)  # the given, then the input's latents
         x = euler_sample(model, (1, 16, *control.shape[2:]), control, env, steps, shift, generator, known, from_input, config.denoise)
@@ -246,111 +247,141 @@ def refine_to_folder(
     ground truth's own VAE round trip: what the VAE alone loses (with the tiny VAE, most of the gap to the input).
     ``options`` override ``config``'s fields (``steps=6``).
     """
-    from gra_mi.core.io import Mp4Stream, atomic_write_text, write_exr, write_png
+    from gra_mi.core.io import atomic_write_text
     from gra_mi.core.progress import progress
+    from gra_mi.core.provenance import claim_output
     from gra_mi.core.runtime import torch_device
 
     config = replace(config or RefineConfig(), **options)
     config.validate()
-    steps, shift, seed, frames, joins, fuse_lora = config.steps, config.shift, config.seed, config.frames, config.joins, config.fuse_lora
     out = Path(out)
     dataset = RefinerDataset(dataset_dir)
     if sequence not in dataset.sequences:
         raise GraMiParameterError("sequence", f"no sequence '{sequence}' in {dataset.folder} (have {sorted(dataset.sequences)})")
-    from gra_mi.core.provenance import claim_output
-
     dataset.check([sequence])
     said = {"sequence": sequence, "refine": asdict(config), "deflicker": asdict(deflicker) if deflicker else None}
     said["composite"] = asdict(composite) if composite else None
     claim_output(out, "refine", {"model": model_dir, "data": dataset_dir}, said, overwrite=overwrite, restart=True)
     compose = _capture_compositor(dataset, sequence, composite) if composite is not None else None
-    model = VideoRefiner.load(model_dir).to(torch.device(torch_device())).prepare_for_inference(fuse_lora)
-    info = dataset.sequences[sequence]
-    total = info.frames if frames is None else frames
-    ch, cw = dataset.crop
-    exposure = dataset.exposure
-    fps = float(dataset.meta.get("fps", 12))
-    rows, changes, windows_seen, rss = [], [], [], []
-    previous = None
+    model = VideoRefiner.load(model_dir).to(torch.device(torch_device())).prepare_for_inference(config.fuse_lora)
+    total = dataset.sequences[sequence].frames if config.frames is None else config.frames
+    rows, changes, windows_seen, rss, previous = [], [], [], [], None
     t0 = time.perf_counter()
-    with contextlib.ExitStack() as streams:
-        refined_mp4 = streams.enter_context(Mp4Stream(out / "refined.mp4", fps))
-        comparison_mp4 = streams.enter_context(Mp4Stream(out / "comparison.mp4", fps))
-        deflickered_mp4 = streams.enter_context(Mp4Stream(out / "deflickered" / "deflickered.mp4", fps)) if deflicker is not None else None
-        composite_mp4 = streams.enter_context(Mp4Stream(out / "composite.mp4", fps)) if compose is not None else None
+    with _RefineWriter(out, dataset, sequence, deflicker, compose, write_exr_frames) as writer:
         for frame in progress(rollout(model, dataset, sequence, config, frames=total), description=f"refine {sequence}", total=total):
-            # the whole frame, with the refined subject crop (if the data has one) put back
-            image = dataset.delivered(sequence, frame.index, "coarse", video_to_image(frame.video, exposure).permute(1, 2, 0).numpy())
+            rows.append(writer.write(frame))
+            ch, cw = dataset.crop
             shown = ((frame.video.permute(1, 2, 0).numpy()[:ch, :cw] + 1) / 2).clip(0, 1)
-            coarse = dataset.delivered(sequence, frame.index, "coarse")
-            if write_exr_frames:
-                write_exr(out / "frames" / f"frame_{frame.index:04d}.exr", image)
-                write_png(out / "frames" / f"frame_{frame.index:04d}.png", image, exposure=exposure)
-            refined_mp4.append(image, exposure)
-            panels = [coarse, image]
-            row = {"frame": frame.index, "window": frame.window}
-            if deflicker is not None:  # the refiner's own display space: the dataset's exposure
-                corrected = deflicker_frame(image, coarse, exposure, deflicker)
-                write_exr(out / "deflickered" / f"frame_{frame.index:04d}.exr", corrected)
-                write_png(out / "deflickered" / f"frame_{frame.index:04d}.png", corrected, exposure=exposure)
-                deflickered_mp4.append(corrected, exposure)
-            if info.has_target:
-                target = dataset.delivered(sequence, frame.index, "target")
-                panels.append(target)
-                subject = _subject(coarse, target)
-                row["psnr_coarse"] = display_psnr(coarse, target, subject)
-                row["psnr_refined"] = display_psnr(image, target, subject)
-                if deflicker is not None:
-                    row["psnr_deflickered"] = display_psnr(corrected, target, subject)
-            comparison_mp4.append(np.concatenate(panels, axis=1), exposure)
-            if compose is not None:
-                composite_mp4.append(compose(frame.index, corrected if deflicker is not None else image), exposure)
             if previous is not None:
                 changes.append(float(np.abs(shown - previous).mean()))
             previous = shown
             windows_seen.append(frame.window)
-            rows.append(row)
             rss.append(_peak_rss_mib())
     seconds = time.perf_counter() - t0
-    # Seams: the change into the first frame of a new window, and over its join (into each handed-off frame and
-    # the first one after them), against the change between the other consecutive frames.
-    firsts = [i for i in range(1, len(windows_seen)) if windows_seen[i] != windows_seen[i - 1]]
-    in_join = {i + j for i in firsts for j in range(model.config.handoff + 1)}
-    seam = [changes[i - 1] for i in firsts]
-    join = [changes[i - 1] for i in sorted(in_join) if i < len(windows_seen)]
-    inner = [changes[i - 1] for i in range(1, len(windows_seen)) if i not in in_join]
     summary = {
         "sequence": sequence,
         "frames": len(rows),
         "windows": len(set(windows_seen)),
-        "steps": steps,
-        "shift": shift,
-        "seed": seed,
+        "steps": config.steps,
+        "shift": config.shift,
+        "seed": config.seed,
         "mix": config.mix_for(model),
         "seconds": seconds,
         "frames_per_second": len(rows) / seconds,
-        "joins": {"handoff": joins.handoff, "pin": joins.pin, "crossfade": joins.crossfade},
-        "fuse_lora": fuse_lora,
+        "joins": asdict(config.joins),
+        "fuse_lora": config.fuse_lora,
         "deflicker": None if deflicker is None else asdict(deflicker),
-        "seam_jump": float(np.mean(seam)) if seam else None,
-        "join_frame_change": float(np.mean(join)) if join else None,
-        "inner_frame_change": float(np.mean(inner)) if inner else None,
+        **_seams(windows_seen, changes, model.config.handoff),
         "peak_rss_mib": rss[-1] if rss else None,
         "rss_mib_after_first_window": next((r for r, w in zip(rss, windows_seen, strict=True) if w > 0), None),
     }
-    if info.has_target:
-        summary["psnr_coarse"] = float(np.mean([r["psnr_coarse"] for r in rows]))
-        summary["psnr_refined"] = float(np.mean([r["psnr_refined"] for r in rows]))
-        if deflicker is not None:
-            summary["psnr_deflickered"] = float(np.mean([r["psnr_deflickered"] for r in rows]))
+    if dataset.sequences[sequence].has_target:
+        for key in ("psnr_coarse", "psnr_refined") + (("psnr_deflickered",) if deflicker is not None else ()):
+            summary[key] = float(np.mean([r[key] for r in rows]))
         if vae_round_trip_psnr:
-            psnr = []
-            for index, video in vae_round_trip(model, dataset, sequence, total):
-                image = dataset.delivered(sequence, index, "target", video_to_image(video, exposure).permute(1, 2, 0).numpy())
-                target = dataset.delivered(sequence, index, "target")
-                coarse = dataset.delivered(sequence, index, "coarse")
-                psnr.append(display_psnr(image, target, _subject(coarse, target)))
-            summary["psnr_vae_round_trip"] = float(np.mean(psnr))
+            summary["psnr_vae_round_trip"] = _vae_round_trip_psnr(model, dataset, sequence, total)
     summary["per_frame"] = rows
     atomic_write_text(out / "refine.json", json.dumps(summary, indent=1) + "\n")
     return summary
+
+
+class _RefineWriter:
+    """The refined frames (EXR + PNG), their flicker correction, and the videos (refined, comparison: coarse | refined
+    | truth, deflickered, composite), written as the frames come; each frame's PSNRs where there is a truth."""
+
+    def __init__(self, out: Path, dataset: RefinerDataset, sequence: str, deflicker, compose, write_exr_frames: bool):
+        self.out, self.dataset, self.sequence, self.deflicker, self.compose = out, dataset, sequence, deflicker, compose
+        self.write_exr_frames, self.exposure = write_exr_frames, dataset.exposure
+        self.streams = contextlib.ExitStack()
+
+    def __enter__(self):
+        from gra_mi.core.io import Mp4Stream
+
+        fps, out = float(self.dataset.meta.get("fps", 12)), self.out
+        self.refined = self.streams.enter_context(Mp4Stream(out / "refined.mp4", fps))
+        self.comparison = self.streams.enter_context(Mp4Stream(out / "comparison.mp4", fps))
+        deflickered = Mp4Stream(out / "deflickered" / "deflickered.mp4", fps) if self.deflicker is not None else None
+        self.deflickered = self.streams.enter_context(deflickered) if deflickered is not None else None
+        self.composite = self.streams.enter_context(Mp4Stream(out / "composite.mp4", fps)) if self.compose is not None else None
+        return self
+
+    def __exit__(self, *exc):
+        return self.streams.__exit__(*exc)
+
+    def _image(self, folder: str, index: int, image: np.ndarray) -> None:
+        from gra_mi.core.io import write_exr, write_png
+
+        if self.write_exr_frames or folder == "deflickered":
+            write_exr(self.out / folder / f"frame_{index:04d}.exr", image)
+            write_png(self.out / folder / f"frame_{index:04d}.png", image, exposure=self.exposure)
+
+    def write(self, frame: RefinedFrame) -> dict:
+        dataset, sequence, exposure = self.dataset, self.sequence, self.exposure
+        # the whole frame, with the refined subject crop (if the data has one) put back
+        image = dataset.delivered(sequence, frame.index, "coarse", video_to_image(frame.video, exposure).permute(1, 2, 0).numpy())
+        coarse = dataset.delivered(sequence, frame.index, "coarse")
+        self._image("frames", frame.index, image)
+        self.refined.append(image, exposure)
+        panels, row, delivered = [coarse, image], {"frame": frame.index, "window": frame.window}, image
+        if self.deflicker is not None:  # the refiner's own display space: the dataset's exposure
+            delivered = deflicker_frame(image, coarse, exposure, self.deflicker)
+            self._image("deflickered", frame.index, delivered)
+            self.deflickered.append(delivered, exposure)
+        if dataset.sequences[sequence].has_target:
+            target = dataset.delivered(sequence, frame.index, "target")
+            panels.append(target)
+            subject = _subject(coarse, target)
+            row["psnr_coarse"] = display_psnr(coarse, target, subject)
+            row["psnr_refined"] = display_psnr(image, target, subject)
+            if self.deflicker is not None:
+                row["psnr_deflickered"] = display_psnr(delivered, target, subject)
+        self.comparison.append(np.concatenate(panels, axis=1), exposure)
+        if self.compose is not None:
+            self.composite.append(self.compose(frame.index, delivered), exposure)
+        return row
+
+
+def _seams(windows_seen: list[int], changes: list[float], handoff: int) -> dict:
+    """The change into the first frame of a new window, and over its join (into each handed-off frame and the first
+    one after them), against the change between the other consecutive frames."""
+    firsts = [i for i in range(1, len(windows_seen)) if windows_seen[i] != windows_seen[i - 1]]
+    in_join = {i + j for i in firsts for j in range(handoff + 1)}
+    seam = [changes[i - 1] for i in firsts]
+    join = [changes[i - 1] for i in sorted(in_join) if i < len(windows_seen)]
+    inner = [changes[i - 1] for i in range(1, len(windows_seen)) if i not in in_join]
+    return {
+        "seam_jump": float(np.mean(seam)) if seam else None,
+        "join_frame_change": float(np.mean(join)) if join else None,
+        "inner_frame_change": float(np.mean(inner)) if inner else None,
+    }
+
+
+def _vae_round_trip_psnr(model: VideoRefiner, dataset: RefinerDataset, sequence: str, total: int) -> float:
+    """The ground truth's own VAE round trip against the truth: what the VAE alone loses."""
+    psnr = []
+    for index, video in vae_round_trip(model, dataset, sequence, total):
+        image = dataset.delivered(sequence, index, "target", video_to_image(video, dataset.exposure).permute(1, 2, 0).numpy())
+        target = dataset.delivered(sequence, index, "target")
+        coarse = dataset.delivered(sequence, index, "coarse")
+        psnr.append(display_psnr(image, target, _subject(coarse, target)))
+    return float(np.mean(psnr))

@@ -18,141 +18,19 @@
 
 from __future__ import annotations
 
-import json
 import logging
-import math
-from contextlib import contextmanager
-from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from gra_mi.core.config import option
-from gra_mi.core.errors import GraMiInputError, GraMiParameterError
+from gra_mi.core.errors import GraMiInputError
+from gra_mi.refiner.conditioning import ControlChannels
+from gra_mi.refiner.config import FORMAT, HINT, LORA_TARGETS, RETIRED_KEYS, TEMPORAL_FACTOR, TINY_PRIOR_WEIGHTS, RefinerConfig
+from gra_mi.refiner.loading import build_backbone, torch_dtype
 
 logger = logging.getLogger(__name__)
-
-# Real configurations (Wan-AI/Wan2.1-VACE-{1.3B,14B}-diffusers transformer/config.json).
-TRANSFORMER_CONFIGS = {
-    "tiny": dict(
-        patch_size=(1, 4, 4), num_attention_heads=4, attention_head_dim=64, in_channels=16, out_channels=16, text_dim=32,
-        freq_dim=32, ffn_dim=512, num_layers=4, cross_attn_norm=True, qk_norm="rms_norm_across_heads", eps=1e-6,
-        rope_max_seq_len=64, vace_layers=[0, 2], vace_in_channels=48,  # 16 + 16 latents + a 4×4 mask (its VAE is 4×)
-    ),
-    "1.3B": dict(
-        patch_size=(1, 2, 2), num_attention_heads=12, attention_head_dim=128, in_channels=16, out_channels=16, text_dim=4096,
-        freq_dim=256, ffn_dim=8960, num_layers=30, cross_attn_norm=True, qk_norm="rms_norm_across_heads", eps=1e-6,
-        rope_max_seq_len=1024, vace_layers=list(range(0, 30, 2)), vace_in_channels=96,
-    ),
-    "14B": dict(
-        patch_size=(1, 2, 2), num_attention_heads=40, attention_head_dim=128, in_channels=16, out_channels=16, text_dim=4096,
-        freq_dim=256, ffn_dim=13824, num_layers=40, cross_attn_norm=True, qk_norm="rms_norm_across_heads", eps=1e-6,
-        rope_max_seq_len=1024, vace_layers=list(range(0, 40, 5)), vace_in_channels=96,
-    ),
-}  # fmt: skip
-# The real VAE is diffusers' default AutoencoderKLWan (8× in space, 4× in time, 16 channels). The tiny one
-# (gra_mi.refiner.tiny_vae) has its interface, time factor and channels (so windows of 4k + 1 frames carry over) but
-# shrinks images 4× and starts as an exact block-mean codec: it keeps the image (docs/results/refiner.md).
-VAE_CONFIGS = {
-    "tiny": dict(z_dim=16, spatial=4, temporal=4, hidden=64),
-    "1.3B": {},
-    "14B": {},
-}
-TINY_VAE_WEIGHTS = Path(__file__).resolve().parent.parent / "data" / "tiny_vae.safetensors"
-"""The tiny VAE pretrained as an autoencoder by pipelines/pretrain_tiny_vae.py (shipped)."""
-TINY_PRIOR_WEIGHTS = Path(__file__).resolve().parent.parent / "data" / "tiny_refiner_prior.safetensors"
-"""The tiny DiT (with its VACE and envmap layers) pretrained by pipelines/pretrain_tiny_refiner.py on another subject
-(shipped): what the tiny refiner fine-tunes, as the real sizes fine-tune Wan2.1-VACE."""
-TEMPORAL_FACTOR = 4  # the causal VAE: 4k + 1 frames → k + 1 latent frames (the spatial factor is the VAE's config)
-LORA_TARGETS = r"blocks\.\d+\.(attn1|attn2)\.(to_q|to_k|to_v|to_out\.0)|blocks\.\d+\.ffn\.net\.(0\.proj|2)"
-"""Main DiT blocks only (the regex is matched against the whole module name, so ``vace_blocks.*`` is excluded)."""
-
-
-def parse_blocks(text: str) -> list[int] | None:
-    """``--env-blocks``: 'all' (None), 'none' ([]) or a comma list of block indices."""
-    import argparse
-
-    if text == "all":
-        return None
-    if text == "none":
-        return []
-    try:
-        return [int(b) for b in text.split(",") if b.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected 'all', 'none' or a comma list of block indices, got '{text}'") from None
-
-
-@dataclass
-class RefinerConfig:
-    size: str = field(default="tiny", metadata=option(choices=tuple(sorted(TRANSFORMER_CONFIGS))))
-    """Model size. tiny: random weights, CPU. Real sizes (1.3B, 14B) need their weights."""
-    weights: str | None = None
-    """Real sizes: a local diffusers folder (with transformer/ and vae/) or an original-format .safetensors/.pth checkpoint
-    of the transformer (then `vae_weights` names the VAE file)."""
-    vae_weights: str | None = None
-    """With an original-format checkpoint: the Wan2.1 VAE checkpoint (Wan2.1_VAE.pth)."""
-    prompt_embeds: str | None = None
-    """Real sizes: a .safetensors file with `prompt_embeds` (1, L, 4096) computed once by `gra-mi refiner-prompt`."""
-    lora_rank: int = 32
-    """LoRA rank on the main DiT blocks."""
-    env_blocks: list[int] | None = field(default=None, metadata=option(parse=parse_blocks))
-    """Main blocks followed by atemporal envmap cross-attention: 'all', 'none' or a comma list; default: all."""
-    env_heads: int = 2
-    env_mlp_hidden: int = 64
-    window: int = 17
-    """Pixel frames per window (4k + 1)."""
-    handoff: int = 5
-    """Frames a window hands to the next as inactive seeds."""
-    seed: int = 0
-    """Random seed of the new weights."""
-    prompt_length: int = 8
-    residual_scale: float = 0.1
-    """Size tiny: the flow runs on the residual (target latents − the coarse input's latents) / residual_scale, so a
-    refiner that has learnt nothing returns its input, not noise; 0: on the latents themselves, as the real sizes
-    always do (their pretrained Wan prior models natural video latents; the paper)."""
-    prior: bool = True
-    """The tiny size's DiT starts from the shipped prior, pretrained on another subject (pipelines/pretrain_tiny_refiner.py);
-    off: from random weights."""
-    dtype: str = field(default="float32", metadata=option(choices=("float32", "bfloat16")))
-    """Transformer dtype (float32 or bfloat16; the VAE stays float32)."""
-    mix: float = 1.0
-    """The fraction of the refiner's change delivered: input + mix·(refined − input). Training chooses it on the
-    data's selection sequences (:mod:`gra_mi.refiner.mix`); 1 (the refiner's output as it is) without them."""
-
-    def validate(self, source: str | Path | None = None) -> None:
-        """Check every field; ``source``: the refiner.json these came from (errors then name it and the field;
-        without it they name the parameter, which the CLI shows as its flag)."""
-
-        def bad(name: str, problem: str):
-            raise GraMiInputError(source, problem, field=name) if source else GraMiParameterError(name, problem)
-
-        if self.size not in TRANSFORMER_CONFIGS:
-            bad("size", f"'{self.size}' is not one of {sorted(TRANSFORMER_CONFIGS)}")
-        if self.window < 5 or (self.window - 1) % TEMPORAL_FACTOR:
-            bad("window", f"must be 4k + 1 frames (e.g. 17), got {self.window}")
-        if not 0 < self.handoff < self.window:
-            bad("handoff", f"must be between 1 and window - 1, got {self.handoff}")
-        layers = TRANSFORMER_CONFIGS[self.size]["num_layers"]
-        if self.env_blocks is not None and any(not 0 <= b < layers for b in self.env_blocks):
-            bad("env_blocks", f"{self.env_blocks} must be block indices in [0, {layers})")
-        if self.lora_rank < 0:
-            bad("lora_rank", f"must be >= 0 (0: no LoRA), got {self.lora_rank}")
-        if not (math.isfinite(self.residual_scale) and self.residual_scale >= 0):
-            bad("residual_scale", f"must be >= 0 (0: flow on the latents), got {self.residual_scale}")
-        if not 0 <= self.seed < 2**32:
-            bad("seed", f"must be an integer in [0, 2^32), got {self.seed}")
-        if self.dtype not in ("float32", "bfloat16"):
-            bad("dtype", f"must be float32 or bfloat16, got '{self.dtype}'")
-        if not 0 <= self.mix <= 1:  # NaN fails too
-            bad("mix", f"must be in [0, 1], got {self.mix}")
-        for name in ("weights", "vae_weights", "prompt_embeds"):
-            path = getattr(self, name)
-            if path is not None and not Path(path).exists():
-                bad(name, f"{path}: not found")
-
 
 # --------------------------------------------------------------------------------------------------------------
 # Atemporal envmap cross-attention
@@ -196,129 +74,6 @@ class AtemporalCrossAttention(nn.Module):
 # --------------------------------------------------------------------------------------------------------------
 
 
-def _dtype(name: str) -> torch.dtype:
-    return {"float32": torch.float32, "bfloat16": torch.bfloat16, "float16": torch.float16}[name]
-
-
-@contextmanager
-def default_dtype(dtype: torch.dtype):
-    """Build modules in ``dtype`` (the real sizes in bfloat16: the 14B takes 28 GB of memory to build, not 56)."""
-    torch.set_default_dtype(dtype)
-    try:
-        yield
-    finally:
-        torch.set_default_dtype(torch.float32)
-
-
-def cast_transformer(transformer, dtype: torch.dtype):
-    """Cast to ``dtype`` as ``from_pretrained(torch_dtype=…)`` does: diffusers' fp32-sensitive parameters (norms, time
-    embedding, RoPE, ``scale_shift_table``) stay float32, so every way of loading gives the same numerics."""
-    keep = transformer._keep_in_fp32_modules or []
-    for name, param in transformer.named_parameters():
-        param.data = param.data.to(torch.float32 if any(k in name.split(".") for k in keep) else dtype)
-    return transformer
-
-
-def _build_backbone(config: RefinerConfig):
-    from diffusers import AutoencoderKLWan, WanVACETransformer3DModel
-
-    from gra_mi.refiner.tiny_vae import TinyVideoAutoencoder
-
-    if config.size == "tiny":
-        torch.manual_seed(config.seed)
-        transformer = WanVACETransformer3DModel(**TRANSFORMER_CONFIGS["tiny"])  # random: a stand-in for pretrained weights
-        if not TINY_VAE_WEIGHTS.is_file():
-            raise GraMiInputError(
-                TINY_VAE_WEIGHTS, "missing: the pretrained tiny VAE ships with gra-mi (make it with pipelines/pretrain_tiny_vae.py)"
-            )
-        from safetensors import safe_open
-        from safetensors.torch import load_file
-
-        try:  # a random VAE would decode noise: this one reconstructs
-            with safe_open(str(TINY_VAE_WEIGHTS), framework="pt") as f:
-                meta = f.metadata() or {}
-            # its own latent statistics (the pretraining measures them), so normalised latents have unit variance
-            stats = {k: json.loads(meta[k]) for k in ("latents_mean", "latents_std") if k in meta}
-            vae = TinyVideoAutoencoder(**VAE_CONFIGS["tiny"], **stats)
-            vae.load_state_dict(load_file(str(TINY_VAE_WEIGHTS)))
-        except Exception as exc:  # truncated (SafetensorError) or of another config (RuntimeError)
-            raise GraMiInputError(
-                TINY_VAE_WEIGHTS,
-                f"corrupt or of another VAE config ({str(exc).strip().splitlines()[0][:120]}); reinstall gra-mi, or rebuild it with "
-                "pipelines/pretrain_tiny_vae.py",
-            ) from None
-        return transformer, vae
-    if not config.weights:
-        raise GraMiInputError(
-            "--weights",
-            f"the {config.size} refiner needs WAN2.1-VACE-{config.size} weights on disk (a local diffusers folder, or an "
-            "original-format checkpoint); nothing is downloaded. Use size 'tiny' to run without weights.",
-        )
-    path = Path(config.weights)
-    if not path.exists():
-        raise GraMiInputError(path, f"WAN2.1-VACE-{config.size} weights not found (expected a diffusers folder or a checkpoint file)")
-    dtype = _dtype(config.dtype)
-    if path.is_dir():
-        for sub in ("transformer", "vae"):
-            if not (path / sub / "config.json").is_file():
-                raise GraMiInputError(
-                    path / sub / "config.json", "missing: a diffusers WAN2.1-VACE folder has transformer/ and vae/ with config.json"
-                )
-        # from_pretrained with torch_dtype keeps diffusers' fp32-sensitive modules in fp32; the VAE stays fp32 (hand-off colour).
-        transformer = WanVACETransformer3DModel.from_pretrained(path / "transformer", torch_dtype=dtype, local_files_only=True)
-        _check_size(transformer, config.size, path / "transformer" / "config.json")
-        vae = AutoencoderKLWan.from_pretrained(path / "vae", torch_dtype=torch.float32, local_files_only=True)
-        return transformer, vae
-    from diffusers.loaders.single_file_utils import convert_wan_transformer_to_diffusers, convert_wan_vae_to_diffusers
-
-    if not config.vae_weights or not Path(config.vae_weights).is_file():
-        raise GraMiInputError(
-            "--vae-weights", "an original-format transformer checkpoint needs the Wan2.1 VAE checkpoint file (Wan2.1_VAE.pth)"
-        )
-    state = convert_wan_transformer_to_diffusers(_read_checkpoint(path))
-    with default_dtype(dtype):
-        transformer = WanVACETransformer3DModel(**TRANSFORMER_CONFIGS[config.size])
-    try:
-        missing, unexpected = transformer.load_state_dict(state, strict=False)
-    except RuntimeError as error:  # shapes of another size
-        raise GraMiInputError(
-            path, f"not a WAN2.1-VACE-{config.size} transformer checkpoint: {str(error).splitlines()[-1].strip()}"
-        ) from None
-    if missing:
-        raise GraMiInputError(
-            path, f"not a WAN2.1-VACE-{config.size} transformer checkpoint: {len(missing)} weights missing, e.g. {missing[:3]}"
-        )
-    if unexpected:
-        logger.warning("%s: %d unexpected weights ignored", path, len(unexpected))
-    cast_transformer(transformer, dtype)
-    for name, param in transformer.named_parameters():  # the float32-kept modules: their checkpoint values, unrounded
-        if param.dtype == torch.float32 and name in state:
-            param.data = state[name].to(torch.float32)
-    vae = AutoencoderKLWan()
-    try:
-        vae.load_state_dict(convert_wan_vae_to_diffusers(_read_checkpoint(Path(config.vae_weights))))
-    except RuntimeError as error:
-        raise GraMiInputError(config.vae_weights, f"not the Wan2.1 VAE checkpoint: {str(error).splitlines()[0].strip()}") from None
-    return transformer, vae
-
-
-def _check_size(transformer, size: str, source: Path) -> None:
-    """Weights of another size would load and run (shapes follow the folder's config): say so instead."""
-    expected = TRANSFORMER_CONFIGS[size]
-    for key in ("num_layers", "num_attention_heads", "attention_head_dim", "vace_layers"):
-        got = transformer.config[key]
-        if list(np.atleast_1d(got)) != list(np.atleast_1d(expected[key])):
-            raise GraMiInputError(source, f"field '{key}' is {got}: not WAN2.1-VACE-{size} (expected {expected[key]}); check --size")
-
-
-def _read_checkpoint(path: Path) -> dict:
-    if path.suffix == ".safetensors":
-        from safetensors.torch import load_file
-
-        return load_file(str(path))
-    return torch.load(path, map_location="cpu", weights_only=True)
-
-
 class VideoRefiner(nn.Module):
     """WAN2.1-VACE + LoRA + atemporal envmap attention, with the VAE and the cached prompt embedding."""
 
@@ -326,7 +81,7 @@ class VideoRefiner(nn.Module):
         super().__init__()
         config.validate()
         self.config = config
-        self.transformer, self.vae = backbone if backbone is not None else _build_backbone(config)
+        self.transformer, self.vae = backbone if backbone is not None else build_backbone(config)
         self.vae.requires_grad_(False).eval()
         self.transformer.requires_grad_(False)
         tcfg = self.transformer.config
@@ -356,6 +111,7 @@ class VideoRefiner(nn.Module):
         latents_mean = torch.tensor(self.vae.config.latents_mean, dtype=torch.float32).view(1, z_dim, 1, 1, 1)
         latents_std = torch.tensor(self.vae.config.latents_std, dtype=torch.float32).view(1, z_dim, 1, 1, 1)
         self.register_buffer("latents_mean", latents_mean, persistent=False)
+        self.channels = ControlChannels(z_dim)  # the VACE context's layout
         self.register_buffer("latents_std", latents_std, persistent=False)
 
     def _load_prior(self) -> None:
@@ -475,10 +231,11 @@ class VideoRefiner(nn.Module):
         ``given``: the leading latent frames that are given (the reference and the seed frames' latents) take the
         inactive latents whatever the mask says: diffusers' nearest-exact latent mask marks the latent frame of seed
         frames 1–4 reactive, whose reactive latents are then those of a blank video."""
-        keep = control[:, 32:].mean(dim=1, keepdim=True)  # the latent mask, 1 = reactive
-        base = keep * control[:, 16:32] + (1 - keep) * control[:, :16]
+        channels = self.channels
+        reactive = channels.mask(control).mean(dim=1, keepdim=True)
+        base = reactive * channels.reactive(control) + (1 - reactive) * channels.inactive(control)
         if given:
-            base = torch.cat([control[:, :16, :given], base[:, :, given:]], dim=2)
+            base = torch.cat([channels.inactive(control)[:, :, :given], base[:, :, given:]], dim=2)
         return base
 
     def to_flow(self, latents: torch.Tensor, control: torch.Tensor, given: int = 0) -> torch.Tensor:
@@ -525,7 +282,7 @@ class VideoRefiner(nn.Module):
         self.eval()
         if fuse_lora and self.config.lora_rank > 0:
             self.transformer.fuse_lora()
-        dtype = _dtype(self.config.dtype)
+        dtype = torch_dtype(self.config.dtype)
         self.env_attention.to(dtype)
         self.env_mlp.to(dtype)
         self._inference_only = True
@@ -583,28 +340,6 @@ class VideoRefiner(nn.Module):
         return model
 
 
-FORMAT = "gra-mi-refiner/1"
-"""refiner.json's format (:func:`gra_mi.core.weights.write_model`)."""
-RETIRED_KEYS = frozenset({"extra"})
-"""Fields refiner.json files from before 2026-12-02 hold that the config no longer has (ignored on load)."""
-HINT = " (train one with `gra-mi train-refiner`)"
-
-
-def seed_mask(frames: int, height: int, width: int, seeded: int) -> torch.Tensor:
-    """(1, 1, T, H, W): 1 = reactive (refine), 0 = inactive (the first ``seeded`` frames are kept)."""
-    mask = torch.ones(1, 1, frames, height, width)
-    mask[:, :, :seeded] = 0
-    return mask
-
-
-def conditioning(
-    model: VideoRefiner, coarse: torch.Tensor, mask: torch.Tensor, reference: torch.Tensor, env: torch.Tensor, reference_env: torch.Tensor
-):
-    """(control, env latents before the MLP) for one window; batch of 1. Videos (3, T, H, W) in [-1, 1]."""
-    control = model.control(coarse[None], mask, reference[None])
-    return control, model.env_latents(env[None], reference_env[None])
-
-
 def parameter_counts(model: VideoRefiner) -> dict[str, int]:
     count = lambda ps: int(sum(p.numel() for p in ps))  # noqa: E731
     named = list(model.named_parameters())
@@ -615,36 +350,3 @@ def parameter_counts(model: VideoRefiner) -> dict[str, int]:
         "vace": count(p for n, p in named if ".vace_" in f".{n}"),
         "env_attention": count(p for n, p in named if n.startswith(("env_attention.", "env_mlp."))),
     }
-
-
-def latent_frames(pixel_frames: int) -> int:
-    return (pixel_frames - 1) // TEMPORAL_FACTOR + 1
-
-
-def pad_to_multiple(h: int, w: int, m: int = 16) -> tuple[int, int]:
-    return int(math.ceil(h / m) * m), int(math.ceil(w / m) * m)
-
-
-def cache_prompt_embedding(pipeline_folder: str | Path, prompt: str, out: str | Path) -> Path:
-    """Encode ``prompt`` once with the umT5 text encoder of a local WAN2.1 diffusers folder (no download)."""
-    from safetensors.torch import save_file
-
-    from gra_mi.core.io import atomic_path
-
-    folder = Path(pipeline_folder)
-    for sub in ("tokenizer", "text_encoder"):
-        if not (folder / sub).is_dir():
-            raise GraMiInputError(folder / sub, "missing: a diffusers WAN2.1 folder has tokenizer/ and text_encoder/")
-    from transformers import AutoTokenizer, UMT5EncoderModel
-
-    tokenizer = AutoTokenizer.from_pretrained(folder / "tokenizer", local_files_only=True)
-    encoder = UMT5EncoderModel.from_pretrained(folder / "text_encoder", local_files_only=True).eval()
-    tokens = tokenizer([prompt], padding="max_length", max_length=512, truncation=True, return_tensors="pt")
-    with torch.no_grad():
-        hidden = encoder(tokens.input_ids, tokens.attention_mask).last_hidden_state
-    length = int(tokens.attention_mask.sum())
-    embeds = torch.zeros_like(hidden)
-    embeds[:, :length] = hidden[:, :length]  # as WanPipeline: the prompt's tokens, zeros after
-    with atomic_path(out) as tmp:
-        save_file({"prompt_embeds": embeds.contiguous()}, str(tmp))
-    return Path(out)

@@ -31,9 +31,11 @@ import torch.nn.functional as F
 from gra_mi.core.errors import GraMiInputError, require_positive, require_seed
 from gra_mi.core.io import atomic_write_text
 from gra_mi.core.training import TrainingLoop, write_training_log
+from gra_mi.refiner.conditioning import conditioning, latent_frames, seed_mask
+from gra_mi.refiner.config import RefinerConfig
 from gra_mi.refiner.data import RefinerDataset
 from gra_mi.refiner.flow import noisy_latent, recycling_residuals, sampling_sigmas, shift_sigma, velocity_target
-from gra_mi.refiner.model import RefinerConfig, VideoRefiner, conditioning, latent_frames, parameter_counts, seed_mask
+from gra_mi.refiner.model import VideoRefiner, parameter_counts
 
 logger = logging.getLogger(__name__)
 
@@ -242,7 +244,7 @@ def flow_matching_loss(
             if rng.random() < config.inactive_error_prob:
                 control = control.clone()
                 # the inactive latents (not the reference frame); the bank holds flow-space residuals
-                control[:, :16, 1:] += e1[:, :, 1:] * (core.residual_scale or 1.0)
+                core.channels.inactive(control)[:, :, 1:] += e1[:, :, 1:] * (core.residual_scale or 1.0)
                 injected.append("inactive")
         else:
             clean_in = clean
