@@ -21,8 +21,17 @@ from pathlib import Path
 
 import numpy as np
 
-from gra_mi.core.io import atomic_write_text, write_exr, write_png
+from gra_mi.core import metrics
+from gra_mi.core.io import atomic_write_text, pyplot, save_figure, to_srgb8, write_exr, write_png
+from gra_mi.core.progress import progress
 from gra_mi.render.leds import LedLayout
+from gra_mi.render.runtime import ensure_mitsuba
+from gra_mi.stage.envmap import envmap_to_leds
+from gra_mi.stage.envmap_library import SkyParams, bake_sunsky
+from gra_mi.stage.lightstage import Lightstage, default_lightstage
+from gra_mi.stage.scene import LightstageScene, camera_xml, led_sampling_weights, subject_scene_xml, write_rig, xml_attribute
+from gra_mi.subject.anny_body import anny_sequence
+from gra_mi.subject.sequence import save_sequence
 
 logger = logging.getLogger(__name__)
 
@@ -72,8 +81,6 @@ class Result:
 
 def image_errors(image: np.ndarray, reference: np.ndarray, mask: np.ndarray) -> tuple[float, float, float]:
     """Mean relative error (|a − r| / max(r, 2e-2)), PSNR (peak = reference max) and 1 − SSIM of sRGB previews."""
-    from gra_mi.core import metrics
-    from gra_mi.core.io import to_srgb8
 
     a, r = image[..., :3], reference[..., :3]
     exposure = 0.8 / max(float(np.percentile(r[mask], 99)), 1e-6)
@@ -91,8 +98,6 @@ def subsample_leds(envmap: np.ndarray, stage, k: int, scale: float) -> np.ndarra
 
     ``scale`` is the full stage's normalisation, so both light the subject with the same energy.
     """
-    from gra_mi.stage.envmap import envmap_to_leds
-    from gra_mi.stage.lightstage import Lightstage
 
     keep = np.unique(np.round(np.linspace(0, stage.num_leds - 1, k)).astype(int))
     sub = Lightstage(stage.led_positions[keep], stage.cameras, stage.center, stage.radius, None, None, stage.max_led_intensity)
@@ -129,12 +134,6 @@ class BenchSetup:
 
     def __init__(self, preset: BenchPreset, out: Path):
         from gra_mi.render.relighter import Relighter
-        from gra_mi.stage.envmap import envmap_to_leds
-        from gra_mi.stage.envmap_library import SkyParams, bake_sunsky
-        from gra_mi.stage.lightstage import default_lightstage
-        from gra_mi.stage.scene import LightstageScene, subject_scene_xml, write_rig
-        from gra_mi.subject.anny_body import anny_sequence
-        from gra_mi.subject.sequence import save_sequence
 
         self.preset, self.out = preset, out
         self.work = Path(tempfile.mkdtemp(prefix="gra_mi_bench_"))
@@ -298,8 +297,6 @@ def bench_mitsuba_direct(b: BenchSetup) -> None:
     """Mitsuba's own ``direct`` integrator with the same BSDF and LEDs: the generic peer, at several spp."""
     import mitsuba as mi
 
-    from gra_mi.stage.scene import camera_xml, led_sampling_weights, xml_attribute
-
     write_exr(b.work / "albedo.exr", b.albedo_tex)
     write_exr(b.work / "rough.exr", b.rough_tex)
     ply = b.work / "subject" / "frames" / f"frame_{b.frame:04d}.ply"
@@ -323,8 +320,6 @@ def bench_mitsuba_direct(b: BenchSetup) -> None:
 
 def run_bench(out: Path, preset_name: str = "full") -> Path:
     """Every approximation of the one-bounce render against the exact one: time, amortised time, memory, error."""
-    from gra_mi.core.progress import progress
-    from gra_mi.render.runtime import ensure_mitsuba
 
     chosen = ensure_mitsuba()
     preset = PRESETS[preset_name]
@@ -421,7 +416,6 @@ def conclusions(results: list[Result], front: set[int]) -> list[str]:
 
 
 def _write_report(out: Path, preset_name: str, variant: str, stage, texels: int, results: list[Result]) -> Path:
-    from gra_mi.core.io import pyplot, save_figure
 
     plt = pyplot()
 

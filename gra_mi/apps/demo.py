@@ -19,8 +19,21 @@ from pathlib import Path
 
 import numpy as np
 
+from gra_mi.apps.demo_report import demo_markdown
+from gra_mi.apps.gltf import export_glb
+from gra_mi.capture.dataset import load_observation
+from gra_mi.capture.synthetic import CaptureConfig, generate_capture
 from gra_mi.core.errors import GraMiParameterError
-from gra_mi.core.io import atomic_write_text, read_exr, write_exr, write_mp4, write_png
+from gra_mi.core.io import atomic_write_text, auto_exposure, pyplot, read_exr, save_figure, to_srgb8, write_exr, write_mp4, write_png
+from gra_mi.core.provenance import claim_output
+from gra_mi.core.runtime import torch_device
+from gra_mi.core.stamp import run_stamp
+from gra_mi.eval.lighting import EnvmapAccuracyConfig, envmap_accuracy
+from gra_mi.eval.protocol import EvalConfig, EvalInputs, evaluate
+from gra_mi.render.composite import PlatformCompositor, PlatformConfig
+from gra_mi.render.runtime import ensure_mitsuba
+from gra_mi.stage.envmap import direction_to_uv, envmap_to_leds, load_envmap, stage_background_plate
+from gra_mi.stage.scene import LightstageScene, composite_over
 
 logger = logging.getLogger(__name__)
 
@@ -68,7 +81,6 @@ def _timed(timings: dict, name: str):
 
 
 def plot_rig(stage, path: Path) -> None:
-    from gra_mi.core.io import pyplot, save_figure
 
     plt = pyplot()
 
@@ -98,12 +110,8 @@ def plot_rig(stage, path: Path) -> None:
 
 def plot_led_mapping(envmap: np.ndarray, stage, drive: np.ndarray, path: Path, title: str) -> None:
     """The envmap with each LED drawn at its (u, v), coloured by its drive: shows the convention at a glance."""
-    from gra_mi.core.io import pyplot, save_figure
 
     plt = pyplot()
-
-    from gra_mi.core.io import auto_exposure, to_srgb8
-    from gra_mi.stage.envmap import direction_to_uv
 
     u, v = direction_to_uv(stage.led_directions())
     fig, axes = plt.subplots(1, 2, figsize=(12, 3.4))
@@ -132,17 +140,15 @@ def contact_sheet(images: list[list[np.ndarray]]) -> np.ndarray:
 
 def run_demo(preset_name: str, out: Path, overwrite: bool = False) -> Path:
     """Run every stage on ``preset_name`` into ``out``; write demo.json (the stages' records) and report.md from it."""
-    from gra_mi.apps.demo_report import demo_markdown
-    from gra_mi.core.provenance import claim_output
-    from gra_mi.core.runtime import torch_device
-    from gra_mi.render.runtime import ensure_mitsuba
 
     if preset_name not in PRESETS:
         raise GraMiParameterError("preset", f"unknown preset '{preset_name}', expected one of {sorted(PRESETS)}")
     preset = PRESETS[preset_name]
     out = claim_output(out, "demo", {}, {"preset": preset_name}, overwrite=overwrite)  # a rerun resumes its own run only
     (out / "plots").mkdir(exist_ok=True)
-    record = {"preset": asdict(preset), "runtime": {"variant": ensure_mitsuba(), "torch_device": torch_device()}, "timings": {}}
+    runtime = {"variant": ensure_mitsuba(), "torch_device": torch_device()}
+    record = {"stamp": run_stamp(preset=preset_name, variant=runtime["variant"]), "preset": asdict(preset), "runtime": runtime}
+    record["timings"] = {}
     atomic_write_text(out / "config.json", json.dumps({"preset": record["preset"], **record["runtime"]}, indent=1) + "\n")
     timings = record["timings"]
     with _timed(timings, f"capture ({preset.capture}, {preset.renderer} ground truth)"):
@@ -151,8 +157,6 @@ def run_demo(preset_name: str, out: Path, overwrite: bool = False) -> Path:
         record["led_mappings"] = _led_mapping_plots(capture, ls.stage, out)
     fit_result = _learn_stages(preset, capture, out, record)
     _render_stages(preset, capture, ls, fit_result, out, record)
-    from gra_mi.eval.protocol import EvalConfig, EvalInputs, evaluate
-    from gra_mi.render.composite import PlatformConfig
 
     with _timed(timings, "evaluation (gra-mi eval)"):
         eval_config = EvalConfig(composite=True, platform=PlatformConfig(spp=preset.platform_spp))
@@ -164,8 +168,6 @@ def run_demo(preset_name: str, out: Path, overwrite: bool = False) -> Path:
 
 def _capture_stage(preset: DemoPreset, out: Path, record: dict):
     """The synthetic capture; what the report says of its rig, subject and ground truth."""
-    from gra_mi.capture.synthetic import CaptureConfig, generate_capture
-    from gra_mi.stage.scene import LightstageScene
 
     capture = generate_capture(out / "capture", CaptureConfig(preset=preset.capture, renderer=preset.renderer))
     ls = LightstageScene.load(capture.folder / "scene.xml")
@@ -185,7 +187,6 @@ def _capture_stage(preset: DemoPreset, out: Path, record: dict):
 
 def _led_mapping_plots(capture, stage, out: Path) -> list[str]:
     """A training and a held-out envmap with their LED drive values (the convention at a glance)."""
-    from gra_mi.stage.envmap import envmap_to_leds, load_envmap
 
     train_env = next(f.envmap for f in capture.frames if f.kind == "envmap" and f.split == "train")
     test_env = next(f.envmap for f in capture.frames if f.split == "test" and f.envmap is not None)
@@ -213,8 +214,6 @@ def _learn_stages(preset: DemoPreset, capture, out: Path, record: dict):
 
 def _render_stages(preset: DemoPreset, capture, ls, fit_result, out: Path, record: dict) -> None:
     """Relit contact sheet, lighting models against the path-traced truth, a point light, composites, glTF."""
-    from gra_mi.apps.gltf import export_glb
-    from gra_mi.eval.lighting import EnvmapAccuracyConfig, envmap_accuracy
     from gra_mi.render.relighter import Relighter
 
     timings = record["timings"]
@@ -249,11 +248,8 @@ def _point_light(capture, relighter, frame: int, out: Path) -> None:
 def _composite_video(preset: DemoPreset, capture, relighter, test_frames, out: Path) -> str:
     """The held-out camera through the first environment-lit test sequence: RelightNet's render on a platform with
     the subject's shadow (path-traced under the same envmap) over the envmap's background plate. Returns its path."""
-    from gra_mi.core.runtime import torch_device
     from gra_mi.relightnet.infer import render_view
     from gra_mi.relightnet.model import RelightNet
-    from gra_mi.render.composite import PlatformCompositor, PlatformConfig
-    from gra_mi.stage.envmap import envmap_to_leds, load_envmap
 
     stage, seq = relighter.ls.stage, relighter.ls.sequence
     net = RelightNet.load(out / "relightnet", torch_device())
@@ -275,9 +271,6 @@ def _composite_video(preset: DemoPreset, capture, relighter, test_frames, out: P
 def relit_contact_sheet(capture, relighter, test_frames, out: Path) -> None:
     """One-bounce renders with the fitted maps (renders/, EXR) of two held-out-lighting frames from a training and a
     held-out camera, next to the ground truth over the background plate. Pictures only: `gra-mi eval` scores them."""
-    from gra_mi.capture.dataset import load_observation
-    from gra_mi.stage.envmap import load_envmap, stage_background_plate
-    from gra_mi.stage.scene import composite_over
 
     stage = relighter.ls.stage
     lit = [f for f in test_frames if f.envmap is not None]  # shown over their environment's background plate

@@ -20,7 +20,12 @@ from gra_mi.core.config import option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.io import atomic_path, atomic_write_text, write_exr, write_mp4, write_png
 from gra_mi.core.progress import progress
-from gra_mi.stage.scene import LightstageScene
+from gra_mi.core.runtime import torch_device
+from gra_mi.render.composite import PlatformCompositor
+from gra_mi.render.runtime import ensure_mitsuba
+from gra_mi.stage.envmap import background_plate, envmap_to_leds, led_fidelity
+from gra_mi.stage.lightstage import olat_pattern, validate_pattern
+from gra_mi.stage.scene import LightstageScene, composite_over, lighting_warnings
 
 logger = logging.getLogger(__name__)
 
@@ -97,8 +102,6 @@ class RelightSummary:
 
 def collect_lights(stage, envmaps: dict[str, np.ndarray], olats: list[int], patterns: dict[str, np.ndarray], point_light=None):
     """Name → :class:`Light` for every lighting asked for (patterns are LED drive values, emitted = drive × gain)."""
-    from gra_mi.stage.envmap import envmap_to_leds
-    from gra_mi.stage.lightstage import olat_pattern, validate_pattern
 
     lights: dict[str, Light] = {}
     if point_light is not None:
@@ -145,8 +148,6 @@ def relight_batch(
     of ``config.composite``. Everything is checked before the first file is written.
     """
     from gra_mi.relightnet.infer import render_view
-    from gra_mi.render.runtime import ensure_mitsuba
-    from gra_mi.stage.scene import lighting_warnings
 
     config = config or RelightConfig()
     config.validate()
@@ -185,7 +186,6 @@ def relight_batch(
 
 def _stage_model(ls, config: RelightConfig, maps: SubjectMaps):
     """(RelightNet or None, the relighter at its resolution) for ``config.stage``, checked against the maps."""
-    from gra_mi.core.runtime import torch_device
     from gra_mi.render.relighter import Relighter
 
     model, resolution = None, config.uv_resolution
@@ -204,7 +204,6 @@ def _stage_model(ls, config: RelightConfig, maps: SubjectMaps):
 def _write_fidelity(out: Path, lights: dict[str, Light], stage) -> None:
     """How well the LEDs stand in for each envmap (irradiance error over 256 normals, next to the NNLS optimum):
     logged and written to ``envmap_fidelity.json``. Asked for only: it costs several times a relight."""
-    from gra_mi.stage.envmap import led_fidelity
 
     fidelity = {name: led_fidelity(light.envmap, stage) for name, light in lights.items() if light.envmap is not None}
     for name, f in fidelity.items():
@@ -233,13 +232,9 @@ class _Previews:
         self.exposures: dict[tuple[str, str], float] = {}
         self.compositor = None
         if config.composite:
-            from gra_mi.render.composite import PlatformCompositor
-
             self.compositor = PlatformCompositor(ls.sequence, platform, keep=keep)
 
     def add(self, frame: int, name: str, cam, light: Light, view) -> None:
-        from gra_mi.stage.envmap import background_plate
-        from gra_mi.stage.scene import composite_over
 
         folder = self.out / name / cam.name
         write_exr(folder / f"frame_{frame:04d}.exr", view.image)

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gra_mi.core.color import srgb_decode
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.io import read_exr, write_exr, write_png
 
@@ -17,8 +18,6 @@ from gra_mi.core.io import read_exr, write_exr, write_png
 def read_edit_image(path: str | Path) -> np.ndarray:
     """An edit layer as linear float (H, W, C): EXR as is, PNG/JPEG decoded from sRGB (alpha kept linear)."""
     import imageio.v3 as iio
-
-    from gra_mi.core.color import srgb_decode
 
     path = Path(path)
     if not path.is_file():

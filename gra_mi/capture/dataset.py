@@ -12,6 +12,9 @@ import numpy as np
 
 from gra_mi.core.errors import GraMiInputError
 from gra_mi.core.io import atomic_write_text, read_exr, read_json
+from gra_mi.core.progress import progress
+from gra_mi.stage.envmap import envmap_to_leds, load_envmap
+from gra_mi.stage.lightstage import load_calibration, load_pattern, uniform_pattern
 
 CAPTURE_FORMAT = "gra-mi-capture/1"
 UNIFORM_FRACTION = 0.5  # the tracking frames: every LED at half the stage maximum
@@ -98,7 +101,6 @@ class Capture:
         calibration = self.folder / "rig" / "calibration.json"
         if not calibration.is_file():
             return
-        from gra_mi.stage.lightstage import load_calibration
 
         self._sizes = {c.name: (c.width, c.height) for c in load_calibration(calibration).cameras}
         for key in ("train_cameras", "eval_cameras"):
@@ -109,7 +111,6 @@ class Capture:
     def check_images(self) -> None:
         """Read and check every image once before work starts (a bad one found hours into a fit, or after caches
         were written, would leave partial output). About 2 ms an image at the small preset's size."""
-        from gra_mi.core.progress import progress
 
         views = [(cam, f.frame) for cam in self.train_cameras + self.eval_cameras for f in self.frames]
         for cam, frame in progress(views, "checking the capture's images"):
@@ -121,8 +122,6 @@ class Capture:
 
     def lighting(self, stage, entry: FrameLighting) -> np.ndarray:
         """LED radiant intensities (L, 3) of a frame."""
-        from gra_mi.stage.envmap import envmap_to_leds, load_envmap
-        from gra_mi.stage.lightstage import load_pattern, uniform_pattern
 
         if entry.kind == "uniform":
             return uniform_pattern(stage, UNIFORM_FRACTION) * stage.gains

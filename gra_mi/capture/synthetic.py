@@ -29,9 +29,16 @@ import numpy as np
 from gra_mi.capture.dataset import Capture, FrameLighting
 from gra_mi.core.config import comma_list, option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
-from gra_mi.core.io import atomic_write_text, write_exr, write_png
+from gra_mi.core.io import atomic_write_text, read_exr, write_exr, write_png
+from gra_mi.core.metrics import relative_rmse
+from gra_mi.core.progress import progress
 from gra_mi.core.provenance import claim_output
-from gra_mi.stage.lightstage import default_lightstage
+from gra_mi.render.runtime import ensure_mitsuba
+from gra_mi.stage.envmap import downsample_envmap, led_fidelity, load_envmap
+from gra_mi.stage.envmap_library import write_envmap_set
+from gra_mi.stage.lightstage import default_lightstage, olat_pattern
+from gra_mi.stage.scene import LightstageScene, subject_scene_xml, write_rig
+from gra_mi.subject.anny_body import anny_sequence
 from gra_mi.subject.sequence import save_sequence, tiny_subject
 
 logger = logging.getLogger(__name__)
@@ -216,7 +223,6 @@ def _schedule(preset: CapturePreset, train_envmaps: list[str], test_sources: lis
 
 def _write_test_olat(stage, out: Path) -> str:
     """The out-of-distribution test lighting: one LED (the one nearest a front-left key light) at the stage maximum."""
-    from gra_mi.stage.lightstage import olat_pattern
 
     direction = OLAT_KEY_DIRECTION / np.linalg.norm(OLAT_KEY_DIRECTION)
     led = int(np.argmax(stage.led_directions() @ direction))
@@ -245,8 +251,6 @@ class GroundTruthRenderer:
 
     def __post_init__(self):
         import mitsuba as mi
-
-        from gra_mi.render.runtime import ensure_mitsuba
 
         ensure_mitsuba()  # registers gra_onebounce for the variant
         self.direct = mi.load_dict({"type": "gra_onebounce"})
@@ -290,8 +294,6 @@ def measure_ground_truth_noise(capture: Capture, source, renderer: GroundTruthRe
     ``pose(frame)`` moves ``source`` to a frame (default: ``source.set_frame``). The reference's own noise is a
     quarter of the image's, so the figure overstates the noise by at most 3 % of itself."""
     import time
-
-    from gra_mi.core.metrics import relative_rmse
 
     out = {}
     for label, entry in noise_probe_frames(capture).items():
@@ -374,8 +376,6 @@ def generate_capture(
     on its frame, so a resumed capture equals an uninterrupted one). ``test_envmaps`` (name → validated lat-long
     map): the user's own held-out lighting, in place of the first procedural test envmaps. ``overwrite``: empty a
     folder made by another run first (else it is refused)."""
-    from gra_mi.render.runtime import ensure_mitsuba
-    from gra_mi.stage.scene import write_rig
 
     config = config or CaptureConfig()
     config.validate()
@@ -420,8 +420,6 @@ def _write_subject(preset: CapturePreset, out: Path) -> None:
     if preset.subject == "tiny":
         seq = tiny_subject(sum(frames_per_clip))
     else:
-        from gra_mi.subject.anny_body import anny_sequence
-
         seq = anny_sequence(preset.train_clips + preset.test_clips, frames_per_clip)
     save_sequence(seq, out / "subject")
 
@@ -431,9 +429,6 @@ def _write_lighting(
 ) -> tuple[list[str], list[tuple[str, str]]]:
     """The training envmaps, and each test clip's lighting: the user's maps first, then procedural ones, or the test
     OLAT. Also the scene file of the capture's rig and subject."""
-    from gra_mi.stage.envmap import downsample_envmap
-    from gra_mi.stage.envmap_library import write_envmap_set
-    from gra_mi.stage.scene import subject_scene_xml
 
     n_relit = len(preset.train_clips) * (preset.frames_per_clip // 2)
     train_env = [str(p.relative_to(out)) for p in write_envmap_set(out / "envmaps", "train", max(n_relit, 1), preset.envmap_height)]
@@ -459,7 +454,6 @@ def _write_lighting(
 def _write_true_maps(preset: CapturePreset, out: Path, without: list[str]) -> dict[str, np.ndarray]:
     """The ground-truth material in UV space (gt/*.exr): albedo, roughness, sheen, the cloth regions, a flat normal map."""
     from gra_mi.render.atlas import UVAtlas
-    from gra_mi.stage.scene import LightstageScene
 
     ls = LightstageScene.load(out / "scene.xml")
     atlas = UVAtlas.build(ls.sequence.faces, ls.sequence.uvs, preset.uv_resolution)
@@ -476,8 +470,6 @@ def _write_true_maps(preset: CapturePreset, out: Path, without: list[str]) -> di
 
 def _measure_fidelity(capture: Capture, stage, previous: Capture | None) -> None:
     """How well the LEDs reproduce each envmap (capture.json), kept from a previous run of the same capture."""
-    from gra_mi.core.progress import progress
-    from gra_mi.stage.envmap import led_fidelity, load_envmap
 
     if previous is not None:
         for key in ("noise", "envmap_fidelity"):
@@ -495,8 +487,6 @@ def _measure_fidelity(capture: Capture, stage, previous: Capture | None) -> None
 def _render_images(capture: Capture, stage, config: CaptureConfig, record: dict, maps: dict) -> None:
     """Every camera of every frame, rendered in image space (the fit works in UV space, so the ground truth takes
     another code path); images already on disk are kept. Then the noise of the estimate, once."""
-    from gra_mi.core.progress import progress
-    from gra_mi.stage.scene import LightstageScene, subject_scene_xml
 
     out, preset = capture.folder, config.resolved()
     bsdf = ONEBOUNCE_BSDF if config.renderer == "onebounce" else GT_BSDF
@@ -558,7 +548,6 @@ def load_envmap_truth(capture: Capture, envmap_path: Path, frame: int):
     was made without them, the frame's wrinkles (:func:`pose_wrinkles`, as the capture's own images have them)."""
     import mitsuba as mi
 
-    from gra_mi.core.io import read_exr
     from gra_mi.stage import scene_keys as keys
 
     resolver = mi.file_resolver()
@@ -590,8 +579,6 @@ def render_envmap_truth(
     import tempfile
 
     import mitsuba as mi
-
-    from gra_mi.render.runtime import ensure_mitsuba
 
     ensure_mitsuba()
     max_depth = int(capture.ground_truth.get("max_depth", 4))

@@ -17,7 +17,9 @@ from dataclasses import dataclass
 
 from gra_mi.cli.options import add_config, config_from_args, option_flags
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
+from gra_mi.core.provenance import discard_unused_claims
 from gra_mi.core.runtime import SUPPORTED_VARIANTS
+from gra_mi.render.runtime import start_runtime
 
 logger = logging.getLogger("gra_mi")
 
@@ -152,8 +154,6 @@ def _message(exc: GraMiInputError, flags: dict[str, str]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from gra_mi.core.provenance import discard_unused_claims
-    from gra_mi.render.runtime import start_runtime
 
     words = sys.argv[1:] if argv is None else argv
     selected = next((w for w in words if not w.startswith("-")), None)

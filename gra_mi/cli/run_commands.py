@@ -9,7 +9,7 @@ from pathlib import Path
 from gra_mi.cli.options import CommandConfig, Restartable
 from gra_mi.core.config import option
 from gra_mi.core.errors import GraMiParameterError
-from gra_mi.eval.protocol import EvalConfig
+from gra_mi.eval.protocol import EvalConfig, EvalInputs, evaluate
 
 
 @dataclass(kw_only=True)
@@ -67,7 +67,6 @@ class EvalCommand(CommandConfig):
 
 
 def run_eval(c: EvalCommand) -> int:
-    from gra_mi.eval.protocol import EvalInputs, evaluate
 
     inputs = EvalInputs.from_run(c.run) if c.run is not None else EvalInputs(c.capture)
     for name in ("capture", "fit", "relightnet", "refiner_data"):

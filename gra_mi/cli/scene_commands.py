@@ -5,14 +5,16 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from gra_mi.capture.synthetic import CaptureConfig
+from gra_mi.capture.synthetic import CaptureConfig, generate_capture
 from gra_mi.cli.options import CommandConfig, Restartable
 from gra_mi.core.config import comma_list, option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive
 from gra_mi.stage.envmap import EnvmapOptions
-from gra_mi.stage.lightstage import RigLayout
-from gra_mi.stage.scene import RenderConfig
-from gra_mi.subject.anny_body import MOTION_CLIPS
+from gra_mi.stage.envmap_library import write_envmap_set
+from gra_mi.stage.lightstage import RigLayout, load_calibration, load_pattern, olat_pattern
+from gra_mi.stage.scene import RenderConfig, render_to_folder, write_rig, write_scene_file
+from gra_mi.subject.anny_body import MOTION_CLIPS, anny_sequence
+from gra_mi.subject.sequence import save_sequence, tiny_subject
 
 RIG_OPTIONS = ("num_leds", "radius", "num_cameras", "camera_distance", "width", "height", "max_led_intensity")
 
@@ -27,8 +29,6 @@ class RigCommand(CommandConfig):
 
 
 def run_rig(c: RigCommand) -> None:
-    from gra_mi.stage.lightstage import load_calibration
-    from gra_mi.stage.scene import write_rig
 
     stage = load_calibration(c.from_calibration) if c.from_calibration else c.layout.build()
     folder = write_rig(stage, c.out)
@@ -55,7 +55,6 @@ class EnvmapsCommand(CommandConfig):
 
 
 def run_envmaps(c: EnvmapsCommand) -> None:
-    from gra_mi.stage.envmap_library import write_envmap_set
 
     for split, count in (("train", c.train), ("test", c.test)):
         paths = write_envmap_set(c.out, split, count, c.height)
@@ -92,13 +91,10 @@ class SubjectCommand(CommandConfig):
 
 
 def run_subject(c: SubjectCommand) -> None:
-    from gra_mi.subject.sequence import save_sequence, tiny_subject
 
     if c.kind == "tiny":
         seq = tiny_subject(c.frames)
     else:
-        from gra_mi.subject.anny_body import anny_sequence
-
         seq = anny_sequence(c.clips, c.frames_per_clip)
     save_sequence(seq, c.out)
     print(f"wrote {seq.num_frames} frames, {seq.num_vertices} vertices, {len(seq.faces)} triangles to {c.out}")
@@ -117,7 +113,6 @@ class SceneCommand(CommandConfig):
 
 
 def run_scene(c: SceneCommand) -> None:
-    from gra_mi.stage.scene import write_scene_file
 
     print(f"wrote {write_scene_file(c.out, c.rig, c.subject, c.spp)}")
 
@@ -145,8 +140,6 @@ class RenderCommand(CommandConfig):
 
 
 def run_render(c: RenderCommand) -> None:
-    from gra_mi.stage.lightstage import load_pattern, olat_pattern
-    from gra_mi.stage.scene import render_to_folder
 
     if c.envmap is not None:
         light, envmap, drive = c.envmap.stem, c.envmaps.load(c.envmap), None
@@ -175,7 +168,6 @@ class CaptureCommand(Restartable):
 
 
 def run_capture(c: CaptureCommand) -> None:
-    from gra_mi.capture.synthetic import generate_capture
 
     test_envmaps = {path.stem: c.envmaps.load(path) for path in c.test_envmap}
     capture = generate_capture(c.out, c.capture, test_envmaps=test_envmaps, overwrite=c.overwrite)

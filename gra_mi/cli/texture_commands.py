@@ -5,14 +5,19 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from gra_mi.apps.relight import RelightConfig
+from gra_mi.apps.gltf import export_glb
+from gra_mi.apps.relight import RelightConfig, SubjectMaps, collect_lights, relight_batch, select
+from gra_mi.apps.texture_edit import edit_albedo_file, parse_color
 from gra_mi.cli.options import CommandConfig, Restartable
 from gra_mi.core.config import option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive
-from gra_mi.eval.lighting import EnvmapAccuracyConfig
+from gra_mi.eval.lighting import EnvmapAccuracyConfig, envmap_accuracy
 from gra_mi.fit.materials import FitConfig
 from gra_mi.render.composite import PLATFORM_FLAGS, PlatformConfig
 from gra_mi.stage.envmap import EnvmapOptions
+from gra_mi.stage.lightstage import load_pattern
+from gra_mi.stage.scene import LightstageScene
+from gra_mi.subject.sequence import load_sequence
 
 
 @dataclass(kw_only=True)
@@ -52,7 +57,6 @@ class EditTextureCommand(CommandConfig):
 
 
 def run_edit_texture(c: EditTextureCommand) -> None:
-    from gra_mi.apps.texture_edit import edit_albedo_file, parse_color
 
     color = parse_color(c.color) if c.color is not None else None
     edit_albedo_file(c.albedo, c.out, c.image, c.mask, color, c.opacity)
@@ -78,9 +82,7 @@ class ExportGltfCommand(CommandConfig):
 
 
 def run_export_gltf(c: ExportGltfCommand) -> None:
-    from gra_mi.apps.gltf import export_glb
     from gra_mi.render.relighter import load_texture
-    from gra_mi.subject.sequence import load_sequence
 
     albedo, roughness = load_texture(c.albedo, 3, "albedo"), load_texture(c.roughness, 1, "roughness")
     print(f"wrote {export_glb(c.out, load_sequence(c.subject), albedo, roughness, c.frames)}")
@@ -131,11 +133,8 @@ class RelightCommand(CommandConfig):
 
 
 def run_relight(c: RelightCommand) -> None:
-    from gra_mi.apps.relight import SubjectMaps, collect_lights, relight_batch, select
     from gra_mi.render.point_light import parse_point_light
     from gra_mi.render.relighter import load_texture
-    from gra_mi.stage.lightstage import load_pattern
-    from gra_mi.stage.scene import LightstageScene
 
     point_light = parse_point_light(c.point_light, c.point_light_intensity, c.point_light_radius) if c.point_light else None
     envmaps = {p.stem: c.envmaps.load(p) for p in c.envmap}
@@ -170,7 +169,6 @@ class EvalLightingCommand(CommandConfig):
 
 
 def run_eval_lighting(c: EvalLightingCommand) -> None:
-    from gra_mi.eval.lighting import envmap_accuracy
 
     envmap_accuracy(c.capture, c.fit, c.out, c.relightnet, c.accuracy)
     print((c.out / "accuracy.md").read_text())

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gra_mi.core.color import display_exposure, to_display
 from gra_mi.core.errors import GraMiInputError
 
 logger = logging.getLogger(__name__)
@@ -282,7 +283,6 @@ def read_hdr_image(path: str | Path) -> np.ndarray:
 def to_srgb8(image: np.ndarray, exposure: float = 1.0) -> np.ndarray:
     """Linear Rec.709 radiance → 8-bit sRGB preview (:func:`gra_mi.core.color.to_display`: clipped, NaN black, +Inf
     white; alpha passed through linearly)."""
-    from gra_mi.core.color import to_display
 
     image = np.asarray(image, dtype=np.float32)
     if image.ndim == 2:
@@ -298,7 +298,6 @@ def to_srgb8(image: np.ndarray, exposure: float = 1.0) -> np.ndarray:
 def auto_exposure(image: np.ndarray) -> float:
     """Exposure that maps the 99th percentile of the (finite, positive) luminance to 1
     (:func:`gra_mi.core.color.display_exposure` at level 1)."""
-    from gra_mi.core.color import display_exposure
 
     return display_exposure(image, level=1.0)
 

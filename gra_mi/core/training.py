@@ -14,7 +14,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from gra_mi.core.io import atomic_path
+from gra_mi.core.errors import GraMiInputError
+from gra_mi.core.io import atomic_path, pyplot, save_figure
+from gra_mi.core.progress import progress
+from gra_mi.core.provenance import claim_output
 
 logger = logging.getLogger(__name__)
 
@@ -35,7 +38,6 @@ def init_distributed() -> tuple[int, int]:
 
 def write_training_log(out: Path, header: list[str], rows: list, title: str, ylabel: str) -> None:
     """``train_log.csv`` (columns ``header``) and ``loss.png`` (column 2 against column 1, log scale)."""
-    from gra_mi.core.io import pyplot, save_figure
 
     plt = pyplot()
     with atomic_path(out / "train_log.csv") as tmp, open(tmp, "w", newline="") as fh:
@@ -83,7 +85,6 @@ class TrainingLoop:
     def claim(self, command: str, inputs: dict, config, overwrite: bool = False) -> None:
         """Check and record what makes ``out`` (:func:`gra_mi.core.provenance.claim_output`; the step count and
         logging cadence may change on a resume) before any rank reads a checkpoint from it."""
-        from gra_mi.core.provenance import claim_output
 
         if self.rank == 0:
             claim_output(self.out, command, inputs, config, overwrite=overwrite, free=TRAINING_CADENCE)
@@ -97,16 +98,12 @@ class TrainingLoop:
         try:
             state = torch.load(self.checkpoint, map_location=map_location, weights_only=False)
         except Exception as exc:  # truncated by a full disk or a copy cut short
-            from gra_mi.core.errors import GraMiInputError
-
             raise GraMiInputError(
                 self.checkpoint, f"unreadable checkpoint ({str(exc)[:120]}); rerun with --overwrite to start over"
             ) from None
         self.start, self.log_rows = state["step"], state["log"]
         self.divergence = state.get("divergence")
         if self.divergence is not None and self.start < self.total_steps:
-            from gra_mi.core.errors import GraMiInputError
-
             raise GraMiInputError(
                 self.checkpoint,
                 f"this run diverged at step {self.divergence['step']} ({self.divergence['what']}) and cannot be continued; "
@@ -149,7 +146,6 @@ class TrainingLoop:
     def steps(self, state_of: Callable[[], dict], row_extra: Callable[[], tuple] = tuple) -> Iterator[int]:
         """Step indices from the resumed one on; ``state_of()`` is what a checkpoint holds besides step and log,
         ``row_extra()`` what a log row holds after (step, mean loss, seconds)."""
-        from gra_mi.core.progress import progress
 
         self._state_of, self._row_extra = state_of, row_extra
         self._t0 = time.perf_counter()  # the log's seconds count training only

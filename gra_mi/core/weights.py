@@ -8,6 +8,7 @@ from pathlib import Path
 import torch
 
 from gra_mi.core.errors import GraMiInputError
+from gra_mi.core.io import atomic_path, atomic_write_text, check_config_types, read_json
 
 
 def read_weights(path: str | Path, hint: str = "") -> dict[str, torch.Tensor]:
@@ -41,8 +42,6 @@ def write_model(folder: str | Path, name: str, format_id: str, config, tensors: 
 
     from safetensors.torch import save_file
 
-    from gra_mi.core.io import atomic_path, atomic_write_text
-
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     with atomic_path(folder / f"{name}.safetensors") as tmp:
@@ -55,8 +54,6 @@ def read_model_config(path: str | Path, cls, format_id: str, hint: str = "", ret
     every key must be a field (``retired``: fields an earlier version wrote and this one no longer has, ignored), and
     every value must have its default's type. ``overrides`` replace fields. Each failure names the file and field."""
     import dataclasses
-
-    from gra_mi.core.io import check_config_types, read_json
 
     path = Path(path)
     data = read_json(path, hint)

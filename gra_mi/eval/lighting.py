@@ -21,12 +21,17 @@ from pathlib import Path
 
 import numpy as np
 
+from gra_mi.capture.synthetic import TRUTH_VERSION, render_envmap_truth
 from gra_mi.core.color import display_exposure
 from gra_mi.core.config import comma_list, option
 from gra_mi.core.errors import GraMiParameterError
 from gra_mi.core.io import atomic_write_text, pyplot, read_exr, save_figure, to_srgb8, write_exr
 from gra_mi.core.metrics import compare, subject_mask
 from gra_mi.core.progress import progress
+from gra_mi.core.runtime import torch_device
+from gra_mi.render.runtime import ensure_mitsuba
+from gra_mi.stage.envmap import envmap_to_leds
+from gra_mi.stage.envmap_library import REFERENCE_MAPS, reference_map
 
 TRUTH_SPP = 256
 
@@ -45,7 +50,6 @@ class EnvmapAccuracyConfig:
     """Rows of the reference maps (lat-long, twice as wide)."""
 
     def validate(self) -> None:
-        from gra_mi.stage.envmap_library import REFERENCE_MAPS
 
         unknown = sorted(set(self.maps) - set(REFERENCE_MAPS))
         if unknown or not self.maps:
@@ -58,7 +62,6 @@ class EnvmapAccuracyConfig:
 
 def _cached_truth(out: Path, capture, env: np.ndarray, name: str, frame: int, cameras: list[str], spp: int) -> dict[str, np.ndarray]:
     """The truth renders, kept under ``out/truth/NAME`` with what made them (reused when everything agrees)."""
-    from gra_mi.capture.synthetic import TRUTH_VERSION, render_envmap_truth
 
     folder = out / "truth" / name
     record = {
@@ -89,9 +92,6 @@ def envmap_accuracy(
     """Score every lighting model on every reference map and camera; write ``accuracy.json``, ``accuracy.md``,
     ``contact_sheet.png`` (truth | each model, per map) and every render (EXR) under ``out``. Returns the rows
     (one per map and model, averaged over the cameras)."""
-    from gra_mi.render.runtime import ensure_mitsuba
-    from gra_mi.stage.envmap import envmap_to_leds
-    from gra_mi.stage.envmap_library import reference_map
 
     config = config or EnvmapAccuracyConfig()
     config.validate()
@@ -123,7 +123,6 @@ def envmap_accuracy(
 def _lighting_models(capture_dir, fit_dir, relightnet_dir):
     """(capture, [(name, relighter, RelightNet or None, far field)]): near and far field with the fitted maps, far
     field with the true maps, and RelightNet on the far-field render when given."""
-    from gra_mi.core.runtime import torch_device
     from gra_mi.fit.fitted import fitted_relighter
     from gra_mi.render.relighter import Relighter, load_texture
 

@@ -20,6 +20,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from gra_mi.core.color import to_display
 from gra_mi.core.errors import GraMiInputError
 
 LPIPS_CHANNELS = (64, 192, 384, 256, 256)
@@ -130,7 +131,6 @@ def load_lpips(paths: list[str | Path], device: str = "cpu") -> LPIPS:
 
 def lpips_distance(model: LPIPS, image: np.ndarray, reference: np.ndarray, mask: np.ndarray, exposure: float) -> float:
     """Mean LPIPS over the mask, both images shown at ``exposure`` (:func:`gra_mi.core.metrics.to_display`)."""
-    from gra_mi.core.color import to_display
 
     device = next(model.parameters()).device
 

@@ -34,9 +34,18 @@ from pathlib import Path
 
 import numpy as np
 
+from gra_mi.capture.dataset import Capture, load_observation
+from gra_mi.core.color import display_exposure, to_display
 from gra_mi.core.config import option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
-from gra_mi.render.composite import PLATFORM_FLAGS, PlatformConfig
+from gra_mi.core.io import atomic_write_text, pyplot, read_exr, read_json, save_figure, write_mp4
+from gra_mi.core.metrics import compare, flip, flip_map, subject_mask, temporal_error
+from gra_mi.core.progress import progress
+from gra_mi.core.runtime import torch_device
+from gra_mi.refiner.config import RefinerConfig
+from gra_mi.render.composite import PLATFORM_FLAGS, PlatformCompositor, PlatformConfig
+from gra_mi.render.runtime import ensure_mitsuba
+from gra_mi.stage.envmap import envmap_to_leds, load_envmap
 
 logger = logging.getLogger(__name__)
 
@@ -109,7 +118,6 @@ def frame_selection(count: int, how: str) -> list[int]:
         return list(range(count))
     if how == "every10":
         return list(range(0, count, 10))
-    from gra_mi.refiner.config import RefinerConfig
     from gra_mi.refiner.infer import window_starts
 
     window, handoff = RefinerConfig.window, RefinerConfig.handoff  # the refiner's own windows (their defaults)
@@ -149,7 +157,6 @@ class StageResult:
 
 def _refined_folders(paths: list[Path]) -> dict[str, Path]:
     """Sequence name → refined folder (a folder with refine.json, or a folder of such folders)."""
-    from gra_mi.core.io import read_json
 
     found = {}
     for path in paths:
@@ -208,10 +215,6 @@ def _perceptual_models(config: EvalConfig):
 def evaluate(inputs: EvalInputs, out: str | Path, config: EvalConfig | None = None) -> dict:
     """Score every stage found in ``inputs`` on every split; write the table, contact sheets and videos under ``out``.
     Returns the eval.json content; its ``problems`` lists what the user pointed to that could not be evaluated."""
-    from gra_mi.capture.dataset import Capture
-    from gra_mi.core.io import atomic_write_text
-    from gra_mi.core.progress import progress
-    from gra_mi.render.runtime import ensure_mitsuba
 
     config = config or EvalConfig()
     config.validate()
@@ -277,7 +280,6 @@ def _texture_stages(inputs: EvalInputs, capture, out: Path, status: _Status):
             status.skip(stage, str(exc), "fit")
         return None, None
     try:
-        from gra_mi.core.runtime import torch_device
         from gra_mi.relightnet.model import RelightNet
 
         if inputs.relightnet is None or not (inputs.relightnet / "relightnet.json").is_file():
@@ -324,7 +326,6 @@ class _Frames:
         self.seconds: dict[str, list[float]] = {"microfacet": [], "RelightNet": []}
 
     def truths(self, split: Split) -> list[np.ndarray]:
-        from gra_mi.capture.dataset import load_observation
 
         for f in split.capture_frames:
             if ("truth", split.camera, f) not in self.cache:
@@ -368,8 +369,6 @@ class _Frames:
 
 def _score_split(split: Split, frames: dict, results: dict, config: EvalConfig, lpips_model, out: Path) -> dict:
     """Score each stage's frames of one split against the truth, write its contact sheet; what the videos need."""
-    from gra_mi.core.color import display_exposure
-    from gra_mi.core.metrics import subject_mask
 
     truths = frames["truth"]
     masks = [subject_mask(t) for t in truths]
@@ -384,7 +383,6 @@ def _score_split(split: Split, frames: dict, results: dict, config: EvalConfig, 
 
 def _settle(results: dict, splits: list[Split], videos: dict, seconds: dict[str, list[float]]) -> None:
     """Statuses that only the whole run shows, and each stage's seconds per frame."""
-    from gra_mi.core.io import read_json
 
     if not any("deflickered" in v["frames"] for v in videos.values()) and not results["deflickered"].splits:
         results["deflickered"].status = "skipped: no deflickered frames (`gra-mi refine --deflicker` or `gra-mi deflicker`)"
@@ -421,14 +419,12 @@ def _protocol(config: EvalConfig, scale: float, splits: list[Split], capture, vi
 
 def capture_width(capture) -> int:
     """Pixels across a capture image (refiner data written before ``scale`` was recorded give only their crop)."""
-    from gra_mi.core.io import read_exr
 
     return read_exr(capture.image_path(capture.eval_cameras[0], next(f.frame for f in capture.frames if f.split == "test"))).shape[1]
 
 
 def _read_sequence(folder: Path, count: int, size: tuple[int, int]) -> list[np.ndarray] | str:
     """A refined sequence's frames ``frame_NNNN.exr``; a string says why they cannot be scored."""
-    from gra_mi.core.io import read_exr
 
     if not folder.is_dir():
         return f"{folder}: folder not found"
@@ -448,14 +444,12 @@ def _read_sequence(folder: Path, count: int, size: tuple[int, int]) -> list[np.n
 
 
 def _score(images, truths, masks, exposure, scored: list[int], lpips_model) -> dict:
-    from gra_mi.core.metrics import compare, flip, temporal_error
 
     rows = []
     for i in scored:
         row = compare(images[i], truths[i], masks[i])
         row["flip"] = flip(images[i], truths[i], masks[i])
         if lpips_model is not None:
-            from gra_mi.core.color import display_exposure
             from gra_mi.eval.perceptual import lpips_distance
 
             row["lpips"] = lpips_distance(lpips_model, images[i], truths[i], masks[i], display_exposure(truths[i], masks[i]))
@@ -468,9 +462,7 @@ def _score(images, truths, masks, exposure, scored: list[int], lpips_model) -> d
 
 def _fvd(i3d, results: dict[str, StageResult], videos: dict) -> None:
     """FVD of each stage against the truth over all splits' clips of the refiner's window (non-overlapping, from 0)."""
-    from gra_mi.core.color import to_display
     from gra_mi.eval.perceptual import frechet_distance, i3d_features
-    from gra_mi.refiner.config import RefinerConfig
 
     window = RefinerConfig.window  # FVD's clips: the refiner's windows
     for stage in STAGES:
@@ -489,9 +481,6 @@ def _fvd(i3d, results: dict[str, StageResult], videos: dict) -> None:
 
 def _contact_sheet(path: Path, frames: dict, truths, masks, exposure: float, scored: list[int], split: str) -> None:
     """Truth and each stage at the middle scored frame, their ꟻLIP maps below."""
-    from gra_mi.core.color import to_display
-    from gra_mi.core.io import pyplot, save_figure
-    from gra_mi.core.metrics import flip_map
 
     i = scored[len(scored) // 2]
     stages = [s for s in STAGES if s in frames]
@@ -532,8 +521,6 @@ def _write_videos(folder: Path, videos: dict, splits: list[Split], capture, reli
     """Truth | each stage side by side per split; with ``config.composite`` also over the environment on a platform.
     Returns the splits that were composited (environment lighting only)."""
     composited = []
-    from gra_mi.core.io import write_mp4
-    from gra_mi.core.progress import progress
 
     fps = 12.0
     for split in splits:
@@ -544,8 +531,6 @@ def _write_videos(folder: Path, videos: dict, splits: list[Split], capture, reli
         write_mp4(folder / f"{split.name}.mp4", panels, fps=fps, exposure=exposure)
         if not config.composite or relighter is None:
             continue
-        from gra_mi.render.composite import PlatformCompositor
-        from gra_mi.stage.envmap import envmap_to_leds, load_envmap
 
         stage = relighter.ls.stage
         entries = {f.frame: f for f in capture.frames}

@@ -38,7 +38,14 @@ from gra_mi.capture.dataset import Capture, load_observation
 from gra_mi.core.config import option
 from gra_mi.core.errors import GraMiParameterError
 from gra_mi.core.io import atomic_path, read_checkpoint_npz
+from gra_mi.core.metrics import subject_mask
+from gra_mi.core.progress import progress
+from gra_mi.core.provenance import claim_output
 from gra_mi.fit.optimize import Evidence
+from gra_mi.fit.prior import SurfaceGraph
+from gra_mi.fit.report import write_fit_outputs
+from gra_mi.render.runtime import ensure_mitsuba
+from gra_mi.stage.scene import LightstageScene
 
 logger = logging.getLogger(__name__)
 
@@ -159,8 +166,6 @@ def sample_image(image: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndar
 class MaterialFitter:
     def __init__(self, capture: Capture, config: FitConfig, cache_dir: str | Path | None = None):
         from gra_mi.render.relighter import Relighter
-        from gra_mi.render.runtime import ensure_mitsuba
-        from gra_mi.stage.scene import LightstageScene
 
         ensure_mitsuba()
         self.capture = capture
@@ -178,7 +183,6 @@ class MaterialFitter:
 
     def gather_views(self, progress_bar=True) -> list[View]:
         """Observations of every training camera in every training frame."""
-        from gra_mi.core.progress import progress
 
         views = []
         jobs = [(f.frame, cam) for f in self.train for cam in self.capture.train_cameras]
@@ -229,8 +233,6 @@ class MaterialFitter:
         by its own brightness. The roughness and the specular light stay as fitted."""
         from dataclasses import replace
 
-        from gra_mi.capture.dataset import load_observation
-        from gra_mi.core.metrics import subject_mask
         from gra_mi.render.relighter import Relighter
 
         relighter = Relighter(self.ls, albedo=result.albedo, roughness=result.roughness)
@@ -267,7 +269,6 @@ class MaterialFitter:
         0.06 for a constant), so only its median is kept; texels no camera saw start from their neighbours' albedo.
         """
         from gra_mi.fit import optimize as opt
-        from gra_mi.fit.prior import SurfaceGraph
 
         cfg = self.config
         start = time.perf_counter()
@@ -334,7 +335,6 @@ class MaterialFitter:
 
     def _grid_error(self, views, grid: np.ndarray) -> np.ndarray:
         """(candidates, M) squared error of each roughness candidate with its closed-form (least-squares) albedo."""
-        from gra_mi.core.progress import progress
 
         m = self.atlas.num_texels
         s_dd, s_do, s_oo = np.zeros((m, 3)), np.zeros((m, 3)), np.zeros((m, 3))
@@ -358,7 +358,6 @@ class MaterialFitter:
 
     def _albedo_irls(self, views, roughness: np.ndarray, curve: list, start: float, save) -> tuple[np.ndarray, dict[str, float]]:
         """Albedo at the chosen roughness: least squares, then L1 by reweighting; and each view's mean L1."""
-        from gra_mi.core.progress import progress
 
         m = self.atlas.num_texels
         cache = [self.parts(v, roughness) for v in progress(views, description="albedo")]
@@ -403,8 +402,6 @@ def _refine_on_grid(error: np.ndarray, grid: np.ndarray) -> np.ndarray:
 def run_fit(capture_dir: str | Path, out: str | Path, config: FitConfig, overwrite: bool = False) -> tuple[FitResult, Path]:
     """Fit ``config``'s maps to a capture into ``out`` (resumes a run of the same capture and config there; a folder
     made by another refuses, or with ``overwrite`` starts over)."""
-    from gra_mi.core.provenance import claim_output
-    from gra_mi.render.runtime import ensure_mitsuba
 
     config.validate()
     capture = Capture.load(capture_dir)
@@ -413,6 +410,5 @@ def run_fit(capture_dir: str | Path, out: str | Path, config: FitConfig, overwri
     out = claim_output(out, "fit", {"capture": capture_dir}, config, overwrite=overwrite)
     fitter = MaterialFitter(capture, config, cache_dir=out / "cache")
     result = fitter.fit(out)
-    from gra_mi.fit.report import write_fit_outputs
 
     return result, write_fit_outputs(fitter, result, out)

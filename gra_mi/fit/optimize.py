@@ -30,8 +30,10 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from gra_mi.capture.dataset import load_observation
 from gra_mi.core.errors import GraMiInputError
 from gra_mi.core.io import atomic_path, read_checkpoint_npz
+from gra_mi.core.progress import progress
 from gra_mi.render.shading import TexelLedLoop
 
 FILL_STRENGTH = 0.1  # harmonic fill: highlight texels (confidence 1) move little, the others interpolate them
@@ -118,8 +120,6 @@ def pixel_footprints(ls, camera, atlas, alpha: np.ndarray, samples: int = FOOTPR
 def build_batches(fitter, min_view_cos: float = 0.0, progress_bar: bool = True) -> list[ViewBatch]:
     """A :class:`ViewBatch` per training camera and frame of a :class:`~gra_mi.fit.materials.MaterialFitter`; pixels
     that see a texel more obliquely than ``min_view_cos`` are left out."""
-    from gra_mi.capture.dataset import load_observation
-    from gra_mi.core.progress import progress
 
     batches = []
     jobs = [(f.frame, cam) for f in fitter.train for cam in fitter.capture.train_cameras]
@@ -238,7 +238,6 @@ def optimize_maps(
     ``checkpoint`` (an .npz) is written every ``checkpoint_every`` iterations and at the end, with Adam's moments; a
     run finding one resumes from it.
     """
-    from gra_mi.core.progress import progress
 
     run = MapOptimizer(batches, graph, observed, has_highlight, settings)
     run.set_maps(albedo, roughness)

@@ -14,7 +14,10 @@ from pathlib import Path
 
 import numpy as np
 
+from gra_mi.capture.dataset import load_observation
 from gra_mi.core.io import atomic_write_text, pyplot, read_exr, save_figure, write_exr, write_png
+from gra_mi.core.metrics import compare, mean_l1, subject_mask
+from gra_mi.core.progress import progress
 
 SCORED_MIN_CAMERAS = 3
 
@@ -70,9 +73,6 @@ def score_maps(fitter, result) -> tuple[dict, dict, dict]:
 def relight_scores(fitter, result, cache_dir: Path | None) -> dict[str, dict]:
     """PSNR and mean L1 of one-bounce renders with the fitted maps under the capture's held-out (test) lighting, from
     held-out and training cameras, against the captured images."""
-    from gra_mi.capture.dataset import load_observation
-    from gra_mi.core.metrics import compare, mean_l1, subject_mask
-    from gra_mi.core.progress import progress
     from gra_mi.render.relighter import Relighter
 
     capture = fitter.capture

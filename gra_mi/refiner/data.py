@@ -25,9 +25,15 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from gra_mi.capture.dataset import load_observation
 from gra_mi.core.color import srgb_decode, srgb_encode
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive
 from gra_mi.core.io import atomic_path, atomic_write_text, json_field, read_json
+from gra_mi.core.progress import progress
+from gra_mi.core.provenance import claim_output
+from gra_mi.core.runtime import torch_device
+from gra_mi.render.runtime import ensure_mitsuba
+from gra_mi.stage.envmap import leds_to_envmap, pixel_directions, to_camera_space
 
 DATA_FORMAT = "gra-mi-refiner-data/1"
 SPLITS = ("train", "selection", "test")
@@ -229,7 +235,6 @@ class RefinerDataset:
 
 
 def _latlong_dirs(h: int) -> np.ndarray:
-    from gra_mi.stage.envmap import pixel_directions
 
     return pixel_directions(h, 2 * h)
 
@@ -304,7 +309,6 @@ def synthetic_dataset(
 ) -> RefinerDataset:
     """subjects: subject seed → (number of training sequences, number of test sequences of ``test_frames``[, number
     of selection sequences of ``test_frames``])."""
-    from gra_mi.core.provenance import claim_output
 
     config = {"subjects": {str(k): list(v) for k, v in subjects.items()}, "frames": frames, "height": height, "width": width}
     config |= {"env_height": env_height, "test_frames": test_frames, "seed": seed}
@@ -459,9 +463,6 @@ def dataset_from_capture(
     The capture's clips loop, so a sequence shorter than its length is played again from its start. With a zoom, the
     sequences also hold the whole frames (``coarse_frame``/``target_frame``) and dataset.json each sequence's ``box``.
     """
-    from gra_mi.core.progress import progress
-    from gra_mi.core.provenance import claim_output
-    from gra_mi.render.runtime import ensure_mitsuba
 
     config = config or CaptureSequencesConfig()
     config.validate()
@@ -499,7 +500,6 @@ def dataset_from_capture(
 
 def _coarse_stages(capture_dir, fit_dir, relightnet_dir, cache_dir):
     """(capture, its fitted relighter, RelightNet or None), loaded and checked before the output folder is claimed."""
-    from gra_mi.core.runtime import torch_device
     from gra_mi.fit.fitted import fitted_relighter
 
     capture, relighter = fitted_relighter(capture_dir, fit_dir, cache_dir)
@@ -540,9 +540,7 @@ def _sequence_jobs(capture, config: CaptureSequencesConfig):
 def _capture_sequence(capture, relighter, model, cam: str, entries, length: int, uniform, config: CaptureSequencesConfig):
     """(the sequence's arrays at the delivered scale, the frame's size before padding, the capture frame of each
     sequence frame); with a zoom, also the full-resolution frames and subject masks the boxes are cut from."""
-    from gra_mi.capture.dataset import load_observation
     from gra_mi.relightnet.infer import render_view
-    from gra_mi.stage.envmap import leds_to_envmap, to_camera_space
 
     stage, scale = relighter.ls.stage, config.scale
 

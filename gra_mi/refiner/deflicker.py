@@ -19,7 +19,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from gra_mi.core.color import display_exposure, srgb_decode, to_display
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive
+from gra_mi.core.io import Mp4Stream, read_exr, write_exr, write_png
+from gra_mi.core.progress import progress
 
 
 @dataclass
@@ -43,13 +46,11 @@ class DeflickerConfig:
 
 
 def _encode(linear: np.ndarray, exposure: float) -> torch.Tensor:
-    from gra_mi.core.color import to_display
 
     return torch.from_numpy(to_display(linear, exposure)).float().permute(2, 0, 1)[None]
 
 
 def _decode(display: torch.Tensor, exposure: float) -> np.ndarray:
-    from gra_mi.core.color import srgb_decode
 
     return (srgb_decode(display[0].permute(1, 2, 0).double().numpy()) / exposure).astype(np.float32)
 
@@ -88,7 +89,6 @@ def _frame_files(folder: Path, what: str) -> list[Path]:
 
 def read_frame(path: Path) -> np.ndarray:
     """A frame as linear RGB(A): EXR as stored, PNG decoded from sRGB."""
-    from gra_mi.core.io import read_exr
 
     if path.suffix.lower() == ".exr":
         return read_exr(path)
@@ -100,7 +100,6 @@ def read_frame(path: Path) -> np.ndarray:
         raise GraMiInputError(path, f"not a readable PNG ({exc})") from None
     if pixels.ndim == 2:
         pixels = np.repeat(pixels[..., None], 3, axis=-1)
-    from gra_mi.core.color import srgb_decode
 
     rgb = srgb_decode(pixels[..., :3])
     return np.concatenate([rgb, pixels[..., 3:]], axis=-1).astype(np.float32)
@@ -112,9 +111,6 @@ def deflicker_folder(
     """``gra-mi deflicker``: correct every frame in ``frames_dir`` with the frame of the same position (sorted names)
     in ``stable_dir``; writes ``out/NAME.exr`` + ``.png`` and ``deflickered.mp4``. ``exposure`` None: the one that
     shows the first stable frame's 99th percentile at 0.8 (:func:`gra_mi.core.color.display_exposure`)."""
-    from gra_mi.core.color import display_exposure
-    from gra_mi.core.io import Mp4Stream, write_exr, write_png
-    from gra_mi.core.progress import progress
 
     config = config or DeflickerConfig()
     config.validate()

@@ -26,14 +26,21 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from gra_mi.capture.dataset import Capture
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive, require_seed
+from gra_mi.core.io import Mp4Stream, atomic_write_text, write_exr, write_png
 from gra_mi.core.metrics import display_psnr
+from gra_mi.core.progress import progress
+from gra_mi.core.provenance import claim_output
+from gra_mi.core.runtime import torch_device
 from gra_mi.refiner.conditioning import conditioning, latent_frames, seed_mask
 from gra_mi.refiner.data import RefinerDataset, video_to_image
 from gra_mi.refiner.deflicker import DeflickerConfig, deflicker_frame
 from gra_mi.refiner.flow import euler_sample
 from gra_mi.refiner.model import VideoRefiner
-from gra_mi.render.composite import PlatformConfig
+from gra_mi.render.composite import PlatformCompositor, PlatformConfig
+from gra_mi.stage.envmap import envmap_to_leds, load_envmap
+from gra_mi.stage.scene import LightstageScene
 
 logger = logging.getLogger(__name__)
 
@@ -190,10 +197,6 @@ def _subject(coarse: np.ndarray, target: np.ndarray) -> np.ndarray:
 def _capture_compositor(dataset: RefinerDataset, sequence: str, platform: PlatformConfig):
     """(sequence frame, linear image) → the image over its environment on a platform: for data made from a capture,
     whose dataset.json names the capture, the camera and the capture frame of each sequence frame."""
-    from gra_mi.capture.dataset import Capture
-    from gra_mi.render.composite import PlatformCompositor
-    from gra_mi.stage.envmap import envmap_to_leds, load_envmap
-    from gra_mi.stage.scene import LightstageScene
 
     entry = next(s for s in dataset.meta["sequences"] if s["name"] == sequence)
     path = dataset.folder / "dataset.json"
@@ -247,10 +250,6 @@ def refine_to_folder(
     ground truth's own VAE round trip: what the VAE alone loses (with the tiny VAE, most of the gap to the input).
     ``options`` override ``config``'s fields (``steps=6``).
     """
-    from gra_mi.core.io import atomic_write_text
-    from gra_mi.core.progress import progress
-    from gra_mi.core.provenance import claim_output
-    from gra_mi.core.runtime import torch_device
 
     config = replace(config or RefineConfig(), **options)
     config.validate()
@@ -315,7 +314,6 @@ class _RefineWriter:
         self.streams = contextlib.ExitStack()
 
     def __enter__(self):
-        from gra_mi.core.io import Mp4Stream
 
         fps, out = float(self.dataset.meta.get("fps", 12)), self.out
         self.refined = self.streams.enter_context(Mp4Stream(out / "refined.mp4", fps))
@@ -329,7 +327,6 @@ class _RefineWriter:
         return self.streams.__exit__(*exc)
 
     def _image(self, folder: str, index: int, image: np.ndarray) -> None:
-        from gra_mi.core.io import write_exr, write_png
 
         if self.write_exr_frames or folder == "deflickered":
             write_exr(self.out / folder / f"frame_{index:04d}.exr", image)

@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from gra_mi.core.errors import GraMiInputError
+from gra_mi.core.io import atomic_path
 from gra_mi.refiner.config import TINY_VAE_WEIGHTS, TRANSFORMER_CONFIGS, VAE_CONFIGS, RefinerConfig
 
 logger = logging.getLogger(__name__)
@@ -158,8 +159,6 @@ def _read_checkpoint(path: Path) -> dict:
 def cache_prompt_embedding(pipeline_folder: str | Path, prompt: str, out: str | Path) -> Path:
     """Encode ``prompt`` once with the umT5 text encoder of a local WAN2.1 diffusers folder (no download)."""
     from safetensors.torch import save_file
-
-    from gra_mi.core.io import atomic_path
 
     folder = Path(pipeline_folder)
     for sub in ("tokenizer", "text_encoder"):

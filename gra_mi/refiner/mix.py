@@ -21,6 +21,8 @@ from pathlib import Path
 import numpy as np
 
 from gra_mi.core.errors import GraMiInputError
+from gra_mi.core.io import atomic_write_text, pyplot, save_figure
+from gra_mi.core.metrics import compare, flip, temporal_error
 
 MIXES = (0.0, 0.125, 0.25, 0.5, 0.75, 1.0)
 PSNR_BUDGET = 0.4
@@ -56,7 +58,6 @@ def mix_scores(model, dataset, sequences: list[str], steps: int, shift: float, s
     """Refine the first window of each sequence once (mix 1), and score input + s·(refined − input) for every s
     against the ground truth: the delivered frames' display PSNR and ꟻLIP, and the temporal error, each averaged over
     the sequences. One window has no hand-off, so the blend is exactly what ``rollout(mix=s)`` delivers."""
-    from gra_mi.core.metrics import compare, flip, temporal_error
     from gra_mi.refiner.data import video_to_image
     from gra_mi.refiner.infer import _subject, rollout
 
@@ -90,7 +91,6 @@ def mix_scores(model, dataset, sequences: list[str], steps: int, shift: float, s
 
 def write_mix_report(out: Path, scores: list[MixScore], chosen: MixScore, sequences: list[str], psnr_budget: float) -> dict:
     """``mix.md`` (the table and the choice in words) and ``mix.png``; returns what train.json records."""
-    from gra_mi.core.io import atomic_write_text, pyplot, save_figure
 
     unchanged = next(s for s in scores if s.mix == 0)
     lines = [

@@ -30,11 +30,13 @@ import torch.nn.functional as F
 
 from gra_mi.core.errors import GraMiInputError, require_positive, require_seed
 from gra_mi.core.io import atomic_write_text
+from gra_mi.core.runtime import torch_device
 from gra_mi.core.training import TrainingLoop, write_training_log
 from gra_mi.refiner.conditioning import conditioning, latent_frames, seed_mask
 from gra_mi.refiner.config import RefinerConfig
 from gra_mi.refiner.data import RefinerDataset
 from gra_mi.refiner.flow import noisy_latent, recycling_residuals, sampling_sigmas, shift_sigma, velocity_target
+from gra_mi.refiner.mix import PSNR_BUDGET, choose_mix, mix_scores, write_mix_report
 from gra_mi.refiner.model import VideoRefiner, parameter_counts
 
 logger = logging.getLogger(__name__)
@@ -287,7 +289,6 @@ def train_refiner(
     overwrite: bool = False,
 ) -> Path:
     """Train (or, with ``init``, adapt) a refiner; writes weights, logs, a loss plot and ``train.json``."""
-    from gra_mi.core.runtime import torch_device
 
     config.validate()
     model_config = model_config or RefinerConfig()
@@ -415,7 +416,6 @@ def _finite_snapshot(model: VideoRefiner, step: int) -> tuple[int, dict] | None:
 
 def _choose_mix(model: VideoRefiner, dataset: RefinerDataset, config: RefinerTrainConfig, out: Path) -> dict:
     """Set ``model.config.mix`` from the selection sequences (:mod:`gra_mi.refiner.mix`); what train.json records."""
-    from gra_mi.refiner.mix import PSNR_BUDGET, choose_mix, mix_scores, write_mix_report
 
     sequences = [n for n in dataset.names("selection") if dataset.sequences[n].has_target]
     if not (config.choose_mix and sequences):

@@ -11,6 +11,7 @@ import torch
 from gra_mi.relightnet.model import RelightNet
 from gra_mi.render.bridge import NUM_NORMAL_FRAMES, to_torch, uv_features
 from gra_mi.render.relighter import Relighter, ViewRender
+from gra_mi.stage.envmap import leds_to_envmap, to_camera_space
 
 
 def view_inputs(
@@ -20,7 +21,6 @@ def view_inputs(
     :meth:`Relighter.render`."""
     from gra_mi.render.atlas import TexelGeometry
     from gra_mi.render.point_light import conditioning_pattern
-    from gra_mi.stage.envmap import leds_to_envmap, to_camera_space
 
     stage = relighter.ls.stage
     shading, geom = relighter.shade(frame, camera, intensities, point_light, far_field)

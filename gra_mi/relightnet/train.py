@@ -20,12 +20,17 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from gra_mi.core.errors import GraMiInputError, require_positive, require_seed
-from gra_mi.core.io import atomic_write_text, write_png
+from gra_mi.capture.dataset import load_observation
+from gra_mi.core import metrics
+from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive, require_seed
+from gra_mi.core.io import atomic_path, atomic_write_text, pyplot, save_figure, write_png
+from gra_mi.core.progress import progress
+from gra_mi.core.runtime import torch_device
 from gra_mi.core.training import TrainingLoop, write_training_log
 from gra_mi.relightnet.infer import view_inputs
 from gra_mi.relightnet.model import RelightNet, RelightNetConfig, exposure
 from gra_mi.render.bridge import camera_uv_grid, sample_texture, to_torch
+from gra_mi.render.runtime import ensure_mitsuba
 
 logger = logging.getLogger(__name__)
 
@@ -64,7 +69,6 @@ class TrainConfig:
     """Train on the first N training views only (an overfitting check, or a quick look); default: all."""
 
     def validate(self) -> None:
-        from gra_mi.core.errors import GraMiParameterError
 
         positive = {"steps": self.steps, "checkpoint_every": self.checkpoint_every, "log_every": self.log_every}
         positive |= {"base_channels": self.base_channels, "env_height": self.env_height, "batch_size": self.batch_size}
@@ -107,8 +111,6 @@ HELD_OUT = ("novel view", "novel lighting (envmap)", "novel lighting (OLAT)")
 
 
 def build_samples(capture, relighter, env_height: int, device: str = "cpu", splits=("train", *HELD_OUT)) -> list[Sample]:
-    from gra_mi.capture.dataset import load_observation
-    from gra_mi.core.progress import progress
 
     stage = relighter.ls.stage
     jobs = []
@@ -157,7 +159,6 @@ def normalised_l1(image: torch.Tensor, target: torch.Tensor, pixels: torch.Tenso
 def image_metrics(image: torch.Tensor, target: torch.Tensor, pixels: torch.Tensor) -> tuple[float, float, float]:
     """Display PSNR, SSIM and brightness error (:func:`gra_mi.core.metrics.compare`) over the subject's pixels of
     (1, 3, H, W) images."""
-    from gra_mi.core import metrics
 
     a, b = ((x * pixels)[0].permute(1, 2, 0).detach().cpu().numpy() for x in (image, target))
     scores = metrics.compare(a, b, pixels[0, 0].detach().cpu().numpy() > 0.5)
@@ -170,9 +171,7 @@ def image_metrics(image: torch.Tensor, target: torch.Tensor, pixels: torch.Tenso
 def train_relightnet(capture_dir: str | Path, fit_dir: str | Path, out: str | Path, config: TrainConfig, overwrite: bool = False) -> Path:
     """Train RelightNet into ``out``; a rerun with the same inputs and config resumes (``steps`` may grow), a folder
     made by another run is refused (``overwrite``: start over)."""
-    from gra_mi.core.runtime import torch_device
     from gra_mi.fit.fitted import fitted_relighter
-    from gra_mi.render.runtime import ensure_mitsuba
 
     config.validate()
     loop = TrainingLoop(Path(out), config.steps, config.checkpoint_every, config.log_every, "train RelightNet")
@@ -345,8 +344,6 @@ def write_validation_curve(out: Path, rows: list[dict], best_step: int) -> None:
     """``validation_log.csv`` and ``validation.png``: each held-out split's PSNR on the selection views against the
     training step (step 0 is the microfacet render), the chosen step marked."""
     import csv
-
-    from gra_mi.core.io import atomic_path, pyplot, save_figure
 
     splits = sorted({k for r in rows for k in r["psnr"]})
     with atomic_path(out / "validation_log.csv") as tmp, open(tmp, "w", newline="") as fh:

@@ -21,6 +21,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from gra_mi.core.errors import GraMiParameterError, require_positive
+from gra_mi.render.runtime import ensure_mitsuba
+from gra_mi.stage.envmap import background_plate
+from gra_mi.stage.scene import camera_sensor_dict
 
 
 @dataclass
@@ -65,9 +68,6 @@ def platform_layer(sequence, frame: int, camera, envmap: np.ndarray, config: Pla
     ``camera``, lit by ``envmap`` (linear lat-long radiance in the units of the relit render, e.g. × the LED mapping's
     scale), the environment itself hidden (alpha 0)."""
     import mitsuba as mi
-
-    from gra_mi.render.runtime import ensure_mitsuba
-    from gra_mi.stage.scene import camera_sensor_dict
 
     ensure_mitsuba()
     config = config or PlatformConfig()
@@ -123,7 +123,6 @@ class PlatformCompositor:
     def __call__(self, subject: np.ndarray, frame: int, camera, envmap: np.ndarray, scale: float, lighting: str) -> np.ndarray:
         """``subject`` (H, W, >= 3 linear, black background) of ``frame`` seen by ``camera``, lit by ``envmap`` × ``scale``
         (the LED mapping's normalisation: the units of the render); ``lighting`` names the envmap for the cache."""
-        from gra_mi.stage.envmap import background_plate
 
         key = (frame, camera.name, camera.width, camera.height, lighting)
         if key not in self._cache:

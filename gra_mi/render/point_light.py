@@ -21,6 +21,7 @@ from gra_mi.core.errors import GraMiParameterError
 from gra_mi.render import brdf
 from gra_mi.render.atlas import TexelGeometry
 from gra_mi.render.visibility import RAY_EPSILON
+from gra_mi.stage.envmap import leds_to_envmap
 
 logger = logging.getLogger(__name__)
 
@@ -140,6 +141,5 @@ def conditioning_pattern(stage, scene: mi.Scene, light: PointLight) -> np.ndarra
 def conditioning_envmap(stage, pattern: np.ndarray, height: int = 64) -> np.ndarray:
     """The conditioning as a lat-long envmap: every pixel takes its LED cell's value (``pattern`` is irradiance-like,
     I/d², so it is spread over the cell's solid angle directly)."""
-    from gra_mi.stage.envmap import leds_to_envmap
 
     return leds_to_envmap(stage, pattern * stage.led_distances()[:, None] ** 2, height)

@@ -5,14 +5,13 @@ plugins is the render layer's business (docs/architecture.md: no import runs bac
 from __future__ import annotations
 
 from gra_mi.core import runtime
+from gra_mi.render.plugins import register_plugins
 
 
 def start_runtime(variant: str | None = None, device: str | None = None, *, mitsuba: bool = True, torch: bool = False) -> runtime.Runtime:
     """Start what a command needs, once: the Mitsuba variant with the plugins registered (``mitsuba``) and the torch
     device (``torch``). ``None`` means automatic: the GPU where one works."""
     if mitsuba:
-        from gra_mi.render.plugins import register_plugins
-
         runtime.RUNTIME.variant = runtime.choose_variant(variant)
         register_plugins()
     if torch:
@@ -27,7 +26,6 @@ def ensure_mitsuba() -> str:
 
     if mi.variant() is None:
         return start_runtime().variant
-    from gra_mi.render.plugins import register_plugins
 
     register_plugins()
     return mi.variant()

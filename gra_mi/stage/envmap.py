@@ -24,7 +24,8 @@ import numpy as np
 
 from gra_mi.core.config import option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
-from gra_mi.stage.lightstage import Camera, Lightstage
+from gra_mi.core.io import read_hdr_image
+from gra_mi.stage.lightstage import Camera, Lightstage, fibonacci_sphere
 
 logger = logging.getLogger(__name__)
 
@@ -270,7 +271,6 @@ def load_envmap(
     gra-mi's convention (``convention``: where the source tool puts the image centre, see ``ENVMAP_CONVENTIONS``;
     ``rotate_deg``: a further turn about the up axis, counter-clockwise seen from above) and downsample it to at
     most ``max_height`` rows with its flux kept."""
-    from gra_mi.core.io import read_hdr_image
 
     if convention not in ENVMAP_CONVENTIONS:
         raise GraMiInputError(path, f"unknown envmap convention '{convention}', expected one of {sorted(ENVMAP_CONVENTIONS)}")
@@ -442,8 +442,6 @@ def led_fidelity(envmap: np.ndarray, stage: Lightstage, num_normals: int = FIDEL
     ``glossy_*``: the same for a glossy lobe, where the optimum for irradiance falls apart (it moves the light).
     """
     from scipy.optimize import nnls
-
-    from gra_mi.stage.lightstage import fibonacci_sphere
 
     def errors(normals, intensities):
         truth = envmap_irradiance(envmap, normals).mean(axis=1)

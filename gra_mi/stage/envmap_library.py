@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from gra_mi.core.io import atomic_write_text, write_exr, write_png
+from gra_mi.core.progress import progress
 from gra_mi.stage.envmap import direction_to_uv, pixel_directions, pixel_solid_angles, pixel_subsamples
 
 logger = logging.getLogger(__name__)
@@ -246,7 +247,6 @@ def write_envmap_set(out_dir: str | Path, split: str, count: int, height: int = 
 
     Existing maps are kept (so an interrupted run resumes where it stopped).
     """
-    from gra_mi.core.progress import progress
 
     out_dir = Path(out_dir) / split
     paths, index = [], []

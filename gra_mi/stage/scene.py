@@ -20,9 +20,9 @@ import numpy as np
 
 from gra_mi.core.config import option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_seed
-from gra_mi.core.io import atomic_write_text
+from gra_mi.core.io import atomic_write_text, write_exr, write_png
 from gra_mi.stage import scene_keys as keys
-from gra_mi.stage.envmap import LedLighting, envmap_to_leds
+from gra_mi.stage.envmap import LedLighting, envmap_to_leds, stage_background_plate
 from gra_mi.stage.lightstage import Camera, Lightstage, load_calibration, save_calibration, validate_pattern
 from gra_mi.subject.sequence import MeshSequence, load_sequence
 
@@ -383,8 +383,6 @@ def render_to_folder(
 ) -> Path:
     """``gra-mi render``: one view with a stock Mitsuba integrator, lit by ``envmap`` or by ``drive(stage)`` (LED drive
     values), as ``out/CAMERA_fFRAME_LIGHT.{exr,png}`` (+ ``_composite.png`` over the envmap's plate). Returns the stem."""
-    from gra_mi.core.io import write_exr, write_png
-    from gra_mi.stage.envmap import stage_background_plate
 
     ls = LightstageScene.load(scene_path, frame=config.frame)
     cam = ls.stage.camera(config.camera)

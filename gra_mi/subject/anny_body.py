@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from gra_mi.core.progress import progress
 from gra_mi.subject.sequence import MeshSequence, sequence_from_frames, split_uv_seams, vertex_normals
 
 logger = logging.getLogger(__name__)
@@ -137,8 +138,6 @@ def anny_sequence(clips: list[str], frames_per_clip: int | list[int] | None = No
     """Animate the anny body through the given clips and export a tracked mesh sequence (world frame)."""
     import anny
     import torch
-
-    from gra_mi.core.progress import progress
 
     logger.info("building the anny body model (cached after the first run)")
     model = anny.Anny()

@@ -1,0 +1,36 @@
+"""Put a demo run's headline table into the README (between its ``<!-- headline -->`` markers) and its results
+section into docs/results/demo.md, stamped with the run's commit, preset and machine.
+
+    .venv/bin/python scripts/publish_demo.py outputs/demo
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from gra_mi.apps.demo_report import headline, results_page, with_block
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("run", type=Path, help="A `gra-mi demo` output folder (its demo.json).")
+    args = parser.parse_args(argv)
+    source = args.run / "demo.json"
+    if not source.is_file():
+        print(f"publish_demo: error: {source}: missing (run `gra-mi demo` first)", file=sys.stderr)
+        return 2
+    record = json.loads(source.read_text())
+    readme = ROOT / "README.md"
+    readme.write_text(with_block(readme.read_text(), "headline", headline(record)))
+    (ROOT / "docs" / "results" / "demo.md").write_text(results_page(record))
+    print(f"updated {readme} and docs/results/demo.md from {source}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
