@@ -29,11 +29,15 @@ def test_every_capture_preset_runs_shrunk(name, tmp_path, monkeypatch, llvm_vari
     again = Capture.load(tmp_path / name)
     assert [f.kind for f in again.frames] == [f.kind for f in capture.frames]
     tests = [f for f in capture.frames if f.split == "test"]
+    assert len(capture.eval_cameras) == 1 and all(capture.image_path(c, 0).is_file() for c in capture.train_cameras)
+    if preset.static_olat:  # one pose: white, 2 gradients, the envmaps (test) and an OLAT per LED
+        assert {f.mesh_frame for f in capture.frames} == {0} and len(tests) == preset.envmap_frames
+        assert sum("olat_" in (f.pattern or "") for f in capture.frames) == preset.num_leds
+        return
     assert len({f.sequence for f in tests}) == len(preset.test_clips)
     assert [f.kind == "pattern" for f in tests if f.frame == min(g.frame for g in tests if g.sequence == f.sequence)] == [
         k == "olat" for k in preset.test_lightings()
     ]
-    assert len(capture.eval_cameras) == 1 and all(capture.image_path(c, 0).is_file() for c in capture.train_cameras)
 
 
 def test_demo_and_bench_presets_refer_to_what_exists():

@@ -226,7 +226,7 @@ def _render_stages(preset: DemoPreset, capture, ls, fit_result, out: Path, recor
         envmap_accuracy(capture.folder, out / "fit", out / "lighting", relightnet_dir=out / "relightnet", config=config)
     record["lighting"] = json.loads((out / "lighting" / "accuracy.json").read_text())
     with _timed(timings, "near-field point light"):
-        _point_light(capture, relighter, test_frames[0].frame, out)
+        _point_light(capture, relighter, test_frames[0].mesh_frame, out)
     with _timed(timings, "composites on a platform (RelightNet, held-out camera)"):
         record["video"] = _composite_video(preset, capture, relighter, test_frames, out)
     with _timed(timings, "glTF export"):
@@ -259,8 +259,8 @@ def _composite_video(preset: DemoPreset, capture, relighter, test_frames, out: P
     lit = [f for f in test_frames if f.envmap is not None]  # an OLAT test sequence has no environment to stand in
     for entry in [f for f in lit if f.sequence == lit[0].sequence]:
         env = load_envmap(capture.folder / entry.envmap)
-        image = render_view(relighter, net, entry.frame, cam.name, capture.lighting(stage, entry)).image
-        frames.append(compositor(image, entry.frame, cam, env, envmap_to_leds(env, stage).scale, entry.envmap))
+        image = render_view(relighter, net, entry.mesh_frame, cam.name, capture.lighting(stage, entry)).image
+        frames.append(compositor(image, entry.mesh_frame, cam, env, envmap_to_leds(env, stage).scale, entry.envmap))
     exposure = 0.8 / max(float(np.percentile(frames[0], 99)), 1e-6)
     write_png(out / "composite.png", frames[len(frames) // 2], exposure=exposure)
     video = f"videos/{cam.name}_test.mp4"
@@ -278,7 +278,7 @@ def relit_contact_sheet(capture, relighter, test_frames, out: Path) -> None:
     for entry in (lit[0], lit[len(lit) // 2]):
         for cam_name in (capture.train_cameras[0], capture.eval_cameras[0]):
             exr = out / "renders" / cam_name / f"frame_{entry.frame:04d}.exr"
-            image = read_exr(exr) if exr.is_file() else relighter.render(entry.frame, cam_name, capture.lighting(stage, entry)).image
+            image = read_exr(exr) if exr.is_file() else relighter.render(entry.mesh_frame, cam_name, capture.lighting(stage, entry)).image
             write_exr(exr, image)
             plate = stage_background_plate(load_envmap(capture.folder / entry.envmap), stage.camera(cam_name), stage)
             rows.append([composite_over(load_observation(capture, cam_name, entry.frame), plate), composite_over(image, plate)])

@@ -28,6 +28,12 @@ class FrameLighting:
     kind: str  # "uniform", "envmap" or "pattern"
     envmap: str | None  # path relative to the capture folder
     pattern: str | None = None  # kind "pattern": LED drive values (JSON or .npy, docs/data-format.md), relative path
+    pose: int | None = None  # the subject's mesh frame; None: ``frame`` (a static pose lit many ways shares one)
+
+    @property
+    def mesh_frame(self) -> int:
+        """The frame of the subject's sequence this image shows (geometry, visibility): ``pose``, or ``frame``."""
+        return self.frame if self.pose is None else self.pose
 
 
 @dataclass
@@ -40,6 +46,7 @@ class Capture:
     eval_cameras: list[str]
     frames: list[FrameLighting]
     ground_truth: dict = field(default_factory=dict)  # how the images were rendered, and their measured noise
+    source: dict = field(default_factory=dict)  # an imported capture: where from, and the transform into gra-mi's frame
 
     def image_path(self, camera: str, frame: int) -> Path:
         return self.folder / "images" / camera / f"frame_{frame:04d}.exr"
@@ -92,6 +99,7 @@ class Capture:
             data["eval_cameras"],
             frames,
             data.get("ground_truth", {}) or {},
+            data.get("source", {}) or {},
         )
         capture._check_cameras(path)
         return capture
@@ -141,8 +149,10 @@ def _frame_entry(path: Path, i: int, f) -> FrameLighting:
         entry = FrameLighting(**f)
     except TypeError as exc:
         raise GraMiInputError(path, f"bad entry: {exc}", field=where) from None
-    for name in ("frame", "sequence"):
+    for name in ("frame", "sequence", "pose"):
         value = getattr(entry, name)
+        if name == "pose" and value is None:
+            continue
         if not isinstance(value, int) or isinstance(value, bool) or value < 0:
             raise GraMiInputError(path, f"expected an integer >= 0, got {value!r}", field=f"{where}.{name}")
     if entry.split not in ("train", "test"):

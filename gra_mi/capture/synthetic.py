@@ -65,6 +65,8 @@ class CapturePreset:
     max_depth: int = 4  # path length: three bounces
     test_frames_per_clip: int | None = None  # default: frames_per_clip
     test_lighting: list[str] | None = None  # per test clip: "envmap" (held out) or "olat" (default: all envmaps)
+    static_olat: bool = False  # a static pose lit as HumanOLAT lights one: white, 2 gradients, envmaps, every OLAT
+    envmap_frames: int = 10  # static_olat: the environment-lit frames (the held-out lighting)
 
     def test_lightings(self) -> list[str]:
         return self.test_lighting or ["envmap"] * len(self.test_clips)
@@ -90,6 +92,12 @@ PRESETS = {
         frames_per_clip=32, num_leds=331, num_cameras=8, eval_cameras=2, width=192, height=108, camera_distance=1.8,
         uv_resolution=256, envmap_height=64, spp=16, indirect_spp=64, test_frames_per_clip=17,
         test_lighting=["envmap", "envmap", "olat"],
+    ),
+    # A static pose as HumanOLAT captures one (white, 2 gradients, 10 envmaps, 331 OLATs), cameras in portrait.
+    "olat": CapturePreset(
+        name="olat", subject="anny", train_clips=["walk"], test_clips=[], frames_per_clip=1, num_leds=331,
+        num_cameras=8, eval_cameras=2, width=90, height=160, camera_distance=1.8, uv_resolution=256, envmap_height=64,
+        spp=16, indirect_spp=16, static_olat=True,
     ),
     # The paper's protocol: 40 cameras at 1024x540, interleaved full-on / relit frames (a GPU's work).
     "full": CapturePreset(
@@ -221,6 +229,41 @@ def _schedule(preset: CapturePreset, train_envmaps: list[str], test_sources: lis
     return frames
 
 
+def olat_firing_order(stage) -> np.ndarray:
+    """The order a stage fires its OLATs in: bottom to top, each ring by azimuth (a z-spiral, as HumanOLAT's stage)."""
+    d = stage.led_directions()
+    return np.lexsort((np.arctan2(d[:, 0], d[:, 2]), np.round(d[:, 1], 1)))
+
+
+def _olat_schedule(preset: CapturePreset, stage, out: Path, user_envmaps: dict[str, np.ndarray]) -> list[FrameLighting]:
+    """A static pose (mesh frame 0) lit as HumanOLAT lights one: frame 0 white (every LED at the stage maximum),
+    1–2 gradients (bright above / below), then the environment-lit frames (held out: the test), then one OLAT per LED
+    in firing order (training, with the white and gradient frames)."""
+    up, top = stage.led_directions()[:, 1], stage.max_led_intensity
+    drives = {"white": np.full(stage.num_leds, top), "gradient_up": top * 0.5 * (1 + up), "gradient_down": top * 0.5 * (1 - up)}
+    frames = [FrameLighting(i, "train", 0, "pattern", None, _write_drive(out, n, d), pose=0) for i, (n, d) in enumerate(drives.items())]
+    user = list(user_envmaps.items())[: preset.envmap_frames]
+    paths = []
+    for name, image in user:
+        paths.append(f"envmaps/test/user_{name}.exr")
+        write_exr(out / paths[-1], downsample_envmap(image, preset.envmap_height))
+    remaining = preset.envmap_frames - len(user)
+    if remaining > 0:
+        paths += [str(p.relative_to(out)) for p in write_envmap_set(out / "envmaps", "test", remaining, preset.envmap_height)]
+    frames += [FrameLighting(len(frames) + k, "test", 0, "envmap", path, pose=0) for k, path in enumerate(paths)]
+    for led in olat_firing_order(stage):
+        drive = olat_pattern(stage, int(led))
+        frames.append(FrameLighting(len(frames), "train", 0, "pattern", None, _write_drive(out, f"olat_{led:03d}", drive), pose=0))
+    return frames
+
+
+def _write_drive(out: Path, name: str, drive: np.ndarray) -> str:
+    path = out / "patterns" / f"{name}.json"
+    if not path.is_file():
+        atomic_write_text(path, json.dumps({"intensities": np.asarray(drive, float).tolist()}) + "\n")
+    return str(path.relative_to(out))
+
+
 def _write_test_olat(stage, out: Path) -> str:
     """The out-of-distribution test lighting: one LED (the one nearest a front-left key light) at the stage maximum."""
 
@@ -297,7 +340,7 @@ def measure_ground_truth_noise(capture: Capture, source, renderer: GroundTruthRe
 
     out = {}
     for label, entry in noise_probe_frames(capture).items():
-        (pose or source.set_frame)(entry.frame)
+        (pose or source.set_frame)(entry.mesh_frame)
         source.set_led_intensities(capture.lighting(source.stage, entry))
         sensor = source.sensor_index(camera)
         start = time.perf_counter()
@@ -396,7 +439,11 @@ def generate_capture(
     )
     write_rig(stage, out / "rig")
     _write_subject(preset, out)
-    train_env, test_sources = _write_lighting(preset, stage, out, test_envmaps or {})
+    if preset.static_olat:
+        schedule = _olat_schedule(preset, stage, out, test_envmaps or {})
+    else:
+        schedule = _schedule(preset, *_write_lighting(preset, stage, out, test_envmaps or {}))
+    atomic_write_text(out / "scene.xml", subject_scene_xml("rig", "subject"))
     maps = _write_true_maps(preset, out, config.without)
     capture = Capture(
         out,
@@ -405,7 +452,7 @@ def generate_capture(
         preset.uv_resolution,
         [c.name for c in stage.cameras[: len(stage.cameras) - preset.eval_cameras]],
         [c.name for c in stage.cameras[len(stage.cameras) - preset.eval_cameras :]],
-        _schedule(preset, train_env, test_sources),
+        schedule,
         ground_truth=dict(record),
     )
     _measure_fidelity(capture, stage, previous)
@@ -447,7 +494,6 @@ def _write_lighting(
     procedural = write_envmap_set(out / "envmaps", "test", remaining, preset.envmap_height) if remaining > 0 else []
     test_env = iter(user_paths + [str(p.relative_to(out)) for p in procedural])
     test_sources = [("envmap", next(test_env)) if k == "envmap" else ("pattern", _write_test_olat(stage, out)) for k in test_kinds]
-    atomic_write_text(out / "scene.xml", subject_scene_xml("rig", "subject"))
     return train_env, test_sources
 
 
@@ -504,7 +550,7 @@ def _render_images(capture: Capture, stage, config: CaptureConfig, record: dict,
         path = capture.image_path(cam.name, entry.frame)
         if path.is_file():
             continue
-        pose(entry.frame)
+        pose(entry.mesh_frame)
         if lit != entry.frame:
             source.set_led_intensities(capture.lighting(stage, entry))
             lit = entry.frame

@@ -5,7 +5,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from gra_mi.capture.synthetic import CaptureConfig, generate_capture
+from gra_mi.capture.humanolat import write_humanolat
+from gra_mi.capture.importer import HumanolatImportConfig, import_humanolat
+from gra_mi.capture.synthetic import PRESETS, CaptureConfig, generate_capture
 from gra_mi.cli.options import CommandConfig, Restartable
 from gra_mi.core.config import comma_list, option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive
@@ -159,9 +161,15 @@ class CaptureCommand(Restartable):
     test_envmap: list[Path] = field(default_factory=list, metadata=option(repeat=True))
     """Your own HDR map (OpenEXR or .hdr) as held-out test lighting, in place of a procedural one (repeatable)."""
     envmaps: EnvmapOptions = field(default_factory=EnvmapOptions)
+    layout: str = field(default="gra-mi", metadata=option(choices=("gra-mi", "humanolat")))
+    """Also write the capture as HumanOLAT ships a pose (OUT/humanolat/SUBJECT_S001: AVIF images, cameras.calib,
+    LED positions, firing order, the mesh in millimetres in a Z-up frame), for `gra-mi import humanolat`. Needs
+    --preset olat (a static pose)."""
 
     def validate(self) -> None:
         super().validate()
+        if self.layout == "humanolat" and not PRESETS[self.capture.preset].static_olat:
+            raise GraMiParameterError("layout", f"the HumanOLAT layout holds a static pose: use --preset olat, not {self.capture.preset}")
         stems = [path.stem for path in self.test_envmap]
         if len(set(stems)) != len(stems):
             raise GraMiParameterError("test_envmap", f"two maps share a name ({stems}); the capture stores them by name")
@@ -173,6 +181,25 @@ def run_capture(c: CaptureCommand) -> None:
     capture = generate_capture(c.out, c.capture, test_envmaps=test_envmaps, overwrite=c.overwrite)
     n = len(capture.frames) * (len(capture.train_cameras) + len(capture.eval_cameras))
     print(f"wrote {n} images of {len(capture.frames)} frames to {c.out}")
+    if c.layout == "humanolat":
+        print(f"wrote the HumanOLAT layout to {write_humanolat(capture, c.out / 'humanolat')}")
+
+
+@dataclass(kw_only=True)
+class ImportCommand(Restartable):
+    source: str = field(metadata=option(positional=True, choices=("humanolat",)))
+    """The source's layout. humanolat: a subject folder of the HumanOLAT dataset (TMT22/HumanOLAT), one pose."""
+    folder: Path = field(metadata=option(positional=True))
+    """The source folder (humanolat: SUBJECT_<id>, holding shared/ and POSE_<nn>/)."""
+    out: Path
+    """Capture folder to write (layout: docs/data-format.md), with import_report.md. Rerunning resumes."""
+    humanolat: HumanolatImportConfig = field(default_factory=HumanolatImportConfig)
+
+
+def run_import(c: ImportCommand) -> None:
+    capture = import_humanolat(c.folder, c.out, c.humanolat, c.overwrite)
+    cameras = len(capture.train_cameras) + len(capture.eval_cameras)
+    print(f"imported {len(capture.frames)} lightings × {cameras} cameras into {c.out}; read {c.out / 'import_report.md'} first")
 
 
 COMMANDS = {
@@ -182,4 +209,5 @@ COMMANDS = {
     "scene": (SceneCommand, run_scene),
     "render": (RenderCommand, run_render),
     "capture": (CaptureCommand, run_capture),
+    "import": (ImportCommand, run_import),
 }

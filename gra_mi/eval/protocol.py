@@ -340,7 +340,7 @@ class _Frames:
             if (stage, split.camera, f) not in self.cache:
                 start = time.perf_counter()
                 lighting = self.capture.lighting(self.relighter.ls.stage, self.entries[f])
-                image = render_view(self.relighter, net, f, split.camera, lighting).image
+                image = render_view(self.relighter, net, self.entries[f].mesh_frame, split.camera, lighting).image
                 self.seconds[stage].append(time.perf_counter() - start)
                 self.cache[stage, split.camera, f] = _downscale(image, self.scale)
         return [self.cache[stage, split.camera, f] for f in split.capture_frames]
@@ -546,7 +546,9 @@ def _write_videos(folder: Path, videos: dict, splits: list[Split], capture, reli
             scale_env = envmap_to_leds(env, stage).scale
             # stages without an alpha of their own (the refiner's frames) are shown where the geometry covers
             covered = (video["coverage"][i][..., 3:4] if video["coverage"] is not None else frames["truth"][i][..., 3:4]) > 0
-            row = [compositor(frames[s][i][..., :3] * covered, f, cam, env, scale_env, entries[f].envmap) for s in order]
+            row = [
+                compositor(frames[s][i][..., :3] * covered, entries[f].mesh_frame, cam, env, scale_env, entries[f].envmap) for s in order
+            ]
             composites.append(np.concatenate(row, axis=1))
         write_mp4(folder / f"{split.name}_composite.mp4", composites, fps=fps, exposure=exposure)
         composited.append(split.name)

@@ -114,7 +114,8 @@ class FitConfig:
 
 @dataclass
 class View:
-    frame: int
+    frame: int  # the capture's frame: its image and lighting
+    pose: int  # the subject's mesh frame it shows
     camera: str
     texels: np.ndarray  # indices of the observed valid texels
     observed: np.ndarray  # (n, 3) captured radiance
@@ -185,11 +186,11 @@ class MaterialFitter:
         """Observations of every training camera in every training frame."""
 
         views = []
-        jobs = [(f.frame, cam) for f in self.train for cam in self.capture.train_cameras]
-        for frame, cam_name in progress(jobs, description="observations") if progress_bar else jobs:
+        jobs = [(f.frame, f.mesh_frame, cam) for f in self.train for cam in self.capture.train_cameras]
+        for frame, pose, cam_name in progress(jobs, description="observations") if progress_bar else jobs:
             cam = self.stage.camera(cam_name)
-            geom = self.relighter.geometry(frame)
-            self.ls.set_frame(frame)
+            geom = self.relighter.geometry(pose)
+            self.ls.set_frame(pose)
             p = np.array(geom.position).T.astype(np.float64)
             n = np.array(geom.geo_normal).T.astype(np.float64)
             seen = _camera_visible(self.ls.scene, cam, p, n)
@@ -197,7 +198,7 @@ class MaterialFitter:
             image = load_observation(self.capture, cam_name, frame)
             value, covered = sample_image(image, xyz[:, :2])
             ok = covered & (xyz[:, 2] > 0)
-            views.append(View(frame, cam_name, np.flatnonzero(seen)[ok], value[ok].astype(np.float32)))
+            views.append(View(frame, pose, cam_name, np.flatnonzero(seen)[ok], value[ok].astype(np.float32)))
         return views
 
     def parts(self, view: View, roughness: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -212,7 +213,7 @@ class MaterialFitter:
         key = (view.frame, view.camera)
         if key not in self._loops:
             self._loops[key] = TexelLedLoop.build(
-                self.relighter.geometry(view.frame), self.relighter.visibility(view.frame, False), view.texels, self.relighter.leds(False),
+                self.relighter.geometry(view.pose), self.relighter.visibility(view.pose, False), view.texels, self.relighter.leds(False),
                 self._lighting[view.frame], self.stage.camera(view.camera).position,
             )  # fmt: skip
         diffuse, spec = self._loops[key].run(mi.Float(np.asarray(roughness, np.float32)[view.texels]))
@@ -240,13 +241,13 @@ class MaterialFitter:
         sums = np.zeros((3, 3))  # rows: captured, diffuse, specular
         for entry in self.train:
             for cam in self.capture.train_cameras:
-                shading, _ = relighter.shade(entry.frame, cam, self._lighting[entry.frame])
+                shading, _ = relighter.shade(entry.mesh_frame, cam, self._lighting[entry.frame])
                 truth = load_observation(self.capture, cam, entry.frame)
                 mask = subject_mask(truth)
                 if not mask.any():
                     continue
                 parts = np.concatenate([relighter.albedo * shading.diffuse_unit, shading.specular], axis=1)
-                image = relighter.rasterize(entry.frame, cam, self.atlas.scatter(parts))  # one pass: diffuse, specular
+                image = relighter.rasterize(entry.mesh_frame, cam, self.atlas.scatter(parts))  # one pass: diffuse, specular
                 diffuse, specular = image[..., :3], image[..., 3:6]
                 weight = 1.0 / max(float(truth[mask, :3].mean()), 1e-12)
                 for row, part in enumerate((truth[..., :3], diffuse, specular)):
@@ -274,7 +275,7 @@ class MaterialFitter:
         start = time.perf_counter()
         offset = closed.loss_curve[-1][0] if closed.loss_curve else 0.0
         batches = opt.build_batches(self, cfg.min_view_cos)
-        geom = self.relighter.geometry(self.train[0].frame)
+        geom = self.relighter.geometry(self.train[0].mesh_frame)
         graph = SurfaceGraph.build(np.array(geom.position).T.astype(np.float64), np.array(geom.normal).T.astype(np.float64))
         observed = closed.observed_cameras > 0
         albedo_cf = self.atlas.gather(closed.albedo)

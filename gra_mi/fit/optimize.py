@@ -122,13 +122,13 @@ def build_batches(fitter, min_view_cos: float = 0.0, progress_bar: bool = True) 
     that see a texel more obliquely than ``min_view_cos`` are left out."""
 
     batches = []
-    jobs = [(f.frame, cam) for f in fitter.train for cam in fitter.capture.train_cameras]
-    for frame_index, cam_name in progress(jobs, description="pixel footprints") if progress_bar else jobs:
+    jobs = [(f.frame, f.mesh_frame, cam) for f in fitter.train for cam in fitter.capture.train_cameras]
+    for frame_index, pose, cam_name in progress(jobs, description="pixel footprints") if progress_bar else jobs:
         cam = fitter.stage.camera(cam_name)
         image = load_observation(fitter.capture, cam_name, frame_index)
-        fitter.ls.set_frame(frame_index)
+        fitter.ls.set_frame(pose)
         flat_pixels, (pix, tex, wgt) = pixel_footprints(fitter.ls, cam, fitter.atlas, image[..., 3])
-        geom = fitter.relighter.geometry(frame_index)
+        geom = fitter.relighter.geometry(pose)
         to_cam = cam.position[None, :] - np.array(geom.position).T[tex]
         cos_view = np.sum(np.array(geom.normal).T[tex] * to_cam, axis=1) / np.linalg.norm(to_cam, axis=1)
         grazing = np.zeros(flat_pixels.size, bool)
@@ -141,7 +141,7 @@ def build_batches(fitter, min_view_cos: float = 0.0, progress_bar: bool = True) 
             continue
         lanes, entry_lane = np.unique(tex, return_inverse=True)
         loop = TexelLedLoop.build(
-            fitter.relighter.geometry(frame_index), fitter.relighter.visibility(frame_index, False), lanes, fitter.relighter.leds(False),
+            geom, fitter.relighter.visibility(pose, False), lanes, fitter.relighter.leds(False),
             fitter._lighting[frame_index], cam.position,
         )  # fmt: skip
         diffuse, _ = loop.run(dr.full(mi.Float, 0.5, loop.count))  # the diffuse part does not depend on roughness

@@ -85,7 +85,7 @@ def relight_scores(fitter, result, cache_dir: Path | None) -> dict[str, dict]:
     for entry in progress(test, description="relight held-out lighting"):
         intensities = capture.lighting(fitter.stage, entry)
         for cam, split in cameras:
-            image = relighter.render(entry.frame, cam, intensities).image
+            image = relighter.render(entry.mesh_frame, cam, intensities).image
             truth = load_observation(capture, cam, entry.frame)
             scored = compare(image, truth)
             scores[split].append((scored["psnr"], mean_l1(image, truth, subject_mask(truth)), scored["brightness"]))

@@ -549,7 +549,7 @@ def _capture_sequence(capture, relighter, model, cam: str, entries, length: int,
         return to_camera_space(lighting, stage.camera(cam), supersample=1)
 
     full = {  # capture resolution: the source of the crops
-        "coarse": [render_view(relighter, model, e.frame, cam, capture.lighting(stage, e)).image[..., :3] for e in entries],
+        "coarse": [render_view(relighter, model, e.mesh_frame, cam, capture.lighting(stage, e)).image[..., :3] for e in entries],
         "target": [load_observation(capture, cam, e.frame) for e in entries],
         "reference": load_observation(capture, cam, uniform.frame),
     }

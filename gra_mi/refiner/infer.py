@@ -222,7 +222,7 @@ def _capture_compositor(dataset: RefinerDataset, sequence: str, platform: Platfo
             env = load_envmap(capture.folder / lighting.envmap)
             envmaps[lighting.envmap] = (env, envmap_to_leds(env, ls.stage).scale)
         env, env_scale = envmaps[lighting.envmap]
-        return compositor(image, lighting.frame, camera, env, env_scale, lighting.envmap)
+        return compositor(image, lighting.mesh_frame, camera, env, env_scale, lighting.envmap)
 
     return compose
 

@@ -124,8 +124,8 @@ def build_samples(capture, relighter, env_height: int, device: str = "cpu", spli
     samples = []
     for entry, cam, split in progress(jobs, description="RelightNet samples"):
         intensities = capture.lighting(stage, entry)
-        features, mask, env, _ = view_inputs(relighter, entry.frame, cam, intensities, env_height, device)
-        relighter.ls.set_frame(entry.frame)
+        features, mask, env, _ = view_inputs(relighter, entry.mesh_frame, cam, intensities, env_height, device)
+        relighter.ls.set_frame(entry.mesh_frame)
         grid, hit = camera_uv_grid(relighter.ls, stage.camera(cam), device)
         image = load_observation(capture, cam, entry.frame)
         target = to_torch(image[..., :3], device).permute(2, 0, 1)[None].contiguous()

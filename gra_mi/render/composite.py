@@ -50,17 +50,12 @@ PLATFORM_FLAGS = tuple((name, f"--platform-{name}") for name in ("radius", "thic
 
 
 def _subject_mesh(vertices: np.ndarray, faces: np.ndarray):
-    import drjit as dr
     import mitsuba as mi
 
-    props = mi.Properties()
-    props["bsdf"] = mi.load_dict({"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.0, 0.0, 0.0]}})
-    mesh = mi.Mesh("subject_holdout", len(vertices), len(faces), props=props)
-    params = mi.traverse(mesh)
-    params["vertex_positions"] = dr.ravel(mi.Point3f(np.ascontiguousarray(vertices, np.float32).T))
-    params["faces"] = dr.ravel(mi.Vector3u(np.ascontiguousarray(faces, np.uint32).T))
-    params.update()
-    return mesh
+    from gra_mi.render.rasterize import mesh_shape  # loads Mitsuba
+
+    black = mi.load_dict({"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.0, 0.0, 0.0]}})
+    return mesh_shape(vertices, faces, "subject_holdout", black)
 
 
 def platform_layer(sequence, frame: int, camera, envmap: np.ndarray, config: PlatformConfig | None = None, seed: int = 0) -> np.ndarray:

@@ -47,3 +47,26 @@ def rasterize_to_camera(ls, camera, texture: np.ndarray, mask: np.ndarray | None
     for c in range(channels + 1):
         dr.scatter(out, accum[c] * inv, pixel + c)
     return np.array(out, dtype=np.float32).reshape(h, w, channels + 1)
+
+
+def mesh_shape(vertices: np.ndarray, faces: np.ndarray, name: str = "mesh", bsdf=None):
+    """A Mitsuba mesh from arrays (no file): positions (V, 3) in metres, faces (F, 3)."""
+    props = mi.Properties()
+    if bsdf is not None:
+        props["bsdf"] = bsdf
+    mesh = mi.Mesh(name, len(vertices), len(faces), props=props)
+    params = mi.traverse(mesh)
+    params["vertex_positions"] = dr.ravel(mi.Point3f(np.ascontiguousarray(vertices, np.float32).T))
+    params["faces"] = dr.ravel(mi.Vector3u(np.ascontiguousarray(faces, np.uint32).T))
+    params.update()
+    return mesh
+
+
+def silhouette(vertices: np.ndarray, faces: np.ndarray, camera) -> np.ndarray:
+    """(H, W) bool: the pixels of ``camera`` whose centre ray hits the mesh (its reprojection, for a mask check)."""
+    scene = mi.load_dict({"type": "scene", "mesh": mesh_shape(vertices, faces, "silhouette")})
+    origin, directions = camera.pixel_rays()
+    flat = directions.reshape(-1, 3)
+    origins = np.broadcast_to(origin, flat.shape)
+    ray = mi.Ray3f(mi.Point3f(*origins.T.astype(np.float32)), mi.Vector3f(*flat.T.astype(np.float32)))
+    return np.array(scene.ray_test(ray, coherent=True)).reshape(camera.height, camera.width)

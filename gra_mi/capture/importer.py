@@ -1,0 +1,557 @@
+"""``gra-mi import humanolat``: a HumanOLAT pose (:mod:`gra_mi.capture.humanolat`) into the capture layout every stage
+reads (docs/data-format.md), in gra-mi's world frame, with an import report a user reads first.
+
+load (calibration, LEDs, firing order, mesh, image lists; everything checked) → the frame (:func:`world_frame`:
+millimetres to metres, the up axis, the LED sphere's centre, the floor) → the mesh reprojected over every camera's
+mask (a convention mistake stops here, named) → write (rig, subject, scene, patterns, images streamed one at a time,
+capture.json, import_report.{md,json}).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from gra_mi.capture.dataset import Capture, FrameLighting
+from gra_mi.capture.humanolat import (
+    CALIB,
+    DOOR_LEDS,
+    LEDS,
+    SPIRAL,
+    WHITE,
+    camera_name,
+    image_size,
+    images_of,
+    olat_numbers,
+    read_calib,
+    read_image,
+    read_obj,
+    read_points,
+    read_spiral,
+    resample_columns,
+)
+from gra_mi.core.config import comma_list, option
+from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive
+from gra_mi.core.io import atomic_write_text, read_exr, write_exr, write_png
+from gra_mi.core.progress import progress
+from gra_mi.stage.lightstage import Camera, Lightstage, olat_pattern, uniform_pattern
+from gra_mi.subject.sequence import MeshSequence, save_sequence, split_uv_seams, vertex_normals
+
+logger = logging.getLogger(__name__)
+
+UP_AXES = {"+x": (1, 0, 0), "-x": (-1, 0, 0), "+y": (0, 1, 0), "-y": (0, -1, 0), "+z": (0, 0, 1), "-z": (0, 0, -1)}
+
+
+@dataclass(kw_only=True)
+class HumanolatImportConfig:
+    """How a HumanOLAT pose becomes a gra-mi capture (:func:`import_humanolat`)."""
+
+    pose: str = "POSE_00"
+    """The pose folder under the subject (POSE_00 is the A-pose)."""
+    cameras: list[str] | None = field(default=None, metadata=option(parse=comma_list))
+    """Cameras to import, comma-separated (Cam01,Cam05,...). Default: all."""
+    eval_cameras: list[str] | None = field(default=None, metadata=option(parse=comma_list))
+    """Cameras held out for novel-view evaluation, comma-separated. Default: two, spread over the rig."""
+    scale: float = 1.0
+    """Image scale after the pixels are made square (0.25: a quarter of the size; a full pose is ~13,700 images)."""
+    olat_step: int = 1
+    """Import every Nth OLAT of the firing order (1: all)."""
+    test_olat_every: int = 10
+    """Every Nth imported OLAT is held out as test lighting (with the white frame); the others train."""
+    keep_door_leds: bool = False
+    """Import the OLATs of the 21 LEDs on the stage's door, whose positions the dataset calls unreliable."""
+    up: str = field(default="auto", metadata=option(choices=("auto", *UP_AXES)))
+    """The source frame's up axis; auto: from the cameras (their mean image-up direction), reported."""
+    led_intensity: float = 4.0
+    """Radiant intensity (W/sr) of a fully driven LED (the source does not say; sets the albedo's scale only)."""
+    uv_resolution: int = 256
+    """UV resolution of the maps fitted to the capture."""
+    min_iou: float = 0.5
+    """Stop when the mesh reprojected over a camera's mask overlaps it less than this (intersection over union)."""
+
+    def validate(self) -> None:
+        require_positive({"scale": self.scale, "olat_step": self.olat_step, "test_olat_every": self.test_olat_every})
+        require_positive({"led_intensity": self.led_intensity, "uv_resolution": self.uv_resolution})
+        if not 0 <= self.min_iou <= 1:
+            raise GraMiParameterError("min_iou", f"must be in [0, 1], got {self.min_iou}")
+        if self.up not in ("auto", *UP_AXES):
+            raise GraMiParameterError("up", f"expected auto or one of {', '.join(UP_AXES)}, got {self.up!r}")
+
+
+@dataclass
+class Source:
+    """A HumanOLAT pose as read: everything in the source's own frame and units."""
+
+    folder: Path  # the subject
+    pose: Path  # its pose folder
+    calib: list  # CalibCamera per camera, Cam01 first
+    sizes: list[tuple[int, int]]  # (width, height) of each camera's images
+    images: list[dict[int, Path]]  # per camera: image number → file
+    leds: np.ndarray  # (L, 3) metres
+    order: np.ndarray  # firing order, 0-based LED indices
+    mesh: object  # ObjMesh, millimetres
+    masks: list[Path | None]
+
+
+def read_source(subject_dir: Path, config: HumanolatImportConfig) -> Source:
+    """Every file of the pose, checked before anything is written: camera count against the image folders, LED count
+    against the firing order, every needed image present and of its camera's size."""
+    pose = subject_dir / config.pose
+    if not (pose / "images_processed").is_dir():
+        raise GraMiInputError(pose / "images_processed", "missing: a HumanOLAT pose folder holds images_processed/Cam01 …")
+    calib = read_calib(subject_dir / CALIB)
+    folders = sorted(p.name for p in (pose / "images_processed").iterdir() if p.is_dir() and p.name.startswith("Cam"))
+    if len(folders) != len(calib):
+        raise GraMiInputError(
+            subject_dir / CALIB, f"{len(calib)} cameras, but {len(folders)} image folders in {pose / 'images_processed'}", field="cameras"
+        )
+    leds = read_points(subject_dir / LEDS)
+    order = read_spiral(subject_dir / SPIRAL, len(leds))
+    images = [images_of(pose / "images_processed" / camera_name(i)) for i in range(len(calib))]
+    sizes = []
+    for i, found in enumerate(images):
+        if WHITE not in found:
+            raise GraMiInputError(pose / "images_processed" / camera_name(i), f"missing the white frame (image number {WHITE:06d})")
+        sizes.append(image_size(found[WHITE]))
+    masks = [pose / "segmentations" / "masks" / "000" / f"{camera_name(i)}.png" for i in range(len(calib))]
+    mesh = read_obj(pose / "model" / "model.obj")
+    return Source(subject_dir, pose, calib, sizes, images, leds, order, mesh, [m if m.is_file() else None for m in masks])
+
+
+# --------------------------------------------------------------------------------------------------------------
+# The world frame
+# --------------------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class WorldFrame:
+    """source metres → gra-mi: ``p' = rotation @ p + translation`` (Y up, the LED sphere's centre above the origin,
+    the subject's lowest point on y = 0)."""
+
+    rotation: np.ndarray
+    translation: np.ndarray
+    up_source: np.ndarray  # the source's up direction
+    up_estimated: bool
+    up_off_axis_deg: float  # how far the cameras' up is from the nearest source axis
+    led_radius: float
+    led_fit_rms: float  # metres: the LEDs' distance from the fitted sphere
+
+    def apply(self, points: np.ndarray) -> np.ndarray:
+        return points @ self.rotation.T + self.translation
+
+    def matrix(self) -> list[list[float]]:
+        m = np.eye(4)
+        m[:3, :3], m[:3, 3] = self.rotation, self.translation
+        return m.round(9).tolist()
+
+
+def fit_sphere(points: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """Least-squares sphere: (centre, radius, RMS distance of the points from it)."""
+    a = np.concatenate([2 * points, np.ones((len(points), 1))], axis=1)
+    solution, *_ = np.linalg.lstsq(a, (points**2).sum(axis=1), rcond=None)
+    centre = solution[:3]
+    radius = math.sqrt(max(solution[3] + centre @ centre, 0.0))
+    return centre, radius, float(np.sqrt(np.mean((np.linalg.norm(points - centre, axis=1) - radius) ** 2)))
+
+
+def _rotation_to_y(up: np.ndarray) -> np.ndarray:
+    """The smallest rotation taking ``up`` to +Y (Rodrigues)."""
+    up = up / np.linalg.norm(up)
+    y = np.array([0.0, 1.0, 0.0])
+    v, c = np.cross(up, y), float(up @ y)
+    if c < -1 + 1e-12:
+        return np.diag([1.0, -1.0, -1.0])
+    vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    return np.eye(3) + vx + vx @ vx / (1 + c)
+
+
+def world_frame(source: Source, up: str) -> WorldFrame:
+    """The up axis (given, or estimated: the direction most nearly perpendicular to every camera's image x axis,
+    which is level on an upright camera whatever its tilt, signed by the cameras' image-up), the LED sphere's centre
+    over the origin, and the mesh's lowest point on the floor."""
+    if up == "auto":
+        rights = np.array([c.extrinsic[:3, 0] / np.linalg.norm(c.extrinsic[:3, 0]) for c in source.calib])
+        values, vectors = np.linalg.eigh(rights.T @ rights)
+        level = vectors[:, values < 0.05 * values.max()]  # directions no camera's x axis has a share in
+        mean_up = np.mean([-c.extrinsic[:3, 1] for c in source.calib], axis=0)
+        direction = level @ (level.T @ mean_up)  # the cameras' image-up, made level to every x axis
+        direction /= np.linalg.norm(direction)
+    else:
+        direction = np.array(UP_AXES[up], float)
+    off_axis = math.degrees(math.acos(min(1.0, float(np.abs(direction).max()))))
+    rotation = _rotation_to_y(direction)
+    centre, radius, rms = fit_sphere(source.leds)
+    mesh_m = source.mesh.positions / 1000.0
+    floor = float(((mesh_m - centre) @ rotation.T)[:, 1].min())
+    translation = -rotation @ centre - np.array([0.0, floor, 0.0])
+    return WorldFrame(rotation, translation, direction, up == "auto", off_axis, radius, rms)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Cameras, LEDs, the mesh in gra-mi's frame
+# --------------------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class CameraPlan:
+    """A source camera as gra-mi stores it: square pixels, scaled; and how its images are resampled."""
+
+    index: int
+    camera: Camera
+    source_size: tuple[int, int]
+    square_width: int  # columns after making the pixels square (before the scale)
+    anisotropy: float  # fx / fy of the source
+
+
+def plan_camera(source: Source, index: int, frame: WorldFrame, scale: float) -> CameraPlan:
+    """Non-square pixels (fx ≠ fy) are resampled along x to fx = fy; then both axes by ``scale``. Whatever rounding
+    the sizes leave (a fraction of a pixel over the width) is split evenly between fx and fy."""
+    width, height = source.sizes[index]
+    k = source.calib[index].k_matrix(width)
+    fx, fy, cx, cy = k[0, 0], k[1, 1], k[0, 2], k[1, 2]
+    square_width = round(width * fy / fx)
+    out_w, out_h = max(1, round(square_width * scale)), max(1, round(height * scale))
+    sx, sy = out_w / width, out_h / height
+    f = math.sqrt(fx * sx * fy * sy)
+    c2w = np.eye(4)
+    c2w[:3, :3] = frame.rotation @ source.calib[index].extrinsic[:3, :3]
+    c2w[:3, 3] = frame.apply(source.calib[index].extrinsic[:3, 3][None] / 1000.0)[0]
+    camera = Camera(camera_name(index), out_w, out_h, f, f, cx * sx, cy * sy, c2w)
+    return CameraPlan(index, camera, (width, height), square_width, fx / fy)
+
+
+def resample_image(image: np.ndarray, plan: CameraPlan) -> np.ndarray:
+    """A source image onto the planned camera's pixel grid (area-weighted along each axis)."""
+    w, h = plan.camera.width, plan.camera.height
+    if image.shape[1] != w:
+        image = resample_columns(image, w)
+    if image.shape[0] != h:
+        image = np.swapaxes(resample_columns(np.swapaxes(image, 0, 1), h), 0, 1)
+    return image
+
+
+def build_stage(source: Source, frame: WorldFrame, plans: list[CameraPlan], led_intensity: float) -> Lightstage:
+    positions = frame.apply(source.leds)
+    centre = frame.apply(fit_sphere(source.leds)[0][None])[0]
+    to_centre = centre - positions
+    normals = to_centre / np.maximum(np.linalg.norm(to_centre, axis=1, keepdims=True), 1e-12)
+    return Lightstage(
+        led_positions=positions,
+        led_normals=normals,
+        cameras=[p.camera for p in plans],
+        center=centre,
+        radius=frame.led_radius,
+        max_led_intensity=led_intensity,
+    )
+
+
+def build_sequence(source: Source, frame: WorldFrame) -> MeshSequence:
+    """The pose as a one-frame sequence, in the mesh's own UV atlas (a vertex per position and UV pair)."""
+    mesh = source.mesh
+    faces, position_of, uv_of = split_uv_seams(mesh.faces, mesh.face_uvs)
+    vertices = frame.apply(mesh.positions[position_of] / 1000.0).astype(np.float32)[None]
+    return MeshSequence(
+        faces, mesh.uvs[uv_of].astype(np.float32), vertices, vertex_normals(vertices, faces), fps=1.0, frame_labels=["pose"]
+    )
+
+
+# --------------------------------------------------------------------------------------------------------------
+# The check that catches convention mistakes: the mesh reprojected over each camera's mask
+# --------------------------------------------------------------------------------------------------------------
+
+MISTAKES = {
+    "the extrinsic read as world-to-camera (it is camera-to-world)": "inverted",
+    "OpenGL camera axes (y up, z backwards) instead of OpenCV's": "opengl",
+    "the calibration in metres instead of millimetres": "metres",
+}
+
+
+def source_mask(source: Source, plan: CameraPlan) -> np.ndarray:
+    """The camera's mask on the planned grid: the segmentation PNG, or else the white frame's non-black pixels (the
+    processed images are masked)."""
+    from PIL import Image
+
+    path = source.masks[plan.index]
+    if path is not None:
+        with Image.open(path) as image:
+            mask = (np.asarray(image.convert("L")) > 127).astype(np.float32)
+    else:
+        mask = (read_image(source.images[plan.index][WHITE])[0].max(axis=-1) > 0).astype(np.float32)
+    if mask.shape[::-1] != plan.source_size:
+        raise GraMiInputError(path, f"is {mask.shape[1]}x{mask.shape[0]}, its camera's images {plan.source_size[0]}x{plan.source_size[1]}")
+    return resample_image(mask[..., None], plan)[..., 0]
+
+
+def mask_iou(sequence: MeshSequence, camera: Camera, mask: np.ndarray) -> tuple[float, np.ndarray]:
+    from gra_mi.render.rasterize import silhouette
+
+    seen = silhouette(sequence.vertices[0], sequence.faces, camera)
+    inside = mask > 0.5
+    union = int((seen | inside).sum())
+    return (float((seen & inside).sum()) / union if union else 0.0), seen
+
+
+def _mistaken(extrinsic: np.ndarray, kind: str) -> np.ndarray:
+    """A source camera-to-world (3 × 4, millimetres) with ``kind``'s mistake undone."""
+    m = np.eye(4)
+    m[:3] = extrinsic
+    if kind == "inverted":
+        m = np.linalg.inv(m)
+    elif kind == "opengl":
+        m[:3, 1:3] *= -1
+    elif kind == "metres":
+        m[:3, 3] *= 1000.0
+    return m[:3]
+
+
+def likely_mistake(source: Source, frame: WorldFrame, plan: CameraPlan, sequence: MeshSequence, mask: np.ndarray) -> str:
+    """Which convention mistake, undone in the source's own calibration, makes the reprojection fit the mask (the
+    best of them), in words."""
+    from dataclasses import replace
+
+    scores = {}
+    for said, kind in MISTAKES.items():
+        calib = list(source.calib)
+        calib[plan.index] = replace(calib[plan.index], extrinsic=_mistaken(calib[plan.index].extrinsic, kind))
+        camera = plan_camera(replace(source, calib=calib), plan.index, frame, plan.camera.width / plan.square_width).camera
+        scores[said] = mask_iou(sequence, camera, mask)[0]
+    best = max(scores, key=scores.get)
+    if scores[best] >= 0.5:
+        return f"likely {best} (IoU {scores[best]:.2f} if so)"
+    return "no single convention mistake explains it: check the calibration's units, axes and camera order against the images"
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Frames: the white frame and the OLATs, each its own lighting of the one pose
+# --------------------------------------------------------------------------------------------------------------
+
+
+def plan_frames(source: Source, config: HumanolatImportConfig) -> tuple[list[tuple[int, FrameLighting, int | None]], list[int]]:
+    """[(image number, frame entry, LED or None for white)] and the LEDs whose OLATs were left out. The white frame
+    is test lighting (sequence 0); every ``test_olat_every``-th imported OLAT is too (sequence 1); the rest train."""
+    olat_at, _ = olat_numbers(len(source.order))
+    door = set() if config.keep_door_leds else set(DOOR_LEDS)
+    chosen = [
+        (n, int(led)) for k, (n, led) in enumerate(zip(olat_at, source.order, strict=True)) if k % config.olat_step == 0 and led not in door
+    ]
+    left_out = sorted({int(led) for led in source.order} - {led for _, led in chosen})
+    plan = [(WHITE, FrameLighting(0, "test", 0, "pattern", None, "patterns/white.json", pose=0), None)]
+    for k, (number, led) in enumerate(chosen):
+        split, sequence = ("test", 1) if (k + 1) % config.test_olat_every == 0 else ("train", 0)
+        plan.append((number, FrameLighting(k + 1, split, sequence, "pattern", None, f"patterns/olat_{led:03d}.json", pose=0), led))
+    return plan, left_out
+
+
+def check_images_present(source: Source, plans: list[CameraPlan], frames: list) -> None:
+    for plan in plans:
+        folder = source.pose / "images_processed" / plan.camera.name
+        for number, _, led in frames:
+            path = source.images[plan.index].get(number)
+            if path is None:
+                what = "the white frame" if led is None else f"the OLAT of LED {led + 1}"
+                raise GraMiInputError(folder, f"missing image number {number:06d} ({what})")
+            if image_size(path) != plan.source_size:
+                raise GraMiInputError(path, f"is {image_size(path)}, other images of {plan.camera.name} are {plan.source_size}")
+
+
+# --------------------------------------------------------------------------------------------------------------
+# The import
+# --------------------------------------------------------------------------------------------------------------
+
+
+def import_humanolat(
+    subject_dir: str | Path, out: str | Path, config: HumanolatImportConfig | None = None, overwrite: bool = False
+) -> Capture:
+    """Import one pose of a HumanOLAT subject into ``out``; rerunning resumes (images already written are kept)."""
+    from gra_mi.core.provenance import claim_output
+    from gra_mi.render.runtime import ensure_mitsuba
+
+    config = config or HumanolatImportConfig()
+    config.validate()
+    ensure_mitsuba()
+    subject_dir, out = Path(subject_dir), Path(out)
+    source = read_source(subject_dir, config)
+    frame = world_frame(source, config.up)
+    plans = _camera_plans(source, frame, config)
+    frames, left_out = plan_frames(source, config)
+    check_images_present(source, plans, frames)
+    sequence = build_sequence(source, frame)
+    masks = [source_mask(source, plan) for plan in plans]
+    checks = _reprojection_checks(source, frame, sequence, plans, masks, config.min_iou)
+    claim_output(out, "import humanolat", {"subject": subject_dir}, _config_record(config), overwrite=overwrite)
+    stage = build_stage(source, frame, plans, config.led_intensity)
+    _write_stage_files(out, stage, sequence, frames)
+    eval_cameras = config.eval_cameras or [plans[len(plans) // 4].camera.name, plans[(3 * len(plans)) // 4].camera.name]
+    train_cameras = [p.camera.name for p in plans if p.camera.name not in eval_cameras]
+    record = {"format": "humanolat", "subject": str(subject_dir), "pose": config.pose, "transform": frame.matrix()}
+    record |= {"units": "millimetres (calibration, mesh), metres (LEDs)", "gains": "assumed equal (the source has none)"}
+    record |= {"left_out_leds": left_out, "images": {}}
+    capture = Capture(
+        out, "humanolat", "captured", config.uv_resolution, train_cameras, eval_cameras, [f for _, f, _ in frames], source=record
+    )
+    for plan, mask in zip(plans, masks, strict=True):
+        record["images"][plan.camera.name] = _import_camera(source, plan, mask, frames, capture)
+    capture.save()
+    _write_report(out, source, frame, plans, checks, record, config)
+    return capture
+
+
+def _camera_plans(source: Source, frame: WorldFrame, config: HumanolatImportConfig) -> list[CameraPlan]:
+    names = [camera_name(i) for i in range(len(source.calib))]
+    chosen = config.cameras or names
+    unknown = [c for c in chosen + (config.eval_cameras or []) if c not in names]
+    if unknown:
+        raise GraMiParameterError("cameras", f"no camera {', '.join(unknown)} in {source.folder / CALIB} (it has {names[0]} … {names[-1]})")
+    if config.eval_cameras and not set(config.eval_cameras) <= set(chosen):
+        raise GraMiParameterError("eval_cameras", "held-out cameras must be among the imported ones (--cameras)")
+    return [plan_camera(source, names.index(c), frame, config.scale) for c in chosen]
+
+
+def _reprojection_checks(source: Source, frame: WorldFrame, sequence, plans: list[CameraPlan], masks: list, min_iou: float) -> list[dict]:
+    """Per camera, the mesh reprojected over its mask: IoU and the silhouette (for the overlays); a camera below
+    ``min_iou`` stops the import, naming the likely convention mistake."""
+    checks = []
+    for plan, mask in progress(list(zip(plans, masks, strict=True)), description="mesh over masks"):
+        iou, seen = mask_iou(sequence, plan.camera, mask)
+        if iou < min_iou:
+            raise GraMiInputError(
+                source.folder / CALIB,
+                f"camera {plan.camera.name}: the mesh reprojected over its mask overlaps it by IoU {iou:.2f} (< {min_iou}); "
+                + likely_mistake(source, frame, plan, sequence, mask),
+            )
+        checks.append({"camera": plan.camera.name, "iou": iou, "silhouette": seen})
+    return checks
+
+
+def _config_record(config: HumanolatImportConfig) -> dict:
+    from dataclasses import asdict
+
+    return asdict(config)
+
+
+def _write_stage_files(out: Path, stage: Lightstage, sequence: MeshSequence, frames: list) -> None:
+    from gra_mi.stage.scene import subject_scene_xml, write_rig
+
+    write_rig(stage, out / "rig")
+    if not (out / "subject" / "sequence.npz").is_file():
+        save_sequence(sequence, out / "subject")
+    atomic_write_text(out / "scene.xml", subject_scene_xml("rig", "subject"))
+    for _, entry, led in frames:
+        drive = uniform_pattern(stage, 1.0) if led is None else olat_pattern(stage, led)
+        atomic_write_text(out / entry.pattern, json.dumps({"intensities": drive.tolist()}) + "\n")
+
+
+def _import_camera(source: Source, plan: CameraPlan, mask: np.ndarray, frames: list, capture: Capture) -> dict:
+    """Every frame of one camera, one image at a time: sRGB → linear, onto the planned grid, the mask as alpha.
+    Returns what the report says of them (saturation, the square-pixel resampling's error)."""
+    saturated, name = [], plan.camera.name
+    for number, entry, _ in progress(frames, description=f"import {name}"):
+        path = capture.image_path(name, entry.frame)
+        rgb, clipped = read_image(source.images[plan.index][number])
+        saturated.append(float((clipped & (mask_at_source(mask, plan) > 0.5)).mean()) if clipped.any() else 0.0)
+        if path.is_file():
+            continue
+        image = np.concatenate([resample_image(rgb, plan) * (mask[..., None] > 0.5), mask[..., None]], axis=-1)
+        write_exr(path, image.astype(np.float32))
+    white = read_image(source.images[plan.index][WHITE])[0]
+    return {"saturated_fraction": max(saturated), "resampling_error": _resampling_error(white, plan), "anisotropy": plan.anisotropy}
+
+
+def mask_at_source(mask: np.ndarray, plan: CameraPlan) -> np.ndarray:
+    """The planned-grid mask back on the source grid (nearest), to count saturated subject pixels there."""
+    w, h = plan.source_size
+    rows = np.minimum((np.arange(h) + 0.5) * mask.shape[0] / h, mask.shape[0] - 1).astype(int)
+    cols = np.minimum((np.arange(w) + 0.5) * mask.shape[1] / w, mask.shape[1] - 1).astype(int)
+    return mask[np.ix_(rows, cols)]
+
+
+def _resampling_error(image: np.ndarray, plan: CameraPlan) -> float | None:
+    """Relative RMSE of the white frame taken to square pixels and back, over lit pixels (None: already square)."""
+    if plan.square_width == plan.source_size[0]:
+        return None
+    there = resample_columns(image, plan.square_width)
+    back = resample_columns(there, plan.source_size[0])
+    lit = image.max(axis=-1) > 0
+    return float(np.sqrt(np.mean((back - image)[lit] ** 2)) / max(float(np.sqrt(np.mean(image[lit] ** 2))), 1e-12))
+
+
+# --------------------------------------------------------------------------------------------------------------
+# The import report
+# --------------------------------------------------------------------------------------------------------------
+
+
+def linearity(source: Source, plan: CameraPlan, mask: np.ndarray) -> dict:
+    """The white frame against the sum of every OLAT (door LEDs included) of one camera, over the subject: 1 for a
+    linear sensor, a subject that held still and equal LED gains."""
+    olat_at, _ = olat_numbers(len(source.order))
+    inside = mask_at_source(mask, plan) > 0.5
+    total = np.zeros(int(inside.sum()) * 3)
+    for number in progress(olat_at, description=f"linearity {plan.camera.name}"):
+        if number in source.images[plan.index]:
+            total += read_image(source.images[plan.index][number])[0][inside].ravel()
+    white = read_image(source.images[plan.index][WHITE])[0][inside].ravel()
+    ratio = float(total.sum() / max(white.sum(), 1e-12))
+    return {"camera": plan.camera.name, "olats_over_white": ratio, "olats": len(olat_at)}
+
+
+def _write_report(out: Path, source: Source, frame: WorldFrame, plans: list[CameraPlan], checks: list[dict], record: dict, config) -> None:
+    """import_report.json and .md, and an overlay per camera (mask green, reprojected mesh magenta, both white)."""
+    check_of = {c["camera"]: c for c in checks}
+    for plan in plans:
+        mask = read_exr(out / "images" / plan.camera.name / "frame_0000.exr")[..., 3] > 0.5
+        seen = check_of[plan.camera.name]["silhouette"]
+        overlay = np.stack([seen.astype(float), mask.astype(float), seen.astype(float)], axis=-1)
+        write_png(out / "import" / f"overlay_{plan.camera.name}.png", overlay, exposure=1.0)
+    report = {
+        "cameras": [{"camera": c["camera"], "mask_iou": round(c["iou"], 4)} | record["images"][c["camera"]] for c in checks],
+        "frame": {
+            "transform": frame.matrix(),
+            "up_source": frame.up_source.round(6).tolist(),
+            "up_estimated": frame.up_estimated,
+            "up_off_axis_deg": round(frame.up_off_axis_deg, 3),
+            "led_sphere_radius_m": round(frame.led_radius, 4),
+            "led_sphere_rms_m": round(frame.led_fit_rms, 5),
+        },
+        "leds": {"count": len(source.leds), "left_out": record["left_out_leds"], "gains": record["gains"]},
+        "linearity": linearity(source, plans[0], read_exr(out / "images" / plans[0].camera.name / "frame_0000.exr")[..., 3]),
+        "frames": {"imported": sum(1 for _ in (out / "images" / plans[0].camera.name).glob("frame_*.exr"))},
+    }
+    atomic_write_text(out / "import_report.json", json.dumps(report, indent=1) + "\n")
+    atomic_write_text(out / "import_report.md", import_markdown(report, config))
+
+
+def import_markdown(r: dict, config) -> str:
+    f, leds = r["frame"], r["leds"]
+    lines = [
+        "# Import report",
+        "",
+        f"HumanOLAT pose `{config.pose}`: {len(r['cameras'])} cameras, {r['frames']['imported']} lightings each (the white "
+        f"frame and the OLATs); {leds['count']} LEDs, the OLATs of {len(leds['left_out'])} left out "
+        f"({'the door LEDs' if not config.keep_door_leds else 'by --olat-step'}); LED gains {leds['gains']}.",
+        "",
+        f"Up in the source: {f['up_source']} ({'estimated from the cameras' if f['up_estimated'] else 'given'}, "
+        f"{f['up_off_axis_deg']:.2f}° off its nearest axis). LED sphere: radius {f['led_sphere_radius_m']:.3f} m, the LEDs "
+        f"within {1000 * f['led_sphere_rms_m']:.1f} mm RMS of it. The transform into gra-mi's frame (Y up, metres) is in "
+        "capture.json (`source.transform`).",
+        "",
+        "| camera | mesh over mask (IoU) | saturated (subject) | fx / fy | square-pixel resampling error |",
+        "|---|---|---|---|---|",
+    ]
+    for c in r["cameras"]:
+        error = "—" if c["resampling_error"] is None else f"{100 * c['resampling_error']:.2f} %"
+        lines.append(f"| {c['camera']} | {c['mask_iou']:.3f} | {100 * c['saturated_fraction']:.2f} % | {c['anisotropy']:.4f} | {error} |")
+    lin = r["linearity"]
+    lines += [
+        "",
+        f"Linearity ({lin['camera']}): the sum of the {lin['olats']} OLATs over the white frame is {lin['olats_over_white']:.3f} "
+        "over the subject (1: a linear sensor, a subject that held still, equal LED gains).",
+        "",
+        "Overlays (green: the mask, magenta: the mesh reprojected, white: both): "
+        + " ".join(f"![{c['camera']}](import/overlay_{c['camera']}.png)" for c in r["cameras"]),
+    ]
+    return "\n".join(lines) + "\n"
