@@ -242,3 +242,87 @@ def test_every_later_stage_runs_on_the_imported_capture(imported, tmp_path):
     glb = tmp_path / "avatar.glb"
     args = ["export-gltf", "--subject", str(imported / "subject"), "--albedo", str(fit / "albedo.exr")]
     assert main([*args, "--roughness", str(fit / "roughness.exr"), "--out", str(glb)]) == 0 and glb.stat().st_size > 0
+
+
+# --------------------------------------------------------------------------------------------------------------
+# transforms.json: the JSON HumanOLAT's tools write (and nerfstudio's spelling of the same)
+# --------------------------------------------------------------------------------------------------------------
+
+
+def write_transforms_as_humanolat_tools_do(subject: Path, folder: Path, nerfstudio: bool = False) -> None:
+    """transforms_train/_test.json as HumanOLAT's `generate_cam_jsons` writes them: one frame per camera and OLAT,
+    camera-to-world in metres with the y and z columns negated (OpenCV → Blender), ``camera_intrinsics = [cx, cy, fx,
+    fy]``, ``light_idx``, ``pl_pos`` in metres. ``nerfstudio``: the same with shared ``fl_x``/``fl_y``/``cx``/``cy``/
+    ``w``/``h`` and relative paths without their extension."""
+    from gra_mi.capture.humanolat import camera_name, image_size, images_of, olat_numbers, read_calib, read_points, read_spiral
+
+    calib = read_calib(subject / "shared" / "cameras.calib")
+    leds = read_points(subject / "shared" / "LSX_light_positions_aligned.pc")
+    order = read_spiral(subject / "shared" / "LSX3_light_z_spiral.txt", len(leds))
+    olat_at, _ = olat_numbers(len(order))
+    folder.mkdir(parents=True, exist_ok=True)
+    for name, lights in (("train", [k for k in range(len(order)) if k % 5]), ("test", list(range(0, len(order), 5)))):
+        frames = []
+        for cam, c in enumerate(calib):
+            images = images_of(subject / "POSE_00" / "images_processed" / camera_name(cam))
+            width = image_size(images[0])[0]
+            k = c.k_matrix(width)
+            c2w = np.eye(4)
+            c2w[:3] = c.extrinsic
+            c2w[:3, 3] /= 1000.0
+            c2w[:3, 1:3] *= -1
+            for position in lights:
+                led, path = int(order[position]), images[olat_at[position]]
+                frame = {"light_idx": led, "cam_idx": cam, "transform_matrix": c2w.tolist(), "pl_intensity": [1.0, 1.0, 1.0]}
+                frame["pl_pos"] = leds[led].tolist()
+                if nerfstudio:
+                    frame["file_path"] = str(Path("..") / path.relative_to(subject).with_suffix(""))
+                    frame["mask_path"] = f"../POSE_00/segmentations/masks/000/{camera_name(cam)}.png"
+                else:
+                    frame |= {"file_ext": ".avif", "file_path": str(path), "camera_intrinsics": [k[0, 2], k[1, 2], k[0, 0], k[1, 1]]}
+                frames.append(frame)
+        data = {"frames": frames}
+        if nerfstudio:
+            data |= {"fl_x": k[0, 0], "fl_y": k[1, 1], "cx": k[0, 2], "cy": k[1, 2], "w": width, "h": image_size(images[0])[1]}
+        (folder / f"transforms_{name}.json").write_text(json.dumps(data, indent=1))
+
+
+@pytest.mark.parametrize("spelling", ["humanolat-tools", "nerfstudio"])
+def test_transforms_json_imports_to_the_same_rig(olat_capture, imported, spelling):
+    from gra_mi.capture.dataset import Capture
+    from gra_mi.stage.lightstage import load_calibration
+
+    root, _, subject = olat_capture
+    folder = subject / f"json_{spelling}"
+    write_transforms_as_humanolat_tools_do(subject, folder, nerfstudio=spelling == "nerfstudio")
+    out = root / f"from_{spelling}"
+    args = ["import", "transforms", str(folder), "--out", str(out), "--mesh", str(subject / "POSE_00" / "model" / "model.obj")]
+    assert main([*args, "--mesh-units", "mm", "--uv-resolution", "32"]) == 0
+    report = json.loads((out / "import_report.json").read_text())
+    # with nerfstudio's mask_path as sharp as HumanOLAT's masks; without, the lit pixels of 8-bit OLATs stand in
+    assert all(c["mask_iou"] >= (0.97 if spelling == "nerfstudio" else 0.9) for c in report["cameras"]), report["cameras"]
+    capture = Capture.load(out)
+    assert len(capture.frames) == 24 and sum(f.split == "test" for f in capture.frames) == 5
+    mine, theirs = (load_calibration(p / "rig" / "calibration.json") for p in (out, imported))
+    for a, b in zip(mine.cameras, theirs.cameras, strict=True):
+        assert a.name == b.name
+        np.testing.assert_allclose(a.camera_to_world, b.camera_to_world, atol=1e-5)
+    np.testing.assert_allclose(mine.led_positions, theirs.led_positions, atol=1e-5)
+
+
+def test_a_transforms_json_without_intrinsics_or_lights_is_refused(olat_capture, tmp_path, capsys):
+    root, _, subject = olat_capture
+    folder = tmp_path / "json"
+    write_transforms_as_humanolat_tools_do(subject, folder)
+    mesh = str(subject / "POSE_00" / "model" / "model.obj")
+    data = json.loads((folder / "transforms_train.json").read_text())
+    del data["frames"][3]["camera_intrinsics"]
+    (folder / "transforms_train.json").write_text(json.dumps(data))
+    args = ["import", "transforms", str(folder), "--out", str(tmp_path / "out"), "--mesh", mesh, "--mesh-units", "mm"]
+    _one_line_error(capsys, args, "transforms_train.json", "frames[3]", "intrinsics")
+    del data["frames"][3]
+    for frame in data["frames"]:
+        frame.pop("light_idx")
+    (folder / "transforms_train.json").write_text(json.dumps(data))
+    _one_line_error(capsys, args, "transforms_train.json", "frames[0]", "light_idx")
+    _one_line_error(capsys, args[:-4], "--mesh")

@@ -248,20 +248,27 @@ def read_obj(path: Path) -> ObjMesh:
 # --------------------------------------------------------------------------------------------------------------
 
 
-def read_image(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """(linear RGB float32, saturated pixels): AVIF, PNG or JPEG, 8 or 16 bit, decoded with the exact sRGB curve;
-    a pixel is saturated where a channel is at the top of its range."""
+def read_image(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """(linear RGB float32, saturated pixels, alpha in [0, 1] or None): AVIF, PNG or JPEG, 8 or 16 bit, decoded with
+    the exact sRGB curve (a pixel is saturated where a channel is at the top of its range); EXR as linear radiance
+    (nothing saturates)."""
     from PIL import Image
 
+    if path.suffix.lower() == ".exr":
+        from gra_mi.core.io import read_exr
+
+        image = read_exr(path)
+        return image[..., :3], np.zeros(image.shape[:2], bool), image[..., 3] if image.shape[2] == 4 else None
     try:
         with Image.open(path) as image:
-            mode = image.mode
-            pixels = np.asarray(image.convert("RGB") if mode not in ("I;16", "I;16B", "RGB", "RGBA") else image)
+            pixels = np.asarray(image if image.mode in ("I;16", "I;16B", "RGB", "RGBA") else image.convert("RGBA"))
     except (OSError, SyntaxError, ValueError) as exc:
         raise GraMiInputError(path, f"not a readable image ({exc})") from None
     top = 65535 if pixels.dtype == np.uint16 else 255
+    alpha = pixels[..., 3].astype(np.float32) / top if pixels.ndim == 3 and pixels.shape[2] == 4 else None
     pixels = pixels[..., :3] if pixels.ndim == 3 else np.repeat(pixels[..., None], 3, axis=-1)
-    return srgb_decode(pixels.astype(np.float32) / top).astype(np.float32), (pixels >= top).any(axis=-1)
+    rgb = srgb_decode(pixels.astype(np.float32) / top).astype(np.float32)
+    return rgb, (pixels >= top).any(axis=-1), None if alpha is None or alpha.min() == 1 else alpha
 
 
 def image_size(path: Path) -> tuple[int, int]:

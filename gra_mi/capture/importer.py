@@ -12,7 +12,8 @@ from __future__ import annotations
 import json
 import logging
 import math
-from dataclasses import dataclass, field
+import shutil
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -48,25 +49,18 @@ UP_AXES = {"+x": (1, 0, 0), "-x": (-1, 0, 0), "+y": (0, 1, 0), "-y": (0, -1, 0),
 
 
 @dataclass(kw_only=True)
-class HumanolatImportConfig:
-    """How a HumanOLAT pose becomes a gra-mi capture (:func:`import_humanolat`)."""
+class ImportConfig:
+    """What every import route shares (:func:`import_capture`)."""
 
-    pose: str = "POSE_00"
-    """The pose folder under the subject (POSE_00 is the A-pose)."""
     cameras: list[str] | None = field(default=None, metadata=option(parse=comma_list))
     """Cameras to import, comma-separated (Cam01,Cam05,...). Default: all."""
     eval_cameras: list[str] | None = field(default=None, metadata=option(parse=comma_list))
     """Cameras held out for novel-view evaluation, comma-separated. Default: two, spread over the rig."""
     scale: float = 1.0
-    """Image scale after the pixels are made square (0.25: a quarter of the size; a full pose is ~13,700 images)."""
-    olat_step: int = 1
-    """Import every Nth OLAT of the firing order (1: all)."""
-    test_olat_every: int = 10
-    """Every Nth imported OLAT is held out as test lighting (with the white frame); the others train."""
-    keep_door_leds: bool = False
-    """Import the OLATs of the 21 LEDs on the stage's door, whose positions the dataset calls unreliable."""
+    """Image scale after the pixels are made square (0.25: a quarter of the size; a full HumanOLAT pose is ~13,700
+    images)."""
     up: str = field(default="auto", metadata=option(choices=("auto", *UP_AXES)))
-    """The source frame's up axis; auto: from the cameras (their mean image-up direction), reported."""
+    """The source frame's up axis; auto: level to every camera's image x axis, signed by their image up (reported)."""
     led_intensity: float = 4.0
     """Radiant intensity (W/sr) of a fully driven LED (the source does not say; sets the albedo's scale only)."""
     uv_resolution: int = 256
@@ -75,32 +69,60 @@ class HumanolatImportConfig:
     """Stop when the mesh reprojected over a camera's mask overlaps it less than this (intersection over union)."""
 
     def validate(self) -> None:
-        require_positive({"scale": self.scale, "olat_step": self.olat_step, "test_olat_every": self.test_olat_every})
-        require_positive({"led_intensity": self.led_intensity, "uv_resolution": self.uv_resolution})
+        require_positive({"scale": self.scale, "led_intensity": self.led_intensity, "uv_resolution": self.uv_resolution})
         if not 0 <= self.min_iou <= 1:
             raise GraMiParameterError("min_iou", f"must be in [0, 1], got {self.min_iou}")
         if self.up not in ("auto", *UP_AXES):
             raise GraMiParameterError("up", f"expected auto or one of {', '.join(UP_AXES)}, got {self.up!r}")
 
 
+@dataclass(kw_only=True)
+class HumanolatOptions:
+    """Which of a HumanOLAT pose's images are imported (:func:`import_humanolat`)."""
+
+    pose: str = "POSE_00"
+    """humanolat: the pose folder under the subject (POSE_00 is the A-pose)."""
+    olat_step: int = 1
+    """humanolat: import every Nth OLAT of the firing order (1: all)."""
+    test_olat_every: int = 10
+    """humanolat: every Nth imported OLAT is held out as test lighting (with the white frame); the others train."""
+    keep_door_leds: bool = False
+    """humanolat: import the OLATs of the 21 LEDs on the stage's door, whose positions the dataset calls unreliable."""
+
+    def validate(self) -> None:
+        require_positive({"olat_step": self.olat_step, "test_olat_every": self.test_olat_every})
+
+
 @dataclass
 class Source:
-    """A HumanOLAT pose as read: everything in the source's own frame and units."""
+    """A capture as read, before anything is written: everything in the source's own frame and units. Readers
+    (:func:`read_humanolat`, :func:`gra_mi.capture.transforms.read_transforms`) fill it; the rest of the import is
+    the same for every source."""
 
-    folder: Path  # the subject
-    pose: Path  # its pose folder
-    calib: list  # CalibCamera per camera, Cam01 first
+    folder: Path
+    format: str  # "humanolat", "transforms"
+    calib_path: Path  # what a camera error names
+    names: list[str]  # camera names
+    calib: list  # CalibCamera per camera: K / width, camera-to-world (OpenCV axes) in the source's units
     sizes: list[tuple[int, int]]  # (width, height) of each camera's images
-    images: list[dict[int, Path]]  # per camera: image number → file
-    leds: np.ndarray  # (L, 3) metres
-    order: np.ndarray  # firing order, 0-based LED indices
-    mesh: object  # ObjMesh, millimetres
-    masks: list[Path | None]
+    images: list[dict[int, Path]]  # per camera: frame key → image file
+    units: float  # metres per source unit of the calibration (0.001: millimetres)
+    leds: np.ndarray  # (L, 3) metres, the source's frame
+    meshes: list  # ObjMesh per pose (one topology), source units
+    masks: list[Path | None]  # per camera: a mask file, else the images' alpha or non-black pixels
+    frames: list = field(default_factory=list)  # (frame key, FrameLighting, drive): an LED, "white" or an envmap file
+    left_out: list[int] = field(default_factory=list)  # LEDs whose OLATs were not imported
+    white: int | None = None  # the frame key of an all-LEDs frame (the linearity check)
+    order: np.ndarray | None = None  # the OLAT firing order (HumanOLAT)
+    mesh_units: float | None = None  # metres per unit of the meshes (None: as the calibration)
+
+    def mesh_metres(self, positions: np.ndarray) -> np.ndarray:
+        return positions * (self.units if self.mesh_units is None else self.mesh_units)
 
 
-def read_source(subject_dir: Path, config: HumanolatImportConfig) -> Source:
+def read_humanolat(subject_dir: Path, config: HumanolatOptions) -> Source:
     """Every file of the pose, checked before anything is written: camera count against the image folders, LED count
-    against the firing order, every needed image present and of its camera's size."""
+    against the firing order, the white frame present for every camera."""
     pose = subject_dir / config.pose
     if not (pose / "images_processed").is_dir():
         raise GraMiInputError(pose / "images_processed", "missing: a HumanOLAT pose folder holds images_processed/Cam01 …")
@@ -112,15 +134,20 @@ def read_source(subject_dir: Path, config: HumanolatImportConfig) -> Source:
         )
     leds = read_points(subject_dir / LEDS)
     order = read_spiral(subject_dir / SPIRAL, len(leds))
-    images = [images_of(pose / "images_processed" / camera_name(i)) for i in range(len(calib))]
+    names = [camera_name(i) for i in range(len(calib))]
+    images = [images_of(pose / "images_processed" / name) for name in names]
     sizes = []
-    for i, found in enumerate(images):
+    for name, found in zip(names, images, strict=True):
         if WHITE not in found:
-            raise GraMiInputError(pose / "images_processed" / camera_name(i), f"missing the white frame (image number {WHITE:06d})")
+            raise GraMiInputError(pose / "images_processed" / name, f"missing the white frame (image number {WHITE:06d})")
         sizes.append(image_size(found[WHITE]))
-    masks = [pose / "segmentations" / "masks" / "000" / f"{camera_name(i)}.png" for i in range(len(calib))]
-    mesh = read_obj(pose / "model" / "model.obj")
-    return Source(subject_dir, pose, calib, sizes, images, leds, order, mesh, [m if m.is_file() else None for m in masks])
+    masks = [pose / "segmentations" / "masks" / "000" / f"{name}.png" for name in names]
+    source = Source(
+        subject_dir, "humanolat", subject_dir / CALIB, names, calib, sizes, images, 0.001, leds,
+        [read_obj(pose / "model" / "model.obj")], [m if m.is_file() else None for m in masks], white=WHITE, order=order,
+    )  # fmt: skip
+    source.frames, source.left_out = humanolat_frames(source, config)
+    return source
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -186,7 +213,7 @@ def world_frame(source: Source, up: str) -> WorldFrame:
     off_axis = math.degrees(math.acos(min(1.0, float(np.abs(direction).max()))))
     rotation = _rotation_to_y(direction)
     centre, radius, rms = fit_sphere(source.leds)
-    mesh_m = source.mesh.positions / 1000.0
+    mesh_m = source.mesh_metres(np.concatenate([m.positions for m in source.meshes]))
     floor = float(((mesh_m - centre) @ rotation.T)[:, 1].min())
     translation = -rotation @ centre - np.array([0.0, floor, 0.0])
     return WorldFrame(rotation, translation, direction, up == "auto", off_axis, radius, rms)
@@ -220,8 +247,8 @@ def plan_camera(source: Source, index: int, frame: WorldFrame, scale: float) -> 
     f = math.sqrt(fx * sx * fy * sy)
     c2w = np.eye(4)
     c2w[:3, :3] = frame.rotation @ source.calib[index].extrinsic[:3, :3]
-    c2w[:3, 3] = frame.apply(source.calib[index].extrinsic[:3, 3][None] / 1000.0)[0]
-    camera = Camera(camera_name(index), out_w, out_h, f, f, cx * sx, cy * sy, c2w)
+    c2w[:3, 3] = frame.apply(source.calib[index].extrinsic[:3, 3][None] * source.units)[0]
+    camera = Camera(source.names[index], out_w, out_h, f, f, cx * sx, cy * sy, c2w)
     return CameraPlan(index, camera, (width, height), square_width, fx / fy)
 
 
@@ -251,13 +278,19 @@ def build_stage(source: Source, frame: WorldFrame, plans: list[CameraPlan], led_
 
 
 def build_sequence(source: Source, frame: WorldFrame) -> MeshSequence:
-    """The pose as a one-frame sequence, in the mesh's own UV atlas (a vertex per position and UV pair)."""
-    mesh = source.mesh
-    faces, position_of, uv_of = split_uv_seams(mesh.faces, mesh.face_uvs)
-    vertices = frame.apply(mesh.positions[position_of] / 1000.0).astype(np.float32)[None]
-    return MeshSequence(
-        faces, mesh.uvs[uv_of].astype(np.float32), vertices, vertex_normals(vertices, faces), fps=1.0, frame_labels=["pose"]
-    )
+    """The poses as a sequence in the first mesh's own UV atlas (a vertex per position and UV pair); every pose must
+    share its topology (a tracked mesh)."""
+    first = source.meshes[0]
+    faces, position_of, uv_of = split_uv_seams(first.faces, first.face_uvs)
+    for k, mesh in enumerate(source.meshes[1:], 1):
+        if mesh.positions.shape != first.positions.shape or not np.array_equal(mesh.faces, first.faces):
+            raise GraMiInputError(
+                source.folder, f"mesh {k} has another topology than mesh 0: a tracked sequence keeps its vertices and faces"
+            )
+    vertices = np.stack([frame.apply(source.mesh_metres(m.positions[position_of])) for m in source.meshes]).astype(np.float32)
+    labels = [f"pose {k}" for k in range(len(source.meshes))]
+    uvs = first.uvs[uv_of].astype(np.float32)
+    return MeshSequence(faces, uvs, vertices, vertex_normals(vertices, faces), fps=1.0, frame_labels=labels)
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -267,37 +300,57 @@ def build_sequence(source: Source, frame: WorldFrame) -> MeshSequence:
 MISTAKES = {
     "the extrinsic read as world-to-camera (it is camera-to-world)": "inverted",
     "OpenGL camera axes (y up, z backwards) instead of OpenCV's": "opengl",
-    "the calibration in metres instead of millimetres": "metres",
+    "a calibration in metres read as millimetres": "metres",
+    "a calibration in millimetres read as metres": "millimetres",
 }
 
 
-def source_mask(source: Source, plan: CameraPlan) -> np.ndarray:
-    """The camera's mask on the planned grid: the segmentation PNG, or else the white frame's non-black pixels (the
-    processed images are masked)."""
-    from PIL import Image
+def frame_mask(source: Source, plan: CameraPlan, key: int) -> np.ndarray:
+    """A frame's mask on the camera's planned grid: the camera's mask file, else the image's alpha, else the pixels
+    the subject covers in the (masked, black-background) images: for a static pose the union over all the camera's
+    images (an OLAT alone leaves part of the subject black), for a sequence the frame's own."""
+    path = source.masks[plan.index] or source.images[plan.index][key]
+    if source.masks[plan.index] is not None:
+        from PIL import Image
 
-    path = source.masks[plan.index]
-    if path is not None:
         with Image.open(path) as image:
             mask = (np.asarray(image.convert("L")) > 127).astype(np.float32)
     else:
-        mask = (read_image(source.images[plan.index][WHITE])[0].max(axis=-1) > 0).astype(np.float32)
+        rgb, _, alpha = read_image(path)
+        if alpha is not None:
+            mask = (alpha > 0.5).astype(np.float32)
+        elif len(source.meshes) == 1:
+            mask = _covered(source, plan.index)
+        else:
+            mask = (rgb.max(axis=-1) > 0).astype(np.float32)
     if mask.shape[::-1] != plan.source_size:
         raise GraMiInputError(path, f"is {mask.shape[1]}x{mask.shape[0]}, its camera's images {plan.source_size[0]}x{plan.source_size[1]}")
     return resample_image(mask[..., None], plan)[..., 0]
 
 
-def mask_iou(sequence: MeshSequence, camera: Camera, mask: np.ndarray) -> tuple[float, np.ndarray]:
+def _covered(source: Source, camera: int) -> np.ndarray:
+    """Pixels lit in any image of a camera (cached on the source: a pose's images are read once for it)."""
+    cache = source.__dict__.setdefault("_covered", {})
+    if camera not in cache:
+        covered = None
+        for key, _, _ in progress(source.frames, description=f"mask of {source.names[camera]}"):
+            lit = read_image(source.images[camera][key])[0].max(axis=-1) > 0
+            covered = lit if covered is None else covered | lit
+        cache[camera] = covered.astype(np.float32)
+    return cache[camera]
+
+
+def mask_iou(sequence: MeshSequence, camera: Camera, mask: np.ndarray, pose: int = 0) -> tuple[float, np.ndarray]:
     from gra_mi.render.rasterize import silhouette
 
-    seen = silhouette(sequence.vertices[0], sequence.faces, camera)
+    seen = silhouette(sequence.vertices[pose], sequence.faces, camera)
     inside = mask > 0.5
     union = int((seen | inside).sum())
     return (float((seen & inside).sum()) / union if union else 0.0), seen
 
 
 def _mistaken(extrinsic: np.ndarray, kind: str) -> np.ndarray:
-    """A source camera-to-world (3 × 4, millimetres) with ``kind``'s mistake undone."""
+    """A source camera-to-world (3 × 4, the source's units) with ``kind``'s mistake undone."""
     m = np.eye(4)
     m[:3] = extrinsic
     if kind == "inverted":
@@ -306,10 +359,12 @@ def _mistaken(extrinsic: np.ndarray, kind: str) -> np.ndarray:
         m[:3, 1:3] *= -1
     elif kind == "metres":
         m[:3, 3] *= 1000.0
+    elif kind == "millimetres":
+        m[:3, 3] /= 1000.0
     return m[:3]
 
 
-def likely_mistake(source: Source, frame: WorldFrame, plan: CameraPlan, sequence: MeshSequence, mask: np.ndarray) -> str:
+def likely_mistake(source: Source, frame: WorldFrame, plan: CameraPlan, sequence: MeshSequence, mask: np.ndarray, pose: int) -> str:
     """Which convention mistake, undone in the source's own calibration, makes the reprojection fit the mask (the
     best of them), in words."""
     from dataclasses import replace
@@ -319,7 +374,7 @@ def likely_mistake(source: Source, frame: WorldFrame, plan: CameraPlan, sequence
         calib = list(source.calib)
         calib[plan.index] = replace(calib[plan.index], extrinsic=_mistaken(calib[plan.index].extrinsic, kind))
         camera = plan_camera(replace(source, calib=calib), plan.index, frame, plan.camera.width / plan.square_width).camera
-        scores[said] = mask_iou(sequence, camera, mask)[0]
+        scores[said] = mask_iou(sequence, camera, mask, pose)[0]
     best = max(scores, key=scores.get)
     if scores[best] >= 0.5:
         return f"likely {best} (IoU {scores[best]:.2f} if so)"
@@ -331,30 +386,29 @@ def likely_mistake(source: Source, frame: WorldFrame, plan: CameraPlan, sequence
 # --------------------------------------------------------------------------------------------------------------
 
 
-def plan_frames(source: Source, config: HumanolatImportConfig) -> tuple[list[tuple[int, FrameLighting, int | None]], list[int]]:
-    """[(image number, frame entry, LED or None for white)] and the LEDs whose OLATs were left out. The white frame
-    is test lighting (sequence 0); every ``test_olat_every``-th imported OLAT is too (sequence 1); the rest train."""
+def humanolat_frames(source: Source, config: HumanolatOptions) -> tuple[list, list[int]]:
+    """[(image number, frame entry, LED or "white")] and the LEDs whose OLATs were left out. The white frame is test
+    lighting (sequence 0); every ``test_olat_every``-th imported OLAT is too (sequence 1); the rest train."""
     olat_at, _ = olat_numbers(len(source.order))
     door = set() if config.keep_door_leds else set(DOOR_LEDS)
     chosen = [
         (n, int(led)) for k, (n, led) in enumerate(zip(olat_at, source.order, strict=True)) if k % config.olat_step == 0 and led not in door
     ]
     left_out = sorted({int(led) for led in source.order} - {led for _, led in chosen})
-    plan = [(WHITE, FrameLighting(0, "test", 0, "pattern", None, "patterns/white.json", pose=0), None)]
+    plan = [(WHITE, FrameLighting(0, "test", 0, "pattern", None, "patterns/white.json", pose=0), "white")]
     for k, (number, led) in enumerate(chosen):
         split, sequence = ("test", 1) if (k + 1) % config.test_olat_every == 0 else ("train", 0)
         plan.append((number, FrameLighting(k + 1, split, sequence, "pattern", None, f"patterns/olat_{led:03d}.json", pose=0), led))
     return plan, left_out
 
 
-def check_images_present(source: Source, plans: list[CameraPlan], frames: list) -> None:
+def check_images_present(source: Source, plans: list[CameraPlan]) -> None:
     for plan in plans:
-        folder = source.pose / "images_processed" / plan.camera.name
-        for number, _, led in frames:
-            path = source.images[plan.index].get(number)
+        for key, _, drive in source.frames:
+            path = source.images[plan.index].get(key)
             if path is None:
-                what = "the white frame" if led is None else f"the OLAT of LED {led + 1}"
-                raise GraMiInputError(folder, f"missing image number {number:06d} ({what})")
+                what = {"white": "the white frame"}.get(drive, f"the OLAT of LED {drive + 1}" if isinstance(drive, int) else "its lighting")
+                raise GraMiInputError(source.folder, f"camera {plan.camera.name} has no image of frame {key:06d} ({what})")
             if image_size(path) != plan.source_size:
                 raise GraMiInputError(path, f"is {image_size(path)}, other images of {plan.camera.name} are {plan.source_size}")
 
@@ -365,73 +419,78 @@ def check_images_present(source: Source, plans: list[CameraPlan], frames: list) 
 
 
 def import_humanolat(
-    subject_dir: str | Path, out: str | Path, config: HumanolatImportConfig | None = None, overwrite: bool = False
+    subject_dir: str | Path,
+    out: str | Path,
+    config: ImportConfig | None = None,
+    options: HumanolatOptions | None = None,
+    overwrite: bool = False,
 ) -> Capture:
     """Import one pose of a HumanOLAT subject into ``out``; rerunning resumes (images already written are kept)."""
+    config, options = config or ImportConfig(), options or HumanolatOptions()
+    config.validate()
+    options.validate()
+    source = read_humanolat(Path(subject_dir), options)
+    record = {"pose": options.pose, "units": "millimetres (calibration, mesh), metres (LEDs)"}
+    return import_capture(source, Path(out), config, record, overwrite, options)
+
+
+def import_capture(source: Source, out: Path, config: ImportConfig, record: dict, overwrite: bool = False, options=None) -> Capture:
+    """The import, whatever the source: its frame, cameras, the reprojection check, then the files."""
     from gra_mi.core.provenance import claim_output
     from gra_mi.render.runtime import ensure_mitsuba
 
-    config = config or HumanolatImportConfig()
-    config.validate()
     ensure_mitsuba()
-    subject_dir, out = Path(subject_dir), Path(out)
-    source = read_source(subject_dir, config)
     frame = world_frame(source, config.up)
     plans = _camera_plans(source, frame, config)
-    frames, left_out = plan_frames(source, config)
-    check_images_present(source, plans, frames)
+    check_images_present(source, plans)
     sequence = build_sequence(source, frame)
-    masks = [source_mask(source, plan) for plan in plans]
-    checks = _reprojection_checks(source, frame, sequence, plans, masks, config.min_iou)
-    claim_output(out, "import humanolat", {"subject": subject_dir}, _config_record(config), overwrite=overwrite)
+    key, pose = source.frames[0][0], source.frames[0][1].mesh_frame  # the frame every camera's mask is checked on
+    masks = [frame_mask(source, plan, key) for plan in plans]
+    checks = _reprojection_checks(source, frame, sequence, plans, masks, config.min_iou, pose)
+    said = asdict(config) | (asdict(options) if options is not None else {})
+    claim_output(out, f"import {source.format}", {"source": source.folder}, said, overwrite=overwrite)
     stage = build_stage(source, frame, plans, config.led_intensity)
-    _write_stage_files(out, stage, sequence, frames)
+    _write_stage_files(out, stage, sequence, source.frames)
     eval_cameras = config.eval_cameras or [plans[len(plans) // 4].camera.name, plans[(3 * len(plans)) // 4].camera.name]
     train_cameras = [p.camera.name for p in plans if p.camera.name not in eval_cameras]
-    record = {"format": "humanolat", "subject": str(subject_dir), "pose": config.pose, "transform": frame.matrix()}
-    record |= {"units": "millimetres (calibration, mesh), metres (LEDs)", "gains": "assumed equal (the source has none)"}
-    record |= {"left_out_leds": left_out, "images": {}}
-    capture = Capture(
-        out, "humanolat", "captured", config.uv_resolution, train_cameras, eval_cameras, [f for _, f, _ in frames], source=record
-    )
-    for plan, mask in zip(plans, masks, strict=True):
-        record["images"][plan.camera.name] = _import_camera(source, plan, mask, frames, capture)
+    record = {"format": source.format, "folder": str(source.folder), "transform": frame.matrix(), **record}
+    record |= {"gains": "assumed equal (the source has none)", "left_out_leds": source.left_out, "images": {}}
+    frames = [f for _, f, _ in source.frames]
+    capture = Capture(out, source.format, "captured", config.uv_resolution, train_cameras, eval_cameras, frames, source=record)
+    for plan in plans:
+        record["images"][plan.camera.name] = _import_camera(source, plan, capture)
     capture.save()
-    _write_report(out, source, frame, plans, checks, record, config)
+    _write_report(out, source, frame, plans, checks, record)
     return capture
 
 
-def _camera_plans(source: Source, frame: WorldFrame, config: HumanolatImportConfig) -> list[CameraPlan]:
-    names = [camera_name(i) for i in range(len(source.calib))]
+def _camera_plans(source: Source, frame: WorldFrame, config: ImportConfig) -> list[CameraPlan]:
+    names = source.names
     chosen = config.cameras or names
     unknown = [c for c in chosen + (config.eval_cameras or []) if c not in names]
     if unknown:
-        raise GraMiParameterError("cameras", f"no camera {', '.join(unknown)} in {source.folder / CALIB} (it has {names[0]} … {names[-1]})")
+        raise GraMiParameterError("cameras", f"no camera {', '.join(unknown)} in {source.calib_path} (it has {names[0]} … {names[-1]})")
     if config.eval_cameras and not set(config.eval_cameras) <= set(chosen):
         raise GraMiParameterError("eval_cameras", "held-out cameras must be among the imported ones (--cameras)")
     return [plan_camera(source, names.index(c), frame, config.scale) for c in chosen]
 
 
-def _reprojection_checks(source: Source, frame: WorldFrame, sequence, plans: list[CameraPlan], masks: list, min_iou: float) -> list[dict]:
+def _reprojection_checks(
+    source: Source, frame: WorldFrame, sequence, plans: list[CameraPlan], masks: list, min_iou: float, pose: int
+) -> list[dict]:
     """Per camera, the mesh reprojected over its mask: IoU and the silhouette (for the overlays); a camera below
     ``min_iou`` stops the import, naming the likely convention mistake."""
     checks = []
     for plan, mask in progress(list(zip(plans, masks, strict=True)), description="mesh over masks"):
-        iou, seen = mask_iou(sequence, plan.camera, mask)
+        iou, seen = mask_iou(sequence, plan.camera, mask, pose)
         if iou < min_iou:
             raise GraMiInputError(
-                source.folder / CALIB,
+                source.calib_path,
                 f"camera {plan.camera.name}: the mesh reprojected over its mask overlaps it by IoU {iou:.2f} (< {min_iou}); "
-                + likely_mistake(source, frame, plan, sequence, mask),
+                + likely_mistake(source, frame, plan, sequence, mask, pose),
             )
         checks.append({"camera": plan.camera.name, "iou": iou, "silhouette": seen})
     return checks
-
-
-def _config_record(config: HumanolatImportConfig) -> dict:
-    from dataclasses import asdict
-
-    return asdict(config)
 
 
 def _write_stage_files(out: Path, stage: Lightstage, sequence: MeshSequence, frames: list) -> None:
@@ -441,25 +500,32 @@ def _write_stage_files(out: Path, stage: Lightstage, sequence: MeshSequence, fra
     if not (out / "subject" / "sequence.npz").is_file():
         save_sequence(sequence, out / "subject")
     atomic_write_text(out / "scene.xml", subject_scene_xml("rig", "subject"))
-    for _, entry, led in frames:
-        drive = uniform_pattern(stage, 1.0) if led is None else olat_pattern(stage, led)
-        atomic_write_text(out / entry.pattern, json.dumps({"intensities": drive.tolist()}) + "\n")
+    for _, entry, drive in frames:
+        if entry.kind == "envmap":  # the source's map, copied in so the capture stands on its own
+            target = out / entry.envmap
+            if not target.is_file():
+                target.parent.mkdir(parents=True, exist_ok=True)
+                shutil.copyfile(drive, target)
+            continue
+        pattern = uniform_pattern(stage, 1.0) if drive == "white" else olat_pattern(stage, drive)
+        atomic_write_text(out / entry.pattern, json.dumps({"intensities": pattern.tolist()}) + "\n")
 
 
-def _import_camera(source: Source, plan: CameraPlan, mask: np.ndarray, frames: list, capture: Capture) -> dict:
-    """Every frame of one camera, one image at a time: sRGB → linear, onto the planned grid, the mask as alpha.
+def _import_camera(source: Source, plan: CameraPlan, capture: Capture) -> dict:
+    """Every frame of one camera, one image at a time: sRGB → linear, onto the planned grid, its mask as alpha.
     Returns what the report says of them (saturation, the square-pixel resampling's error)."""
     saturated, name = [], plan.camera.name
-    for number, entry, _ in progress(frames, description=f"import {name}"):
+    for key, entry, _ in progress(source.frames, description=f"import {name}"):
         path = capture.image_path(name, entry.frame)
-        rgb, clipped = read_image(source.images[plan.index][number])
+        rgb, clipped, _ = read_image(source.images[plan.index][key])
+        mask = frame_mask(source, plan, key)
         saturated.append(float((clipped & (mask_at_source(mask, plan) > 0.5)).mean()) if clipped.any() else 0.0)
         if path.is_file():
             continue
         image = np.concatenate([resample_image(rgb, plan) * (mask[..., None] > 0.5), mask[..., None]], axis=-1)
         write_exr(path, image.astype(np.float32))
-    white = read_image(source.images[plan.index][WHITE])[0]
-    return {"saturated_fraction": max(saturated), "resampling_error": _resampling_error(white, plan), "anisotropy": plan.anisotropy}
+    first = read_image(source.images[plan.index][source.frames[0][0]])[0]
+    return {"saturated_fraction": max(saturated), "resampling_error": _resampling_error(first, plan), "anisotropy": plan.anisotropy}
 
 
 def mask_at_source(mask: np.ndarray, plan: CameraPlan) -> np.ndarray:
@@ -494,12 +560,12 @@ def linearity(source: Source, plan: CameraPlan, mask: np.ndarray) -> dict:
     for number in progress(olat_at, description=f"linearity {plan.camera.name}"):
         if number in source.images[plan.index]:
             total += read_image(source.images[plan.index][number])[0][inside].ravel()
-    white = read_image(source.images[plan.index][WHITE])[0][inside].ravel()
+    white = read_image(source.images[plan.index][source.white])[0][inside].ravel()
     ratio = float(total.sum() / max(white.sum(), 1e-12))
     return {"camera": plan.camera.name, "olats_over_white": ratio, "olats": len(olat_at)}
 
 
-def _write_report(out: Path, source: Source, frame: WorldFrame, plans: list[CameraPlan], checks: list[dict], record: dict, config) -> None:
+def _write_report(out: Path, source: Source, frame: WorldFrame, plans: list[CameraPlan], checks: list[dict], record: dict) -> None:
     """import_report.json and .md, and an overlay per camera (mask green, reprojected mesh magenta, both white)."""
     check_of = {c["camera"]: c for c in checks}
     for plan in plans:
@@ -518,21 +584,22 @@ def _write_report(out: Path, source: Source, frame: WorldFrame, plans: list[Came
             "led_sphere_rms_m": round(frame.led_fit_rms, 5),
         },
         "leds": {"count": len(source.leds), "left_out": record["left_out_leds"], "gains": record["gains"]},
-        "linearity": linearity(source, plans[0], read_exr(out / "images" / plans[0].camera.name / "frame_0000.exr")[..., 3]),
+        "linearity": linearity(source, plans[0], read_exr(out / "images" / plans[0].camera.name / "frame_0000.exr")[..., 3])
+        if source.order is not None
+        else None,
         "frames": {"imported": sum(1 for _ in (out / "images" / plans[0].camera.name).glob("frame_*.exr"))},
     }
     atomic_write_text(out / "import_report.json", json.dumps(report, indent=1) + "\n")
-    atomic_write_text(out / "import_report.md", import_markdown(report, config))
+    atomic_write_text(out / "import_report.md", import_markdown(report, source.format))
 
 
-def import_markdown(r: dict, config) -> str:
+def import_markdown(r: dict, source_format: str) -> str:
     f, leds = r["frame"], r["leds"]
     lines = [
         "# Import report",
         "",
-        f"HumanOLAT pose `{config.pose}`: {len(r['cameras'])} cameras, {r['frames']['imported']} lightings each (the white "
-        f"frame and the OLATs); {leds['count']} LEDs, the OLATs of {len(leds['left_out'])} left out "
-        f"({'the door LEDs' if not config.keep_door_leds else 'by --olat-step'}); LED gains {leds['gains']}.",
+        f"Source: {source_format}. {len(r['cameras'])} cameras, {r['frames']['imported']} lightings each; {leds['count']} "
+        f"LEDs, the OLATs of {len(leds['left_out'])} left out; LED gains {leds['gains']}.",
         "",
         f"Up in the source: {f['up_source']} ({'estimated from the cameras' if f['up_estimated'] else 'given'}, "
         f"{f['up_off_axis_deg']:.2f}° off its nearest axis). LED sphere: radius {f['led_sphere_radius_m']:.3f} m, the LEDs "
@@ -545,11 +612,14 @@ def import_markdown(r: dict, config) -> str:
     for c in r["cameras"]:
         error = "—" if c["resampling_error"] is None else f"{100 * c['resampling_error']:.2f} %"
         lines.append(f"| {c['camera']} | {c['mask_iou']:.3f} | {100 * c['saturated_fraction']:.2f} % | {c['anisotropy']:.4f} | {error} |")
-    lin = r["linearity"]
+    if r["linearity"] is not None:
+        lin = r["linearity"]
+        lines += [
+            "",
+            f"Linearity ({lin['camera']}): the sum of the {lin['olats']} OLATs over the white frame is {lin['olats_over_white']:.3f} "
+            "over the subject (1: a linear sensor, a subject that held still, equal LED gains).",
+        ]
     lines += [
-        "",
-        f"Linearity ({lin['camera']}): the sum of the {lin['olats']} OLATs over the white frame is {lin['olats_over_white']:.3f} "
-        "over the subject (1: a linear sensor, a subject that held still, equal LED gains).",
         "",
         "Overlays (green: the mask, magenta: the mesh reprojected, white: both): "
         + " ".join(f"![{c['camera']}](import/overlay_{c['camera']}.png)" for c in r["cameras"]),

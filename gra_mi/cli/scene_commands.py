@@ -6,8 +6,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from gra_mi.capture.humanolat import write_humanolat
-from gra_mi.capture.importer import HumanolatImportConfig, import_humanolat
+from gra_mi.capture.importer import HumanolatOptions, ImportConfig, import_humanolat
 from gra_mi.capture.synthetic import PRESETS, CaptureConfig, generate_capture
+from gra_mi.capture.transforms import TransformsOptions, import_transforms
 from gra_mi.cli.options import CommandConfig, Restartable
 from gra_mi.core.config import comma_list, option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive
@@ -187,17 +188,27 @@ def run_capture(c: CaptureCommand) -> None:
 
 @dataclass(kw_only=True)
 class ImportCommand(Restartable):
-    source: str = field(metadata=option(positional=True, choices=("humanolat",)))
-    """The source's layout. humanolat: a subject folder of the HumanOLAT dataset (TMT22/HumanOLAT), one pose."""
+    source: str = field(metadata=option(positional=True, choices=("humanolat", "transforms")))
+    """The source's layout. humanolat: a subject folder of the HumanOLAT dataset (TMT22/HumanOLAT), one pose.
+    transforms: a folder with a NeRF / nerfstudio transforms.json (or transforms_train/_test.json) and --mesh."""
     folder: Path = field(metadata=option(positional=True))
-    """The source folder (humanolat: SUBJECT_<id>, holding shared/ and POSE_<nn>/)."""
+    """The source folder (humanolat: SUBJECT_<id>, holding shared/ and POSE_<nn>/; transforms: the JSON's folder)."""
     out: Path
     """Capture folder to write (layout: docs/data-format.md), with import_report.md. Rerunning resumes."""
-    humanolat: HumanolatImportConfig = field(default_factory=HumanolatImportConfig)
+    config: ImportConfig = field(default_factory=ImportConfig)
+    humanolat: HumanolatOptions = field(default_factory=HumanolatOptions)
+    transforms: TransformsOptions = field(default_factory=TransformsOptions)
+
+    def validate(self) -> None:
+        self.config.validate()
+        (self.humanolat if self.source == "humanolat" else self.transforms).validate()
 
 
 def run_import(c: ImportCommand) -> None:
-    capture = import_humanolat(c.folder, c.out, c.humanolat, c.overwrite)
+    if c.source == "humanolat":
+        capture = import_humanolat(c.folder, c.out, c.config, c.humanolat, c.overwrite)
+    else:
+        capture = import_transforms(c.folder, c.out, c.config, c.transforms, c.overwrite)
     cameras = len(capture.train_cameras) + len(capture.eval_cameras)
     print(f"imported {len(capture.frames)} lightings × {cameras} cameras into {c.out}; read {c.out / 'import_report.md'} first")
 

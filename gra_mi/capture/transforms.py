@@ -1,0 +1,221 @@
+"""NeRF-style ``transforms.json`` captures (nerfstudio's and the original NeRF's layout, and the per-OLAT JSON
+HumanOLAT's tools write) into gra-mi's capture layout, through the same import as every source
+(:func:`gra_mi.capture.importer.import_capture`).
+
+Read: ``transforms.json``, or ``transforms_train.json`` / ``transforms_test.json`` (``_val`` counts as test: held-out
+lighting). Per frame: ``file_path`` (relative to the JSON, with or without its extension), ``transform_matrix``
+(camera-to-world, OpenGL/Blender axes: x right, y up, z backwards), intrinsics either as nerfstudio spells them
+(``fl_x``, ``fl_y``, ``cx``, ``cy``, ``w``, ``h``, at the top or per frame), as HumanOLAT's tools do
+(``camera_intrinsics = [cx, cy, fx, fy]``) or as the original NeRF does (``camera_angle_x``); its lighting: an LED
+(``light_idx`` with its position ``pl_pos`` and ``pl_intensity``), or an environment map (``envmap``, a path). Frames
+of the same lighting (and ``mesh_frame``, for a mesh sequence) are one capture frame seen by every camera; a camera is
+a ``cam_idx``, or else one pose and intrinsics. Masks: nerfstudio's ``mask_path`` (a static pose: one per camera), else
+the images' alpha, else the pixels the subject covers. Distortion (``k1`` … ``p2``) is refused: undistort first.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from gra_mi.capture.dataset import FrameLighting
+from gra_mi.capture.humanolat import CalibCamera, image_size, read_obj
+from gra_mi.capture.importer import ImportConfig, Source, import_capture
+from gra_mi.core.config import option
+from gra_mi.core.errors import GraMiInputError, GraMiParameterError
+
+SUFFIXES = ("", ".png", ".jpg", ".jpeg", ".avif", ".exr")
+DISTORTION = ("k1", "k2", "k3", "k4", "p1", "p2")
+UNITS = {"m": 1.0, "mm": 0.001}
+
+
+@dataclass(kw_only=True)
+class TransformsOptions:
+    """What a transforms.json capture needs besides its JSON (:func:`import_transforms`)."""
+
+    mesh: Path | None = None
+    """transforms: the subject's mesh (an OBJ with UVs), or a folder of one OBJ per mesh frame (a tracked sequence,
+    one topology; frames name theirs with `mesh_frame`)."""
+    units: str = field(default="m", metadata=option(choices=tuple(UNITS)))
+    """transforms: the unit of the JSON's positions (camera translations, `pl_pos`)."""
+    mesh_units: str = field(default="m", metadata=option(choices=tuple(UNITS)))
+    """transforms: the unit of the mesh (HumanOLAT's model.obj: mm)."""
+
+    def validate(self) -> None:
+        if self.mesh is None:
+            raise GraMiParameterError("mesh", "a transforms.json capture needs the subject's mesh (--mesh FILE.obj or a folder of them)")
+
+
+def import_transforms(
+    folder: str | Path,
+    out: str | Path,
+    config: ImportConfig | None = None,
+    options: TransformsOptions | None = None,
+    overwrite: bool = False,
+):
+    config, options = config or ImportConfig(), options or TransformsOptions()
+    config.validate()
+    options.validate()
+    source = read_transforms(Path(folder), options)
+    return import_capture(source, Path(out), config, {"units": options.units, "mesh_units": options.mesh_units}, overwrite, options)
+
+
+@dataclass
+class _Frame:
+    path: Path
+    camera: str
+    lighting: tuple  # ("led", index) or ("envmap", path)
+    pose: int
+    split: str
+
+
+def read_transforms(folder: Path, options: TransformsOptions) -> Source:
+    files = _json_files(folder)
+    calib, sizes, leds, frames, unnamed, masks = {}, {}, {}, [], {}, {}
+    for path, split in files:
+        data = _read(path)
+        for i, entry in enumerate(data["frames"]):
+            where = f"frames[{i}]"
+            image = _image_path(path, entry, where)
+            camera, intrinsic, c2w, size = _camera(path, data, entry, where, image)
+            if not isinstance(camera, str):  # named by its first appearance
+                camera = unnamed.setdefault(camera, f"cam{len(unnamed):02d}")
+            if camera in calib and not np.allclose(calib[camera].extrinsic, c2w, atol=1e-6):
+                raise GraMiInputError(path, f"camera {camera} appears with two different poses", field=f"{where}.transform_matrix")
+            calib.setdefault(camera, CalibCamera(intrinsic, c2w, []))
+            sizes.setdefault(camera, size)
+            frames.append(_Frame(image, camera, _lighting(path, entry, where, leds), int(entry.get("mesh_frame", 0)), split))
+            if "mask_path" in entry and camera not in masks:  # nerfstudio's per-frame mask; a static pose needs one per camera
+                masks[camera] = _image_path(path, {"file_path": entry["mask_path"]}, f"{where}.mask_path")
+    if not leds:
+        raise GraMiInputError(files[0][0], "no frame names an LED (light_idx with pl_pos): gra-mi fits materials under known lights")
+    names = sorted(calib)
+    led_index = {k: n for n, k in enumerate(sorted(leds))}
+    groups: dict[tuple, dict] = {}
+    for f in frames:
+        groups.setdefault((f.lighting, f.pose, f.split), {})[f.camera] = f.path
+    meshes = _meshes(options.mesh, max(f.pose for f in frames) + 1)
+    source_frames, images = [], [{} for _ in names]
+    for key, ((lighting, pose, split), seen) in enumerate(groups.items()):
+        for k, name in enumerate(names):
+            if name in seen:
+                images[k][key] = seen[name]
+        source_frames.append(_frame_entry(key, lighting, pose, split, led_index))
+    return Source(
+        folder, "transforms", files[0][0], names, [calib[n] for n in names], [sizes[n] for n in names], images, UNITS[options.units],
+        np.array([leds[k] for k in sorted(leds)]) * UNITS[options.units], meshes,
+        [masks.get(n) if len(meshes) == 1 else None for n in names], source_frames,
+        mesh_units=UNITS[options.mesh_units],
+    )  # fmt: skip
+
+
+def _json_files(folder: Path) -> list[tuple[Path, str]]:
+    if (folder / "transforms.json").is_file():
+        return [(folder / "transforms.json", "train")]
+    found = [(folder / f"transforms_{s}.json", "test" if s != "train" else "train") for s in ("train", "val", "test")]
+    found = [(p, s) for p, s in found if p.is_file()]
+    if not found:
+        raise GraMiInputError(folder, "no transforms.json (or transforms_train.json / transforms_test.json)")
+    return found
+
+
+def _read(path: Path) -> dict:
+    from gra_mi.core.io import read_json
+
+    data = read_json(path)
+    if not isinstance(data, dict) or not isinstance(data.get("frames"), list) or not data["frames"]:
+        raise GraMiInputError(path, "expected an object with a non-empty 'frames' list", field="frames")
+    return data
+
+
+def _image_path(path: Path, entry: dict, where: str) -> Path:
+    if "file_path" not in entry:
+        raise GraMiInputError(path, "missing", field=f"{where}.file_path")
+    base = Path(entry["file_path"]) if Path(entry["file_path"]).is_absolute() else path.parent / entry["file_path"]
+    for suffix in SUFFIXES:
+        candidate = base.with_name(base.name + suffix) if suffix else base
+        if candidate.is_file():
+            return candidate
+    raise GraMiInputError(path, f"image {base} not found", field=f"{where}.file_path")
+
+
+def _camera(path: Path, data: dict, entry: dict, where: str, image: Path):
+    """(camera name, K / width, camera-to-world 3 × 4 with OpenCV axes, (width, height))."""
+    value = lambda key: entry.get(key, data.get(key))  # noqa: E731  (per frame, else shared)
+    for key in DISTORTION:
+        if value(key):
+            raise GraMiInputError(
+                path, f"distortion {key}={value(key)}: undistort the images first (e.g. COLMAP's image_undistorter)", field=f"{where}.{key}"
+            )
+    width, height = value("w"), value("h")
+    if width is None or height is None:
+        width, height = image_size(image)
+    if "camera_intrinsics" in entry:
+        cx, cy, fx, fy = (float(v) for v in entry["camera_intrinsics"])
+    elif value("fl_x") is not None:
+        fx, fy = float(value("fl_x")), float(value("fl_y") or value("fl_x"))
+        cx, cy = float(value("cx") if value("cx") is not None else width / 2), float(value("cy") if value("cy") is not None else height / 2)
+    elif value("camera_angle_x") is not None:
+        fx = fy = 0.5 * width / math.tan(0.5 * float(value("camera_angle_x")))
+        cx, cy = width / 2, height / 2
+    else:
+        raise GraMiInputError(path, "no intrinsics: expected fl_x/fl_y/cx/cy, camera_intrinsics or camera_angle_x", field=where)
+    try:
+        m = np.array(entry["transform_matrix"], float)
+    except (KeyError, TypeError, ValueError):
+        raise GraMiInputError(path, "expected a 4 × 4 camera-to-world matrix", field=f"{where}.transform_matrix") from None
+    if m.shape != (4, 4) or not np.isfinite(m).all():
+        raise GraMiInputError(
+            path, f"expected a finite 4 × 4 camera-to-world matrix, got shape {m.shape}", field=f"{where}.transform_matrix"
+        )
+    m[:3, 1:3] *= -1  # OpenGL / Blender → OpenCV camera axes
+    intrinsic = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, width]], float) / width
+    intrinsic[2] = [0, 0, 1]
+    # a camera without cam_idx is its pose and intrinsics (rounded to 0.1 mm and 0.01 px)
+    name = (
+        f"Cam{int(entry['cam_idx']) + 1:02d}"
+        if "cam_idx" in entry
+        else tuple(np.round(m[:3].ravel(), 4)) + tuple(np.round((fx, fy, cx, cy), 2))
+    )
+    return name, intrinsic, m[:3], (int(width), int(height))
+
+
+def _lighting(path: Path, entry: dict, where: str, leds: dict) -> tuple:
+    if "light_idx" in entry:
+        index = int(entry["light_idx"])
+        position = np.array(entry.get("pl_pos", []), float)
+        if position.shape != (3,) or not np.isfinite(position).all():
+            raise GraMiInputError(path, f"LED {index} needs its position (3 finite numbers)", field=f"{where}.pl_pos")
+        if index in leds and not np.allclose(leds[index], position, atol=1e-6):
+            raise GraMiInputError(path, f"LED {index} appears at two positions", field=f"{where}.pl_pos")
+        leds[index] = position
+        return ("led", index)
+    if "envmap" in entry:
+        envmap = Path(entry["envmap"]) if Path(entry["envmap"]).is_absolute() else path.parent / entry["envmap"]
+        if not envmap.is_file():
+            raise GraMiInputError(path, f"environment map {envmap} not found", field=f"{where}.envmap")
+        return ("envmap", envmap)
+    raise GraMiInputError(path, "no lighting: expected light_idx with pl_pos, or envmap", field=where)
+
+
+def _frame_entry(key: int, lighting: tuple, pose: int, split: str, led_index: dict) -> tuple:
+    sequence = 0 if split == "train" else (1 if lighting[0] == "led" else 0)
+    if lighting[0] == "led":
+        led = led_index[lighting[1]]
+        return (key, FrameLighting(key, split, sequence, "pattern", None, f"patterns/olat_{led:03d}.json", pose=pose), led)
+    name = f"envmaps/{lighting[1].name}"
+    return (key, FrameLighting(key, split, sequence, "envmap", name, pose=pose), lighting[1])
+
+
+def _meshes(mesh: Path, poses: int) -> list:
+    if mesh.is_dir():
+        files = sorted(mesh.glob("*.obj"))
+        if len(files) < poses:
+            raise GraMiInputError(mesh, f"{len(files)} OBJ files, but the frames name {poses} mesh frames (mesh_frame)")
+        return [read_obj(f) for f in files[:poses]]
+    if poses > 1:
+        raise GraMiInputError(mesh, f"the frames name {poses} mesh frames (mesh_frame): give a folder of one OBJ per frame")
+    return [read_obj(mesh)]
