@@ -81,7 +81,9 @@ COMMANDS: dict[str, Command] = {
         torch=True,
     ),
     "capture": Command("scene", "Generate a synthetic lightstage capture (images, masks, lighting, true maps)."),
-    "import": Command("scene", "Import a real capture (HumanOLAT, transforms.json) into the capture layout, with an import report to read first."),
+    "import": Command(
+        "scene", "Import a real capture (HumanOLAT, transforms.json) into the capture layout, with an import report to read first."
+    ),
     "fit": Command("texture", "Fit per-texel albedo and roughness to a capture (albedo.exr, roughness.exr, fit_report.md)."),
     "edit-texture": Command(
         "texture",
