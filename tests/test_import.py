@@ -326,3 +326,48 @@ def test_a_transforms_json_without_intrinsics_or_lights_is_refused(olat_capture,
     (folder / "transforms_train.json").write_text(json.dumps(data))
     _one_line_error(capsys, args, "transforms_train.json", "frames[0]", "light_idx")
     _one_line_error(capsys, args[:-4], "--mesh")
+
+
+def test_a_tracked_sequence_under_environment_maps_imports(path_traced_fit, tmp_path):
+    """A moving subject (one OBJ per mesh frame) under environment maps, as a transforms.json with `mesh_frame`,
+    linear EXR images with alpha masks and the rig's LEDs from --leds: every frame keeps its own pose."""
+    from gra_mi.capture.dataset import Capture, load_observation
+    from gra_mi.capture.humanolat import write_obj, write_points
+    from gra_mi.stage.lightstage import load_calibration
+    from gra_mi.subject.sequence import load_sequence
+
+    native = Capture.load(path_traced_fit / "cap")
+    stage, seq = load_calibration(native.folder / "rig" / "calibration.json"), load_sequence(native.folder / "subject")
+    lit = [f for f in native.frames if f.kind == "envmap"]
+    (tmp_path / "meshes").mkdir()
+    for k, entry in enumerate(lit):
+        write_obj(tmp_path / "meshes", seq.vertices[entry.mesh_frame], seq.uvs, seq.faces, None)
+        (tmp_path / "meshes" / "model.obj").rename(tmp_path / "meshes" / f"frame_{k:04d}.obj")
+    write_points(tmp_path / "leds.pc", stage.led_positions)
+    for split in ("train", "test"):
+        frames = []
+        for k, entry in enumerate(lit):
+            if entry.split != split:
+                continue
+            for i, cam in enumerate(stage.cameras):
+                c2w = cam.camera_to_world.copy()
+                c2w[:3, 1:3] *= -1  # OpenCV → OpenGL, as transforms.json holds it
+                frames.append(
+                    {"file_path": str(native.image_path(cam.name, entry.frame)), "transform_matrix": c2w.tolist(), "cam_idx": i}
+                    | {"fl_x": cam.fx, "fl_y": cam.fy, "cx": cam.cx, "cy": cam.cy, "w": cam.width, "h": cam.height}
+                    | {"envmap": str(native.folder / entry.envmap), "mesh_frame": k}
+                )
+        (tmp_path / f"transforms_{split}.json").write_text(json.dumps({"frames": frames}))
+    out = tmp_path / "imported"
+    args = ["import", "transforms", str(tmp_path), "--out", str(out), "--mesh", str(tmp_path / "meshes")]
+    assert main([*args, "--leds", str(tmp_path / "leds.pc"), "--uv-resolution", "32"]) == 0
+    capture = Capture.load(out)
+    report = json.loads((out / "import_report.json").read_text())
+    assert all(c["mask_iou"] >= 0.97 for c in report["cameras"]), report["cameras"]
+    assert [f.pose for f in capture.frames] == list(range(len(lit))) and load_sequence(out / "subject").num_frames == len(lit)
+    assert {f.split for f in capture.frames} == {"train", "test"} and all(f.kind == "envmap" for f in capture.frames)
+    k = len(lit) - 1  # linear EXR in, linear EXR out: the images are the native ones
+    np.testing.assert_allclose(load_observation(capture, "Cam02", k), load_observation(native, "cam01", lit[k].frame), atol=1e-6)
+    np.testing.assert_allclose(
+        capture.lighting(load_calibration(out / "rig" / "calibration.json"), capture.frames[k]), native.lighting(stage, lit[k]), rtol=1e-5
+    )

@@ -272,8 +272,18 @@ def read_image(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
 
 
 def image_size(path: Path) -> tuple[int, int]:
+    """(width, height) from the file's header."""
     from PIL import Image
 
+    if path.suffix.lower() == ".exr":
+        import OpenEXR
+
+        try:
+            with OpenEXR.File(str(path), header_only=True) as exr:
+                (x0, y0), (x1, y1) = exr.header()["dataWindow"]
+            return int(x1 - x0 + 1), int(y1 - y0 + 1)
+        except Exception as exc:  # OpenEXR raises several kinds for a damaged file
+            raise GraMiInputError(path, f"not a readable EXR ({exc})") from None
     try:
         with Image.open(path) as image:
             return image.size

@@ -317,8 +317,8 @@ def frame_mask(source: Source, plan: CameraPlan, key: int) -> np.ndarray:
             mask = (np.asarray(image.convert("L")) > 127).astype(np.float32)
     else:
         rgb, _, alpha = read_image(path)
-        if alpha is not None:
-            mask = (alpha > 0.5).astype(np.float32)
+        if alpha is not None:  # a matte: kept soft (the coverage of each pixel)
+            mask = alpha.astype(np.float32)
         elif len(source.meshes) == 1:
             mask = _covered(source, plan.index)
         else:
@@ -451,7 +451,7 @@ def import_capture(source: Source, out: Path, config: ImportConfig, record: dict
     claim_output(out, f"import {source.format}", {"source": source.folder}, said, overwrite=overwrite)
     stage = build_stage(source, frame, plans, config.led_intensity)
     _write_stage_files(out, stage, sequence, source.frames)
-    eval_cameras = config.eval_cameras or [plans[len(plans) // 4].camera.name, plans[(3 * len(plans)) // 4].camera.name]
+    eval_cameras = config.eval_cameras or _held_out(plans)
     train_cameras = [p.camera.name for p in plans if p.camera.name not in eval_cameras]
     record = {"format": source.format, "folder": str(source.folder), "transform": frame.matrix(), **record}
     record |= {"gains": "assumed equal (the source has none)", "left_out_leds": source.left_out, "images": {}}
@@ -462,6 +462,14 @@ def import_capture(source: Source, out: Path, config: ImportConfig, record: dict
     capture.save()
     _write_report(out, source, frame, plans, checks, record)
     return capture
+
+
+def _held_out(plans: list[CameraPlan]) -> list[str]:
+    """Two cameras spread over the rig for novel-view evaluation (one with 3 or fewer; none with one)."""
+    if len(plans) < 2:
+        return []
+    picks = [len(plans) // 4, (3 * len(plans)) // 4] if len(plans) > 3 else [len(plans) - 1]
+    return [plans[k].camera.name for k in dict.fromkeys(picks)]
 
 
 def _camera_plans(source: Source, frame: WorldFrame, config: ImportConfig) -> list[CameraPlan]:
@@ -517,13 +525,18 @@ def _import_camera(source: Source, plan: CameraPlan, capture: Capture) -> dict:
     saturated, name = [], plan.camera.name
     for key, entry, _ in progress(source.frames, description=f"import {name}"):
         path = capture.image_path(name, entry.frame)
-        rgb, clipped, _ = read_image(source.images[plan.index][key])
+        image_path = source.images[plan.index][key]
+        rgb, clipped, alpha = read_image(image_path)
         mask = frame_mask(source, plan, key)
         saturated.append(float((clipped & (mask_at_source(mask, plan) > 0.5)).mean()) if clipped.any() else 0.0)
         if path.is_file():
             continue
-        image = np.concatenate([resample_image(rgb, plan) * (mask[..., None] > 0.5), mask[..., None]], axis=-1)
-        write_exr(path, image.astype(np.float32))
+        rgb = resample_image(rgb, plan)
+        if alpha is None:  # a binary mask: the background is cut away
+            rgb = rgb * (mask[..., None] > 0.5)
+        elif image_path.suffix.lower() != ".exr":  # straight alpha (PNG, AVIF) → premultiplied, as EXR holds it
+            rgb = rgb * mask[..., None]
+        write_exr(path, np.concatenate([rgb, mask[..., None]], axis=-1).astype(np.float32))
     first = read_image(source.images[plan.index][source.frames[0][0]])[0]
     return {"saturated_fraction": max(saturated), "resampling_error": _resampling_error(first, plan), "anisotropy": plan.anisotropy}
 

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from gra_mi.capture.dataset import FrameLighting
-from gra_mi.capture.humanolat import CalibCamera, image_size, read_obj
+from gra_mi.capture.humanolat import CalibCamera, image_size, read_obj, read_points
 from gra_mi.capture.importer import ImportConfig, Source, import_capture
 from gra_mi.core.config import option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
@@ -43,6 +43,9 @@ class TransformsOptions:
     """transforms: the unit of the JSON's positions (camera translations, `pl_pos`)."""
     mesh_units: str = field(default="m", metadata=option(choices=tuple(UNITS)))
     """transforms: the unit of the mesh (HumanOLAT's model.obj: mm)."""
+    leds: Path | None = None
+    """transforms: the rig's LED positions (`v x y z` per line, in --units; light_idx indexes them). Default: the
+    LEDs the frames name with light_idx and pl_pos."""
 
     def validate(self) -> None:
         if self.mesh is None:
@@ -74,7 +77,8 @@ class _Frame:
 
 def read_transforms(folder: Path, options: TransformsOptions) -> Source:
     files = _json_files(folder)
-    calib, sizes, leds, frames, unnamed, masks = {}, {}, {}, [], {}, {}
+    calib, sizes, frames, unnamed, masks = {}, {}, [], {}, {}
+    leds = {} if options.leds is None else dict(enumerate(read_points(options.leds)))
     for path, split in files:
         data = _read(path)
         for i, entry in enumerate(data["frames"]):
@@ -91,7 +95,7 @@ def read_transforms(folder: Path, options: TransformsOptions) -> Source:
             if "mask_path" in entry and camera not in masks:  # nerfstudio's per-frame mask; a static pose needs one per camera
                 masks[camera] = _image_path(path, {"file_path": entry["mask_path"]}, f"{where}.mask_path")
     if not leds:
-        raise GraMiInputError(files[0][0], "no frame names an LED (light_idx with pl_pos): gra-mi fits materials under known lights")
+        raise GraMiInputError(files[0][0], "no LEDs: frames with light_idx and pl_pos, or --leds: gra-mi fits materials under known lights")
     names = sorted(calib)
     led_index = {k: n for n, k in enumerate(sorted(leds))}
     groups: dict[tuple, dict] = {}
@@ -186,7 +190,7 @@ def _camera(path: Path, data: dict, entry: dict, where: str, image: Path):
 def _lighting(path: Path, entry: dict, where: str, leds: dict) -> tuple:
     if "light_idx" in entry:
         index = int(entry["light_idx"])
-        position = np.array(entry.get("pl_pos", []), float)
+        position = np.array(entry.get("pl_pos", leds.get(index, [])), float)
         if position.shape != (3,) or not np.isfinite(position).all():
             raise GraMiInputError(path, f"LED {index} needs its position (3 finite numbers)", field=f"{where}.pl_pos")
         if index in leds and not np.allclose(leds[index], position, atol=1e-6):
@@ -198,7 +202,7 @@ def _lighting(path: Path, entry: dict, where: str, leds: dict) -> tuple:
         if not envmap.is_file():
             raise GraMiInputError(path, f"environment map {envmap} not found", field=f"{where}.envmap")
         return ("envmap", envmap)
-    raise GraMiInputError(path, "no lighting: expected light_idx with pl_pos, or envmap", field=where)
+    raise GraMiInputError(path, "no lighting: expected light_idx (with pl_pos, or --leds), or envmap", field=where)
 
 
 def _frame_entry(key: int, lighting: tuple, pose: int, split: str, led_index: dict) -> tuple:
