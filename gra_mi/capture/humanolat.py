@@ -27,9 +27,13 @@ from pathlib import Path
 
 import numpy as np
 
+from gra_mi.capture.dataset import load_observation
 from gra_mi.core.color import srgb_decode, srgb_encode
 from gra_mi.core.errors import GraMiInputError
-from gra_mi.core.io import atomic_path, atomic_write_text
+from gra_mi.core.io import atomic_path, atomic_write_text, read_exr
+from gra_mi.core.progress import progress
+from gra_mi.stage.lightstage import load_calibration, load_pattern
+from gra_mi.subject.sequence import load_sequence
 
 DOOR_LEDS = (178, 179, 208, 209, 210, 237, 238, 239, 240, 267, 268, 269, 270, 271, 295, 296, 297, 298, 319, 320, 321)
 """0-based indices of the LEDs on the stage's door, whose positions the dataset's tools call unreliable."""
@@ -255,8 +259,6 @@ def read_image(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     from PIL import Image
 
     if path.suffix.lower() == ".exr":
-        from gra_mi.core.io import read_exr
-
         image = read_exr(path)
         return image[..., :3], np.zeros(image.shape[:2], bool), image[..., 3] if image.shape[2] == 4 else None
     try:
@@ -347,11 +349,6 @@ def write_humanolat(capture, root: Path, subject: str = "SUBJECT_S001", pose: st
     (99.9th percentile) at 0.9 before 8-bit encoding; ``synthetic.json`` beside the layout (not part of it) records
     it: import with ``--led-intensity`` = the capture's LED intensity × exposure to get the same albedo. Returns the
     subject folder."""
-    from gra_mi.capture.dataset import load_observation
-    from gra_mi.core.io import read_exr
-    from gra_mi.core.progress import progress
-    from gra_mi.stage.lightstage import load_calibration, load_pattern
-    from gra_mi.subject.sequence import load_sequence
 
     folder, stage = Path(root) / subject, load_calibration(capture.folder / "rig" / "calibration.json")
     numbers, order = _image_numbers(capture, stage, load_pattern)

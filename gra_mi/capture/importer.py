@@ -40,7 +40,10 @@ from gra_mi.core.config import comma_list, option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive
 from gra_mi.core.io import atomic_write_text, read_exr, write_exr, write_png
 from gra_mi.core.progress import progress
+from gra_mi.core.provenance import claim_output
+from gra_mi.render.runtime import ensure_mitsuba
 from gra_mi.stage.lightstage import Camera, Lightstage, olat_pattern, uniform_pattern
+from gra_mi.stage.scene import subject_scene_xml, write_rig
 from gra_mi.subject.sequence import MeshSequence, save_sequence, split_uv_seams, vertex_normals
 
 logger = logging.getLogger(__name__)
@@ -436,8 +439,6 @@ def import_humanolat(
 
 def import_capture(source: Source, out: Path, config: ImportConfig, record: dict, overwrite: bool = False, options=None) -> Capture:
     """The import, whatever the source: its frame, cameras, the reprojection check, then the files."""
-    from gra_mi.core.provenance import claim_output
-    from gra_mi.render.runtime import ensure_mitsuba
 
     ensure_mitsuba()
     frame = world_frame(source, config.up)
@@ -502,7 +503,6 @@ def _reprojection_checks(
 
 
 def _write_stage_files(out: Path, stage: Lightstage, sequence: MeshSequence, frames: list) -> None:
-    from gra_mi.stage.scene import subject_scene_xml, write_rig
 
     write_rig(stage, out / "rig")
     if not (out / "subject" / "sequence.npz").is_file():

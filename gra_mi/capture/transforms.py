@@ -26,6 +26,7 @@ from gra_mi.capture.humanolat import CalibCamera, image_size, read_obj, read_poi
 from gra_mi.capture.importer import ImportConfig, Source, import_capture
 from gra_mi.core.config import option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
+from gra_mi.core.io import read_json
 
 SUFFIXES = ("", ".png", ".jpg", ".jpeg", ".avif", ".exr")
 DISTORTION = ("k1", "k2", "k3", "k4", "p1", "p2")
@@ -127,7 +128,6 @@ def _json_files(folder: Path) -> list[tuple[Path, str]]:
 
 
 def _read(path: Path) -> dict:
-    from gra_mi.core.io import read_json
 
     data = read_json(path)
     if not isinstance(data, dict) or not isinstance(data.get("frames"), list) or not data["frames"]:
