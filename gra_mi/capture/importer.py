@@ -312,8 +312,12 @@ def frame_mask(source: Source, plan: CameraPlan, key: int) -> np.ndarray:
     """A frame's mask on the camera's planned grid: the camera's mask file, else the image's alpha, else the pixels
     the subject covers in the (masked, black-background) images: for a static pose the union over all the camera's
     images (an OLAT alone leaves part of the subject black), for a sequence the frame's own."""
+    cache = source.__dict__.setdefault("_masks", {})
+    if plan.index in cache:  # a camera's mask file, or a static pose's covered pixels: the same for every frame
+        return cache[plan.index]
     path = source.masks[plan.index] or source.images[plan.index][key]
-    if source.masks[plan.index] is not None:
+    per_camera = source.masks[plan.index] is not None
+    if per_camera:
         from PIL import Image
 
         with Image.open(path) as image:
@@ -323,12 +327,15 @@ def frame_mask(source: Source, plan: CameraPlan, key: int) -> np.ndarray:
         if alpha is not None:  # a matte: kept soft (the coverage of each pixel)
             mask = alpha.astype(np.float32)
         elif len(source.meshes) == 1:
-            mask = _covered(source, plan.index)
+            mask, per_camera = _covered(source, plan.index), True
         else:
             mask = (rgb.max(axis=-1) > 0).astype(np.float32)
     if mask.shape[::-1] != plan.source_size:
         raise GraMiInputError(path, f"is {mask.shape[1]}x{mask.shape[0]}, its camera's images {plan.source_size[0]}x{plan.source_size[1]}")
-    return resample_image(mask[..., None], plan)[..., 0]
+    mask = resample_image(mask[..., None], plan)[..., 0]
+    if per_camera:
+        cache[plan.index] = mask
+    return mask
 
 
 def _covered(source: Source, camera: int) -> np.ndarray:
