@@ -371,3 +371,82 @@ def test_a_tracked_sequence_under_environment_maps_imports(path_traced_fit, tmp_
     np.testing.assert_allclose(
         capture.lighting(load_calibration(out / "rig" / "calibration.json"), capture.frames[k]), native.lighting(stage, lit[k]), rtol=1e-5
     )
+
+
+# --------------------------------------------------------------------------------------------------------------
+# EasyMocap: a calibrated rig, a moving subject, per-frame masks, the lighting from the user
+# --------------------------------------------------------------------------------------------------------------
+
+
+def _opencv_matrix(name: str, m: np.ndarray) -> str:
+    """One entry as cv2.FileStorage writes it."""
+    data = ", ".join(f"{v:.17g}" for v in np.asarray(m, float).ravel())
+    return f"{name}: !!opencv-matrix\n   rows: {m.shape[0]}\n   cols: {m.shape[1]}\n   dt: d\n   data: [ {data} ]\n"
+
+
+def write_easymocap(native, folder: Path, frames: list) -> None:
+    """intri.yml / extri.yml as EasyMocap writes them (world-to-camera Rot and T, R as a Rodrigues vector; Rot only for
+    odd cameras, so the others go through R), 8-bit sRGB PNG images without alpha, and per-frame mask PNGs."""
+    from PIL import Image
+    from scipy.spatial.transform import Rotation
+
+    from gra_mi.capture.dataset import load_observation
+    from gra_mi.core.color import srgb_encode
+    from gra_mi.stage.lightstage import load_calibration
+
+    stage = load_calibration(native.folder / "rig" / "calibration.json")
+    names = [f"{i + 1:02d}" for i in range(len(stage.cameras))]
+    intri = extri = "%YAML:1.0\n---\nnames:\n" + "".join(f'   - "{n}"\n' for n in names)
+    for name, cam in zip(names, stage.cameras, strict=True):
+        intri += _opencv_matrix(f"K_{name}", np.array([[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1]]))
+        intri += _opencv_matrix(f"dist_{name}", np.zeros((1, 5)))
+        rot = cam.rotation.T  # world-to-camera
+        extri += _opencv_matrix(f"R_{name}", Rotation.from_matrix(rot).as_rotvec()[:, None])
+        if int(name) % 2:
+            extri += _opencv_matrix(f"Rot_{name}", rot)
+        extri += _opencv_matrix(f"T_{name}", (-rot @ cam.position)[:, None])
+        for entry in frames:
+            image = load_observation(native, cam.name, entry.frame)
+            for kind, pixels in (("images", srgb_encode(np.clip(image[..., :3], 0, 1))), ("mask", image[..., 3] > 0.5)):
+                (folder / kind / name).mkdir(parents=True, exist_ok=True)
+                Image.fromarray(np.round(pixels * 255).astype(np.uint8)).save(folder / kind / name / f"{entry.frame:06d}.png")
+    (folder / "intri.yml").write_text(intri)
+    (folder / "extri.yml").write_text(extri)
+
+
+def test_an_easymocap_rig_with_a_moving_subject_imports(path_traced_fit, tmp_path):
+    from gra_mi.capture.dataset import Capture, load_observation
+    from gra_mi.capture.humanolat import write_obj, write_points
+    from gra_mi.stage.lightstage import load_calibration
+    from gra_mi.subject.sequence import load_sequence
+
+    native = Capture.load(path_traced_fit / "cap")
+    stage, seq = load_calibration(native.folder / "rig" / "calibration.json"), load_sequence(native.folder / "subject")
+    frames = [native.frames[k] for k in (0, 1, 2, len(native.frames) - 1)]  # uniform, envmap, uniform; a test frame
+    write_easymocap(native, tmp_path / "rig", frames)
+    (tmp_path / "meshes").mkdir()
+    for k in range(seq.num_frames):
+        write_obj(tmp_path / "meshes", seq.vertices[k], seq.uvs, seq.faces, None)
+        (tmp_path / "meshes" / "model.obj").rename(tmp_path / "meshes" / f"frame_{k:04d}.obj")
+    write_points(tmp_path / "leds.pc", stage.led_positions)
+    lighting = []
+    for f in frames:
+        light = {"uniform": 0.5} if f.kind == "uniform" else {"envmap": str(native.folder / f.envmap)}
+        lighting.append({"frame": f.frame, "split": f.split} | light)
+    (tmp_path / "lighting.json").write_text(json.dumps({"frames": lighting}))
+    out = tmp_path / "imported"
+    args = ["import", "easymocap", str(tmp_path / "rig"), "--out", str(out), "--mesh", str(tmp_path / "meshes")]
+    assert main([*args, "--leds", str(tmp_path / "leds.pc"), "--lighting", str(tmp_path / "lighting.json"), "--uv-resolution", "32"]) == 0
+    capture = Capture.load(out)
+    report = json.loads((out / "import_report.json").read_text())
+    assert all(c["mask_iou"] >= 0.97 for c in report["cameras"]), report["cameras"]
+    assert [f.pose for f in capture.frames] == [f.frame for f in frames]
+    imported_stage = load_calibration(out / "rig" / "calibration.json")
+    for k, f in enumerate(frames):
+        np.testing.assert_allclose(capture.lighting(imported_stage, capture.frames[k]), native.lighting(stage, f), rtol=1e-5)
+    a, b = load_observation(capture, "cam02", 3), load_observation(native, "cam01", frames[3].frame)
+    inside = (a[..., 3] > 0.5) & (b[..., :3].max(-1) < 0.95)
+    assert np.abs(a[..., :3] - b[..., :3])[inside].mean() < 0.01 * b[..., :3][inside].mean() + 2e-4  # 8-bit sRGB
+    # the rig is the native one up to the import's rigid transform
+    for p, q in zip(imported_stage.cameras, stage.cameras, strict=True):
+        assert np.linalg.norm(p.position - imported_stage.center) == pytest.approx(np.linalg.norm(q.position - stage.center), abs=1e-5)

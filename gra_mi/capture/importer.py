@@ -42,7 +42,7 @@ from gra_mi.core.io import atomic_write_text, read_exr, write_exr, write_png
 from gra_mi.core.progress import progress
 from gra_mi.core.provenance import claim_output
 from gra_mi.render.runtime import ensure_mitsuba
-from gra_mi.stage.lightstage import Camera, Lightstage, olat_pattern, uniform_pattern
+from gra_mi.stage.lightstage import Camera, Lightstage, load_pattern, olat_pattern, uniform_pattern
 from gra_mi.stage.scene import subject_scene_xml, write_rig
 from gra_mi.subject.sequence import MeshSequence, save_sequence, split_uv_seams, vertex_normals
 
@@ -118,6 +118,7 @@ class Source:
     white: int | None = None  # the frame key of an all-LEDs frame (the linearity check)
     order: np.ndarray | None = None  # the OLAT firing order (HumanOLAT)
     mesh_units: float | None = None  # metres per unit of the meshes (None: as the calibration)
+    frame_masks: list[dict[int, Path]] | None = None  # per camera: frame key → its own mask file (a moving subject)
 
     def mesh_metres(self, positions: np.ndarray) -> np.ndarray:
         return positions * (self.units if self.mesh_units is None else self.mesh_units)
@@ -312,6 +313,17 @@ def frame_mask(source: Source, plan: CameraPlan, key: int) -> np.ndarray:
     """A frame's mask on the camera's planned grid: the camera's mask file, else the image's alpha, else the pixels
     the subject covers in the (masked, black-background) images: for a static pose the union over all the camera's
     images (an OLAT alone leaves part of the subject black), for a sequence the frame's own."""
+    own = source.frame_masks[plan.index].get(key) if source.frame_masks else None
+    if own is not None:  # a moving subject's mask of this frame
+        from PIL import Image
+
+        with Image.open(own) as image:
+            mask = (np.asarray(image.convert("L")) > 127).astype(np.float32)
+        if mask.shape[::-1] != plan.source_size:
+            raise GraMiInputError(
+                own, f"is {mask.shape[1]}x{mask.shape[0]}, its camera's images {plan.source_size[0]}x{plan.source_size[1]}"
+            )
+        return resample_image(mask[..., None], plan)[..., 0]
     cache = source.__dict__.setdefault("_masks", {})
     if plan.index in cache:  # a camera's mask file, or a static pose's covered pixels: the same for every frame
         return cache[plan.index]
@@ -522,8 +534,19 @@ def _write_stage_files(out: Path, stage: Lightstage, sequence: MeshSequence, fra
                 target.parent.mkdir(parents=True, exist_ok=True)
                 shutil.copyfile(drive, target)
             continue
-        pattern = uniform_pattern(stage, 1.0) if drive == "white" else olat_pattern(stage, drive)
-        atomic_write_text(out / entry.pattern, json.dumps({"intensities": pattern.tolist()}) + "\n")
+        atomic_write_text(out / entry.pattern, json.dumps({"intensities": _drive(stage, drive).tolist()}) + "\n")
+
+
+def _drive(stage: Lightstage, drive) -> np.ndarray:
+    """LED intensities of a frame's lighting: "white" (every LED at the maximum), an LED index (its OLAT),
+    ("uniform", fraction of the maximum) or ("pattern", a drive file of the source)."""
+    if drive == "white":
+        return uniform_pattern(stage, 1.0)
+    if isinstance(drive, tuple) and drive[0] == "uniform":
+        return uniform_pattern(stage, drive[1])
+    if isinstance(drive, tuple) and drive[0] == "pattern":
+        return load_pattern(stage, drive[1])
+    return olat_pattern(stage, drive)
 
 
 def _import_camera(source: Source, plan: CameraPlan, capture: Capture) -> dict:

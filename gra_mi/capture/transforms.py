@@ -38,14 +38,14 @@ class TransformsOptions:
     """What a transforms.json capture needs besides its JSON (:func:`import_transforms`)."""
 
     mesh: Path | None = None
-    """transforms: the subject's mesh (an OBJ with UVs), or a folder of one OBJ per mesh frame (a tracked sequence,
+    """transforms, easymocap: the subject's mesh (an OBJ with UVs), or a folder of one OBJ per mesh frame (a tracked sequence,
     one topology; frames name theirs with `mesh_frame`)."""
     units: str = field(default="m", metadata=option(choices=tuple(UNITS)))
-    """transforms: the unit of the JSON's positions (camera translations, `pl_pos`)."""
+    """transforms, easymocap: the unit of the calibration's positions (camera translations, `pl_pos`, --leds)."""
     mesh_units: str = field(default="m", metadata=option(choices=tuple(UNITS)))
-    """transforms: the unit of the mesh (HumanOLAT's model.obj: mm)."""
+    """transforms, easymocap: the unit of the mesh (HumanOLAT's model.obj: mm)."""
     leds: Path | None = None
-    """transforms: the rig's LED positions (`v x y z` per line, in --units; light_idx indexes them). Default: the
+    """transforms, easymocap: the rig's LED positions (`v x y z` per line, in --units; light_idx indexes them). Default: the
     LEDs the frames name with light_idx and pl_pos."""
 
     def validate(self) -> None:

@@ -82,7 +82,8 @@ COMMANDS: dict[str, Command] = {
     ),
     "capture": Command("scene", "Generate a synthetic lightstage capture (images, masks, lighting, true maps)."),
     "import": Command(
-        "scene", "Import a real capture (HumanOLAT, transforms.json) into the capture layout, with an import report to read first."
+        "scene",
+        "Import a real capture (HumanOLAT, transforms.json, EasyMocap) into the capture layout, with an import report to read first.",
     ),
     "fit": Command("texture", "Fit per-texel albedo and roughness to a capture (albedo.exr, roughness.exr, fit_report.md)."),
     "edit-texture": Command(

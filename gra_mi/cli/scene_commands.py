@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from gra_mi.capture.easymocap import EasymocapOptions, import_easymocap
 from gra_mi.capture.humanolat import write_humanolat
 from gra_mi.capture.importer import HumanolatOptions, ImportConfig, import_humanolat
 from gra_mi.capture.synthetic import PRESETS, CaptureConfig, generate_capture
@@ -188,9 +189,10 @@ def run_capture(c: CaptureCommand) -> None:
 
 @dataclass(kw_only=True)
 class ImportCommand(Restartable):
-    source: str = field(metadata=option(positional=True, choices=("humanolat", "transforms")))
+    source: str = field(metadata=option(positional=True, choices=("humanolat", "transforms", "easymocap")))
     """The source's layout. humanolat: a subject folder of the HumanOLAT dataset (TMT22/HumanOLAT), one pose.
-    transforms: a folder with a NeRF / nerfstudio transforms.json (or transforms_train/_test.json) and --mesh."""
+    transforms: a folder with a NeRF / nerfstudio transforms.json (or transforms_train/_test.json) and --mesh.
+    easymocap: a calibrated rig (intri.yml, extri.yml, images/<cam>/) with --mesh, --leds and --lighting."""
     folder: Path = field(metadata=option(positional=True))
     """The source folder (humanolat: SUBJECT_<id>, holding shared/ and POSE_<nn>/; transforms: the JSON's folder)."""
     out: Path
@@ -198,17 +200,21 @@ class ImportCommand(Restartable):
     config: ImportConfig = field(default_factory=ImportConfig)
     humanolat: HumanolatOptions = field(default_factory=HumanolatOptions)
     transforms: TransformsOptions = field(default_factory=TransformsOptions)
+    easymocap: EasymocapOptions = field(default_factory=EasymocapOptions)
 
     def validate(self) -> None:
         self.config.validate()
-        (self.humanolat if self.source == "humanolat" else self.transforms).validate()
+        for name in {"humanolat": ["humanolat"], "transforms": ["transforms"], "easymocap": ["transforms", "easymocap"]}[self.source]:
+            getattr(self, name).validate()
 
 
 def run_import(c: ImportCommand) -> None:
     if c.source == "humanolat":
         capture = import_humanolat(c.folder, c.out, c.config, c.humanolat, c.overwrite)
-    else:
+    elif c.source == "transforms":
         capture = import_transforms(c.folder, c.out, c.config, c.transforms, c.overwrite)
+    else:
+        capture = import_easymocap(c.folder, c.out, c.config, c.easymocap, c.transforms, c.overwrite)
     cameras = len(capture.train_cameras) + len(capture.eval_cameras)
     print(f"imported {len(capture.frames)} lightings × {cameras} cameras into {c.out}; read {c.out / 'import_report.md'} first")
 
