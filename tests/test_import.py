@@ -231,7 +231,12 @@ def test_every_later_stage_runs_on_the_imported_capture(imported, tmp_path):
 
     capture = Capture.load(imported)
     fit = tmp_path / "fit"
-    assert main(["fit", str(imported), "--out", str(fit), "--iterations", "5", "--roughness-candidates", "3"]) == 0
+    args = ["fit", str(imported), "--out", str(fit), "--iterations", "5", "--roughness-candidates", "3"]
+    assert main([*args, "--cameras", "Cam01,Cam02,Cam04", "--frame-step", "2"]) == 0  # a subset bounds a large capture's fit
+    record = json.loads((fit / "fit.json").read_text())["capture"]
+    train = sum(f.split == "train" for f in capture.frames)
+    assert record["training_cameras"] == 3 and record["training_frames"] == (train + 1) // 2
+    assert main([*args[:3], "--out", str(tmp_path / "fit_eval_camera"), "--cameras", "Cam03"]) == 2  # held out: refused
     test_olat = next(f for f in capture.frames if f.split == "test" and f.sequence == 1)
     args = ["relight", str(imported / "scene.xml"), "--pattern", str(imported / test_olat.pattern), "--cameras", "Cam03"]
     args += ["--albedo", str(fit / "albedo.exr"), "--roughness", str(fit / "roughness.exr"), "--out", str(tmp_path / "relit")]

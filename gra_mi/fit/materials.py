@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from gra_mi.capture.dataset import Capture, load_observation
-from gra_mi.core.config import option
+from gra_mi.core.config import comma_list, option
 from gra_mi.core.errors import GraMiParameterError
 from gra_mi.core.io import atomic_path, read_checkpoint_npz
 from gra_mi.core.metrics import subject_mask
@@ -88,6 +88,10 @@ class FitConfig:
     """Closed form: L1 reweighting iterations after the least-squares solution (0: plain least squares)."""
     resolution: int | None = field(default=None, metadata=option(flag="--uv-resolution"))
     """UV resolution of the fitted maps (default: the capture's)."""
+    cameras: list[str] | None = field(default=None, metadata=option(parse=comma_list))
+    """Training cameras to fit on, comma-separated (a subset bounds the fit's memory on a large capture). Default: all."""
+    frame_step: int = 1
+    """Fit on every Nth training frame (lighting) only (1: all)."""
     calibrate_brightness: bool = True
     """After the fit, scale the albedo (one gain per channel) so that renders of the training views hold the captured
     total light: L1 fits each pixel's median, and the light the one-bounce model leaves out (interreflections, sheen)
@@ -108,6 +112,8 @@ class FitConfig:
             raise GraMiParameterError("roughness_candidates", f"must be at least 3, got {self.roughness_candidates}")
         if self.irls_iterations < 0:
             raise GraMiParameterError("irls_iterations", f"must be >= 0, got {self.irls_iterations}")
+        if self.frame_step < 1:
+            raise GraMiParameterError("frame_step", f"must be >= 1, got {self.frame_step}")
         if self.resolution is not None and self.resolution < 1:
             raise GraMiParameterError("resolution", f"must be >= 1, got {self.resolution}")
 
@@ -176,7 +182,11 @@ class MaterialFitter:
         resolution = config.resolution or capture.uv_resolution
         self.relighter = Relighter(self.ls, resolution, cache_dir=cache_dir)
         self.atlas = self.relighter.atlas
-        self.train = [f for f in capture.frames if f.split == "train"]
+        self.train = [f for f in capture.frames if f.split == "train"][:: config.frame_step]
+        self.train_cameras = config.cameras or capture.train_cameras
+        unknown = [c for c in self.train_cameras if c not in capture.train_cameras]
+        if unknown:
+            raise GraMiParameterError("cameras", f"{', '.join(unknown)}: not training cameras of {capture.folder} ({', '.join(capture.train_cameras)})")
         self._lighting = {f.frame: capture.lighting(self.stage, f) for f in self.train}
         self._loops: dict = {}  # (frame, camera) → TexelLedLoop of the view's observed texels
 
@@ -186,7 +196,7 @@ class MaterialFitter:
         """Observations of every training camera in every training frame."""
 
         views = []
-        jobs = [(f.frame, f.mesh_frame, cam) for f in self.train for cam in self.capture.train_cameras]
+        jobs = [(f.frame, f.mesh_frame, cam) for f in self.train for cam in self.train_cameras]
         for frame, pose, cam_name in progress(jobs, description="observations") if progress_bar else jobs:
             cam = self.stage.camera(cam_name)
             geom = self.relighter.geometry(pose)
@@ -240,7 +250,7 @@ class MaterialFitter:
         relighter.cache = self.relighter.cache  # the visibility the fit traced
         sums = np.zeros((3, 3))  # rows: captured, diffuse, specular
         for entry in self.train:
-            for cam in self.capture.train_cameras:
+            for cam in self.train_cameras:
                 shading, _ = relighter.shade(entry.mesh_frame, cam, self._lighting[entry.frame])
                 truth = load_observation(self.capture, cam, entry.frame)
                 mask = subject_mask(truth)
@@ -318,7 +328,7 @@ class MaterialFitter:
 
         views = self.gather_views()
         cameras_seen = np.zeros(m, np.int64)
-        for cam in self.capture.train_cameras:
+        for cam in self.train_cameras:
             seen = np.zeros(m, bool)
             for v in views:
                 if v.camera == cam:

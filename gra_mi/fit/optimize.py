@@ -122,7 +122,7 @@ def build_batches(fitter, min_view_cos: float = 0.0, progress_bar: bool = True) 
     that see a texel more obliquely than ``min_view_cos`` are left out."""
 
     batches = []
-    jobs = [(f.frame, f.mesh_frame, cam) for f in fitter.train for cam in fitter.capture.train_cameras]
+    jobs = [(f.frame, f.mesh_frame, cam) for f in fitter.train for cam in fitter.train_cameras]
     for frame_index, pose, cam_name in progress(jobs, description="pixel footprints") if progress_bar else jobs:
         cam = fitter.stage.camera(cam_name)
         image = load_observation(fitter.capture, cam_name, frame_index)

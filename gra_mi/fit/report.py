@@ -213,7 +213,7 @@ def fit_record(fitter, result, out: Path) -> dict:
         "never_observed": int(np.sum(result.observed_cameras == 0)),
         "albedo_gain": None if result.albedo_gain is None else [float(g) for g in result.albedo_gain],
         "capture": {"folder": str(fitter.capture.folder), "renderer": fitter.capture.renderer}
-        | {"training_frames": len(fitter.train), "training_cameras": len(fitter.capture.train_cameras)},
+        | {"training_frames": len(fitter.train), "training_cameras": len(fitter.train_cameras)},
         "texels": fitter.atlas.num_texels,
         "resolution": fitter.atlas.resolution,
         "scored_min_cameras": SCORED_MIN_CAMERAS,
