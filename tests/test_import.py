@@ -226,7 +226,7 @@ def test_broken_sources_stop_with_one_line_and_nothing_written(olat_capture, tmp
     assert not out.exists() or not any(out.iterdir())
 
 
-def test_every_later_stage_runs_on_the_imported_capture(imported, tmp_path):
+def test_every_later_stage_runs_on_the_imported_capture(imported, tmp_path, capsys):
     from gra_mi.capture.dataset import Capture
 
     capture = Capture.load(imported)
@@ -236,14 +236,19 @@ def test_every_later_stage_runs_on_the_imported_capture(imported, tmp_path):
     record = json.loads((fit / "fit.json").read_text())["capture"]
     train = sum(f.split == "train" for f in capture.frames)
     assert record["training_cameras"] == 3 and record["training_frames"] == (train + 1) // 2
-    assert main([*args[:3], "--out", str(tmp_path / "fit_eval_camera"), "--cameras", "Cam03"]) == 2  # held out: refused
+    _one_line_error(capsys, [*args[:2], "--out", str(tmp_path / "fit_eval_camera"), "--cameras", "Cam03"], "--cameras", "Cam03")
     test_olat = next(f for f in capture.frames if f.split == "test" and f.sequence == 1)
     args = ["relight", str(imported / "scene.xml"), "--pattern", str(imported / test_olat.pattern), "--cameras", "Cam03"]
     args += ["--albedo", str(fit / "albedo.exr"), "--roughness", str(fit / "roughness.exr"), "--out", str(tmp_path / "relit")]
     assert main(args) == 0
-    assert main(["eval", "--capture", str(imported), "--fit", str(fit), "--out", str(tmp_path / "eval")]) == 0
+    relightnet = tmp_path / "relightnet"
+    args = ["train-relightnet", str(imported), "--fit", str(fit), "--out", str(relightnet), "--steps", "2", "--validate-every", "1"]
+    assert main([*args, "--base-channels", "4", "--patch", "2"]) == 0 and (relightnet / "relightnet.safetensors").is_file()
+    assert (
+        main(["eval", "--capture", str(imported), "--fit", str(fit), "--relightnet", str(relightnet), "--out", str(tmp_path / "eval")]) == 0
+    )
     report = json.loads((tmp_path / "eval" / "eval.json").read_text())
-    assert report["stages"]["microfacet"]["status"] == "done"
+    assert report["stages"]["microfacet"]["status"] == report["stages"]["RelightNet"]["status"] == "done"
     glb = tmp_path / "avatar.glb"
     args = ["export-gltf", "--subject", str(imported / "subject"), "--albedo", str(fit / "albedo.exr")]
     assert main([*args, "--roughness", str(fit / "roughness.exr"), "--out", str(glb)]) == 0 and glb.stat().st_size > 0
