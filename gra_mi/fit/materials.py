@@ -186,7 +186,9 @@ class MaterialFitter:
         self.train_cameras = config.cameras or capture.train_cameras
         unknown = [c for c in self.train_cameras if c not in capture.train_cameras]
         if unknown:
-            raise GraMiParameterError("cameras", f"{', '.join(unknown)}: not training cameras of {capture.folder} ({', '.join(capture.train_cameras)})")
+            raise GraMiParameterError(
+                "cameras", f"{', '.join(unknown)}: not training cameras of {capture.folder} ({', '.join(capture.train_cameras)})"
+            )
         self._lighting = {f.frame: capture.lighting(self.stage, f) for f in self.train}
         self._loops: dict = {}  # (frame, camera) → TexelLedLoop of the view's observed texels
 
