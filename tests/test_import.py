@@ -336,6 +336,9 @@ def test_a_transforms_json_without_intrinsics_or_lights_is_refused(olat_capture,
     (folder / "transforms_train.json").write_text(json.dumps(data))
     _one_line_error(capsys, args, "transforms_train.json", "frames[0]", "light_idx")
     _one_line_error(capsys, args[:-4], "--mesh")
+    data["frames"][0] |= {"light_idx": 0, "k1": 0.05}
+    (folder / "transforms_train.json").write_text(json.dumps(data))
+    _one_line_error(capsys, args, "transforms_train.json", "k1", "undistort")
 
 
 def test_a_tracked_sequence_under_environment_maps_imports(path_traced_fit, tmp_path):
@@ -460,3 +463,35 @@ def test_an_easymocap_rig_with_a_moving_subject_imports(path_traced_fit, tmp_pat
     # the rig is the native one up to the import's rigid transform
     for p, q in zip(imported_stage.cameras, stage.cameras, strict=True):
         assert np.linalg.norm(p.position - imported_stage.center) == pytest.approx(np.linalg.norm(q.position - stage.center), abs=1e-5)
+
+
+def test_broken_easymocap_rigs_stop_with_one_line(path_traced_fit, tmp_path, capsys):
+    from gra_mi.capture.dataset import Capture
+    from gra_mi.capture.humanolat import write_obj, write_points
+    from gra_mi.stage.lightstage import load_calibration
+    from gra_mi.subject.sequence import load_sequence
+
+    native = Capture.load(path_traced_fit / "cap")
+    stage, seq = load_calibration(native.folder / "rig" / "calibration.json"), load_sequence(native.folder / "subject")
+    rig = tmp_path / "rig"
+    write_easymocap(native, rig, native.frames[:1])
+    (tmp_path / "meshes").mkdir()
+    write_obj(tmp_path / "meshes", seq.vertices[0], seq.uvs, seq.faces, None)
+    write_points(tmp_path / "leds.pc", stage.led_positions)
+    good = {"frames": [{"frame": 0, "split": "train", "uniform": 0.5}]}
+    args = ["import", "easymocap", str(rig), "--out", str(tmp_path / "out"), "--mesh", str(tmp_path / "meshes")]
+    args += ["--leds", str(tmp_path / "leds.pc"), "--lighting", str(tmp_path / "lighting.json")]
+    intri = (rig / "intri.yml").read_text()
+    cases = [
+        ({"frames": [{"split": "train", "uniform": 0.5}]}, intri, ["lighting.json", "frames[0].frame"]),
+        ({"frames": [{"frame": 0, "sun": 1}]}, intri, ["lighting.json", "frames[0]", "uniform, led"]),
+        ({"frames": [{"frame": 0, "led": 10_000}]}, intri, ["lighting.json", "frames[0].led", "out of range"]),
+        (good, intri.replace("data: [ 0, 0, 0, 0, 0 ]", "data: [ 0.1, 0, 0, 0, 0 ]", 1), ["intri.yml", "dist_01", "undistort"]),
+        (good, intri.replace("K_02:", "Kx_02:"), ["intri.yml", "K_02"]),
+    ]
+    for lighting, text, needles in cases:
+        (tmp_path / "lighting.json").write_text(json.dumps(lighting))
+        (rig / "intri.yml").write_text(text)
+        _one_line_error(capsys, args, *needles)
+        assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
+    _one_line_error(capsys, args[:-2], "--lighting")

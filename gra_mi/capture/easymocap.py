@@ -31,7 +31,7 @@ import numpy as np
 from gra_mi.capture.dataset import FrameLighting
 from gra_mi.capture.humanolat import CalibCamera, image_size, read_points
 from gra_mi.capture.importer import ImportConfig, Source, import_capture
-from gra_mi.capture.transforms import UNITS, TransformsOptions, _meshes
+from gra_mi.capture.transforms import UNITS, TransformsOptions, read_meshes
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.io import read_json
 
@@ -147,7 +147,11 @@ def read_easymocap(folder: Path, options: EasymocapOptions, files: TransformsOpt
         raise GraMiInputError(options.lighting, "expected an object with a non-empty 'frames' list", field="frames")
     frames = []
     for i, entry in enumerate(entries):
-        number, split = int(entry.get("frame", -1)), entry.get("split", "train")
+        if not isinstance(entry, dict) or not isinstance(entry.get("frame"), int) or entry["frame"] < 0:
+            raise GraMiInputError(
+                options.lighting, "expected an object with the image's frame number (an integer >= 0)", field=f"frames[{i}].frame"
+            )
+        number, split = entry["frame"], entry.get("split", "train")
         if split not in ("train", "test"):
             raise GraMiInputError(options.lighting, f"expected train or test, got {split!r}", field=f"frames[{i}].split")
         kind, drive = _lighting(options.lighting, i, entry, len(leds))
@@ -157,7 +161,7 @@ def read_easymocap(folder: Path, options: EasymocapOptions, files: TransformsOpt
         else:
             lit = FrameLighting(i, split, sequence, "pattern", None, f"patterns/frame_{number:06d}.json", pose=pose)
         frames.append((number, lit, drive))
-    meshes = _meshes(files.mesh, max(f.mesh_frame for _, f, _ in frames) + 1)
+    meshes = read_meshes(files.mesh, max(f.mesh_frame for _, f, _ in frames) + 1)
     return Source(
         folder, "easymocap", folder / "extri.yml", [f"cam{n}" for n in names], [c for c, _ in cameras], [s for _, s in cameras],
         images, units, leds, meshes, [None] * len(names), frames, mesh_units=UNITS[files.mesh_units],

@@ -119,6 +119,7 @@ class Source:
     order: np.ndarray | None = None  # the OLAT firing order (HumanOLAT)
     mesh_units: float | None = None  # metres per unit of the meshes (None: as the calibration)
     frame_masks: list[dict[int, Path]] | None = None  # per camera: frame key → its own mask file (a moving subject)
+    mask_cache: dict[int, np.ndarray] = field(default_factory=dict, repr=False)  # per camera: a mask every frame shares
 
     def mesh_metres(self, positions: np.ndarray) -> np.ndarray:
         return positions * (self.units if self.mesh_units is None else self.mesh_units)
@@ -309,57 +310,48 @@ MISTAKES = {
 }
 
 
-def frame_mask(source: Source, plan: CameraPlan, key: int) -> np.ndarray:
-    """A frame's mask on the camera's planned grid: the camera's mask file, else the image's alpha, else the pixels
-    the subject covers in the (masked, black-background) images: for a static pose the union over all the camera's
-    images (an OLAT alone leaves part of the subject black), for a sequence the frame's own."""
+def frame_mask(source: Source, plan: CameraPlan, key: int, image: tuple | None = None) -> np.ndarray:
+    """A frame's mask on the camera's planned grid: the frame's own mask file (a moving subject), the camera's mask
+    file, else the image's alpha, else the pixels the subject covers in the (masked, black-background) images: for a
+    static pose the union over all the camera's images (an OLAT alone leaves part of the subject black), for a
+    sequence the frame's own. ``image``: the frame's (RGB, alpha) when the caller has read it already."""
     own = source.frame_masks[plan.index].get(key) if source.frame_masks else None
-    if own is not None:  # a moving subject's mask of this frame
-        from PIL import Image
+    if own is not None:
+        return _mask_file(own, plan)
+    if plan.index in source.mask_cache:  # a camera's mask file, or a static pose's covered pixels: every frame's
+        return source.mask_cache[plan.index]
+    if source.masks[plan.index] is not None:
+        source.mask_cache[plan.index] = _mask_file(source.masks[plan.index], plan)
+        return source.mask_cache[plan.index]
+    path = source.images[plan.index][key]
+    rgb, alpha = image if image is not None else read_image(path)[::2]
+    if alpha is None and len(source.meshes) == 1:
+        source.mask_cache[plan.index] = resample_image(_covered(source, plan.index)[..., None], plan)[..., 0]
+        return source.mask_cache[plan.index]
+    mask = alpha.astype(np.float32) if alpha is not None else (rgb.max(axis=-1) > 0).astype(np.float32)  # a matte stays soft
+    return resample_image(mask[..., None], plan)[..., 0]
 
-        with Image.open(own) as image:
-            mask = (np.asarray(image.convert("L")) > 127).astype(np.float32)
-        if mask.shape[::-1] != plan.source_size:
-            raise GraMiInputError(
-                own, f"is {mask.shape[1]}x{mask.shape[0]}, its camera's images {plan.source_size[0]}x{plan.source_size[1]}"
-            )
-        return resample_image(mask[..., None], plan)[..., 0]
-    cache = source.__dict__.setdefault("_masks", {})
-    if plan.index in cache:  # a camera's mask file, or a static pose's covered pixels: the same for every frame
-        return cache[plan.index]
-    path = source.masks[plan.index] or source.images[plan.index][key]
-    per_camera = source.masks[plan.index] is not None
-    if per_camera:
-        from PIL import Image
 
+def _mask_file(path: Path, plan: CameraPlan) -> np.ndarray:
+    from PIL import Image
+
+    try:
         with Image.open(path) as image:
             mask = (np.asarray(image.convert("L")) > 127).astype(np.float32)
-    else:
-        rgb, _, alpha = read_image(path)
-        if alpha is not None:  # a matte: kept soft (the coverage of each pixel)
-            mask = alpha.astype(np.float32)
-        elif len(source.meshes) == 1:
-            mask, per_camera = _covered(source, plan.index), True
-        else:
-            mask = (rgb.max(axis=-1) > 0).astype(np.float32)
+    except (OSError, SyntaxError, ValueError) as exc:
+        raise GraMiInputError(path, f"not a readable mask ({exc})") from None
     if mask.shape[::-1] != plan.source_size:
         raise GraMiInputError(path, f"is {mask.shape[1]}x{mask.shape[0]}, its camera's images {plan.source_size[0]}x{plan.source_size[1]}")
-    mask = resample_image(mask[..., None], plan)[..., 0]
-    if per_camera:
-        cache[plan.index] = mask
-    return mask
+    return resample_image(mask[..., None], plan)[..., 0]
 
 
 def _covered(source: Source, camera: int) -> np.ndarray:
-    """Pixels lit in any image of a camera (cached on the source: a pose's images are read once for it)."""
-    cache = source.__dict__.setdefault("_covered", {})
-    if camera not in cache:
-        covered = None
-        for key, _, _ in progress(source.frames, description=f"mask of {source.names[camera]}"):
-            lit = read_image(source.images[camera][key])[0].max(axis=-1) > 0
-            covered = lit if covered is None else covered | lit
-        cache[camera] = covered.astype(np.float32)
-    return cache[camera]
+    """Pixels lit in any image of a camera, on its source grid."""
+    covered = None
+    for key, _, _ in progress(source.frames, description=f"mask of {source.names[camera]}"):
+        lit = read_image(source.images[camera][key])[0].max(axis=-1) > 0
+        covered = lit if covered is None else covered | lit
+    return covered.astype(np.float32)
 
 
 def mask_iou(sequence: MeshSequence, camera: Camera, mask: np.ndarray, pose: int = 0) -> tuple[float, np.ndarray]:
@@ -557,7 +549,7 @@ def _import_camera(source: Source, plan: CameraPlan, capture: Capture) -> dict:
         path = capture.image_path(name, entry.frame)
         image_path = source.images[plan.index][key]
         rgb, clipped, alpha = read_image(image_path)
-        mask = frame_mask(source, plan, key)
+        mask = frame_mask(source, plan, key, (rgb, alpha))  # the image decoded once
         saturated.append(float((clipped & (mask_at_source(mask, plan) > 0.5)).mean()) if clipped.any() else 0.0)
         if path.is_file():
             continue

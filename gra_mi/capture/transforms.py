@@ -102,7 +102,7 @@ def read_transforms(folder: Path, options: TransformsOptions) -> Source:
     groups: dict[tuple, dict] = {}
     for f in frames:
         groups.setdefault((f.lighting, f.pose, f.split), {})[f.camera] = f.path
-    meshes = _meshes(options.mesh, max(f.pose for f in frames) + 1)
+    meshes = read_meshes(options.mesh, max(f.pose for f in frames) + 1)
     source_frames, images = [], [{} for _ in names]
     for key, ((lighting, pose, split), seen) in enumerate(groups.items()):
         for k, name in enumerate(names):
@@ -214,7 +214,7 @@ def _frame_entry(key: int, lighting: tuple, pose: int, split: str, led_index: di
     return (key, FrameLighting(key, split, sequence, "envmap", name, pose=pose), lighting[1])
 
 
-def _meshes(mesh: Path, poses: int) -> list:
+def read_meshes(mesh: Path, poses: int) -> list:
     if mesh.is_dir():
         files = sorted(mesh.glob("*.obj"))
         if len(files) < poses:
