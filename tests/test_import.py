@@ -157,6 +157,42 @@ def test_an_interrupted_import_resumes_to_the_same_capture(olat_capture, importe
         np.testing.assert_array_equal(read_exr(path), read_exr(again / "images" / "Cam03" / path.name))
 
 
+def test_clipped_pixels_are_marked_and_left_out_of_the_fit(olat_capture, tmp_path):
+    """An OLAT whose subject is clipped to 255 in its upper half: the import marks those pixels (a PNG next to the
+    image), the fit's observation drops them from the mask, and the fit gathers no texel from them."""
+    from PIL import Image
+
+    from gra_mi.capture.dataset import Capture, load_fit_observation, load_observation
+    from gra_mi.capture.humanolat import images_of
+    from gra_mi.fit.materials import FitConfig, MaterialFitter
+
+    root, _, subject = olat_capture
+    clipped = tmp_path / "clipped"
+    shutil.copytree(subject, clipped)
+    image_path = images_of(clipped / "POSE_00" / "images_processed" / "Cam02")[16]  # the second OLAT (training)
+    with Image.open(image_path) as image:
+        pixels = np.asarray(image.convert("RGB")).copy()
+    rows = np.nonzero(pixels.max(axis=-1).max(axis=1) > 0)[0]
+    top = pixels[: (rows[0] + rows[-1]) // 2]
+    top[top.max(axis=-1) > 0] = 255
+    Image.fromarray(pixels).save(image_path, format="AVIF", quality=100, subsampling="4:4:4")
+    out = _imported(tmp_path, clipped, "imported", "--cameras", "Cam01,Cam02,Cam03", "--eval-cameras", "Cam03")
+    marked = [p for p in sorted((out / "images").rglob("*.saturated.png")) if p.name != "frame_0000.saturated.png"]
+    assert [p.parent.name for p in marked] == ["Cam02"], marked  # the white frame (0) clips a little by itself
+    capture = Capture.load(out)
+    frame = int(marked[0].name.split("_")[1].split(".")[0])
+    assert next(f for f in capture.frames if f.frame == frame).split == "train"
+    full, fit = load_observation(capture, "Cam02", frame), load_fit_observation(capture, "Cam02", frame)
+    dropped = (full[..., 3] > 0.5) & (fit[..., 3] == 0)
+    assert 0.3 < dropped.sum() / (full[..., 3] > 0.5).sum() < 0.7
+    report = json.loads((out / "import_report.json").read_text())
+    assert next(c for c in report["cameras"] if c["camera"] == "Cam02")["saturated_fraction"] > 0
+    fitter = MaterialFitter(capture, FitConfig(cameras=["Cam02"]))
+    fitter.train = [f for f in fitter.train if f.frame in (frame, frame + 1)]
+    views = {v.frame: v.texels.size for v in fitter.gather_views(progress_bar=False)}
+    assert 0.3 < views[frame] / views[frame + 1] < 0.8, views  # the next OLAT, unclipped, sees the whole subject
+
+
 def _broken(olat_capture, tmp_path, damage) -> Path:
     _, _, subject = olat_capture
     copy = tmp_path / subject.name
@@ -318,6 +354,30 @@ def test_transforms_json_imports_to_the_same_rig(olat_capture, imported, spellin
         assert a.name == b.name
         np.testing.assert_allclose(a.camera_to_world, b.camera_to_world, atol=1e-5)
     np.testing.assert_allclose(mine.led_positions, theirs.led_positions, atol=1e-5)
+
+
+def test_a_mesh_without_uvs_gets_an_atlas_and_fits(olat_capture, tmp_path):
+    """A PLY with positions and faces only (a scan as many tools export it): the import generates a UV atlas
+    (xatlas), reprojects as well as the mesh with its own atlas, and the fit runs in the new atlas."""
+    import trimesh
+
+    from gra_mi.capture.humanolat import read_obj
+    from gra_mi.fit.materials import FitConfig, run_fit
+
+    _, _, subject = olat_capture
+    folder = subject / "json_ply"  # beside the pose, as the dataset's tools write it
+    write_transforms_as_humanolat_tools_do(subject, folder, nerfstudio=True)
+    obj = read_obj(subject / "POSE_00" / "model" / "model.obj")
+    trimesh.Trimesh(obj.positions, obj.faces, process=False).export(tmp_path / "scan.ply")
+    out = tmp_path / "from_ply"
+    args = ["import", "transforms", str(folder), "--out", str(out), "--mesh", str(tmp_path / "scan.ply")]
+    assert main([*args, "--mesh-units", "mm", "--uv-resolution", "32"]) == 0
+    report = json.loads((out / "import_report.json").read_text())
+    assert report["uv_atlas"].startswith("generated (xatlas")
+    assert all(c["mask_iou"] >= 0.97 for c in report["cameras"]), report["cameras"]
+    result, _ = run_fit(out, tmp_path / "fit", FitConfig(solver="closed-form", roughness_candidates=3))
+    observed = result.observed_cameras > 0
+    assert observed.mean() > 0.3 and np.isfinite(result.albedo).all()
 
 
 def test_a_transforms_json_without_intrinsics_or_lights_is_refused(olat_capture, tmp_path, capsys):

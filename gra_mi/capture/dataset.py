@@ -51,6 +51,11 @@ class Capture:
     def image_path(self, camera: str, frame: int) -> Path:
         return self.folder / "images" / camera / f"frame_{frame:04d}.exr"
 
+    def saturation_path(self, camera: str, frame: int) -> Path:
+        """Pixels the source clipped (a channel at the top of its range), as a binary PNG next to the image; absent
+        when none was."""
+        return self.image_path(camera, frame).with_suffix(".saturated.png")
+
     def save(self) -> None:
         data = {"format": CAPTURE_FORMAT, **asdict(self)}
         data["folder"] = None
@@ -161,6 +166,22 @@ def _frame_entry(path: Path, i: int, f) -> FrameLighting:
     if entry.kind not in needs or (entry.kind != "uniform" and not isinstance(needs[entry.kind], str)):
         raise GraMiInputError(path, f"kind must be uniform, envmap (with envmap) or pattern (with pattern), got {f}", field=f"{where}.kind")
     return entry
+
+
+def load_fit_observation(capture: Capture, camera: str, frame: int) -> np.ndarray:
+    """:func:`load_observation` with the alpha of clipped pixels set to 0: a saturated pixel says only that the
+    radiance was at least the clip level, so the fit leaves it out as it leaves out the background."""
+    image = load_observation(capture, camera, frame)
+    path = capture.saturation_path(camera, frame)
+    if path.is_file():
+        from PIL import Image
+
+        with Image.open(path) as mask:
+            clipped = np.asarray(mask.convert("L")) > 127
+        if clipped.shape != image.shape[:2]:
+            raise GraMiInputError(path, f"is {clipped.shape[1]}x{clipped.shape[0]}, its image {image.shape[1]}x{image.shape[0]}")
+        image[clipped, 3] = 0.0
+    return image
 
 
 def load_observation(capture: Capture, camera: str, frame: int) -> np.ndarray:

@@ -211,11 +211,12 @@ class ObjMesh:
     positions: np.ndarray  # (P, 3) in the file's units
     uvs: np.ndarray  # (T, 2) gra-mi's v (row 0 at the top)
     faces: np.ndarray  # (F, 3) position indices
-    face_uvs: np.ndarray  # (F, 3) UV indices
+    face_uvs: np.ndarray | None  # (F, 3) UV indices; None: the file has no UVs (the import generates an atlas)
 
 
 def read_obj(path: Path) -> ObjMesh:
-    """Triangles and polygons (fanned) with their ``vt`` corners; a mesh without UVs or faces is refused."""
+    """Triangles and polygons (fanned) with their ``vt`` corners; a mesh without faces is refused, one without UVs
+    read with ``face_uvs`` None."""
     if not path.is_file():
         raise GraMiInputError(path, "missing: the pose's mesh (model/model.obj)")
     positions, uvs, faces, face_uvs = [], [], [], []
@@ -240,11 +241,19 @@ def read_obj(path: Path) -> ObjMesh:
     if not faces:
         raise GraMiInputError(path, "no faces: the pose's mesh must be a surface with UVs")
     f, ft = np.array(faces) - 1, np.array(face_uvs) - 1
-    if not uvs or ft.min() < 0:
-        raise GraMiInputError(path, "faces without texture coordinates (f v/vt): gra-mi fits maps in the mesh's own UV atlas")
-    if f.max() >= len(positions) or ft.max() >= len(uvs):
-        raise GraMiInputError(path, "a face refers to a vertex or texture coordinate the file does not define")
-    return ObjMesh(np.array(positions, float), np.clip(np.array(uvs, float), 0, 1), f, ft)
+    if not uvs and ft.max() < 0:
+        return ObjMesh(np.array(positions, float), np.zeros((0, 2)), _checked_faces(path, f, len(positions)), None)
+    if ft.min() < 0:
+        raise GraMiInputError(path, "some faces have texture coordinates (f v/vt) and some none: give all or none")
+    if ft.max() >= len(uvs):
+        raise GraMiInputError(path, "a face refers to a texture coordinate the file does not define")
+    return ObjMesh(np.array(positions, float), np.clip(np.array(uvs, float), 0, 1), _checked_faces(path, f, len(positions)), ft)
+
+
+def _checked_faces(path: Path, faces: np.ndarray, count: int) -> np.ndarray:
+    if faces.min() < 0 or faces.max() >= count:
+        raise GraMiInputError(path, "a face refers to a vertex the file does not define")
+    return faces
 
 
 # --------------------------------------------------------------------------------------------------------------

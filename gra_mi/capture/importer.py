@@ -35,6 +35,7 @@ from gra_mi.capture.humanolat import (
     read_points,
     read_spiral,
     resample_columns,
+    write_mask,
 )
 from gra_mi.core.config import comma_list, option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive
@@ -282,10 +283,14 @@ def build_stage(source: Source, frame: WorldFrame, plans: list[CameraPlan], led_
     )
 
 
-def build_sequence(source: Source, frame: WorldFrame) -> MeshSequence:
-    """The poses as a sequence in the first mesh's own UV atlas (a vertex per position and UV pair); every pose must
-    share its topology (a tracked mesh)."""
+def build_sequence(source: Source, frame: WorldFrame, uv_resolution: int) -> tuple[MeshSequence, str]:
+    """The poses as a sequence in the first mesh's own UV atlas, or one generated for it (a vertex per position and
+    UV pair); every pose must share its topology (a tracked mesh). Also says where the atlas came from."""
     first = source.meshes[0]
+    if first.face_uvs is None:
+        first.uvs, first.face_uvs, said = generate_atlas(first.positions, first.faces, uv_resolution)
+    else:
+        said = "the mesh's own"
     faces, position_of, uv_of = split_uv_seams(first.faces, first.face_uvs)
     for k, mesh in enumerate(source.meshes[1:], 1):
         if mesh.positions.shape != first.positions.shape or not np.array_equal(mesh.faces, first.faces):
@@ -295,7 +300,25 @@ def build_sequence(source: Source, frame: WorldFrame) -> MeshSequence:
     vertices = np.stack([frame.apply(source.mesh_metres(m.positions[position_of])) for m in source.meshes]).astype(np.float32)
     labels = [f"pose {k}" for k in range(len(source.meshes))]
     uvs = first.uvs[uv_of].astype(np.float32)
-    return MeshSequence(faces, uvs, vertices, vertex_normals(vertices, faces), fps=1.0, frame_labels=labels)
+    return MeshSequence(faces, uvs, vertices, vertex_normals(vertices, faces), fps=1.0, frame_labels=labels), said
+
+
+def generate_atlas(positions: np.ndarray, faces: np.ndarray, resolution: int) -> tuple[np.ndarray, np.ndarray, str]:
+    """A UV atlas for a mesh that has none (xatlas, charts packed for a ``resolution``² texture with 2 texels of
+    padding so bilinear lookups stay in their chart). Returns (uvs, face UV indices, what was done); the faces keep
+    their order, so a tracked sequence shares the atlas."""
+    import xatlas
+
+    atlas = xatlas.Atlas()
+    atlas.add_mesh(positions.astype(np.float32), faces.astype(np.uint32))
+    packing = xatlas.PackOptions()
+    packing.resolution, packing.padding, packing.bilinear = resolution, 2, True
+    atlas.generate(pack_options=packing)
+    position_of, face_uvs, uvs = atlas[0]
+    if not np.array_equal(position_of[face_uvs], faces):  # xatlas keeps face order; a change would scramble the poses
+        raise RuntimeError("xatlas reordered the mesh's faces")
+    said = f"generated (xatlas: {atlas.chart_count} charts, {100 * atlas.utilization:.0f} % of the texture used)"
+    return uvs.astype(float), face_uvs.astype(np.int64), said
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -455,7 +478,7 @@ def import_capture(source: Source, out: Path, config: ImportConfig, record: dict
     frame = world_frame(source, config.up)
     plans = _camera_plans(source, frame, config)
     check_images_present(source, plans)
-    sequence = build_sequence(source, frame)
+    sequence, atlas_said = build_sequence(source, frame, config.uv_resolution)
     key, pose = source.frames[0][0], source.frames[0][1].mesh_frame  # the frame every camera's mask is checked on
     masks = [frame_mask(source, plan, key) for plan in plans]
     checks = _reprojection_checks(source, frame, sequence, plans, masks, config.min_iou, pose)
@@ -466,7 +489,7 @@ def import_capture(source: Source, out: Path, config: ImportConfig, record: dict
     eval_cameras = config.eval_cameras or _held_out(plans)
     train_cameras = [p.camera.name for p in plans if p.camera.name not in eval_cameras]
     record = {"format": source.format, "folder": str(source.folder), "transform": frame.matrix(), **record}
-    record |= {"gains": "assumed equal (the source has none)", "left_out_leds": source.left_out, "images": {}}
+    record |= {"gains": "assumed equal (the source has none)", "left_out_leds": source.left_out, "uv_atlas": atlas_said, "images": {}}
     frames = [f for _, f, _ in source.frames]
     capture = Capture(out, source.format, "captured", config.uv_resolution, train_cameras, eval_cameras, frames, source=record)
     for plan in plans:
@@ -553,6 +576,8 @@ def _import_camera(source: Source, plan: CameraPlan, capture: Capture) -> dict:
         saturated.append(float((clipped & (mask_at_source(mask, plan) > 0.5)).mean()) if clipped.any() else 0.0)
         if path.is_file():
             continue
+        if clipped.any():  # a planned pixel any clipped source pixel contributes to is left out of the fit
+            write_mask(capture.saturation_path(name, entry.frame), resample_image(clipped[..., None].astype(np.float32), plan)[..., 0] > 0)
         rgb = resample_image(rgb, plan)
         if alpha is None:  # a binary mask: the background is cut away
             rgb = rgb * (mask[..., None] > 0.5)
@@ -623,6 +648,7 @@ def _write_report(out: Path, source: Source, frame: WorldFrame, plans: list[Came
         if source.order is not None
         else None,
         "frames": {"imported": sum(1 for _ in (out / "images" / plans[0].camera.name).glob("frame_*.exr"))},
+        "uv_atlas": record["uv_atlas"],
     }
     atomic_write_text(out / "import_report.json", json.dumps(report, indent=1) + "\n")
     atomic_write_text(out / "import_report.md", import_markdown(report, source.format))
@@ -634,14 +660,14 @@ def import_markdown(r: dict, source_format: str) -> str:
         "# Import report",
         "",
         f"Source: {source_format}. {len(r['cameras'])} cameras, {r['frames']['imported']} lightings each; {leds['count']} "
-        f"LEDs, the OLATs of {len(leds['left_out'])} left out; LED gains {leds['gains']}.",
+        f"LEDs, the OLATs of {len(leds['left_out'])} left out; LED gains {leds['gains']}. UV atlas: {r['uv_atlas']}.",
         "",
         f"Up in the source: {f['up_source']} ({'estimated from the cameras' if f['up_estimated'] else 'given'}, "
         f"{f['up_off_axis_deg']:.2f}° off its nearest axis). LED sphere: radius {f['led_sphere_radius_m']:.3f} m, the LEDs "
         f"within {1000 * f['led_sphere_rms_m']:.1f} mm RMS of it. The transform into gra-mi's frame (Y up, metres) is in "
         "capture.json (`source.transform`).",
         "",
-        "| camera | mesh over mask (IoU) | saturated (subject) | fx / fy | square-pixel resampling error |",
+        "| camera | mesh over mask (IoU) | saturated (subject, most of any image; left out of the fit) | fx / fy | square-pixel resampling error |",
         "|---|---|---|---|---|",
     ]
     for c in r["cameras"]:

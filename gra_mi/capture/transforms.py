@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from gra_mi.capture.dataset import FrameLighting
-from gra_mi.capture.humanolat import CalibCamera, image_size, read_obj, read_points
+from gra_mi.capture.humanolat import CalibCamera, ObjMesh, image_size, read_obj, read_points
 from gra_mi.capture.importer import ImportConfig, Source, import_capture
 from gra_mi.core.config import option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
@@ -38,8 +38,8 @@ class TransformsOptions:
     """What a transforms.json capture needs besides its JSON (:func:`import_transforms`)."""
 
     mesh: Path | None = None
-    """transforms, easymocap: the subject's mesh (an OBJ with UVs), or a folder of one OBJ per mesh frame (a tracked sequence,
-    one topology; frames name theirs with `mesh_frame`)."""
+    """transforms, easymocap: the subject's mesh (OBJ or PLY; without UVs an atlas is generated), or a folder of one
+    per mesh frame (a tracked sequence, one topology; frames name theirs with `mesh_frame`)."""
     units: str = field(default="m", metadata=option(choices=tuple(UNITS)))
     """transforms, easymocap: the unit of the calibration's positions (camera translations, `pl_pos`, --leds)."""
     mesh_units: str = field(default="m", metadata=option(choices=tuple(UNITS)))
@@ -50,7 +50,9 @@ class TransformsOptions:
 
     def validate(self) -> None:
         if self.mesh is None:
-            raise GraMiParameterError("mesh", "a transforms.json capture needs the subject's mesh (--mesh FILE.obj or a folder of them)")
+            raise GraMiParameterError(
+                "mesh", "a transforms.json capture needs the subject's mesh (--mesh FILE.obj|.ply or a folder of them)"
+            )
 
 
 def import_transforms(
@@ -215,11 +217,37 @@ def _frame_entry(key: int, lighting: tuple, pose: int, split: str, led_index: di
 
 
 def read_meshes(mesh: Path, poses: int) -> list:
+    """One mesh, or a folder of one per mesh frame (OBJ or PLY, sorted by name)."""
     if mesh.is_dir():
-        files = sorted(mesh.glob("*.obj"))
+        files = sorted(p for p in mesh.iterdir() if p.suffix.lower() in MESH_SUFFIXES)
         if len(files) < poses:
-            raise GraMiInputError(mesh, f"{len(files)} OBJ files, but the frames name {poses} mesh frames (mesh_frame)")
-        return [read_obj(f) for f in files[:poses]]
+            raise GraMiInputError(mesh, f"{len(files)} OBJ/PLY files, but the frames name {poses} mesh frames (mesh_frame)")
+        return [read_mesh(f) for f in files[:poses]]
     if poses > 1:
-        raise GraMiInputError(mesh, f"the frames name {poses} mesh frames (mesh_frame): give a folder of one OBJ per frame")
-    return [read_obj(mesh)]
+        raise GraMiInputError(mesh, f"the frames name {poses} mesh frames (mesh_frame): give a folder of one mesh per frame")
+    return [read_mesh(mesh)]
+
+
+MESH_SUFFIXES = (".obj", ".ply")
+
+
+def read_mesh(path: Path) -> ObjMesh:
+    """An OBJ (:func:`read_obj`) or a PLY (per-vertex ``s t`` / ``u v`` texture coordinates where it has them)."""
+    if path.suffix.lower() == ".obj":
+        return read_obj(path)
+    if path.suffix.lower() != ".ply":
+        raise GraMiInputError(path, f"expected an .obj or .ply mesh, got {path.suffix or 'no suffix'}")
+    import trimesh
+
+    try:
+        mesh = trimesh.load(path, process=False, force="mesh")
+    except Exception as exc:  # trimesh raises several kinds for a damaged file
+        raise GraMiInputError(path, f"not a readable PLY ({exc})") from None
+    faces = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))), np.int64)
+    if faces.size == 0:
+        raise GraMiInputError(path, "no faces: the subject's mesh must be a surface")
+    uv = getattr(getattr(mesh, "visual", None), "uv", None)
+    if uv is None:
+        return ObjMesh(np.asarray(mesh.vertices, float), np.zeros((0, 2)), faces, None)
+    uv = np.asarray(uv, float)
+    return ObjMesh(np.asarray(mesh.vertices, float), np.clip(np.stack([uv[:, 0], 1.0 - uv[:, 1]], 1), 0, 1), faces, faces)

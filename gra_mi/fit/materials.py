@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gra_mi.capture.dataset import Capture, load_observation
+from gra_mi.capture.dataset import Capture, load_fit_observation
 from gra_mi.core.config import comma_list, option
 from gra_mi.core.errors import GraMiParameterError
 from gra_mi.core.io import atomic_path, read_checkpoint_npz
@@ -207,7 +207,7 @@ class MaterialFitter:
             n = np.array(geom.geo_normal).T.astype(np.float64)
             seen = _camera_visible(self.ls.scene, cam, p, n)
             xyz = cam.project(p[seen])
-            image = load_observation(self.capture, cam_name, frame)
+            image = load_fit_observation(self.capture, cam_name, frame)
             value, covered = sample_image(image, xyz[:, :2])
             ok = covered & (xyz[:, 2] > 0)
             views.append(View(frame, pose, cam_name, np.flatnonzero(seen)[ok], value[ok].astype(np.float32)))
@@ -254,7 +254,7 @@ class MaterialFitter:
         for entry in self.train:
             for cam in self.train_cameras:
                 shading, _ = relighter.shade(entry.mesh_frame, cam, self._lighting[entry.frame])
-                truth = load_observation(self.capture, cam, entry.frame)
+                truth = load_fit_observation(self.capture, cam, entry.frame)
                 mask = subject_mask(truth)
                 if not mask.any():
                     continue

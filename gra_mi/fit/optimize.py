@@ -30,7 +30,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from gra_mi.capture.dataset import load_observation
+from gra_mi.capture.dataset import load_fit_observation
 from gra_mi.core.errors import GraMiInputError
 from gra_mi.core.io import atomic_path, read_checkpoint_npz
 from gra_mi.core.progress import progress
@@ -125,7 +125,7 @@ def build_batches(fitter, min_view_cos: float = 0.0, progress_bar: bool = True) 
     jobs = [(f.frame, f.mesh_frame, cam) for f in fitter.train for cam in fitter.train_cameras]
     for frame_index, pose, cam_name in progress(jobs, description="pixel footprints") if progress_bar else jobs:
         cam = fitter.stage.camera(cam_name)
-        image = load_observation(fitter.capture, cam_name, frame_index)
+        image = load_fit_observation(fitter.capture, cam_name, frame_index)
         fitter.ls.set_frame(pose)
         flat_pixels, (pix, tex, wgt) = pixel_footprints(fitter.ls, cam, fitter.atlas, image[..., 3])
         geom = fitter.relighter.geometry(pose)
