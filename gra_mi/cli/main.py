@@ -63,6 +63,11 @@ COMMANDS: dict[str, Command] = {
         torch=True,
     ),
     "bench": Command("run", "Speed against error of every approximation (report.md, CSV/JSON, Pareto plot)."),
+    "relight-field": Command(
+        "texture",
+        "A capture's cameras under any LED lighting as the weighted sum of its OLAT photographs (no model).",
+        mitsuba=False,
+    ),
     "eval-lighting": Command(
         "texture",
         "Relight under reference environments (sun, studio, interior, night), near vs far field (vs RelightNet), against the path-traced truth.",

@@ -1,13 +1,16 @@
-"""Commands on the physics-based texture: ``fit``, ``edit-texture``, ``export-gltf``, ``relight``, ``eval-lighting``."""
+"""Commands on the physics-based texture: ``fit``, ``edit-texture``, ``export-gltf``, ``relight``, ``relight-field``,
+``eval-lighting``."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from gra_mi.apps.field_relight import FieldRelightConfig, relight_from_field
 from gra_mi.apps.gltf import export_glb
 from gra_mi.apps.relight import RelightConfig, SubjectMaps, collect_lights, relight_batch, select
 from gra_mi.apps.texture_edit import edit_albedo_file, parse_color
+from gra_mi.capture.dataset import Capture
 from gra_mi.cli.options import CommandConfig, Restartable
 from gra_mi.core.config import option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive
@@ -15,7 +18,7 @@ from gra_mi.eval.lighting import EnvmapAccuracyConfig, envmap_accuracy
 from gra_mi.fit.materials import FitConfig
 from gra_mi.render.composite import PLATFORM_FLAGS, PlatformConfig
 from gra_mi.stage.envmap import EnvmapOptions
-from gra_mi.stage.lightstage import load_pattern
+from gra_mi.stage.lightstage import load_calibration, load_pattern
 from gra_mi.stage.scene import LightstageScene
 from gra_mi.subject.sequence import load_sequence
 
@@ -156,6 +159,44 @@ def run_relight(c: RelightCommand) -> None:
 
 
 @dataclass(kw_only=True)
+class RelightFieldCommand(CommandConfig):
+    capture: Path = field(metadata=option(positional=True))
+    """Capture folder with OLAT frames (a pattern lighting one LED): `gra-mi capture --preset olat` or an import."""
+    cameras: str = "all"
+    """Cameras: 'all' or a comma list of names or indices (the capture's training cameras, then its held-out ones)."""
+    envmap: list[Path] = field(default_factory=list, metadata=option(repeat=True))
+    """Lat-long HDR map (OpenEXR or Radiance .hdr) mapped onto the LEDs (repeatable)."""
+    olat: list[int] = field(default_factory=list, metadata=option(repeat=True))
+    """Light one LED (index) at the stage maximum (repeatable)."""
+    pattern: list[Path] = field(default_factory=list, metadata=option(repeat=True))
+    """LED drive values, JSON or .npy (repeatable; see docs/data-format.md)."""
+    envmaps: EnvmapOptions = field(default_factory=EnvmapOptions)
+    field_relight: FieldRelightConfig = field(default_factory=FieldRelightConfig)
+    out: Path = Path("outputs/relight_field")
+    """Output folder: LIGHT/CAMERA.exr (linear RGBA) and .png, summary.json."""
+
+    def validate(self) -> None:
+        if not (self.envmap or self.olat or self.pattern):
+            raise GraMiInputError("lighting", "give at least one --envmap, --olat or --pattern")
+        super().validate()
+
+
+def run_relight_field(c: RelightFieldCommand) -> None:
+    capture = Capture.load(c.capture)
+    stage = load_calibration(capture.folder / "rig" / "calibration.json")
+    envmaps = {p.stem: c.envmaps.load(p) for p in c.envmap}
+    lights = collect_lights(stage, envmaps, c.olat, {p.stem: load_pattern(stage, p) for p in c.pattern})
+    names = capture.train_cameras + capture.eval_cameras
+    cameras = [names[int(x)] if x.isdigit() and x not in names else x for x in select(c.cameras, len(names), "cameras")]
+    if unknown := [x for x in cameras if x not in names]:
+        raise GraMiParameterError("cameras", f"{', '.join(unknown)}: not cameras of {capture.folder} ({', '.join(names)})")
+    lights = {name: light.intensities for name, light in lights.items()}
+    summary = relight_from_field(capture, c.out, lights, cameras, c.field_relight)
+    cost = ", ".join(f"{cam} {s['ms_per_lighting']:.1f} ms ({s['held']})" for cam, s in summary["cameras"].items())
+    print(f"wrote {len(lights)} lightings x {len(cameras)} cameras from {summary['olats']} OLATs to {c.out}; per lighting: {cost}")
+
+
+@dataclass(kw_only=True)
 class EvalLightingCommand(CommandConfig):
     capture: Path = field(metadata=option(positional=True))
     """Capture folder made by `gra-mi capture` (its scene_gt.xml holds the true materials)."""
@@ -180,5 +221,6 @@ COMMANDS = {
     "edit-texture": (EditTextureCommand, run_edit_texture),
     "export-gltf": (ExportGltfCommand, run_export_gltf),
     "relight": (RelightCommand, run_relight),
+    "relight-field": (RelightFieldCommand, run_relight_field),
     "eval-lighting": (EvalLightingCommand, run_eval_lighting),
 }

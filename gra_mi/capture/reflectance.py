@@ -1,0 +1,160 @@
+"""The reflectance field of a capture: one image per LED (OLAT), and the image under any LED drive as their weighted sum.
+
+Light is additive, so a camera's image under LED radiant intensities I (L, 3) is Σₖ (I[ℓₖ] / Iₖ) · OLATₖ, with ℓₖ the LED
+of OLAT k and Iₖ its intensity in that frame (Debevec et al. 2000). Per colour channel this is a matrix product of the
+drive weights (N lightings × K OLATs) with the OLAT stack (K × pixels), on the pixels any OLAT lights only.
+
+The stack is held in memory when it fits ``memory_gb`` (float32, else float16 with one scale per OLAT, so an HDR
+OLAT cannot overflow); otherwise the OLATs are read one at a time per batch of lightings (each OLAT read once per
+batch). Either way the result is the same sum; only the time differs.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.ndimage import binary_dilation
+
+from gra_mi.capture.dataset import Capture, load_observation
+from gra_mi.core.errors import GraMiInputError
+from gra_mi.core.progress import progress
+
+logger = logging.getLogger(__name__)
+
+MISSING_SHARE_LIMIT = 0.02
+"""A drive whose LEDs without an OLAT carry more than this share of its light cannot be summed (below it: a warning)."""
+SUBJECT_MARGIN = 2  # pixels kept around the first OLAT's subject: a path-traced or matted edge moves between images
+PIXEL_CHUNK = 1 << 16  # float16 stacks are widened to float32 this many pixels at a time
+
+
+@dataclass
+class OlatIndex:
+    """Which frames of a capture are OLATs: frame, LED and that LED's RGB intensity in the frame."""
+
+    frames: np.ndarray  # (K,) capture frame index
+    leds: np.ndarray  # (K,) LED index
+    intensity: np.ndarray  # (K, 3) the LED's radiant intensity in its OLAT
+    num_leds: int
+
+    @classmethod
+    def of(cls, capture: Capture, stage) -> OlatIndex:
+        """Every frame whose lighting is one LED (any split: an OLAT is a photograph either way)."""
+        frames, leds, intensity = [], [], []
+        for entry in capture.frames:
+            if entry.kind != "pattern":
+                continue
+            lighting = capture.lighting(stage, entry)
+            lit = np.flatnonzero(lighting.max(axis=1) > 0)
+            if lit.size == 1 and int(lit[0]) not in leds:
+                frames.append(entry.frame)
+                leds.append(int(lit[0]))
+                intensity.append(lighting[lit[0]])
+        if not frames:
+            raise GraMiInputError(
+                capture.folder / "capture.json", "no OLAT frames (a pattern lighting one LED): the capture holds no reflectance field"
+            )
+        return cls(np.array(frames), np.array(leds), np.array(intensity, np.float64), stage.num_leds)
+
+    def weights(self, lighting: np.ndarray, source: str) -> np.ndarray:
+        """(K, 3) weights of the OLATs for LED intensities (L, 3). LEDs the capture has no OLAT of: a warning naming
+        them when they carry little of the drive's light, an error naming them otherwise."""
+        lighting = np.asarray(lighting, np.float64)
+        if lighting.shape != (self.num_leds, 3):
+            raise GraMiInputError(source, f"expected ({self.num_leds}, 3) LED intensities, got {lighting.shape}")
+        if not np.all(np.isfinite(lighting)) or lighting.min() < 0:
+            raise GraMiInputError(source, "LED intensities must be finite and non-negative")
+        missing = np.setdiff1d(np.flatnonzero(lighting.max(axis=1) > 0), self.leds)
+        if missing.size:
+            share = float(lighting[missing].sum() / max(lighting.sum(), 1e-30))
+            named = ", ".join(str(i) for i in missing[:12]) + (" …" if missing.size > 12 else "")
+            if share > MISSING_SHARE_LIMIT:
+                raise GraMiInputError(source, f"drives LEDs {named} ({100 * share:.1f} % of its light), which have no OLAT in the capture")
+            logger.warning("%s: LEDs %s have no OLAT; their %.2f %% of the light is left out", source, named, 100 * share)
+        return lighting[self.leds] / np.maximum(self.intensity, 1e-30)
+
+
+@dataclass
+class ReflectanceField:
+    """One camera's OLATs over the subject's pixels; :meth:`relight` sums them for any drive."""
+
+    capture: Capture
+    camera: str
+    index: OlatIndex
+    shape: tuple[int, int]  # (height, width)
+    pixels: np.ndarray  # (P,) flat indices of the pixels any OLAT lights
+    alpha: np.ndarray  # (H, W) the subject's mask (the first OLAT's)
+    stack: np.ndarray | None = None  # (3, K, P) held in memory, or None: streamed from disk
+    scale: np.ndarray | None = None  # (K,) a float16 stack's per-OLAT scale
+    stats: dict = field(default_factory=dict)
+
+    @classmethod
+    def load(cls, capture: Capture, camera: str, index: OlatIndex, memory_gb: float = 4.0, progress_bar: bool = True) -> ReflectanceField:
+        """The OLATs of one camera over the first OLAT's subject pixels (its mask and anything it lights, grown by
+        ``SUBJECT_MARGIN``), held when
+        they fit ``memory_gb``. Light another OLAT puts outside those pixels is counted (``stats``), not kept."""
+        first = load_observation(capture, camera, int(index.frames[0]))
+        alpha = first[..., 3]
+        subject = (alpha > 0) | (first[..., :3].max(axis=-1) > 0)
+        pixels = np.flatnonzero(binary_dilation(subject, iterations=SUBJECT_MARGIN).ravel())
+        field_ = cls(capture, camera, index, first.shape[:2], pixels, alpha)
+        k, p = len(index.frames), pixels.size
+        held = 2 * 3 * k * p <= memory_gb * 2**30
+        if not held:
+            field_.stats = {"held": "streamed from disk", "bytes": 0}
+            return field_
+        dtype = np.float32 if 4 * 3 * k * p <= memory_gb * 2**30 else np.float16
+        field_.stack, field_.scale = np.empty((3, k, p), dtype), np.ones(k)
+        outside = total = 0.0
+        frames = progress(index.frames, description=f"OLATs {camera}") if progress_bar else index.frames
+        for j, frame in enumerate(frames):
+            rgb = load_observation(capture, camera, int(frame))[..., :3].reshape(-1, 3)
+            values = rgb[pixels].T
+            total += float(rgb.sum())
+            outside += float(rgb.sum() - values.sum())
+            if dtype == np.float16:  # an OLAT's own scale keeps HDR values inside float16's range
+                field_.scale[j] = max(float(values.max()), 1e-30)
+            field_.stack[:, j] = values / field_.scale[j]
+        field_.stats = {
+            "held": f"in memory ({np.dtype(dtype).name})",
+            "bytes": int(field_.stack.nbytes),
+            "light_outside": max(outside, 0.0) / max(total, 1e-30),
+        }
+        if outside > 1e-3 * total:
+            logger.warning("%s: %.2f %% of the OLATs' light falls outside the first OLAT's subject pixels", camera, 100 * outside / total)
+        return field_
+
+    def relight(self, weights: np.ndarray) -> np.ndarray:
+        """Images (N, H, W, 4) for OLAT weights (N, K, 3) (:meth:`OlatIndex.weights`); alpha is the subject's mask."""
+        weights = np.asarray(weights, np.float64)
+        if weights.ndim == 2:
+            weights = weights[None]
+        n = weights.shape[0]
+        sums = self._sum_held(weights) if self.stack is not None else self._sum_streamed(weights)
+        out = np.zeros((n, self.shape[0] * self.shape[1], 4), np.float32)
+        out[:, self.pixels, :3] = np.maximum(sums, 0.0)
+        out[..., 3] = self.alpha.ravel()[None]
+        return out.reshape(n, *self.shape, 4)
+
+    def _sum_held(self, weights: np.ndarray) -> np.ndarray:
+        n, p = weights.shape[0], self.pixels.size
+        sums = np.empty((n, p, 3), np.float32)
+        w = (weights * self.scale[None, :, None]).astype(np.float32)
+        for c in range(3):
+            if self.stack.dtype == np.float32:
+                sums[..., c] = w[..., c] @ self.stack[c]
+                continue
+            for start in range(0, p, PIXEL_CHUNK):  # float16 has no BLAS: widen one chunk at a time
+                block = self.stack[c, :, start : start + PIXEL_CHUNK].astype(np.float32)
+                sums[:, start : start + PIXEL_CHUNK, c] = w[..., c] @ block
+        return sums
+
+    def _sum_streamed(self, weights: np.ndarray) -> np.ndarray:
+        sums = np.zeros((weights.shape[0], self.pixels.size, 3), np.float64)
+        for j, frame in enumerate(self.index.frames):
+            if not np.any(weights[:, j]):
+                continue  # an LED no lighting of the batch drives is not read
+            image = load_observation(self.capture, self.camera, int(frame))[..., :3].reshape(-1, 3)[self.pixels]
+            sums += weights[:, j][:, None, :] * image[None]
+        return sums.astype(np.float32)

@@ -1,0 +1,147 @@
+"""The reflectance field: a capture's image under any LED drive as the weighted sum of its OLATs, checked against the
+images the capture rendered directly under white, gradient and environment-mapped drives (light is additive, so the
+two agree to the renders' noise); held, float16 and streamed sums alike; and the bad input a user brings."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gra_mi.cli import main
+
+SHRUNK = dict(
+    subject="tiny", num_leds=24, num_cameras=6, eval_cameras=2, width=72, height=96, uv_resolution=32, envmap_height=16,
+    spp=4, indirect_spp=4, envmap_frames=2, camera_distance=1.2,
+)  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def olat_captures(tmp_path_factory):
+    """The same static OLAT capture rendered by the path tracer and by the one-bounce renderer."""
+    from gra_mi.capture import synthetic
+    from gra_mi.core.runtime import choose_variant
+
+    choose_variant("llvm_ad_rgb")
+    root = tmp_path_factory.mktemp("olat")
+    original = synthetic.PRESETS["olat"]
+    synthetic.PRESETS["olat"] = dataclasses.replace(original, **SHRUNK)
+    try:
+        return {
+            renderer: synthetic.generate_capture(root / renderer, synthetic.CaptureConfig(preset="olat", measure_noise=False, renderer=renderer))
+            for renderer in ("path", "onebounce")
+        }  # fmt: skip
+    finally:
+        synthetic.PRESETS["olat"] = original
+
+
+def _field(capture, camera: str, memory_gb: float = 4.0):
+    from gra_mi.capture.reflectance import OlatIndex, ReflectanceField
+    from gra_mi.stage.lightstage import load_calibration
+
+    stage = load_calibration(capture.folder / "rig" / "calibration.json")
+    index = OlatIndex.of(capture, stage)
+    return stage, index, ReflectanceField.load(capture, camera, index, memory_gb, progress_bar=False)
+
+
+@pytest.mark.parametrize("renderer, tolerance", [("onebounce", 0.015), ("path", 0.08)])
+def test_the_sum_of_olats_is_the_image_under_the_combined_drive(olat_captures, renderer, tolerance):
+    """White, both gradients and the envmap-lit frames: Σ wᵢ · OLATᵢ against the capture's direct render of that drive
+    (the one-bounce renderer is nearly noise-free; the path tracer's 4 spp are not)."""
+    from gra_mi.capture.dataset import load_observation
+
+    capture = olat_captures[renderer]
+    stage, index, rf = _field(capture, "cam04")
+    combined = [e for e in capture.frames if e.frame not in index.frames]
+    assert [e.kind for e in combined] == ["pattern"] * 3 + ["envmap"] * 2
+    for entry in combined:
+        image = rf.relight(index.weights(capture.lighting(stage, entry), "drive"))[0]
+        truth = load_observation(capture, "cam04", entry.frame)
+        inside = truth[..., 3] > 0.5
+        error = np.abs(image[inside, :3] - truth[inside, :3]).mean() / truth[inside, :3].mean()
+        assert error < tolerance, (entry, error)
+        assert image[..., :3].sum() == pytest.approx(truth[..., :3].sum(), rel=0.01)
+        np.testing.assert_array_equal(image[..., 3], load_observation(capture, "cam04", int(index.frames[0]))[..., 3])
+
+
+def test_held_float16_and_streamed_sums_agree(olat_captures):
+    capture = olat_captures["path"]
+    stage, index, held = _field(capture, "cam05")
+    k, p = len(index.frames), held.pixels.size
+    half = _field(capture, "cam05", memory_gb=3 * k * p * 3 / 2**30)[2]  # fits as float16, not as float32
+    streamed = _field(capture, "cam05", memory_gb=0)[2]
+    assert held.stack.dtype == np.float32 and half.stack.dtype == np.float16 and streamed.stack is None
+    rng = np.random.default_rng(0)
+    weights = rng.uniform(0, 2, (3, k, 3))
+    a, b, c = held.relight(weights), half.relight(weights), streamed.relight(weights)
+    np.testing.assert_allclose(c, a, rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(b, a, rtol=2e-3, atol=1e-3 * a.max())
+
+
+def test_relight_field_writes_every_lighting_and_camera(olat_captures, tmp_path):
+    capture = olat_captures["path"]
+    out = tmp_path / "out"
+    white = capture.folder / "patterns" / "white.json"
+    envmap = capture.folder / capture.frames[3].envmap
+    args = ["relight-field", str(capture.folder), "--pattern", str(white), "--envmap", str(envmap), "--olat", "3"]
+    assert main([*args, "--cameras", "cam00,5", "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert set(summary["cameras"]) == {"cam00", "cam05"} and summary["olats"] == 24
+    for light in ("white", envmap.stem, "olat003"):
+        for camera in ("cam00", "cam05"):
+            assert (out / light / f"{camera}.exr").is_file() and (out / light / f"{camera}.png").is_file()
+
+
+def _drop_olats(capture, tmp_path: Path, leds: list[int]) -> Path:
+    folder = tmp_path / "partial"
+    shutil.copytree(capture.folder, folder)
+    data = json.loads((folder / "capture.json").read_text())
+    gone = {f"patterns/olat_{led:03d}.json" for led in leds}
+    data["frames"] = [f for f in data["frames"] if f.get("pattern") not in gone]
+    (folder / "capture.json").write_text(json.dumps(data))
+    return folder
+
+
+def test_missing_olats_warn_or_stop_by_the_light_they_carry(olat_captures, tmp_path, capsys, caplog):
+    capture = olat_captures["path"]
+    folder = _drop_olats(capture, tmp_path, [5])
+    drive = np.full(24, 1.0)
+    drive[5] = 0.01  # 0.04 % of the light: summed from the rest, with a warning naming LED 5
+    (tmp_path / "mostly.json").write_text(json.dumps({"intensities": drive.tolist()}))
+    base = ["relight-field", str(folder), "--cameras", "cam00", "--out", str(tmp_path / "out")]
+    assert main([*base, "--pattern", str(tmp_path / "mostly.json")]) == 0
+    assert "LEDs 5 have no OLAT" in caplog.text
+    assert main([*base, "--olat", "5"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "drives LEDs 5" in err[0] and "no OLAT in the capture" in err[0]
+
+
+@pytest.mark.parametrize(
+    "drive, needle",
+    [
+        (np.ones(23), "expected (24,) or (24, 3) LED intensities"),
+        (np.r_[np.nan, np.ones(23)], "finite and non-negative"),
+        (np.r_[-1.0, np.ones(23)], "finite and non-negative"),
+    ],
+)
+def test_a_bad_drive_is_refused_naming_its_file(olat_captures, tmp_path, capsys, drive, needle):
+    path = tmp_path / "drive.json"
+    path.write_text(json.dumps({"intensities": [None if np.isnan(v) else v for v in drive.tolist()]}))
+    args = ["relight-field", str(olat_captures["path"].folder), "--pattern", str(path), "--out", str(tmp_path / "out")]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(path) in err[0] and needle in err[0], err
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_capture_without_olats_is_refused(olat_captures, tmp_path, capsys):
+    capture = olat_captures["path"]
+    folder = _drop_olats(capture, tmp_path, list(range(24)))
+    args = ["relight-field", str(folder), "--olat", "1", "--out", str(tmp_path / "out")]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "capture.json" in err[0] and "no OLAT frames" in err[0], err
