@@ -39,11 +39,12 @@ class OlatIndex:
     num_leds: int
 
     @classmethod
-    def of(cls, capture: Capture, stage) -> OlatIndex:
-        """Every frame whose lighting is one LED (any split: an OLAT is a photograph either way)."""
+    def of(cls, capture: Capture, stage, splits: tuple[str, ...] = ("train", "test")) -> OlatIndex:
+        """Every frame of ``splits`` whose lighting is one LED (any split by default: an OLAT is a photograph either
+        way; RelightNet's synthesized lightings sum the training ones only)."""
         frames, leds, intensity = [], [], []
         for entry in capture.frames:
-            if entry.kind != "pattern":
+            if entry.kind != "pattern" or entry.split not in splits:
                 continue
             lighting = capture.lighting(stage, entry)
             lit = np.flatnonzero(lighting.max(axis=1) > 0)

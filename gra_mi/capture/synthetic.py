@@ -235,10 +235,13 @@ def olat_firing_order(stage) -> np.ndarray:
     return np.lexsort((np.arctan2(d[:, 0], d[:, 2]), np.round(d[:, 1], 1)))
 
 
+HELD_OUT_OLAT_EVERY = 10  # a static OLAT capture holds out every 10th OLAT of the firing order (as the import does)
+
+
 def _olat_schedule(preset: CapturePreset, stage, out: Path, user_envmaps: dict[str, np.ndarray]) -> list[FrameLighting]:
     """A static pose (mesh frame 0) lit as HumanOLAT lights one: frame 0 white (every LED at the stage maximum),
     1–2 gradients (bright above / below), then the environment-lit frames (held out: the test), then one OLAT per LED
-    in firing order (training, with the white and gradient frames)."""
+    in firing order (training, with the white and gradient frames; every ``HELD_OUT_OLAT_EVERY``-th held out)."""
     up, top = stage.led_directions()[:, 1], stage.max_led_intensity
     drives = {"white": np.full(stage.num_leds, top), "gradient_up": top * 0.5 * (1 + up), "gradient_down": top * 0.5 * (1 - up)}
     frames = [FrameLighting(i, "train", 0, "pattern", None, _write_drive(out, n, d), pose=0) for i, (n, d) in enumerate(drives.items())]
@@ -251,9 +254,10 @@ def _olat_schedule(preset: CapturePreset, stage, out: Path, user_envmaps: dict[s
     if remaining > 0:
         paths += [str(p.relative_to(out)) for p in write_envmap_set(out / "envmaps", "test", remaining, preset.envmap_height)]
     frames += [FrameLighting(len(frames) + k, "test", 0, "envmap", path, pose=0) for k, path in enumerate(paths)]
-    for led in olat_firing_order(stage):
-        drive = olat_pattern(stage, int(led))
-        frames.append(FrameLighting(len(frames), "train", 0, "pattern", None, _write_drive(out, f"olat_{led:03d}", drive), pose=0))
+    for k, led in enumerate(olat_firing_order(stage)):
+        drive, split = olat_pattern(stage, int(led)), "test" if k % HELD_OUT_OLAT_EVERY == HELD_OUT_OLAT_EVERY - 1 else "train"
+        pattern = _write_drive(out, f"olat_{led:03d}", drive)
+        frames.append(FrameLighting(len(frames), split, int(split == "test"), "pattern", None, pattern, pose=0))
     return frames
 
 

@@ -28,6 +28,7 @@ from gra_mi.core.progress import progress
 from gra_mi.core.runtime import torch_device
 from gra_mi.core.training import TrainingLoop, write_training_log
 from gra_mi.relightnet.infer import view_inputs
+from gra_mi.relightnet.lightings import SYNTHESIZED_SPLIT, TrainingViews, synthesized_views
 from gra_mi.relightnet.model import RelightNet, RelightNetConfig, exposure
 from gra_mi.render.bridge import camera_uv_grid, sample_texture, to_torch
 from gra_mi.render.runtime import ensure_mitsuba
@@ -67,12 +68,22 @@ class TrainConfig:
     """Height of the camera-space envmap the network sees (width = 2x)."""
     max_train_views: int | None = None
     """Train on the first N training views only (an overfitting check, or a quick look); default: all."""
+    held_out_views: int = 64
+    """Held-out views per held-out split (evenly spaced) that validation and the report score."""
+    synthesized_lightings: int = 0
+    """On a static capture with OLATs: also train on this many procedural envmaps (skies, rooms) mapped onto the
+    LEDs, each target the sum of the capture's training OLATs (docs/evaluation.md); 0: the capture's own only."""
+    synthesized_validation: int = 16
+    """With --synthesized-lightings: held-out procedural envmaps (another seed range), truth from the OLATs."""
 
     def validate(self) -> None:
 
         positive = {"steps": self.steps, "checkpoint_every": self.checkpoint_every, "log_every": self.log_every}
         positive |= {"base_channels": self.base_channels, "env_height": self.env_height, "batch_size": self.batch_size}
         positive |= {"validate_every": self.validate_every, "selection_views": self.selection_views}
+        positive |= {"held_out_views": self.held_out_views, "synthesized_validation": self.synthesized_validation}
+        if self.synthesized_lightings < 0:
+            raise GraMiParameterError("synthesized_lightings", f"must be >= 0, got {self.synthesized_lightings}")
         if self.max_train_views is not None:
             positive["max_train_views"] = self.max_train_views
         require_positive(positive)
@@ -107,12 +118,13 @@ class Sample:
     selection: bool = False  # one of the held-out views that choose the weights (reported apart)
 
 
-HELD_OUT = ("novel view", "novel lighting (envmap)", "novel lighting (OLAT)")
+HELD_OUT = ("novel view", "novel lighting (envmap)", "novel lighting (OLAT)", SYNTHESIZED_SPLIT)
+LAZY_TRAINING_BYTES = 2 << 30  # above this, training views are made when drawn instead of held
 
 
-def build_samples(capture, relighter, env_height: int, device: str = "cpu", splits=("train", *HELD_OUT)) -> list[Sample]:
-
-    stage = relighter.ls.stage
+def view_jobs(capture, splits=("train", *HELD_OUT)) -> list[tuple]:
+    """(frame entry, camera, split) of every view of the capture in ``splits``: training frames from the training
+    cameras (and from the held-out ones: novel views), test frames from one training and every held-out camera."""
     jobs = []
     for entry in capture.frames:
         if entry.split == "train":
@@ -120,18 +132,37 @@ def build_samples(capture, relighter, env_height: int, device: str = "cpu", spli
         else:
             split = "novel lighting (OLAT)" if entry.kind == "pattern" else "novel lighting (envmap)"
             jobs += [(entry, c, split) for c in capture.train_cameras[:1] + capture.eval_cameras]
-    jobs = [j for j in jobs if j[2] in splits]
-    samples = []
-    for entry, cam, split in progress(jobs, description="RelightNet samples"):
-        intensities = capture.lighting(stage, entry)
-        features, mask, env, _ = view_inputs(relighter, entry.mesh_frame, cam, intensities, env_height, device)
-        relighter.ls.set_frame(entry.mesh_frame)
-        grid, hit = camera_uv_grid(relighter.ls, stage.camera(cam), device)
-        image = load_observation(capture, cam, entry.frame)
-        target = to_torch(image[..., :3], device).permute(2, 0, 1)[None].contiguous()
-        pixels = hit * to_torch((image[..., 3] > 0.99).astype(np.float32), device)[None, None]
-        samples.append(Sample(f"{cam}/frame_{entry.frame:04d}", split, features, mask, env, grid, pixels, target))
-    return samples
+    return [j for j in jobs if j[2] in splits]
+
+
+@dataclass
+class CapturedView:
+    """Makes the :class:`Sample` of one captured view; each (pose, camera)'s UV grid is traced once."""
+
+    capture: object
+    relighter: object
+    env_height: int
+    device: str = "cpu"
+    grids: dict = field(default_factory=dict)
+
+    def __call__(self, job: tuple) -> Sample:
+        entry, cam, split = job
+        stage = self.relighter.ls.stage
+        intensities = self.capture.lighting(stage, entry)
+        features, mask, env, _ = view_inputs(self.relighter, entry.mesh_frame, cam, intensities, self.env_height, self.device)
+        if (entry.mesh_frame, cam) not in self.grids:
+            self.relighter.ls.set_frame(entry.mesh_frame)
+            self.grids[entry.mesh_frame, cam] = camera_uv_grid(self.relighter.ls, stage.camera(cam), self.device)
+        grid, hit = self.grids[entry.mesh_frame, cam]
+        image = load_observation(self.capture, cam, entry.frame)
+        target = to_torch(image[..., :3], self.device).permute(2, 0, 1)[None].contiguous()
+        pixels = hit * to_torch((image[..., 3] > 0.99).astype(np.float32), self.device)[None, None]
+        return Sample(f"{cam}/frame_{entry.frame:04d}", split, features, mask, env, grid, pixels, target)
+
+
+def build_samples(capture, relighter, env_height: int, device: str = "cpu", splits=("train", *HELD_OUT)) -> list[Sample]:
+    make = CapturedView(capture, relighter, env_height, device)
+    return [make(job) for job in progress(view_jobs(capture, splits), description="RelightNet samples")]
 
 
 def mark_selection(samples: list[Sample], per_split: int) -> None:
@@ -181,12 +212,9 @@ def train_relightnet(capture_dir: str | Path, fit_dir: str | Path, out: str | Pa
     out = Path(out)
     capture, relighter = fitted_relighter(capture_dir, fit_dir, out / "cache" if loop.rank == 0 else None)
     loop.claim("train-relightnet", {"capture": capture_dir, "fit": fit_dir}, config, overwrite)
-    samples = build_samples(capture, relighter, config.env_height, device)
-    mark_selection(samples, config.selection_views)
-    train = [s for s in samples if s.split == "train"][: config.max_train_views or None]
-    if not train:
-        raise GraMiInputError(capture.folder / "capture.json", "no training views")
-    mine = train[loop.rank :: loop.world]  # each process its share
+    train, held_out = _views(capture, relighter, config, device, out / "cache" if loop.rank == 0 else None)
+    samples = lit(train.spread(config.held_out_views)) + held_out  # what the report scores
+    mine = train.share(loop.rank, loop.world)  # each process its share
     net_config = RelightNetConfig(
         resolution=relighter.albedo_tex.shape[0], base_channels=config.base_channels, env_height=config.env_height, patch=config.patch
     )
@@ -217,7 +245,44 @@ def train_relightnet(capture_dir: str | Path, fit_dir: str | Path, out: str | Pa
         model.load_state_dict(selector.best["model"])  # what the last checkpoint keeps, too: no non-finite weights
     if not loop.finish():
         return out
-    return _write_outputs(out, model, selector, train, samples, loop)
+    return _write_outputs(out, model, selector, train.spread(config.held_out_views), samples, loop)
+
+
+def _views(capture, relighter, config: TrainConfig, device: str, cache: Path | None) -> tuple[TrainingViews, list[Sample]]:
+    """The training views (held, or made when drawn when they would not fit ``LAZY_TRAINING_BYTES`` or lightings are
+    synthesized) and the held-out views (at most ``held_out_views`` per split, the selection views marked)."""
+    make = CapturedView(capture, relighter, config.env_height, device)
+    jobs = view_jobs(capture, HELD_OUT)
+    jobs = [j for split in HELD_OUT for j in _evenly([j for j in jobs if j[2] == split], config.held_out_views)]
+    held_out = [make(j) for j in progress(jobs, description="RelightNet held-out views")]
+    held_out = lit(held_out)
+    train_jobs = view_jobs(capture, ("train",))[: config.max_train_views or None]
+    if not train_jobs:
+        raise GraMiInputError(capture.folder / "capture.json", "no training views")
+    synth = None
+    if config.synthesized_lightings:
+        synth, validation = synthesized_views(capture, relighter, config, device, cache)
+        held_out += validation
+    mark_selection(held_out, config.selection_views)
+    r = relighter.albedo_tex.shape[0]
+    if synth is None and len(train_jobs) * 4 * 20 * r * r <= LAZY_TRAINING_BYTES:
+        return TrainingViews([make(j) for j in progress(train_jobs, description="RelightNet samples")], make), held_out
+    return TrainingViews(train_jobs, make, synth), held_out
+
+
+def lit(samples: list[Sample]) -> list[Sample]:
+    """The views whose truth has light on the subject: an OLAT behind the subject leaves a camera nothing to score
+    (black against black, an infinite PSNR)."""
+    dark = [s for s in samples if not float((s.target * s.pixels).sum()) > 0]
+    if dark:
+        logger.info("%d views show no light on the subject and are not scored (%s, ...)", len(dark), dark[0].name)
+    return [s for s in samples if float((s.target * s.pixels).sum()) > 0]
+
+
+def _evenly(items: list, count: int) -> list:
+    if len(items) <= count:
+        return items
+    return [items[k] for k in np.unique(np.linspace(0, len(items) - 1, count).round().astype(int))]
 
 
 @dataclass
