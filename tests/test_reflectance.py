@@ -173,3 +173,47 @@ def test_relightnet_trains_on_lightings_synthesized_from_the_olats(olat_captures
     synthesized = {k: v for k, v in splits.items() if k.startswith(SYNTHESIZED_SPLIT)}
     assert sum(v["microfacet"]["views"] for v in synthesized.values()) == 2 * len(capture.eval_cameras)
     assert all(np.isfinite(v[m]["psnr"]) for v in splits.values() for m in ("microfacet", "relightnet"))
+
+
+def test_eval_scores_held_out_olats_and_maps_whose_truth_is_the_olat_sum(olat_captures, tmp_path, capsys):
+    """`gra-mi eval` on a static OLAT capture: the capture's held-out OLATs and envmaps (every frame scored, a lighting
+    set is not a video), and a user's map and library maps with the reflectance field as truth."""
+    from gra_mi.capture.dataset import load_observation
+    from gra_mi.core.io import write_exr
+    from gra_mi.eval.reflectance import FieldLighting, FieldTruth
+    from gra_mi.stage.lightstage import load_calibration
+
+    capture = olat_captures["path"]
+    fit = tmp_path / "fit"
+    assert main(["fit", str(capture.folder), "--out", str(fit), "--solver", "closed-form", "--roughness-candidates", "3"]) == 0
+    sky = np.full((8, 16, 3), 0.2, np.float32)
+    sky[:3] = 2.0  # bright above
+    write_exr(tmp_path / "my_sky.exr", sky)
+    out = tmp_path / "eval"
+    args = ["eval", "--capture", str(capture.folder), "--fit", str(fit), "--out", str(out), "--library-envmaps", "2"]
+    assert main([*args, "--envmap", str(tmp_path / "my_sky.exr")]) == 0
+    report = json.loads((out / "eval.json").read_text())
+    splits = report["protocol"]["splits"]
+    cam = capture.eval_cameras[0]
+    assert splits[f"field_{cam}"]["lighting"] == "my_sky, library_000, library_001"
+    assert splits[f"field_{cam}"]["truth"].startswith("Σ OLAT") and splits[f"field_{cam}"]["scored"] == [0, 1, 2]
+    olats = next(s for s in splits.values() if s["lighting"] == "LED pattern")
+    assert olats["scored"] == list(range(olats["frames"])) and olats["truth"] == "the capture's images"
+    scores = report["stages"]["microfacet"]["splits"][f"field_{cam}"]
+    assert 15 < scores["psnr"] < 60 and scores["frames_scored"] == 3
+    assert "truth Σ OLAT" in (out / "eval.md").read_text()
+    # the truth of a map the capture did photograph is that photograph, within the renders' noise
+    stage = load_calibration(capture.folder / "rig" / "calibration.json")
+    entry = next(f for f in capture.frames if f.kind == "envmap")
+    summed = FieldTruth(capture, stage)(cam, FieldLighting("probe", capture.lighting(stage, entry)))
+    photo = load_observation(capture, cam, entry.frame)
+    assert summed[..., :3].sum() == pytest.approx(photo[..., :3].sum(), rel=0.01)
+
+
+def test_eval_refuses_a_reflectance_field_truth_without_olats(olat_captures, tmp_path, capsys):
+    capture = olat_captures["path"]
+    folder = _drop_olats(capture, tmp_path, list(range(24)))
+    args = ["eval", "--capture", str(folder), "--out", str(tmp_path / "eval"), "--library-envmaps", "1"]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "capture.json" in err[0] and "no OLAT frames" in err[0], err

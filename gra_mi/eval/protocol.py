@@ -42,10 +42,11 @@ from gra_mi.core.io import atomic_write_text, pyplot, read_exr, read_json, save_
 from gra_mi.core.metrics import compare, flip, flip_map, subject_mask, temporal_error
 from gra_mi.core.progress import progress
 from gra_mi.core.runtime import torch_device
+from gra_mi.eval.reflectance import TRUTH
 from gra_mi.refiner.config import RefinerConfig
 from gra_mi.render.composite import PLATFORM_FLAGS, PlatformCompositor, PlatformConfig
 from gra_mi.render.runtime import ensure_mitsuba
-from gra_mi.stage.envmap import envmap_to_leds, load_envmap
+from gra_mi.stage.envmap import EnvmapOptions, envmap_to_leds, load_envmap
 
 logger = logging.getLogger(__name__)
 
@@ -76,8 +77,17 @@ class EvalConfig:
     """Also write the side-by-side videos over the environment on a platform with the subject's shadow."""
     platform: PlatformConfig = field(default_factory=PlatformConfig, metadata=option(renames=PLATFORM_FLAGS))
     """The platform of the composites (gra_mi.render.composite)."""
+    envmap: list[Path] = field(default_factory=list, metadata=option(repeat=True))
+    """A static OLAT capture: also score under this HDR map (repeatable), the truth the sum of the capture's OLATs
+    under the map's LED drive (its reflectance field; docs/evaluation.md)."""
+    library_envmaps: int = 0
+    """A static OLAT capture: also score under this many held-out procedural maps (skies, rooms), truth from the OLATs."""
+    envmaps: EnvmapOptions = field(default_factory=EnvmapOptions)
 
     def validate(self) -> None:
+        if self.library_envmaps < 0:
+            raise GraMiParameterError("library_envmaps", f"must be >= 0, got {self.library_envmaps}")
+        self.envmaps.validate()
         if self.frames not in FRAME_SELECTIONS:
             raise GraMiParameterError("frames", f"expected one of {', '.join(FRAME_SELECTIONS)}, got '{self.frames}'")
         if self.scale is not None and not (0 < self.scale <= 1):
@@ -141,8 +151,14 @@ class Split:
 
     name: str
     camera: str
-    capture_frames: list[int]
+    capture_frames: list[int]  # negative: a lighting of ``lights`` (no capture frame; truth from the OLATs)
     refined_dir: Path | None = None
+    lighting_set: bool = False  # one pose under many lightings (not a video): every frame is scored
+    lights: dict[int, object] = field(default_factory=dict)  # frame id < 0 → FieldLighting
+
+
+def scored_frames(split: Split, how: str) -> list[int]:
+    return list(range(len(split.capture_frames))) if split.lighting_set else frame_selection(len(split.capture_frames), how)
 
 
 @dataclass
@@ -196,10 +212,25 @@ def _splits(capture, dataset, refined: dict[str, Path]) -> list[Split]:
             frames = entry.get("capture_frames") or [test[i % len(test)] for i in range(int(entry["frames"]))]
             splits.append(Split(entry["name"], cam, list(frames), refined.get(entry["name"])))
             continue
+        static = len({f.mesh_frame for f in capture.frames}) == 1
         for k, frames in sequences.items():
             name = f"test_{cam}" if len(sequences) == 1 else f"test{k}_{cam}"
-            splits.append(Split(name, cam, frames))
+            splits.append(Split(name, cam, frames, lighting_set=static))
     return splits
+
+
+def _field_splits(capture, config: EvalConfig) -> list[Split]:
+    """One split per held-out camera under the user's and the library's maps, truth from the reflectance field."""
+    from gra_mi.eval.reflectance import field_lightings, static_pose
+    from gra_mi.stage.lightstage import load_calibration
+
+    if not (config.envmap or config.library_envmaps):
+        return []
+    static_pose(capture)
+    stage = load_calibration(capture.folder / "rig" / "calibration.json")
+    lights = field_lightings(capture, stage, {p.stem: config.envmaps.load(p) for p in config.envmap}, config.library_envmaps)
+    by_id = {-(k + 1): light for k, light in enumerate(lights)}
+    return [Split(f"field_{cam}", cam, list(by_id), lighting_set=True, lights=by_id) for cam in capture.eval_cameras]
 
 
 def _perceptual_models(config: EvalConfig):
@@ -225,7 +256,7 @@ def evaluate(inputs: EvalInputs, out: str | Path, config: EvalConfig | None = No
     status = _Status(inputs)
     relighter, model = _texture_stages(inputs, capture, out, status)
     dataset, refined = _video_stages(inputs, status)
-    splits = _splits(capture, dataset if refined else None, refined)
+    splits = _splits(capture, dataset if refined else None, refined) + _field_splits(capture, config)
     scale = config.scale
     if scale is None:
         scale = float(dataset.meta.get("scale", dataset.crop[1] / capture_width(capture))) if refined else 1.0
@@ -322,15 +353,28 @@ class _Frames:
     def __init__(self, capture, relighter, model, scale: float):
         self.capture, self.relighter, self.model, self.scale = capture, relighter, model, scale
         self.entries = {f.frame: f for f in capture.frames}
+        self.pose = capture.frames[0].mesh_frame  # a static capture's one pose (the reflectance-field splits')
         self.cache: dict[tuple, np.ndarray] = {}
         self.seconds: dict[str, list[float]] = {"microfacet": [], "RelightNet": []}
 
     def truths(self, split: Split) -> list[np.ndarray]:
+        from gra_mi.eval.reflectance import FieldTruth
 
         for f in split.capture_frames:
             if ("truth", split.camera, f) not in self.cache:
-                self.cache["truth", split.camera, f] = _downscale(load_observation(self.capture, split.camera, f), self.scale)
+                if f < 0:  # a lighting the capture never photographed: the sum of its OLATs
+                    self.field_truth = getattr(self, "field_truth", None) or FieldTruth(self.capture, self.relighter.ls.stage)
+                    image = self.field_truth(split.camera, split.lights[f])
+                else:
+                    image = load_observation(self.capture, split.camera, f)
+                self.cache["truth", split.camera, f] = _downscale(image, self.scale)
         return [self.cache["truth", split.camera, f] for f in split.capture_frames]
+
+    def lighting(self, split: Split, f: int) -> tuple[int, np.ndarray]:
+        """(mesh frame, LED intensities) of a split's frame."""
+        if f < 0:
+            return self.pose, split.lights[f].intensities
+        return self.entries[f].mesh_frame, self.capture.lighting(self.relighter.ls.stage, self.entries[f])
 
     def rendered(self, stage: str, split: Split) -> list[np.ndarray]:
         from gra_mi.relightnet.infer import render_view
@@ -339,8 +383,8 @@ class _Frames:
         for f in split.capture_frames:
             if (stage, split.camera, f) not in self.cache:
                 start = time.perf_counter()
-                lighting = self.capture.lighting(self.relighter.ls.stage, self.entries[f])
-                image = render_view(self.relighter, net, self.entries[f].mesh_frame, split.camera, lighting).image
+                pose, lighting = self.lighting(split, f)
+                image = render_view(self.relighter, net, pose, split.camera, lighting).image
                 self.seconds[stage].append(time.perf_counter() - start)
                 self.cache[stage, split.camera, f] = _downscale(image, self.scale)
         return [self.cache[stage, split.camera, f] for f in split.capture_frames]
@@ -373,7 +417,7 @@ def _score_split(split: Split, frames: dict, results: dict, config: EvalConfig, 
     truths = frames["truth"]
     masks = [subject_mask(t) for t in truths]
     exposure = float(np.median([display_exposure(t, m) for t, m in zip(truths, masks, strict=True)]))
-    scored = frame_selection(len(truths), config.frames)
+    scored = scored_frames(split, config.frames)
     for stage in STAGES:
         if stage in frames:
             results[stage].splits[split.name] = _score(frames[stage], truths, masks, exposure, scored, lpips_model)
@@ -408,9 +452,10 @@ def _protocol(config: EvalConfig, scale: float, splits: list[Split], capture, vi
         "splits": {
             s.name: {
                 "camera": s.camera,
-                "lighting": _lighting_said(capture, s.capture_frames),
+                "lighting": _lighting_said(capture, s),
+                "truth": TRUTH if s.lights else "the capture's images",
                 "frames": len(s.capture_frames),
-                "scored": frame_selection(len(s.capture_frames), config.frames),
+                "scored": scored_frames(s, config.frames),
             }
             for s in splits
         },
@@ -510,10 +555,12 @@ def _contact_sheet(path: Path, frames: dict, truths, masks, exposure: float, sco
     save_figure(fig, path)
 
 
-def _lighting_said(capture, frames: list[int]) -> str:
-    """The held-out lighting of a split in words: its envmaps' file names, or 'LED pattern'."""
+def _lighting_said(capture, split: Split) -> str:
+    """The held-out lighting of a split in words: its envmaps' names, or 'LED pattern'."""
+    if split.lights:
+        return ", ".join(light.name for light in split.lights.values())
     entries = {f.frame: f for f in capture.frames}
-    names = dict.fromkeys(Path(entries[f].envmap).stem if entries[f].envmap else "LED pattern" for f in frames)
+    names = dict.fromkeys(Path(entries[f].envmap).stem if entries[f].envmap else "LED pattern" for f in split.capture_frames)
     return ", ".join(names)
 
 
@@ -534,6 +581,9 @@ def _write_videos(folder: Path, videos: dict, splits: list[Split], capture, reli
 
         stage = relighter.ls.stage
         entries = {f.frame: f for f in capture.frames}
+        if split.lights:
+            logger.warning("%s: no composites of reflectance-field splits (their maps are not capture frames), skipped", split.name)
+            continue
         if any(entries[f].kind != "envmap" for f in split.capture_frames):
             logger.warning("%s: composites need environment lighting; this sequence has LED patterns, skipped", split.name)
             continue
@@ -656,7 +706,7 @@ def protocol_said(report: dict) -> str:
 def eval_markdown(report: dict) -> str:
     protocol = report["protocol"]
     lines, notes = eval_table(report)
-    text = ["# Evaluation: every stage against the path-traced truth", "", protocol_said(report), "", *lines, ""]
+    text = ["# Evaluation: every stage against the truth", "", protocol_said(report), "", *lines, ""]
     if notes:
         text += ["Skipped, and why:", "", *notes, ""]
     if not protocol["lpips"]:
@@ -665,7 +715,7 @@ def eval_markdown(report: dict) -> str:
         text.append("FVD: not measured (give `--i3d-weights`).")
     text.append("")
     for s, about in protocol["splits"].items():
-        text.append(f"- {s}: camera {about['camera']}, lighting {about['lighting']}, {about['frames']} frames")
+        text.append(f"- {s}: camera {about['camera']}, lighting {about['lighting']}, {about['frames']} frames, truth {about['truth']}")
     text.append("")
     for s in protocol["splits"]:
         videos = f"[videos/{s}.mp4](videos/{s}.mp4)"
