@@ -44,10 +44,14 @@ def test_every_capture_preset_runs_shrunk(name, tmp_path, monkeypatch, llvm_vari
 def test_demo_and_bench_presets_refer_to_what_exists():
     from gra_mi.apps.bench import PRESETS as BENCH_PRESETS
     from gra_mi.apps.demo import PRESETS as DEMO_PRESETS
+    from gra_mi.apps.demo import OlatDemoPreset
     from gra_mi.capture.synthetic import CaptureConfig
 
     for preset in DEMO_PRESETS.values():
         CaptureConfig(preset=preset.capture, renderer=preset.renderer).validate()
+        if isinstance(preset, OlatDemoPreset):
+            assert CAPTURE_PRESETS[preset.capture].static_olat and preset.synthesized_lightings >= 1000
+            continue
         assert 0 < preset.refiner_scale <= 1 and preset.relightnet_steps > 0 and preset.refiner_steps > 0
     for preset in BENCH_PRESETS.values():
         assert max(preset.led_counts) <= 331 and all(r > 0 for r in preset.uv_resolutions)

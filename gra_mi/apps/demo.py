@@ -52,7 +52,26 @@ class DemoPreset:
     platform_spp: int  # samples per pixel of the platform layer of the composites
 
 
+@dataclass(kw_only=True, frozen=True)
+class OlatDemoPreset:
+    """The static-pose pipeline: an OLAT capture → a fit from the OLATs → RelightNet on lightings synthesized from the
+    reflectance field → evaluation under held-out envmaps and OLATs (no video stages: one pose)."""
+
+    name: str
+    capture: str  # a static_olat capture preset
+    renderer: str
+    roughness_candidates: int
+    calibrate_brightness: bool  # off: on OLATs the calibration adds the indirect light of the dim views to the albedo
+    relightnet_steps: int
+    synthesized_lightings: int
+    library_envmaps: int  # held-out procedural maps scored by `gra-mi eval`, truth from the OLATs
+
+
 PRESETS = {
+    "olat": OlatDemoPreset(
+        name="olat", capture="olat_quick", renderer="path", roughness_candidates=11, calibrate_brightness=False,
+        relightnet_steps=1000, synthesized_lightings=1024, library_envmaps=8,
+    ),
     "tiny": DemoPreset(
         name="tiny", capture="tiny", renderer="onebounce", roughness_candidates=5, relightnet_steps=20, refiner_scale=0.25,
         refiner_steps=20, refiner_euler_steps=4, lighting_spp=16, platform_spp=4,
@@ -153,6 +172,8 @@ def run_demo(preset_name: str, out: Path, overwrite: bool = False) -> Path:
     timings = record["timings"]
     with _timed(timings, f"capture ({preset.capture}, {preset.renderer} ground truth)"):
         capture, ls = _capture_stage(preset, out, record)
+    if isinstance(preset, OlatDemoPreset):
+        return _olat_demo(preset, capture, ls, out, record)
     with _timed(timings, "envmap→LED"):
         record["led_mappings"] = _led_mapping_plots(capture, ls.stage, out)
     fit_result = _learn_stages(preset, capture, out, record)
@@ -166,7 +187,35 @@ def run_demo(preset_name: str, out: Path, overwrite: bool = False) -> Path:
     return out / "report.md"
 
 
-def _capture_stage(preset: DemoPreset, out: Path, record: dict):
+def _olat_demo(preset: OlatDemoPreset, capture, ls, out: Path, record: dict) -> Path:
+    """Fit from the OLATs, RelightNet on synthesized lightings, the relit contact sheet, `gra-mi eval` (the capture's
+    held-out envmaps and OLATs, and library maps whose truth is the OLAT sum), glTF; demo.json and report.md."""
+    from gra_mi.fit.materials import FitConfig, run_fit
+    from gra_mi.relightnet.train import TrainConfig, train_relightnet
+    from gra_mi.render.relighter import Relighter
+
+    timings = record["timings"]
+    with _timed(timings, "material fit from the OLATs"):
+        config = FitConfig(roughness_candidates=preset.roughness_candidates, calibrate_brightness=preset.calibrate_brightness)
+        fit_result, _ = run_fit(capture.folder, out / "fit", config)
+    record["fit"] = json.loads((out / "fit" / "fit.json").read_text())
+    with _timed(timings, f"RelightNet training ({preset.relightnet_steps} steps, {preset.synthesized_lightings} synthesized lightings)"):
+        train = TrainConfig(steps=preset.relightnet_steps, synthesized_lightings=preset.synthesized_lightings)
+        train_relightnet(capture.folder, out / "fit", out / "relightnet", train)
+    record["relightnet"] = json.loads((out / "relightnet" / "validation.json").read_text())
+    relighter = Relighter(ls, albedo=fit_result.albedo, roughness=fit_result.roughness, cache_dir=out / "cache" / "visibility")
+    with _timed(timings, "relight (fitted maps, one-bounce)"):
+        relit_contact_sheet(capture, relighter, [f for f in capture.frames if f.split == "test"], out)
+    with _timed(timings, "evaluation (gra-mi eval; library maps' truth from the OLATs)"):
+        record["eval"] = evaluate(EvalInputs.from_run(out), out / "eval", EvalConfig(library_envmaps=preset.library_envmaps))
+    with _timed(timings, "glTF export"):
+        export_glb(out / "avatar.glb", ls.sequence, fit_result.albedo, fit_result.roughness)
+    atomic_write_text(out / "demo.json", json.dumps(record, indent=1, default=float) + "\n")
+    atomic_write_text(out / "report.md", demo_markdown(record))
+    return out / "report.md"
+
+
+def _capture_stage(preset: DemoPreset | OlatDemoPreset, out: Path, record: dict):
     """The synthetic capture; what the report says of its rig, subject and ground truth."""
 
     capture = generate_capture(out / "capture", CaptureConfig(preset=preset.capture, renderer=preset.renderer))

@@ -16,6 +16,8 @@ NAN = float("nan")
 
 def demo_markdown(record: dict) -> str:
     sections = (_header, _stages, _fit, _relightnet, _refiner, _lighting, _noise, _fidelity, _files)
+    if "refiner" not in record:  # the static-pose (OLAT) demo: no video stages, no reference-map lighting models
+        sections = (_header, _stages, _fit, _relightnet, _files)
     return "\n".join(line for section in sections for line in section(record)) + "\n"
 
 
@@ -42,6 +44,14 @@ def _header(r: dict) -> list[str]:
         "",
         f"Truth | each stage, ꟻLIP error below: ![contact sheet](eval/contact_{first_split}.png)",
         "",
+        *_composite_said(r),
+    ]
+
+
+def _composite_said(r: dict) -> list[str]:
+    if "video" not in r:
+        return ["Each split's truth: " + "; ".join(f"{s}: {a['truth']}" for s, a in r["eval"]["protocol"]["splits"].items()), ""]
+    return [
         "RelightNet's render of the held-out camera over the held-out environment, on a platform with the subject's shadow "
         f"(path-traced under the same environment): ![composite](composite.png) · video: [{r['video']}]({r['video']}) · "
         "every stage side by side, composited: [eval/videos/](eval/videos/)",
@@ -244,8 +254,9 @@ def _fidelity(r: dict) -> list[str]:
 
 
 def _files(r: dict) -> list[str]:
+    video = f"Video: [{r['video']}]({r['video']}) · " if "video" in r else ""
     return [
-        f"Video: [{r['video']}]({r['video']}) · Avatar: [avatar.glb](avatar.glb) (opens in Blender)",
+        f"{video}Avatar: [avatar.glb](avatar.glb) (opens in Blender)",
         "",
         "Data: `capture/` (images, masks, true maps, `scene.xml` loads in plain Mitsuba), `fit/` (albedo.exr, roughness.exr),",
         "`renders/` (linear RGBA EXR), `demo.json` (this report's numbers, from the stages' own records).",

@@ -99,6 +99,12 @@ PRESETS = {
         num_cameras=8, eval_cameras=2, width=90, height=160, camera_distance=1.8, uv_resolution=256, envmap_height=64,
         spp=16, indirect_spp=16, static_olat=True,
     ),
+    # The olat capture at a size `gra-mi demo --preset olat` renders in minutes (the sum of 331 OLATs averages the noise).
+    "olat_quick": CapturePreset(
+        name="olat_quick", subject="anny", train_clips=["walk"], test_clips=[], frames_per_clip=1, num_leds=331,
+        num_cameras=8, eval_cameras=2, width=72, height=128, camera_distance=1.8, uv_resolution=128, envmap_height=32,
+        spp=4, indirect_spp=4, static_olat=True, envmap_frames=4,
+    ),
     # The paper's protocol: 40 cameras at 1024x540, interleaved full-on / relit frames (a GPU's work).
     "full": CapturePreset(
         name="full", subject="anny", train_clips=["walk", "arm_raise", "turn"], test_clips=["squat"], frames_per_clip=24,

@@ -14,8 +14,10 @@ from gra_mi.eval.protocol import EvalConfig, EvalInputs, evaluate
 
 @dataclass(kw_only=True)
 class DemoCommand(Restartable):
-    preset: str = field(default="small", metadata=option(choices=("tiny", "small")))
-    """tiny: procedural subject, seconds (CI). small: the anny body on the default 331-LED rig, minutes on 2 cores."""
+    preset: str = field(default="small", metadata=option(choices=("tiny", "small", "olat")))
+    """tiny: procedural subject, seconds (CI). small: the anny body on the default 331-LED rig, minutes on 2 cores.
+    olat: a static pose lit by each of 331 LEDs (a reflectance field), fitted from the OLATs, RelightNet trained on
+    lightings synthesized from them, scored under held-out envmaps and OLATs."""
     out: Path = Path("outputs/demo")
     """Output folder (renders, plots, report.md)."""
 
