@@ -1,5 +1,6 @@
-"""Put a demo run's headline table into the README (between its ``<!-- headline -->`` markers) and its results
-section into docs/results/demo.md, stamped with the run's commit, preset and machine.
+"""Put a demo run's headline table into the README (between its ``<!-- headline -->`` markers; ``<!-- olat-headline
+-->`` for `--preset olat`) and its results section into docs/results/demo.md (olat-demo.md), stamped with the run's
+commit, preset and machine.
 
     .venv/bin/python scripts/publish_demo.py outputs/demo
 """
@@ -25,10 +26,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"publish_demo: error: {source}: missing (run `gra-mi demo` first)", file=sys.stderr)
         return 2
     record = json.loads(source.read_text())
+    static = "refiner" not in record  # `--preset olat`: its own block and page
+    block, page = ("olat-headline", "olat-demo.md") if static else ("headline", "demo.md")
     readme = ROOT / "README.md"
-    readme.write_text(with_block(readme.read_text(), "headline", headline(record)))
-    (ROOT / "docs" / "results" / "demo.md").write_text(results_page(record))
-    print(f"updated {readme} and docs/results/demo.md from {source}")
+    readme.write_text(with_block(readme.read_text(), block, headline(record)))
+    (ROOT / "docs" / "results" / page).write_text(results_page(record))
+    print(f"updated {readme} ({block}) and docs/results/{page} from {source}")
     return 0
 
 

@@ -205,7 +205,7 @@ def test_eval_scores_held_out_olats_and_maps_whose_truth_is_the_olat_sum(olat_ca
     # the truth of a map the capture did photograph is that photograph, within the renders' noise
     stage = load_calibration(capture.folder / "rig" / "calibration.json")
     entry = next(f for f in capture.frames if f.kind == "envmap")
-    summed = FieldTruth(capture, stage)(cam, FieldLighting("probe", capture.lighting(stage, entry)))
+    summed = FieldTruth(capture)(cam, FieldLighting("probe", capture.lighting(stage, entry)))
     photo = load_observation(capture, cam, entry.frame)
     assert summed[..., :3].sum() == pytest.approx(photo[..., :3].sum(), rel=0.01)
 
@@ -266,3 +266,22 @@ def test_a_fit_from_olats_beats_the_constant_maps(tmp_path):
     assert record["capture"]["training_frames"] == sum(f["split"] == "train" for f in data["frames"]) == 58
     assert ours["roughness_mae"] < constant["roughness_mae"] and ours["roughness_median_abs"] < constant["roughness_median_abs"]
     assert ours["albedo_mae"] < 0.5 * constant["albedo_mae"], (ours, constant)
+
+
+@pytest.mark.parametrize(
+    "args, needle",
+    [
+        (
+            ["train-relightnet", "{cap}", "--fit", "{fit}", "--synthesized-lightings", "4"],
+            "poses: a reflectance field needs a static capture",
+        ),
+        (["eval", "--capture", "{cap}", "--fit", "{fit}", "--library-envmaps", "2"], "poses: a reflectance field needs a static capture"),
+        (["relight-field", "{cap}", "--olat", "1"], "poses: a reflectance field needs a static capture"),
+    ],
+)
+def test_a_moving_capture_has_no_reflectance_field(path_traced_fit, tmp_path, capsys, args, needle):
+    cap, fit = path_traced_fit / "cap", path_traced_fit / "fit"
+    argv = [a.format(cap=cap, fit=fit) for a in args] + ["--out", str(tmp_path / "out")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "capture.json" in err[0] and needle in err[0], err

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from gra_mi.capture.dataset import Capture
-from gra_mi.capture.reflectance import OlatIndex, ReflectanceField
+from gra_mi.capture.reflectance import OlatIndex, ReflectanceField, static_pose
 from gra_mi.core.config import option
 from gra_mi.core.errors import GraMiParameterError
 from gra_mi.core.io import atomic_write_text, write_exr, write_png
@@ -43,6 +43,7 @@ def relight_from_field(capture: Capture, out: Path, lights: dict, cameras: list[
     """``out/<light>/<camera>.exr`` (linear RGBA, alpha = the subject's mask) and a PNG preview for every light
     (name → LED intensities (L, 3)) and camera; ``out/summary.json`` with what was held and what it cost."""
     stage = load_calibration(capture.folder / "rig" / "calibration.json")
+    static_pose(capture)
     index = OlatIndex.of(capture, stage)
     weights = {name: index.weights(intensities, name) for name, intensities in lights.items()}  # every drive checked first
     names = list(weights)

@@ -159,3 +159,13 @@ class ReflectanceField:
             image = load_observation(self.capture, self.camera, int(frame))[..., :3].reshape(-1, 3)[self.pixels]
             sums += weights[:, j][:, None, :] * image[None]
         return sums.astype(np.float32)
+
+
+def static_pose(capture: Capture) -> int:
+    """The one mesh frame of a static capture; a capture with several poses (a moving subject) has no reflectance field."""
+    poses = {f.mesh_frame for f in capture.frames}
+    if len(poses) != 1:
+        raise GraMiInputError(
+            capture.folder / "capture.json", f"{len(poses)} poses: a reflectance field needs a static capture (one pose lit by OLATs)"
+        )
+    return poses.pop()

@@ -221,7 +221,8 @@ def _splits(capture, dataset, refined: dict[str, Path]) -> list[Split]:
 
 def _field_splits(capture, config: EvalConfig) -> list[Split]:
     """One split per held-out camera under the user's and the library's maps, truth from the reflectance field."""
-    from gra_mi.eval.reflectance import field_lightings, static_pose
+    from gra_mi.capture.reflectance import static_pose
+    from gra_mi.eval.reflectance import field_lightings
     from gra_mi.stage.lightstage import load_calibration
 
     if not (config.envmap or config.library_envmaps):
@@ -354,6 +355,7 @@ class _Frames:
         self.capture, self.relighter, self.model, self.scale = capture, relighter, model, scale
         self.entries = {f.frame: f for f in capture.frames}
         self.pose = capture.frames[0].mesh_frame  # a static capture's one pose (the reflectance-field splits')
+        self.field_truth = None  # made when a reflectance-field split is scored
         self.cache: dict[tuple, np.ndarray] = {}
         self.seconds: dict[str, list[float]] = {"microfacet": [], "RelightNet": []}
 
@@ -363,7 +365,7 @@ class _Frames:
         for f in split.capture_frames:
             if ("truth", split.camera, f) not in self.cache:
                 if f < 0:  # a lighting the capture never photographed: the sum of its OLATs
-                    self.field_truth = getattr(self, "field_truth", None) or FieldTruth(self.capture, self.relighter.ls.stage)
+                    self.field_truth = self.field_truth or FieldTruth(self.capture)
                     image = self.field_truth(split.camera, split.lights[f])
                 else:
                     image = load_observation(self.capture, split.camera, f)
@@ -456,6 +458,7 @@ def _protocol(config: EvalConfig, scale: float, splits: list[Split], capture, vi
                 "truth": TRUTH if s.lights else "the capture's images",
                 "frames": len(s.capture_frames),
                 "scored": scored_frames(s, config.frames),
+                "lighting_set": s.lighting_set,
             }
             for s in splits
         },
@@ -690,10 +693,19 @@ def protocol_said(report: dict) -> str:
     """One paragraph: what was scored, how, at which size."""
     protocol = report["protocol"]
     scored = next(iter(protocol["splits"].values()))
+    frames = (
+        f"{_frames_said(protocol['frames'])} ({scored['frames']} frames per sequence, {len(scored['scored'])} scored)"
+        if not all(s.get("lighting_set") for s in protocol["splits"].values())
+        else "every lighting of each held-out set (a static pose: "
+        + "–".join(
+            str(n)
+            for n in sorted({min(s["frames"] for s in protocol["splits"].values()), max(s["frames"] for s in protocol["splits"].values())})
+        )
+        + " lightings per split)"
+    )
     return (
-        f"Held-out cameras under the held-out lighting sequence, at {protocol['resolution'][0]}×{protocol['resolution'][1]} "
-        f"(capture images × {protocol['scale']:.3g}). Per-frame metrics on {_frames_said(protocol['frames'])} "
-        f"({scored['frames']} frames per sequence, {len(scored['scored'])} scored); the temporal error on every consecutive pair"
+        f"Held-out cameras under the held-out lighting, at {protocol['resolution'][0]}×{protocol['resolution'][1]} "
+        f"(capture images × {protocol['scale']:.3g}). Per-frame metrics on {frames}; the temporal error on every consecutive pair"
         + ("; FVD on all 17-frame clips" if protocol["fvd"] else "")
         + ". One mask per frame for every stage: the truth's alpha ≥ 0.5. PSNR, SSIM, ꟻLIP"
         + (", LPIPS" if protocol["lpips"] else "")

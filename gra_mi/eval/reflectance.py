@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from gra_mi.capture.reflectance import OlatIndex, ReflectanceField
-from gra_mi.core.errors import GraMiInputError
 from gra_mi.relightnet.lightings import SEED_OFFSET, synthesized_drives
+from gra_mi.stage.lightstage import load_calibration
 
 logger = logging.getLogger(__name__)
 
@@ -54,23 +54,12 @@ class FieldTruth:
     """The reflectance-field image of a held-out camera under a lighting; each camera's OLATs loaded once."""
 
     capture: object
-    stage: object
     fields: dict = field(default_factory=dict)
     index: OlatIndex | None = None
 
     def __call__(self, camera: str, light: FieldLighting) -> np.ndarray:
         if self.index is None:
-            self.index = OlatIndex.of(self.capture, self.stage)
+            self.index = OlatIndex.of(self.capture, load_calibration(Path(self.capture.folder) / "rig" / "calibration.json"))
         if camera not in self.fields:
             self.fields[camera] = ReflectanceField.load(self.capture, camera, self.index)
         return self.fields[camera].relight(self.index.weights(light.intensities, light.name))[0]
-
-
-def static_pose(capture) -> int:
-    poses = {f.mesh_frame for f in capture.frames}
-    if len(poses) != 1:
-        raise GraMiInputError(
-            Path(capture.folder) / "capture.json",
-            f"{len(poses)} poses: a reflectance-field truth needs a static capture (one pose lit by OLATs)",
-        )
-    return poses.pop()

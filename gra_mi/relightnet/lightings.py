@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gra_mi.capture.reflectance import OlatIndex, ReflectanceField
+from gra_mi.capture.reflectance import OlatIndex, ReflectanceField, static_pose
 from gra_mi.core.io import atomic_path
 from gra_mi.core.progress import progress
 from gra_mi.render.bridge import camera_uv_grid, to_torch
@@ -72,7 +72,7 @@ class SynthesizedViews:
 
     @classmethod
     def build(cls, capture, relighter, drives: np.ndarray, index: OlatIndex, cameras: list[str], env_height: int, device: str, split: str):
-        pose = _static_pose(capture)
+        pose = static_pose(capture)
         relighter.ls.set_frame(pose)
         fields = {c: ReflectanceField.load(capture, c, index) for c in cameras}
         grids = {c: camera_uv_grid(relighter.ls, relighter.ls.stage.camera(c), device) for c in cameras}
@@ -85,7 +85,7 @@ class SynthesizedViews:
         from gra_mi.relightnet.infer import view_inputs
         from gra_mi.relightnet.train import Sample
 
-        pose = _static_pose(self.capture)
+        pose = static_pose(self.capture)
         intensities = self.drives[k]
         features, mask, env, _ = view_inputs(self.relighter, pose, camera, intensities, self.env_height, self.device)
         image = self.fields[camera].relight(self.index.weights(intensities, f"synthesized lighting {k}"))[0]
@@ -95,17 +95,11 @@ class SynthesizedViews:
         return Sample(f"{camera}/lighting_{k:04d}", self.split, features, mask, env, grid, pixels, target)
 
 
-def _static_pose(capture) -> int:
-    poses = {f.mesh_frame for f in capture.frames}
-    if len(poses) != 1:
-        raise ValueError(f"synthesized lightings need a static capture (one pose), this one has {len(poses)}")
-    return poses.pop()
-
-
 def synthesized_views(capture, relighter, config, device: str, cache: Path | None) -> tuple[SynthesizedViews, list]:
     """The training lightings (``config.synthesized_lightings``, training cameras) and the validation views
     (``config.synthesized_validation`` other maps, from every held-out camera), targets from the training OLATs."""
     stage = relighter.ls.stage
+    static_pose(capture)
     index = OlatIndex.of(capture, stage, splits=("train",))
     train = synthesized_drives(stage, "train", config.synthesized_lightings, index, cache and cache / "synthesized_train.npz", SEED_OFFSET)
     val = synthesized_drives(stage, "test", config.synthesized_validation, index, cache and cache / "synthesized_val.npz", SEED_OFFSET)
