@@ -84,7 +84,7 @@ class ReflectanceField:
     camera: str
     index: OlatIndex
     shape: tuple[int, int]  # (height, width)
-    pixels: np.ndarray  # (P,) flat indices of the pixels any OLAT lights
+    pixels: np.ndarray  # (P,) flat indices of the subject's pixels (the first OLAT's, grown by SUBJECT_MARGIN)
     alpha: np.ndarray  # (H, W) the subject's mask (the first OLAT's)
     stack: np.ndarray | None = None  # (3, K, P) held in memory, or None: streamed from disk
     scale: np.ndarray | None = None  # (K,) a float16 stack's per-OLAT scale
@@ -93,8 +93,8 @@ class ReflectanceField:
     @classmethod
     def load(cls, capture: Capture, camera: str, index: OlatIndex, memory_gb: float = 4.0, progress_bar: bool = True) -> ReflectanceField:
         """The OLATs of one camera over the first OLAT's subject pixels (its mask and anything it lights, grown by
-        ``SUBJECT_MARGIN``), held when
-        they fit ``memory_gb``. Light another OLAT puts outside those pixels is counted (``stats``), not kept."""
+        ``SUBJECT_MARGIN``), held when they fit ``memory_gb``. Light another OLAT puts outside those pixels is counted
+        (``stats``), not kept."""
         first = load_observation(capture, camera, int(index.frames[0]))
         alpha = first[..., 3]
         subject = (alpha > 0) | (first[..., :3].max(axis=-1) > 0)
