@@ -285,3 +285,20 @@ def test_a_moving_capture_has_no_reflectance_field(path_traced_fit, tmp_path, ca
     assert main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "capture.json" in err[0] and needle in err[0], err
+
+
+@pytest.mark.parametrize(
+    "extra, needle",
+    [
+        (["relight-field", "{cap}", "--olat", "1", "--memory-gb", "nan"], "--memory-gb"),
+        (["relight-field", "{cap}", "--olat", "1", "--lighting-batch", "0"], "--lighting-batch"),
+        (["eval", "--capture", "{cap}", "--library-envmaps", "-1"], "--library-envmaps"),
+        (["train-relightnet", "{cap}", "--fit", "{cap}", "--synthesized-lightings", "-2"], "--synthesized-lightings"),
+    ],
+)
+def test_bad_reflectance_field_options_are_refused(olat_captures, tmp_path, capsys, extra, needle):
+    argv = [a.format(cap=olat_captures["path"].folder) for a in extra] + ["--out", str(tmp_path / "out")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and needle in err[0], err
+    assert not (tmp_path / "out").exists()

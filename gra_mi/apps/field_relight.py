@@ -36,7 +36,7 @@ class FieldRelightConfig:
         if not (np.isfinite(self.memory_gb) and self.memory_gb >= 0):
             raise GraMiParameterError("memory_gb", f"must be a finite number >= 0, got {self.memory_gb}")
         if self.batch < 1:
-            raise GraMiParameterError("lighting_batch", f"must be >= 1, got {self.batch}")
+            raise GraMiParameterError("batch", f"must be >= 1, got {self.batch}")
 
 
 def relight_from_field(capture: Capture, out: Path, lights: dict, cameras: list[str], config: FieldRelightConfig) -> dict:

@@ -213,7 +213,8 @@ def train_relightnet(capture_dir: str | Path, fit_dir: str | Path, out: str | Pa
     capture, relighter = fitted_relighter(capture_dir, fit_dir, out / "cache" if loop.rank == 0 else None)
     loop.claim("train-relightnet", {"capture": capture_dir, "fit": fit_dir}, config, overwrite)
     train, held_out = _views(capture, relighter, config, device, out / "cache" if loop.rank == 0 else None)
-    samples = lit(train.spread(config.held_out_views)) + held_out  # what the report scores
+    train_views = train.spread(config.held_out_views)  # made once: the output gain and the report's training row
+    samples = lit(train_views) + held_out  # what the report scores
     mine = train.share(loop.rank, loop.world)  # each process its share
     net_config = RelightNetConfig(
         resolution=relighter.albedo_tex.shape[0], base_channels=config.base_channels, env_height=config.env_height, patch=config.patch
@@ -245,7 +246,7 @@ def train_relightnet(capture_dir: str | Path, fit_dir: str | Path, out: str | Pa
         model.load_state_dict(selector.best["model"])  # what the last checkpoint keeps, too: no non-finite weights
     if not loop.finish():
         return out
-    return _write_outputs(out, model, selector, train.spread(config.held_out_views), samples, loop)
+    return _write_outputs(out, model, selector, train_views, samples, loop)
 
 
 def _views(capture, relighter, config: TrainConfig, device: str, cache: Path | None) -> tuple[TrainingViews, list[Sample]]:
