@@ -100,7 +100,7 @@ def test_sphere_under_one_led_matches_lambert_closed_form(plugins):
     d = targets - eye
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     ray = mi.Ray3f(mi.Point3f(*np.tile(eye, (len(d), 1)).T.astype(np.float32)), mi.Vector3f(*d.T.astype(np.float32)))
-    integrator._leds = integrator.prepare_leds(scene)
+    integrator._lights = integrator.prepare_lights(scene)
     sampler = mi.load_dict({"type": "independent"})
     sampler.seed(0, len(d))
     value, valid, _, _ = integrator.sample(dr.ADMode.Primal, scene, sampler, ray, None, None, mi.Bool(True))
@@ -150,7 +150,7 @@ def test_furnace_uniform_leds_light_a_small_sphere_uniformly(plugins):
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     origins = stage.center - 0.5 * d  # rays toward the centre from all around
     ray = mi.Ray3f(mi.Point3f(*origins.T.astype(np.float32)), mi.Vector3f(*d.T.astype(np.float32)))
-    integrator._leds = integrator.prepare_leds(scene)
+    integrator._lights = integrator.prepare_lights(scene)
     sampler = mi.load_dict({"type": "independent"})
     sampler.seed(0, n)
     value, valid, _, _ = integrator.sample(dr.ADMode.Primal, scene, sampler, ray, None, None, mi.Bool(True))

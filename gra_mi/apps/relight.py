@@ -1,6 +1,7 @@
 """Batch relighting (``gra-mi relight``): frames × lights × cameras through one stage, written as EXR, PNG and MP4.
 
-Lights are envmaps (mapped onto the LEDs), OLATs, LED patterns and a near-field point light, all in one run. The
+Lights are envmaps (mapped onto the LEDs), OLATs, LED patterns, a near-field point light and light paths (point and
+spot lights that move, several at once: :mod:`gra_mi.render.light_path`), all in one run. The
 stage is the one-bounce microfacet render or RelightNet on top of it (:func:`gra_mi.relightnet.infer.render_view`).
 Jobs run frame-major, so each frame's visibility is traced once per lighting model (near, far) and reused by every
 light and camera.
@@ -22,6 +23,7 @@ from gra_mi.core.io import atomic_path, atomic_write_text, write_exr, write_mp4,
 from gra_mi.core.progress import progress
 from gra_mi.core.runtime import torch_device
 from gra_mi.render.composite import PlatformCompositor
+from gra_mi.render.light_path import LightPath
 from gra_mi.render.runtime import ensure_mitsuba
 from gra_mi.stage.envmap import background_plate, envmap_to_leds, led_fidelity
 from gra_mi.stage.lightstage import olat_pattern, validate_pattern
@@ -85,7 +87,7 @@ class Light:
     intensities: np.ndarray
     envmap: np.ndarray | None = None  # for the background plate
     plate_scale: float = 1.0  # the envmap → LED mapping's normalisation, which the background plate takes too
-    point_light: object | None = None  # a PointLight, lit with every LED off
+    path: LightPath | None = None  # near-field lights (a still point light or a light path), lit with every LED off
 
     def far_field(self, lighting_model: str) -> bool:
         """Whether this light is rendered far field under ``lighting_model`` (auto: envmaps are, stage lightings not)."""
@@ -100,12 +102,19 @@ class RelightSummary:
     visibility_reused: int
 
 
-def collect_lights(stage, envmaps: dict[str, np.ndarray], olats: list[int], patterns: dict[str, np.ndarray], point_light=None):
-    """Name → :class:`Light` for every lighting asked for (patterns are LED drive values, emitted = drive × gain)."""
+def collect_lights(
+    stage, envmaps: dict[str, np.ndarray], olats: list[int], patterns: dict[str, np.ndarray], point_light=None, paths: list | None = None
+):
+    """Name → :class:`Light` for every lighting asked for (patterns are LED drive values, emitted = drive × gain;
+    ``paths``: :class:`LightPath` objects, named by their file)."""
 
     lights: dict[str, Light] = {}
     if point_light is not None:
-        lights["point_light"] = Light(np.zeros((stage.num_leds, 3)), point_light=point_light)
+        lights["point_light"] = Light(np.zeros((stage.num_leds, 3)), path=LightPath.still(point_light))
+    for path in paths or []:
+        if path.name in lights:
+            raise GraMiParameterError("lights", f"two light path files are named '{path.name}': rename one")
+        lights[path.name] = Light(np.zeros((stage.num_leds, 3)), path=path)
     for name, env in envmaps.items():
         lighting = envmap_to_leds(env, stage)
         lights[name] = Light(lighting.radiant_intensity(stage), envmap=env, plate_scale=lighting.scale)
@@ -118,15 +127,17 @@ def collect_lights(stage, envmaps: dict[str, np.ndarray], olats: list[int], patt
     return lights
 
 
-def _write_point_light_conditioning(out: Path, stage, scene, point_light) -> None:
-    """The paper's envmap conditioning for a point light (what RelightNet sees in its place)."""
-    from gra_mi.render.point_light import conditioning_envmap, conditioning_pattern
+def _write_conditioning(folder: Path, frame: int, stage, scene, near_lights) -> None:
+    """The paper's envmap conditioning for near-field lights at one frame (what RelightNet sees in their place):
+    ``folder/conditioning/frame_NNNN.{exr,png}`` and the LED pattern as ``_leds.npy``."""
+    from gra_mi.render.point_light import conditioning_envmap, conditioning_of
 
-    pattern = conditioning_pattern(stage, scene, point_light)
+    pattern = conditioning_of(stage, scene, near_lights)
     envmap = conditioning_envmap(stage, pattern)
-    write_exr(out / "point_light" / "conditioning.exr", envmap)
-    write_png(out / "point_light" / "conditioning.png", envmap, exposure=None)
-    with atomic_path(out / "point_light" / "conditioning_leds.npy") as tmp, open(tmp, "wb") as fh:
+    stem = folder / "conditioning" / f"frame_{frame:04d}"
+    write_exr(stem.with_suffix(".exr"), envmap)
+    write_png(stem.with_suffix(".png"), envmap, exposure=None)
+    with atomic_path(stem.with_name(stem.name + "_leds.npy")) as tmp, open(tmp, "wb") as fh:
         np.save(fh, pattern)
 
 
@@ -162,20 +173,23 @@ def relight_batch(
     model, relighter = _stage_model(ls, config, maps or SubjectMaps())
     if config.fidelity:
         _write_fidelity(out, lights, ls.stage)
-    point_light = next((light.point_light for light in lights.values() if light.point_light is not None), None)
-    if point_light is not None:
-        _write_point_light_conditioning(out, ls.stage, ls.scene, point_light)
+    for light in lights.values():
+        if light.path is not None:
+            light.path.check_frames(frames)
     previews = _Previews(out, config, ls, keep=len(lights) * len(cams), platform=platform)
     jobs = [(f, name, cam) for f in frames for name in lights for cam in cams]  # frame-major: one trace per frame
     warned: set[tuple[int, str]] = set()
     for frame, name, cam in progress(jobs, description="relight"):
         light = lights[name]
         far = light.far_field(config.lighting_model)
-        view = render_view(relighter, model, frame, cam.name, light.intensities, light.point_light, far)
+        near = light.path.at(frame) if light.path is not None else None
+        view = render_view(relighter, model, frame, cam.name, light.intensities, near, far)
         if (frame, name) not in warned:  # said once per frame and lighting, not per camera
             warned.add((frame, name))
-            for warning in lighting_warnings(ls, light.intensities, light.point_light, far):
+            for warning in lighting_warnings(ls, light.intensities, near, far):
                 logger.warning("%s: %s", name, warning)
+            if near:
+                _write_conditioning(out / name, frame, ls.stage, ls.scene, near)
         previews.add(frame, name, cam, light, view)
         if config.save_uv:
             _write_uv(out / name / cam.name, frame, relighter, view)

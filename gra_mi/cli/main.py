@@ -56,7 +56,9 @@ COMMANDS: dict[str, Command] = {
     "envmaps": Command("scene", "Write procedural HDR environment maps (skies and rooms) as EXR + PNG, split by seed."),
     "subject": Command("scene", "Write an animated tracked mesh sequence (sequence.npz + per-frame PLYs).", mitsuba=False),
     "scene": Command("scene", "Write a Mitsuba scene file that puts a subject sequence into a rig.", mitsuba=False),
-    "render": Command("scene", "Render a lightstage scene with a stock Mitsuba integrator; writes EXR + PNG."),
+    "render": Command(
+        "scene", "Render any Mitsuba 3 scene (or a lightstage scene under an envmap, OLAT or pattern): EXR + PNG per sensor."
+    ),
     "relight": Command(
         "texture",
         "One-bounce coarse renders (GGX, per-LED visibility) of frames x cameras x lighting: EXR, PNG, MP4.",

@@ -13,6 +13,7 @@ from gra_mi.capture.transforms import TransformsOptions, import_transforms
 from gra_mi.cli.options import CommandConfig, Restartable
 from gra_mi.core.config import comma_list, option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive
+from gra_mi.render.scene_file import is_lightstage_scene, parse_defines, render_scene_file
 from gra_mi.stage.envmap import EnvmapOptions
 from gra_mi.stage.envmap_library import write_envmap_set
 from gra_mi.stage.lightstage import RigLayout, load_calibration, load_pattern, olat_pattern
@@ -124,13 +125,20 @@ def run_scene(c: SceneCommand) -> None:
 @dataclass(kw_only=True)
 class RenderCommand(CommandConfig):
     scene: Path = field(metadata=option(positional=True))
-    """Scene XML (e.g. scenes/tiny_lightstage.xml)."""
+    """Any Mitsuba 3 scene file, or a gra-mi lightstage scene (e.g. scenes/tiny_lightstage.xml: its LEDs are lit by
+    --envmap, --olat or --pattern)."""
     envmap: Path | None = None
-    """Lat-long HDR map (OpenEXR or Radiance .hdr) mapped onto the LEDs (one of --envmap, --olat, --pattern)."""
+    """Lightstage scenes: a lat-long HDR map (OpenEXR or Radiance .hdr) mapped onto the LEDs (one of --envmap, --olat,
+    --pattern)."""
     olat: int | None = None
-    """Light one LED (index) at the stage maximum."""
+    """Lightstage scenes: light one LED (index) at the stage maximum."""
     pattern: Path | None = None
-    """LED drive values: JSON {"intensities": [[r,g,b],...]} or .npy of shape (L,) or (L,3)."""
+    """Lightstage scenes: LED drive values, JSON {"intensities": [[r,g,b],...]} or .npy of shape (L,) or (L,3)."""
+    sensor: list[str] = field(default_factory=list, metadata=option(repeat=True))
+    """A plain scene's sensor to render, by id or index (repeatable). Default: every sensor. (Lightstage scenes: --camera.)"""
+    define: list[str] = field(default_factory=list, metadata=option(flag="-D", repeat=True, metavar="NAME=VALUE"))
+    """Set a parameter the scene declares with <default name=... value=.../>, as Mitsuba's own tool takes it
+    (repeatable: -D spp=16 -D radius=0.3)."""
     render: RenderConfig = field(default_factory=RenderConfig)
     envmaps: EnvmapOptions = field(default_factory=EnvmapOptions)
     out: Path = Path("outputs/render")
@@ -138,21 +146,45 @@ class RenderCommand(CommandConfig):
 
     def validate(self) -> None:
         given = [name for name in ("envmap", "olat", "pattern") if getattr(self, name) is not None]
-        if len(given) != 1:
-            raise GraMiInputError("lighting", f"give exactly one of --envmap, --olat or --pattern (got {len(given)})")
+        if len(given) > 1:
+            raise GraMiInputError("lighting", f"give at most one of --envmap, --olat or --pattern (got {len(given)})")
+        parse_defines(self.define)
         super().validate()
 
 
 def run_render(c: RenderCommand) -> None:
-
+    if not is_lightstage_scene(c.scene):
+        _render_plain_scene(c)
+        return
+    if c.sensor or c.define:
+        raise GraMiInputError(c.scene, "a lightstage scene takes --camera, --frame and --spp, not --sensor or -D")
     if c.envmap is not None:
         light, envmap, drive = c.envmap.stem, c.envmaps.load(c.envmap), None
     elif c.olat is not None:
         light, envmap, drive = f"olat{c.olat:03d}", None, lambda stage: olat_pattern(stage, c.olat)
-    else:
+    elif c.pattern is not None:
         light, envmap, drive = c.pattern.stem, None, lambda stage: load_pattern(stage, c.pattern)
+    else:
+        raise GraMiInputError(c.scene, "a lightstage scene's LEDs start switched off: give --envmap, --olat or --pattern")
     stem = render_to_folder(scene_path=c.scene, out=c.out, light_name=light, config=c.render, envmap=envmap, drive=drive)
     print(f"wrote {stem}.exr")
+
+
+def _render_plain_scene(c: RenderCommand) -> None:
+    """A scene gra-mi did not write: rendered as it is, one EXR + PNG per sensor."""
+    lightstage_only = [flag for flag, value in (("--envmap", c.envmap), ("--olat", c.olat), ("--pattern", c.pattern)) if value is not None]
+    if lightstage_only or c.render.frame != 0 or c.render.camera != "0" or c.render.background:
+        flag = lightstage_only[0] if lightstage_only else "--frame, --camera or --background"
+        raise GraMiInputError(
+            c.scene, f"{flag} needs a gra-mi lightstage scene (<default name=\"subject\"> and <default name=\"calibration\">, "
+            "LED emitters led_NNN; `gra-mi scene` writes one); this scene is rendered with its own lights: drop it"
+        )  # fmt: skip
+    renders = render_scene_file(
+        c.scene, c.out, sensors=c.sensor, integrator=c.render.integrator, spp=c.render.spp, seed=c.render.seed,
+        defines=parse_defines(c.define),
+    )  # fmt: skip
+    for r in renders:
+        print(f"wrote {r.path} ({r.image.shape[1]}x{r.image.shape[0]})")
 
 
 @dataclass(kw_only=True)

@@ -111,6 +111,9 @@ class RelightCommand(CommandConfig):
     """Radiant intensity of the point light in W/sr."""
     point_light_radius: float = 0.03
     """Radius of the point light's sphere in metres (soft shadows)."""
+    lights: list[Path] = field(default_factory=list, metadata=option(repeat=True))
+    """A light path JSON: point and spot lights that move, several at once, given at keyframes (LEDs off; format in
+    docs/data-format.md). Renders a video per camera and the envmap conditioning of every frame (repeatable)."""
     relightnet: Path | None = None
     """Folder with relightnet.safetensors + relightnet.json (from `gra-mi train-relightnet`)."""
     albedo: Path | None = None
@@ -126,20 +129,22 @@ class RelightCommand(CommandConfig):
     """Output folder."""
 
     def validate(self) -> None:
-        if not (self.envmap or self.olat or self.pattern or self.point_light):
-            raise GraMiInputError("lighting", "give at least one --envmap, --olat, --pattern or --point-light")
+        if not (self.envmap or self.olat or self.pattern or self.point_light or self.lights):
+            raise GraMiInputError("lighting", "give at least one --envmap, --olat, --pattern, --point-light or --lights")
         super().validate()
-        for name, paths in (("envmap", self.envmap), ("pattern", self.pattern)):
+        for name, paths in (("envmap", self.envmap), ("pattern", self.pattern), ("lights", self.lights)):
             stems = [p.stem for p in paths]
             if twice := sorted({s for s in stems if stems.count(s) > 1}):
                 raise GraMiParameterError(name, f"two files named '{twice[0]}' would write to one folder {self.out / twice[0]}; rename one")
 
 
 def run_relight(c: RelightCommand) -> None:
+    from gra_mi.render.light_path import LightPath
     from gra_mi.render.point_light import parse_point_light
     from gra_mi.render.relighter import load_texture
 
     point_light = parse_point_light(c.point_light, c.point_light_intensity, c.point_light_radius) if c.point_light else None
+    paths = [LightPath.load(p) for p in c.lights]
     envmaps = {p.stem: c.envmaps.load(p) for p in c.envmap}
     maps = SubjectMaps(
         albedo=load_texture(c.albedo, 3, "albedo") if c.albedo else None,
@@ -148,7 +153,8 @@ def run_relight(c: RelightCommand) -> None:
         vis_cache=c.vis_cache,
     )
     ls = LightstageScene.load(c.scene)
-    lights = collect_lights(ls.stage, envmaps, c.olat, {p.stem: load_pattern(ls.stage, p) for p in c.pattern}, point_light)
+    patterns = {p.stem: load_pattern(ls.stage, p) for p in c.pattern}
+    lights = collect_lights(ls.stage, envmaps, c.olat, patterns, point_light, paths)
     frames = select(c.frames, ls.sequence.num_frames, "frames", integers=True)
     cameras = select(c.cameras, len(ls.stage.cameras), "cameras")
     summary = relight_batch(ls, c.out, lights, frames=frames, cameras=cameras, config=c.relight, maps=maps, platform=c.platform)

@@ -15,15 +15,15 @@ from gra_mi.stage.envmap import leds_to_envmap, to_camera_space
 
 
 def view_inputs(
-    relighter, frame: int, camera: str, intensities: np.ndarray, env_height: int, device: str = "cpu", point_light=None, far_field=None
+    relighter, frame: int, camera: str, intensities: np.ndarray, env_height: int, device: str = "cpu", near_lights=None, far_field=None
 ):
     """RelightNet's inputs for one view: (features, mask, camera-space env, shading); ``far_field`` as in
     :meth:`Relighter.render`."""
     from gra_mi.render.atlas import TexelGeometry
-    from gra_mi.render.point_light import conditioning_pattern
+    from gra_mi.render.point_light import as_light_list, conditioning_of
 
     stage = relighter.ls.stage
-    shading, geom = relighter.shade(frame, camera, intensities, point_light, far_field)
+    shading, geom = relighter.shade(frame, camera, intensities, near_lights, far_field)
     seq = relighter.ls.sequence
     normals = [np.array(geom.normal).T]  # frame t: already interpolated for the shading
     normals += [
@@ -32,17 +32,18 @@ def view_inputs(
     ]
     features, mask = uv_features(relighter.atlas, shading.radiance, normals, shading.view_dir, device)
     lights = intensities
-    if point_light is not None:  # the paper's conditioning stands for the point light in the envmap
-        lights = intensities + conditioning_pattern(stage, relighter.ls.scene, point_light) * stage.led_distances()[:, None] ** 2
+    near_lights = as_light_list(near_lights)
+    if near_lights:  # the paper's conditioning stands for the near-field lights in the envmap
+        lights = intensities + conditioning_of(stage, relighter.ls.scene, near_lights) * stage.led_distances()[:, None] ** 2
     env = to_camera_space(leds_to_envmap(stage, lights, env_height), stage.camera(camera), supersample=1)
     return features, mask, to_torch(env, device).permute(2, 0, 1)[None].contiguous(), shading
 
 
-def relightnet_texture(model: RelightNet, relighter, frame: int, camera: str, intensities: np.ndarray, point_light=None, far_field=None):
+def relightnet_texture(model: RelightNet, relighter, frame: int, camera: str, intensities: np.ndarray, near_lights=None, far_field=None):
     """Inference: RelightNet's UV texture (R, R, 3) for one view, and the one-bounce shading it started from."""
     device = next(model.parameters()).device
     features, mask, env, shading = view_inputs(
-        relighter, frame, camera, intensities, model.config.env_height, str(device), point_light, far_field
+        relighter, frame, camera, intensities, model.config.env_height, str(device), near_lights, far_field
     )
     with torch.inference_mode():
         texture = model(features, env, mask)
@@ -55,13 +56,13 @@ def render_view(
     frame: int,
     camera: str,
     intensities: np.ndarray,
-    point_light=None,
+    near_lights=None,
     far_field: bool | None = None,
 ) -> ViewRender:
     """One view at one stage: the one-bounce render (``model`` None) or RelightNet's texture of it, seen by the camera.
     ``far_field`` None: the relighter's own lighting model."""
     if model is None:
-        return relighter.render(frame, camera, intensities, point_light, far_field)
-    texture, shading = relightnet_texture(model, relighter, frame, camera, intensities, point_light, far_field)
+        return relighter.render(frame, camera, intensities, near_lights, far_field)
+    texture, shading = relightnet_texture(model, relighter, frame, camera, intensities, near_lights, far_field)
     shading.radiance = relighter.atlas.gather(texture)
     return ViewRender(relighter.rasterize(frame, camera, texture), shading, relighter.geometry(frame))

@@ -1,8 +1,10 @@
-"""A near-field point light inside the stage (paper "Near-field relighting", Supp. "Details of Near-field Relighting").
+"""Near-field lights inside the stage (paper "Near-field relighting", Supp. "Details of Near-field Relighting").
 
-The light is a small sphere (``radius``) of radiant intensity ``intensity`` (W/sr, RGB) at ``position``. Texels see
-it with inverse-square falloff from its centre and a *fraction* of its sphere visible (soft shadows: the body,
-e.g. an arm, occludes it). Its envmap conditioning follows the paper: a ray from the stage centre toward each LED;
+A light is a small sphere (``radius``) of radiant intensity ``intensity`` (W/sr, RGB) at ``position``; with a
+``direction`` it is a spot, whose intensity falls off with the angle θ from its axis as Mitsuba's ``spot`` emitter's
+does (full within ``beam_width``, linear in θ to zero at ``cutoff_angle``). Texels see it with inverse-square falloff
+from its centre and a *fraction* of its sphere visible (soft shadows: the body, e.g. an arm, occludes it). Several
+lights add. Its envmap conditioning follows the paper: a ray from the stage centre toward each LED;
 the LED is lit if its ray meets the light's sphere (of ``conditioning_radius``) and subsequently not the subject,
 with an intensity corrected by the squared distance between the point light and that LED.
 """
@@ -32,6 +34,9 @@ class PointLight:
     intensity: np.ndarray  # (3,) W/sr
     radius: float = 0.03  # physical size: soft shadow edges
     conditioning_radius: float = 0.25  # sphere the stage-centre rays must meet for the envmap conditioning
+    direction: np.ndarray | None = None  # a spot's axis (world); None: a point light, the same in every direction
+    cutoff_angle: float = 180.0  # degrees: a spot gives no light beyond this angle from its axis
+    beam_width: float | None = None  # degrees: full intensity within this angle (default ¾ of the cutoff, as Mitsuba's)
 
     def __post_init__(self):
         self.position = np.asarray(self.position, np.float64).reshape(3)
@@ -42,6 +47,35 @@ class PointLight:
             raise GraMiParameterError("point_light_intensity", f"must be finite and >= 0, got {self.intensity.tolist()}")
         if not (np.isfinite(self.radius) and self.radius >= 0) or not self.conditioning_radius > 0:
             raise GraMiParameterError("point_light_radius", f"must be a finite number >= 0 (metres), got {self.radius}")
+        if self.direction is not None:
+            self._check_cone()
+
+    def _check_cone(self) -> None:
+        direction = np.asarray(self.direction, np.float64).reshape(3)
+        norm = float(np.linalg.norm(direction))
+        if not (np.isfinite(norm) and norm > 0):
+            raise GraMiParameterError("direction", f"a spot's direction must be a finite non-zero vector, got {direction.tolist()}")
+        self.direction = direction / norm
+        if not 0 < self.cutoff_angle < 180:
+            raise GraMiParameterError("cutoff_angle", f"must lie in (0°, 180°), got {self.cutoff_angle}°")
+        if self.beam_width is None:
+            self.beam_width = 0.75 * self.cutoff_angle
+        if not 0 <= self.beam_width <= self.cutoff_angle:
+            raise GraMiParameterError("beam_width", f"must lie in [0°, cutoff_angle = {self.cutoff_angle}°], got {self.beam_width}°")
+
+    @property
+    def is_spot(self) -> bool:
+        return self.direction is not None
+
+    def falloff(self, toward: np.ndarray) -> np.ndarray:
+        """The spot's falloff (1 for a point light) toward world directions ``toward`` (N, 3), away from the light."""
+        toward = np.asarray(toward, np.float64).reshape(-1, 3)
+        if not self.is_spot:
+            return np.ones(len(toward))
+        cos = toward @ self.direction / np.maximum(np.linalg.norm(toward, axis=1), 1e-12)
+        theta = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+        ramp = (self.cutoff_angle - theta) / max(self.cutoff_angle - self.beam_width, 1e-12)
+        return np.where(theta <= self.beam_width, 1.0, np.where(theta < self.cutoff_angle, ramp, 0.0))
 
 
 def parse_point_light(text: str, intensity: float, radius: float) -> PointLight:
@@ -99,11 +133,21 @@ def shade_point_light(
     inv_d2 = dr.rcp(dr.maximum(dr.squared_norm(offset), 1e-8))
     wo = frame.to_local(offset * dr.sqrt(inv_d2))
     d_part, s_part = material.eval_parts(wo)
-    weight = mi.Color3f(*(float(x) for x in light.intensity)) * inv_d2 * fraction
+    weight = mi.Color3f(*(float(x) for x in light.intensity)) * inv_d2 * fraction * _spot_falloff(light, -offset * dr.sqrt(inv_d2))
     diffuse, spec = d_part * weight, s_part * weight
     dr.eval(diffuse, spec)
     m = dr.width(geom.position)
     return np.array(diffuse).T.reshape(m, 3), np.array(spec).T.reshape(m, 3)
+
+
+def _spot_falloff(light: PointLight, toward: mi.Vector3f) -> mi.Float:
+    """:meth:`PointLight.falloff` on the device, for unit directions ``toward`` pointing away from the light."""
+    if not light.is_spot:
+        return mi.Float(1.0)
+    cos = dr.clip(dr.dot(toward, mi.Vector3f(*(float(x) for x in light.direction))), -1.0, 1.0)
+    theta = dr.acos(cos) * (180.0 / math.pi)
+    ramp = (light.cutoff_angle - theta) / max(light.cutoff_angle - light.beam_width, 1e-12)
+    return dr.select(theta <= light.beam_width, 1.0, dr.select(theta < light.cutoff_angle, ramp, 0.0))
 
 
 def conditioning_pattern(stage, scene: mi.Scene, light: PointLight) -> np.ndarray:
@@ -111,7 +155,8 @@ def conditioning_pattern(stage, scene: mi.Scene, light: PointLight) -> np.ndarra
 
     An LED is lit when the ray from the stage centre toward it meets the light's sphere of ``conditioning_radius``
     and, after the light, not the subject; its value is I / |LED − light|². If no ray meets the sphere, the LED nearest to the light's
-    direction stands for it (subject to the same occlusion test).
+    direction stands for it (subject to the same occlusion test). A spot counts with the falloff it has toward the stage
+    centre (the subject): a spot turned away from the subject stands for no light.
     """
     c = stage.center
     d = stage.led_directions()
@@ -135,7 +180,23 @@ def conditioning_pattern(stage, scene: mi.Scene, light: PointLight) -> np.ndarra
     )
     hits[idx] = ~np.array(scene.ray_test(ray))
     dist2 = np.sum((stage.led_positions - light.position) ** 2, axis=1)
-    return np.where(hits[:, None], light.intensity[None] / dist2[:, None], 0.0)
+    intensity = light.intensity * light.falloff(c - light.position)[0]
+    return np.where(hits[:, None], intensity[None] / dist2[:, None], 0.0)
+
+
+def conditioning_of(stage, scene: mi.Scene, lights) -> np.ndarray:
+    """The conditioning of several lights: light adds, so their patterns add."""
+    total = np.zeros((stage.num_leds, 3))
+    for light in lights:
+        total += conditioning_pattern(stage, scene, light)
+    return total
+
+
+def as_light_list(lights) -> list[PointLight]:
+    """None, one :class:`PointLight` or several, as a list."""
+    if lights is None:
+        return []
+    return [lights] if isinstance(lights, PointLight) else list(lights)
 
 
 def conditioning_envmap(stage, pattern: np.ndarray, height: int = 64) -> np.ndarray:

@@ -17,7 +17,7 @@ from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.io import read_exr
 from gra_mi.render.atlas import TexelGeometry, UVAtlas
 from gra_mi.render.leds import LedLayout
-from gra_mi.render.point_light import PointLight, point_light_visibility, shade_point_light
+from gra_mi.render.point_light import PointLight, as_light_list, point_light_visibility, shade_point_light
 from gra_mi.render.rasterize import rasterize_to_camera
 from gra_mi.render.shading import TexelShading, led_cell_roughness, shade_texels
 from gra_mi.render.visibility import VisibilityCache
@@ -103,12 +103,12 @@ class Relighter:
         frame: int,
         camera: int | str,
         led_intensities: np.ndarray,
-        point_light: PointLight | None = None,
+        near_lights: PointLight | list[PointLight] | None = None,
         far_field: bool | None = None,
     ) -> ViewRender:
-        """One-bounce render of ``camera`` at ``frame``: LEDs of radiant intensity (L, 3), plus an optional
-        near-field point light. ``far_field`` None: the relighter's own setting (docs/accuracy.md, lighting models)."""
-        shading, geom = self.shade(frame, camera, led_intensities, point_light, far_field)
+        """One-bounce render of ``camera`` at ``frame``: LEDs of radiant intensity (L, 3), plus near-field point or
+        spot lights (one or a list). ``far_field`` None: the relighter's own setting (docs/accuracy.md, lighting models)."""
+        shading, geom = self.shade(frame, camera, led_intensities, near_lights, far_field)
         return ViewRender(self.rasterize(frame, camera, self.atlas.scatter(shading.radiance)), shading, geom)
 
     def rasterize(self, frame: int, camera: int | str, texture: np.ndarray) -> np.ndarray:
@@ -121,7 +121,7 @@ class Relighter:
         frame: int,
         camera: int | str,
         led_intensities: np.ndarray,
-        point_light: PointLight | None = None,
+        near_lights: PointLight | list[PointLight] | None = None,
         far_field: bool | None = None,
     ) -> tuple[TexelShading, TexelGeometry]:
         """The UV-space part of :meth:`render`: per-texel radiance toward the camera (no rasterisation)."""
@@ -135,13 +135,18 @@ class Relighter:
         roughness = led_cell_roughness(self.roughness, stage.num_leds) if far_field else self.roughness
         shading = shade_texels(geom, vis, self.leds(far_field), led_intensities, self.albedo, roughness, cam.position)
         self.ls.set_frame(frame)
-        if point_light is not None:
-            key = (frame, tuple(point_light.position), point_light.radius)
-            if key not in self._point_light_vis:  # depends on geometry and light placement only
-                self._point_light_vis = {key: point_light_visibility(self.ls.scene, geom, point_light)}
-            diffuse, spec = shade_point_light(geom, self._point_light_vis[key], point_light, self.roughness, cam.position)
+        lights = as_light_list(near_lights)
+        visible = {}
+        for light in lights:
+            key = (frame, tuple(light.position), light.radius)  # depends on geometry and light placement only
+            visible[key] = self._point_light_vis.get(key)
+            if visible[key] is None:
+                visible[key] = point_light_visibility(self.ls.scene, geom, light)
+            diffuse, spec = shade_point_light(geom, visible[key], light, self.roughness, cam.position)
             shading.diffuse_unit = shading.diffuse_unit + diffuse
             shading.specular = shading.specular + spec
+        if lights:
+            self._point_light_vis = visible  # this view's lights: the next camera of the same frame reuses them
             shading.radiance = self.albedo * shading.diffuse_unit + shading.specular
         return shading, geom
 

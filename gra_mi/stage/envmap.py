@@ -15,6 +15,7 @@ Values are linear Rec.709 radiance (W m⁻² sr⁻¹ per channel).
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import math
 from dataclasses import dataclass, field
@@ -411,9 +412,23 @@ def leds_to_envmap(stage: Lightstage, intensities: np.ndarray, height: int = 16)
     LED's radiant intensity spread over that LED's cell (radiance = I / (r² Ω_cell)). The inverse of
     :func:`envmap_to_leds` up to the cells' resolution; it turns any lighting (OLAT, patterns, point-light
     conditioning) into an envmap for the learned stages."""
-    cells = nearest_led(pixel_directions(height, 2 * height), stage.led_directions())
+    cells = _led_cells(stage.led_directions(), height)
     per_led = np.asarray(intensities, np.float64) / (stage.led_distances()[:, None] ** 2 * (4.0 * math.pi / stage.num_leds))
     return per_led[cells].astype(np.float32)
+
+
+_CELLS: dict[tuple, np.ndarray] = {}
+
+
+def _led_cells(led_directions: np.ndarray, height: int) -> np.ndarray:
+    """Each lat-long pixel's nearest LED, kept per rig and height: a video's conditioning, RelightNet's views and a
+    sequence's frames all ask for the same cells again (a 331-LED rig at 64 rows: 9 ms each time)."""
+    key = (height, hashlib.sha1(np.ascontiguousarray(led_directions, np.float64).tobytes()).hexdigest())
+    if key not in _CELLS:
+        if len(_CELLS) > 16:
+            _CELLS.clear()
+        _CELLS[key] = nearest_led(pixel_directions(height, 2 * height), led_directions)
+    return _CELLS[key]
 
 
 def envmap_irradiance(envmap: np.ndarray, normals: np.ndarray) -> np.ndarray:

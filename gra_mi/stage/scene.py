@@ -190,6 +190,19 @@ def scene_defaults(path: Path) -> dict[str, str]:
     return {d.get("name"): d.get("value") for d in root.iter("default") if d.get("name")}
 
 
+def lightstage_parts_missing(missing: list[str]) -> str:
+    """What a scene needs to be relit by gra-mi's UV-space stages, said for the parts it lacks."""
+    quote = '"'
+    tags = ", ".join(f"<default name={quote}{name}{quote} .../>" for name in missing)
+    return (
+        f'not a gra-mi lightstage scene: missing {tags}. Relighting needs <default name="{keys.PARAM_SUBJECT}"> (a tracked '
+        "mesh sequence folder: sequence.npz with UVs and per-frame PLYs, from `gra-mi subject` or an import), "
+        f'<default name="{keys.PARAM_CALIBRATION}"> (a rig\'s calibration.json, `gra-mi rig`), a shape '
+        f'id="{keys.SUBJECT_ID}" and point emitters {keys.led_id(0)}... for the LEDs; `gra-mi scene --rig R --subject S` '
+        "writes such a scene. To render this scene as it is, with its own lights: `gra-mi render SCENE`"
+    )
+
+
 @dataclass
 class LightstageScene:
     """A loaded lightstage scene whose frame and lighting can be changed in place."""
@@ -211,9 +224,9 @@ class LightstageScene:
         if not path.is_file():
             raise GraMiInputError(path, "scene file not found")
         defaults = scene_defaults(path)
-        for name in (keys.PARAM_SUBJECT, keys.PARAM_CALIBRATION):
-            if name not in defaults:
-                raise GraMiInputError(path, f'missing <default name="{name}" .../> (not a gra-mi lightstage scene?)')
+        missing = [name for name in (keys.PARAM_SUBJECT, keys.PARAM_CALIBRATION) if name not in defaults]
+        if missing:
+            raise GraMiInputError(path, lightstage_parts_missing(missing))
         subject_dir = subject or defaults[keys.PARAM_SUBJECT]
         subject_path = Path(subject_dir) if Path(subject_dir).is_absolute() else path.parent / subject_dir
         sequence = load_sequence(subject_path)
@@ -324,26 +337,34 @@ class LightstageScene:
         raise GraMiInputError(self.path, f"no sensor with id '{cam.name}' in the scene")
 
 
-def make_integrator(name: str, max_depth: int = 8):
-    """One of Mitsuba's stock integrators, set up for point-light LEDs.
+INTEGRATORS = ("direct", "path", "gra_onebounce")
+
+
+def make_integrator(name: str | None, max_depth: int = 8):
+    """None: the scene's own integrator; otherwise Mitsuba's ``direct`` or ``path``, or gra-mi's ``gra_onebounce``.
 
     ``direct`` uses one emitter sample per pass (Mitsuba 3 #1861: more than one is too bright with point lights);
     use more spp instead.
     """
     import mitsuba as mi
 
+    if name is None:
+        return None
     if name == "direct":
         return mi.load_dict({"type": "direct", "emitter_samples": 1, "bsdf_samples": 0})
     if name == "path":
         return mi.load_dict({"type": "path", "max_depth": max_depth})
-    raise GraMiParameterError("integrator", f"unknown integrator '{name}', expected 'direct' or 'path'")
+    if name == "gra_onebounce":
+        return mi.load_dict({"type": "gra_onebounce"})
+    raise GraMiParameterError("integrator", f"unknown integrator '{name}', expected one of {', '.join(INTEGRATORS)}")
 
 
-def render(ls: LightstageScene, camera: int | str, integrator: str = "direct", spp: int = 64, seed: int = 0) -> np.ndarray:
-    """Render one camera: (H, W, 4) linear RGB + alpha (coverage) as float32."""
+def render(ls: LightstageScene, camera: int | str, integrator: str | None = "direct", spp: int | None = 64, seed: int = 0) -> np.ndarray:
+    """Render one camera: (H, W, 4) linear RGB + alpha (coverage) as float32 (``None``: the scene's own integrator or
+    sample count)."""
     import mitsuba as mi
 
-    image = mi.render(ls.scene, sensor=ls.sensor_index(camera), integrator=make_integrator(integrator), spp=spp, seed=seed)
+    image = mi.render(ls.scene, sensor=ls.sensor_index(camera), integrator=make_integrator(integrator), spp=spp or 0, seed=seed)
     return np.array(image, dtype=np.float32)
 
 
@@ -361,20 +382,22 @@ class RenderConfig:
     """Frame of the subject sequence."""
     camera: str = "0"
     """Camera index or name."""
-    integrator: str = field(default="direct", metadata=option(choices=("direct", "path")))
-    """Mitsuba integrator."""
-    spp: int = 64
-    """Samples per pixel (the low-discrepancy sampler rounds up to a power of 4)."""
+    integrator: str | None = field(default=None, metadata=option(choices=INTEGRATORS))
+    """direct or path (Mitsuba's), or gra_onebounce (gra-mi's one bounce: exact for point, spot and directional
+    lights, others refused by name). Default: the scene's own (a gra-mi lightstage scene's: direct)."""
+    spp: int | None = None
+    """Samples per pixel. Default: the scene's own sampler's (a lightstage scene's -Dspp; the low-discrepancy
+    sampler rounds up to a power of 4)."""
     seed: int = 0
     """Sampler seed."""
     background: bool = False
     """Also write a preview composited over the envmap's background plate."""
 
     def validate(self) -> None:
-        if self.spp < 1:
+        if self.spp is not None and self.spp < 1:
             raise GraMiParameterError("spp", f"must be >= 1, got {self.spp}")
-        if self.integrator not in ("direct", "path"):
-            raise GraMiParameterError("integrator", f"expected 'direct' or 'path', got {self.integrator!r}")
+        if self.integrator is not None and self.integrator not in INTEGRATORS:
+            raise GraMiParameterError("integrator", f"expected one of {', '.join(INTEGRATORS)}, got {self.integrator!r}")
         require_seed(self.seed)
 
 
@@ -421,17 +444,21 @@ def points_inside_subject(ls: LightstageScene, points: np.ndarray) -> np.ndarray
     return np.asarray(leaving, bool).reshape(len(points), len(AXES)).sum(axis=1) >= len(AXES) - 1
 
 
-def lighting_warnings(ls: LightstageScene, intensities: np.ndarray, point_light=None, far_field: bool = False) -> list[str]:
+def lighting_warnings(ls: LightstageScene, intensities: np.ndarray, near_lights=None, far_field: bool = False) -> list[str]:
     """What makes a lighting of the current frame light nothing, or not as meant, in words: every LED off, lit LEDs
-    inside the subject (a rig too small or off centre), a point light inside the subject. Far field, LEDs inside the
-    subject still light it, from their directions, but at the irradiance such a small rig makes at full drive."""
+    inside the subject (a rig too small or off centre), a near-field light inside the subject. Far field, LEDs inside
+    the subject still light it, from their directions, but at the irradiance such a small rig makes at full drive.
+    ``near_lights``: one near-field light (anything with a ``position``) or a list."""
     said = []
     lit = np.flatnonzero(np.asarray(intensities).max(axis=1) > 0)
-    if point_light is not None:
-        if points_inside_subject(ls, point_light.position)[0]:
-            said.append(
-                f"the point light at {np.round(point_light.position, 3).tolist()} m is inside the subject at frame {ls.frame}: it lights nothing"
-            )
+    near = [] if near_lights is None else [near_lights] if hasattr(near_lights, "position") else list(near_lights)
+    if near:
+        inside = points_inside_subject(ls, np.array([light.position for light in near]))
+        for light, hidden in zip(near, inside, strict=True):
+            if hidden:
+                said.append(
+                    f"the light at {np.round(light.position, 3).tolist()} m is inside the subject at frame {ls.frame}: it lights nothing"
+                )
     elif not len(lit):
         said.append("every LED is off: the render is black")
     if len(lit):

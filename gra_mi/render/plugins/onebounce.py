@@ -14,16 +14,20 @@ about Microfacet Rendering").
      - point
      - Where the far-field directions and irradiances are measured. Default: (0, 1, 0).
 
-At each camera hit the integrator sums over the scene's ``point`` emitters (the LEDs):
+At each camera hit the integrator sums over the scene's delta lights:
 
-    L = Σ_k  f(ωi, ωk) cosθk · I_k / d_k² · V_k
+    L = Σ_k  f(ωi, ωk) cosθk · E_k · V_k
 
-with one shadow ray per LED (near field: inverse-square falloff from the LED's position). The LEDs are read from the
-scene once per render into arrays (positions, intensities) and evaluated in one symbolic Dr.Jit loop, not one
-virtual call per emitter. LEDs that are off are dropped before the loop; LEDs below the shading point's horizon
-(shading or geometric normal) trace nothing. Other emitter types are ignored. Derivatives with respect to BSDF
-parameters (``gra_microfacet`` textures) follow Path Replay Backpropagation: the loop is replayed in the adjoint
-pass with gradients enabled around the BSDF evaluation only.
+with one shadow ray per light and E_k the light's incident irradiance-like weight (``point``: I/d², the LEDs, in
+near field by default; ``spot`` and ``projector``: I·falloff/d²; ``directional``: its irradiance), as the emitter's
+own ``sample_direction`` gives it. Point emitters (a lightstage has hundreds) are read from the scene once per
+render into arrays and evaluated in one symbolic Dr.Jit loop, not one virtual call per emitter; the other delta
+lights follow in a second loop that calls each emitter. Point lights that are off are dropped before the loop; lights
+below the shading point's horizon (shading or geometric normal) trace nothing. Emitters that cannot be computed
+exactly in one shadow ray (``area``, ``envmap``, ``constant``, ``sunsky``, ...) are refused by name when a render
+starts (:mod:`gra_mi.render.scene_lights`), as is a scene without light. Derivatives with respect to BSDF parameters
+(``gra_microfacet`` textures) follow Path Replay Backpropagation: the loops are replayed in the adjoint pass with
+gradients enabled around the BSDF evaluation only.
 """
 
 from __future__ import annotations
@@ -34,21 +38,7 @@ import numpy as np
 from mitsuba.python.ad.integrators.common import RBIntegrator
 
 from gra_mi.render.leds import LedLayout
-
-
-def point_lights(scene: mi.Scene) -> tuple[np.ndarray, np.ndarray]:
-    """Positions (L, 3) and radiant intensities (L, 3) of the scene's point emitters, in emitter order."""
-    emitters = [e for e in scene.emitters() if e.class_name() == "PointLight"]
-    if not emitters:
-        return np.zeros((0, 3)), np.zeros((0, 3))
-    n = len(emitters)
-    # One vectorised call over all LEDs: a point light's sample_direction from the origin gives its position and
-    # I / d² (d = its distance to the origin).
-    it = dr.zeros(mi.Interaction3f, n)
-    ds, weight = mi.EmitterPtr(emitters).sample_direction(it, dr.full(mi.Point2f, 0.5, n), True)
-    positions = np.array(ds.p, dtype=np.float64).T.reshape(n, 3)
-    intensities = np.array(weight, dtype=np.float64).T.reshape(n, 3) * np.sum(positions**2, axis=1, keepdims=True)
-    return positions, intensities
+from gra_mi.render.scene_lights import scene_lights
 
 
 class LedArrays:
@@ -62,6 +52,24 @@ class LedArrays:
         pos, inten = pos[on], inten[on]
         self.position = mi.Point3f(*(pos.T.astype(np.float32))) if self.count else mi.Point3f()
         self.intensity = mi.Color3f(*(inten.T.astype(np.float32))) if self.count else mi.Color3f()
+
+
+class DeltaEmitters:
+    """The scene's other delta lights (spot, projector, directional) as one array of emitter pointers."""
+
+    def __init__(self, emitters: list):
+        self.count = len(emitters)
+        self.pointers = mi.EmitterPtr(emitters) if emitters else None
+
+
+def delta_contribution(scene, si, emitters: DeltaEmitters, k, active):
+    """(ωo in the local frame, incident weight, mask) for delta emitter k: its own ``sample_direction``, exact."""
+    emitter = dr.gather(mi.EmitterPtr, emitters.pointers, k, active)
+    ds, weight = emitter.sample_direction(si, dr.full(mi.Point2f, 0.5, dr.width(si.p)), active)
+    wo = si.to_local(ds.d)
+    facing = active & (wo.z > 0) & (dr.dot(si.n, ds.d) > 0) & (dr.max(weight) > 0)
+    visible = facing & ~scene.ray_test(si.spawn_ray_to(ds.p), facing)
+    return wo, weight, visible
 
 
 def led_contribution(scene, si, leds: LedArrays, k, far_field: bool, active):
@@ -92,58 +100,70 @@ class GraOneBounce(RBIntegrator):
         self.far_field = bool(props.get("far_field", False))
         center = props.get("stage_center", mi.ScalarPoint3f(0.0, 1.0, 0.0))
         self.stage_center = np.array([center[0], center[1], center[2]], dtype=np.float64)
-        self._leds = None
+        self._lights = None
 
-    def prepare_leds(self, scene: mi.Scene) -> LedArrays:
-        positions, intensities = point_lights(scene)
-        return LedArrays(LedLayout(positions, self.stage_center, self.far_field), intensities)
+    def prepare_lights(self, scene: mi.Scene) -> tuple[LedArrays, DeltaEmitters]:
+        """The scene's lights as the loops read them (checked: a light gra-mi cannot compute stops here, by name)."""
+        lights = scene_lights(scene)
+        return LedArrays(LedLayout(lights.positions, self.stage_center, self.far_field), lights.intensities), DeltaEmitters(lights.others)
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
-        self._leds = self.prepare_leds(scene)
+        self._lights = self.prepare_lights(scene)
         return super().render(scene, sensor, seed, spp, develop, evaluate)
 
     def render_backward(self, scene, params, grad_in, sensor=0, seed=0, spp=0):
-        self._leds = self.prepare_leds(scene)
+        self._lights = self.prepare_lights(scene)
         return super().render_backward(scene, params, grad_in, sensor, seed, spp)
 
     def render_forward(self, scene, params, sensor=0, seed=0, spp=0):
-        self._leds = self.prepare_leds(scene)
+        self._lights = self.prepare_lights(scene)
         return super().render_forward(scene, params, sensor, seed, spp)
 
-    @dr.syntax
     def sample(self, mode, scene, sampler, ray, δL, state_in, active, **kwargs):
         primal = mode == dr.ADMode.Primal
-        leds = self._leds if self._leds is not None else self.prepare_leds(scene)
+        leds, others = self._lights if self._lights is not None else self.prepare_lights(scene)
         far_field = self.far_field
-        ctx = mi.BSDFContext()
 
-        # ---------------------- Camera ray --------------------------
         si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.All, coherent=True, active=active)
         valid = active & si.is_valid()
         bsdf = si.bsdf(ray)
-
-        # ---------------------- Sum over LEDs ----------------------
         L = mi.Spectrum(0.0 if primal else state_in)  # radiance (or, in the adjoint pass, what is left of it)
         δL = mi.Spectrum(δL if δL is not None else 0.0)  # adjoint radiance
-        k = mi.UInt32(0)  # LED index among those that are on
-        count = mi.UInt32(leds.count)
-        while dr.hint(valid & (k < count), label=f"gra_onebounce LEDs ({mode.name})"):
-            wo, weight, visible = led_contribution(scene, si, leds, k, far_field, valid)
-            with dr.resume_grad(when=not primal):
-                contribution = bsdf.eval(ctx, si, wo, visible) * weight
-                contribution = dr.select(visible, contribution, 0.0)
-                if dr.hint(not primal, mode="scalar"):
-                    if dr.hint(mode == dr.ADMode.Backward, mode="scalar"):
-                        dr.backward_from(δL * contribution)
-                    else:
-                        δL += dr.forward_to(contribution)
-            L = L + dr.detach(contribution) if primal else L - dr.detach(contribution)
-            k += 1
-
+        if leds.count:
+            L, δL = _sum_lights(
+                mode, leds.count, lambda k, on: led_contribution(scene, si, leds, k, far_field, on), bsdf, si, valid, L, δL, "LEDs"
+            )
+        if others.count:
+            L, δL = _sum_lights(
+                mode, others.count, lambda k, on: delta_contribution(scene, si, others, k, on), bsdf, si, valid, L, δL, "delta lights"
+            )
         return (L if primal else δL, valid, [], L)
 
     def to_string(self):
         return f"GraOneBounce[far_field={self.far_field}]"
+
+
+@dr.syntax
+def _sum_lights(mode, count: int, contribution_of, bsdf, si, valid, L, δL, what: str):
+    """L ± Σ_k f(ωi, ωk) cosθk · weight_k over ``count`` lights (``contribution_of(k, mask)`` gives ωo, weight, mask);
+    in the adjoint pass the same sum is replayed with gradients around the BSDF only."""
+    primal = mode == dr.ADMode.Primal
+    ctx = mi.BSDFContext()
+    k = mi.UInt32(0)
+    n = mi.UInt32(count)
+    while dr.hint(valid & (k < n), label=f"gra_onebounce {what} ({mode.name})"):
+        wo, weight, visible = contribution_of(k, valid)
+        with dr.resume_grad(when=not primal):
+            contribution = bsdf.eval(ctx, si, wo, visible) * weight
+            contribution = dr.select(visible, contribution, 0.0)
+            if dr.hint(not primal, mode="scalar"):
+                if dr.hint(mode == dr.ADMode.Backward, mode="scalar"):
+                    dr.backward_from(δL * contribution)
+                else:
+                    δL += dr.forward_to(contribution)
+        L = L + dr.detach(contribution) if primal else L - dr.detach(contribution)
+        k += 1
+    return L, δL
 
 
 def register() -> None:

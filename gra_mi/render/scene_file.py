@@ -1,0 +1,133 @@
+"""Any Mitsuba 3 scene file, rendered as Mitsuba's own tool would render it (``gra-mi render SCENE.xml``).
+
+A scene gra-mi did not write is loaded as it is, with ``-D name=value`` parameters checked against the
+``<default>`` parameters the file declares, and rendered with its own integrator or one named on the command line
+(``direct``, ``path``, or ``gra_onebounce``, whose emitters are checked when the scene loads). Each sensor becomes
+``SENSOR.exr`` (linear, RGBA where the film has alpha) and ``SENSOR.png``. A lightstage scene (gra-mi's LEDs, rig and
+tracked subject) is the special case :class:`gra_mi.stage.scene.LightstageScene` handles.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from gra_mi.core.errors import GraMiInputError, GraMiParameterError
+from gra_mi.core.io import write_exr, write_png
+from gra_mi.stage import scene_keys as keys
+from gra_mi.stage.scene import make_integrator, scene_defaults
+
+NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+
+
+def is_lightstage_scene(path: Path) -> bool:
+    """Whether ``path`` declares a gra-mi lightstage's parameters (a subject sequence and a rig calibration)."""
+    defaults = scene_defaults(path)
+    return keys.PARAM_SUBJECT in defaults and keys.PARAM_CALIBRATION in defaults
+
+
+def parse_defines(items: list[str]) -> dict[str, str]:
+    """``-D name=value`` items as a dict (a name given twice: the last wins, as in Mitsuba's own tool)."""
+    defines = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        if not sep or not NAME.match(name):
+            raise GraMiParameterError("define", f"expected NAME=VALUE with NAME a scene parameter, got '{item}'")
+        defines[name] = value
+    return defines
+
+
+def check_defines(path: Path, defines: dict[str, str]) -> None:
+    """Every ``-D`` parameter must be one the scene declares with ``<default name=…>``: a misspelt name would
+    otherwise be dropped without a word."""
+    declared = scene_defaults(path)
+    unknown = sorted(set(defines) - set(declared))
+    if unknown:
+        said = ", ".join(sorted(declared)) or "none"
+        raise GraMiInputError(path, f"-D {unknown[0]}=…: the scene declares no parameter '{unknown[0]}' (it declares: {said})")
+
+
+def load_scene_file(path: str | Path, defines: dict[str, str] | None = None):
+    """``mi.load_file`` with the parameters checked and Mitsuba's errors turned into one line naming the file.
+    ``parallel=False``: scenes may use gra-mi's Python plugins."""
+    import mitsuba as mi
+
+    path = Path(path)
+    if not path.is_file():
+        raise GraMiInputError(path, "scene file not found")
+    defines = defines or {}
+    check_defines(path, defines)
+    try:
+        return mi.load_file(str(path), parallel=False, **defines)
+    except Exception as exc:  # Mitsuba reports parse and plugin errors as RuntimeError with its own location
+        raise GraMiInputError(path, f"Mitsuba could not load the scene: {str(exc).splitlines()[0]}") from None
+
+
+def sensor_name(index: int, sensor) -> str:
+    return sensor.id() or f"sensor{index}"
+
+
+def select_sensors(path: Path, scene, wanted: list[str]) -> list[int]:
+    """Indices of the sensors named (by id or index) in ``wanted``; all of them when it is empty."""
+    sensors = list(scene.sensors())
+    if not sensors:
+        raise GraMiInputError(path, "the scene has no sensor to render from")
+    names = [sensor_name(i, s) for i, s in enumerate(sensors)]
+    if not wanted:
+        return list(range(len(sensors)))
+    chosen = []
+    for item in wanted:
+        if item in names:
+            chosen.append(names.index(item))
+        elif item.isdigit() and int(item) < len(sensors):
+            chosen.append(int(item))
+        else:
+            raise GraMiParameterError("sensor", f"{path} has no sensor '{item}' (its sensors: {', '.join(names)}, or an index)")
+    return chosen
+
+
+@dataclass
+class SceneRender:
+    sensor: str
+    image: np.ndarray  # (H, W, C) linear, as the film develops it
+    path: Path  # the EXR
+
+
+def render_scene_file(
+    path: str | Path,
+    out: str | Path,
+    *,
+    sensors: list[str] | None = None,
+    integrator: str | None = None,
+    spp: int | None = None,
+    seed: int = 0,
+    defines: dict[str, str] | None = None,
+) -> list[SceneRender]:
+    """Render the named sensors (all by default) of a scene file into ``out/SENSOR.{exr,png}``.
+
+    ``integrator`` None and ``spp`` None: the scene's own. With ``gra_onebounce`` the scene's emitters are checked
+    first (:func:`gra_mi.render.scene_lights.scene_lights`): one it cannot compute stops the run by name.
+    """
+    import mitsuba as mi
+
+    from gra_mi.render.plugins.onebounce import GraOneBounce
+    from gra_mi.render.scene_lights import scene_lights
+
+    path, out = Path(path), Path(out)
+    scene = load_scene_file(path, defines)
+    chosen = select_sensors(path, scene, list(sensors or []))
+    chosen_integrator = make_integrator(integrator)
+    if isinstance(chosen_integrator or scene.integrator(), GraOneBounce):  # refuse what it cannot compute, by name, now
+        scene_lights(scene, str(path))
+    renders = []
+    for index in chosen:
+        sensor = scene.sensors()[index]
+        image = np.array(mi.render(scene, sensor=index, integrator=chosen_integrator, spp=spp or 0, seed=seed), dtype=np.float32)
+        name = sensor_name(index, sensor)
+        write_exr(out / f"{name}.exr", image[..., :4] if image.shape[-1] >= 4 else image[..., :3])
+        write_png(out / f"{name}.png", image[..., :3], exposure=None)
+        renders.append(SceneRender(name, image, out / f"{name}.exr"))
+    return renders

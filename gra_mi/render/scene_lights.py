@@ -1,0 +1,143 @@
+"""Which of a Mitsuba scene's emitters gra-mi's one-bounce integrator computes exactly, and which it refuses by name.
+
+A light that reaches a point from one position or one direction (a *delta* light: ``point``, ``spot``,
+``projector``, ``directional``) is computed exactly with one shadow ray: its emitter's own ``sample_direction`` gives
+the incident radiance. Lights spread over a surface or over the sphere of directions (``area``, ``envmap``,
+``constant``, ``sunsky``, ``directionalarea``) need many samples; rather than render them black, gra-mi refuses the
+scene when it is loaded, naming the emitter and what to use instead.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from gra_mi.core.errors import GraMiInputError
+
+# Mitsuba class name → the plugin name a scene file uses.
+PLUGIN_NAMES = {
+    "PointLight": "point",
+    "SpotLight": "spot",
+    "Projector": "projector",
+    "DirectionalEmitter": "directional",
+    "AreaLight": "area",
+    "EnvironmentMapEmitter": "envmap",
+    "ConstantBackgroundEmitter": "constant",
+    "SunskyEmitter": "sunsky",
+    "DirectionalArea": "directionalarea",
+}
+EXACT = ("point", "spot", "projector", "directional")
+ENVIRONMENTS = ("envmap", "constant", "sunsky")
+OTHER_INTEGRATORS = "Mitsuba's own integrators (`gra-mi render SCENE --integrator direct` or `path`)"
+ADVICE = {
+    "area": f"an area light needs its surface sampled: render this scene with {OTHER_INTEGRATORS}, or stand point or spot "
+    "emitters in for it",
+    "directionalarea": f"a directional area light needs its surface sampled: render this scene with {OTHER_INTEGRATORS}",
+    "environment": "light from every direction: gra-mi lights with environments through a lightstage's LEDs (`gra-mi relight "
+    f"LIGHTSTAGE_SCENE --envmap MAP`); for this scene use {OTHER_INTEGRATORS}",
+}
+
+
+def plugin_name(emitter) -> str:
+    return PLUGIN_NAMES.get(emitter.class_name(), emitter.class_name())
+
+
+def emitter_label(index: int, emitter) -> str:
+    """How an error names an emitter: its id, its type, and its place among the scene's emitters."""
+    name = emitter.id()
+    shape = emitter.get_shape() if plugin_name(emitter) in ("area", "directionalarea") else None
+    where = f" on shape '{shape.id()}'" if shape is not None and shape.id() else ""
+    return (f"emitter '{name}'" if name else f"emitter #{index}") + where
+
+
+@dataclass
+class SceneLights:
+    """The scene's delta lights: point emitters (the LEDs of a lightstage: one array, one loop) and the others."""
+
+    points: list
+    others: list
+    positions: np.ndarray  # (P, 3) of the point emitters
+    intensities: np.ndarray  # (P, 3) W/sr
+
+    @property
+    def count(self) -> int:
+        return len(self.points) + len(self.others)
+
+
+def point_lights(emitters: list) -> tuple[np.ndarray, np.ndarray]:
+    """Positions (P, 3) and radiant intensities (P, 3) of point emitters, in order."""
+    import drjit as dr
+    import mitsuba as mi
+
+    if not emitters:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    n = len(emitters)
+    # Vectorised calls over all LEDs: a point light's sample_direction gives its position, then, seen from 1 m
+    # beside it, I / 1² (its intensity).
+    lights = mi.EmitterPtr(emitters)
+    ds, _ = lights.sample_direction(dr.zeros(mi.Interaction3f, n), dr.full(mi.Point2f, 0.5, n), True)
+    positions = np.array(ds.p, dtype=np.float64).T.reshape(n, 3)
+    beside = dr.zeros(mi.Interaction3f, n)
+    beside.p = ds.p + mi.Vector3f(1.0, 0.0, 0.0)
+    _, weight = lights.sample_direction(beside, dr.full(mi.Point2f, 0.5, n), True)
+    intensities = np.array(weight, dtype=np.float64).T.reshape(n, 3)
+    return positions, intensities
+
+
+def scene_lights(scene, source: str | None = None) -> SceneLights:
+    """Classify and check the emitters of a loaded scene; ``source`` names the scene file in errors.
+
+    Refuses (:class:`GraMiInputError`, naming the emitter): a scene with no emitter, an emitter gra-mi cannot compute
+    exactly, a negative or non-finite intensity, a spot cone outside (0°, 180°).
+    """
+    import mitsuba as mi
+
+    emitters = list(scene.emitters())
+    if not emitters:
+        raise GraMiInputError(source or "scene", "the scene has no emitter, so every render would be black: add a point, spot or "
+                              "directional emitter")  # fmt: skip
+    points, others, point_index = [], [], []
+    for index, emitter in enumerate(emitters):
+        kind, label = plugin_name(emitter), emitter_label(index, emitter)
+        if kind not in EXACT:
+            raise GraMiInputError(
+                source or "scene", f"{label} is of type '{kind}', which gra_onebounce does not compute (it computes "
+                f"{', '.join(EXACT)} lights exactly): {_advice(kind)}"
+            )  # fmt: skip
+        if kind == "point":  # hundreds on a lightstage: read and checked at once below
+            points.append(emitter)
+            point_index.append(index)
+        else:
+            _check_values(mi.traverse(emitter), label, kind, source)
+            others.append(emitter)
+    positions, intensities = point_lights(points)
+    bad = np.flatnonzero(~np.all(np.isfinite(intensities) & (intensities >= 0), axis=1))
+    if bad.size:
+        k = int(bad[0])
+        raise GraMiInputError(source or "scene", f"{emitter_label(point_index[k], points[k])} (point): 'intensity' must be finite and "
+                              f">= 0, got {np.round(intensities[k], 6).tolist()} ({bad.size} such point lights)")  # fmt: skip
+    return SceneLights(points, others, positions, intensities)
+
+
+def _advice(kind: str) -> str:
+    if kind in ENVIRONMENTS:
+        return ADVICE["environment"]
+    return ADVICE.get(kind, f"gra-mi cannot compute it: use {OTHER_INTEGRATORS}")
+
+
+def _check_values(params, label: str, kind: str, source: str | None) -> None:
+    for key in params.keys():
+        if key.endswith(("intensity.value", "irradiance.value")):
+            value = np.asarray(params[key], np.float64)
+            if not np.all(np.isfinite(value)) or np.any(value < 0):
+                raise GraMiInputError(source or "scene", f"{label} ({kind}): '{key.split('.')[0]}' must be finite and >= 0, got "
+                                      f"{np.round(value.ravel(), 6).tolist()}")  # fmt: skip
+    if kind == "spot":
+        cutoff, beam = float(np.ravel(params["cutoff_angle"])[0]), float(np.ravel(params["beam_width"])[0])
+        if not 0 < cutoff < 180:
+            raise GraMiInputError(source or "scene", f"{label} (spot): cutoff_angle must lie in (0°, 180°), got {cutoff:g}°")
+        if not 0 <= beam <= cutoff:
+            raise GraMiInputError(
+                source or "scene", f"{label} (spot): beam_width must lie in [0°, cutoff_angle = {cutoff:g}°], got {beam:g}°"
+            )
