@@ -30,7 +30,17 @@ if ! have_llvm; then
     fi
 fi
 
-# 2. Virtual environment and packages.
+# 2. Chromium and its driver, for the browser test of `gra-mi view` (skipped, saying so, where they cannot be installed).
+if ! command -v chromium >/dev/null || ! command -v chromedriver >/dev/null; then
+    SUDO=""
+    [ "$(id -u)" -ne 0 ] && command -v sudo >/dev/null && SUDO="sudo"
+    if command -v apt-get >/dev/null && { [ "$(id -u)" -eq 0 ] || [ -n "$SUDO" ]; }; then
+        say "installing chromium and chromium-driver for the viewer's browser test (apt-get)"
+        { $SUDO apt-get update -qq && $SUDO apt-get install -y -qq chromium chromium-driver >/dev/null; } || say "chromium not installed: the browser test will be skipped"
+    fi
+fi
+
+# 3. Virtual environment and packages.
 PYTHON=${PYTHON:-python3}
 if [ ! -x .venv/bin/python ]; then
     say "creating .venv with $($PYTHON --version)"

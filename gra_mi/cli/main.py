@@ -56,6 +56,9 @@ COMMANDS: dict[str, Command] = {
     "envmaps": Command("scene", "Write procedural HDR environment maps (skies and rooms) as EXR + PNG, split by seed."),
     "subject": Command("scene", "Write an animated tracked mesh sequence (sequence.npz + per-frame PLYs).", mitsuba=False),
     "scene": Command("scene", "Write a Mitsuba scene file that puts a subject sequence into a rig.", mitsuba=False),
+    "view": Command(
+        "run", "Relight the avatar live in a browser: envmaps, OLATs, a draggable point light (viser; prints its URL).", torch=True
+    ),
     "render": Command(
         "scene", "Render any Mitsuba 3 scene (or a lightstage scene under an envmap, OLAT or pattern): EXR + PNG per sensor."
     ),

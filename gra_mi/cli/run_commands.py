@@ -1,4 +1,4 @@
-"""Commands over a whole run: ``demo``, ``bench``, ``eval``."""
+"""Commands over a whole run: ``demo``, ``bench``, ``eval``, ``view``."""
 
 from __future__ import annotations
 
@@ -8,8 +8,9 @@ from pathlib import Path
 
 from gra_mi.cli.options import CommandConfig, Restartable
 from gra_mi.core.config import option
-from gra_mi.core.errors import GraMiParameterError
+from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.eval.protocol import EvalConfig, EvalInputs, evaluate
+from gra_mi.stage.envmap import EnvmapOptions
 
 
 @dataclass(kw_only=True)
@@ -87,8 +88,87 @@ def run_eval(c: EvalCommand) -> int:
     return 2 if report["problems"] else 0
 
 
+@dataclass(kw_only=True)
+class ViewCommand(CommandConfig):
+    run: Path | None = field(default=None, metadata=option(positional=True))
+    """A folder `gra-mi demo` wrote (capture/, fit/, relightnet/): the subject with its fitted maps, RelightNet where
+    its weights exist, the capture's images as ground truth and its envmaps."""
+    capture: Path | None = None
+    """A capture folder instead of a run (with --fit and --relightnet as you have them)."""
+    fit: Path | None = None
+    """Fit folder (albedo.exr, roughness.exr, confidence.exr). Without one the subject shows its own colours."""
+    relightnet: Path | None = None
+    """Trained RelightNet folder: adds '+ RelightNet' to the page's stages."""
+    scene: Path | None = None
+    """A lightstage scene without a capture (e.g. scenes/tiny_lightstage.xml)."""
+    envmap: list[Path] = field(default_factory=list, metadata=option(repeat=True))
+    """Your own HDR map (OpenEXR or .hdr) to offer in the page, next to the capture's and the reference maps
+    (repeatable). The page offers only maps named here: it reads no path a browser sends."""
+    host: str = "127.0.0.1"
+    """Address to listen on. The default answers this machine only; reach a remote server through an SSH tunnel
+    (ssh -L 8080:localhost:8080 SERVER). 0.0.0.0 opens it to the network."""
+    port: int = 8080
+    """Port to listen on."""
+    max_size: int = 512
+    """Longest side, in pixels, of the images the server renders for the browser."""
+    uv_resolution: int = 256
+    """UV resolution without a fit (a fit sets its own)."""
+    vis_cache: Path | None = None
+    """Folder to keep per-frame visibility in across runs. Default: memory only."""
+    seconds: float | None = None
+    """Stop after this many seconds (scripts, tests). Default: run until Ctrl-C."""
+    envmaps: EnvmapOptions = field(default_factory=EnvmapOptions)
+
+    def validate(self) -> None:
+        super().validate()
+        if sum(x is not None for x in (self.run, self.capture, self.scene)) != 1:
+            raise GraMiParameterError("run", "give one of: a run folder, --capture, or --scene")
+        if not 0 < self.port < 65536:
+            raise GraMiParameterError("port", f"must be in 1..65535, got {self.port}")
+        if self.max_size < 16 or self.uv_resolution < 8:
+            raise GraMiParameterError(
+                "max_size", f"--max-size must be >= 16 and --uv-resolution >= 8, got {self.max_size}, {self.uv_resolution}"
+            )
+
+
+def run_view(c: ViewCommand) -> None:
+    import socket
+    import time
+
+    from gra_mi.apps.viewer import ViewerSession, ViewSources
+    from gra_mi.apps.viewer_page import ViewerPage
+    from gra_mi.core.runtime import torch_device
+
+    with socket.socket() as probe:  # say a busy port plainly, before loading anything
+        try:
+            probe.bind((c.host, c.port))
+        except OSError as exc:
+            raise GraMiParameterError("port", f"cannot listen on {c.host}:{c.port} ({exc.strerror}): give another --port") from None
+    extra = {"envmaps": c.envmap, "vis_cache": c.vis_cache, "uv_resolution": c.uv_resolution}
+    if c.run is not None:
+        sources = ViewSources.of_run(c.run, **extra)
+    elif c.capture is not None:
+        if not (c.capture / "scene.xml").is_file():
+            raise GraMiInputError(c.capture, "not a capture folder: no scene.xml")
+        sources = ViewSources(c.capture / "scene.xml", c.capture, c.fit, c.relightnet, **extra)
+    else:
+        sources = ViewSources(c.scene, None, c.fit, c.relightnet, **extra)
+    session = ViewerSession(sources, c.envmaps, str(torch_device()))
+    for notice in session.notices:
+        print(f"gra-mi view: note: {notice}")
+    page = ViewerPage(session, c.host, c.port, c.max_size)
+    print(f"gra-mi view: open http://{'localhost' if c.host == '127.0.0.1' else c.host}:{c.port} (Ctrl-C stops)", flush=True)
+    try:
+        deadline = None if c.seconds is None else time.monotonic() + c.seconds
+        while deadline is None or time.monotonic() < deadline:
+            time.sleep(0.2)
+    finally:
+        page.close()
+
+
 COMMANDS = {
     "demo": (DemoCommand, run_demo),
     "bench": (BenchCommand, run_bench),
     "eval": (EvalCommand, run_eval),
+    "view": (ViewCommand, run_view),
 }

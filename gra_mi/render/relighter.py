@@ -18,7 +18,7 @@ from gra_mi.core.io import read_exr
 from gra_mi.render.atlas import TexelGeometry, UVAtlas
 from gra_mi.render.leds import LedLayout
 from gra_mi.render.point_light import PointLight, as_light_list, point_light_visibility, shade_point_light
-from gra_mi.render.rasterize import rasterize_to_camera
+from gra_mi.render.rasterize import RASTER_SAMPLES, rasterize_to_camera
 from gra_mi.render.shading import TexelShading, led_cell_roughness, shade_texels
 from gra_mi.render.visibility import VisibilityCache
 from gra_mi.stage.scene import LightstageScene
@@ -111,10 +111,11 @@ class Relighter:
         shading, geom = self.shade(frame, camera, led_intensities, near_lights, far_field)
         return ViewRender(self.rasterize(frame, camera, self.atlas.scatter(shading.radiance)), shading, geom)
 
-    def rasterize(self, frame: int, camera: int | str, texture: np.ndarray) -> np.ndarray:
-        """A UV texture (R, R, C) seen by ``camera`` at ``frame``: (H, W, C + 1) with alpha."""
+    def rasterize(self, frame: int, camera: int | str, texture: np.ndarray, samples: int = RASTER_SAMPLES) -> np.ndarray:
+        """A UV texture (R, R, C) seen by ``camera`` at ``frame``: (H, W, C + 1) with alpha, from ``samples``² sub-samples
+        per pixel (a live viewer takes fewer)."""
         self.ls.set_frame(frame)
-        return rasterize_to_camera(self.ls, self.ls.stage.camera(camera), texture, self.atlas.mask)
+        return rasterize_to_camera(self.ls, self.ls.stage.camera(camera), texture, self.atlas.mask, samples)
 
     def shade(
         self,

@@ -112,7 +112,11 @@ class Lightstage:
     def led_distances(self) -> np.ndarray:
         return np.linalg.norm(self.led_positions - self.center, axis=1)
 
-    def camera(self, index_or_name: int | str) -> Camera:
+    def camera(self, index_or_name: int | str | Camera) -> Camera:
+        """One of the rig's cameras by index or name; a :class:`Camera` itself passes through (a viewer's free camera
+        renders like a rig camera)."""
+        if isinstance(index_or_name, Camera):
+            return index_or_name
         if isinstance(index_or_name, str) and not index_or_name.isdigit():
             for cam in self.cameras:
                 if cam.name == index_or_name:

@@ -320,13 +320,15 @@ class LightstageScene:
             r = [[float(v) for v in column] for column in camera.rotation.T]
             d = dr.normalize(x * mi.ScalarVector3f(r[0]) + y * mi.ScalarVector3f(r[1]) + mi.ScalarVector3f(r[2]))
             return mi.Ray3f(mi.Point3f(mi.ScalarPoint3f([float(v) for v in camera.position])), d)
-        ray = self._camera_rays.get(camera.name)
+        rig_camera = any(camera is c for c in self.stage.cameras)  # a viewer's free camera moves: never kept
+        ray = self._camera_rays.get(camera.name) if rig_camera else None
         if ray is None:
             origin, directions = camera.pixel_rays()
             d = directions.reshape(-1, 3).astype(np.float32)
             ray = mi.Ray3f(mi.Point3f(*np.tile(origin.astype(np.float32), (d.shape[0], 1)).T), mi.Vector3f(*d.T))
             dr.eval(ray)
-            self._camera_rays[camera.name] = ray
+            if rig_camera:
+                self._camera_rays[camera.name] = ray
         return ray
 
     def sensor_index(self, camera: int | str) -> int:

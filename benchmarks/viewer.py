@@ -1,0 +1,163 @@
+"""How live `gra-mi view` is: the time from a change of lighting or viewpoint to the new image, on the server and as
+the browser sees it.
+
+The anny body in the default 331-LED rig at UV 512² (no fit: its own colours, roughness 0.5), a 512×288 view.
+**Server**: :class:`gra_mi.apps.viewer.ViewerSession` alone — the lighting set, the texels shaded for the view's
+camera, the texture rasterised (2×2 sub-samples), tone-mapped and JPEG-encoded as viser sends it; five changes of
+each kind after the frame's visibility is cached (a new frame pays its trace once: shown too). **Browser**: the
+page in headless Chromium (software WebGL) driven through its controls, from the key press or click to the new
+view's timings line arriving (the image arrives just before it); where Chromium is not installed this part is
+skipped and says so.
+
+    .venv/bin/python benchmarks/viewer.py [--write docs/results/viewer.md]
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+CHANGES = {  # what a viewer does, as lighting changes (value k: the k-th repetition)
+    "new envmap": lambda k: {"mode": "envmap", "envmap": ("sun", "studio", "interior", "night")[k % 4]},
+    "envmap rotation": lambda k: {"mode": "envmap", "rotation": float(15 * (k + 1))},
+    "LED (OLAT) choice": lambda k: {"mode": "olat", "olat": 17 * (k + 1)},
+    "point light moved": lambda k: {"mode": "point light", "point": (0.6 - 0.1 * k, 1.3, 0.6)},
+}
+
+
+def jpeg_ms(image: np.ndarray) -> float:
+    from PIL import Image
+
+    start = time.perf_counter()
+    Image.fromarray(image).save(io.BytesIO(), format="JPEG", quality=92)
+    return 1000 * (time.perf_counter() - start)
+
+
+def server_rows(scene: Path, repeats: int = 5) -> list[dict]:
+    from gra_mi.apps.viewer import ViewerSession, ViewSources, camera_pose, viewer_camera, with_lighting
+
+    session = ViewerSession(ViewSources(scene=scene, uv_resolution=512))
+    position, wxyz, fov = camera_pose(session.ls.stage.cameras[0])
+    camera = viewer_camera(position, wxyz, fov, 512, 288)
+    session.render(camera)  # the frame's visibility and the kernels: once
+    rows = []
+    for name, change in [*CHANGES.items(), ("orbit (new viewpoint)", None), ("new frame (visibility traced)", "frame")]:
+        totals, parts = [], []
+        for k in range(repeats if change != "frame" else 1):
+            start = time.perf_counter()
+            if change == "frame":
+                with_lighting(session, mode="envmap", frame=1)
+            elif change is not None:
+                with_lighting(session, **change(k))
+            view_camera = camera if change is not None else viewer_camera(position + np.array([0.1 * (k + 1), 0, 0]), wxyz, fov, 512, 288)
+            view = session.render(view_camera)
+            view.timings["jpeg"] = jpeg_ms(view.image)
+            totals.append(1000 * (time.perf_counter() - start) + view.timings["jpeg"])
+            parts.append(view.timings)
+        with_lighting(session, mode="envmap", frame=0)
+        rows.append({"change": name, "total": statistics.median(totals), **{p: statistics.median(t[p] for t in parts) for p in parts[0]}})
+    return rows
+
+
+def browser_rows(scene: Path, repeats: int = 5) -> list[dict] | str:
+    """Key press / click → the new view's timings line in headless Chromium (median of ``repeats``)."""
+    from tests.conftest import free_port
+    from tests.test_viewer import Page, _chromium
+
+    if _chromium() is None:
+        return "skipped: chromium and chromedriver are not installed (scripts/setup.sh installs them with apt)"
+    from selenium.webdriver.common.keys import Keys
+
+    port = free_port()
+    server = subprocess.Popen(
+        [sys.executable, "-m", "gra_mi.cli", "view", "--scene", str(scene), "--uv-resolution", "512", "--port", str(port), "--seconds", "900"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ, "GRA_MI_QUIET": "1"},
+    )  # fmt: skip
+    page = None
+    try:
+        for line in server.stdout:
+            if "open http://" in line:
+                break
+        page = Page(f"http://127.0.0.1:{port}")
+        page.settle(time.perf_counter())
+        actions = {
+            "new envmap": lambda k: page.choose("envmap", ("studio", "interior", "night", "sun")[k % 4]),
+            "envmap rotation": lambda k: page.press("rotation (deg)", Keys.ARROW_RIGHT, 1),
+            "point light moved": lambda k: page.press("point light (m)", Keys.ARROW_DOWN, 1),
+        }
+        rows = []
+        for name, act in actions.items():
+            if name == "point light moved":
+                page.settle(page.choose("mode", "point light"))
+            rows.append({"change": name, "browser": statistics.median(page.settle(act(k)) * 1000 for k in range(repeats))})
+        return rows
+    finally:
+        if page is not None:
+            page.driver.quit()
+        server.terminate()
+        server.wait(timeout=30)
+
+
+def markdown(server: list[dict], browser, stamp: str) -> str:
+    lines = [
+        "# `gra-mi view`: latency of a change",
+        "",
+        f"Generated by `benchmarks/viewer.py` ({stamp}). The anny body, 331 LEDs, UV 512², a 512×288 view; medians of 5.",
+        "",
+        "## On the server (ms)",
+        "",
+        "| change | total | shade | rasterize | tonemap | JPEG |",
+        "|---|---|---|---|---|---|",
+    ]
+    lines += [
+        f"| {r['change']} | **{r['total']:.0f}** | {r['shade']:.0f} | {r['rasterize']:.0f} | {r['tonemap']:.0f} | {r['jpeg']:.0f} |"
+        for r in server
+    ]
+    lines += [
+        "",
+        "'shade' includes setting the lighting (an envmap's mapping onto the LEDs) and, for a point light, its soft-shadow trace.",
+        "",
+    ]
+    lines += ["## In the browser (headless Chromium, software WebGL)", ""]
+    if isinstance(browser, str):
+        lines.append(browser)
+    else:
+        lines += ["| change | key press / click → new view (ms) |", "|---|---|"]
+        lines += [f"| {r['change']} | **{r['browser']:.0f}** |" for r in browser]
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--write", type=Path, default=None, help="Also write the Markdown page here.")
+    args = parser.parse_args()
+    from benchmarks.moving_lights import video_scene
+    from gra_mi.core.stamp import run_stamp, stamp_said
+    from gra_mi.render.runtime import start_runtime
+
+    variant = start_runtime("llvm_ad_rgb").variant
+    with tempfile.TemporaryDirectory(prefix="gra_mi_view_") as tmp:
+        scene = video_scene(Path(tmp), 2)
+        server = server_rows(scene)
+        browser = browser_rows(scene)
+    page = markdown(server, browser, stamp_said(run_stamp(preset="anny, UV 512", variant=variant)))
+    print(page)
+    if args.write:
+        args.write.write_text(page)
+        print(f"wrote {args.write}", file=sys.stderr)
+
+
+if __name__ == "__main__":
+    main()

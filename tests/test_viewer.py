@@ -1,0 +1,273 @@
+"""`gra-mi view`: the session (relit views for free cameras), the command's bad input, and the page itself in headless
+Chromium (screenshots kept in outputs/test-artifacts/viewer/)."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gra_mi.core.errors import GraMiInputError
+
+from .conftest import SCENES, free_port
+from .test_cli import run_cli
+
+TINY = SCENES / "tiny_lightstage.xml"
+ARTIFACTS = SCENES.parent / "outputs" / "test-artifacts" / "viewer"
+
+
+def tiny_session(**kw):
+    from gra_mi.apps.viewer import ViewerSession, ViewSources
+
+    return ViewerSession(ViewSources(scene=TINY, uv_resolution=64, **kw))
+
+
+def front_camera(session, width: int = 192, height: int = 128):
+    from gra_mi.apps.viewer import camera_pose, viewer_camera
+
+    position, wxyz, fov = camera_pose(session.ls.stage.cameras[0])
+    return viewer_camera(position, wxyz, fov, width, height)
+
+
+def lit_sides(image: np.ndarray, subject: np.ndarray) -> tuple[float, float]:
+    """Mean brightness of the subject's left and right halves (split at its middle column)."""
+    columns = np.nonzero(subject.any(axis=0))[0]
+    middle = (columns[0] + columns[-1]) // 2
+    grey = image[..., :3].astype(np.float64).mean(axis=-1)
+    left, right = subject.copy(), subject.copy()
+    left[:, middle:], right[:, :middle] = False, False
+    return float(grey[left].mean()), float(grey[right].mean())
+
+
+def largest_blob(mask: np.ndarray) -> np.ndarray:
+    from scipy import ndimage
+
+    labels, count = ndimage.label(mask)
+    sizes = ndimage.sum(mask, labels, range(1, count + 1))
+    return labels == 1 + int(np.argmax(sizes))
+
+
+def test_session_relights_for_a_free_camera(llvm_variant, tmp_path):
+    from gra_mi.apps.viewer import camera_pose, viewer_camera, with_lighting
+
+    session = tiny_session()
+    assert session.notices and "no fit" in session.notices[0]
+    camera = front_camera(session)
+    # The page's camera put where a rig camera stands is that camera.
+    np.testing.assert_allclose(camera.camera_to_world, session.ls.stage.cameras[0].camera_to_world, atol=1e-9)
+    sun = session.render(camera)
+    assert sun.image.shape == (128, 192, 3) and {"shade", "rasterize", "tonemap"} <= set(sun.timings)
+    with_lighting(session, stage="albedo")
+    subject = largest_blob(np.abs(session.render(camera).image.astype(int) - sun.image[0, 0]).sum(axis=-1) > 30)
+    assert subject.sum() > 500
+    sides = {}
+    for x in (-0.8, 0.8):
+        with_lighting(session, stage="microfacet", mode="point light", point=(x, 1.2, 0.5))
+        sides[x] = lit_sides(session.render(camera).image, subject)
+    assert sides[-0.8][0] > sides[-0.8][1] and sides[0.8][1] > sides[0.8][0], sides
+    # Highlights follow the view: the shading is for the page's camera position, not a fixed one.
+    position, wxyz, fov = camera_pose(session.ls.stage.cameras[0])
+    aside = viewer_camera(position + np.array([0.4, 0.0, 0.0]), wxyz, fov, 192, 128)
+    shaded = [session.relighter.shade(0, cam, *session.lights())[0] for cam in (camera, aside)]
+    assert np.abs(shaded[0].specular - shaded[1].specular).max() > 1e-4
+    with_lighting(session, mode="olat", olat=5)
+    assert session.lighting_preview().max() > 0 and session.render(camera).image.max() > 0
+
+
+def test_fast_srgb_is_within_one_level_of_the_exact_curve():
+    from gra_mi.apps.viewer import srgb8_fast
+    from gra_mi.core.io import to_srgb8
+
+    linear = np.concatenate([np.linspace(0, 1.2, 30000), [np.nan, np.inf, -1.0]]).reshape(-1, 1, 3)
+    assert np.abs(srgb8_fast(linear).astype(int) - to_srgb8(linear, 1.0)).max() <= 1
+
+
+def test_session_refuses_what_it_does_not_have_and_keeps_its_lighting(llvm_variant, tmp_path):
+    from gra_mi.apps.viewer import with_lighting
+
+    (tmp_path / "broken.exr").write_bytes(b"not an exr")
+    session = tiny_session(envmaps=[tmp_path / "broken.exr"])
+    before = session.lighting
+    with pytest.raises(GraMiInputError, match="broken.exr"):
+        with_lighting(session, envmap="broken")
+    assert session.lighting == before
+    for bad in ({"stage": "relightnet"}, {"frame": 99}, {"mode": "area"}, {"olat": 10_000}, {"envmap": "/etc/passwd"}):
+        with pytest.raises(GraMiInputError):
+            with_lighting(session, **bad)
+    assert session.lighting == before
+
+
+def test_session_on_a_capture_with_its_fit(path_traced_fit, llvm_variant):
+    from gra_mi.apps.viewer import ViewerSession, ViewSources, with_lighting
+
+    cap, fit = path_traced_fit / "cap", path_traced_fit / "fit"
+    session = ViewerSession(ViewSources(scene=cap / "scene.xml", capture=cap, fit=fit))
+    assert not session.notices and "confidence" in session.stages
+    assert any(isinstance(source, Path) for source in session.envmap_sources.values()), "the capture's own maps are offered"
+    camera = session.capture.eval_cameras[0]
+    truth = session.ground_truth(camera, session.capture.frames[0].mesh_frame)
+    assert truth is not None and truth[0].dtype == np.uint8 and truth[0].max() > 0
+    with_lighting(session, stage="confidence")
+    assert session.render(front_camera(session)).image.max() > 0
+
+
+def test_view_command_bad_input(tmp_path):
+    import socket
+
+    none = run_cli("view")
+    assert none.returncode == 2 and "give one of" in none.stderr
+    empty = run_cli("view", str(tmp_path))
+    assert empty.returncode == 2 and "not a run folder" in empty.stderr
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        taken = run_cli("view", "--scene", str(TINY), "--port", str(port), "--seconds", "1")
+    assert taken.returncode == 2 and "--port" in taken.stderr and "cannot listen" in taken.stderr and "Traceback" not in taken.stderr
+
+
+# ------------------------------------------------------------------------------------------------ in a real browser
+
+
+def _chromium() -> tuple[str, str] | None:
+    browser = shutil.which("chromium") or shutil.which("chromium-browser") or shutil.which("google-chrome")
+    driver = shutil.which("chromedriver")
+    return (browser, driver) if browser and driver else None
+
+
+class Page:
+    """The viewer's page in headless Chromium, driven through its own controls."""
+
+    def __init__(self, url: str):
+        from selenium import webdriver
+        from selenium.webdriver.chrome.service import Service
+
+        browser, driver = _chromium()
+        options = webdriver.ChromeOptions()
+        for flag in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--window-size=1000,700", "--use-angle=swiftshader",
+                     "--enable-unsafe-swiftshader"):  # fmt: skip
+            options.add_argument(flag)
+        options.binary_location = browser
+        self.driver = webdriver.Chrome(service=Service(driver), options=options)
+        self.driver.get(url)
+        self.view = self.wait_for_view(None, timeout=120)
+
+    def control(self, label: str):
+        from selenium.webdriver.common.by import By
+
+        found = [e for e in self.driver.find_elements(By.TAG_NAME, "label") if e.text == label]
+        assert found, f"no control labelled {label!r}"
+        return self.driver.find_element(By.ID, found[0].get_attribute("for"))
+
+    def choose(self, label: str, option: str) -> float:
+        from selenium.webdriver.common.by import By
+
+        self.control(label).click()
+        time.sleep(0.3)
+        [e for e in self.driver.find_elements(By.CSS_SELECTOR, "[role=option]") if e.text == option][0].click()
+        return time.perf_counter()
+
+    def press(self, label: str, key: str, times: int) -> float:
+        field = self.control(label)
+        field.click()
+        for _ in range(times):
+            field.send_keys(key)
+        return time.perf_counter()
+
+    def timings_text(self) -> str | None:
+        return self.driver.execute_script(
+            "const p = Array.from(document.querySelectorAll('p')).find(e => e.textContent.startsWith('view ')); return p ? p.textContent : null;"
+        )
+
+    def wait_for_view(self, previous: str | None, timeout: float = 60.0) -> str:
+        """Wait until the server has sent a view newer than ``previous`` (its counter is in the timings line)."""
+        deadline = time.perf_counter() + timeout
+        while time.perf_counter() < deadline:
+            text = self.timings_text()
+            if text and text != previous:
+                return text
+            time.sleep(0.02)
+        raise AssertionError(f"no new view within {timeout} s (last: {previous})")
+
+    def settle(self, since: float) -> float:
+        """Wait for the views a change asked for to stop coming; the browser-observed latency of the first one."""
+        first = self.wait_for_view(self.view)
+        latency = time.perf_counter() - since
+        self.view = first
+        while True:
+            try:
+                self.view = self.wait_for_view(self.view, timeout=1.5)
+            except AssertionError:
+                break
+        return latency
+
+    def shot(self, name: str) -> np.ndarray:
+        """A screenshot once the page has drawn the last image (two in a row the same: software WebGL is slow)."""
+        import imageio.v3 as iio
+
+        ARTIFACTS.mkdir(parents=True, exist_ok=True)
+        path, previous = ARTIFACTS / f"{name}.png", None
+        # Chromium's software WebGL makes viser pin a notice over the canvas: out of the picture.
+        self.driver.execute_script("document.querySelectorAll('.mantine-Notification-root').forEach(e => e.remove());")
+        for _ in range(25):
+            time.sleep(0.2)
+            self.driver.save_screenshot(str(path))
+            image = iio.imread(path)[..., :3]
+            if previous is not None and np.array_equal(image[:, :600], previous[:, :600]):
+                return image
+            previous = image
+        return previous
+
+
+@pytest.mark.skipif(_chromium() is None, reason="needs chromium and chromedriver (scripts/setup.sh installs them with apt)")
+def test_the_page_in_headless_chromium():
+    """The page loads with the subject, and its controls relight it: another envmap changes the subject's pixels, and
+    the lit side follows a point light moved from left to right."""
+    from selenium.webdriver.common.keys import Keys
+
+    port = free_port()
+    env = {**os.environ, "GRA_MI_QUIET": "1"}
+    server = subprocess.Popen(
+        [sys.executable, "-m", "gra_mi.cli", "view", "--scene", str(TINY), "--uv-resolution", "64", "--port", str(port), "--seconds", "300"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env,
+    )  # fmt: skip
+    page = None
+    try:
+        for line in server.stdout:
+            if "open http://" in line:
+                break
+        page = Page(f"http://127.0.0.1:{port}")
+        latencies = {}
+        page.choose("show", "albedo")
+        latencies["stage"] = page.settle(time.perf_counter())
+        albedo = page.shot("albedo")
+        background = np.median(albedo[:, :600].reshape(-1, 3), axis=0)
+        subject = np.zeros(albedo.shape[:2], bool)
+        subject[:, :600] = np.abs(albedo[:, :600].astype(int) - background).sum(axis=-1) > 60  # the canvas, left of the panel
+        subject = largest_blob(subject)  # the torso: not the arm, the LEDs' dots or the axes icon
+        assert subject.sum() > 2000, "the subject is on the page"
+        latencies["microfacet"] = page.settle(page.choose("show", "microfacet"))
+        sun = page.shot("envmap_sun")
+        latencies["envmap"] = page.settle(page.choose("envmap", "night"))
+        night = page.shot("envmap_night")
+        change = np.abs(sun.astype(int) - night.astype(int)).sum(axis=-1)[subject].mean()
+        assert change > 10, f"another envmap must relight the subject (mean change {change:.1f})"
+        page.settle(page.choose("mode", "point light"))
+        latencies["point_left"] = page.settle(page.press("point light (m)", Keys.ARROW_DOWN, 28))  # x: 0.6 → -0.8
+        left = lit_sides(page.shot("point_light_left"), subject)
+        latencies["point_right"] = page.settle(page.press("point light (m)", Keys.ARROW_UP, 32))  # x: -0.8 → 0.8
+        right = lit_sides(page.shot("point_light_right"), subject)
+        assert left[0] > left[1] and right[1] > right[0], f"the lit side follows the light: left {left}, right {right}"
+        (ARTIFACTS / "latency.json").write_text(json.dumps({k: round(1000 * v) for k, v in latencies.items()}, indent=1))
+    finally:
+        if page is not None:
+            page.driver.quit()
+        server.terminate()
+        server.wait(timeout=30)
