@@ -73,6 +73,7 @@ class Lighting:
 class ViewImage:
     image: np.ndarray  # (H, W, 3) uint8 sRGB
     timings: dict[str, float]  # milliseconds per part
+    depth: np.ndarray | None = None  # (H, W) metres along the camera's axis (far where no subject): the page's occlusion
 
 
 class ViewerSession:
@@ -97,7 +98,6 @@ class ViewerSession:
 
     # ---------------------------------------------------------------- what there is
     def _maps(self):
-        from gra_mi.core.io import read_exr
         from gra_mi.render.relighter import load_texture
 
         fit = self.sources.fit
@@ -106,7 +106,7 @@ class ViewerSession:
             return None, None, None
         albedo = load_texture(fit / "albedo.exr", 3, "albedo")
         roughness = load_texture(fit / "roughness.exr", 1, "roughness")
-        confidence = read_exr(fit / "confidence.exr")[..., :1] if (fit / "confidence.exr").is_file() else None
+        confidence = confidence_picture(fit / "confidence.exr") if (fit / "confidence.exr").is_file() else None
         return albedo, roughness, confidence
 
     def _relightnet(self, device: str):
@@ -207,11 +207,23 @@ class ViewerSession:
             timings["shade"] = 1000 * (time.perf_counter() - start)
             start = time.perf_counter()
             image = self.relighter.rasterize(light.frame, camera, texture, VIEW_SAMPLES)
+            depth = self._depth(camera)
             timings["rasterize"] = 1000 * (time.perf_counter() - start)
         start = time.perf_counter()
         shown = self._display(image, light)
         timings["tonemap"] = 1000 * (time.perf_counter() - start)
-        return ViewImage(shown, timings)
+        return ViewImage(shown, timings, depth)
+
+    def _depth(self, camera: Camera) -> np.ndarray:
+        """The subject's depth at each pixel centre (one ray each), so the page hides LEDs and the gizmo behind it."""
+        import drjit as dr
+        import mitsuba as mi
+
+        ray = self.ls.camera_rays(camera)
+        si = self.ls.scene.ray_intersect(ray, ray_flags=mi.RayFlags.Minimal, coherent=True)
+        forward = [float(v) for v in camera.rotation[:, 2]]
+        depth = dr.select(si.is_valid(), si.t * dr.dot(ray.d, mi.Vector3f(forward)), 1e4)
+        return np.asarray(depth, np.float32).reshape(camera.height, camera.width)
 
     def _texture(self, light: Lighting, camera: Camera, intensities, near, far) -> np.ndarray:
         from gra_mi.relightnet.infer import relightnet_texture
@@ -222,7 +234,7 @@ class ViewerSession:
         if light.stage == "roughness":
             return np.repeat(self.relighter.roughness_tex, 3, axis=2)
         if light.stage == "confidence" and self.confidence is not None:
-            return np.repeat(self.confidence, 3, axis=2)
+            return self.confidence
         if light.stage == "relightnet" and self.model is not None:
             return relightnet_texture(self.model, self.relighter, light.frame, camera, intensities, near, far)[0]
         shading, _ = self.relighter.shade(light.frame, camera, intensities, near, far)
@@ -268,6 +280,19 @@ class ViewerSession:
                 lit = entry.envmap or entry.pattern or entry.kind
                 return to_srgb8(image[..., :3], display_exposure(image[..., :3])), f"capture frame {entry.frame}: {Path(str(lit)).stem}"
         return None
+
+
+def confidence_picture(path: Path) -> np.ndarray:
+    """``confidence.exr`` (views, highlights, information per texel) as a picture, as the fit's confidence.png draws it:
+    red = views seen in (relative to the most), green = highlights seen (4 or more: full)."""
+    from gra_mi.core.io import read_exr_channels
+
+    channels = read_exr_channels(path)
+    missing = {"views", "highlights"} - set(channels)
+    if missing:
+        raise GraMiInputError(path, f"expected the fit's channels views, highlights, information; missing {sorted(missing)}")
+    views, highlights = channels["views"], channels["highlights"]
+    return np.stack([views / max(float(views.max()), 1.0), np.minimum(highlights / 4.0, 1.0), np.zeros_like(views)], axis=-1)
 
 
 _SRGB_LEVELS = 4096

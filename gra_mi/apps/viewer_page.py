@@ -58,7 +58,7 @@ class ClientView:
         width, height = scaled_to(cam.image_width, cam.image_height, self.page.max_size)
         view = self.page.session.render(viewer_camera(cam.position, cam.wxyz, cam.fov, width, height))
         encode = time.perf_counter()
-        self.client.scene.set_background_image(view.image, format="jpeg", jpeg_quality=92)
+        self.client.scene.set_background_image(view.image, format="jpeg", jpeg_quality=92, depth=view.depth)
         view.timings["send"] = 1000 * (time.perf_counter() - encode)
         view.timings["total"] = 1000 * (time.perf_counter() - start)
         self.page.show_timings(view.timings, width, height)
@@ -76,6 +76,8 @@ class ViewerPage:
         self.views: dict[int, ClientView] = {}
         self.server = viser.ViserServer(host=host, port=port, label="gra-mi view", verbose=False)
         self.server.scene.set_up_direction("+y")
+        # No share button: viser's share link tunnels the page to a public URL, which a shared machine must not do.
+        self.server.gui.configure_theme(dark_mode=True, show_share_button=False, control_width="medium")
         self._controls()
         self._rig()
         self.server.on_client_connect(self._connect)

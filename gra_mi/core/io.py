@@ -151,6 +151,21 @@ def write_exr(path: str | Path, image: np.ndarray, channel_names: list[str] | No
             f.write(str(tmp))
 
 
+def read_exr_channels(path: str | Path) -> dict[str, np.ndarray]:
+    """Every channel of an EXR by name, as float32 (H, W) arrays: data that is not a colour (``confidence.exr``'s
+    views, highlights, information)."""
+    import OpenEXR
+
+    path = Path(path)
+    if not path.is_file():
+        raise GraMiInputError(path, "file not found")
+    try:
+        with OpenEXR.File(str(path), separate_channels=True) as f:
+            return {name: np.asarray(ch.pixels, np.float32) for name, ch in f.channels().items()}
+    except Exception as exc:  # OpenEXR raises plain RuntimeError on a damaged file
+        raise GraMiInputError(path, f"not a readable OpenEXR file ({exc})") from None
+
+
 def read_exr(path: str | Path) -> np.ndarray:
     """Read an EXR as float32 ``(H, W, C)`` with C = 1, 3 or 4 (Y, RGB or RGBA).
 
