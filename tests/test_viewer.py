@@ -93,7 +93,10 @@ def test_session_refuses_what_it_does_not_have_and_keeps_its_lighting(llvm_varia
     from gra_mi.apps.viewer import with_lighting
 
     (tmp_path / "broken.exr").write_bytes(b"not an exr")
-    session = tiny_session(envmaps=[tmp_path / "broken.exr"])
+    (tmp_path / "rn").mkdir()
+    (tmp_path / "rn" / "relightnet.json").write_text('{"format": "something-else/9"}')
+    session = tiny_session(envmaps=[tmp_path / "broken.exr"], relightnet=tmp_path / "rn")
+    assert any(n.startswith("RelightNet not available") for n in session.notices) and "relightnet" not in session.stages
     before = session.lighting
     with pytest.raises(GraMiInputError, match="broken.exr"):
         with_lighting(session, envmap="broken")

@@ -136,3 +136,18 @@ def torch_device() -> str:
     if RUNTIME.torch_device is None:
         RUNTIME.torch_device = pick_torch_device()
     return RUNTIME.torch_device
+
+
+def opaque(kind, values):
+    """A Mitsuba vector type (``mi.Point3f``, ``mi.Color3f``, ``mi.Float``) holding ``values`` as opaque device variables.
+
+    Python floats in Dr.Jit code become literals baked into the kernel: a camera or a light that moves would make a
+    new kernel (an LLVM compile, 20-60 ms) at every position. Opaque values are kernel inputs, so one kernel serves
+    every position (a viewer orbiting, a light dragged, a video's frames, a rig's cameras).
+    """
+    import drjit as dr
+    import mitsuba as mi
+
+    values = [float(v) for v in (values if hasattr(values, "__len__") else [values])]
+    scalars = [dr.opaque(mi.Float, v) for v in values]
+    return scalars[0] if kind is mi.Float else kind(*scalars)

@@ -20,6 +20,7 @@ import mitsuba as mi
 import numpy as np
 
 from gra_mi.core.errors import GraMiParameterError
+from gra_mi.core.runtime import opaque
 from gra_mi.render import brdf
 from gra_mi.render.atlas import TexelGeometry
 from gra_mi.render.visibility import RAY_EPSILON
@@ -106,13 +107,13 @@ def point_light_visibility(scene: mi.Scene, geom: TexelGeometry, light: PointLig
     seen = dr.zeros(mi.Float, m)
     usable = dr.zeros(mi.Float, m)
     for q in points:
-        target = mi.Point3f(*(float(x) for x in q))
+        target = opaque(mi.Point3f, q)
         offset = target - geom.position
         dist = dr.norm(offset)
         d = offset / dist
         above = (dr.dot(geom.normal, d) > 0) & (dr.dot(geom.geo_normal, d) > 0)
         # Sample points on the far side of the light's sphere are hidden by the light itself.
-        front = dr.dot(d, mi.Vector3f(*(float(x) for x in (q - light.position)))) <= 0 if light.radius > 0 else mi.Bool(True)
+        front = dr.dot(d, opaque(mi.Vector3f, q - light.position)) <= 0 if light.radius > 0 else mi.Bool(True)
         ray = mi.Ray3f(geom.position + geom.geo_normal * RAY_EPSILON, d, dist * (1 - RAY_EPSILON) - RAY_EPSILON)
         blocked = scene.ray_test(ray, active=above & front)
         usable += dr.select(front, 1.0, 0.0)
@@ -127,13 +128,13 @@ def shade_point_light(
 ) -> tuple[np.ndarray, np.ndarray]:
     """(diffuse per unit albedo, specular) of every texel lit by the point light: I/d² · f cos · visible fraction."""
     frame = mi.Frame3f(geom.normal)
-    view = dr.normalize(mi.Point3f(*(float(x) for x in camera_position)) - geom.position)
+    view = dr.normalize(opaque(mi.Point3f, camera_position) - geom.position)
     material = brdf.PreparedBRDF(mi.Color3f(1.0), mi.Float(np.asarray(roughness, np.float32)), frame.to_local(view))
-    offset = mi.Point3f(*(float(x) for x in light.position)) - geom.position
+    offset = opaque(mi.Point3f, light.position) - geom.position
     inv_d2 = dr.rcp(dr.maximum(dr.squared_norm(offset), 1e-8))
     wo = frame.to_local(offset * dr.sqrt(inv_d2))
     d_part, s_part = material.eval_parts(wo)
-    weight = mi.Color3f(*(float(x) for x in light.intensity)) * inv_d2 * fraction * _spot_falloff(light, -offset * dr.sqrt(inv_d2))
+    weight = opaque(mi.Color3f, light.intensity) * inv_d2 * fraction * _spot_falloff(light, -offset * dr.sqrt(inv_d2))
     diffuse, spec = d_part * weight, s_part * weight
     dr.eval(diffuse, spec)
     m = dr.width(geom.position)
@@ -144,10 +145,11 @@ def _spot_falloff(light: PointLight, toward: mi.Vector3f) -> mi.Float:
     """:meth:`PointLight.falloff` on the device, for unit directions ``toward`` pointing away from the light."""
     if not light.is_spot:
         return mi.Float(1.0)
-    cos = dr.clip(dr.dot(toward, mi.Vector3f(*(float(x) for x in light.direction))), -1.0, 1.0)
+    cos = dr.clip(dr.dot(toward, opaque(mi.Vector3f, light.direction)), -1.0, 1.0)
     theta = dr.acos(cos) * (180.0 / math.pi)
-    ramp = (light.cutoff_angle - theta) / max(light.cutoff_angle - light.beam_width, 1e-12)
-    return dr.select(theta <= light.beam_width, 1.0, dr.select(theta < light.cutoff_angle, ramp, 0.0))
+    cutoff, beam = opaque(mi.Float, light.cutoff_angle), opaque(mi.Float, light.beam_width)
+    ramp = (cutoff - theta) / dr.maximum(cutoff - beam, 1e-12)
+    return dr.select(theta <= beam, 1.0, dr.select(theta < cutoff, ramp, 0.0))
 
 
 def conditioning_pattern(stage, scene: mi.Scene, light: PointLight) -> np.ndarray:

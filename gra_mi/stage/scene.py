@@ -21,6 +21,7 @@ import numpy as np
 from gra_mi.core.config import option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_seed
 from gra_mi.core.io import atomic_write_text, write_exr, write_png
+from gra_mi.core.runtime import opaque
 from gra_mi.stage import scene_keys as keys
 from gra_mi.stage.envmap import LedLighting, envmap_to_leds, stage_background_plate
 from gra_mi.stage.lightstage import Camera, Lightstage, load_calibration, save_calibration, validate_pattern
@@ -314,12 +315,13 @@ class LightstageScene:
 
         if tuple(offset) != (0.5, 0.5):
             index = dr.arange(mi.UInt32, camera.width * camera.height)
-            row = index // camera.width
-            x = (mi.Float(index - row * camera.width) + float(offset[0]) - camera.cx) / camera.fx
-            y = (mi.Float(row) + float(offset[1]) - camera.cy) / camera.fy
-            r = [[float(v) for v in column] for column in camera.rotation.T]
-            d = dr.normalize(x * mi.ScalarVector3f(r[0]) + y * mi.ScalarVector3f(r[1]) + mi.ScalarVector3f(r[2]))
-            return mi.Ray3f(mi.Point3f(mi.ScalarPoint3f([float(v) for v in camera.position])), d)
+            # The camera's numbers as kernel inputs, not literals: a moving camera reuses one kernel (core.runtime.opaque).
+            row = index // camera.width  # the image size stays a literal: it changes only when a window is resized
+            x = (mi.Float(index - row * camera.width) + opaque(mi.Float, offset[0] - camera.cx)) / opaque(mi.Float, camera.fx)
+            y = (mi.Float(row) + opaque(mi.Float, offset[1] - camera.cy)) / opaque(mi.Float, camera.fy)
+            r = camera.rotation.T
+            d = dr.normalize(x * opaque(mi.Vector3f, r[0]) + y * opaque(mi.Vector3f, r[1]) + opaque(mi.Vector3f, r[2]))
+            return mi.Ray3f(opaque(mi.Point3f, camera.position), d)
         rig_camera = any(camera is c for c in self.stage.cameras)  # a viewer's free camera moves: never kept
         ray = self._camera_rays.get(camera.name) if rig_camera else None
         if ray is None:
