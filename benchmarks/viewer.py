@@ -91,7 +91,7 @@ def browser_rows(scene: Path, repeats: int = 5) -> list[dict] | str:
             if "open http://" in line:
                 break
         page = Page(f"http://127.0.0.1:{port}")
-        page.settle(time.perf_counter())
+        page.quiet()
         actions = {
             "new envmap": lambda k: page.choose("envmap", ("studio", "interior", "night", "sun")[k % 4]),
             "envmap rotation": lambda k: page.press("rotation (deg)", Keys.ARROW_RIGHT, 1),

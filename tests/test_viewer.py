@@ -204,12 +204,16 @@ class Page:
         first = self.wait_for_view(self.view)
         latency = time.perf_counter() - since
         self.view = first
+        self.quiet()
+        return latency
+
+    def quiet(self) -> None:
+        """Wait until no new view has come for 1.5 s."""
         while True:
             try:
                 self.view = self.wait_for_view(self.view, timeout=1.5)
             except AssertionError:
-                break
-        return latency
+                return
 
     def shot(self, name: str) -> np.ndarray:
         """A screenshot once the page has drawn the last image (two in a row the same: software WebGL is slow)."""
