@@ -110,6 +110,16 @@ def browser_rows(scene: Path, repeats: int = 5) -> list[dict] | str:
         server.wait(timeout=30)
 
 
+def server_goals(server: list[dict]) -> str:
+    """The issue's server-side goals, row by row: ≤ 100 ms for a lighting change, ≤ 300 ms for a moved point light."""
+    said = []
+    for row in server:
+        goal = 300 if row["change"].startswith("point") else 100 if row["change"] in CHANGES else None
+        if goal is not None:
+            said.append(f"{row['change']} {'met' if row['total'] <= goal else 'missed'} ({row['total']:.0f} ms, goal {goal})")
+    return "Against the goals on the server: " + "; ".join(said) + "."
+
+
 def markdown(server: list[dict], browser, stamp: str) -> str:
     lines = [
         "# `gra-mi view`: latency of a change",
@@ -128,6 +138,8 @@ def markdown(server: list[dict], browser, stamp: str) -> str:
     lines += [
         "",
         "'shade' includes setting the lighting (an envmap's mapping onto the LEDs) and, for a point light, its soft-shadow trace.",
+        "",
+        server_goals(server),
         "",
     ]
     lines += ["## In the browser (headless Chromium, software WebGL)", ""]
