@@ -313,3 +313,30 @@ def test_relight_cli(tmp_path, llvm_variant):
     assert fidelity["sky"]["max_rel_error"] < 0.02  # a constant sky: every normal sees the same irradiance; 64 LEDs match it
     bad = run_cli("relight", str(TINY), "--out", str(tmp_path / "x"))
     assert bad.returncode == 2 and "at least one --envmap" in bad.stderr
+
+
+def test_visibility_traced_only_where_the_jobs_cameras_see_gives_the_same_images(tiny):
+    """A relight's cameras cannot see texels behind them, outside their images or facing away: tracing only the rest
+    changes no pixel, and traces about half the texels."""
+    from gra_mi.render.relighter import Relighter
+    from gra_mi.render.visibility import texels_seen_by
+
+    rng = np.random.default_rng(3)
+    intensities = rng.uniform(0.2, 1.0, (tiny.stage.num_leds, 3))
+    full, culled = Relighter(tiny, resolution=64), Relighter(tiny, resolution=64)
+    culled.only_for(["cam01"])
+    for frame in (0, 3):
+        for far in (False, True):
+            np.testing.assert_array_equal(
+                culled.render(frame, "cam01", intensities, far_field=far).image, full.render(frame, "cam01", intensities, far_field=far).image
+            )
+    seen = texels_seen_by(full.geometry(3), [tiny.stage.camera("cam01")])
+    assert 0.2 < len(seen) / int(full.atlas.mask.sum()) < 0.7, "one camera sees about half the body"
+    # Every texel traced after that is a new trace; a later job with any cameras reuses it.
+    misses = culled.cache.misses
+    culled.only_for(None)
+    culled.visibility(3, False)
+    assert culled.cache.misses == misses + 1
+    culled.only_for(["cam02"])
+    culled.visibility(3, False)
+    assert culled.cache.misses == misses + 1

@@ -171,6 +171,8 @@ def relight_batch(
             raise GraMiParameterError("frames", f"frame {f} out of range [0, {ls.sequence.num_frames})")
     cams = [ls.stage.camera(c) for c in (cameras or [0])]
     model, relighter = _stage_model(ls, config, maps or SubjectMaps())
+    if model is None and not config.save_uv:  # RelightNet and --save-uv use the whole UV texture: trace every texel
+        relighter.only_for([cam.name for cam in cams])
     if config.fidelity:
         _write_fidelity(out, lights, ls.stage)
     for light in lights.values():

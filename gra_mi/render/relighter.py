@@ -11,6 +11,7 @@ import logging
 from dataclasses import dataclass
 from pathlib import Path
 
+import drjit as dr
 import numpy as np
 
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
@@ -20,7 +21,7 @@ from gra_mi.render.leds import LedLayout
 from gra_mi.render.point_light import PointLight, as_light_list, point_light_visibility, shade_point_light
 from gra_mi.render.rasterize import RASTER_SAMPLES, rasterize_to_camera
 from gra_mi.render.shading import TexelShading, led_cell_roughness, shade_texels
-from gra_mi.render.visibility import VisibilityCache
+from gra_mi.render.visibility import VisibilityCache, texels_seen_by
 from gra_mi.stage.scene import LightstageScene
 
 logger = logging.getLogger(__name__)
@@ -49,6 +50,9 @@ class ViewRender:
     image: np.ndarray  # (H, W, 4) linear RGB + alpha
     shading: TexelShading  # per valid texel: radiance, view direction, facing mask
     geometry: TexelGeometry
+
+
+CULL_AT_MOST = 0.8  # trace a subset of texels only when the job's cameras see at most this fraction of them
 
 
 class Relighter:
@@ -83,6 +87,7 @@ class Relighter:
         self.cache = VisibilityCache(cache_dir)
         self._geometry: dict[int, TexelGeometry] = {}
         self._point_light_vis: dict[tuple, object] = {}
+        self.job_cameras = None  # :meth:`only_for`
 
     def leds(self, far_field: bool | None = None) -> LedLayout:
         """The rig's LEDs, lit near or far field (None: the relighter's own setting)."""
@@ -95,8 +100,18 @@ class Relighter:
         return self._geometry[frame]
 
     def visibility(self, frame: int, far_field: bool | None = None):
+        """The frame's per-LED visibility: of every texel, or (after :meth:`only_for`) of those the job's cameras see."""
         self.ls.set_frame(frame)  # the scene's mesh must be this frame's to trace against
-        return self.cache.get(self.ls.scene, self.geometry(frame), self.leds(far_field))
+        geom = self.geometry(frame)
+        texels = None if self.job_cameras is None else texels_seen_by(geom, self.job_cameras)
+        if texels is not None and len(texels) > CULL_AT_MOST * dr.width(geom.position):
+            texels = None  # cameras around the body see most of it: the full trace is as fast, and serves every job
+        return self.cache.get(self.ls.scene, geom, self.leds(far_field), texels)
+
+    def only_for(self, cameras) -> None:
+        """Render only from these cameras from now on (a batch relight, an evaluation): a new frame's visibility is
+        traced for the texels they can see, not all (the same images; about half the rays on a body). None: all."""
+        self.job_cameras = None if cameras is None else [self.ls.stage.camera(c) for c in cameras]
 
     def render(
         self,

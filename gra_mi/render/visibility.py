@@ -5,6 +5,7 @@ so :class:`VisibilityCache` reuses it across envmaps, cameras, materials and fit
 
 from __future__ import annotations
 
+import hashlib
 from pathlib import Path
 
 import drjit as dr
@@ -20,12 +21,13 @@ from gra_mi.render.leds import LedLayout
 RAY_EPSILON = 1e-4
 
 
-def compute_visibility(scene: mi.Scene, geom: TexelGeometry, leds: LedLayout) -> mi.UInt32:
+def compute_visibility(scene: mi.Scene, geom: TexelGeometry, leds: LedLayout, texels: np.ndarray | None = None) -> mi.UInt32:
     """Bit-packed visibility, word-major: bit (k % 32) of word ``(k // 32) * M + t`` is LED k at texel t.
 
     Rays are traced LED-major (all texels for one LED, then the next) in groups of 32 LEDs per kernel, which keeps
     them coherent; pairs below the texel's horizon (shading or geometric) trace nothing. Far field, each ray goes
-    towards the LED's direction from the stage centre, unbounded.
+    towards the LED's direction from the stage centre, unbounded. ``texels``: trace only these (sorted indices);
+    the others' bits stay 0 (:func:`texels_seen_by`: a job's cameras cannot see them).
     """
     m = dr.width(geom.position)
     num_leds, far_field = leds.num_leds, leds.far_field
@@ -33,11 +35,15 @@ def compute_visibility(scene: mi.Scene, geom: TexelGeometry, leds: LedLayout) ->
     bits = dr.zeros(mi.UInt32, words * m)
     targets, _ = leds.as_lights(np.zeros((num_leds, 3)))
     target_arr = mi.Point3f(*targets.T.astype(np.float32))
+    subset = None if texels is None else mi.UInt32(np.asarray(texels, np.uint32))
+    count = m if texels is None else len(texels)
+    if count == 0:
+        return bits
     for w in range(words):
         group = min(32, num_leds - 32 * w)
-        i = dr.arange(mi.UInt32, group * m)
-        j = i // m  # LED within the group (m > 0: no division by zero in the masked tail)
-        t = i - j * m
+        i = dr.arange(mi.UInt32, group * count)
+        j = i // count  # LED within the group (count > 0: no division by zero in the masked tail)
+        t = i - j * count if subset is None else dr.gather(mi.UInt32, subset, i - j * count)
         k = j + 32 * w
         target = dr.gather(mi.Point3f, target_arr, k)
         p = dr.gather(mi.Point3f, geom.position, t)
@@ -61,20 +67,41 @@ def compute_visibility(scene: mi.Scene, geom: TexelGeometry, leds: LedLayout) ->
     return bits
 
 
+def texels_seen_by(geom: TexelGeometry, cameras, margin: float = 8.0) -> np.ndarray:
+    """The texels some camera of ``cameras`` can see: in front of the camera, inside its image (with ``margin`` pixels
+    for the rasteriser's bilinear lookups) and facing it. Every other texel reflects nothing toward those cameras
+    (the BRDF is zero below the horizon) or falls outside their images, so their visibility need not be traced: the
+    renders are the same, pixel for pixel."""
+    p = np.array(geom.position, np.float64).T
+    n = np.array(geom.normal, np.float64).T
+    seen = np.zeros(len(p), bool)
+    for cam in cameras:
+        local = (p - cam.position) @ cam.rotation  # camera axes (OpenCV: z forward)
+        z = np.maximum(local[:, 2], 1e-9)
+        u, v = cam.fx * local[:, 0] / z + cam.cx, cam.fy * local[:, 1] / z + cam.cy
+        inside = (local[:, 2] > 0) & (u > -margin) & (u < cam.width + margin) & (v > -margin) & (v < cam.height + margin)
+        seen |= inside & (np.sum(n * (cam.position - p), axis=1) > 0)
+    return np.flatnonzero(seen)
+
+
 class VisibilityCache:
-    """Visibility bits per (frame geometry, :class:`LedLayout`): in memory, and on disk under ``folder`` if given."""
+    """Visibility bits per (frame geometry, :class:`LedLayout`): in memory, and on disk under ``folder`` if given.
+    An entry traced for a subset of texels (the cameras of a job) serves any later request for a subset of it."""
 
     def __init__(self, folder: str | Path | None = None):
         self.folder = None if folder is None else Path(folder)
-        self._memory: dict[str, mi.UInt32] = {}
+        self._memory: dict[str, tuple[mi.UInt32, np.ndarray | None]] = {}  # key → (bits, the texels traced; None: all)
         self.hits = 0
         self.misses = 0
 
-    def get(self, scene: mi.Scene, geom: TexelGeometry, leds: LedLayout) -> mi.UInt32:
-        key = f"{geom.digest}_{leds.digest}"
-        if key in self._memory:
-            self.hits += 1
-            return self._memory[key]
+    def get(self, scene: mi.Scene, geom: TexelGeometry, leds: LedLayout, texels: np.ndarray | None = None) -> mi.UInt32:
+        """The bits for ``texels`` (None: all): a cached entry covering them, else traced (and kept)."""
+        base = f"{geom.digest}_{leds.digest}"
+        for key, (bits, covered) in self._memory.items():
+            if key.startswith(base) and (covered is None or (texels is not None and np.isin(texels, covered).all())):
+                self.hits += 1
+                return bits
+        key = base if texels is None else f"{base}_{hashlib.sha1(np.asarray(texels, np.int64).tobytes()).hexdigest()[:12]}"
         path = None if self.folder is None else self.folder / f"vis_{key}.npy"
         cached = None
         if path is not None and path.is_file():
@@ -86,11 +113,11 @@ class VisibilityCache:
             bits = mi.UInt32(cached)
             self.hits += 1
         else:
-            bits = compute_visibility(scene, geom, leds)
+            bits = compute_visibility(scene, geom, leds, texels)
             self.misses += 1
             if path is not None:
                 with atomic_path(path) as tmp:
                     with open(tmp, "wb") as fh:
                         np.save(fh, np.array(bits, dtype=np.uint32))
-        self._memory[key] = bits
+        self._memory[key] = (bits, None if texels is None else np.asarray(texels))
         return bits

@@ -434,7 +434,9 @@ def _rig_table(kind: str, size: tuple[int, int], led_directions: np.ndarray, com
 
 def _led_cells(led_directions: np.ndarray, height: int) -> np.ndarray:
     """Each lat-long pixel's nearest LED (the Voronoi cells) for this rig and height."""
-    return _rig_table("nearest", (height, 2 * height), led_directions, lambda: nearest_led(pixel_directions(height, 2 * height), led_directions))
+    return _rig_table(
+        "nearest", (height, 2 * height), led_directions, lambda: nearest_led(pixel_directions(height, 2 * height), led_directions)
+    )
 
 
 def envmap_irradiance(envmap: np.ndarray, normals: np.ndarray) -> np.ndarray:
