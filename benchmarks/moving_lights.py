@@ -56,8 +56,8 @@ def emitter_rows() -> list[dict]:
     return rows
 
 
-def video_scene(folder: Path, frames: int) -> Path:
-    """The anny body walking for ``frames`` frames in a 331-LED rig with one camera at the demo's size."""
+def video_scene(folder: Path, frames: int, num_cameras: int = 1) -> Path:
+    """The anny body walking for ``frames`` frames in a 331-LED rig with ``num_cameras`` cameras at the demo's size."""
     from gra_mi.capture.synthetic import PRESETS
     from gra_mi.stage.lightstage import default_lightstage
     from gra_mi.stage.scene import write_rig, write_scene_file
@@ -65,7 +65,9 @@ def video_scene(folder: Path, frames: int) -> Path:
     from gra_mi.subject.sequence import save_sequence
 
     small = PRESETS["small"]
-    stage = default_lightstage(num_leds=331, num_cameras=1, width=small.width, height=small.height, camera_distance=small.camera_distance)
+    stage = default_lightstage(
+        num_leds=331, num_cameras=num_cameras, width=small.width, height=small.height, camera_distance=small.camera_distance
+    )
     write_rig(stage, folder / "rig")
     save_sequence(anny_sequence(["walk"], frames), folder / "subject")
     return write_scene_file(folder / "scene.xml", folder / "rig", folder / "subject")
@@ -169,7 +171,7 @@ def main() -> None:
     parser.add_argument("--uv-resolution", type=int, default=256, help="UV resolution. Default: 256 (the small preset's).")
     parser.add_argument("--write", type=Path, default=None, help="Also write the Markdown page here.")
     args = parser.parse_args()
-    from gra_mi.core.stamp import run_stamp, stamp_said
+    from gra_mi.core.stamp import publish_page, run_stamp, stamp_said
     from gra_mi.render.runtime import start_runtime
 
     variant = start_runtime("llvm_ad_rgb").variant
@@ -177,10 +179,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="gra_mi_lights_") as tmp:
         video = video_timing(Path(tmp), args.frames, args.uv_resolution)
     page = markdown(rows, video, stamp_said(run_stamp(preset="small (camera, UV)", variant=variant)))
-    print(page)
-    if args.write:
-        args.write.write_text(page)
-        print(f"wrote {args.write}", file=sys.stderr)
+    publish_page(page, args.write)
 
 
 if __name__ == "__main__":

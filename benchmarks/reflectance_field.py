@@ -20,7 +20,6 @@ it; a random stack with the capture's subject fraction), held as float32 or floa
 from __future__ import annotations
 
 import argparse
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -183,7 +182,7 @@ def main() -> None:
     args = parser.parse_args()
     from gra_mi.capture import synthetic
     from gra_mi.capture.dataset import Capture
-    from gra_mi.core.stamp import run_stamp, stamp_said
+    from gra_mi.core.stamp import publish_page, run_stamp, stamp_said
     from gra_mi.render.runtime import start_runtime
 
     variant = start_runtime("llvm_ad_rgb").variant
@@ -194,10 +193,7 @@ def main() -> None:
     rows = agreement(capture, capture.eval_cameras)
     speeds = speed(capture, capture.eval_cameras[0])
     page = markdown(capture, rows, speeds, stamp_said(run_stamp(preset="olat", variant=variant)))
-    print(page)
-    if args.write:
-        args.write.write_text(page)
-        print(f"wrote {args.write}", file=sys.stderr)
+    publish_page(page, args.write)
 
 
 if __name__ == "__main__":

@@ -16,9 +16,7 @@ from __future__ import annotations
 
 import argparse
 import io
-import os
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
@@ -73,25 +71,13 @@ def server_rows(scene: Path, repeats: int = 5) -> list[dict]:
 
 def browser_rows(scene: Path, repeats: int = 5) -> list[dict] | str:
     """Key press / click → the new view's timings line in headless Chromium (median of ``repeats``)."""
-    from tests.conftest import free_port
-    from tests.test_viewer import Page, _chromium
+    from tests.test_viewer import _chromium, viewer_in_browser
 
     if _chromium() is None:
         return "skipped: chromium and chromedriver are not installed (scripts/setup.sh installs them with apt)"
     from selenium.webdriver.common.keys import Keys
 
-    port = free_port()
-    server = subprocess.Popen(
-        [sys.executable, "-m", "gra_mi.cli", "view", "--scene", str(scene), "--uv-resolution", "512", "--port", str(port), "--seconds", "900"],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ, "GRA_MI_QUIET": "1"},
-    )  # fmt: skip
-    page = None
-    try:
-        for line in server.stdout:
-            if "open http://" in line:
-                break
-        page = Page(f"http://127.0.0.1:{port}")
-        page.quiet()
+    with viewer_in_browser(scene, 512) as page:
         actions = {
             "new envmap": lambda k: page.choose("envmap", ("studio", "interior", "night", "sun")[k % 4]),
             "envmap rotation": lambda k: page.press("rotation (deg)", Keys.ARROW_RIGHT, 1),
@@ -103,11 +89,6 @@ def browser_rows(scene: Path, repeats: int = 5) -> list[dict] | str:
                 page.settle(page.choose("mode", "point light"))
             rows.append({"change": name, "browser": statistics.median(page.settle(act(k)) * 1000 for k in range(repeats))})
         return rows
-    finally:
-        if page is not None:
-            page.driver.quit()
-        server.terminate()
-        server.wait(timeout=30)
 
 
 def server_goals(server: list[dict]) -> str:
@@ -162,7 +143,7 @@ def main() -> None:
     parser.add_argument("--write", type=Path, default=None, help="Also write the Markdown page here.")
     args = parser.parse_args()
     from benchmarks.moving_lights import video_scene
-    from gra_mi.core.stamp import run_stamp, stamp_said
+    from gra_mi.core.stamp import publish_page, run_stamp, stamp_said
     from gra_mi.render.runtime import start_runtime
 
     variant = start_runtime("llvm_ad_rgb").variant
@@ -171,10 +152,7 @@ def main() -> None:
         server = server_rows(scene)
         browser = browser_rows(scene)
     page = markdown(server, browser, stamp_said(run_stamp(preset="anny, UV 512", variant=variant)))
-    print(page)
-    if args.write:
-        args.write.write_text(page)
-        print(f"wrote {args.write}", file=sys.stderr)
+    publish_page(page, args.write)
 
 
 if __name__ == "__main__":

@@ -23,22 +23,6 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def rig_scene(folder: Path, frames: int) -> Path:
-    from gra_mi.capture.synthetic import PRESETS
-    from gra_mi.stage.lightstage import default_lightstage
-    from gra_mi.stage.scene import write_rig, write_scene_file
-    from gra_mi.subject.anny_body import anny_sequence
-    from gra_mi.subject.sequence import save_sequence
-
-    small = PRESETS["small"]
-    stage = default_lightstage(
-        num_leds=331, num_cameras=small.num_cameras, width=small.width, height=small.height, camera_distance=small.camera_distance
-    )
-    write_rig(stage, folder / "rig")
-    save_sequence(anny_sequence(["walk"], frames), folder / "subject")
-    return write_scene_file(folder / "scene.xml", folder / "rig", folder / "subject")
-
-
 def timed_trace(ls, relighter, frame: int, texels) -> float:
     import drjit as dr
 
@@ -119,18 +103,18 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=4, help="Frames to trace. Default: 4.")
     parser.add_argument("--write", type=Path, default=None, help="Also write the Markdown page here.")
     args = parser.parse_args()
-    from gra_mi.core.stamp import run_stamp, stamp_said
+    sys.path.insert(0, str(ROOT))
+    from benchmarks.moving_lights import video_scene
+    from gra_mi.capture.synthetic import PRESETS
+    from gra_mi.core.stamp import publish_page, run_stamp, stamp_said
     from gra_mi.render.runtime import start_runtime
 
     variant = start_runtime("llvm_ad_rgb").variant
     with tempfile.TemporaryDirectory(prefix="gra_mi_cull_") as tmp:
-        scene = rig_scene(Path(tmp), args.frames)
+        scene = video_scene(Path(tmp), args.frames, num_cameras=PRESETS["small"].num_cameras)
         rows = [measure(scene, r, args.frames) for r in (256, 512)]
     page = markdown(rows, stamp_said(run_stamp(preset="small (rig)", variant=variant)))
-    print(page)
-    if args.write:
-        args.write.write_text(page)
-        print(f"wrote {args.write}", file=sys.stderr)
+    publish_page(page, args.write)
 
 
 if __name__ == "__main__":

@@ -328,7 +328,8 @@ def test_visibility_traced_only_where_the_jobs_cameras_see_gives_the_same_images
     for frame in (0, 3):
         for far in (False, True):
             np.testing.assert_array_equal(
-                culled.render(frame, "cam01", intensities, far_field=far).image, full.render(frame, "cam01", intensities, far_field=far).image
+                culled.render(frame, "cam01", intensities, far_field=far).image,
+                full.render(frame, "cam01", intensities, far_field=far).image,
             )
     seen = texels_seen_by(full.geometry(3), [tiny.stage.camera("cam01")])
     assert 0.2 < len(seen) / int(full.atlas.mask.sum()) < 0.7, "one camera sees about half the body"

@@ -37,3 +37,14 @@ def stamp_said(stamp: dict) -> str:
     parts += [f"{key} {stamp[key]}" for key in ("preset",) if key in stamp]
     parts += [str(stamp[key]) for key in ("machine", "variant", "date") if stamp.get(key)]
     return ", ".join(parts)
+
+
+def publish_page(page: str, path=None) -> None:
+    """A benchmark's Markdown page: printed, and written to ``path`` (docs/results/…) when given."""
+    import sys
+    from pathlib import Path
+
+    print(page)
+    if path is not None:
+        Path(path).write_text(page)
+        print(f"wrote {path}", file=sys.stderr)
