@@ -19,9 +19,10 @@ import numpy as np
 from gra_mi.core.color import display_exposure
 from gra_mi.core.config import option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
-from gra_mi.core.io import atomic_path, atomic_write_text, write_exr, write_mp4, write_png
+from gra_mi.core.io import atomic_path, atomic_write_text, write_exr, write_mp4_srgb8, write_png
 from gra_mi.core.progress import progress
 from gra_mi.core.runtime import torch_device
+from gra_mi.core.shard import Shard
 from gra_mi.render.composite import PlatformCompositor
 from gra_mi.render.light_path import LightPath
 from gra_mi.render.runtime import ensure_mitsuba
@@ -151,19 +152,22 @@ def relight_batch(
     config: RelightConfig | None = None,
     maps: SubjectMaps | None = None,
     platform=None,
+    shard: Shard | None = None,
 ) -> RelightSummary:
     """Render every (frame, light, camera) of ``scene`` (a path or a loaded scene) (+ ``envmap_fidelity.json`` if asked)
     into ``out/LIGHT/CAMERA/frame_NNNN.{exr,png}`` (+ ``CAMERA.mp4``).
 
     ``frames``/``cameras`` None: all frames, camera 0. ``platform``: the :class:`gra_mi.render.composite.PlatformConfig`
-    of ``config.composite``. Everything is checked before the first file is written.
+    of ``config.composite``. ``shard``: render only its frames; the files are those one process writes (previews
+    exposed from the selection's first frame, videos written by the shard that finds every frame done). Everything
+    is checked before the first file is written.
     """
     from gra_mi.relightnet.infer import render_view
 
     config = config or RelightConfig()
     config.validate()
     ensure_mitsuba()
-    out = Path(out)
+    out, shard = Path(out), shard or Shard()
     ls = scene if isinstance(scene, LightstageScene) else LightstageScene.load(scene)
     frames = list(range(ls.sequence.num_frames)) if frames is None else frames
     for f in frames:
@@ -173,30 +177,37 @@ def relight_batch(
     model, relighter = _stage_model(ls, config, maps or SubjectMaps())
     if model is None and not config.save_uv:  # RelightNet and --save-uv use the whole UV texture: trace every texel
         relighter.only_for([cam.name for cam in cams])
-    if config.fidelity:
-        _write_fidelity(out, lights, ls.stage)
     for light in lights.values():
         if light.path is not None:
             light.path.check_frames(frames)
-    previews = _Previews(out, config, ls, keep=len(lights) * len(cams), platform=platform)
-    jobs = [(f, name, cam) for f in frames for name in lights for cam in cams]  # frame-major: one trace per frame
-    warned: set[tuple[int, str]] = set()
-    for frame, name, cam in progress(jobs, description="relight"):
+    if config.fidelity:
+        _write_fidelity(out, lights, ls.stage)
+
+    def view_of(frame: int, name: str, cam):
         light = lights[name]
-        far = light.far_field(config.lighting_model)
         near = light.path.at(frame) if light.path is not None else None
-        view = render_view(relighter, model, frame, cam.name, light.intensities, near, far)
-        if (frame, name) not in warned:  # said once per frame and lighting, not per camera
-            warned.add((frame, name))
-            for warning in lighting_warnings(ls, light.intensities, near, far):
+        return render_view(relighter, model, frame, cam.name, light.intensities, near, light.far_field(config.lighting_model)), near
+
+    previews = _Previews(out, config, ls, keep=len(lights) * len(cams), platform=platform)
+    mine = shard.take(frames)
+    if mine and mine[0] != frames[0]:
+        for name in lights:
+            for cam in cams:
+                previews.exposure_from(name, cam, view_of(frames[0], name, cam)[0])
+    jobs = [(f, name, cam) for f in mine for name in lights for cam in cams]  # frame-major: one trace per frame
+    for frame, name, cam in progress(jobs, description="relight" if shard.whole else f"relight (shard {shard})"):
+        view, near = view_of(frame, name, cam)
+        if cam is cams[0]:  # said and written once per frame and lighting, not per camera
+            light = lights[name]
+            for warning in lighting_warnings(ls, light.intensities, near, light.far_field(config.lighting_model)):
                 logger.warning("%s: %s", name, warning)
             if near:
                 _write_conditioning(out / name, frame, ls.stage, ls.scene, near)
-        previews.add(frame, name, cam, light, view)
+        previews.add(frame, name, cam, lights[name], view)
         if config.save_uv:
             _write_uv(out / name / cam.name, frame, relighter, view)
     if len(frames) > 1:
-        previews.write_videos(ls.sequence.fps)
+        previews.write_videos(frames, lights, cams, ls.sequence.fps)
     return RelightSummary(len(jobs), out, relighter.cache.misses, relighter.cache.hits)
 
 
@@ -244,7 +255,6 @@ class _Previews:
 
     def __init__(self, out: Path, config: RelightConfig, ls, keep: int, platform=None):
         self.out, self.config = out, config
-        self.videos: dict[tuple[str, str], list] = {}
         self.exposures: dict[tuple[str, str], float] = {}
         self.compositor = None
         if config.composite:
@@ -259,15 +269,28 @@ class _Previews:
             shown = self.compositor(view.image, frame, cam, light.envmap, light.plate_scale, name)
         elif self.config.background and light.envmap is not None:
             shown = composite_over(view.image, background_plate(light.envmap, cam) * light.plate_scale)
-        key = (name, cam.name)
-        if key not in self.exposures:
-            self.exposures[key] = self.config.exposure if self.config.exposure is not None else display_exposure(view.image)
-        write_png(folder / f"frame_{frame:04d}.png", shown, exposure=self.exposures[key])
-        self.videos.setdefault(key, []).append(shown)
+        self.exposure_from(name, cam, view)
+        write_png(folder / f"frame_{frame:04d}.png", shown, exposure=self.exposures[(name, cam.name)])
 
-    def write_videos(self, fps: float) -> None:
-        for (name, cam_name), images in self.videos.items():
-            write_mp4(self.out / name / f"{cam_name}.mp4", images, fps=fps, exposure=self.exposures[(name, cam_name)])
+    def exposure_from(self, name: str, cam, view) -> None:
+        """Set a light and camera's preview exposure from a view of the selection's first frame (a shard that does
+        not render that frame renders its view for this): the same exposure whichever frames a process renders."""
+        if (name, cam.name) not in self.exposures:
+            self.exposures[(name, cam.name)] = self.config.exposure if self.config.exposure is not None else display_exposure(view.image)
+
+    def write_videos(self, frames: list[int], names, cams, fps: float) -> int:
+        """Each light and camera's MP4, from the PNG previews on disk, once every frame's exists (the shard that finds
+        the others done writes them; one process writes them at its end). Returns how many were written."""
+        import imageio.v3 as iio
+
+        written = 0
+        for name in names:
+            for cam in cams:
+                pngs = [self.out / name / cam.name / f"frame_{f:04d}.png" for f in frames]
+                if all(p.is_file() for p in pngs):
+                    write_mp4_srgb8(self.out / name / f"{cam.name}.mp4", (iio.imread(p) for p in pngs), fps=fps)
+                    written += 1
+        return written
 
 
 def select(text: str, count: int, parameter: str, integers: bool = False) -> list:

@@ -33,6 +33,7 @@ from gra_mi.core.io import atomic_write_text, read_exr, write_exr, write_png
 from gra_mi.core.metrics import relative_rmse
 from gra_mi.core.progress import progress
 from gra_mi.core.provenance import claim_output
+from gra_mi.core.shard import Shard
 from gra_mi.render.runtime import ensure_mitsuba
 from gra_mi.stage.envmap import downsample_envmap, led_fidelity, load_envmap
 from gra_mi.stage.envmap_library import write_envmap_set
@@ -423,12 +424,19 @@ class CaptureConfig:
 
 
 def generate_capture(
-    out: str | Path, config: CaptureConfig | None = None, *, test_envmaps: dict[str, np.ndarray] | None = None, overwrite: bool = False
+    out: str | Path,
+    config: CaptureConfig | None = None,
+    *,
+    test_envmaps: dict[str, np.ndarray] | None = None,
+    overwrite: bool = False,
+    shard: Shard | None = None,
 ) -> Capture:
     """Write a synthetic capture; rerunning resumes (existing images are kept, and each image's samples depend only
     on its frame, so a resumed capture equals an uninterrupted one). ``test_envmaps`` (name → validated lat-long
     map): the user's own held-out lighting, in place of the first procedural test envmaps. ``overwrite``: empty a
-    folder made by another run first (else it is refused)."""
+    folder made by another run first (else it is refused). ``shard``: render only this shard's frames (the rig,
+    subject, lighting and capture.json every shard writes alike; the ground truth's noise is measured by the shard
+    that finds every image done)."""
 
     config = config or CaptureConfig()
     config.validate()
@@ -437,7 +445,7 @@ def generate_capture(
     envmap_ids = {
         name: hashlib.sha256(np.ascontiguousarray(env, np.float32).tobytes()).hexdigest()[:16] for name, env in (test_envmaps or {}).items()
     }
-    claim_output(out, "capture", {}, {"preset": config.preset, **record, "test_envmaps": envmap_ids}, overwrite=overwrite)
+    claim_output(out, "capture", {}, {"preset": config.preset, **record, "test_envmaps": envmap_ids}, overwrite=overwrite, shard=shard)
     previous = Capture.load(out) if (out / "capture.json").is_file() else None  # a resume keeps what it measured
 
     stage = default_lightstage(
@@ -466,7 +474,7 @@ def generate_capture(
         ground_truth=dict(record),
     )
     _measure_fidelity(capture, stage, previous)
-    _render_images(capture, stage, config, record, maps)
+    _render_images(capture, stage, config, record, maps, shard or Shard())
     return capture
 
 
@@ -540,9 +548,10 @@ def _measure_fidelity(capture: Capture, stage, previous: Capture | None) -> None
     capture.save()
 
 
-def _render_images(capture: Capture, stage, config: CaptureConfig, record: dict, maps: dict) -> None:
-    """Every camera of every frame, rendered in image space (the fit works in UV space, so the ground truth takes
-    another code path); images already on disk are kept. Then the noise of the estimate, once."""
+def _render_images(capture: Capture, stage, config: CaptureConfig, record: dict, maps: dict, shard: Shard) -> None:
+    """Every camera of every frame of the shard, rendered in image space (the fit works in UV space, so the ground
+    truth takes another code path); images already on disk are kept. Then, once every image exists, the noise of the
+    estimate, once."""
 
     out, preset = capture.folder, config.resolved()
     bsdf = ONEBOUNCE_BSDF if config.renderer == "onebounce" else GT_BSDF
@@ -554,7 +563,7 @@ def _render_images(capture: Capture, stage, config: CaptureConfig, record: dict,
         if source.set_frame(frame) and "wrinkles" not in config.without:  # wrinkles follow the pose
             pose_wrinkles(source.params, maps["cloth"], frame, maps["num_frames"])
 
-    jobs = [(entry, cam) for entry in capture.frames for cam in stage.cameras]
+    jobs = [(entry, cam) for entry in shard.take(capture.frames) for cam in stage.cameras]
     lit = None  # the frame whose lighting is set: jobs run frame-major, so each frame's envmap is mapped once
     for entry, cam in progress(jobs, description=f"capture ({config.renderer})"):
         path = capture.image_path(cam.name, entry.frame)
@@ -565,7 +574,8 @@ def _render_images(capture: Capture, stage, config: CaptureConfig, record: dict,
             source.set_led_intensities(capture.lighting(stage, entry))
             lit = entry.frame
         write_exr(path, gt_renderer.render(source.scene, source.sensor_index(cam.name), seed=entry.frame))
-    if config.measure_noise and config.renderer == "path" and "noise" not in capture.ground_truth:
+    complete = all(capture.image_path(cam.name, entry.frame).is_file() for entry in capture.frames for cam in stage.cameras)
+    if complete and config.measure_noise and config.renderer == "path" and "noise" not in capture.ground_truth:
         logger.info("measuring the ground truth's noise against %dx the samples", NOISE_REFERENCE_FACTOR)
         capture.ground_truth["noise"] = measure_ground_truth_noise(capture, source, gt_renderer, stage.cameras[0].name, pose)
         capture.save()

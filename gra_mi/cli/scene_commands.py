@@ -13,6 +13,7 @@ from gra_mi.capture.transforms import TransformsOptions, import_transforms
 from gra_mi.cli.options import CommandConfig, Restartable
 from gra_mi.core.config import comma_list, option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive
+from gra_mi.core.shard import ShardOptions
 from gra_mi.render.scene_file import is_lightstage_scene, parse_defines, render_scene_file
 from gra_mi.stage.envmap import EnvmapOptions
 from gra_mi.stage.envmap_library import write_envmap_set
@@ -195,6 +196,7 @@ class CaptureCommand(Restartable):
     test_envmap: list[Path] = field(default_factory=list, metadata=option(repeat=True))
     """Your own HDR map (OpenEXR or .hdr) as held-out test lighting, in place of a procedural one (repeatable)."""
     envmaps: EnvmapOptions = field(default_factory=EnvmapOptions)
+    shards: ShardOptions = field(default_factory=ShardOptions)
     layout: str = field(default="gra-mi", metadata=option(choices=("gra-mi", "humanolat")))
     """Also write the capture as HumanOLAT ships a pose (OUT/humanolat/SUBJECT_S001: AVIF images, cameras.calib,
     LED positions, firing order, the mesh in millimetres in a Z-up frame), for `gra-mi import humanolat`. Needs
@@ -212,9 +214,11 @@ class CaptureCommand(Restartable):
 def run_capture(c: CaptureCommand) -> None:
 
     test_envmaps = {path.stem: c.envmaps.load(path) for path in c.test_envmap}
-    capture = generate_capture(c.out, c.capture, test_envmaps=test_envmaps, overwrite=c.overwrite)
-    n = len(capture.frames) * (len(capture.train_cameras) + len(capture.eval_cameras))
-    print(f"wrote {n} images of {len(capture.frames)} frames to {c.out}")
+    shard = c.shards.resolved()
+    capture = generate_capture(c.out, c.capture, test_envmaps=test_envmaps, overwrite=c.overwrite, shard=shard)
+    frames = shard.take(capture.frames)
+    n = len(frames) * (len(capture.train_cameras) + len(capture.eval_cameras))
+    print(f"wrote {n} images of {len(frames)} frames to {c.out}" + ("" if shard.whole else f" (shard {shard})"))
     if c.layout == "humanolat":
         print(f"wrote the HumanOLAT layout to {write_humanolat(capture, c.out / 'humanolat')}")
 

@@ -14,6 +14,7 @@ from gra_mi.capture.dataset import Capture
 from gra_mi.cli.options import CommandConfig, Restartable
 from gra_mi.core.config import option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive
+from gra_mi.core.shard import ShardOptions
 from gra_mi.eval.lighting import EnvmapAccuracyConfig, envmap_accuracy
 from gra_mi.fit.materials import FitConfig
 from gra_mi.render.composite import PLATFORM_FLAGS, PlatformConfig
@@ -125,6 +126,7 @@ class RelightCommand(CommandConfig):
     relight: RelightConfig = field(default_factory=RelightConfig)
     envmaps: EnvmapOptions = field(default_factory=EnvmapOptions)
     platform: PlatformConfig = field(default_factory=PlatformConfig, metadata=option(renames=PLATFORM_FLAGS))
+    shards: ShardOptions = field(default_factory=ShardOptions)
     out: Path = Path("outputs/relight")
     """Output folder."""
 
@@ -157,7 +159,10 @@ def run_relight(c: RelightCommand) -> None:
     lights = collect_lights(ls.stage, envmaps, c.olat, patterns, point_light, paths)
     frames = select(c.frames, ls.sequence.num_frames, "frames", integers=True)
     cameras = select(c.cameras, len(ls.stage.cameras), "cameras")
-    summary = relight_batch(ls, c.out, lights, frames=frames, cameras=cameras, config=c.relight, maps=maps, platform=c.platform)
+    shard = c.shards.resolved()
+    summary = relight_batch(
+        ls, c.out, lights, frames=frames, cameras=cameras, config=c.relight, maps=maps, platform=c.platform, shard=shard
+    )
     print(
         f"wrote {summary.renders} renders to {summary.out} (visibility traced {summary.visibility_traced} time(s), once per "
         f"frame and lighting model; reused {summary.visibility_reused} times)"

@@ -329,16 +329,19 @@ def write_png(path: str | Path, image: np.ndarray, exposure: float | None = 1.0)
 
 def write_mp4(path: str | Path, frames: Sequence[np.ndarray], fps: float = 24.0, exposure: float = 1.0) -> None:
     """Write linear frames as an H.264 MP4 preview (sizes padded to even numbers for the codec)."""
+    write_mp4_srgb8(path, (to_srgb8(frame, exposure)[..., :3] for frame in frames), fps)
+
+
+def write_mp4_srgb8(path: str | Path, frames, fps: float = 24.0) -> None:
+    """Write 8-bit sRGB frames (H, W, 3), e.g. the PNG previews read back, as an H.264 MP4."""
     import imageio.v2 as iio2
 
     with atomic_path(path) as tmp:
         writer = iio2.get_writer(str(tmp), format="FFMPEG", fps=fps, codec="libx264", macro_block_size=1)
         try:
-            for frame in frames:
-                rgb = to_srgb8(frame, exposure)[..., :3]
+            for rgb in frames:
                 h, w = rgb.shape[:2]
-                rgb = np.pad(rgb, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge")
-                writer.append_data(rgb)
+                writer.append_data(np.pad(rgb[..., :3], ((0, h % 2), (0, w % 2), (0, 0)), mode="edge"))
         finally:
             writer.close()
 

@@ -19,7 +19,7 @@ import os
 import shutil
 from pathlib import Path
 
-from gra_mi.core.errors import GraMiInputError
+from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.io import atomic_write_text
 
 logger = logging.getLogger(__name__)
@@ -84,7 +84,10 @@ def _files(folder: Path) -> list[Path]:
     return sorted(
         p
         for p in folder.rglob("*")
-        if p.is_file() and not SKIPPED & set(p.relative_to(folder).parts) and not any(n in p.parents for n in nested)
+        if p.is_file()
+        and not SKIPPED & set(p.relative_to(folder).parts)
+        and not is_lock(p.name)
+        and not any(n in p.parents for n in nested)
     )
 
 
@@ -94,13 +97,19 @@ def _plain(config) -> dict:
     return json.loads(json.dumps(config or {}, default=str))  # tuples → lists, paths → str: what the file holds
 
 
-def lock_folder(folder: Path) -> None:
-    """Hold the folder's writer lock until the process ends; a second process stops with its pid named."""
+def is_lock(name: str) -> bool:
+    """The folder's writer lock, or a shard's (``.gra-mi.lock.shard-0-of-4``)."""
+    return name == LOCK or name.startswith(LOCK + ".shard-")
+
+
+def lock_folder(folder: Path, suffix: str = "") -> None:
+    """Hold the folder's writer lock (a shard's own with ``suffix``) until the process ends; a second process with
+    the same lock stops with its pid named."""
     folder = folder.resolve()
     if folder in _HELD:
         return
     folder.mkdir(parents=True, exist_ok=True)
-    fd = os.open(folder / LOCK, os.O_RDWR | os.O_CREAT, 0o644)
+    fd = os.open(folder / (LOCK + suffix), os.O_RDWR | os.O_CREAT, 0o644)
     try:
         import fcntl
 
@@ -110,8 +119,9 @@ def lock_folder(folder: Path) -> None:
     except OSError:
         holder = os.read(fd, 32).decode(errors="replace").strip() or "?"
         os.close(fd)
+        who = f"shard {suffix.split('-', 1)[1].replace('-of-', '/')} of this folder" if suffix else "this folder"
         raise GraMiInputError(
-            folder, f"another gra-mi process (pid {holder}) is writing to this folder; wait for it, or choose another output folder"
+            folder, f"another gra-mi process (pid {holder}) is writing {who}; wait for it, or choose another output folder"
         ) from None
     os.ftruncate(fd, 0)
     os.write(fd, str(os.getpid()).encode())
@@ -134,6 +144,7 @@ def claim_output(
     overwrite: bool = False,
     free: tuple[str, ...] = (),
     restart: bool = False,
+    shard=None,
 ) -> Path:
     """Lock ``folder`` and check it was made by this same run (or is new, or empty); record what makes it.
 
@@ -143,11 +154,16 @@ def claim_output(
     provenance.json; a file a user's folder happens to share with gra-mi's outputs, ``checkpoint.pt`` or
     ``fit.json``, never makes it gra-mi's), so the run starts over.
     ``restart``: a command whose output is not resumable state (``refine``) starts over in a folder that it made
-    itself with other inputs or options, instead of refusing.
+    itself with other inputs or options, instead of refusing. ``shard`` (:class:`gra_mi.core.shard.Shard`): one of N
+    processes writing the folder together; it takes its shard's lock, and the folder records N (a folder started with
+    another number of shards is refused). Shards cannot ``overwrite``: one would empty what the others write.
     """
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
         raise GraMiInputError(folder, "is a file; expected an output folder")
+    sharded = shard is not None and not shard.whole
+    if sharded and overwrite:
+        raise GraMiParameterError("overwrite", "cannot be combined with --shard: empty the folder once, then start the shards")
     for name, given in inputs.items():  # --overwrite empties the output folder: never one holding an input
         if given is not None and folder.resolve() in (Path(given).resolve(), *Path(given).resolve().parents):
             raise GraMiInputError(folder, f"is the {name} input {given} or holds it; write the output to another folder")
@@ -155,12 +171,12 @@ def claim_output(
         "command": command,
         "inputs": {name: content_id(path) if path is not None else None for name, path in inputs.items()},
         "input_paths": {name: str(path) if path is not None else None for name, path in inputs.items()},
-        "config": _plain(config),
+        "config": _plain(config) | ({"shards": shard.count} if sharded else {}),
     }
     path = folder / PROVENANCE
     if not folder.exists():
         _FRESH.add(folder.resolve())
-    existing = [p for p in folder.iterdir() if p.name not in (LOCK,)] if folder.is_dir() else []
+    existing = [p for p in folder.iterdir() if not is_lock(p.name)] if folder.is_dir() else []
     if existing and not path.is_file():
         if overwrite:
             raise GraMiInputError(folder, "--overwrite empties only folders gra-mi made (with provenance.json); this one has none")
@@ -182,7 +198,7 @@ def claim_output(
             )
         if overwrite:
             _empty(folder)
-    lock_folder(folder)
+    lock_folder(folder, shard.lock_suffix if sharded else "")
     atomic_write_text(path, json.dumps(record, indent=1) + "\n")
     return folder
 
@@ -191,7 +207,7 @@ def _empty(folder: Path) -> None:
     """Start over: remove everything in a folder gra-mi made (under its lock, so no one is writing)."""
     lock_folder(folder)
     for p in folder.iterdir():
-        if p.name != LOCK:
+        if not is_lock(p.name):
             shutil.rmtree(p) if p.is_dir() and not p.is_symlink() else p.unlink()
 
 
@@ -199,7 +215,7 @@ def discard_unused_claims() -> None:
     """After a failed run: remove the folders its claims created that hold nothing but the claim (no partial
     output is left by an error found after the claim, such as a corrupt input read later)."""
     for folder in list(_FRESH):
-        if folder.is_dir() and {p.name for p in folder.iterdir()} <= {PROVENANCE, LOCK}:
+        if folder.is_dir() and all(p.name == PROVENANCE or is_lock(p.name) for p in folder.iterdir()):
             release_folder(folder)
             shutil.rmtree(folder, ignore_errors=True)
         _FRESH.discard(folder)

@@ -1,0 +1,108 @@
+"""Per-frame work sharded over processes: `--shard I/N` and the launchers' variables; shards write what one process
+writes, byte for byte; per-shard locks; a folder keeps the shard count it was started with."""
+
+from __future__ import annotations
+
+import filecmp
+import json
+from pathlib import Path
+
+import pytest
+
+from gra_mi.core.errors import GraMiInputError
+from gra_mi.core.shard import Shard, parse_shard, resolve_shard, shard_from_environment
+
+from .conftest import SCENES
+from .test_cli import run_cli
+from .test_presets import shrunk
+
+TINY = SCENES / "tiny_lightstage.xml"
+
+
+def same_files(a: Path, b: Path, ignore=lambda p: False) -> list[str]:
+    """Relative paths that differ between two folders (missing on one side, or other bytes)."""
+    left = {p.relative_to(a) for p in a.rglob("*") if p.is_file() and not ignore(p)}
+    right = {p.relative_to(b) for p in b.rglob("*") if p.is_file() and not ignore(p)}
+    return sorted(str(p) for p in left ^ right) + sorted(str(p) for p in left & right if not filecmp.cmp(a / p, b / p, shallow=False))
+
+
+def test_shards_from_the_option_and_the_launchers():
+    assert parse_shard("1/4") == Shard(1, 4) and Shard(1, 4).take(list(range(10))) == [1, 5, 9]
+    assert resolve_shard(None, {}) == Shard() and resolve_shard(None, {}).whole
+    assert shard_from_environment({"RANK": "2", "WORLD_SIZE": "3"}) == Shard(2, 3)
+    slurm = {"SLURM_ARRAY_TASK_ID": "4", "SLURM_ARRAY_TASK_COUNT": "4", "SLURM_ARRAY_TASK_MIN": "1"}  # --array=1-4
+    assert shard_from_environment(slurm) == Shard(3, 4)
+    assert resolve_shard("0/2", {"RANK": "1", "WORLD_SIZE": "2"}) == Shard(0, 2), "the option wins"
+    for text in ("3/2", "0/0", "a/b", "1", "-1/2"):
+        with pytest.raises(GraMiInputError, match="shard"):
+            parse_shard(text)
+    for env, named in (({"RANK": "1"}, "$RANK"), ({"RANK": "x", "WORLD_SIZE": "2"}, "$RANK"), ({"RANK": "5", "WORLD_SIZE": "2"}, "$RANK")):
+        with pytest.raises(GraMiInputError) as info:
+            shard_from_environment(env)
+        assert named in str(info.value)
+
+
+def test_two_relight_shards_write_what_one_process_writes(tmp_path, llvm_variant):
+    """Every EXR, PNG, conditioning and MP4 byte for byte: the previews' exposure comes from the selection's first
+    frame whoever renders it, and the videos are made by the shard that finds every frame done."""
+    from gra_mi.apps.relight import RelightConfig, collect_lights, relight_batch
+    from gra_mi.render.light_path import LightPath
+    from gra_mi.stage.envmap_library import reference_map
+    from gra_mi.stage.scene import LightstageScene
+
+    (tmp_path / "path.json").write_text(
+        json.dumps({"lights": [{"keyframes": [{"frame": 0, "position": [0.6, 1.2, 0.4]}, {"frame": 4, "position": [-0.6, 1.2, 0.4]}]}]})
+    )
+    ls = LightstageScene.load(TINY)
+
+    def relight(out: Path, shard: Shard | None) -> None:
+        lights = collect_lights(ls.stage, {"sun": reference_map("sun", 16)}, [3], {}, paths=[LightPath.load(tmp_path / "path.json")])
+        relight_batch(
+            ls, out, lights, frames=list(range(5)), cameras=["cam00", "cam02"], config=RelightConfig(uv_resolution=32), shard=shard
+        )
+
+    relight(tmp_path / "one", None)
+    relight(tmp_path / "two", Shard(1, 2))  # the shard without the first frame runs first
+    assert not (tmp_path / "two" / "sun" / "cam00.mp4").exists(), "no video before every frame is there"
+    relight(tmp_path / "two", Shard(0, 2))
+    assert (tmp_path / "two" / "sun" / "cam00.mp4").is_file()
+    assert same_files(tmp_path / "one", tmp_path / "two") == []
+
+
+def test_two_capture_shards_write_what_one_process_writes(tmp_path, monkeypatch, llvm_variant):
+    import fcntl
+
+    from gra_mi.capture import synthetic
+    from gra_mi.core.provenance import LOCK, PROVENANCE, is_lock, release_folder
+
+    monkeypatch.setitem(synthetic.PRESETS, "tiny", shrunk(synthetic.PRESETS["tiny"]))
+    config = synthetic.CaptureConfig(preset="tiny", measure_noise=False)
+    synthetic.generate_capture(tmp_path / "one", config)
+    for index in (1, 0):
+        synthetic.generate_capture(tmp_path / "two", config, shard=Shard(index, 2))
+    release_folder(tmp_path / "two")
+    bookkeeping = lambda p: p.name == PROVENANCE or is_lock(p.name)  # noqa: E731  (provenance records the 2 shards)
+    assert same_files(tmp_path / "one", tmp_path / "two", ignore=bookkeeping) == []
+    assert json.loads((tmp_path / "two" / PROVENANCE).read_text())["config"]["shards"] == 2
+    # A folder started with 2 shards refuses 3; a shard whose lock another process holds is refused with its pid.
+    with pytest.raises(GraMiInputError, match="shards: 2 then, 3 now"):
+        synthetic.generate_capture(tmp_path / "two", config, shard=Shard(0, 3))
+    with open(tmp_path / "two" / f"{LOCK}.shard-1-of-2", "w") as held:
+        fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        held.write("4242")
+        held.flush()
+        with pytest.raises(GraMiInputError, match="pid 4242.*shard 1/2"):
+            synthetic.generate_capture(tmp_path / "two", config, shard=Shard(1, 2))
+
+
+@pytest.mark.parametrize(
+    "args, said",
+    [
+        (["relight", str(TINY), "--olat", "1", "--shard", "3/2"], "--shard"),
+        (["relight", str(TINY), "--olat", "1", "--shard", "x"], "--shard"),
+        (["capture", "--preset", "tiny", "--shard", "0/2", "--overwrite"], "--overwrite"),
+    ],
+)
+def test_bad_shards_on_the_command_line(tmp_path, args, said):
+    out = run_cli(*args, "--out", str(tmp_path / "out"))
+    assert out.returncode == 2 and said in out.stderr and "Traceback" not in out.stderr, out.stderr
