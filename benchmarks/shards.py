@@ -76,8 +76,8 @@ def main() -> None:
     from benchmarks.moving_lights import video_scene
     from gra_mi.core.io import write_exr
     from gra_mi.core.stamp import publish_page, run_stamp, stamp_said
-    from gra_mi.stage.envmap_library import reference_map
     from gra_mi.render.runtime import start_runtime
+    from gra_mi.stage.envmap_library import reference_map
 
     variant = start_runtime("llvm_ad_rgb").variant
     with tempfile.TemporaryDirectory(prefix="gra_mi_shards_") as tmp:
