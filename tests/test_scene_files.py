@@ -315,3 +315,22 @@ def test_relight_says_which_lightstage_parts_a_plain_scene_lacks(tmp_path):
     assert out.returncode == 2
     for words in ('<default name="subject"', '<default name="calibration"', 'id="subject"', "gra-mi scene", "gra-mi render SCENE"):
         assert words in out.stderr, words
+
+
+def test_render_cli_keeps_every_aov_channel(tmp_path):
+    """A film with AOVs is written whole, its channels named as Mitsuba's own writer names them."""
+    import OpenEXR
+
+    from .test_cli import run_cli
+
+    (tmp_path / "aov.xml").write_text(
+        '<scene version="3.0.0"><integrator type="aov"><string name="aovs" value="dd:depth,nn:sh_normal"/>'
+        '<integrator type="path" name="img"/></integrator><sensor type="perspective" id="cam"><film type="hdrfilm">'
+        '<integer name="width" value="16"/><integer name="height" value="12"/></film></sensor>'
+        '<shape type="sphere"/><emitter type="constant"/></scene>'
+    )
+    out = run_cli("render", str(tmp_path / "aov.xml"), "--spp", "4", "--out", str(tmp_path / "r"))
+    assert out.returncode == 0, out.stderr
+    with OpenEXR.File(str(tmp_path / "r" / "cam.exr"), separate_channels=True) as f:
+        assert {"dd.T", "nn.X", "nn.Y", "nn.Z", "img.R"} <= set(f.channels())
+    assert (tmp_path / "r" / "cam.png").is_file()

@@ -3,7 +3,7 @@
 A scene gra-mi did not write is loaded as it is, with ``-D name=value`` parameters checked against the
 ``<default>`` parameters the file declares, and rendered with its own integrator or one named on the command line
 (``direct``, ``path``, or ``gra_onebounce``, whose emitters are checked when the scene loads). Each sensor becomes
-``SENSOR.exr`` (linear, RGBA where the film has alpha) and ``SENSOR.png``. A lightstage scene (gra-mi's LEDs, rig and
+``SENSOR.exr`` (linear: RGB or RGBA as the film develops it; with AOVs, every channel named as Mitsuba names them) and ``SENSOR.png``. A lightstage scene (gra-mi's LEDs, rig and
 tracked subject) is the special case :class:`gra_mi.stage.scene.LightstageScene` handles.
 """
 
@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
-from gra_mi.core.io import write_exr, write_png
+from gra_mi.core.io import atomic_path, write_exr, write_png
 from gra_mi.stage import scene_keys as keys
 from gra_mi.stage.scene import make_integrator, scene_defaults
 
@@ -127,7 +127,11 @@ def render_scene_file(
         sensor = scene.sensors()[index]
         image = np.array(mi.render(scene, sensor=index, integrator=chosen_integrator, spp=spp or 0, seed=seed), dtype=np.float32)
         name = sensor_name(index, sensor)
-        write_exr(out / f"{name}.exr", image[..., :4] if image.shape[-1] >= 4 else image[..., :3])
+        if image.shape[-1] > 4:  # AOVs: every channel, named and ordered as Mitsuba's own writer does
+            with atomic_path(out / f"{name}.exr") as tmp:
+                sensor.film().bitmap().write(str(tmp))
+        else:
+            write_exr(out / f"{name}.exr", image)
         write_png(out / f"{name}.png", image[..., :3], exposure=None)
         renders.append(SceneRender(name, image, out / f"{name}.exr"))
     return renders
