@@ -309,11 +309,12 @@ class LightstageScene:
         """The rays through the point ``offset`` (in pixels, (0.5, 0.5) the centre) of each pixel of ``camera``,
         row-major. Centre rays are built once per camera and kept on the device: only the mesh changes from frame to
         frame, and on a GPU the host-side ray set-up cost more than the tracing. Other offsets (anti-aliasing
-        sub-samples) are built on the device, not kept."""
+        sub-samples) and cameras that are not the rig's (a viewer's, which moves) are built on the device, not kept."""
         import drjit as dr
         import mitsuba as mi
 
-        if tuple(offset) != (0.5, 0.5):
+        rig_camera = any(camera is c for c in self.stage.cameras)  # a viewer's free camera moves: never kept
+        if tuple(offset) != (0.5, 0.5) or not rig_camera:
             index = dr.arange(mi.UInt32, camera.width * camera.height)
             # The camera's numbers as kernel inputs, not literals: a moving camera reuses one kernel (core.runtime.opaque).
             row = index // camera.width  # the image size stays a literal: it changes only when a window is resized
@@ -322,15 +323,13 @@ class LightstageScene:
             r = camera.rotation.T
             d = dr.normalize(x * opaque(mi.Vector3f, r[0]) + y * opaque(mi.Vector3f, r[1]) + opaque(mi.Vector3f, r[2]))
             return mi.Ray3f(opaque(mi.Point3f, camera.position), d)
-        rig_camera = any(camera is c for c in self.stage.cameras)  # a viewer's free camera moves: never kept
-        ray = self._camera_rays.get(camera.name) if rig_camera else None
+        ray = self._camera_rays.get(camera.name)
         if ray is None:
             origin, directions = camera.pixel_rays()
             d = directions.reshape(-1, 3).astype(np.float32)
             ray = mi.Ray3f(mi.Point3f(*np.tile(origin.astype(np.float32), (d.shape[0], 1)).T), mi.Vector3f(*d.T))
             dr.eval(ray)
-            if rig_camera:
-                self._camera_rays[camera.name] = ray
+            self._camera_rays[camera.name] = ray
         return ray
 
     def sensor_index(self, camera: int | str) -> int:
