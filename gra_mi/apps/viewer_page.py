@@ -87,7 +87,8 @@ class ViewerPage:
     # ---------------------------------------------------------------- page
     def _controls(self) -> None:
         gui, s, light = self.server.gui, self.session, self.session.lighting
-        self.status = gui.add_markdown("\n\n".join(f"**Note:** {n}" for n in s.notices) or "Ready.")
+        self.ready = "\n\n".join(f"**Note:** {n}" for n in s.notices) or "Ready."
+        self.status = gui.add_markdown(self.ready)
         with gui.add_folder("Lighting"):
             self.mode = gui.add_dropdown("mode", MODES, initial_value=light.mode)
             self.envmap = gui.add_dropdown("envmap", list(s.envmap_sources), initial_value=light.envmap)
@@ -168,6 +169,7 @@ class ViewerPage:
         except GraMiInputError as exc:  # e.g. an envmap file that cannot be read: said, and the last lighting stays
             self.say(str(exc))
             return
+        self.status.content = self.ready  # a change that worked clears the last error
         if np.any(np.abs(np.asarray(self.gizmo.position) - point) > 1e-6):
             self.gizmo.position = point
         self._show_rig()
@@ -241,7 +243,6 @@ class ViewerPage:
         parts = " · ".join(f"{k} {v:.0f}" for k, v in timings.items() if k != "total")
         self.rendered += 1
         self.timings.content = f"view {self.rendered}, {width}×{height}: **{timings['total']:.0f} ms** on the server ({parts})"
-        self.last_timings = dict(timings)
 
     def close(self) -> None:
         self.stop.set()
