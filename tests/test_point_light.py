@@ -162,7 +162,8 @@ def test_several_near_lights_add_and_a_path_interpolates(plugins, tmp_path):
     np.testing.assert_allclose(both, apart, rtol=1e-5, atol=1e-7)
     (tmp_path / "p.json").write_text(json.dumps({"lights": [
         {"name": "key", "intensity": [1, 2, 3], "keyframes": [{"frame": 2, "position": [0, 1, 1]}, {"frame": 6, "position": [1, 1, 0], "intensity": 5}]},
-        {"name": "rim", "type": "spot", "cutoff_angle": 30, "keyframes": [{"frame": 0, "position": [0, 2, 0], "target": [0, 1, 0]}]},
+        {"name": "rim", "type": "spot", "cutoff_angle": 30, "target": [0, 1, 0],
+         "keyframes": [{"frame": 0, "position": [0, 2, 0]}, {"frame": 9, "position": [0, 2, 0], "direction": [0, -1, 0]}]},
     ]}))  # fmt: skip
     path = LightPath.load(tmp_path / "p.json")
     key, rim = path.at(3)
@@ -191,6 +192,7 @@ def test_several_near_lights_add_and_a_path_interpolates(plugins, tmp_path):
         ),
         ({"type": "spot", "keyframes": [{"frame": 0, "position": [0, 1, 1], "target": [0, 1, 1]}]}, "target", "zero vector"),
         ({"keyframes": []}, "lights[0].keyframes", "at least one keyframe"),
+        ({"keyframes": [3]}, "lights[0].keyframes[0]", "expected an object"),
     ],
 )
 def test_bad_light_path_files_name_the_field(tmp_path, light, field, problem):

@@ -126,14 +126,24 @@ def _read_light(path: Path, index: int, item) -> PathLight:
     keyframes = item.get("keyframes")
     if not isinstance(keyframes, list) or not keyframes:
         raise GraMiInputError(path, "expected a list of at least one keyframe", field=f"{where}.keyframes")
-    rows = [_read_keyframe(path, f"{where}.keyframes[{k}]", kind, {key: item[key] for key in PER_KEYFRAME if key in item} | key)
-            for k, key in enumerate(keyframes)]  # fmt: skip
+    rows = [_read_keyframe(path, f"{where}.keyframes[{k}]", kind, _with_defaults(item, key)) for k, key in enumerate(keyframes)]
     frames = np.array([r["frame"] for r in rows])
     if np.any(np.diff(frames) <= 0):
         raise GraMiInputError(path, f"keyframe frames must increase, got {frames.tolist()}", field=f"{where}.keyframes")
     stack = {key: np.stack([r[key] for r in rows]) for key in rows[0] if key != "frame"}
     name = str(item.get("name", f"light{index}"))
     return PathLight(name, kind, radius, frames, stack["position"], stack["intensity"], stack.get("direction"), stack.get("cone"))
+
+
+def _with_defaults(light: dict, keyframe):
+    """A keyframe's values, the light's own (intensity, aim, cone) where it gives none; its aim replaces the light's."""
+    if not isinstance(keyframe, dict):
+        return keyframe  # refused, by name, in _read_keyframe
+    defaults = {key: light[key] for key in PER_KEYFRAME if key in light}
+    if "direction" in keyframe or "target" in keyframe:
+        defaults.pop("direction", None)
+        defaults.pop("target", None)
+    return defaults | keyframe
 
 
 def _read_keyframe(path: Path, where: str, kind: str, values) -> dict:
