@@ -317,6 +317,26 @@ def test_relight_says_which_lightstage_parts_a_plain_scene_lacks(tmp_path):
         assert words in out.stderr, words
 
 
+def test_render_cli_defaults_to_path_and_takes_parameters_the_scene_uses(plugins, tmp_path):
+    """A scene without <integrator> renders with `path` (Mitsuba's Python API would refuse it); -D sets a parameter
+    the file uses as $name even without a <default>."""
+    import mitsuba as mi
+
+    from gra_mi.core.io import read_exr
+
+    from .test_cli import run_cli
+
+    (tmp_path / "bare.xml").write_text(
+        '<scene version="3.0.0"><sensor type="perspective" id="c"><film type="hdrfilm"><integer name="width" value="16"/>'
+        '<integer name="height" value="12"/></film></sensor><shape type="sphere"><float name="radius" value="$r"/></shape>'
+        '<emitter type="constant"/></scene>'
+    )
+    out = run_cli("render", str(tmp_path / "bare.xml"), "-D", "r=0.5", "--spp", "4", "--out", str(tmp_path / "r"))
+    assert out.returncode == 0, out.stderr
+    expected = np.array(mi.render(mi.load_file(str(tmp_path / "bare.xml"), r="0.5"), integrator=mi.load_dict({"type": "path"}), spp=4))
+    np.testing.assert_allclose(read_exr(tmp_path / "r" / "c.exr"), expected, atol=1e-6)
+
+
 def test_render_cli_keeps_every_aov_channel(tmp_path):
     """A film with AOVs is written whole, its channels named as Mitsuba's own writer names them."""
     import OpenEXR

@@ -9,6 +9,7 @@ tracked subject) is the special case :class:`gra_mi.stage.scene.LightstageScene`
 
 from __future__ import annotations
 
+import logging
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,6 +21,7 @@ from gra_mi.core.io import atomic_path, write_exr, write_png
 from gra_mi.stage import scene_keys as keys
 from gra_mi.stage.scene import make_integrator, scene_defaults
 
+logger = logging.getLogger(__name__)
 NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 
 
@@ -41,13 +43,13 @@ def parse_defines(items: list[str]) -> dict[str, str]:
 
 
 def check_defines(path: Path, defines: dict[str, str]) -> None:
-    """Every ``-D`` parameter must be one the scene declares with ``<default name=…>``: a misspelt name would
-    otherwise be dropped without a word."""
-    declared = scene_defaults(path)
-    unknown = sorted(set(defines) - set(declared))
+    """Every ``-D`` parameter must be one the scene declares (``<default name=…>``) or uses (``$name``): a misspelt
+    name would otherwise be dropped without a word."""
+    declared = set(scene_defaults(path)) | set(re.findall(r"\$([A-Za-z_][A-Za-z0-9_]*)", path.read_text(errors="replace")))
+    unknown = sorted(set(defines) - declared)
     if unknown:
         said = ", ".join(sorted(declared)) or "none"
-        raise GraMiInputError(path, f"-D {unknown[0]}=…: the scene declares no parameter '{unknown[0]}' (it declares: {said})")
+        raise GraMiInputError(path, f"-D {unknown[0]}=…: the scene declares no parameter '{unknown[0]}' (it has: {said})")
 
 
 def load_scene_file(path: str | Path, defines: dict[str, str] | None = None):
@@ -108,7 +110,7 @@ def render_scene_file(
 ) -> list[SceneRender]:
     """Render the named sensors (all by default) of a scene file into ``out/SENSOR.{exr,png}``.
 
-    ``integrator`` None and ``spp`` None: the scene's own. With ``gra_onebounce`` the scene's emitters are checked
+    ``integrator`` None and ``spp`` None: the scene's own (a scene without an integrator: ``path``). With ``gra_onebounce`` the scene's emitters are checked
     first (:func:`gra_mi.render.scene_lights.scene_lights`): one it cannot compute stops the run by name.
     """
     import mitsuba as mi
@@ -120,6 +122,9 @@ def render_scene_file(
     scene = load_scene_file(path, defines)
     chosen = select_sensors(path, scene, list(sensors or []))
     chosen_integrator = make_integrator(integrator)
+    if chosen_integrator is None and scene.integrator() is None:
+        logger.info("%s has no <integrator>: rendering with Mitsuba's path tracer (--integrator chooses another)", path)
+        chosen_integrator = make_integrator("path")
     if isinstance(chosen_integrator or scene.integrator(), GraOneBounce):  # refuse what it cannot compute, by name, now
         scene_lights(scene, str(path))
     renders = []
