@@ -138,8 +138,8 @@ class RenderCommand(CommandConfig):
     sensor: list[str] = field(default_factory=list, metadata=option(repeat=True))
     """A plain scene's sensor to render, by id or index (repeatable). Default: every sensor. (Lightstage scenes: --camera.)"""
     define: list[str] = field(default_factory=list, metadata=option(flag="-D", repeat=True, metavar="NAME=VALUE"))
-    """Set a parameter the scene declares with <default name=... value=.../>, as Mitsuba's own tool takes it
-    (repeatable: -D spp=16 -D radius=0.3)."""
+    """Set a parameter the scene declares (<default name=... value=.../>) or uses ($name), as Mitsuba's own tool
+    takes it (repeatable: -D spp=16 -D radius=0.3)."""
     render: RenderConfig = field(default_factory=RenderConfig)
     envmaps: EnvmapOptions = field(default_factory=EnvmapOptions)
     out: Path = Path("outputs/render")
