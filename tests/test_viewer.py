@@ -129,6 +129,9 @@ def test_view_command_bad_input(tmp_path):
     assert none.returncode == 2 and "give one of" in none.stderr
     empty = run_cli("view", str(tmp_path))
     assert empty.returncode == 2 and "not a run folder" in empty.stderr
+    for flag, value in (("--port", "0"), ("--port", "70000"), ("--max-size", "3"), ("--uv-resolution", "2"), ("--max-size", "nan")):
+        bad = run_cli("view", "--scene", str(TINY), flag, value, "--seconds", "1")
+        assert bad.returncode == 2 and flag in bad.stderr and "Traceback" not in bad.stderr, (flag, value, bad.stderr)
     with socket.socket() as busy:
         busy.bind(("127.0.0.1", 0))
         busy.listen()
