@@ -189,7 +189,7 @@ def test_clipped_pixels_are_marked_and_left_out_of_the_fit(olat_capture, tmp_pat
     assert next(c for c in report["cameras"] if c["camera"] == "Cam02")["saturated_fraction"] > 0
     fitter = MaterialFitter(capture, FitConfig(cameras=["Cam02"]))
     fitter.train = [f for f in fitter.train if f.frame in (frame, frame + 1)]
-    views = {v.frame: v.texels.size for v in fitter.gather_views(progress_bar=False)}
+    views = {v.frame: v.count for v in fitter.gather_views(progress_bar=False)}
     assert 0.3 < views[frame] / views[frame + 1] < 0.8, views  # the next OLAT, unclipped, sees the whole subject
 
 

@@ -41,9 +41,11 @@ from gra_mi.core.io import atomic_path, read_checkpoint_npz
 from gra_mi.core.metrics import subject_mask
 from gra_mi.core.progress import progress
 from gra_mi.core.provenance import claim_output
+from gra_mi.fit.levels import LevelStart, fit_levels
 from gra_mi.fit.optimize import Evidence
 from gra_mi.fit.prior import SurfaceGraph
 from gra_mi.fit.report import write_fit_outputs
+from gra_mi.fit.views import ViewStore
 from gra_mi.render.runtime import ensure_mitsuba
 from gra_mi.stage.scene import LightstageScene
 
@@ -64,13 +66,35 @@ finish, and Adam's step (a ratio of moments) turns last-bit differences into up 
 6e-4 (`small`) after its iterations; a resumed fit is compared with an uninterrupted one within this bound."""
 
 
+def _resolutions(text: str) -> list[int]:
+    """``--levels``: a comma list of UV resolutions."""
+    import argparse
+
+    try:
+        return [int(x) for x in comma_list(text)]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a comma list of UV resolutions such as 256,512,1024, got '{text}'") from None
+
+
 @dataclass
 class FitConfig:
     solver: str = field(default="adam", metadata=option(choices=SOLVERS))
     """adam: the closed-form solution, then Dr.Jit + Adam on the maps against the images with the surface prior;
     closed-form: the per-texel grid search and L1 reweighting alone (no prior; fast, noisy roughness)."""
     iterations: int = 60
-    """Adam iterations (full batch: every training view each time)."""
+    """Adam iterations (steps; with --batch-views, each uses that many views)."""
+    batch_views: int = 0
+    """Training views per Adam step, their gradients accumulated one view at a time (the paper: batch 1, 8
+    accumulation steps: 8). Every view is used once per epoch, in a seeded random order. With a batch, each view's
+    footprints and shading inputs live in scratch files (FIT/views.tmp) and are read when needed, so the fit's memory
+    is set by the batch, not by the capture's size; the closed form streams the views too. 0: every view every step,
+    all held in memory (fastest on a small capture)."""
+    seed: int = 0
+    """Seed of the minibatch order (--batch-views)."""
+    levels: list[int] | None = field(default=None, metadata=option(parse=_resolutions))
+    """Coarse to fine: UV resolutions fitted in turn, e.g. 256,512,1024. The first runs the whole fit; each next one
+    starts from the previous maps upsampled (its highlight confidence carried), runs --iterations Adam steps, and is
+    checkpointed in FIT/level_RRRR/. The last is the fitted resolution (--uv-resolution, if given, must equal it)."""
     lr_albedo: float = 0.01
     """Adam's learning rate for albedo (it decays to a tenth over the run)."""
     lr_roughness: float = 0.03
@@ -116,15 +140,33 @@ class FitConfig:
             raise GraMiParameterError("frame_step", f"must be >= 1, got {self.frame_step}")
         if self.resolution is not None and self.resolution < 1:
             raise GraMiParameterError("resolution", f"must be >= 1, got {self.resolution}")
+        if self.batch_views < 0:
+            raise GraMiParameterError("batch_views", f"must be >= 0 (0: every view each step), got {self.batch_views}")
+        if self.levels is not None:
+            self._validate_levels(self.levels)
+
+    def _validate_levels(self, levels: list[int]) -> None:
+        if not levels or any(r < 8 for r in levels) or any(b <= a for a, b in zip(levels, levels[1:], strict=False)):
+            raise GraMiParameterError("levels", f"expected increasing UV resolutions of at least 8, e.g. 256,512,1024; got {levels}")
+        if self.resolution is not None and self.resolution != levels[-1]:
+            raise GraMiParameterError(
+                "levels", f"the last level ({levels[-1]}) is the fitted resolution; --uv-resolution says {self.resolution}"
+            )
 
 
 @dataclass
 class View:
+    """A training camera in a training frame; its observed texels and their radiance are in the fitter's
+    :class:`~gra_mi.fit.views.ViewStore` (:meth:`MaterialFitter.observation`)."""
+
     frame: int  # the capture's frame: its image and lighting
     pose: int  # the subject's mesh frame it shows
     camera: str
-    texels: np.ndarray  # indices of the observed valid texels
-    observed: np.ndarray  # (n, 3) captured radiance
+    count: int  # observed texels
+
+    @property
+    def name(self) -> str:
+        return f"{self.camera}/frame_{self.frame:04d}"
 
 
 @dataclass
@@ -190,7 +232,11 @@ class MaterialFitter:
                 "cameras", f"{', '.join(unknown)}: not training cameras of {capture.folder} ({', '.join(capture.train_cameras)})"
             )
         self._lighting = {f.frame: capture.lighting(self.stage, f) for f in self.train}
-        self._loops: dict = {}  # (frame, camera) → TexelLedLoop of the view's observed texels
+        self._loops: dict = {}  # (frame, camera) → TexelLedLoop of the view's observed texels (streamed: the last)
+        self.streamed = config.batch_views > 0
+        self.store = ViewStore()  # :meth:`fit` puts it on disk when streamed
+        if self.streamed:
+            self.relighter.cache.keep = 4  # frames' visibility held in memory; the rest is read from the cache folder
 
     # ----------------------------------------------------------------------------------------------------------
 
@@ -210,34 +256,56 @@ class MaterialFitter:
             image = load_fit_observation(self.capture, cam_name, frame)
             value, covered = sample_image(image, xyz[:, :2])
             ok = covered & (xyz[:, 2] > 0)
-            views.append(View(frame, pose, cam_name, np.flatnonzero(seen)[ok], value[ok].astype(np.float32)))
+            texels = np.flatnonzero(seen)[ok]
+            view = View(frame, pose, cam_name, int(texels.size))
+            self.store.put(f"observed:{view.name}", texels=texels, observed=value[ok].astype(np.float32))
+            views.append(view)
         return views
 
-    def parts(self, view: View, roughness: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(D, S) at the view's observed texels for per-texel roughness (M,). Only those texels are shaded; their
-        LED-loop inputs are gathered once per view."""
+    def observation(self, view: View) -> tuple[np.ndarray, np.ndarray]:
+        """(indices of the valid texels the view observes, (n, 3) their captured radiance)."""
+        arrays = self.store.get(f"observed:{view.name}")
+        return arrays["texels"], arrays["observed"]
+
+    def cameras_seen(self, views: list[View]) -> np.ndarray:
+        """(M,) how many training cameras saw each valid texel in any frame."""
+        seen = {cam: np.zeros(self.atlas.num_texels, bool) for cam in self.train_cameras}
+        for v in views:
+            seen[v.camera][self.observation(v)[0]] = True
+        return np.sum(list(seen.values()), axis=0).astype(np.int64)
+
+    def parts(self, view: View, roughness: np.ndarray, texels: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(D, S) at the view's observed texels (``texels``, if already read) for per-texel roughness (M,). Only those
+        texels are shaded; their LED-loop inputs are gathered once per view (streamed: kept for the last view only)."""
         import mitsuba as mi
 
         from gra_mi.render.shading import TexelLedLoop
 
-        if view.texels.size == 0:
+        if view.count == 0:
             return np.zeros((0, 3)), np.zeros((0, 3))
+        texels = self.observation(view)[0] if texels is None else texels
         key = (view.frame, view.camera)
         if key not in self._loops:
+            if self.streamed:
+                self._loops.clear()
             self._loops[key] = TexelLedLoop.build(
-                self.relighter.geometry(view.pose), self.relighter.visibility(view.pose, False), view.texels, self.relighter.leds(False),
+                self.relighter.geometry(view.pose), self.relighter.visibility(view.pose, False), texels, self.relighter.leds(False),
                 self._lighting[view.frame], self.stage.camera(view.camera).position,
             )  # fmt: skip
-        diffuse, spec = self._loops[key].run(mi.Float(np.asarray(roughness, np.float32)[view.texels]))
-        n = view.texels.size
-        return np.array(diffuse).T.reshape(n, 3), np.array(spec).T.reshape(n, 3)
+        diffuse, spec = self._loops[key].run(mi.Float(np.asarray(roughness, np.float32)[texels]))
+        return np.array(diffuse).T.reshape(texels.size, 3), np.array(spec).T.reshape(texels.size, 3)
 
     # ----------------------------------------------------------------------------------------------------------
 
-    def fit(self, out: Path | None = None) -> FitResult:
-        """The closed-form solution, then (solver "adam") the optimisation of the maps against the images."""
-        closed = self.fit_closed_form(out)
-        result = closed if self.config.solver == "closed-form" else self.optimize(closed, out)
+    def fit(self, out: Path | None = None, start: LevelStart | None = None) -> FitResult:
+        """The closed-form solution (or, at a finer level, the coarser level's maps), then (solver "adam") the
+        optimisation of the maps against the images."""
+        self.store = ViewStore.for_fit(self.streamed, out)
+        try:
+            closed = self.fit_closed_form(out) if start is None else self.start_from(start)
+            result = closed if self.config.solver == "closed-form" else self.optimize(closed, out, start)
+        finally:
+            self.store.close()
         return self.calibrate_brightness(result) if self.config.calibrate_brightness else result
 
     def calibrate_brightness(self, result: FitResult) -> FitResult:
@@ -275,49 +343,71 @@ class MaterialFitter:
         albedo[fitted] = np.clip(albedo[fitted] * gain, 0.0, 1.0)
         return replace(result, albedo=self.atlas.scatter(albedo.astype(np.float32), fill=DEFAULT_ALBEDO), albedo_gain=gain)
 
-    def optimize(self, closed: FitResult, out: Path | None = None) -> FitResult:
-        """Adam on the UV maps (:mod:`gra_mi.fit.optimize`) from the closed-form albedo and the median of its roughness.
+    def optimize(self, closed: FitResult, out: Path | None = None, start: LevelStart | None = None) -> FitResult:
+        """Adam on the UV maps (:mod:`gra_mi.fit.optimize`) from the closed-form albedo and the median of its roughness
+        (or, at a finer level, from the coarser level's maps, its highlight evidence carried).
 
         The closed form's per-texel roughness is mostly noise (on `small`'s path-traced capture MAE 0.20, against
         0.06 for a constant), so only its median is kept; texels no camera saw start from their neighbours' albedo.
         """
         from gra_mi.fit import optimize as opt
 
-        cfg = self.config
-        start = time.perf_counter()
+        cfg, clock = self.config, time.perf_counter()
         offset = closed.loss_curve[-1][0] if closed.loss_curve else 0.0
-        batches = opt.build_batches(self, cfg.min_view_cos)
+        batches = opt.build_batches(self, cfg.min_view_cos, store=self.store)
         geom = self.relighter.geometry(self.train[0].mesh_frame)
         graph = SurfaceGraph.build(np.array(geom.position).T.astype(np.float64), np.array(geom.normal).T.astype(np.float64))
-        observed = closed.observed_cameras > 0
-        albedo_cf = self.atlas.gather(closed.albedo)
-        roughness_cf = self.atlas.gather(closed.roughness)[:, 0]
-        albedo = np.clip(graph.fill(albedo_cf, observed.astype(np.float64), ALBEDO_FILL_STRENGTH, DEFAULT_ALBEDO), 0.0, 1.0)
-        r0 = float(np.median(roughness_cf[observed])) if observed.any() else DEFAULT_ROUGHNESS
-        roughness = np.full(self.atlas.num_texels, r0)
+        albedo_cf, roughness_cf = self.atlas.gather(closed.albedo), self.atlas.gather(closed.roughness)[:, 0]
+        albedo, roughness = (albedo_cf, roughness_cf) if start is not None else self._adam_start(graph, closed)
         evidence = opt.gather_evidence(batches, albedo, roughness)
-        settings = opt.OptimizeSettings(cfg.iterations, cfg.lr_albedo, cfg.lr_roughness, cfg.smooth_albedo, cfg.smooth_roughness)
-        elapsed = time.perf_counter() - start
-        closed_l1 = opt.image_l1(batches, albedo_cf, roughness_cf)
-        albedo, roughness, curve, snapshots = opt.optimize_maps(
-            batches, graph, albedo, roughness, evidence.views > 0, evidence.highlights > 0, settings,
-            checkpoint=None if out is None else out / "optimize.npz", clock_offset=offset + elapsed,
+        highlights = evidence.highlights > 0
+        held = None if start is None else start.carried_highlights(self.atlas) & ~highlights
+        settings = opt.OptimizeSettings(
+            cfg.iterations, cfg.lr_albedo, cfg.lr_roughness, cfg.smooth_albedo, cfg.smooth_roughness, batch_views=cfg.batch_views, seed=cfg.seed
         )  # fmt: skip
-        per_view = dict(zip((b.name for b in batches), opt.view_l1(batches, albedo, roughness), strict=True))
+        closed_l1 = opt.image_l1(batches, albedo_cf, roughness_cf, opt.curve_views(batches))
+        albedo, roughness, curve, snapshots = opt.optimize_maps(
+            batches, graph, albedo, roughness, evidence.views > 0, highlights, settings,
+            checkpoint=None if out is None else out / "optimize.npz", clock_offset=offset + time.perf_counter() - clock,
+            held_roughness=held,
+        )  # fmt: skip
+        per_view = dict(zip(batches.names, opt.view_l1(batches, albedo, roughness), strict=True))
+        measure = "image space, relative" + (f" ({len(opt.curve_views(batches))} of {len(batches)} views)" if batches.streamed else "")
+        first = closed.loss_curve[0][2] if start is not None else "closed form"
         return FitResult(
             self.atlas.scatter(albedo.astype(np.float32), fill=DEFAULT_ALBEDO),
             self.atlas.scatter(roughness[:, None].astype(np.float32), fill=DEFAULT_ROUGHNESS),
             closed.observed_cameras,
-            [(offset, closed_l1, "closed form")] + [(t, data, label) for t, data, _, label in curve],
-            per_view,
-            "image space, relative",
-            evidence,
-            snapshots,
-        )
+            [(offset, closed_l1, first)] + [(t, data, label) for t, data, _, label in curve],
+            per_view, measure, evidence, snapshots,
+        )  # fmt: skip
+
+    def _adam_start(self, graph: SurfaceGraph, closed: FitResult) -> tuple[np.ndarray, np.ndarray]:
+        """The closed form's albedo (unobserved texels filled from their neighbours) and its median roughness."""
+        observed = closed.observed_cameras > 0
+        albedo_cf, roughness_cf = self.atlas.gather(closed.albedo), self.atlas.gather(closed.roughness)[:, 0]
+        albedo = np.clip(graph.fill(albedo_cf, observed.astype(np.float64), ALBEDO_FILL_STRENGTH, DEFAULT_ALBEDO), 0.0, 1.0)
+        r0 = float(np.median(roughness_cf[observed])) if observed.any() else DEFAULT_ROUGHNESS
+        return albedo, np.full(self.atlas.num_texels, r0)
+
+    def start_from(self, start: LevelStart) -> FitResult:
+        """A finer level's starting point: the coarser level's roughness resampled onto this atlas, the albedo solved
+        per texel at that roughness (one LED loop per view, the closed form's last step without its roughness grid:
+        the finer texels' own detail), the coarse albedo where no camera sees a texel."""
+        clock = time.perf_counter()
+        views = self.gather_views()
+        seen = self.cameras_seen(views)
+        albedo_map, roughness_map = start.resampled(self.atlas)
+        roughness = self.atlas.gather(roughness_map)[:, 0]
+        albedo, _ = self._albedo_irls(views, roughness, [], clock, lambda **_: None)
+        albedo = np.where(seen[:, None] > 0, albedo, self.atlas.gather(albedo_map))
+        label, seconds = f"{start.resolution}² maps upsampled", start.seconds + time.perf_counter() - clock
+        albedo_map = self.atlas.scatter(albedo.astype(np.float32), fill=DEFAULT_ALBEDO)
+        return FitResult(albedo_map, roughness_map, seen, [(seconds, float("nan"), label)])
 
     def fit_closed_form(self, out: Path | None = None) -> FitResult:
         """Roughness grid with closed-form albedo per texel, then L1 by reweighting (checkpointed)."""
-        cfg, m, start = self.config, self.atlas.num_texels, time.perf_counter()
+        cfg, start = self.config, time.perf_counter()
         checkpoint = None if out is None else out / "checkpoint.npz"
         state = read_checkpoint_npz(checkpoint) if checkpoint is not None and checkpoint.is_file() else {}
         curve: list[tuple[float, float, str]] = [tuple(x) for x in json.loads(str(state["curve"]))] if "curve" in state else []
@@ -329,13 +419,7 @@ class MaterialFitter:
                     np.savez(fh, **{**state, "curve": json.dumps(curve)})
 
         views = self.gather_views()
-        cameras_seen = np.zeros(m, np.int64)
-        for cam in self.train_cameras:
-            seen = np.zeros(m, bool)
-            for v in views:
-                if v.camera == cam:
-                    seen[v.texels] = True
-            cameras_seen += seen
+        cameras_seen = self.cameras_seen(views)
         grid = np.linspace(0.0, 1.0, cfg.roughness_candidates)
         if "grid_error" not in state:
             save(grid_error=self._grid_error(views, grid))
@@ -352,17 +436,18 @@ class MaterialFitter:
         m = self.atlas.num_texels
         s_dd, s_do, s_oo = np.zeros((m, 3)), np.zeros((m, 3)), np.zeros((m, 3))
         s_ds, s_ss, s_os = (np.zeros((len(grid), m, 3)) for _ in range(3))
-        for g, r in enumerate(progress(list(grid), description="roughness grid")):
-            for v in views:
-                d, s = self.parts(v, np.full(m, r, np.float32))
-                o = v.observed.astype(np.float64)
+        for v in progress(views, description="roughness grid"):  # view by view: a streamed fit reads each once
+            texels, o = self.observation(v)
+            o = o.astype(np.float64)
+            for g, r in enumerate(grid):
+                d, s = self.parts(v, np.full(m, r, np.float32), texels)
                 if g == 0:
-                    np.add.at(s_dd, v.texels, d * d)
-                    np.add.at(s_do, v.texels, d * o)
-                    np.add.at(s_oo, v.texels, o * o)
-                np.add.at(s_ds[g], v.texels, d * s)
-                np.add.at(s_ss[g], v.texels, s * s)
-                np.add.at(s_os[g], v.texels, o * s)
+                    np.add.at(s_dd, texels, d * d)
+                    np.add.at(s_do, texels, d * o)
+                    np.add.at(s_oo, texels, o * o)
+                np.add.at(s_ds[g], texels, d * s)
+                np.add.at(s_ss[g], texels, s * s)
+                np.add.at(s_os[g], texels, o * s)
         with np.errstate(invalid="ignore", divide="ignore"):
             albedo_g = np.clip((s_do[None] - s_ds) / s_dd[None], 0.0, 1.0)
         albedo_g = np.where(s_dd[None] > 0, albedo_g, DEFAULT_ALBEDO)
@@ -370,34 +455,43 @@ class MaterialFitter:
         return error.sum(axis=2)
 
     def _albedo_irls(self, views, roughness: np.ndarray, curve: list, start: float, save) -> tuple[np.ndarray, dict[str, float]]:
-        """Albedo at the chosen roughness: least squares, then L1 by reweighting; and each view's mean L1."""
+        """Albedo at the chosen roughness: least squares, then L1 by reweighting (each observation weighted by 1 / its
+        residual at the previous albedo); and each view's mean L1."""
 
         m = self.atlas.num_texels
-        cache = [self.parts(v, roughness) for v in progress(views, description="albedo")]
-        weights = [np.ones_like(v.observed, dtype=np.float64) for v in views]
-        albedo = np.full((m, 3), DEFAULT_ALBEDO)
+        for v in progress(views, description="albedo"):
+            texels, _ = self.observation(v)
+            d, s = self.parts(v, roughness, texels)
+            self.store.put(f"parts:{v.name}", d=d, s=s)
+        albedo = None
         for it in range(self.config.irls_iterations + 1):
             num, den = np.zeros((m, 3)), np.zeros((m, 3))
-            for v, (d, s), w in zip(views, cache, weights, strict=True):
-                np.add.at(num, v.texels, w * d * (v.observed - s))
-                np.add.at(den, v.texels, w * d * d)
+            for v in views:
+                texels, o, d, s = self._observation_parts(v)
+                w = 1.0 if albedo is None else 1.0 / np.maximum(np.abs(o - (albedo[texels] * d + s)), L1_DELTA)
+                np.add.at(num, texels, w * d * (o - s))
+                np.add.at(den, texels, w * d * d)
             with np.errstate(invalid="ignore", divide="ignore"):
                 albedo = np.where(den > 0, np.clip(num / den, 0.0, 1.0), DEFAULT_ALBEDO)
-            total, count = 0.0, 0
-            for k, (v, (d, s)) in enumerate(zip(views, cache, strict=True)):
-                residual = np.abs(v.observed - (albedo[v.texels] * d + s))
-                total += residual.sum()
-                count += residual.size
-                weights[k] = 1.0 / np.maximum(residual, L1_DELTA)
+            per_view = self._irls_residuals(views, albedo)
+            total, count = sum(t for t, _ in per_view.values()), sum(c for _, c in per_view.values())
             curve.append((time.perf_counter() - start, total / max(count, 1), "least squares" if it == 0 else f"L1 reweighting {it}"))
             save(albedo=albedo, roughness=roughness)
-        per_view = {
-            f"{v.camera}/frame_{v.frame:04d}": float(np.mean(np.abs(v.observed - (albedo[v.texels] * d + s))))
-            if v.texels.size
-            else float("nan")
-            for v, (d, s) in zip(views, cache, strict=True)
-        }
-        return albedo, per_view
+        return albedo, {name: t / c if c else float("nan") for name, (t, c) in per_view.items()}
+
+    def _observation_parts(self, view: View) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        texels, observed = self.observation(view)
+        parts = self.store.get(f"parts:{view.name}")
+        return texels, observed.astype(np.float64), parts["d"], parts["s"]
+
+    def _irls_residuals(self, views, albedo: np.ndarray) -> dict[str, tuple[float, int]]:
+        """Per view: (Σ |residual|, number of values) at ``albedo``."""
+        out = {}
+        for v in views:
+            texels, o, d, s = self._observation_parts(v)
+            residual = np.abs(o - (albedo[texels] * d + s))
+            out[v.name] = (float(residual.sum()), residual.size)
+        return out
 
 
 def _refine_on_grid(error: np.ndarray, grid: np.ndarray) -> np.ndarray:
@@ -421,7 +515,9 @@ def run_fit(capture_dir: str | Path, out: str | Path, config: FitConfig, overwri
     capture.check_images()
     ensure_mitsuba()
     out = claim_output(out, "fit", {"capture": capture_dir}, config, overwrite=overwrite)
-    fitter = MaterialFitter(capture, config, cache_dir=out / "cache")
-    result = fitter.fit(out)
-
+    if config.levels:
+        fitter, result = fit_levels(capture, config, out)
+    else:
+        fitter = MaterialFitter(capture, config, cache_dir=out / "cache")
+        result = fitter.fit(out)
     return result, write_fit_outputs(fitter, result, out)

@@ -16,7 +16,9 @@
   prior's harmonic interpolation of their neighbours (:meth:`~gra_mi.fit.prior.SurfaceGraph.filler`), refreshed
   every checkpoint;
 - Dr.Jit's Adam (``drjit.opt.Adam``, its moments checkpointed so that a resumed run ends where an uninterrupted one
-  does), with the learning rate decaying to a tenth, full batch.
+  does), with the learning rate decaying to a tenth; full batch (every view each step, all held in memory), or
+  minibatches of views read from scratch files with their gradients accumulated (:mod:`gra_mi.fit.views`), whose
+  memory does not grow with the capture.
 """
 
 from __future__ import annotations
@@ -34,11 +36,13 @@ from gra_mi.capture.dataset import load_fit_observation
 from gra_mi.core.errors import GraMiInputError
 from gra_mi.core.io import atomic_path, read_checkpoint_npz
 from gra_mi.core.progress import progress
+from gra_mi.fit.views import batch_at, curve_sample
 from gra_mi.render.shading import TexelLedLoop
 
 FILL_STRENGTH = 0.1  # harmonic fill: highlight texels (confidence 1) move little, the others interpolate them
 HIGHLIGHT_CHANGE = 0.05  # an observation is a highlight if roughness ± 0.1 changes it by at least 5 %
 FOOTPRINT_SAMPLES = 4  # 4 × 4 sub-pixel rays per pixel: the capture's box pixel filter
+CURVE_VIEWS = 32  # a streamed fit measures its convergence curve on this many evenly spaced views
 
 
 @dataclass
@@ -57,13 +61,11 @@ class ViewBatch:
     entry_lane: mi.UInt32
     entry_pixel: mi.UInt32
     entry_weight: mi.Float
-    diffuse: mi.Color3f  # (count,) per unit albedo
     loop: TexelLedLoop
 
-    def specular(self, roughness: mi.Float) -> tuple[mi.Color3f, mi.Color3f]:
-        """(S, ∂S/∂r) at this view's texels for their roughness."""
-        _, spec, dspec = self.loop.run(roughness, roughness_derivative=True)
-        return spec, dspec
+    def shade(self, roughness: mi.Float) -> tuple[mi.Color3f, mi.Color3f, mi.Color3f]:
+        """(D per unit albedo, S, ∂S/∂r) at this view's texels for their roughness: one LED loop."""
+        return self.loop.run(roughness, roughness_derivative=True)
 
     def to_pixels(self, radiance: mi.Color3f) -> mi.Color3f:
         """Texel radiance (count,) → the pixels' footprint averages (pixels,)."""
@@ -117,62 +119,131 @@ def pixel_footprints(ls, camera, atlas, alpha: np.ndarray, samples: int = FOOTPR
     return flat_pixels, (key // atlas.num_texels, key % atlas.num_texels, summed)
 
 
-def build_batches(fitter, min_view_cos: float = 0.0, progress_bar: bool = True) -> list[ViewBatch]:
-    """A :class:`ViewBatch` per training camera and frame of a :class:`~gra_mi.fit.materials.MaterialFitter`; pixels
-    that see a texel more obliquely than ``min_view_cos`` are left out."""
+def view_footprints(fitter, frame_index: int, pose: int, cam_name: str, min_view_cos: float) -> dict[str, np.ndarray] | None:
+    """The arrays of a :class:`ViewBatch` for one camera and frame (None: no pixel to fit); pixels that see a texel
+    more obliquely than ``min_view_cos`` are left out."""
+    cam = fitter.stage.camera(cam_name)
+    image = load_fit_observation(fitter.capture, cam_name, frame_index)
+    fitter.ls.set_frame(pose)
+    flat_pixels, (pix, tex, wgt) = pixel_footprints(fitter.ls, cam, fitter.atlas, image[..., 3])
+    geom = fitter.relighter.geometry(pose)
+    to_cam = cam.position[None, :] - np.array(geom.position).T[tex]
+    cos_view = np.sum(np.array(geom.normal).T[tex] * to_cam, axis=1) / np.linalg.norm(to_cam, axis=1)
+    grazing = np.zeros(flat_pixels.size, bool)
+    grazing[pix[cos_view < min_view_cos]] = True
+    keep = ~grazing
+    rows = np.cumsum(keep) - 1
+    use = keep[pix]
+    flat_pixels, pix, tex, wgt = flat_pixels[keep], rows[pix[use]], tex[use], wgt[use]
+    if flat_pixels.size == 0:
+        return None
+    lanes, entry_lane = np.unique(tex, return_inverse=True)
+    observed = image[..., :3].reshape(-1, 3)[flat_pixels].astype(np.float32)
+    return {
+        "lanes": lanes.astype(np.uint32), "entry_lane": entry_lane.astype(np.uint32), "entry_pixel": pix.astype(np.uint32),
+        "entry_weight": wgt.astype(np.float32), "observed": observed,
+        "weight": np.array(1.0 / max(float(observed.astype(np.float64).mean()), 1e-6)),
+    }  # fmt: skip
 
-    batches = []
-    jobs = [(f.frame, f.mesh_frame, cam) for f in fitter.train for cam in fitter.train_cameras]
-    for frame_index, pose, cam_name in progress(jobs, description="pixel footprints") if progress_bar else jobs:
-        cam = fitter.stage.camera(cam_name)
-        image = load_fit_observation(fitter.capture, cam_name, frame_index)
-        fitter.ls.set_frame(pose)
-        flat_pixels, (pix, tex, wgt) = pixel_footprints(fitter.ls, cam, fitter.atlas, image[..., 3])
-        geom = fitter.relighter.geometry(pose)
-        to_cam = cam.position[None, :] - np.array(geom.position).T[tex]
-        cos_view = np.sum(np.array(geom.normal).T[tex] * to_cam, axis=1) / np.linalg.norm(to_cam, axis=1)
-        grazing = np.zeros(flat_pixels.size, bool)
-        grazing[pix[cos_view < min_view_cos]] = True
-        keep = ~grazing
-        rows = np.cumsum(keep) - 1
-        use = keep[pix]
-        flat_pixels, pix, tex, wgt = flat_pixels[keep], rows[pix[use]], tex[use], wgt[use]
-        if flat_pixels.size == 0:
-            continue
-        lanes, entry_lane = np.unique(tex, return_inverse=True)
+
+@dataclass(frozen=True)
+class ViewKey:
+    name: str  # camera/frame_NNNN
+    frame: int  # the capture's frame: its image and lighting
+    pose: int  # the subject's mesh frame
+    camera: str
+
+
+class TrainingViews:
+    """The Adam stage's training views, in the capture's frame-major order. Held: each :class:`ViewBatch` built once
+    and kept (full batch; fastest on a small capture). Streamed (``store`` on disk): each view's footprint arrays
+    written once, and its batch rebuilt from them (and the frame's cached visibility) whenever it is used, so memory
+    holds the views of one step, not all."""
+
+    def __init__(self, fitter, min_view_cos: float = 0.0, store=None, progress_bar: bool = True):
+        self.fitter, self.store = fitter, store
+        self.keys: list[ViewKey] = []
+        self.pixels: list[int] = []
+        self._held: list[ViewBatch] = []
+        jobs = [(f.frame, f.mesh_frame, cam) for f in fitter.train for cam in fitter.train_cameras]
+        for frame, pose, cam in progress(jobs, description="pixel footprints") if progress_bar else jobs:
+            arrays = view_footprints(fitter, frame, pose, cam, min_view_cos)
+            if arrays is None:
+                continue
+            key = ViewKey(f"{cam}/frame_{frame:04d}", frame, pose, cam)
+            self.keys.append(key)
+            self.pixels.append(int(arrays["observed"].shape[0]))
+            if self.streamed:
+                store.put(f"footprints:{key.name}", **arrays)
+            else:
+                self._held.append(self._build(key, arrays))
+
+    @property
+    def streamed(self) -> bool:
+        return self.store is not None and self.store.on_disk
+
+    @property
+    def n_obs(self) -> int:
+        return sum(self.pixels)
+
+    @property
+    def names(self) -> list[str]:
+        return [k.name for k in self.keys]
+
+    def __len__(self) -> int:
+        return len(self.keys)
+
+    def __getitem__(self, k: int) -> ViewBatch:
+        if not self.streamed:
+            return self._held[k]
+        key = self.keys[k]
+        return self._build(key, self.store.get(f"footprints:{key.name}"))
+
+    def __iter__(self):
+        return (self[k] for k in range(len(self)))
+
+    def _build(self, key: ViewKey, a: dict[str, np.ndarray]) -> ViewBatch:
+        f = self.fitter
         loop = TexelLedLoop.build(
-            geom, fitter.relighter.visibility(pose, False), lanes, fitter.relighter.leds(False),
-            fitter._lighting[frame_index], cam.position,
+            f.relighter.geometry(key.pose), f.relighter.visibility(key.pose, False), a["lanes"], f.relighter.leds(False),
+            f._lighting[key.frame], f.stage.camera(key.camera).position,
         )  # fmt: skip
-        diffuse, _ = loop.run(dr.full(mi.Float, 0.5, loop.count))  # the diffuse part does not depend on roughness
-        dr.eval(diffuse)
-        observed = image[..., :3].reshape(-1, 3)[flat_pixels].astype(np.float64)
-        batches.append(
-            ViewBatch(
-                f"{cam_name}/frame_{frame_index:04d}", loop.count, mi.UInt32(lanes.astype(np.uint32)), int(flat_pixels.size),
-                mi.Color3f(*observed.T.astype(np.float32)), 1.0 / max(float(observed.mean()), 1e-6),
-                mi.UInt32(entry_lane.astype(np.uint32)), mi.UInt32(pix.astype(np.uint32)), mi.Float(wgt.astype(np.float32)), diffuse, loop,
-            )
+        return ViewBatch(
+            key.name, loop.count, mi.UInt32(a["lanes"]), int(a["observed"].shape[0]), mi.Color3f(*a["observed"].T),
+            float(a["weight"]), mi.UInt32(a["entry_lane"]), mi.UInt32(a["entry_pixel"]), mi.Float(a["entry_weight"]), loop,
         )  # fmt: skip
-    return batches
+
+
+def build_batches(fitter, min_view_cos: float = 0.0, progress_bar: bool = True, store=None) -> TrainingViews:
+    """The :class:`TrainingViews` of a :class:`~gra_mi.fit.materials.MaterialFitter` (held, or streamed through
+    ``store``)."""
+    return TrainingViews(fitter, min_view_cos, store, progress_bar)
 
 
 def _predict(b: ViewBatch, albedo: mi.Color3f, roughness: mi.Float) -> mi.Color3f:
-    spec, _ = b.specular(dr.gather(mi.Float, roughness, b.texels))
-    return b.to_pixels(dr.gather(mi.Color3f, albedo, b.texels) * b.diffuse + spec)
+    diffuse, spec, _ = b.shade(dr.gather(mi.Float, roughness, b.texels))
+    return b.to_pixels(dr.gather(mi.Color3f, albedo, b.texels) * diffuse + spec)
 
 
-def image_l1(batches: list[ViewBatch], albedo: np.ndarray, roughness: np.ndarray) -> float:
-    """The optimiser's data term (weighted mean L1 over all pixels) for (M, 3) albedo and (M,) roughness."""
+def image_l1(batches: TrainingViews, albedo: np.ndarray, roughness: np.ndarray, views: np.ndarray | None = None) -> float:
+    """The optimiser's data term (weighted mean L1 over the pixels of ``views``, default all) for (M, 3) albedo and
+    (M,) roughness."""
     a, r = mi.Color3f(*np.asarray(albedo, np.float32).T), mi.Float(np.asarray(roughness, np.float32))
+    views = np.arange(len(batches)) if views is None else views
     total = 0.0
-    for b in batches:
+    for k in views:
+        b = batches[int(k)]
         residual = np.abs(np.array(_predict(b, a, r) - b.observed))
         total += float(residual.sum()) * b.weight
-    return total / (3.0 * max(sum(b.pixels for b in batches), 1))
+    return total / (3.0 * max(sum(batches.pixels[int(k)] for k in views), 1))
 
 
-def view_l1(batches: list[ViewBatch], albedo: np.ndarray, roughness: np.ndarray) -> list[float]:
+def curve_views(batches: TrainingViews) -> np.ndarray:
+    """The views the convergence curve is measured on: all, or (streamed) an evenly spaced sample."""
+    return curve_sample(len(batches), CURVE_VIEWS) if batches.streamed else np.arange(len(batches))
+
+
+def view_l1(batches: TrainingViews, albedo: np.ndarray, roughness: np.ndarray) -> list[float]:
     """Mean absolute L1 over each view's pixels (radiance units)."""
     a, r = mi.Color3f(*np.asarray(albedo, np.float32).T), mi.Float(np.asarray(roughness, np.float32))
     return [float(np.abs(np.array(_predict(b, a, r) - b.observed)).mean()) for b in batches]
@@ -187,15 +258,15 @@ class Evidence:
     information: np.ndarray  # (M,) Σ (w ∂S/∂r)²: Fisher information of roughness under relative noise
 
 
-def gather_evidence(batches: list[ViewBatch], albedo: np.ndarray, roughness: np.ndarray) -> Evidence:
+def gather_evidence(batches: TrainingViews, albedo: np.ndarray, roughness: np.ndarray) -> Evidence:
     """Per texel: in how many views it appears, in how many of them its radiance depends on roughness enough to
     count as a highlight (at the given maps), and the Fisher information of its roughness."""
     m = roughness.shape[0]
     views, highlights, information = np.zeros(m), np.zeros(m), np.zeros(m)
     a_all, r_all = mi.Color3f(*albedo.T.astype(np.float32)), mi.Float(roughness.astype(np.float32))
     for b in batches:
-        spec, dspec = b.specular(dr.gather(mi.Float, r_all, b.texels))
-        pred = dr.gather(mi.Color3f, a_all, b.texels) * b.diffuse + spec
+        diffuse, spec, dspec = b.shade(dr.gather(mi.Float, r_all, b.texels))
+        pred = dr.gather(mi.Color3f, a_all, b.texels) * diffuse + spec
         pred, dspec = np.array(pred).T.reshape(b.count, 3), np.array(dspec).T.reshape(b.count, 3)
         texels = np.array(b.texels).astype(np.int64)
         change = 0.1 * np.abs(dspec).mean(axis=1) / np.maximum(pred.mean(axis=1), 1e-8)
@@ -213,13 +284,15 @@ class OptimizeSettings:
     smooth_albedo: float
     smooth_roughness: float
     checkpoint_every: int = 10
+    batch_views: int = 0  # views per step (0: all)
+    seed: int = 0  # of the minibatch order
 
 
 OPTIMIZER = "drjit.opt.Adam"  # part of a checkpoint's settings: one of another optimiser is refused, not resumed
 
 
 def optimize_maps(
-    batches: list[ViewBatch],
+    batches: TrainingViews,
     graph,
     albedo: np.ndarray,
     roughness: np.ndarray,
@@ -229,6 +302,7 @@ def optimize_maps(
     checkpoint: Path | None = None,
     progress_bar: bool = True,
     clock_offset: float = 0.0,
+    held_roughness: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, list[tuple[float, float, float, str]], list[tuple[float, np.ndarray, np.ndarray]]]:
     """Adam on the (M, 3) albedo of ``observed`` texels and the (M,) roughness of those ``has_highlight``; the others
     take the prior's interpolation of their neighbours (refreshed at every checkpoint). Returns the maps, the curve
@@ -236,10 +310,13 @@ def optimize_maps(
     time-to-error curves.
 
     ``checkpoint`` (an .npz) is written every ``checkpoint_every`` iterations and at the end, with Adam's moments; a
-    run finding one resumes from it.
+    run finding one resumes from it. With ``settings.batch_views``, each step uses that many views
+    (:func:`~gra_mi.fit.views.batch_at`), and the curve is measured on a fixed sample of views (``curve_views``).
+    ``held_roughness``: texels whose roughness a coarser level measured and this one cannot (no highlight at this
+    resolution): kept as given, and anchors of the fill.
     """
 
-    run = MapOptimizer(batches, graph, observed, has_highlight, settings)
+    run = MapOptimizer(batches, graph, observed, has_highlight, settings, held_roughness)
     run.set_maps(albedo, roughness)
     first = run.resume(checkpoint, roughness.shape[0]) if checkpoint is not None and checkpoint.is_file() else 0
     run.start = time.perf_counter() - (run.curve[-1][0] if run.curve else clock_offset)
@@ -259,19 +336,22 @@ def optimize_maps(
 
 class MapOptimizer:
     """The loss of :func:`optimize_maps` and Dr.Jit's Adam on the two maps (``mask_updates``: a texel without a
-    gradient keeps its moments), with the texels the data does not constrain held at the prior's fill."""
+    gradient keeps its moments), with the texels the data does not constrain held at the prior's fill. Each view's
+    part of the loss is differentiated as soon as it is computed (gradients accumulate on the maps), so that one
+    view's graph is alive at a time: the paper's gradient accumulation, with a step's views as its batch."""
 
-    def __init__(self, batches: list[ViewBatch], graph, observed: np.ndarray, has_highlight: np.ndarray, settings: OptimizeSettings):
+    def __init__(self, batches: TrainingViews, graph, observed, has_highlight, settings: OptimizeSettings, held_roughness=None):
         self.batches, self.settings, self.observed, self.has_highlight = batches, settings, observed, has_highlight
-        self.n_obs = sum(b.pixels for b in batches)
+        self.anchors = has_highlight if held_roughness is None else has_highlight | held_roughness
+        self.n_obs = batches.n_obs
+        self.curve_views = curve_views(batches)
         self.ei, self.ej = mi.UInt32(graph.i.astype(np.uint32)), mi.UInt32(graph.j.astype(np.uint32))
         self.n_edges = max(graph.num_edges, 1)
-        gate_all = mi.Float(has_highlight.astype(np.float32))
-        self.gates = [dr.gather(mi.Float, gate_all, b.texels) for b in batches]
+        self.gate_all = mi.Float(has_highlight.astype(np.float32))
         # Texels the data does not constrain (no highlight: roughness; never seen: albedo) are not moved by Adam, whose
         # normalised steps would make them wander on the prior's tiny gradient; they take the harmonic interpolation
         # of their neighbours, refreshed as the others move.
-        self.fill_roughness = graph.filler(has_highlight.astype(np.float64), FILL_STRENGTH)
+        self.fill_roughness = graph.filler(self.anchors.astype(np.float64), FILL_STRENGTH)
         self.fill_albedo = graph.filler(observed.astype(np.float64), FILL_STRENGTH)
         self.free = {"albedo": mi.Bool(observed), "roughness": mi.Bool(has_highlight)}
         self.adam = dr.opt.Adam(lr=1.0, mask_updates=True)
@@ -287,34 +367,53 @@ class MapOptimizer:
     def maps(self) -> tuple[np.ndarray, np.ndarray]:
         return np.array(self.adam["albedo"]).T.reshape(-1, 3), np.array(self.adam["roughness"])
 
-    def loss(self, with_grad: bool) -> tuple[float, float]:
-        """(data L1, total loss) at the current maps; with the gradient on the maps for Adam's next step."""
+    def data_term(self, views: np.ndarray, with_grad: bool) -> float:
+        """The weighted L1 of ``views``, scaled by (all views / these) so that a minibatch estimates the whole
+        capture's term and keeps its balance with the prior; with its gradient accumulated on the maps."""
         a, r = self.adam["albedo"], self.adam["roughness"]
         if not with_grad:
             a, r = dr.detach(a), dr.detach(r)
-        data = mi.Float(0.0)
-        for b, gate in zip(self.batches, self.gates, strict=True):
+        share = len(self.batches) / max(len(views), 1) if with_grad else 1.0
+        pixels = self.n_obs if with_grad else sum(self.batches.pixels[k] for k in views)
+        total = 0.0
+        for k in views:
+            b = self.batches[int(k)]
             r_t = dr.gather(mi.Float, r, b.texels)
-            spec, dspec = b.specular(dr.detach(r_t))
+            diffuse, spec, dspec = b.shade(dr.detach(r_t))
             # S(r) to first order around the current roughness: the value S, the derivative ∂S/∂r (the LED loop's
             # analytic one) for texels with highlight evidence, 0 for the others.
-            radiance = dr.gather(mi.Color3f, a, b.texels) * b.diffuse + spec + dspec * (gate * (r_t - dr.detach(r_t)))
+            gate = dr.gather(mi.Float, self.gate_all, b.texels)
+            radiance = dr.gather(mi.Color3f, a, b.texels) * diffuse + spec + dspec * (gate * (r_t - dr.detach(r_t)))
             residual = dr.abs(b.to_pixels(radiance) - b.observed)
-            data += dr.sum(residual.x + residual.y + residual.z) * (b.weight / (3.0 * self.n_obs))
+            term = dr.sum(residual.x + residual.y + residual.z) * (b.weight * share / (3.0 * pixels))
+            if with_grad:
+                dr.backward(term)
+            total += float(dr.detach(term)[0])
+        return total
+
+    def prior_term(self, with_grad: bool) -> float:
+        a, r = self.adam["albedo"], self.adam["roughness"]
         s, ei, ej = self.settings, self.ei, self.ej
         prior = s.smooth_roughness * dr.sum(dr.square(dr.gather(mi.Float, r, ei) - dr.gather(mi.Float, r, ej)))
         prior += s.smooth_albedo * dr.sum(dr.squared_norm(dr.gather(mi.Color3f, a, ei) - dr.gather(mi.Color3f, a, ej)))
-        loss = data + prior / self.n_edges
+        prior = prior / self.n_edges
         if with_grad:
-            dr.backward(loss)
-        return float(data[0]), float(loss[0])
+            dr.backward(prior)
+        return float(dr.detach(prior)[0])
+
+    def loss(self, with_grad: bool, views: np.ndarray | None = None) -> tuple[float, float]:
+        """(data L1, total loss) on ``views`` (default: the curve's views); with the gradient on the maps for Adam's
+        next step."""
+        data = self.data_term(self.curve_views if views is None else views, with_grad)
+        return data, data + self.prior_term(with_grad)
 
     def step(self, iteration: int) -> None:
-        """One Adam step, the learning rate decaying to a tenth over the run; values clipped to [0, 1], and the
-        texels Adam does not move kept."""
-        self.loss(with_grad=True)
-        decay = 0.1 ** (iteration / max(self.settings.iterations - 1, 1))
-        self.adam.set_learning_rate({"albedo": self.settings.lr_albedo * decay, "roughness": self.settings.lr_roughness * decay})
+        """One Adam step on the iteration's views, the learning rate decaying to a tenth over the run; values clipped
+        to [0, 1], and the texels Adam does not move kept."""
+        s = self.settings
+        self.loss(with_grad=True, views=batch_at(iteration, len(self.batches), s.batch_views, s.seed))
+        decay = 0.1 ** (iteration / max(s.iterations - 1, 1))
+        self.adam.set_learning_rate({"albedo": s.lr_albedo * decay, "roughness": s.lr_roughness * decay})
         before = {k: dr.detach(self.adam[k]) for k in self.free}
         self.adam.step()
         for key, free in self.free.items():
@@ -323,10 +422,10 @@ class MapOptimizer:
 
     def refill(self) -> None:
         albedo, roughness = self.maps()
-        observed, has_highlight = self.observed, self.has_highlight
-        if has_highlight.any() and not has_highlight.all():
-            filled = np.clip(self.fill_roughness(roughness, float(np.median(roughness[has_highlight])))[:, 0], 0.0, 1.0)
-            roughness = np.where(has_highlight, roughness, filled)
+        observed, anchors = self.observed, self.anchors
+        if anchors.any() and not anchors.all():
+            filled = np.clip(self.fill_roughness(roughness, float(np.median(roughness[anchors])))[:, 0], 0.0, 1.0)
+            roughness = np.where(anchors, roughness, filled)
         if observed.any() and not observed.all():
             filled = np.clip(self.fill_albedo(albedo, float(np.median(albedo[observed]))), 0.0, 1.0)
             albedo = np.where(observed[:, None], albedo, filled)

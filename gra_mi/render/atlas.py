@@ -124,7 +124,7 @@ class TexelGeometry:
     position: mi.Point3f
     normal: mi.Vector3f  # interpolated shading normal
     geo_normal: mi.Vector3f  # the triangle's normal
-    digest: str  # hash of the frame's vertices (keys the visibility cache)
+    digest: str  # hash of the frame's vertices and of the atlas's texels (keys the visibility cache)
 
     @classmethod
     def from_frame(cls, atlas: UVAtlas, vertices: np.ndarray, normals: np.ndarray) -> TexelGeometry:
@@ -144,5 +144,8 @@ class TexelGeometry:
         # Sliver triangles have no reliable geometric normal: fall back to the shading normal.
         ng = dr.select(length > 1e-20, ng / dr.maximum(length, 1e-20), n)
         dr.eval(p, n, ng)
-        digest = hashlib.sha1(vertices.tobytes()).hexdigest()[:16]
-        return cls(mi.Point3f(p), mi.Vector3f(n), mi.Vector3f(ng), digest)
+        # The atlas is part of the key: the same frame at another UV resolution has other texels (and other bits).
+        key = hashlib.sha1(vertices.tobytes())
+        key.update(np.ascontiguousarray(atlas.texel_index, np.int64).tobytes())
+        key.update(np.ascontiguousarray(atlas.faces, np.int64).tobytes())
+        return cls(mi.Point3f(p), mi.Vector3f(n), mi.Vector3f(ng), key.hexdigest()[:16])

@@ -86,10 +86,13 @@ def texels_seen_by(geom: TexelGeometry, cameras, margin: float = 8.0) -> np.ndar
 
 class VisibilityCache:
     """Visibility bits per (frame geometry, :class:`LedLayout`): in memory, and on disk under ``folder`` if given.
-    An entry traced for a subset of texels (the cameras of a job) serves any later request for a subset of it."""
+    An entry traced for a subset of texels (the cameras of a job) serves any later request for a subset of it.
+    ``keep``: hold at most this many entries in memory, the least recently used dropped (read again from disk when
+    asked for): a fit streaming thousands of frames holds a few, not all."""
 
-    def __init__(self, folder: str | Path | None = None):
+    def __init__(self, folder: str | Path | None = None, keep: int | None = None):
         self.folder = None if folder is None else Path(folder)
+        self.keep = keep
         self._memory: dict[str, tuple[mi.UInt32, np.ndarray | None]] = {}  # key → (bits, the texels traced; None: all)
         self.hits = 0
         self.misses = 0
@@ -100,6 +103,7 @@ class VisibilityCache:
         for key, (bits, covered) in self._memory.items():
             if key.startswith(base) and (covered is None or (texels is not None and np.isin(texels, covered).all())):
                 self.hits += 1
+                self._memory[key] = self._memory.pop(key)  # most recently used last
                 return bits
         key = base if texels is None else f"{base}_{hashlib.sha1(np.asarray(texels, np.int64).tobytes()).hexdigest()[:12]}"
         path = None if self.folder is None else self.folder / f"vis_{key}.npy"
@@ -120,4 +124,6 @@ class VisibilityCache:
                     with open(tmp, "wb") as fh:
                         np.save(fh, np.array(bits, dtype=np.uint32))
         self._memory[key] = (bits, None if texels is None else np.asarray(texels))
+        while self.keep is not None and len(self._memory) > max(self.keep, 1):
+            del self._memory[next(iter(self._memory))]
         return bits
