@@ -341,3 +341,18 @@ def test_visibility_traced_only_where_the_jobs_cameras_see_gives_the_same_images
     culled.only_for(["cam02"])
     culled.visibility(3, False)
     assert culled.cache.misses == misses + 1
+
+
+def test_cache_on_disk_serves_culled_jobs_and_holds_a_bounded_number(tiny, tmp_path):
+    """A full trace another process left on disk (a fit's cache) serves a later culled job without tracing; ``keep``
+    bounds how many frames stay in memory, the rest read back from disk unchanged."""
+    from gra_mi.render.relighter import Relighter
+
+    fit = Relighter(tiny, resolution=32, cache_dir=tmp_path / "vis")
+    full_bits = {frame: np.array(fit.visibility(frame, False)) for frame in (0, 1, 2)}
+    relight = Relighter(tiny, resolution=32, cache_dir=tmp_path / "vis")
+    relight.only_for(["cam01"])
+    relight.cache.keep = 2
+    for frame in (0, 1, 2, 0):
+        np.testing.assert_array_equal(np.array(relight.visibility(frame, False)), full_bits[frame])
+    assert relight.cache.misses == 0 and len(relight.cache._memory) == 2

@@ -107,12 +107,11 @@ class VisibilityCache:
                 return bits
         key = base if texels is None else f"{base}_{hashlib.sha1(np.asarray(texels, np.int64).tobytes()).hexdigest()[:12]}"
         path = None if self.folder is None else self.folder / f"vis_{key}.npy"
-        cached = None
-        if path is not None and path.is_file():
-            try:
-                cached = np.load(path, allow_pickle=False)
-            except (ValueError, OSError, EOFError):  # a cache file cut short: trace again and rewrite it
-                cached = None
+        cached = self._read(base) if texels is not None else None  # a full trace on disk serves any subset
+        if cached is not None:
+            key, texels = base, None
+        else:
+            cached = self._read(key)
         if cached is not None:
             bits = mi.UInt32(cached)
             self.hits += 1
@@ -127,3 +126,12 @@ class VisibilityCache:
         while self.keep is not None and len(self._memory) > max(self.keep, 1):
             del self._memory[next(iter(self._memory))]
         return bits
+
+    def _read(self, key: str) -> np.ndarray | None:
+        path = None if self.folder is None else self.folder / f"vis_{key}.npy"
+        if path is None or not path.is_file():
+            return None
+        try:
+            return np.load(path, allow_pickle=False)
+        except (ValueError, OSError, EOFError):  # a cache file cut short: trace again and rewrite it
+            return None
