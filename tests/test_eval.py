@@ -538,3 +538,25 @@ def test_eval_says_what_it_skipped_and_why(tiny_run, tmp_path, capsys):
     assert "--frames" in capsys.readouterr().err
     assert main(["eval", "--fit", str(run / "fit")]) == 2
     assert "--capture" in capsys.readouterr().err
+
+
+def test_refiner_data_shards_write_what_one_process_writes(tiny_run, tmp_path):
+    """``--shard``: each shard makes its cameras' sequences; the last one writes the dataset, the same files as one
+    process (the dataset-wide exposure and subject boxes included)."""
+    from gra_mi.core.provenance import PROVENANCE, is_lock
+    from gra_mi.core.shard import Shard
+    from gra_mi.refiner.data import CaptureSequencesConfig, dataset_from_capture
+
+    from .test_shards import same_files
+
+    def shard(i: int):
+        return dataset_from_capture(
+            tiny_run / "capture", tiny_run / "fit", tmp_path / "shards", relightnet_dir=tiny_run / "relightnet",
+            config=CaptureSequencesConfig(scale=0.25, test_length=20), shard=Shard(i, 2), cache_dir=tmp_path / "cache",
+        )  # fmt: skip
+
+    assert shard(0) is None and not (tmp_path / "shards" / "dataset.json").exists()
+    assert shard(1) is not None and not (tmp_path / "shards" / "parts").exists()
+    one = tiny_run / "refiner" / "data"
+    skip = lambda p: p.name == PROVENANCE or is_lock(p.name) or "cache" in p.parts  # noqa: E731
+    assert not same_files(one, tmp_path / "shards", ignore=skip)

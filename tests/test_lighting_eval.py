@@ -198,3 +198,22 @@ def test_eval_lighting_refuses_bad_frames_and_cameras(path_traced_fit):
     ):
         with pytest.raises(GraMiParameterError, match=field):
             envmap_accuracy(root / "cap", root / "fit", root / "bad", config=config)
+
+
+def test_eval_lighting_shards_split_the_truths_and_the_last_scores(path_traced_fit, tmp_path):
+    """``--shard``: each shard path-traces its maps' truths; the one that finds every truth done scores them all, as
+    one process does."""
+    from gra_mi.core.shard import Shard
+    from gra_mi.eval.lighting import EnvmapAccuracyConfig, envmap_accuracy
+
+    root = path_traced_fit
+    config = EnvmapAccuracyConfig(spp=16, cameras=["cam07"], maps=["sun", "night"])
+    whole = envmap_accuracy(root / "cap", root / "fit", tmp_path / "whole", config=config)
+    first = envmap_accuracy(root / "cap", root / "fit", tmp_path / "shards", config=config, shard=Shard(0, 2))
+    assert first == [] and (tmp_path / "shards" / "truth" / "sun" / "cam07.exr").is_file()
+    assert not (tmp_path / "shards" / "truth" / "night").exists() and not (tmp_path / "shards" / "accuracy.json").exists()
+    last = envmap_accuracy(root / "cap", root / "fit", tmp_path / "shards", config=config, shard=Shard(1, 2))
+    assert [(r["map"], r["method"]) for r in last] == [(r["map"], r["method"]) for r in whole]
+    for a, b in zip(last, whole, strict=True):
+        assert a["psnr"] == pytest.approx(b["psnr"], abs=1e-6), (a["map"], a["method"])
+    assert (tmp_path / "shards" / "accuracy.json").is_file()

@@ -106,3 +106,22 @@ def test_two_capture_shards_write_what_one_process_writes(tmp_path, monkeypatch,
 def test_bad_shards_on_the_command_line(tmp_path, args, said):
     out = run_cli(*args, "--out", str(tmp_path / "out"))
     assert out.returncode == 2 and said in out.stderr and "Traceback" not in out.stderr, out.stderr
+
+
+def test_each_local_rank_takes_its_own_gpu():
+    # torchrun's LOCAL_RANK (or srun's SLURM_LOCALID) picks this process's GPU before CUDA starts; a launcher that
+    # already gave each process one GPU is left alone; no launcher or no GPU: nothing changes.
+    from gra_mi.core.runtime import bind_local_gpu
+
+    env = {"LOCAL_RANK": "2"}
+    assert bind_local_gpu(env, gpus=4) == "2" and env["CUDA_VISIBLE_DEVICES"] == "2"
+    env = {"SLURM_LOCALID": "1", "CUDA_VISIBLE_DEVICES": "4,5,6"}
+    assert bind_local_gpu(env) == "5" and env["CUDA_VISIBLE_DEVICES"] == "5"
+    env = {"LOCAL_RANK": "0", "CUDA_VISIBLE_DEVICES": "3"}
+    assert bind_local_gpu(env) == "3" and env["CUDA_VISIBLE_DEVICES"] == "3"
+    env = {"LOCAL_RANK": "5"}
+    assert bind_local_gpu(env, gpus=4) == "1", "more ranks than GPUs share them round-robin"
+    assert bind_local_gpu({"LOCAL_RANK": "1"}, gpus=0) is None
+    assert bind_local_gpu({}, gpus=4) is None
+    with pytest.raises(GraMiInputError, match="LOCAL_RANK"):
+        bind_local_gpu({"LOCAL_RANK": "x"}, gpus=2)

@@ -10,6 +10,7 @@ from pathlib import Path
 from gra_mi.cli.options import CommandConfig, Restartable
 from gra_mi.core.config import option
 from gra_mi.core.errors import GraMiParameterError, require_positive
+from gra_mi.core.shard import ShardOptions
 from gra_mi.refiner.config import RefinerConfig
 from gra_mi.refiner.data import CaptureSequencesConfig
 from gra_mi.refiner.deflicker import DeflickerConfig
@@ -59,9 +60,12 @@ class RefinerDataCommand(Restartable):
     """--synthetic: training sequences per subject."""
     resolution: int = 64
     """--synthetic: frame height and width (multiple of 16)."""
+    shards: ShardOptions = field(default_factory=ShardOptions)
 
     def validate(self) -> None:
-        super().validate()  # before the capture and fit are read
+        super().validate()  # before the capture and fit are read (the shard included)
+        if self.synthetic and not self.shards.resolved().whole:
+            raise GraMiParameterError("shard", "--synthetic sequences are made in one process (seconds): drop --shard")
         require_positive({"subjects": self.subjects, "sequences": self.sequences, "resolution": self.resolution})
         if self.synthetic and self.resolution % 16:
             raise GraMiParameterError("resolution", f"must be a multiple of 16, got {self.resolution}")
@@ -77,7 +81,13 @@ def run_refiner_data(c: RefinerDataCommand) -> None:
         length, env_height = c.sequences_config.test_length, c.sequences_config.env_height
         ds = synthetic_dataset(c.out, subjects, 17, c.resolution, c.resolution, env_height, length, overwrite=c.overwrite)
     else:
-        ds = dataset_from_capture(c.capture, c.fit, c.out, relightnet_dir=c.relightnet, config=c.sequences_config, overwrite=c.overwrite)
+        shard = c.shards.resolved()
+        ds = dataset_from_capture(
+            c.capture, c.fit, c.out, relightnet_dir=c.relightnet, config=c.sequences_config, overwrite=c.overwrite, shard=shard
+        )  # fmt: skip
+        if ds is None:
+            print(f"shard {shard}: its sequences are in {c.out / 'parts'}; the shard that finishes last writes the dataset")
+            return
     print(f"wrote {len(ds.sequences)} sequences ({ds.height}x{ds.width}) to {ds.folder}")
 
 

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from gra_mi.cli.options import add_config, config_from_args, option_flags
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.provenance import discard_unused_claims
-from gra_mi.core.runtime import SUPPORTED_VARIANTS
+from gra_mi.core.runtime import SUPPORTED_VARIANTS, bind_local_gpu
 from gra_mi.render.runtime import start_runtime
 
 logger = logging.getLogger("gra_mi")
@@ -178,6 +178,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     command = COMMANDS[args.command]
     try:
+        bind_local_gpu()  # before anything starts CUDA: one GPU per process under torchrun / srun
         start_runtime(getattr(args, "variant", None), getattr(args, "device", None), mitsuba=command.mitsuba, torch=command.torch)
         config_class, run = command.load(args.command)
         config = config_from_args(config_class, args)

@@ -216,13 +216,17 @@ class EvalLightingCommand(CommandConfig):
     relightnet: Path | None = None
     """A trained RelightNet folder: also score RelightNet on the far-field render."""
     accuracy: EnvmapAccuracyConfig = field(default_factory=EnvmapAccuracyConfig)
+    shards: ShardOptions = field(default_factory=ShardOptions)
     out: Path = Path("outputs/lighting")
     """Output folder."""
 
 
 def run_eval_lighting(c: EvalLightingCommand) -> None:
 
-    envmap_accuracy(c.capture, c.fit, c.out, c.relightnet, c.accuracy)
+    shard = c.shards.resolved()
+    if not envmap_accuracy(c.capture, c.fit, c.out, c.relightnet, c.accuracy, shard=shard):
+        print(f"shard {shard}: truths written to {c.out / 'truth'}; the shard that finishes last scores every map")
+        return
     print((c.out / "accuracy.md").read_text())
     print(f"done: open {c.out / 'accuracy.md'}")
 

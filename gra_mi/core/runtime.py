@@ -84,6 +84,38 @@ def cuda_available() -> bool:
         return False
 
 
+def gpu_count() -> int:
+    """GPUs the driver exposes on this machine (device nodes; CUDA is not started to count them)."""
+    return len([p for p in glob.glob("/dev/nvidia*") if p[len("/dev/nvidia") :].isdigit()])
+
+
+def bind_local_gpu(env=None, gpus: int | None = None) -> str | None:
+    """One process per GPU: under ``torchrun`` (``LOCAL_RANK``) or ``srun`` (``SLURM_LOCALID``), show this process
+    only the GPU of its local rank (``CUDA_VISIBLE_DEVICES``), before Dr.Jit or torch start CUDA, so that
+    ``cuda_ad_rgb`` and torch's ``cuda`` are that GPU (each Dr.Jit process uses one device). A launcher that already
+    gave each process one GPU is left alone; more ranks than GPUs share them round-robin. Returns the GPU bound,
+    or None (no launcher, or no GPU)."""
+    env = os.environ if env is None else env
+    local = env.get("LOCAL_RANK", env.get("SLURM_LOCALID"))
+    if local is None:
+        return None
+    try:
+        rank = int(local)
+    except ValueError:
+        raise GraMiInputError("$LOCAL_RANK", f"expected an integer, got '{local}'") from None
+    visible = env.get("CUDA_VISIBLE_DEVICES")
+    devices = [d.strip() for d in visible.split(",") if d.strip()] if visible is not None else None
+    if devices is None:
+        devices = [str(i) for i in range(gpu_count() if gpus is None else gpus)]
+    if len(devices) <= 1:
+        return devices[0] if devices else None
+    chosen = devices[rank % len(devices)]
+    if rank >= len(devices):
+        logger.warning("local rank %d of more ranks than the %d GPUs: sharing GPU %s", rank, len(devices), chosen)
+    env["CUDA_VISIBLE_DEVICES"] = chosen
+    return chosen
+
+
 def choose_variant(requested: str | None = None) -> str:
     """Set the Mitsuba variant for this process and return its name.
 

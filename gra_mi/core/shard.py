@@ -23,8 +23,8 @@ class ShardOptions:
     """The ``--shard`` option of the commands whose work is per frame."""
 
     shard: str | None = field(default=None, metadata=option(metavar="I/N"))
-    """Do only shard I of N of the frames (I/N, from 0), into the same output folder as the other shards; run the N
-    shards as separate processes or jobs (docs/guides/scale.md). Default: torchrun's RANK/WORLD_SIZE or a SLURM array's
+    """Do only shard I of N of the frames (eval-lighting: of the maps whose truth it path-traces; I/N, from 0), into
+    the same output folder as the other shards; run the N shards as separate processes or jobs (docs/guides/scale.md). Default: torchrun's RANK/WORLD_SIZE or a SLURM array's
     SLURM_ARRAY_TASK_ID/SLURM_ARRAY_TASK_COUNT when set, else all frames."""
 
     def validate(self) -> None:

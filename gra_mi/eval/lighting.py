@@ -15,6 +15,7 @@ Scores are :func:`gra_mi.core.metrics.compare` (display PSNR, SSIM, brightness e
 from __future__ import annotations
 
 import json
+import logging
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,9 +30,12 @@ from gra_mi.core.io import atomic_write_text, pyplot, read_exr, save_figure, to_
 from gra_mi.core.metrics import compare, subject_mask
 from gra_mi.core.progress import progress
 from gra_mi.core.runtime import torch_device
+from gra_mi.core.shard import Shard
 from gra_mi.render.runtime import ensure_mitsuba
 from gra_mi.stage.envmap import envmap_to_leds
 from gra_mi.stage.envmap_library import REFERENCE_MAPS, reference_map
+
+logger = logging.getLogger(__name__)
 
 TRUTH_SPP = 256
 
@@ -60,9 +64,9 @@ class EnvmapAccuracyConfig:
             raise GraMiParameterError("map_height", f"must be >= 8, got {self.map_height}")
 
 
-def _cached_truth(out: Path, capture, env: np.ndarray, name: str, frame: int, cameras: list[str], spp: int) -> dict[str, np.ndarray]:
-    """The truth renders, kept under ``out/truth/NAME`` with what made them (reused when everything agrees)."""
-
+def _truth_files(out: Path, capture, env: np.ndarray, name: str, frame: int, cameras: list[str], spp: int):
+    """(what made the truth of map ``name``, its record file, its images) under ``out/truth/NAME``, and whether they
+    are there and agree."""
     folder = out / "truth" / name
     record = {
         "version": TRUTH_VERSION,
@@ -71,9 +75,16 @@ def _cached_truth(out: Path, capture, env: np.ndarray, name: str, frame: int, ca
         "envmap_sum": float(np.asarray(env, np.float64).sum()),
         "capture": str(capture.folder.resolve()),
     }
-    meta = folder / "truth.json"
-    paths = {cam: folder / f"{cam}.exr" for cam in cameras}
-    if meta.is_file() and json.loads(meta.read_text()) == record and all(p.is_file() for p in paths.values()):
+    meta, paths = folder / "truth.json", {cam: folder / f"{cam}.exr" for cam in cameras}
+    ready = meta.is_file() and json.loads(meta.read_text()) == record and all(p.is_file() for p in paths.values())
+    return record, meta, paths, ready
+
+
+def _cached_truth(out: Path, capture, env: np.ndarray, name: str, frame: int, cameras: list[str], spp: int) -> dict[str, np.ndarray]:
+    """The truth renders, kept under ``out/truth/NAME`` with what made them (reused when everything agrees)."""
+
+    record, meta, paths, ready = _truth_files(out, capture, env, name, frame, cameras, spp)
+    if ready:
         return {cam: read_exr(p) for cam, p in paths.items()}
     images = render_envmap_truth(capture, env, frame, cameras, spp=spp)
     for cam, image in images.items():
@@ -88,18 +99,22 @@ def envmap_accuracy(
     out: str | Path,
     relightnet_dir: str | Path | None = None,
     config: EnvmapAccuracyConfig | None = None,
+    shard: Shard | None = None,
 ) -> list[dict]:
     """Score every lighting model on every reference map and camera; write ``accuracy.json``, ``accuracy.md``,
     ``contact_sheet.png`` (truth | each model, per map) and every render (EXR) under ``out``. Returns the rows
-    (one per map and model, averaged over the cameras)."""
+    (one per map and model, averaged over the cameras). ``shard``: path-trace the truths of this shard's maps (the
+    costly part); the shard that then finds every map's truth done scores them all (the others return no rows)."""
 
     config = config or EnvmapAccuracyConfig()
     config.validate()
     ensure_mitsuba()
-    out = Path(out)
+    out, shard = Path(out), shard or Shard()
     capture, methods = _lighting_models(capture_dir, fit_dir, relightnet_dir)
     ls = methods[0][1].ls
     frame, cameras = _views(config, capture, ls)
+    if not shard.whole and not _shard_truths(out, capture, ls, config, frame, cameras, shard):
+        return []
     rows, sheet = [], []
     for name in progress(config.maps, description="reference maps"):
         env = reference_map(name, config.map_height)
@@ -118,6 +133,21 @@ def envmap_accuracy(
     atomic_write_text(out / "accuracy.md", accuracy_markdown(rows, summary, frame, cameras, config.spp))
     _write_sheet(out / "contact_sheet.png", sheet, config.maps, ["truth (path-traced)"] + [m for m, *_ in methods])
     return rows
+
+
+def _shard_truths(out: Path, capture, ls, config: EnvmapAccuracyConfig, frame: int, cameras: list[str], shard: Shard) -> bool:
+    """Path-trace the truths of the shard's maps; whether every map's truth is now done."""
+
+    def truth_env(name: str) -> np.ndarray:
+        env = reference_map(name, config.map_height)
+        return env * envmap_to_leds(env, ls.stage).scale
+
+    for name in progress(shard.take(config.maps), description=f"path-traced truths (shard {shard})"):
+        _cached_truth(out, capture, truth_env(name), name, frame, cameras, config.spp)
+    waiting = [n for n in config.maps if not _truth_files(out, capture, truth_env(n), n, frame, cameras, config.spp)[3]]
+    if waiting:
+        logger.info("shard %s done; the truths of %s are another shard's: the last shard scores", shard, ", ".join(waiting))
+    return not waiting
 
 
 def _lighting_models(capture_dir, fit_dir, relightnet_dir):

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -32,6 +33,7 @@ from gra_mi.core.io import atomic_path, atomic_write_text, json_field, read_json
 from gra_mi.core.progress import progress
 from gra_mi.core.provenance import claim_output
 from gra_mi.core.runtime import torch_device
+from gra_mi.core.shard import Shard
 from gra_mi.render.runtime import ensure_mitsuba
 from gra_mi.stage.envmap import leds_to_envmap, pixel_directions, to_camera_space
 
@@ -456,46 +458,79 @@ def dataset_from_capture(
     config: CaptureSequencesConfig | None = None,
     cache_dir: str | Path | None = None,
     overwrite: bool = False,
-) -> RefinerDataset:
+    shard: Shard | None = None,
+) -> RefinerDataset | None:
     """Sequences per camera: training cameras over the training frames, held-out cameras over the test frames.
 
     Coarse frames are RelightNet renders (``relightnet_dir``) or the microfacet render; targets are the captured images.
     The capture's clips loop, so a sequence shorter than its length is played again from its start. With a zoom, the
     sequences also hold the whole frames (``coarse_frame``/``target_frame``) and dataset.json each sequence's ``box``.
+    ``shard``: make only this shard's sequences (each camera's is one job), kept in ``parts/``; the shard that finds
+    every part there writes the dataset (one process's files) and returns it, the others return None.
     """
 
     config = config or CaptureSequencesConfig()
     config.validate()
     ensure_mitsuba()
-    out = Path(out)
+    out, shard = Path(out), shard or Shard()
     capture, relighter, model = _coarse_stages(capture_dir, fit_dir, relightnet_dir, cache_dir or out / "cache")
     inputs = {"capture": capture_dir, "fit": fit_dir, "relightnet": relightnet_dir}
-    claim_output(out, "refiner-data", inputs, config.record(), overwrite=overwrite)
+    claim_output(out, "refiner-data", inputs, config.record(), overwrite=overwrite, shard=shard)
     uniform, jobs = _sequence_jobs(capture, config)
-    raw = [
-        (split, cam, *_capture_sequence(capture, relighter, model, cam, entries, length, uniform, config))
-        for split, cam, entries, length in progress(jobs, description="refiner sequences")
-    ]
+    if shard.whole:
+        raw = [_raw_sequence(capture, relighter, model, job, uniform, config) for job in progress(jobs, description="refiner sequences")]
+    else:
+        for job in progress(shard.take(jobs), description=f"refiner sequences (shard {shard})"):
+            _save_part(out, job, _raw_sequence(capture, relighter, model, job, uniform, config))
+        if not all(_part_path(out, job).is_file() for job in jobs):
+            return None  # another shard's sequences are still being made: the last shard writes the dataset
+        raw = [_load_part(out, job) for job in jobs]
+    dataset = _write_dataset(out, raw, capture, config, relighter.ls.sequence.fps, "relightnet" if model is not None else "microfacet")
+    shutil.rmtree(out / "parts", ignore_errors=True)
+    return dataset
+
+
+def _raw_sequence(capture, relighter, model, job, uniform, config: CaptureSequencesConfig) -> tuple:
+    split, cam, entries, length = job
+    return (split, cam, *_capture_sequence(capture, relighter, model, cam, entries, length, uniform, config))
+
+
+def _write_dataset(out: Path, raw: list[tuple], capture, config: CaptureSequencesConfig, fps: float, coarse: str) -> RefinerDataset:
+    """Every sequence (cut to its subject box with a zoom) and dataset.json, with the whole dataset's exposures."""
     crop = raw[0][3]
     boxes = _zoom_to_subject(raw, config) if config.zoom else {}
     entries = [_entry(split, cam, seq, frames, capture, out, boxes) for split, cam, seq, _, frames in raw]
     h, w = raw[0][2]["coarse"].shape[1:3]
     exposure, env_exposure = _exposures([seq for _, _, seq, _, _ in raw])
     write_dataset_json(
-        out,
-        entries,
-        h,
-        w,
-        (h, w) if boxes else crop,
-        exposure,
-        env_exposure,
-        source=str(capture.folder),
-        coarse="relightnet" if model is not None else "microfacet",
-        scale=config.scale,
-        fps=relighter.ls.sequence.fps,
-        **({"zoom": config.zoom, "frame": list(crop)} if boxes else {}),
-    )
+        out, entries, h, w, (h, w) if boxes else crop, exposure, env_exposure, source=str(capture.folder), coarse=coarse,
+        scale=config.scale, fps=fps, **({"zoom": config.zoom, "frame": list(crop)} if boxes else {}),
+    )  # fmt: skip
     return RefinerDataset(out)
+
+
+def _part_path(out: Path, job) -> Path:
+    return out / "parts" / f"{job[0]}_{job[1]}.npz"
+
+
+def _save_part(out: Path, job, raw: tuple) -> None:
+    """A shard's sequence before the dataset-wide steps (zoom boxes, exposures), for the shard that writes them."""
+    _, _, seq, crop, frames = raw
+    arrays = {k: v for k, v in seq.items() if k != "full"}
+    for key, value in seq.get("full", {}).items():
+        arrays[f"full.{key}"] = np.stack(value) if isinstance(value, list) else value
+    with atomic_path(_part_path(out, job)) as tmp, open(tmp, "wb") as fh:
+        np.savez(fh, **arrays, crop=np.array(crop), frames=np.array(frames))
+
+
+def _load_part(out: Path, job) -> tuple:
+    with np.load(_part_path(out, job), allow_pickle=False) as data:
+        arrays = {k: data[k] for k in data.files}
+    crop, frames = tuple(int(x) for x in arrays.pop("crop")), [int(f) for f in arrays.pop("frames")]
+    full = {k.split(".", 1)[1]: arrays.pop(k) for k in [k for k in arrays if k.startswith("full.")]}
+    if full:
+        arrays["full"] = {k: list(v) if k in ("coarse", "target") else v for k, v in full.items()}
+    return (job[0], job[1], arrays, crop, frames)
 
 
 def _coarse_stages(capture_dir, fit_dir, relightnet_dir, cache_dir):
