@@ -555,3 +555,18 @@ def test_broken_easymocap_rigs_stop_with_one_line(path_traced_fit, tmp_path, cap
         _one_line_error(capsys, args, *needles)
         assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
     _one_line_error(capsys, args[:-2], "--lighting")
+
+
+def test_import_shards_write_what_one_process_writes(olat_capture, imported):
+    # --shard: each shard converts its frames of every camera; the last one writes capture.json and the report.
+    from gra_mi.core.provenance import PROVENANCE, is_lock
+
+    from .test_shards import same_files
+
+    root, _, subject = olat_capture
+    _imported(root, subject, "sharded", "--shard", "0/2")
+    assert not (root / "sharded" / "capture.json").exists() and (root / "sharded" / "parts").is_dir()
+    _imported(root, subject, "sharded", "--shard", "1/2")
+    assert not (root / "sharded" / "parts").exists()
+    differ = same_files(imported, root / "sharded", ignore=lambda p: p.name == PROVENANCE or is_lock(p.name))
+    assert not differ, differ

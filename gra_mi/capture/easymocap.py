@@ -170,9 +170,15 @@ def read_easymocap(folder: Path, options: EasymocapOptions, files: TransformsOpt
 
 
 def import_easymocap(
-    folder: str | Path, out: str | Path, config: ImportConfig, options: EasymocapOptions, files: TransformsOptions, overwrite: bool = False
+    folder: str | Path,
+    out: str | Path,
+    config: ImportConfig,
+    options: EasymocapOptions,
+    files: TransformsOptions,
+    overwrite: bool = False,
+    shard=None,
 ):
     config.validate()
     options.validate()
     source = read_easymocap(Path(folder), options, files)
-    return import_capture(source, Path(out), config, {"units": files.units, "mesh_units": files.mesh_units}, overwrite, files)
+    return import_capture(source, Path(out), config, {"units": files.units, "mesh_units": files.mesh_units}, overwrite, files, shard)

@@ -42,6 +42,7 @@ from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_pos
 from gra_mi.core.io import atomic_write_text, read_exr, write_exr, write_png
 from gra_mi.core.progress import progress
 from gra_mi.core.provenance import claim_output
+from gra_mi.core.shard import Shard
 from gra_mi.render.runtime import ensure_mitsuba
 from gra_mi.stage.lightstage import Camera, Lightstage, load_pattern, olat_pattern, uniform_pattern
 from gra_mi.stage.scene import subject_scene_xml, write_rig
@@ -461,18 +462,23 @@ def import_humanolat(
     config: ImportConfig | None = None,
     options: HumanolatOptions | None = None,
     overwrite: bool = False,
-) -> Capture:
+    shard: Shard | None = None,
+) -> Capture | None:
     """Import one pose of a HumanOLAT subject into ``out``; rerunning resumes (images already written are kept)."""
     config, options = config or ImportConfig(), options or HumanolatOptions()
     config.validate()
     options.validate()
     source = read_humanolat(Path(subject_dir), options)
     record = {"pose": options.pose, "units": "millimetres (calibration, mesh), metres (LEDs)"}
-    return import_capture(source, Path(out), config, record, overwrite, options)
+    return import_capture(source, Path(out), config, record, overwrite, options, shard)
 
 
-def import_capture(source: Source, out: Path, config: ImportConfig, record: dict, overwrite: bool = False, options=None) -> Capture:
-    """The import, whatever the source: its frame, cameras, the reprojection check, then the files."""
+def import_capture(
+    source: Source, out: Path, config: ImportConfig, record: dict, overwrite: bool = False, options=None, shard: Shard | None = None
+) -> Capture | None:
+    """The import, whatever the source: its frame, cameras, the reprojection check, then the files. ``shard``: import
+    only its frames' images (every shard writes the rig and subject alike); the shard that finds every shard's images
+    done writes capture.json and the report and returns the capture, the others return None."""
 
     ensure_mitsuba()
     frame = world_frame(source, config.up)
@@ -483,7 +489,8 @@ def import_capture(source: Source, out: Path, config: ImportConfig, record: dict
     masks = [frame_mask(source, plan, key) for plan in plans]
     checks = _reprojection_checks(source, frame, sequence, plans, masks, config.min_iou, pose)
     said = asdict(config) | (asdict(options) if options is not None else {})
-    claim_output(out, f"import {source.format}", {"source": source.folder}, said, overwrite=overwrite)
+    shard = shard or Shard()
+    claim_output(out, f"import {source.format}", {"source": source.folder}, said, overwrite=overwrite, shard=shard)
     stage = build_stage(source, frame, plans, config.led_intensity)
     _write_stage_files(out, stage, sequence, source.frames)
     eval_cameras = config.eval_cameras or _held_out(plans)
@@ -492,11 +499,31 @@ def import_capture(source: Source, out: Path, config: ImportConfig, record: dict
     record |= {"gains": "assumed equal (the source has none)", "left_out_leds": source.left_out, "uv_atlas": atlas_said, "images": {}}
     frames = [f for _, f, _ in source.frames]
     capture = Capture(out, source.format, "captured", config.uv_resolution, train_cameras, eval_cameras, frames, source=record)
+    mine = shard.take(source.frames)
+    saturated = {plan.camera.name: _import_camera(source, plan, capture, mine) for plan in plans}
+    if not shard.whole:
+        saturated = _merge_shards(out, shard, saturated)
+        if saturated is None:
+            return None  # other shards' images are still being written: the last shard writes capture.json
     for plan in plans:
-        record["images"][plan.camera.name] = _import_camera(source, plan, capture)
+        record["images"][plan.camera.name] = _camera_summary(source, plan, saturated[plan.camera.name])
     capture.save()
     _write_report(out, source, frame, plans, checks, record)
+    shutil.rmtree(out / "parts", ignore_errors=True)
     return capture
+
+
+def _merge_shards(out: Path, shard: Shard, saturated: dict[str, list[float]]) -> dict[str, list[float]] | None:
+    """Record this shard's per-camera saturation; every shard's, once all are recorded (else None)."""
+    parts = [out / "parts" / f"import-shard-{i}-of-{shard.count}.json" for i in range(shard.count)]
+    atomic_write_text(parts[shard.index], json.dumps(saturated) + "\n")
+    if not all(p.is_file() for p in parts):
+        return None
+    merged: dict[str, list[float]] = {}
+    for part in parts:
+        for cam, values in json.loads(part.read_text()).items():
+            merged.setdefault(cam, []).extend(values)
+    return merged
 
 
 def _held_out(plans: list[CameraPlan]) -> list[str]:
@@ -564,11 +591,11 @@ def _drive(stage: Lightstage, drive) -> np.ndarray:
     return olat_pattern(stage, drive)
 
 
-def _import_camera(source: Source, plan: CameraPlan, capture: Capture) -> dict:
-    """Every frame of one camera, one image at a time: sRGB → linear, onto the planned grid, its mask as alpha.
-    Returns what the report says of them (saturation, the square-pixel resampling's error)."""
+def _import_camera(source: Source, plan: CameraPlan, capture: Capture, frames: list) -> list[float]:
+    """The ``frames`` of one camera, one image at a time: sRGB → linear, onto the planned grid, its mask as alpha.
+    Returns each frame's fraction of saturated subject pixels."""
     saturated, name = [], plan.camera.name
-    for key, entry, _ in progress(source.frames, description=f"import {name}"):
+    for key, entry, _ in progress(frames, description=f"import {name}"):
         path = capture.image_path(name, entry.frame)
         image_path = source.images[plan.index][key]
         rgb, clipped, alpha = read_image(image_path)
@@ -584,6 +611,11 @@ def _import_camera(source: Source, plan: CameraPlan, capture: Capture) -> dict:
         elif image_path.suffix.lower() != ".exr":  # straight alpha (PNG, AVIF) → premultiplied, as EXR holds it
             rgb = rgb * mask[..., None]
         write_exr(path, np.concatenate([rgb, mask[..., None]], axis=-1).astype(np.float32))
+    return saturated
+
+
+def _camera_summary(source: Source, plan: CameraPlan, saturated: list[float]) -> dict:
+    """What the report says of a camera's images: saturation, the square-pixel resampling's error."""
     first = read_image(source.images[plan.index][source.frames[0][0]])[0]
     return {"saturated_fraction": max(saturated), "resampling_error": _resampling_error(first, plan), "anisotropy": plan.anisotropy}
 

@@ -61,12 +61,14 @@ def import_transforms(
     config: ImportConfig | None = None,
     options: TransformsOptions | None = None,
     overwrite: bool = False,
+    shard=None,
 ):
     config, options = config or ImportConfig(), options or TransformsOptions()
     config.validate()
     options.validate()
     source = read_transforms(Path(folder), options)
-    return import_capture(source, Path(out), config, {"units": options.units, "mesh_units": options.mesh_units}, overwrite, options)
+    units = {"units": options.units, "mesh_units": options.mesh_units}
+    return import_capture(source, Path(out), config, units, overwrite, options, shard)
 
 
 @dataclass

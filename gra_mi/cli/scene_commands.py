@@ -237,20 +237,26 @@ class ImportCommand(Restartable):
     humanolat: HumanolatOptions = field(default_factory=HumanolatOptions)
     transforms: TransformsOptions = field(default_factory=TransformsOptions)
     easymocap: EasymocapOptions = field(default_factory=EasymocapOptions)
+    shards: ShardOptions = field(default_factory=ShardOptions)
 
     def validate(self) -> None:
         self.config.validate()
+        self.shards.validate()
         for name in {"humanolat": ["humanolat"], "transforms": ["transforms"], "easymocap": ["transforms", "easymocap"]}[self.source]:
             getattr(self, name).validate()
 
 
 def run_import(c: ImportCommand) -> None:
+    shard = c.shards.resolved()
     if c.source == "humanolat":
-        capture = import_humanolat(c.folder, c.out, c.config, c.humanolat, c.overwrite)
+        capture = import_humanolat(c.folder, c.out, c.config, c.humanolat, c.overwrite, shard)
     elif c.source == "transforms":
-        capture = import_transforms(c.folder, c.out, c.config, c.transforms, c.overwrite)
+        capture = import_transforms(c.folder, c.out, c.config, c.transforms, c.overwrite, shard)
     else:
-        capture = import_easymocap(c.folder, c.out, c.config, c.easymocap, c.transforms, c.overwrite)
+        capture = import_easymocap(c.folder, c.out, c.config, c.easymocap, c.transforms, c.overwrite, shard)
+    if capture is None:
+        print(f"shard {shard}: its images are in {c.out / 'images'}; the shard that finishes last writes capture.json")
+        return
     cameras = len(capture.train_cameras) + len(capture.eval_cameras)
     print(f"imported {len(capture.frames)} lightings × {cameras} cameras into {c.out}; read {c.out / 'import_report.md'} first")
 
