@@ -42,11 +42,17 @@ def _true_maps(fitter):
     atlas = fitter.atlas
     true_albedo = read_exr(gt / "albedo.exr")[..., :3]
     true_rough = read_exr(gt / "roughness.exr")[..., :1]
-    if true_albedo.shape[0] != atlas.resolution:
-        return None  # fitted at another resolution: no texel-by-texel comparison
     region = gt / "cloth.exr" if (gt / "cloth.exr").is_file() else gt / "sheen.exr"
-    cloth = atlas.gather(read_exr(region)[..., :1])[:, 0] > 0 if region.is_file() else np.zeros(atlas.num_texels, bool)
-    return atlas.gather(true_albedo), atlas.gather(true_rough)[:, 0], cloth
+    cloth = read_exr(region)[..., :1] if region.is_file() else np.zeros_like(true_rough)
+    if true_albedo.shape[0] != atlas.resolution:  # fitted at another resolution: the truth resampled onto its texels
+        from gra_mi.fit.levels import resample
+        from gra_mi.render.atlas import UVAtlas
+
+        seq = fitter.ls.sequence
+        truth_atlas = UVAtlas.build(seq.faces, seq.uvs, true_albedo.shape[0])
+        sampled = [resample(truth_atlas, m, atlas) for m in (true_albedo, true_rough, cloth)]
+        return sampled[0], sampled[1][:, 0], sampled[2][:, 0] > 0.5
+    return atlas.gather(true_albedo), atlas.gather(true_rough)[:, 0], atlas.gather(cloth)[:, 0] > 0
 
 
 def score_maps(fitter, result) -> tuple[dict, dict, dict]:
