@@ -93,8 +93,9 @@ class FitConfig:
     """Seed of the minibatch order (--batch-views)."""
     levels: list[int] | None = field(default=None, metadata=option(parse=_resolutions))
     """Coarse to fine: UV resolutions fitted in turn, e.g. 256,512,1024. The first runs the whole fit; each next one
-    starts from the previous maps upsampled (its highlight confidence carried), runs --iterations Adam steps, and is
-    checkpointed in FIT/level_RRRR/. The last is the fitted resolution (--uv-resolution, if given, must equal it)."""
+    starts from the previous roughness upsampled (with its highlight confidence) and its albedo solved per texel at
+    that roughness, runs --iterations Adam steps, and is checkpointed in FIT/level_RRRR/. The last is the fitted
+    resolution (--uv-resolution, if given, must equal it)."""
     lr_albedo: float = 0.01
     """Adam's learning rate for albedo (it decays to a tenth over the run)."""
     lr_roughness: float = 0.03
