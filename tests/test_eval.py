@@ -560,3 +560,28 @@ def test_refiner_data_shards_write_what_one_process_writes(tiny_run, tmp_path):
     one = tiny_run / "refiner" / "data"
     skip = lambda p: p.name == PROVENANCE or is_lock(p.name) or "cache" in p.parts  # noqa: E731
     assert not same_files(one, tmp_path / "shards", ignore=skip)
+
+
+def test_a_stage_that_delivers_its_input_is_marked_as_such():
+    # The refiner at mix 0 and flicker correction of a steady video deliver their input: the headline table says so
+    # in the row and in a note, instead of showing the input's numbers as the stage's own result.
+    from gra_mi.eval.protocol import UNCHANGED, eval_table, same_frames
+
+    rng = np.random.default_rng(0)
+    frames = [rng.uniform(0.1, 1.0, (8, 8, 4)).astype(np.float32) for _ in range(3)]
+    assert same_frames(frames, [f.copy() for f in frames])
+    assert same_frames([f * (1 + UNCHANGED / 2) for f in frames], frames)
+    assert not same_frames([f * 1.01 for f in frames], frames) and not same_frames(frames[:2], frames)
+    row = {"psnr": 30.0, "ssim": 0.99, "brightness": 0.0, "flip": 0.09, "temporal": 0.1, "frames_scored": 3}
+    stages = {
+        "microfacet": {"status": "done", "splits": {"cam06": dict(row)}},
+        "RelightNet": {"status": "done", "splits": {"cam06": row | {"psnr": 31.0}}},
+        "refined": {"status": "done", "splits": {"cam06": row | {"psnr": 31.0, "unchanged_from": "RelightNet"}}},
+        "deflickered": {"status": "skipped: none", "splits": {}},
+    }
+    report = {"protocol": {"splits": {"cam06": {}}, "fvd": False, "lpips": False}, "stages": stages, "problems": []}
+    lines, notes = eval_table(report)
+    refined = next(line for line in lines if line.startswith("| + video refiner"))
+    assert "= its input, unchanged" in refined
+    assert not any("unchanged" in line for line in lines if line.startswith("| + RelightNet"))
+    assert any("delivered its input (+ RelightNet) unchanged" in n and "mix is 0" in n for n in notes)

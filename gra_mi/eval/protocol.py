@@ -419,12 +419,30 @@ def _score_split(split: Split, frames: dict, results: dict, config: EvalConfig, 
     truths = frames["truth"]
     masks = [subject_mask(t) for t in truths]
     exposure = float(np.median([display_exposure(t, m) for t, m in zip(truths, masks, strict=True)]))
-    scored = scored_frames(split, config.frames)
-    for stage in STAGES:
-        if stage in frames:
-            results[stage].splits[split.name] = _score(frames[stage], truths, masks, exposure, scored, lpips_model)
+    scored, previous = scored_frames(split, config.frames), None
+    for stage in (s for s in STAGES if s in frames):
+        row = _score(frames[stage], truths, masks, exposure, scored, lpips_model)
+        if previous is not None and same_frames(frames[stage], frames[previous]):
+            row["unchanged_from"] = previous  # the stage delivered its input: its numbers are not its own result
+        results[stage].splits[split.name] = row
+        previous = stage
     _contact_sheet(out / f"contact_{split.name}.png", frames, truths, masks, exposure, scored, split.name)
     return {"frames": frames, "exposure": exposure, "coverage": frames.get("microfacet", frames.get("RelightNet"))}
+
+
+UNCHANGED = 1e-3  # a stage whose frames differ from its input's by less (relative mean |Δ|) delivered its input
+
+
+def same_frames(frames: list[np.ndarray], inputs: list[np.ndarray]) -> bool:
+    """Whether a stage's frames are its input's, to ``UNCHANGED`` (the refiner at mix 0, flicker correction of a
+    video that does not flicker): then the table says so instead of showing its input's numbers as its own."""
+    if len(frames) != len(inputs):
+        return False
+    for a, b in zip(frames, inputs, strict=True):
+        a, b = np.asarray(a, np.float64)[..., :3], np.asarray(b, np.float64)[..., :3]
+        if a.shape != b.shape or np.abs(a - b).mean() > UNCHANGED * max(np.abs(b).mean(), 1e-12):
+            return False
+    return True
 
 
 def _settle(results: dict, splits: list[Split], videos: dict, seconds: dict[str, list[float]]) -> None:
@@ -634,7 +652,10 @@ def _split_means(stages: dict, splits: list[str]) -> dict:
     for stage, result in stages.items():
         scored = [result["splits"].get(s) for s in splits]
         if all(m and "skipped" not in m for m in scored):
-            means[stage] = {k: float(np.mean([m[k] for m in scored])) for k in scored[0]}
+            numbers = [k for k, v in scored[0].items() if isinstance(v, int | float)]
+            means[stage] = {k: float(np.mean([m[k] for m in scored])) for k in numbers}
+            if _unchanged(result):
+                means[stage]["unchanged_from"] = _unchanged(result)
     return means
 
 
@@ -654,6 +675,12 @@ def eval_table(report: dict) -> tuple[list[str], list[str]]:
                 notes.append(f"- {STAGE_TITLES[stage]}, {split}: no output for this sequence")
         if result["status"] != "done":
             notes.append(f"- {STAGE_TITLES[stage]}: {result['status']}")
+        if _unchanged(result):
+            notes.append(
+                f"- {STAGE_TITLES[stage]}: delivered its input ({STAGE_TITLES[_unchanged(result)]}) unchanged on every split "
+                f"(mean difference below {UNCHANGED:.1%}): its row repeats its input's numbers"
+                + (" (the refiner's mix is 0: refine.json)" if stage == "refined" else "")
+            )
     notes += [f"- problem: {p}" for p in report["problems"]]
     if len(splits) <= WIDE_SPLITS:
         return _wide_table(stages, splits, metrics, protocol["fvd"]), notes
@@ -671,6 +698,16 @@ def eval_table(report: dict) -> tuple[list[str], list[str]]:
     return table, notes
 
 
+def _unchanged(result: dict) -> str | None:
+    """The stage whose frames this one delivered unchanged on every scored split, or None."""
+    sources = {m.get("unchanged_from") for m in result["splits"].values() if "skipped" not in m}
+    return next(iter(sources)) if len(sources) == 1 and None not in sources else None
+
+
+def _title(stage: str, result: dict) -> str:
+    return STAGE_TITLES[stage] + (" (= its input, unchanged)" if _unchanged(result) else "")
+
+
 def _cell(scored: dict | None, key: str, fmt: Callable[[float], str]) -> str:
     return fmt(scored[key]) if scored and key in scored and np.isfinite(scored[key]) else "–"
 
@@ -681,7 +718,7 @@ def _wide_table(stages: dict, splits: list[str], metrics, fvd: bool) -> list[str
     header.append("s / frame")
     lines = ["| " + " | ".join(header) + " |", "|---" * len(header) + "|"]
     for stage, result in stages.items():
-        cells = [STAGE_TITLES[stage]] + [_cell(result["splits"].get(split), key, fmt) for split in splits for key, _, fmt in metrics]
+        cells = [_title(stage, result)] + [_cell(result["splits"].get(split), key, fmt) for split in splits for key, _, fmt in metrics]
         if fvd:
             cells.append(f"{result['fvd']:.1f} ({result['fvd_clips']} clips)" if result.get("fvd") is not None else "–")
         cells.append(f"{result['seconds_per_frame']:.2f}" if result.get("seconds_per_frame") else "–")
