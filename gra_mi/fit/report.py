@@ -229,6 +229,11 @@ def fit_record(fitter, result, out: Path) -> dict:
     }
 
 
+def _batch_said(cfg: dict) -> str:
+    b = cfg.get("batch_views", 0)
+    return f" of {b} views each, streamed from scratch files, seed {cfg.get('seed', 0)}" if b else ", every view each"
+
+
 def fit_markdown(r: dict) -> str:
     """fit_report.md from the record."""
     cfg, m, never, k = r["config"], r["texels"], r["never_observed"], r["scored_min_cameras"]
@@ -237,7 +242,8 @@ def fit_markdown(r: dict) -> str:
         "",
         f"Capture `{r['capture']['folder']}` ({r['capture']['renderer']} ground truth); {m} texels at {r['resolution']}²; "
         f"{r['capture']['training_frames']} training frames × {r['capture']['training_cameras']} cameras; solver `{cfg['solver']}`"
-        + (f" ({cfg['iterations']} Adam iterations)." if cfg["solver"] == "adam" else "."),
+        + (f" ({cfg['iterations']} Adam iterations{_batch_said(cfg)})." if cfg["solver"] == "adam" else "."),
+        *([f"Coarse to fine: {' → '.join(f'{r}²' for r in cfg['levels'])} (each level in the curve below)."] if cfg.get("levels") else []),
         "",
         f"- texels never observed: {never} ({100 * never / m:.1f} %)"
         + (", filled from their neighbours" if r["without_highlights"] is not None else ", kept at the defaults"),
