@@ -225,7 +225,9 @@ def _stage_model(ls, config: RelightConfig, maps: SubjectMaps):
         if maps.albedo is not None and maps.albedo.shape[0] != model.config.resolution:
             raise GraMiInputError("albedo", f"RelightNet runs at {model.config.resolution}², the albedo is {maps.albedo.shape[0]}²")
         resolution = model.config.resolution
-    return model, Relighter(ls, resolution, maps.albedo, maps.roughness, cache_dir=maps.vis_cache)
+    relighter = Relighter(ls, resolution, maps.albedo, maps.roughness, cache_dir=maps.vis_cache)
+    relighter.cache.keep = 4  # the jobs are frame-major: a frame's entries (near, far field) are done before the next
+    return model, relighter
 
 
 def _write_fidelity(out: Path, lights: dict[str, Light], stage) -> None:

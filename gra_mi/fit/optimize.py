@@ -36,6 +36,7 @@ from gra_mi.capture.dataset import load_fit_observation
 from gra_mi.core.errors import GraMiInputError
 from gra_mi.core.io import atomic_path, read_checkpoint_npz
 from gra_mi.core.progress import progress
+from gra_mi.core.runtime import opaque
 from gra_mi.fit.views import batch_at, curve_sample
 from gra_mi.render.shading import TexelLedLoop
 
@@ -385,7 +386,8 @@ class MapOptimizer:
             gate = dr.gather(mi.Float, self.gate_all, b.texels)
             radiance = dr.gather(mi.Color3f, a, b.texels) * diffuse + spec + dspec * (gate * (r_t - dr.detach(r_t)))
             residual = dr.abs(b.to_pixels(radiance) - b.observed)
-            term = dr.sum(residual.x + residual.y + residual.z) * (b.weight * share / (3.0 * pixels))
+            # the view's weight as a kernel input: as a literal it would compile a new kernel for every view
+            term = dr.sum(residual.x + residual.y + residual.z) * opaque(mi.Float, b.weight * share / (3.0 * pixels))
             if with_grad:
                 dr.backward(term)
             total += float(dr.detach(term)[0])

@@ -140,6 +140,9 @@ def _led_sum(m, words, visibility, on_words, led_pos, led_int, p, frame, wi, rou
     Returns (diffuse per unit albedo, specular), and ∂ specular / ∂ roughness with ``roughness_derivative``.
     """
     t = dr.arange(mi.UInt32, m)  # texel index
+    # The texel count as a kernel input, not a literal: a fit's views and a culled frame each have their own count,
+    # and a literal would compile (and keep in memory) one LED-loop kernel per count.
+    stride = dr.opaque(mi.UInt32, m)
     material = brdf.PreparedBRDF(mi.Color3f(1.0), roughness, wi)  # per-texel terms hoisted out of the loop
     diffuse = mi.Color3f(0.0)  # Σ diffuse part per unit albedo (the model is linear in albedo)
     spec = mi.Color3f(0.0)  # Σ specular part
@@ -152,7 +155,7 @@ def _led_sum(m, words, visibility, on_words, led_pos, led_int, p, frame, wi, rou
     while w < n_words:
         if bits == 0:
             w += 1
-            bits = dr.gather(mi.UInt32, visibility, w * m + t, w < n_words) & dr.gather(mi.UInt32, on_words, w, w < n_words)
+            bits = dr.gather(mi.UInt32, visibility, w * stride + t, w < n_words) & dr.gather(mi.UInt32, on_words, w, w < n_words)
         else:
             led = w * 32 + dr.tzcnt(bits)
             bits = bits & (bits - 1)  # clear the lowest set bit

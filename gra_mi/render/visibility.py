@@ -39,11 +39,12 @@ def compute_visibility(scene: mi.Scene, geom: TexelGeometry, leds: LedLayout, te
     count = m if texels is None else len(texels)
     if count == 0:
         return bits
+    lanes = dr.opaque(mi.UInt32, count)  # a kernel input: a culled frame's count would otherwise compile new kernels
     for w in range(words):
         group = min(32, num_leds - 32 * w)
         i = dr.arange(mi.UInt32, group * count)
-        j = i // count  # LED within the group (count > 0: no division by zero in the masked tail)
-        t = i - j * count if subset is None else dr.gather(mi.UInt32, subset, i - j * count)
+        j = i // lanes  # LED within the group (count > 0: no division by zero in the masked tail)
+        t = i - j * lanes if subset is None else dr.gather(mi.UInt32, subset, i - j * lanes)
         k = j + 32 * w
         target = dr.gather(mi.Point3f, target_arr, k)
         p = dr.gather(mi.Point3f, geom.position, t)
