@@ -362,3 +362,13 @@ def test_visibility_cache_keys_the_atlas(onebounce_capture, tmp_path):
     bits_coarse, bits_fine = np.array(coarse.visibility(0)), np.array(fine.visibility(0))
     words = -(-ls.stage.num_leds // 32)
     assert bits_coarse.size == words * coarse.atlas.num_texels and bits_fine.size == words * fine.atlas.num_texels
+
+
+def test_maps_at_another_resolution_are_scored_against_the_resampled_truth(onebounce_capture, tmp_path):
+    # A fit at 16² of a capture whose true maps are 32²: fit.json scores it on the truth resampled onto its texels.
+    from gra_mi.fit.materials import FitConfig, run_fit
+
+    run_fit(onebounce_capture, tmp_path / "fit", FitConfig(solver="closed-form", resolution=16, roughness_candidates=3, irls_iterations=0))
+    record = json.loads((tmp_path / "fit" / "fit.json").read_text())
+    assert record["resolution"] == 16 and record["metrics"]["albedo_rel_median"] < 0.5
+    assert (tmp_path / "fit" / "maps_vs_truth.png").is_file()

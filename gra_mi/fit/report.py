@@ -133,9 +133,9 @@ def _plot_convergence(result, map_curve: list[tuple[float, float, float]], path:
 def _plot_maps_vs_truth(fitter, result, path: Path) -> None:
     """truth | fit | |error| for albedo and roughness, masked to the atlas."""
     plt = pyplot()
-    gt = fitter.capture.folder / "gt"
     mask = fitter.atlas.mask[..., None]
-    true_albedo, true_rough = read_exr(gt / "albedo.exr")[..., :3], read_exr(gt / "roughness.exr")[..., :1]
+    true_albedo, true_rough, _ = _true_maps(fitter)  # at the fit's texels (resampled if the truth has another resolution)
+    true_albedo, true_rough = fitter.atlas.scatter(true_albedo), fitter.atlas.scatter(true_rough[:, None])
     rows = [
         ("albedo", true_albedo, result.albedo, 0.3),
         ("roughness", true_rough, result.roughness, 0.3),
