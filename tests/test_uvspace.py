@@ -356,3 +356,23 @@ def test_cache_on_disk_serves_culled_jobs_and_holds_a_bounded_number(tiny, tmp_p
     for frame in (0, 1, 2, 0):
         np.testing.assert_array_equal(np.array(relight.visibility(frame, False)), full_bits[frame])
     assert relight.cache.misses == 0 and len(relight.cache._memory) == 2
+
+
+def test_columns_reads_vectors_of_any_size_without_compiling(llvm_variant):
+    """``np.array`` of a 3-vector compiles a kernel per array size (its offsets are literals), which a fit with
+    thousands of differently sized views kept in memory; :func:`columns` reads the components and compiles none."""
+    import drjit as dr
+    import mitsuba as mi
+
+    from gra_mi.core.runtime import columns
+
+    rng = np.random.default_rng(1)
+    values = {n: rng.random((n, 3)).astype(np.float32) for n in (5, 97, 1000)}
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        dr.kernel_history()  # clear
+        for n, expected in values.items():
+            np.testing.assert_array_equal(columns(mi.Color3f(*expected.T)), expected)
+        assert not [h for h in dr.kernel_history() if h["type"] == dr.KernelType.JIT]
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)

@@ -19,6 +19,8 @@ import os
 import re
 from dataclasses import dataclass
 
+import numpy as np
+
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 
 logger = logging.getLogger(__name__)
@@ -168,6 +170,18 @@ def torch_device() -> str:
     if RUNTIME.torch_device is None:
         RUNTIME.torch_device = pick_torch_device()
     return RUNTIME.torch_device
+
+
+def columns(value) -> np.ndarray:
+    """A Dr.Jit vector (``mi.Color3f``, ``mi.Point2f``, …) as an (N, C) NumPy array, read component by component.
+
+    ``np.array(vector)`` runs a kernel whose component offsets (N, 2N) are literals: one kernel per array size, each
+    compiled once and kept in memory. A fit's views each have their own size; read this way, none compiles anything.
+    """
+    import drjit as dr
+
+    dr.eval(value)
+    return np.stack([np.asarray(value[i]) for i in range(len(value))], axis=1)
 
 
 def opaque(kind, values):

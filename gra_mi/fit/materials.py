@@ -41,6 +41,7 @@ from gra_mi.core.io import atomic_path, read_checkpoint_npz
 from gra_mi.core.metrics import subject_mask
 from gra_mi.core.progress import progress
 from gra_mi.core.provenance import claim_output
+from gra_mi.core.runtime import columns
 from gra_mi.fit.levels import LevelStart, fit_levels
 from gra_mi.fit.optimize import Evidence
 from gra_mi.fit.prior import SurfaceGraph
@@ -294,7 +295,7 @@ class MaterialFitter:
                 self._lighting[view.frame], self.stage.camera(view.camera).position,
             )  # fmt: skip
         diffuse, spec = self._loops[key].run(mi.Float(np.asarray(roughness, np.float32)[texels]))
-        return np.array(diffuse).T.reshape(texels.size, 3), np.array(spec).T.reshape(texels.size, 3)
+        return columns(diffuse), columns(spec)
 
     # ----------------------------------------------------------------------------------------------------------
 

@@ -36,7 +36,7 @@ from gra_mi.capture.dataset import load_fit_observation
 from gra_mi.core.errors import GraMiInputError
 from gra_mi.core.io import atomic_path, read_checkpoint_npz
 from gra_mi.core.progress import progress
-from gra_mi.core.runtime import opaque
+from gra_mi.core.runtime import columns, opaque
 from gra_mi.fit.views import batch_at, curve_sample
 from gra_mi.render.shading import TexelLedLoop
 
@@ -93,7 +93,7 @@ def pixel_footprints(ls, camera, atlas, alpha: np.ndarray, samples: int = FOOTPR
     ray = mi.Ray3f(mi.Point3f(*origin.T), mi.Vector3f(*d.T.astype(np.float32)))
     si = ls.scene.ray_intersect(ray, ray_flags=mi.RayFlags.UV, coherent=True)
     hit = np.array(si.is_valid())
-    uv = np.array(si.uv).T.reshape(-1, 2)
+    uv = columns(si.uv)
     x, y = uv[:, 0] * r - 0.5, uv[:, 1] * r - 0.5
     x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
     fx, fy = x - x0, y - y0
@@ -234,7 +234,7 @@ def image_l1(batches: TrainingViews, albedo: np.ndarray, roughness: np.ndarray, 
     total = 0.0
     for k in views:
         b = batches[int(k)]
-        residual = np.abs(np.array(_predict(b, a, r) - b.observed))
+        residual = np.abs(columns(_predict(b, a, r) - b.observed))
         total += float(residual.sum()) * b.weight
     return total / (3.0 * max(sum(batches.pixels[int(k)] for k in views), 1))
 
@@ -247,7 +247,7 @@ def curve_views(batches: TrainingViews) -> np.ndarray:
 def view_l1(batches: TrainingViews, albedo: np.ndarray, roughness: np.ndarray) -> list[float]:
     """Mean absolute L1 over each view's pixels (radiance units)."""
     a, r = mi.Color3f(*np.asarray(albedo, np.float32).T), mi.Float(np.asarray(roughness, np.float32))
-    return [float(np.abs(np.array(_predict(b, a, r) - b.observed)).mean()) for b in batches]
+    return [float(np.abs(columns(_predict(b, a, r) - b.observed)).mean()) for b in batches]
 
 
 @dataclass
@@ -268,7 +268,7 @@ def gather_evidence(batches: TrainingViews, albedo: np.ndarray, roughness: np.nd
     for b in batches:
         diffuse, spec, dspec = b.shade(dr.gather(mi.Float, r_all, b.texels))
         pred = dr.gather(mi.Color3f, a_all, b.texels) * diffuse + spec
-        pred, dspec = np.array(pred).T.reshape(b.count, 3), np.array(dspec).T.reshape(b.count, 3)
+        pred, dspec = columns(pred), columns(dspec)
         texels = np.array(b.texels).astype(np.int64)
         change = 0.1 * np.abs(dspec).mean(axis=1) / np.maximum(pred.mean(axis=1), 1e-8)
         np.add.at(views, texels, 1)
