@@ -66,17 +66,22 @@ def gra_mi(*args: str) -> list[str]:
     return [sys.executable, "-m", "gra_mi.cli", *args]
 
 
-def run_scale(scale: int, work: Path, envmap: Path) -> list[dict]:
+def run_scale(scale: int, work: Path, envmap: Path, stages: set[str]) -> list[dict]:
     cap, fit = work / f"capture_x{scale}", work / f"fit_x{scale}"
     views, frames = 48 * scale, 8 * scale
-    rows = [{"stage": "capture", "scale": scale, "units": frames + 2, "unit": "frame"}]
-    rows[-1] |= measured([sys.executable, __file__, "--job", "capture", "--scale", str(scale), "--out", str(cap)])
-    fit_args = ["fit", str(cap), "--iterations", "60"]
-    rows.append({"stage": f"fit, --batch-views {BATCH_VIEWS}", "scale": scale, "units": views, "unit": "view"})
-    rows[-1] |= measured(gra_mi(*fit_args, "--batch-views", str(BATCH_VIEWS), "--out", str(fit)))
-    if scale <= FULL_BATCH_UP_TO:
+    rows = []
+    if "capture" in stages:
+        rows.append({"stage": "capture", "scale": scale, "units": frames + 2, "unit": "frame"})
+        rows[-1] |= measured([sys.executable, __file__, "--job", "capture", "--scale", str(scale), "--out", str(cap)])
+    fit_args = ["fit", str(cap), "--iterations", "60", "--overwrite"]
+    if "fit" in stages:
+        rows.append({"stage": f"fit, --batch-views {BATCH_VIEWS}", "scale": scale, "units": views, "unit": "view"})
+        rows[-1] |= measured(gra_mi(*fit_args, "--batch-views", str(BATCH_VIEWS), "--out", str(fit)))
+    if "full-batch" in stages and scale <= FULL_BATCH_UP_TO:
         rows.append({"stage": "fit, full batch", "scale": scale, "units": views, "unit": "view"})
         rows[-1] |= measured(gra_mi(*fit_args, "--out", str(work / f"fit_full_x{scale}")))
+    if "relight" not in stages:
+        return rows
     relight = ["relight", str(cap / "scene.xml"), "--frames", "all", "--cameras", "cam06", "--envmap", str(envmap)]
     relight += ["--albedo", str(fit / "albedo.exr"), "--roughness", str(fit / "roughness.exr"), "--vis-cache", str(fit / "cache")]
     rows.append({"stage": "relight", "scale": scale, "units": frames + 2, "unit": "frame"})
@@ -165,6 +170,11 @@ def main() -> None:
     parser.add_argument("--scales", default="1,4,16", help="Multiples of `small`'s training frames, comma-separated.")
     parser.add_argument("--work", type=Path, default=None, help="Keep the captures and fits here (default: a temporary folder).")
     parser.add_argument("--write", type=Path, default=None, help="Also write the Markdown page here.")
+    parser.add_argument(
+        "--stages", default="capture,fit,full-batch,relight",
+        help="What to measure, comma-separated: capture, fit (streamed), full-batch (fit), relight (with shards at 4×). "
+        "Without capture, the captures (and for relight, the fits) must already be in --work.",
+    )  # fmt: skip
     parser.add_argument("--job", choices=["capture"], help=argparse.SUPPRESS)
     parser.add_argument("--scale", type=int, help=argparse.SUPPRESS)
     parser.add_argument("--out", type=Path, help=argparse.SUPPRESS)
@@ -183,7 +193,7 @@ def main() -> None:
         write_exr(work / "sun.exr", reference_map("sun", 64))
         rows = []
         for scale in (int(s) for s in args.scales.split(",")):
-            rows += run_scale(scale, work, work / "sun.exr")
+            rows += run_scale(scale, work, work / "sun.exr", set(args.stages.split(",")))
             print(json.dumps(rows[-1]), flush=True)
     publish_page(markdown(rows, stamp_said(run_stamp(preset="small ×k", variant=variant))), args.write)
 
