@@ -126,14 +126,16 @@ def test_pixel_footprints_predict_the_images(onebounce_capture):
     assert truth < 0.05 and truth < constant / 3, (truth, constant)
 
 
-def test_adam_fit_resumes_where_it_stopped(onebounce_capture, tmp_path, monkeypatch):
-    # An interrupted Adam run resumes from its checkpoint and ends where an uninterrupted run ends.
+@pytest.mark.parametrize("batch_views", [0, 6], ids=["full batch", "streamed minibatches"])
+def test_adam_fit_resumes_where_it_stopped(onebounce_capture, tmp_path, monkeypatch, batch_views):
+    # An interrupted Adam run resumes from its checkpoint and ends where an uninterrupted run ends; streamed, because
+    # a step's minibatch depends only on its number.
     from gra_mi.capture.dataset import Capture
     from gra_mi.fit import optimize
     from gra_mi.fit.materials import RUN_TO_RUN, FitConfig, MaterialFitter
 
     capture = Capture.load(onebounce_capture)
-    config = FitConfig(roughness_candidates=5, irls_iterations=1, iterations=20)
+    config = FitConfig(roughness_candidates=5, irls_iterations=1, iterations=20, batch_views=batch_views)
     whole = MaterialFitter(capture, config).fit(tmp_path / "whole")
 
     step = optimize.MapOptimizer.step
@@ -155,7 +157,8 @@ def test_adam_fit_resumes_where_it_stopped(onebounce_capture, tmp_path, monkeypa
     np.testing.assert_allclose(resumed.roughness, whole.roughness, atol=RUN_TO_RUN)
     # The checkpoint belongs to its settings: other options are refused, naming the file.
     with pytest.raises(GraMiInputError, match="optimize.npz"):
-        MaterialFitter(capture, FitConfig(roughness_candidates=5, irls_iterations=1, iterations=30)).fit(tmp_path / "resumed")
+        other = FitConfig(roughness_candidates=5, irls_iterations=1, iterations=30, batch_views=batch_views)
+        MaterialFitter(capture, other).fit(tmp_path / "resumed")
 
 
 def test_bad_capture_folder(tmp_path):
@@ -265,32 +268,6 @@ def test_minibatch_fit_matches_the_full_batch_fit(onebounce_capture, tmp_path):
     image_full, image_b = np.mean(list(full.per_view_l1.values())), np.mean(list(batched.per_view_l1.values()))
     assert image_b < 1.05 * image_full, (image_full, image_b)
     assert "of" in batched.loss_measure, "a streamed fit says on how many views its curve is measured"
-
-
-def test_streamed_fit_resumes_where_it_stopped(onebounce_capture, tmp_path, monkeypatch):
-    # The minibatch of a step depends only on its number: an interrupted streamed fit resumes to the same maps.
-    from gra_mi.capture.dataset import Capture
-    from gra_mi.fit import optimize
-    from gra_mi.fit.materials import RUN_TO_RUN, FitConfig, MaterialFitter
-
-    capture = Capture.load(onebounce_capture)
-    config = FitConfig(roughness_candidates=3, irls_iterations=0, iterations=16, batch_views=6)
-    whole = MaterialFitter(capture, config).fit(tmp_path / "whole")
-    step, calls = optimize.MapOptimizer.step, {"n": 0}
-
-    def interrupted(self, *args):
-        calls["n"] += 1
-        if calls["n"] == 13:
-            raise KeyboardInterrupt
-        return step(self, *args)
-
-    monkeypatch.setattr(optimize.MapOptimizer, "step", interrupted)
-    with pytest.raises(KeyboardInterrupt):
-        MaterialFitter(capture, config).fit(tmp_path / "resumed")
-    monkeypatch.setattr(optimize.MapOptimizer, "step", step)
-    resumed = MaterialFitter(capture, config).fit(tmp_path / "resumed")
-    np.testing.assert_allclose(resumed.albedo, whole.albedo, atol=RUN_TO_RUN)
-    np.testing.assert_allclose(resumed.roughness, whole.roughness, atol=RUN_TO_RUN)
 
 
 def test_resample_between_levels_is_exact_on_linear_maps():

@@ -371,7 +371,7 @@ def test_columns_reads_vectors_of_any_size_without_compiling(llvm_variant):
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     try:
         dr.kernel_history()  # clear
-        for n, expected in values.items():
+        for expected in values.values():
             np.testing.assert_array_equal(columns(mi.Color3f(*expected.T)), expected)
         assert not [h for h in dr.kernel_history() if h["type"] == dr.KernelType.JIT]
     finally:
