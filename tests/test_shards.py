@@ -101,6 +101,9 @@ def test_two_capture_shards_write_what_one_process_writes(tmp_path, monkeypatch,
         (["relight", str(TINY), "--olat", "1", "--shard", "3/2"], "--shard"),
         (["relight", str(TINY), "--olat", "1", "--shard", "x"], "--shard"),
         (["capture", "--preset", "tiny", "--shard", "0/2", "--overwrite"], "--overwrite"),
+        (["refiner-data", "--synthetic", "--shard", "0/2"], "--shard"),
+        (["import", "humanolat", "nowhere", "--shard", "2/2"], "--shard"),
+        (["eval-lighting", "nowhere", "--fit", "nowhere", "--shard", "0/0"], "--shard"),
     ],
 )
 def test_bad_shards_on_the_command_line(tmp_path, args, said):
