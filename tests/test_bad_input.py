@@ -386,6 +386,10 @@ OPTION_CASES = [
     ("capture-without", ["capture", "--preset", "tiny", "--without", "gravity"], ["gravity"]),
     ("capture-test-envmap", ["capture", "--preset", "tiny", "--test-envmap", "{root}/nan.exr"], ["nan.exr", "NaN"]),
     ("capture-preset", ["capture", "--preset", "huge"], ["--preset"]),
+    ("capture-lightings-olat", ["capture", "--preset", "olat", "--training-lightings", "64"], ["--training-lightings", "OLATs"]),
+    ("capture-lightings-zero", ["capture", "--preset", "tiny", "--training-lightings", "0"], ["--training-lightings", ">= 1"]),
+    ("capture-margin-unframed", ["capture", "--preset", "tiny", "--framing-margin", "0.1"], ["--framing-margin", "not framed"]),
+    ("capture-margin-too-wide", ["capture", "--preset", "small", "--framing-margin", "0.5"], ["--framing-margin", "[0, 0.5)"]),
     # train-relightnet
     ("rn-steps", [*RN, "--steps", "0"], ["--steps"]),
     ("rn-lr", [*RN, "--lr", "nan"], ["--lr"]),

@@ -51,13 +51,27 @@ def test_ground_truth_estimator_agrees_with_mitsuba_path(llvm_variant):
     assert relative_rmse(ours, reference, mask) < 0.5 * relative_rmse(plain, reference, mask)
 
 
+@pytest.mark.parametrize("name, lightings", [("small", 64), ("medium", 256)])
+def test_lighting_rich_presets(name, lightings):
+    """The demo's presets: at least 64 (small) and 256 (medium) distinct training envmaps, cameras framed on the
+    subject, the relit frames' own sample counts powers of 4 (ldsampler's)."""
+    preset = PRESETS[name]
+    n_relit = len(preset.train_clips) * preset.train_kinds().count("envmap")
+    train = [f"envmaps/train/train_{i:04d}.exr" for i in range(n_relit)]
+    frames = _schedule(preset, train, [("envmap", "envmaps/test/test_0000.exr")] * len(preset.test_clips))
+    assert len({f.envmap for f in frames if f.split == "train" and f.kind == "envmap"}) >= lightings
+    assert preset.framed and preset.height > preset.width  # portrait, as a full-body rig is set up
+    assert all(n in (4, 16, 64, 256) for n in (preset.relit_spp, preset.relit_indirect_spp))
+
+
 def test_medium_preset_lighting_plan():
     preset = PRESETS["medium"]
-    train = [f"envmaps/train/train_{i:04d}.exr" for i in range(48)]
+    n_relit = len(preset.train_clips) * preset.train_kinds().count("envmap")
+    train = [f"envmaps/train/train_{i:04d}.exr" for i in range(n_relit)]
     sources = [("envmap", "envmaps/test/test_0000.exr"), ("envmap", "envmaps/test/test_0001.exr"), ("pattern", "patterns/p.json")]
     frames = _schedule(preset, train, sources)
     training = [f for f in frames if f.split == "train" and f.kind == "envmap"]
-    assert len({f.envmap for f in training}) >= 48
+    assert len({f.envmap for f in training}) >= 256
     tests = {}
     for f in frames:
         if f.split == "test":

@@ -44,8 +44,10 @@ class DemoPreset:
     capture: str  # capture preset
     renderer: str  # ground truth renderer of the capture
     roughness_candidates: int
+    fit_frame_step: int  # the fit sees every Nth training frame (RelightNet sees them all)
     relightnet_steps: int
     refiner_scale: float  # capture images → refiner frames (then padded to multiples of 16)
+    refiner_zoom: float  # the refiner's subject crop, magnified over refiner_scale (1: a framed capture's subject)
     refiner_steps: int  # training steps of the tiny refiner
     refiner_euler_steps: int
     lighting_spp: int  # samples per pixel of the path-traced truth under the reference environments
@@ -73,12 +75,12 @@ PRESETS = {
         relightnet_steps=1000, synthesized_lightings=1024, library_envmaps=8,
     ),
     "tiny": DemoPreset(
-        name="tiny", capture="tiny", renderer="onebounce", roughness_candidates=5, relightnet_steps=20, refiner_scale=0.25,
-        refiner_steps=20, refiner_euler_steps=4, lighting_spp=16, platform_spp=4,
+        name="tiny", capture="tiny", renderer="onebounce", roughness_candidates=5, fit_frame_step=1, relightnet_steps=20,
+        refiner_scale=0.25, refiner_zoom=4.0, refiner_steps=20, refiner_euler_steps=4, lighting_spp=16, platform_spp=4,
     ),
     "small": DemoPreset(
-        name="small", capture="small", renderer="path", roughness_candidates=11, relightnet_steps=1000, refiner_scale=0.5,
-        refiner_steps=100, refiner_euler_steps=10, lighting_spp=256, platform_spp=32,
+        name="small", capture="small", renderer="path", roughness_candidates=11, fit_frame_step=3, relightnet_steps=1000,
+        refiner_scale=1.0, refiner_zoom=1.0, refiner_steps=100, refiner_euler_steps=10, lighting_spp=256, platform_spp=32,
     ),
 }  # fmt: skip
 
@@ -252,7 +254,8 @@ def _learn_stages(preset: DemoPreset, capture, out: Path, record: dict):
 
     timings = record["timings"]
     with _timed(timings, "material fit"):
-        fit_result, _ = run_fit(capture.folder, out / "fit", FitConfig(roughness_candidates=preset.roughness_candidates))
+        fit_config = FitConfig(roughness_candidates=preset.roughness_candidates, frame_step=preset.fit_frame_step)
+        fit_result, _ = run_fit(capture.folder, out / "fit", fit_config)
     record["fit"] = json.loads((out / "fit" / "fit.json").read_text())
     with _timed(timings, f"RelightNet training ({preset.relightnet_steps} steps) + validation"):
         train_relightnet(capture.folder, out / "fit", out / "relightnet", TrainConfig(steps=preset.relightnet_steps))
@@ -351,7 +354,7 @@ def _refiner_stage(preset: DemoPreset, capture, out: Path, timings: dict) -> dic
                 out / "fit",
                 data_dir,
                 relightnet_dir=out / "relightnet",
-                config=CaptureSequencesConfig(scale=preset.refiner_scale),
+                config=CaptureSequencesConfig(scale=preset.refiner_scale, zoom=preset.refiner_zoom),
                 cache_dir=out / "cache" / "visibility",
             )
     with _timed(timings, f"video refiner training (tiny, {preset.refiner_steps} steps)"):

@@ -37,10 +37,11 @@ from gra_mi.core.shard import Shard
 from gra_mi.render.runtime import ensure_mitsuba
 from gra_mi.stage.envmap import downsample_envmap, led_fidelity, load_envmap
 from gra_mi.stage.envmap_library import write_envmap_set
+from gra_mi.stage.framing import frame_subject
 from gra_mi.stage.lightstage import default_lightstage, olat_pattern
 from gra_mi.stage.scene import LightstageScene, subject_scene_xml, write_rig
 from gra_mi.subject.anny_body import anny_sequence
-from gra_mi.subject.sequence import save_sequence, tiny_subject
+from gra_mi.subject.sequence import load_sequence, save_sequence, tiny_subject
 
 logger = logging.getLogger(__name__)
 
@@ -51,7 +52,7 @@ class CapturePreset:
     subject: str  # "tiny" or "anny"
     train_clips: list[str]
     test_clips: list[str]  # one test sequence per clip, under held-out lighting
-    frames_per_clip: int  # training clips (even frames uniformly lit, odd frames each under its own envmap)
+    frames_per_clip: int  # training clips: a uniformly lit frame, then relit_per_uniform frames each under its own envmap
     num_leds: int
     num_cameras: int
     eval_cameras: int  # the last cameras are held out for novel-view evaluation
@@ -68,6 +69,17 @@ class CapturePreset:
     test_lighting: list[str] | None = None  # per test clip: "envmap" (held out) or "olat" (default: all envmaps)
     static_olat: bool = False  # a static pose lit as HumanOLAT lights one: white, 2 gradients, envmaps, every OLAT
     envmap_frames: int = 10  # static_olat: the environment-lit frames (the held-out lighting)
+    relit_per_uniform: int = 1  # environment-lit training frames after each uniformly lit one (the paper: 1)
+    # The environment-lit training frames' own sample counts (default: spp, indirect_spp): training data, whose
+    # unbiased noise averages out over many frames, can be cheaper than the test frames that scores are measured on.
+    relit_spp: int | None = None
+    relit_indirect_spp: int | None = None
+    framed: bool = False  # each camera cropped to the subject's box over the whole sequence (stage/framing.py)
+    framing_margin: float = 0.04  # of the image, per side, around that box
+
+    def train_kinds(self) -> list[str]:
+        """One training clip's lighting per frame: "uniform" or "envmap"."""
+        return ["uniform" if k % (self.relit_per_uniform + 1) == 0 else "envmap" for k in range(self.frames_per_clip)]
 
     def test_lightings(self) -> list[str]:
         return self.test_lighting or ["envmap"] * len(self.test_clips)
@@ -82,17 +94,19 @@ PRESETS = {
         num_cameras=8, eval_cameras=1, width=320, height=240, camera_distance=1.2, uv_resolution=32, envmap_height=32,
         spp=4, indirect_spp=16,
     ),
+    # The demo: 64 training envmaps (8 relit frames after each uniform one, at a quarter of the samples), cameras
+    # framed on the subject (about 265 pixels tall in every camera).
     "small": CapturePreset(
-        name="small", subject="anny", train_clips=["walk"], test_clips=["squat"], frames_per_clip=8, num_leds=331,
-        num_cameras=8, eval_cameras=2, width=256, height=135, camera_distance=1.8, uv_resolution=256, envmap_height=64,
-        spp=16, indirect_spp=64,
+        name="small", subject="anny", train_clips=["walk"], test_clips=["squat"], frames_per_clip=72, relit_per_uniform=8,
+        test_frames_per_clip=8, num_leds=331, num_cameras=8, eval_cameras=2, width=216, height=288, camera_distance=1.8,
+        uv_resolution=256, envmap_height=64, spp=16, indirect_spp=64, relit_spp=4, relit_indirect_spp=16, framed=True,
     ),
-    # 48 training envmaps over three motions; test: two held-out envmaps and one OLAT (out of distribution).
+    # 264 training envmaps over three motions; test: two held-out envmaps and one OLAT (out of distribution).
     "medium": CapturePreset(
         name="medium", subject="anny", train_clips=["walk", "arm_raise", "turn"], test_clips=["squat", "walk", "arm_raise"],
-        frames_per_clip=32, num_leds=331, num_cameras=8, eval_cameras=2, width=192, height=108, camera_distance=1.8,
-        uv_resolution=256, envmap_height=64, spp=16, indirect_spp=64, test_frames_per_clip=17,
-        test_lighting=["envmap", "envmap", "olat"],
+        frames_per_clip=99, relit_per_uniform=8, num_leds=331, num_cameras=8, eval_cameras=2, width=216, height=288,
+        camera_distance=1.8, uv_resolution=256, envmap_height=64, spp=16, indirect_spp=64, relit_spp=4, relit_indirect_spp=16,
+        test_frames_per_clip=17, test_lighting=["envmap", "envmap", "olat"], framed=True,
     ),
     # A static pose as HumanOLAT captures one (white, 2 gradients, 10 envmaps, 331 OLATs), cameras in portrait.
     "olat": CapturePreset(
@@ -110,7 +124,7 @@ PRESETS = {
     "full": CapturePreset(
         name="full", subject="anny", train_clips=["walk", "arm_raise", "turn"], test_clips=["squat"], frames_per_clip=24,
         num_leds=331, num_cameras=40, eval_cameras=3, width=1024, height=540, camera_distance=1.8, uv_resolution=512,
-        envmap_height=128, spp=64, indirect_spp=256,
+        envmap_height=128, spp=64, indirect_spp=256, framed=True,
     ),
 }  # fmt: skip
 
@@ -215,12 +229,13 @@ GT_BSDF = """<bsdf type="normalmap" id="gt_material">
 
 
 def _schedule(preset: CapturePreset, train_envmaps: list[str], test_sources: list[tuple[str, str]]) -> list[FrameLighting]:
-    """Training: even frames uniformly lit (tracking), odd frames each under the next training envmap. Test: one
+    """Training: a uniformly lit frame (tracking), then ``relit_per_uniform`` frames each under the next training
+    envmap, and so on. Test: one
     sequence per test clip under one held-out lighting, ``(kind, file)`` with kind "envmap" or "pattern"."""
     frames, t, relit = [], 0, 0
     for _ in preset.train_clips:
-        for k in range(preset.frames_per_clip):
-            if k % 2 == 0:
+        for kind in preset.train_kinds():
+            if kind == "uniform":
                 frames.append(FrameLighting(t, "train", 0, "uniform", None))
             else:
                 frames.append(FrameLighting(t, "train", 0, "envmap", train_envmaps[relit % len(train_envmaps)]))
@@ -342,10 +357,21 @@ def noise_probe_frames(capture: Capture) -> dict[str, FrameLighting]:
     return probes
 
 
-def measure_ground_truth_noise(capture: Capture, source, renderer: GroundTruthRenderer, camera: str, pose=None) -> dict[str, dict]:
+def ground_truth_renderers(record: dict):
+    """``renderer_for(entry)``: the renderer of a capture frame, with the environment-lit training frames' own sample
+    counts where the record has them (``relit_spp``, ``relit_indirect_spp``)."""
+    depth = record["max_depth"]
+    default = GroundTruthRenderer(spp=record["spp"], indirect_spp=record["indirect_spp"], max_depth=depth)
+    if "relit_spp" not in record:
+        return lambda entry: default
+    relit = GroundTruthRenderer(spp=record["relit_spp"], indirect_spp=record["relit_indirect_spp"], max_depth=depth)
+    return lambda entry: relit if (entry.split == "train" and entry.kind == "envmap") else default
+
+
+def measure_ground_truth_noise(capture: Capture, source, renderer_for, camera: str, pose=None) -> dict[str, dict]:
     """Relative RMSE of the ground truth against a render of the same view with 16x the samples (other seeds).
 
-    ``pose(frame)`` moves ``source`` to a frame (default: ``source.set_frame``). The reference's own noise is a
+    ``renderer_for(entry)``: each frame's renderer (:func:`ground_truth_renderers`). ``pose(frame)`` moves ``source`` to a frame (default: ``source.set_frame``). The reference's own noise is a
     quarter of the image's, so the figure overstates the noise by at most 3 % of itself."""
     import time
 
@@ -353,7 +379,7 @@ def measure_ground_truth_noise(capture: Capture, source, renderer: GroundTruthRe
     for label, entry in noise_probe_frames(capture).items():
         (pose or source.set_frame)(entry.mesh_frame)
         source.set_led_intensities(capture.lighting(source.stage, entry))
-        sensor = source.sensor_index(camera)
+        sensor, renderer = source.sensor_index(camera), renderer_for(entry)
         start = time.perf_counter()
         image = renderer.render(source.scene, sensor, seed=entry.frame)
         seconds = time.perf_counter() - start
@@ -364,6 +390,7 @@ def measure_ground_truth_noise(capture: Capture, source, renderer: GroundTruthRe
             "envmap": entry.envmap,
             "relative_rmse": round(relative_rmse(image, reference, mask=reference[..., 3] > 0.5), 5),
             "seconds_per_image": round(seconds, 3),
+            "spp": [renderer.spp, renderer.indirect_spp],
         }
     return out
 
@@ -373,8 +400,9 @@ class CaptureConfig:
     """A synthetic capture (:func:`generate_capture`)."""
 
     preset: str = field(default="small", metadata=option(choices=tuple(sorted(PRESETS))))
-    """tiny: CI, seconds; small: the demo, minutes; medium: 48 training envmaps, 8 cameras, OLAT test, about 15
-    minutes on 2 cores; full: 40 cameras at 1024x540, 512² UV (a GPU's work)."""
+    """tiny: CI, seconds; small: the demo (64 training envmaps, 8 cameras at 216x288 framed on the subject), minutes;
+    medium: 264 training envmaps over three motions, OLAT test, about an hour on 2 cores; full: 40 cameras at
+    1024x540, 512² UV (a GPU's work)."""
     renderer: str = field(default="path", metadata=option(choices=RENDERERS))
     """Ground truth: Mitsuba path tracing of a richer material (default), or gra-mi's one-bounce model (recovery tests)."""
     spp: int | None = None
@@ -386,6 +414,12 @@ class CaptureConfig:
     Fitting such captures shows what each effect costs the one-bounce fit (docs/results/fit.md)."""
     measure_noise: bool = True
     """Measure the ground truth's noise against 4x the samples on a few views (capture.json)."""
+    training_lightings: int | None = None
+    """Environment-lit training frames, each under its own map (default: the preset's). The training clips get as many
+    frames as that takes, keeping the preset's relit frames per uniformly lit one."""
+    framing_margin: float | None = None
+    """A framed preset's margin around the subject's box, a fraction of the image per side in [0, 0.5) (default: the
+    preset's)."""
 
     def validate(self) -> None:
         if self.preset not in PRESETS:
@@ -405,10 +439,37 @@ class CaptureConfig:
                 f"expected effects of the path-traced ground truth among {', '.join(ABLATABLE_EFFECTS)}, got {', '.join(self.without)}",
             )
 
+        self._validate_framing(PRESETS[self.preset])
+
+    def _validate_framing(self, preset: CapturePreset) -> None:
+        if self.training_lightings is not None:
+            if preset.static_olat:
+                raise GraMiParameterError(
+                    "training_lightings",
+                    f"the {preset.name} preset lights one static pose by its OLATs; it has no environment-lit training frames",
+                )
+            if self.training_lightings < 1:
+                raise GraMiParameterError("training_lightings", f"must be >= 1, got {self.training_lightings}")
+        if self.framing_margin is not None:
+            if not preset.framed:
+                raise GraMiParameterError("framing_margin", f"the {preset.name} preset's cameras are not framed on the subject")
+            if not 0 <= self.framing_margin < 0.5:
+                raise GraMiParameterError(
+                    "framing_margin",
+                    f"a fraction of the image per side in [0, 0.5) (0.5 leaves no room for the subject), got {self.framing_margin}",
+                )
+
     def resolved(self) -> CapturePreset:
-        """The preset with this run's sample counts."""
+        """The preset with this run's sample counts, training lightings and framing margin."""
         preset = PRESETS[self.preset]
-        return replace(preset, spp=self.spp or preset.spp, indirect_spp=self.indirect_spp or preset.indirect_spp)
+        preset = replace(preset, spp=self.spp or preset.spp, indirect_spp=self.indirect_spp or preset.indirect_spp)
+        if self.framing_margin is not None:
+            preset = replace(preset, framing_margin=self.framing_margin)
+        if self.training_lightings is not None:  # whole cycles of one uniform frame and its relit ones, per clip
+            per_clip = math.ceil(self.training_lightings / len(preset.train_clips))
+            cycles = math.ceil(per_clip / preset.relit_per_uniform)
+            preset = replace(preset, frames_per_clip=cycles * (preset.relit_per_uniform + 1))
+        return preset
 
     def record(self) -> dict:
         """How the ground truth is rendered (renderer, sample counts, effects left out): part of the run's identity,
@@ -420,7 +481,11 @@ class CaptureConfig:
             counts = {"spp": preset.spp, "indirect_spp": 0, "max_depth": 2}
         else:
             counts = {"spp": preset.spp, "indirect_spp": preset.indirect_spp, "max_depth": preset.max_depth}
-        return {"renderer": self.renderer, **counts, **({"without": sorted(self.without)} if self.without else {})}
+        if self.renderer == "path" and (preset.relit_spp or preset.relit_indirect_spp):
+            counts["relit_spp"] = preset.relit_spp or counts["spp"]
+            counts["relit_indirect_spp"] = preset.relit_indirect_spp or counts["indirect_spp"] if counts["indirect_spp"] else 0
+        chosen = {k: getattr(self, k) for k in ("training_lightings", "framing_margin") if getattr(self, k) is not None}
+        return {"renderer": self.renderer, **counts, **({"without": sorted(self.without)} if self.without else {}), **chosen}
 
 
 def generate_capture(
@@ -448,15 +513,9 @@ def generate_capture(
     claim_output(out, "capture", {}, {"preset": config.preset, **record, "test_envmaps": envmap_ids}, overwrite=overwrite, shard=shard)
     previous = Capture.load(out) if (out / "capture.json").is_file() else None  # a resume keeps what it measured
 
-    stage = default_lightstage(
-        num_leds=preset.num_leds,
-        num_cameras=preset.num_cameras,
-        camera_distance=preset.camera_distance,
-        width=preset.width,
-        height=preset.height,
-    )
-    write_rig(stage, out / "rig")
     _write_subject(preset, out)
+    stage = _capture_rig(preset, out)
+    write_rig(stage, out / "rig")
     if preset.static_olat:
         schedule = _olat_schedule(preset, stage, out, test_envmaps or {})
     else:
@@ -478,6 +537,21 @@ def generate_capture(
     return capture
 
 
+def _capture_rig(preset: CapturePreset, out: Path):
+    """The preset's rig; a framed preset crops each camera to the box the subject's whole sequence covers in it."""
+    stage = default_lightstage(
+        num_leds=preset.num_leds,
+        num_cameras=preset.num_cameras,
+        camera_distance=preset.camera_distance,
+        width=preset.width,
+        height=preset.height,
+    )
+    if preset.framed:
+        vertices = load_sequence(out / "subject").vertices
+        stage.cameras = frame_subject(stage.cameras, vertices.reshape(-1, 3), preset.width, preset.height, preset.framing_margin)
+    return stage
+
+
 def _write_subject(preset: CapturePreset, out: Path) -> None:
     if (out / "subject" / "sequence.npz").is_file():
         return
@@ -495,7 +569,7 @@ def _write_lighting(
     """The training envmaps, and each test clip's lighting: the user's maps first, then procedural ones, or the test
     OLAT. Also the scene file of the capture's rig and subject."""
 
-    n_relit = len(preset.train_clips) * (preset.frames_per_clip // 2)
+    n_relit = len(preset.train_clips) * preset.train_kinds().count("envmap")
     train_env = [str(p.relative_to(out)) for p in write_envmap_set(out / "envmaps", "train", max(n_relit, 1), preset.envmap_height)]
     test_kinds = preset.test_lightings()
     n_test_env = sum(k == "envmap" for k in test_kinds)
@@ -556,7 +630,7 @@ def _render_images(capture: Capture, stage, config: CaptureConfig, record: dict,
     out, preset = capture.folder, config.resolved()
     bsdf = ONEBOUNCE_BSDF if config.renderer == "onebounce" else GT_BSDF
     atomic_write_text(out / "scene_gt.xml", subject_scene_xml("rig", "subject", spp=preset.spp, bsdf_xml=bsdf))
-    gt_renderer = GroundTruthRenderer(spp=record["spp"], indirect_spp=record["indirect_spp"], max_depth=record["max_depth"])
+    renderer_for = ground_truth_renderers(record)
     source = LightstageScene.load(out / "scene_gt.xml")
 
     def pose(frame: int) -> None:
@@ -573,11 +647,11 @@ def _render_images(capture: Capture, stage, config: CaptureConfig, record: dict,
         if lit != entry.frame:
             source.set_led_intensities(capture.lighting(stage, entry))
             lit = entry.frame
-        write_exr(path, gt_renderer.render(source.scene, source.sensor_index(cam.name), seed=entry.frame))
+        write_exr(path, renderer_for(entry).render(source.scene, source.sensor_index(cam.name), seed=entry.frame))
     complete = all(capture.image_path(cam.name, entry.frame).is_file() for entry in capture.frames for cam in stage.cameras)
     if complete and config.measure_noise and config.renderer == "path" and "noise" not in capture.ground_truth:
         logger.info("measuring the ground truth's noise against %dx the samples", NOISE_REFERENCE_FACTOR)
-        capture.ground_truth["noise"] = measure_ground_truth_noise(capture, source, gt_renderer, stage.cameras[0].name, pose)
+        capture.ground_truth["noise"] = measure_ground_truth_noise(capture, source, renderer_for, stage.cameras[0].name, pose)
         capture.save()
 
 

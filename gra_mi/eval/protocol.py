@@ -427,7 +427,19 @@ def _score_split(split: Split, frames: dict, results: dict, config: EvalConfig, 
         results[stage].splits[split.name] = row
         previous = stage
     _contact_sheet(out / f"contact_{split.name}.png", frames, truths, masks, exposure, scored, split.name)
-    return {"frames": frames, "exposure": exposure, "coverage": frames.get("microfacet", frames.get("RelightNet"))}
+    heights = [subject_height(masks[f]) for f in scored]
+    return {
+        "frames": frames,
+        "exposure": exposure,
+        "coverage": frames.get("microfacet", frames.get("RelightNet")),
+        "subject_pixels": [min(heights), max(heights)],
+    }
+
+
+def subject_height(mask: np.ndarray) -> int:
+    """How many pixel rows the subject spans (0 without a subject)."""
+    rows = np.flatnonzero(np.asarray(mask).any(axis=1))
+    return int(rows[-1] - rows[0] + 1) if rows.size else 0
 
 
 UNCHANGED = 1e-3  # a stage whose frames differ from its input's by less (relative mean |Δ|) delivered its input
@@ -477,6 +489,7 @@ def _protocol(config: EvalConfig, scale: float, splits: list[Split], capture, vi
                 "frames": len(s.capture_frames),
                 "scored": scored_frames(s, config.frames),
                 "lighting_set": s.lighting_set,
+                "subject_pixels": videos[s.name]["subject_pixels"],  # rows the subject spans, least and most, scored frames
             }
             for s in splits
         },
@@ -740,9 +753,11 @@ def protocol_said(report: dict) -> str:
         )
         + " lightings per split)"
     )
+    tall = [s["subject_pixels"] for s in protocol["splits"].values() if "subject_pixels" in s]
+    tall_said = f", the subject {min(t[0] for t in tall)}–{max(t[1] for t in tall)} pixels tall" if tall else ""
     return (
         f"Held-out cameras under the held-out lighting, at {protocol['resolution'][0]}×{protocol['resolution'][1]} "
-        f"(capture images × {protocol['scale']:.3g}). Per-frame metrics on {frames}; the temporal error on every consecutive pair"
+        f"(capture images × {protocol['scale']:.3g}{tall_said}). Per-frame metrics on {frames}; the temporal error on every consecutive pair"
         + ("; FVD on all 17-frame clips" if protocol["fvd"] else "")
         + ". One mask per frame for every stage: the truth's alpha ≥ 0.5. PSNR, SSIM, ꟻLIP"
         + (", LPIPS" if protocol["lpips"] else "")

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -119,7 +120,16 @@ class Sample:
 
 
 HELD_OUT = ("novel view", "novel lighting (envmap)", "novel lighting (OLAT)", SYNTHESIZED_SPLIT)
-LAZY_TRAINING_BYTES = 2 << 30  # above this, training views are made when drawn instead of held
+
+
+def held_training_bytes() -> int:
+    """Training views are held in memory up to a quarter of the machine's memory (at least 2 GiB); above it they are
+    made when drawn (a UV render each time)."""
+    try:
+        total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):  # not POSIX
+        total = 0
+    return max(2 << 30, total // 4)
 
 
 def view_jobs(capture, splits=("train", *HELD_OUT)) -> list[tuple]:
@@ -250,7 +260,7 @@ def train_relightnet(capture_dir: str | Path, fit_dir: str | Path, out: str | Pa
 
 
 def _views(capture, relighter, config: TrainConfig, device: str, cache: Path | None) -> tuple[TrainingViews, list[Sample]]:
-    """The training views (held, or made when drawn when they would not fit ``LAZY_TRAINING_BYTES`` or lightings are
+    """The training views (held, or made when drawn when they would not fit :func:`held_training_bytes` or lightings are
     synthesized) and the held-out views (at most ``held_out_views`` per split, the selection views marked)."""
     make = CapturedView(capture, relighter, config.env_height, device)
     jobs = view_jobs(capture, HELD_OUT)
@@ -266,7 +276,7 @@ def _views(capture, relighter, config: TrainConfig, device: str, cache: Path | N
         held_out += validation
     mark_selection(held_out, config.selection_views)
     r = relighter.albedo_tex.shape[0]
-    if synth is None and len(train_jobs) * 4 * 20 * r * r <= LAZY_TRAINING_BYTES:
+    if synth is None and len(train_jobs) * 4 * 20 * r * r <= held_training_bytes():
         return TrainingViews([make(j) for j in progress(train_jobs, description="RelightNet samples")], make), held_out
     return TrainingViews(train_jobs, make, synth), held_out
 
