@@ -454,6 +454,8 @@ def test_eval_scores_every_stage_with_one_protocol(tiny_run, tmp_path):
     split = next(iter(report["protocol"]["splits"]))
     assert report["protocol"]["splits"][split]["scored"] == [0, 10] == frame_selection(20, "every10")
     assert report["protocol"]["resolution"] == [80, 60] and report["problems"] == []
+    least, most = report["protocol"]["splits"][split]["subject_pixels"]  # rows the truth's mask spans, scored frames
+    assert 0 < least <= most <= 60
     refined, deflickered = stages["refined"]["splits"][split], stages["deflickered"]["splits"][split]
     # the stand-in flickers by ±20 %: its temporal error is far above the renders'; flicker correction removes most
     assert refined["temporal"] > 3 * stages["RelightNet"]["splits"][split]["temporal"]
@@ -464,6 +466,7 @@ def test_eval_scores_every_stage_with_one_protocol(tiny_run, tmp_path):
         assert m["psnr"] > 25 and 0 < m["flip"] < 0.3 and m["frames_scored"] == 2
     text = (tmp_path / "eval" / "eval.md").read_text()
     assert "| + flicker correction |" in text and "every 10th frame (the paper's protocol)" in text
+    assert "pixels tall" in text
     for rel in ("eval.csv", "eval.json", f"contact_{split}.png", f"videos/{split}.mp4", f"videos/{split}_composite.mp4"):
         assert (tmp_path / "eval" / rel).is_file(), rel
     rows = (tmp_path / "eval" / "eval.csv").read_text().splitlines()

@@ -754,7 +754,8 @@ def protocol_said(report: dict) -> str:
         + " lightings per split)"
     )
     tall = [s["subject_pixels"] for s in protocol["splits"].values() if "subject_pixels" in s]
-    tall_said = f", the subject {min(t[0] for t in tall)}–{max(t[1] for t in tall)} pixels tall" if tall else ""
+    least, most = (min(t[0] for t in tall), max(t[1] for t in tall)) if tall else (0, 0)
+    tall_said = f", the subject {least}–{most} pixels tall" if least < most else f", the subject {most} pixels tall" if tall else ""
     return (
         f"Held-out cameras under the held-out lighting, at {protocol['resolution'][0]}×{protocol['resolution'][1]} "
         f"(capture images × {protocol['scale']:.3g}{tall_said}). Per-frame metrics on {frames}; the temporal error on every consecutive pair"
