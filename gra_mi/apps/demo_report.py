@@ -115,6 +115,10 @@ def _relightnet(r: dict) -> list[str]:
     ]
 
 
+def _zoom_said(zoom: float) -> str:
+    return "the subject's box at the delivered frames' own resolution" if zoom == 1 else f"{zoom:g}× the delivered frames"
+
+
 def _refiner(r: dict) -> list[str]:
     f = r["refiner"]
     train, chosen = f["train"], f["train"]["mix"]["chosen"]
@@ -124,7 +128,8 @@ def _refiner(r: dict) -> list[str]:
         f"Fine-tuned {train['steps']} steps (LoRA, VACE and envmap layers: {train['parameters']['trainable']:,} of "
         f"{train['parameters']['total']:,} parameters) from the shipped tiny prior — a DiT pretrained on another subject "
         "(`pipelines/pretrain_tiny_refiner.py`) — on RelightNet renders of the training cameras, seen as subject crops of "
-        f"{f['size']} pixels (4× the delivered frames; the refined crop's change goes back into the frame), then rolled over "
+        f"{f['size']} pixels ({_zoom_said(r['preset'].get('refiner_zoom', 4.0))}; the refined crop's change goes back into the "
+        "frame), then rolled over "
         f"the held-out sequence `{f['sequence']}`: {f['frames']} frames in {f['windows']} windows of 17 "
         f"({f['steps']} Euler steps each, {f['frames_per_second']:.2f} frames/s).",
         "",
@@ -215,18 +220,31 @@ def _noise(r: dict) -> list[str]:
         "",
         "Relative RMSE over the subject's pixels of one ground-truth image against a render of the same view with "
         f"16× the samples (direct light from every LED: {truth.get('spp', '?')} spp; interreflections: "
-        f"{truth.get('indirect_spp', '?')} spp).",
+        f"{truth.get('indirect_spp', '?')} spp"
+        + (
+            f"; the environment-lit training frames at {truth['relit_spp']} and {truth['relit_indirect_spp']} spp: training data, "
+            "their unbiased noise averages out over many frames, while the scored frames keep the full counts"
+            if "relit_spp" in truth
+            else ""
+        )
+        + ").",
         "",
-        "| frame | lighting | relative RMSE | s / image |",
-        "|---|---|---|---|",
+        "| frame | lighting | samples (direct, indirect) | relative RMSE | s / image |",
+        "|---|---|---|---|---|",
     ]
     if not truth.get("noise"):
-        lines.append(f"| – | not measured: the `{r['capture']['renderer']}` ground truth | – | – |")
+        lines.append(f"| – | not measured: the `{r['capture']['renderer']}` ground truth | – | – | – |")
     for label, row in truth.get("noise", {}).items():
         lines.append(
-            f"| {row['frame']} | {label} ({row['envmap'] or 'all LEDs'}) | {100 * row['relative_rmse']:.2f} % | {row['seconds_per_image']:.2f} |"
+            f"| {row['frame']} | {label} ({row['envmap'] or 'all LEDs'}) | {_samples_said(row, truth)} | {100 * row['relative_rmse']:.2f} % "
+            f"| {row['seconds_per_image']:.2f} |"
         )
     return lines + [""]
+
+
+def _samples_said(row: dict, truth: dict) -> str:
+    direct, indirect = row.get("spp", [truth.get("spp", "?"), truth.get("indirect_spp", "?")])  # older records: the capture's
+    return f"{direct}, {indirect}"
 
 
 def _fidelity(r: dict) -> list[str]:
