@@ -152,3 +152,17 @@ def test_olat_test_frames_light_one_led(tmp_path, default_stage):
     assert default_stage.led_directions()[lit[0]] @ key > 0.98
     capture.save()
     assert Capture.load(tmp_path).frames == capture.frames  # the pattern survives the round trip
+
+
+def test_training_lightings_option_grows_the_clips_in_whole_cycles():
+    """`capture --training-lightings N`: at least N distinct training envmaps, each cycle one uniform frame and the
+    preset's relit ones; the count is part of the capture's identity (a resume with another is refused)."""
+    for preset, n in (("tiny", 5), ("small", 100)):
+        config = CaptureConfig(preset=preset, training_lightings=n)
+        config.validate()
+        resolved = config.resolved()
+        kinds = resolved.train_kinds()
+        relit = len(resolved.train_clips) * kinds.count("envmap")
+        assert n <= relit < n + len(resolved.train_clips) * resolved.relit_per_uniform
+        assert len(kinds) % (resolved.relit_per_uniform + 1) == 0 and kinds[0] == "uniform"
+        assert config.record()["training_lightings"] == n

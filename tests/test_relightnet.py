@@ -290,3 +290,13 @@ def test_divergence_stops_training_keeps_finite_weights_and_is_recorded(capture_
     assert torch.load(out / "checkpoint.pt", weights_only=False)["divergence"]["step"] == 6
     with pytest.raises(GraMiInputError, match="diverged at step 6"):
         train_relightnet(root / "cap", root / "fit", out, TrainConfig(steps=16, lr=1e-3, validate_every=4, checkpoint_every=4))
+
+
+def test_training_views_are_held_up_to_a_quarter_of_the_memory():
+    """The demo's 384 training views (2.3 GB) are held, not re-rendered at every draw; never less than 2 GiB."""
+    import os
+
+    from gra_mi.relightnet.train import held_training_bytes
+
+    total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    assert held_training_bytes() == max(2 << 30, total // 4)
