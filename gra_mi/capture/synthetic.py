@@ -371,8 +371,9 @@ def ground_truth_renderers(record: dict):
 def measure_ground_truth_noise(capture: Capture, source, renderer_for, camera: str, pose=None) -> dict[str, dict]:
     """Relative RMSE of the ground truth against a render of the same view with 16x the samples (other seeds).
 
-    ``renderer_for(entry)``: each frame's renderer (:func:`ground_truth_renderers`). ``pose(frame)`` moves ``source`` to a frame (default: ``source.set_frame``). The reference's own noise is a
-    quarter of the image's, so the figure overstates the noise by at most 3 % of itself."""
+    ``renderer_for(entry)``: each frame's renderer (:func:`ground_truth_renderers`). ``pose(frame)`` moves
+    ``source`` to a frame (default: ``source.set_frame``). The reference's own noise is a quarter of the image's, so
+    the figure overstates the noise by at most 3 % of itself."""
     import time
 
     out = {}
@@ -406,7 +407,8 @@ class CaptureConfig:
     renderer: str = field(default="path", metadata=option(choices=RENDERERS))
     """Ground truth: Mitsuba path tracing of a richer material (default), or gra-mi's one-bounce model (recovery tests)."""
     spp: int | None = None
-    """Samples per pixel of the exact direct light (a power of 4). Default: the preset's."""
+    """Samples per pixel of the exact direct light (a power of 4). Default: the preset's. The environment-lit training
+    frames of `small` and `medium` keep their own, lower counts (capture.json: relit_spp, relit_indirect_spp)."""
     indirect_spp: int | None = None
     """Path samples per pixel of the interreflections (a power of 4). Default: the preset's."""
     without: list[str] = field(default_factory=list, metadata=option(parse=comma_list))
