@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from gra_mi.core.errors import GraMiParameterError
-from gra_mi.stage.framing import frame_subject, subject_box, subject_heights
+from gra_mi.stage.framing import frame_subject, subject_box
 from gra_mi.stage.lightstage import default_lightstage
 
 
@@ -106,11 +106,12 @@ def test_a_framed_lighting_rich_capture(tmp_path, monkeypatch):
     assert (record["relit_spp"], record["relit_indirect_spp"], record["spp"]) == (4, 4, preset.spp)
     assert {probe["spp"][0] for label, probe in record["noise"].items() if label != "uniform"} <= {4}
     cameras = synthetic.LightstageScene.load(tmp_path / "cap" / "scene.xml").stage.cameras
-    heights = subject_heights(cameras, load_sequence(tmp_path / "cap" / "subject").vertices)
+    vertices = load_sequence(tmp_path / "cap" / "subject").vertices.reshape(-1, 3)
     for camera in cameras:
         alpha = np.any([read_exr(capture.image_path(camera.name, f.frame))[..., 3] > 0.5 for f in capture.frames], axis=0)
         rows, cols = np.where(alpha.any(1))[0], np.where(alpha.any(0))[0]
         assert rows.min() >= 1 and cols.min() >= 1 and rows.max() <= 62 and cols.max() <= 46, camera.name  # inside the margin
         filled = max((rows.max() + 1 - rows.min()) / 64, (cols.max() + 1 - cols.min()) / 48)
         assert filled >= 0.85, camera.name  # the union of its frames fills 90 % of the binding axis
-        assert heights[camera.name] <= 64 * 0.9 + 1e-6
+        u0, v0, u1, v1 = subject_box(camera, vertices)  # the rig written to disk is the framed one
+        assert min(u0, v0) >= 0.05 * 48 - 1e-6 and u1 <= 0.95 * 48 + 1e-6 and v1 <= 0.95 * 64 + 1e-6, camera.name

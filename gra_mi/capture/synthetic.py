@@ -485,7 +485,8 @@ class CaptureConfig:
             counts = {"spp": preset.spp, "indirect_spp": preset.indirect_spp, "max_depth": preset.max_depth}
         if self.renderer == "path" and (preset.relit_spp or preset.relit_indirect_spp):
             counts["relit_spp"] = preset.relit_spp or counts["spp"]
-            counts["relit_indirect_spp"] = preset.relit_indirect_spp or counts["indirect_spp"] if counts["indirect_spp"] else 0
+            relit_indirect = preset.relit_indirect_spp or counts["indirect_spp"]
+            counts["relit_indirect_spp"] = relit_indirect if counts["indirect_spp"] else 0  # --without interreflection
         chosen = {k: getattr(self, k) for k in ("training_lightings", "framing_margin") if getattr(self, k) is not None}
         return {"renderer": self.renderer, **counts, **({"without": sorted(self.without)} if self.without else {}), **chosen}
 

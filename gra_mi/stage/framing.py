@@ -51,15 +51,3 @@ def frame_subject(cameras: list[Camera], points: np.ndarray, width: int, height:
             )
         )
     return framed
-
-
-def subject_heights(cameras: list[Camera], frames: np.ndarray) -> dict[str, float]:
-    """Per camera, the tallest the subject stands in its image over ``frames`` (F, V, 3), in pixels."""
-    heights = {}
-    for camera in cameras:
-        tallest = 0.0
-        for vertices in frames:
-            _, v0, _, v1 = subject_box(camera, vertices)
-            tallest = max(tallest, min(v1, camera.height) - max(v0, 0.0))
-        heights[camera.name] = round(tallest, 1)
-    return heights
