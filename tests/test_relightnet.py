@@ -300,3 +300,22 @@ def test_training_views_are_held_up_to_a_quarter_of_the_memory():
 
     total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
     assert held_training_bytes() == max(2 << 30, total // 4)
+
+
+def test_the_views_eval_scores_never_choose_the_weights():
+    """Selection views under the test lighting come from the training camera: the held-out cameras' test frames are
+    `gra-mi eval`'s headline, so no training choice may look at them (novel views of training frames may)."""
+    from gra_mi.relightnet.train import Sample, mark_selection
+
+    t = torch.zeros(1)
+    views = [
+        Sample(f"{cam}/frame_{f:04d}", split, t, t, t, t, t, t)
+        for split, frames in (("novel view", range(0, 8)), ("novel lighting (envmap)", range(8, 16)))
+        for f in frames
+        for cam in ("cam00", "cam06", "cam07")
+    ]
+    mark_selection(views, 8, scored_cameras=("cam06", "cam07"))
+    chosen = [(v.split, v.camera) for v in views if v.selection]
+    lighting = [cam for split, cam in chosen if split == "novel lighting (envmap)"]
+    assert lighting and set(lighting) == {"cam00"} and len(lighting) == 4  # at most half of the 8 candidates
+    assert {cam for split, cam in chosen if split == "novel view"} >= {"cam06", "cam07"}

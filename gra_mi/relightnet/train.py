@@ -118,8 +118,13 @@ class Sample:
     target: torch.Tensor  # (1, 3, H, W)
     selection: bool = False  # one of the held-out views that choose the weights (reported apart)
 
+    @property
+    def camera(self) -> str:
+        return self.name.split("/")[0]
+
 
 HELD_OUT = ("novel view", "novel lighting (envmap)", "novel lighting (OLAT)", SYNTHESIZED_SPLIT)
+TEST_LIGHTING = ("novel lighting (envmap)", "novel lighting (OLAT)")  # the capture's test frames: what eval scores
 
 
 def held_training_bytes() -> int:
@@ -175,11 +180,13 @@ def build_samples(capture, relighter, env_height: int, device: str = "cpu", spli
     return [make(job) for job in progress(view_jobs(capture, splits), description="RelightNet samples")]
 
 
-def mark_selection(samples: list[Sample], per_split: int) -> None:
+def mark_selection(samples: list[Sample], per_split: int, scored_cameras: tuple[str, ...] = ()) -> None:
     """Mark up to ``per_split`` evenly spaced views of each held-out split, and at most half of them, as the
-    selection views: the other half at least stays unseen by every choice training makes."""
+    selection views: the other half at least stays unseen by every choice training makes. Under the test lighting
+    they come from the training cameras only: the held-out cameras' test frames (``scored_cameras``) are what
+    `gra-mi eval` scores, and no choice may be made on them."""
     for split in HELD_OUT:
-        views = [s for s in samples if s.split == split]
+        views = [s for s in samples if s.split == split and not (split in TEST_LIGHTING and s.camera in scored_cameras)]
         count = min(per_split, max(1, len(views) // 2))
         for k in np.unique(np.linspace(0, len(views) - 1, count).round().astype(int)) if views else []:
             views[k].selection = True
@@ -274,7 +281,7 @@ def _views(capture, relighter, config: TrainConfig, device: str, cache: Path | N
     if config.synthesized_lightings:
         synth, validation = synthesized_views(capture, relighter, config, device, cache)
         held_out += validation
-    mark_selection(held_out, config.selection_views)
+    mark_selection(held_out, config.selection_views, tuple(capture.eval_cameras))
     r = relighter.albedo_tex.shape[0]
     if synth is None and len(train_jobs) * 4 * 20 * r * r <= held_training_bytes():
         return TrainingViews([make(j) for j in progress(train_jobs, description="RelightNet samples")], make), held_out
