@@ -1,9 +1,10 @@
 """The demo's headline numbers over several RelightNet training seeds: is RelightNet's gain larger than its spread?
 
-`gra-mi demo` trains RelightNet once (seed 0). This trains it again with seeds 0 … N−1 on the same capture and fit
-(the demo's own steps), scores each with `gra-mi eval` (held-out cameras under the held-out lighting sequence, the
-microfacet render beside it) and with `gra-mi eval-lighting` (the reference maps against their path-traced truth,
-RelightNet beside far field), and writes a page with the mean and the spread (max − min) / 2 of every number.
+`gra-mi demo` trains RelightNet once (seed 0). This trains it with seeds 1 … N−1 on the same capture and fit (the
+demo's own steps; seed 0 is the demo's own RelightNet where its options match), scores each with `gra-mi eval`
+(held-out cameras under the held-out lighting sequence, the microfacet render beside it) and with `gra-mi
+eval-lighting` (the reference maps against their path-traced truth, RelightNet beside far field), and writes a page
+with the mean and the spread (max − min) / 2 of every number.
 
     .venv/bin/python benchmarks/demo_seeds.py --run outputs/demo [--seeds 3] [--more-steps 2000] [--write docs/results/demo-seeds.md]
 
@@ -16,7 +17,7 @@ import argparse
 import csv
 import json
 import sys
-from dataclasses import replace
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -31,31 +32,41 @@ def train_and_score(run: Path, out: Path, seed: int, steps: int, lighting_spp: i
     from gra_mi.eval.protocol import EvalInputs, evaluate
     from gra_mi.relightnet.train import TrainConfig, train_relightnet
 
+    config = TrainConfig(steps=steps, seed=seed)
+    model = demos_own(run, config) or out / "relightnet"
     if (out / "result.json").is_file():
-        return json.loads((out / "result.json").read_text()) | dict(zip(("seconds", "resumed"), training_seconds(out), strict=True))
+        return json.loads((out / "result.json").read_text()) | dict(zip(("seconds", "resumed"), training_seconds(model), strict=True))
     capture, fit = run / "capture", run / "fit"
-    train_relightnet(capture, fit, out / "relightnet", TrainConfig(steps=steps, seed=seed))
-    seconds, resumed = training_seconds(out)
+    if model == out / "relightnet":
+        train_relightnet(capture, fit, model, config)
+    seconds, resumed = training_seconds(model)
     # The demo's own protocol (its refined sequences set the held-out sequences' frames and scale; only the microfacet
     # and RelightNet rows are read here, the refined rows being the demo's own RelightNet's).
-    inputs = replace(EvalInputs.from_run(run), relightnet=out / "relightnet")
+    inputs = replace(EvalInputs.from_run(run), relightnet=model)
     report = evaluate(inputs, out / "eval")
     splits = {
         name: {stage: {k: report["stages"][stage]["splits"][name][k] for k, _, _ in METRICS} for stage in ("microfacet", "RelightNet")}
         for name in report["protocol"]["splits"]
     }
-    config = EnvmapAccuracyConfig(spp=lighting_spp)
-    rows = envmap_accuracy(capture, fit, out.parent / "lighting", relightnet_dir=out / "relightnet", config=config)
+    rows = envmap_accuracy(capture, fit, out.parent / "lighting", relightnet_dir=model, config=EnvmapAccuracyConfig(spp=lighting_spp))
     lighting = {f"{r['map']}|{r['method']}": r["psnr"] for r in rows}
     result = {"seed": seed, "steps": steps, "seconds": seconds, "resumed": resumed, "splits": splits, "lighting": lighting}
     (out / "result.json").write_text(json.dumps(result, indent=1) + "\n")
     return result
 
 
-def training_seconds(out: Path) -> tuple[float, bool]:
+def demos_own(run: Path, config) -> Path | None:
+    """The demo's own RelightNet where it was trained with these options (seed 0 at the demo's steps): not trained again."""
+    own = run / "relightnet"
+    if (own / "relightnet.json").is_file() and json.loads((own / "provenance.json").read_text()).get("config") == asdict(config):
+        return own
+    return None
+
+
+def training_seconds(model: Path) -> tuple[float, bool]:
     """The training loop's seconds (its log's last row) and whether the run was resumed from a checkpoint: the log's
     clock restarts at a resume, so a resumed run's seconds count only the part after it."""
-    seconds = [float(row["seconds"]) for row in csv.DictReader((out / "relightnet" / "train_log.csv").open())]
+    seconds = [float(row["seconds"]) for row in csv.DictReader((model / "train_log.csv").open())]
     return seconds[-1], any(b < a for a, b in zip(seconds[:-1], seconds[1:], strict=True))
 
 
