@@ -79,16 +79,16 @@ def test_anny_body_sequence(tmp_path, llvm_variant):
     # Builds the real anny body (about 1.5 minutes the first time on a fresh machine, then cached).
     from gra_mi.subject.anny_body import MOTION_CLIPS, anny_sequence
 
-    clips = ["walk", "arm_raise", "turn", "squat"]
+    clips = ["walk", "arm_raise", "turn", "squat", "march"]
     seq = anny_sequence(clips, frames_per_clip=4)
     check_sequence(seq)
-    assert seq.num_frames == 16 and seq.frame_labels == [c for c in clips for _ in range(4)]
+    assert seq.num_frames == 20 and seq.frame_labels == [c for c in clips for _ in range(4)]
     assert seq.num_vertices > 10000 and len(seq.faces) > 20000
     lo = seq.vertices.min(axis=(0, 1))
     assert abs(lo[1]) < 1e-6, "feet on the floor"
     assert 1.4 < seq.vertices[0, :, 1].max() < 2.1, "standing height in metres, +Y up"
     # Every clip starts at the rest pose, so clips loop and join without jumps.
-    for k in range(1, 4):
+    for k in range(1, 5):
         if clips[k] != "turn":
             np.testing.assert_allclose(seq.vertices[4 * k], seq.vertices[0], atol=1e-5)
     # Looping: the frame after the last of a clip is its first, so the last frame is close to the first.
@@ -97,6 +97,10 @@ def test_anny_body_sequence(tmp_path, llvm_variant):
     # The arm raise lifts the hands above the head at mid-clip.
     mid = seq.vertices[4 + 2]
     assert mid[:, 1].max() > seq.vertices[0, :, 1].max() + 0.05
+    # The march lifts a knee (a quarter into the clip) and stands at full height on the other leg.
+    lifted, rest = seq.vertices[16 + 1], seq.vertices[0]
+    knees = [(v[:, 1] > 0.35) & (v[:, 1] < 0.7) for v in (lifted, rest)]  # thigh and knee height
+    assert np.ptp(lifted[:, 1]) > 0.97 * np.ptp(rest[:, 1]) and lifted[knees[0], 2].max() > rest[knees[1], 2].max() + 0.2
     assert set(MOTION_CLIPS) >= set(clips)
     # The body faces +Z: the toes are in front of the heels.
     feet = seq.vertices[0][seq.vertices[0, :, 1] < 0.03]

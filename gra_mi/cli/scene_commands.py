@@ -84,7 +84,7 @@ class SubjectCommand(CommandConfig):
     kind: str = field(default="anny", metadata=option(choices=("anny", "tiny")))
     """anny: the MakeHuman-based body; tiny: a ~450-triangle procedural subject for tests."""
     clips: list[str] = field(default_factory=lambda: ["walk", "arm_raise", "turn", "squat"], metadata=option(parse=_clips))
-    """Comma-separated motion clips for anny (walk, arm_raise, turn, squat), played in order."""
+    """Comma-separated motion clips for anny (walk, arm_raise, turn, squat, march), played in order."""
     frames_per_clip: int | None = None
     """Frames per clip loop (default: each clip's own, 24-48)."""
     frames: int = 8

@@ -57,6 +57,24 @@ def _turn(p: float) -> tuple[Pose, float]:
     return {"lowerarm01.L": [("x", -bend)], "lowerarm01.R": [("x", -bend)]}, p  # a full turn about the up axis
 
 
+def _march(p: float) -> tuple[Pose, float]:
+    """High knees in place, arms swinging with bent elbows: poses a walk never makes, at full height (one leg stands)."""
+    s = math.sin(p)
+    lift_l, lift_r = max(0.0, s) ** 2, max(0.0, -s) ** 2
+    elbow = -0.9 * s * s
+    pose = {
+        "upperleg01.L": [("x", -1.3 * lift_l)],
+        "upperleg01.R": [("x", -1.3 * lift_r)],
+        "lowerleg01.L": [("x", 1.7 * lift_l)],
+        "lowerleg01.R": [("x", 1.7 * lift_r)],
+        "upperarm01.L": [("x", 0.6 * s)],
+        "upperarm01.R": [("x", -0.6 * s)],
+        "lowerarm01.L": [("x", elbow)],
+        "lowerarm01.R": [("x", elbow)],
+    }
+    return pose, 0.0
+
+
 def _squat(p: float) -> tuple[Pose, float]:
     s = (1 - math.cos(p)) / 2
     hip, knee = 1.3 * s, 2.1 * s
@@ -86,6 +104,7 @@ MOTION_CLIPS: dict[str, MotionClip] = {
     "arm_raise": MotionClip("arm_raise", 24, _arm_raise),
     "turn": MotionClip("turn", 48, _turn),
     "squat": MotionClip("squat", 24, _squat),
+    "march": MotionClip("march", 24, _march),
 }
 
 
