@@ -79,7 +79,7 @@ PRESETS = {
         refiner_scale=0.25, refiner_zoom=4.0, refiner_steps=20, refiner_euler_steps=4, lighting_spp=16, platform_spp=4,
     ),
     "small": DemoPreset(
-        name="small", capture="small", renderer="path", roughness_candidates=11, fit_frame_step=3, relightnet_steps=2000,
+        name="small", capture="small", renderer="path", roughness_candidates=11, fit_frame_step=3, relightnet_steps=1000,
         refiner_scale=1.0, refiner_zoom=1.0, refiner_steps=50, refiner_euler_steps=10, lighting_spp=256, platform_spp=32,
     ),
 }  # fmt: skip
