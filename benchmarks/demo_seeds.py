@@ -4,7 +4,8 @@
 demo's own steps; seed 0 is the demo's own RelightNet where its options match), scores each with `gra-mi eval`
 (held-out cameras under the held-out lighting sequence, the microfacet render beside it) and with `gra-mi
 eval-lighting` (the reference maps against their path-traced truth, RelightNet beside far field), and writes a page
-with the mean and the spread (max − min) / 2 of every number.
+with the mean and the spread (max − min) / 2 of every number, and where the demo's own RelightNet moves ꟻLIP (the
+silhouette band against the interior).
 
     .venv/bin/python benchmarks/demo_seeds.py --run outputs/demo [--seeds 3] [--more-steps 2000] [--write docs/results/demo-seeds.md]
 
@@ -70,6 +71,47 @@ def training_seconds(model: Path) -> tuple[float, bool]:
     return seconds[-1], any(b < a for a, b in zip(seconds[:-1], seconds[1:], strict=True))
 
 
+def flip_regions(run: Path, model: Path, band: int = 3) -> dict:
+    """Where RelightNet's ꟻLIP moves: per held-out camera, the mean over the capture's test frames of the microfacet
+    render's and RelightNet's ꟻLIP on the silhouette band (the subject's pixels within ``band`` of its edge) and on
+    the interior, at the truth's exposure (as `gra-mi eval` shows them)."""
+    from scipy.ndimage import binary_erosion
+
+    from gra_mi.capture.dataset import Capture, load_observation
+    from gra_mi.core.color import display_exposure
+    from gra_mi.core.metrics import flip_map, subject_mask
+    from gra_mi.fit.fitted import fitted_relighter
+    from gra_mi.relightnet.infer import render_view
+    from gra_mi.relightnet.model import RelightNet
+
+    capture = Capture.load(run / "capture")
+    _, relighter = fitted_relighter(capture.folder, run / "fit", run / "cache" / "seeds")
+    net = RelightNet.load(model, "cpu")
+    out: dict = {}
+    for cam in capture.eval_cameras:
+        sums: dict = {}
+        for entry in (f for f in capture.frames if f.split == "test"):
+            truth = load_observation(capture, cam, entry.frame)
+            mask = subject_mask(truth)
+            inner = binary_erosion(mask, iterations=band)
+            exposure, lighting = display_exposure(truth, mask), capture.lighting(relighter.ls.stage, entry)
+            for stage, stage_net in (("microfacet", None), ("RelightNet", net)):
+                error = flip_map(render_view(relighter, stage_net, entry.mesh_frame, cam, lighting).image, truth, exposure)
+                for region, where in (("band", mask & ~inner), ("interior", inner)):
+                    sums.setdefault((stage, region), []).append(float(error[where].mean()))
+        out[cam] = {f"{stage}|{region}": float(np.mean(v)) for (stage, region), v in sums.items()}
+    return out
+
+
+def regions_table(regions: dict) -> list[str]:
+    lines = ["| camera | region | microfacet | + RelightNet | change |", "|---|---|---|---|---|"]
+    for cam, cells in regions.items():
+        for region in ("band", "interior"):
+            base, ours = cells[f"microfacet|{region}"], cells[f"RelightNet|{region}"]
+            lines.append(f"| {cam} | {region} | {base:.4f} | {ours:.4f} | {ours - base:+.4f} |")
+    return lines
+
+
 def _spread(values: list[float], digits: int) -> str:
     mean = float(np.mean(values))
     return f"{mean:.{digits}f}" if len(values) == 1 else f"{mean:.{digits}f} ± {(max(values) - min(values)) / 2:.{digits}f}"
@@ -123,7 +165,7 @@ def steps_curve(runs: list[dict]) -> list[str]:
     return lines
 
 
-def markdown(runs: list[dict], run: Path, stamp: str) -> list[str]:
+def markdown(runs: list[dict], run: Path, stamp: str, regions: dict) -> list[str]:
     demo = json.loads((run / "demo.json").read_text())
     seeds = [r for r in runs if r["steps"] == demo["preset"]["relightnet_steps"]]
     said = demo["eval"]["protocol"]
@@ -144,6 +186,11 @@ def markdown(runs: list[dict], run: Path, stamp: str) -> list[str]:
         "",
         *lighting_table(seeds),
         "",
+        "Where the ꟻLIP moves (seed 0; every test frame of each held-out camera): the silhouette band is the subject's "
+        "pixels within 3 pixels of its edge, the interior the rest.",
+        "",
+        *regions_table(regions),
+        "",
         "Each run (with `--more-steps`, also longer ones: the demo trains "
         f"{demo['preset']['relightnet_steps']} steps; the learning-rate schedule spans each run's steps). Training: seconds "
         "in the training loop since it last started (noisy: other work may have shared the cores):",
@@ -162,6 +209,7 @@ def main() -> None:
     parser.add_argument("--write", type=Path, default=None, help="Also write the Markdown page here (stamped).")
     args = parser.parse_args()
     from gra_mi.core.stamp import publish_page, run_stamp, stamp_said
+    from gra_mi.relightnet.train import TrainConfig
     from gra_mi.render.runtime import start_runtime
 
     demo = json.loads((args.run / "demo.json").read_text())
@@ -175,7 +223,8 @@ def main() -> None:
         runs.append(train_and_score(args.run, out, seed, steps, preset["lighting_spp"]))
         print(json.dumps(runs[-1]), file=sys.stderr)
     stamp = run_stamp(preset=preset["name"], variant=variant)
-    publish_page("\n".join(markdown(runs, args.run, stamp_said(stamp))) + "\n", args.write)
+    regions = flip_regions(args.run, demos_own(args.run, TrainConfig(steps=preset["relightnet_steps"])) or work / "seed0" / "relightnet")
+    publish_page("\n".join(markdown(runs, args.run, stamp_said(stamp), regions)) + "\n", args.write)
 
 
 if __name__ == "__main__":
