@@ -95,8 +95,9 @@ PRESETS = {
         spp=4, indirect_spp=16,
     ),
     # The demo: 64 training envmaps (8 relit frames after each uniform one, at a quarter of the samples), cameras
-    # framed on the subject (about 260 pixels tall in every camera). Held out: a march, poses the walk never makes at
-    # full height (a squat's deepest frames stand 164 pixels tall; a turn's arm span narrows the framing to 219-242).
+    # framed on the subject (about 260 pixels tall standing). Held out: a march, poses the walk never makes, one leg
+    # always standing (a squat's deepest frames stand 164 pixels tall; a turn's arm span narrows the framing to
+    # 219-242); a knee raised toward a camera that looks down shortens the subject in it to about 230.
     "small": CapturePreset(
         name="small", subject="anny", train_clips=["walk"], test_clips=["march"], frames_per_clip=72, relit_per_uniform=8,
         test_frames_per_clip=8, num_leds=331, num_cameras=8, eval_cameras=2, width=216, height=288, camera_distance=1.8,
