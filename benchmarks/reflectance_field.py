@@ -76,13 +76,11 @@ def agreement(capture, cameras: list[str]) -> list[dict]:
 
 
 def _pose_wrinkles(capture, source) -> None:
-    from gra_mi.capture.synthetic import pose_wrinkles
-    from gra_mi.core.io import read_exr
+    from gra_mi.capture.wrinkles import capture_wrinkles, pose_wrinkles
 
-    cloth = capture.folder / "gt" / "cloth.exr"
-    if "wrinkles" not in capture.ground_truth.get("without", []) and cloth.is_file():
-        num_frames = int(np.load(capture.folder / "subject" / "sequence.npz")["vertices"].shape[0])
-        pose_wrinkles(source.params, read_exr(cloth), 0, num_frames)
+    wrinkles = capture_wrinkles(capture.folder, 0)
+    if "wrinkles" not in capture.ground_truth.get("without", []) and wrinkles is not None:
+        pose_wrinkles(source.params, wrinkles)
 
 
 def speed(capture, camera: str) -> tuple[list[dict], float, int]:

@@ -115,3 +115,20 @@ def test_a_framed_lighting_rich_capture(tmp_path, monkeypatch):
         assert filled >= 0.85, camera.name  # the union of its frames fills 90 % of the binding axis
         u0, v0, u1, v1 = subject_box(camera, vertices)  # the rig written to disk is the framed one
         assert min(u0, v0) >= 0.05 * 48 - 1e-6 and u1 <= 0.95 * 48 + 1e-6 and v1 <= 0.95 * 64 + 1e-6, camera.name
+
+
+def test_the_demos_held_out_subject_stands_at_least_256_pixels_tall_in_every_frame(tmp_path):
+    """The `small` preset's framing, projected (not rendered): in each held-out camera, every held-out frame of the
+    march spans ≥ 256 pixel rows, the frames with the nearer foot raised included."""
+    from gra_mi.capture import synthetic
+    from gra_mi.subject.sequence import load_sequence
+
+    preset = synthetic.PRESETS["small"]
+    synthetic._write_subject(preset, tmp_path)
+    stage = synthetic._capture_rig(preset, tmp_path)
+    test_frames = load_sequence(tmp_path / "subject").vertices[len(preset.train_clips) * preset.frames_per_clip :]
+    assert len(test_frames) == preset.test_frames() * len(preset.test_clips)
+    for camera in stage.cameras[-preset.eval_cameras :]:
+        rows = [subject_box(camera, frame)[3] - subject_box(camera, frame)[1] for frame in test_frames]
+        assert min(rows) >= 256, (camera.name, np.round(rows))
+        assert max(rows) <= preset.height, camera.name

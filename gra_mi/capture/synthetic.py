@@ -27,9 +27,10 @@ from pathlib import Path
 import numpy as np
 
 from gra_mi.capture.dataset import Capture, FrameLighting
+from gra_mi.capture.wrinkles import capture_wrinkles, pose_wrinkles, wrinkle_normal_map
 from gra_mi.core.config import comma_list, option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
-from gra_mi.core.io import atomic_write_text, read_exr, write_exr, write_png
+from gra_mi.core.io import atomic_write_text, write_exr, write_png
 from gra_mi.core.metrics import relative_rmse
 from gra_mi.core.progress import progress
 from gra_mi.core.provenance import claim_output
@@ -95,20 +96,22 @@ PRESETS = {
         spp=4, indirect_spp=16,
     ),
     # The demo: 64 training envmaps (8 relit frames after each uniform one, at a quarter of the samples), cameras
-    # framed on the subject (about 260 pixels tall standing). Held out: a march, poses the walk never makes, one leg
-    # always standing (a squat's deepest frames stand 164 pixels tall; a turn's arm span narrows the framing to
-    # 219-242); a knee raised toward a camera that looks down shortens the subject in it to about 230.
+    # framed on the subject, 216x312 portrait with a 2 % margin. Held out: a march, poses the walk never makes, one
+    # leg always standing (a squat's deepest frames stood 164 pixels tall; a turn's arm span narrows the framing).
+    # In a camera that looks down, the nearer foot projects lowest: when it is the raised one, the subject spans
+    # 12 % fewer rows, so the frame is sized for the subject to stand >= 256 pixels tall on either foot.
     "small": CapturePreset(
         name="small", subject="anny", train_clips=["walk"], test_clips=["march"], frames_per_clip=72, relit_per_uniform=8,
-        test_frames_per_clip=8, num_leds=331, num_cameras=8, eval_cameras=2, width=216, height=288, camera_distance=1.8,
+        test_frames_per_clip=8, num_leds=331, num_cameras=8, eval_cameras=2, width=216, height=312, camera_distance=1.8,
         uv_resolution=256, envmap_height=64, spp=16, indirect_spp=64, relit_spp=4, relit_indirect_spp=16, framed=True,
+        framing_margin=0.02,
     ),
     # 264 training envmaps over three motions; test: two held-out envmaps and one OLAT (out of distribution).
     "medium": CapturePreset(
         name="medium", subject="anny", train_clips=["walk", "arm_raise", "turn"], test_clips=["squat", "walk", "arm_raise"],
-        frames_per_clip=99, relit_per_uniform=8, num_leds=331, num_cameras=8, eval_cameras=2, width=216, height=288,
+        frames_per_clip=99, relit_per_uniform=8, num_leds=331, num_cameras=8, eval_cameras=2, width=216, height=312,
         camera_distance=1.8, uv_resolution=256, envmap_height=64, spp=16, indirect_spp=64, relit_spp=4, relit_indirect_spp=16,
-        test_frames_per_clip=17, test_lighting=["envmap", "envmap", "olat"], framed=True,
+        test_frames_per_clip=17, test_lighting=["envmap", "envmap", "olat"], framed=True, framing_margin=0.02,
     ),
     # A static pose as HumanOLAT captures one (white, 2 gradients, 10 envmaps, 331 OLATs), cameras in portrait.
     "olat": CapturePreset(
@@ -172,46 +175,6 @@ def ground_truth_maps(atlas, vertex_colors: np.ndarray, rest_vertices: np.ndarra
     skin = (base[..., 0] > base[..., 2] + 0.1)[..., None]  # skin tones are redder than blue
     cloth = (~skin) & atlas.mask[..., None]
     return {"albedo": albedo.astype(np.float32), "roughness": roughness.astype(np.float32), "cloth": cloth.astype(np.float32)}
-
-
-def wrinkle_normal_map(cloth: np.ndarray, amplitude: float, seed: int = 0) -> np.ndarray:
-    """A tangent-space normal map (values in [0, 1]) of wrinkle bands on cloth, of the given slope amplitude."""
-    cloth = cloth if cloth.ndim == 2 else cloth[..., 0]  # (R, R) or (R, R, C): the first channel is the mask
-    r = cloth.shape[0]
-    rng = np.random.default_rng(seed)
-    c = (np.arange(r) + 0.5) / r
-    u, v = np.meshgrid(c, c, indexing="xy")
-    angle, freq = rng.uniform(0, math.pi), 24.0
-    phase = 2 * math.pi * freq * (u * math.cos(angle) + v * math.sin(angle))
-    slope = amplitude * np.cos(phase) * cloth
-    n = np.stack([-slope * math.cos(angle), -slope * math.sin(angle), np.ones_like(slope)], axis=-1)
-    n /= np.linalg.norm(n, axis=-1, keepdims=True)
-    return (0.5 + 0.5 * n).astype(np.float32)
-
-
-def wrinkle_amplitude(frame: int, num_frames: int) -> float:
-    """Pose-dependent: wrinkles deepen and relax with the motion's phase."""
-    return 0.1 + 0.5 * abs(math.sin(2 * math.pi * frame / max(num_frames, 1)))
-
-
-def frame_normal_map(cloth: np.ndarray, frame: int, num_frames: int) -> np.ndarray:
-    """The wrinkle normal map of ``frame``: the one the capture's images and every truth rendered later use."""
-    return wrinkle_normal_map(cloth, wrinkle_amplitude(frame, num_frames))
-
-
-def pose_wrinkles(params, cloth: np.ndarray, frame: int, num_frames: int) -> bool:
-    """Set ``frame``'s wrinkles on a ground-truth scene's ``normalmap`` BSDF (``mi.traverse`` parameters); False when
-    the scene has none (a one-bounce ground truth)."""
-    import mitsuba as mi
-
-    from gra_mi.stage import scene_keys as keys
-
-    key = next((k for k in params.keys() if k.endswith(keys.NORMALMAP_DATA_SUFFIX)), None)
-    if key is None:
-        return False
-    params[key] = mi.TensorXf(frame_normal_map(cloth, frame, num_frames))
-    params.update()
-    return True
 
 
 ONEBOUNCE_BSDF = """<bsdf type="gra_microfacet" id="gt_material">
@@ -608,7 +571,7 @@ def _write_true_maps(preset: CapturePreset, out: Path, without: list[str]) -> di
     write_exr(out / "gt" / "cloth.exr", maps["cloth"])  # the material regions (reports score skin and cloth apart)
     write_png(out / "gt" / "albedo.png", maps["albedo"])
     write_exr(out / "gt" / "normal_map.exr", wrinkle_normal_map(maps["cloth"], 0.0))
-    return {**maps, "num_frames": ls.sequence.num_frames}
+    return maps
 
 
 def _measure_fidelity(capture: Capture, stage, previous: Capture | None) -> None:
@@ -640,7 +603,7 @@ def _render_images(capture: Capture, stage, config: CaptureConfig, record: dict,
 
     def pose(frame: int) -> None:
         if source.set_frame(frame) and "wrinkles" not in config.without:  # wrinkles follow the pose
-            pose_wrinkles(source.params, maps["cloth"], frame, maps["num_frames"])
+            pose_wrinkles(source.params, capture_wrinkles(out, frame))
 
     jobs = [(entry, cam) for entry in shard.take(capture.frames) for cam in stage.cameras]
     lit = None  # the frame whose lighting is set: jobs run frame-major, so each frame's envmap is mapped once
@@ -665,8 +628,9 @@ def _render_images(capture: Capture, stage, config: CaptureConfig, record: dict,
 # --------------------------------------------------------------------------------------------------------------
 
 LEDS_INCLUDE = '<include filename="rig/leds.xml"/>'
-TRUTH_VERSION = 2
-"""Bumped when the envmap truth changes (2: the frame's wrinkles, which version 1 left flat): cached truths of
+TRUTH_VERSION = 3
+"""Bumped when the envmap truth changes (2: the frame's wrinkles, which version 1 left flat; 3: wrinkles that follow
+the pose's compression, capture/wrinkles.py, instead of the frame's index): cached truths of
 another version are rendered again."""
 
 
@@ -706,10 +670,9 @@ def load_envmap_truth(capture: Capture, envmap_path: Path, frame: int):
         resolver.clear()
         for i in range(len(saved)):
             resolver.append(saved[i])
-    cloth = capture.folder / "gt" / "cloth.exr"
-    if "wrinkles" not in capture.ground_truth.get("without", []) and cloth.is_file():
-        num_frames = int(np.load(capture.folder / "subject" / "sequence.npz")["vertices"].shape[0])
-        pose_wrinkles(mi.traverse(scene), read_exr(cloth), frame, num_frames)
+    wrinkles = capture_wrinkles(capture.folder, frame)
+    if "wrinkles" not in capture.ground_truth.get("without", []) and wrinkles is not None:
+        pose_wrinkles(mi.traverse(scene), wrinkles)
     return scene
 
 
