@@ -7,6 +7,12 @@ see, per region, next to the constant baseline (the true map's median), with the
 held-out cameras. Prints a Markdown page.
 
     .venv/bin/python benchmarks/olat_fit.py --capture DIR [--steps 19,5,1] [--write docs/results/olat-fit.md]
+
+``--effects`` instead asks what holds the fit back: it makes one capture per ground truth (the full path-traced
+one, then without the effects the one-bounce model leaves out, one group at a time, then gra-mi's own one-bounce
+model) and fits each from the same OLAT subset, so that the rows differ in the truth alone.
+
+    .venv/bin/python benchmarks/olat_fit.py --effects --preset olat_quick --step 5 [--write docs/results/olat-fit-effects.md]
 """
 
 from __future__ import annotations
@@ -28,23 +34,68 @@ def run(capture: Path, out: Path, step: int, calibrate: bool) -> dict:
     return record | {"seconds": time.perf_counter() - start}
 
 
-def rows_of(record: dict, olats: int, calibrate: bool) -> list[str]:
+def rows_of(record: dict, leading: list[str], timed: bool = True) -> list[str]:
+    """One Markdown row per region: the ``leading`` cells, then the scores (and the fit's time)."""
     rows = []
     relight = record["relight"]["held-out cameras"]
     for region in ("skin", "cloth"):
         ours, base = record["regions"][region], record["baseline"][region]
         rows.append(
-            f"| {olats} | {'on' if calibrate else 'off'} | {region} | {record['scored_texels'][region]} "
-            f"| {ours['roughness_mae']:.4f} | {base['roughness_mae']:.4f} | {ours['roughness_mae'] / base['roughness_mae']:.2f} "
+            "| "
+            + " | ".join([*leading, region, str(record["scored_texels"][region])])
+            + f" | {ours['roughness_mae']:.4f} | {base['roughness_mae']:.4f} | {ours['roughness_mae'] / base['roughness_mae']:.2f} "
             f"| {100 * ours['albedo_rel_median']:.1f} % | {100 * base['albedo_rel_median']:.1f} % "
-            f"| {relight['psnr']:.2f} | {record['seconds']:.0f} |"
+            f"| {relight['psnr']:.2f} |" + (f" {record['seconds']:.0f} |" if timed else "")
         )
     return rows
 
 
+TRUTHS = [  # (what the ground truth has, `gra-mi capture` options)
+    ("full: principled + sheen + wrinkles + interreflections", {}),
+    ("without interreflections", {"without": ["interreflection"]}),
+    ("without sheen and wrinkles", {"without": ["sheen", "wrinkles"]}),
+    ("without all three (the principled BSDF's direct light)", {"without": ["sheen", "wrinkles", "interreflection"]}),
+    ("gra-mi's own one-bounce model (`--renderer onebounce`)", {"renderer": "onebounce"}),
+]
+
+
+def effects_page(preset: str, step: int, work: Path, variant: str) -> str:
+    """Fit captures that differ only in their ground truth (:data:`TRUTHS`): a row per truth and region."""
+    from gra_mi.capture.synthetic import CaptureConfig, generate_capture
+    from gra_mi.core.stamp import run_stamp, stamp_said
+
+    table = []
+    for i, (label, options) in enumerate(TRUTHS):
+        capture = generate_capture(work / f"truth{i}", CaptureConfig(preset=preset, measure_noise=False, **options))
+        olats = sum("olat_" in (f.pattern or "") for f in [f for f in capture.frames if f.split == "train"][::step])  # alike in every row
+        record = run(capture.folder, work / f"truth{i}_fit", step, calibrate=False)
+        table += rows_of(record, [label], timed=False)
+        print("\n".join(table[-2:]), file=sys.stderr)
+    return "\n".join(
+        [
+            "# Results: what holds the OLAT fit back",
+            "",
+            f"> `benchmarks/olat_fit.py --effects`, {stamp_said(run_stamp(preset=preset, variant=variant))}. One capture per",
+            f"> ground truth (`gra-mi capture --preset {preset}` with the options of each row), each fitted from the same",
+            f"> {olats} OLATs (`--frame-step {step}`) with the fit's defaults, without the brightness calibration.",
+            "",
+            "Scored as in [olat-fit.md](olat-fit.md): texels ≥ 3 training cameras see, against the true maps, next to the",
+            "constant baseline; *ratio*: the fit's roughness MAE over the baseline's; relit PSNR: held-out lighting from the",
+            "held-out cameras, one bounce, against that row's own truth.",
+            "",
+            "| ground truth | region | texels | roughness MAE | constant | ratio | albedo median rel. error | constant | relit PSNR (dB) |",
+            "|---|---|---|---|---|---|---|---|---|",
+            *table,
+        ]
+    )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--capture", type=Path, required=True, help="An `olat` capture (`gra-mi capture --preset olat`).")
+    parser.add_argument("--capture", type=Path, help="An `olat` capture (`gra-mi capture --preset olat`).")
+    parser.add_argument("--effects", action="store_true", help="Make one capture per ground truth and fit each (see above).")
+    parser.add_argument("--preset", default="olat_quick", help="--effects: the static OLAT preset to capture. Default: olat_quick.")
+    parser.add_argument("--step", type=int, default=5, help="--effects: the frame step every fit uses. Default: 5.")
     parser.add_argument("--steps", default="19,5,1", help="Frame steps to fit with (comma-separated). Default: 19,5,1.")
     parser.add_argument("--calibrated", default="19", help="Frame steps also fitted with the brightness calibration. Default: 19.")
     parser.add_argument("--work", type=Path, default=None, help="Folder for the fits (default: a temporary one).")
@@ -56,6 +107,14 @@ def main() -> None:
 
     variant = start_runtime("llvm_ad_rgb").variant
     work = args.work or Path(tempfile.mkdtemp(prefix="gra_mi_olat_fit_"))
+    if args.effects:
+        page = effects_page(args.preset, args.step, work, variant)
+        print(page)
+        if args.write:
+            args.write.write_text(page + "\n")
+        return
+    if args.capture is None:
+        parser.error("--capture is required (or --effects)")
     capture = Capture.load(args.capture)
     train = [f for f in capture.frames if f.split == "train"]
     table = []
@@ -63,7 +122,7 @@ def main() -> None:
         olats = sum("olat_" in (f.pattern or "") for f in train[::step])
         for calibrate in (False, True)[: 2 if str(step) in args.calibrated.split(",") else 1]:
             record = run(args.capture, work / f"step{step}_{'cal' if calibrate else 'raw'}", step, calibrate)
-            table += rows_of(record, olats, calibrate)
+            table += rows_of(record, [str(olats), "on" if calibrate else "off"])
             print(table[-2] + "\n" + table[-1], file=sys.stderr)
     stamp = stamp_said(run_stamp(preset="olat", variant=variant))
     page = "\n".join(

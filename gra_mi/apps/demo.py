@@ -80,7 +80,7 @@ PRESETS = {
     ),
     "small": DemoPreset(
         name="small", capture="small", renderer="path", roughness_candidates=11, fit_frame_step=3, relightnet_steps=1000,
-        refiner_scale=1.0, refiner_zoom=1.0, refiner_steps=50, refiner_euler_steps=10, lighting_spp=256, platform_spp=32,
+        refiner_scale=1.0, refiner_zoom=1.0, refiner_steps=30, refiner_euler_steps=10, lighting_spp=256, platform_spp=32,
     ),
 }  # fmt: skip
 
