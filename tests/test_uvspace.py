@@ -376,3 +376,30 @@ def test_columns_reads_vectors_of_any_size_without_compiling(llvm_variant):
         assert not [h for h in dr.kernel_history() if h["type"] == dr.KernelType.JIT]
     finally:
         dr.set_flag(dr.JitFlag.KernelHistory, False)
+
+
+def test_training_sees_a_texture_as_the_evaluation_rasteriser_shows_it(tiny):
+    """RelightNet's training lookup (torch ``sample_texture`` with the atlas mask) equals the evaluation's device
+    rasteriser at one sample per pixel, chart borders included: no seam the network could learn to brighten. Without
+    the mask a constant texture comes out darker on the border pixels (the empty texels beyond a chart bleed in)."""
+    import torch
+
+    from gra_mi.render.atlas import UVAtlas
+    from gra_mi.render.bridge import camera_uv_grid, sample_texture
+    from gra_mi.render.rasterize import rasterize_to_camera
+
+    cam = tiny.stage.cameras[0]
+    atlas = UVAtlas.build(tiny.sequence.faces, tiny.sequence.uvs, 32)
+    mask = atlas.mask
+    texture = np.random.default_rng(1).random((32, 32, 3)).astype(np.float32) * mask[..., None]
+    grid, hit = camera_uv_grid(tiny, cam)
+    as_torch = torch.from_numpy(texture).permute(2, 0, 1)[None]
+    mask_torch = torch.from_numpy(mask.astype(np.float32))[None, None]
+    trained = sample_texture(as_torch, grid, mask_torch)[0].permute(1, 2, 0).numpy()
+    shown = rasterize_to_camera(tiny, cam, texture, mask, samples=1)
+    on = hit[0, 0].numpy() > 0.5
+    assert on.sum() > 100
+    np.testing.assert_allclose(trained[on], shown[..., :3][on], atol=1e-4)
+    flat = torch.from_numpy(np.repeat(mask[None, None].astype(np.float32), 3, axis=1))
+    np.testing.assert_allclose(sample_texture(flat, grid, mask_torch)[0, :, on].numpy(), 1.0, atol=1e-5)
+    assert sample_texture(flat, grid)[0, :, on].numpy().min() < 0.9, "unmasked, the border darkens"

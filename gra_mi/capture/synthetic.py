@@ -366,7 +366,7 @@ class CaptureConfig:
     """A synthetic capture (:func:`generate_capture`)."""
 
     preset: str = field(default="small", metadata=option(choices=tuple(sorted(PRESETS))))
-    """tiny: CI, seconds; small: the demo (64 training envmaps, 8 cameras at 216x288 framed on the subject), minutes;
+    """tiny: CI, seconds; small: the demo (64 training envmaps, 8 cameras at 216x312 framed on the subject), minutes;
     medium: 264 training envmaps over three motions, OLAT test, about an hour on 2 cores; full: 40 cameras at
     1024x540, 512² UV (a GPU's work)."""
     renderer: str = field(default="path", metadata=option(choices=RENDERERS))

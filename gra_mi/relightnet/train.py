@@ -355,7 +355,7 @@ def _train_step(step: int, config: TrainConfig, loop: TrainingLoop, ddp, optimiz
     optimizer.zero_grad(set_to_none=True)
     texture = ddp(batch.features, batch.env, batch.mask, drop.to(device))
     scale = exposure(batch.features[:, :3], batch.mask).detach()
-    loss = normalised_l1(sample_texture(texture, batch.grid), batch.target, batch.pixels, scale)
+    loss = normalised_l1(sample_texture(texture, batch.grid, batch.mask), batch.target, batch.pixels, scale)
     loss.backward()
     if loop.diverged(step, float(loss.detach())):
         return False
@@ -390,7 +390,7 @@ def calibrate_output_gain(model: RelightNet, views: list[Sample]) -> float:
     rendered = truth = 0.0
     for s in views:
         scale = float(exposure(s.features[:, :3], s.mask))
-        image = sample_texture(model(s.features, s.env, s.mask), s.grid)
+        image = sample_texture(model(s.features, s.env, s.mask), s.grid, s.mask)
         rendered += float((image * s.pixels).sum()) / scale
         truth += float((s.target * s.pixels).sum()) / scale
     return float(np.clip(truth / rendered, 0.5, 2.0)) if rendered > 0 else 1.0
@@ -403,7 +403,7 @@ def selection_scores(model: RelightNet, views: list[Sample], step: int) -> dict:
     per_split: dict[str, list] = {}
     l1s = []
     for s in views:
-        image = sample_texture(model(s.features, s.env, s.mask), s.grid)
+        image = sample_texture(model(s.features, s.env, s.mask), s.grid, s.mask)
         l1s.append(float(normalised_l1(image, s.target, s.pixels, exposure(s.features[:, :3], s.mask))))
         per_split.setdefault(s.split, []).append(image_metrics(image, s.target, s.pixels)[0])
     return {
@@ -462,8 +462,8 @@ def validate(
     results: dict[str, dict[str, list]] = {}
     grid_rows = []
     for s in samples:
-        coarse = sample_texture(s.features[:, :3], s.grid)
-        relit = sample_texture(model(s.features, s.env, s.mask), s.grid)
+        coarse = sample_texture(s.features[:, :3], s.grid, s.mask)
+        relit = sample_texture(model(s.features, s.env, s.mask), s.grid, s.mask)
         split = f"{s.split} (selection)" if s.selection else s.split
         entry = results.setdefault(split, {"microfacet": [], "relightnet": []})
         entry["microfacet"].append(image_metrics(coarse, s.target, s.pixels))

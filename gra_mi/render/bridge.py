@@ -56,12 +56,25 @@ def camera_uv_grid(ls, camera, device: str = "cpu"):
     return grid, to_torch(valid.astype(np.float32), device)[None, None]
 
 
-def sample_texture(texture, grid):
-    """Rasterise a (N, C, R, R) UV texture into a camera through its UV grid: (N, C, H, W). Differentiable."""
+def sample_texture(texture, grid, mask=None):
+    """Rasterise a (N, C, R, R) UV texture into a camera through its UV grid: (N, C, H, W). Differentiable.
+
+    ``mask`` (1 or N, 1, R, R): the atlas's texels. Texels outside it do not bleed in: the lookup is normalised by the
+    mask's own interpolation, as the evaluation's rasteriser (:func:`~gra_mi.render.rasterize.rasterize_to_camera`)
+    does, so a texture trained through this lookup is seen the same way when it is scored. Without it, pixels on a
+    chart's border would mix in the empty texels beyond it (a dark seam)."""
+    import torch
     import torch.nn.functional as F
 
     grid = grid if grid.shape[0] == texture.shape[0] else grid.expand(texture.shape[0], -1, -1, -1)
-    return F.grid_sample(texture, grid, mode="bilinear", padding_mode="border", align_corners=False)
+    if mask is None:
+        return F.grid_sample(texture, grid, mode="bilinear", padding_mode="border", align_corners=False)
+    weight = mask.expand(texture.shape[0], 1, -1, -1).to(texture.dtype)
+    looked_up = F.grid_sample(
+        torch.cat([texture * weight, weight], dim=1), grid, mode="bilinear", padding_mode="border", align_corners=False
+    )
+    coverage = looked_up[:, -1:]
+    return torch.where(coverage > 1e-6, looked_up[:, :-1] / coverage.clamp_min(1e-6), torch.zeros_like(looked_up[:, :-1]))
 
 
 def torch_render(scene, params, keys: dict[str, str], integrator, sensor: int = 0, spp: int = 4, seed: int = 0):
