@@ -670,8 +670,8 @@ def load_envmap_truth(capture: Capture, envmap_path: Path, frame: int):
         resolver.clear()
         for i in range(len(saved)):
             resolver.append(saved[i])
-    wrinkles = capture_wrinkles(capture.folder, frame)
-    if "wrinkles" not in capture.ground_truth.get("without", []) and wrinkles is not None:
+    wrinkles = None if "wrinkles" in capture.ground_truth.get("without", []) else capture_wrinkles(capture.folder, frame)
+    if wrinkles is not None:
         pose_wrinkles(mi.traverse(scene), wrinkles)
     return scene
 
