@@ -36,6 +36,7 @@ def agreement(capture, cameras: list[str]) -> list[dict]:
     from gra_mi.capture.dataset import load_observation
     from gra_mi.capture.reflectance import OlatIndex, ReflectanceField
     from gra_mi.capture.synthetic import GroundTruthRenderer, render_envmap_truth
+    from gra_mi.capture.wrinkles import pose_capture_wrinkles
     from gra_mi.stage.envmap import envmap_to_leds, load_envmap
     from gra_mi.stage.lightstage import load_calibration
     from gra_mi.stage.scene import LightstageScene
@@ -47,7 +48,7 @@ def agreement(capture, cameras: list[str]) -> list[dict]:
     renderer = GroundTruthRenderer(spp=gt["spp"], indirect_spp=gt["indirect_spp"], max_depth=gt["max_depth"])
     source = LightstageScene.load(capture.folder / "scene_gt.xml")
     source.set_frame(0)
-    _pose_wrinkles(capture, source)
+    pose_capture_wrinkles(source.params, capture, 0)  # the static pose: as its images have them
     rows = []
     for entry in [e for e in capture.frames if e.frame not in index.frames]:
         lighting = capture.lighting(stage, entry)
@@ -73,14 +74,6 @@ def agreement(capture, cameras: list[str]) -> list[dict]:
                 }
             rows.append(row)
     return rows
-
-
-def _pose_wrinkles(capture, source) -> None:
-    from gra_mi.capture.wrinkles import capture_wrinkles, pose_wrinkles
-
-    wrinkles = capture_wrinkles(capture.folder, 0)
-    if "wrinkles" not in capture.ground_truth.get("without", []) and wrinkles is not None:
-        pose_wrinkles(source.params, wrinkles)
 
 
 def speed(capture, camera: str) -> tuple[list[dict], float, int]:

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from gra_mi.capture.dataset import Capture, FrameLighting
-from gra_mi.capture.wrinkles import capture_wrinkles, pose_wrinkles, wrinkle_normal_map
+from gra_mi.capture.wrinkles import pose_capture_wrinkles, wrinkle_normal_map
 from gra_mi.core.config import comma_list, option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.io import atomic_write_text, write_exr, write_png
@@ -602,8 +602,8 @@ def _render_images(capture: Capture, stage, config: CaptureConfig, record: dict,
     source = LightstageScene.load(out / "scene_gt.xml")
 
     def pose(frame: int) -> None:
-        if source.set_frame(frame) and "wrinkles" not in config.without:  # wrinkles follow the pose
-            pose_wrinkles(source.params, capture_wrinkles(out, frame))
+        if source.set_frame(frame):  # wrinkles follow the pose
+            pose_capture_wrinkles(source.params, capture, frame)
 
     jobs = [(entry, cam) for entry in shard.take(capture.frames) for cam in stage.cameras]
     lit = None  # the frame whose lighting is set: jobs run frame-major, so each frame's envmap is mapped once
@@ -670,9 +670,7 @@ def load_envmap_truth(capture: Capture, envmap_path: Path, frame: int):
         resolver.clear()
         for i in range(len(saved)):
             resolver.append(saved[i])
-    wrinkles = None if "wrinkles" in capture.ground_truth.get("without", []) else capture_wrinkles(capture.folder, frame)
-    if wrinkles is not None:
-        pose_wrinkles(mi.traverse(scene), wrinkles)
+    pose_capture_wrinkles(mi.traverse(scene), capture, frame)
     return scene
 
 

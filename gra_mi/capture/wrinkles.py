@@ -103,6 +103,15 @@ def capture_wrinkles(folder: Path, frame: int) -> np.ndarray | None:
     return model.normal_map(vertices[frame])
 
 
+def pose_capture_wrinkles(params, capture, frame: int) -> bool:
+    """Pose a synthetic capture's ground-truth scene (``mi.traverse`` parameters) with the wrinkles of its mesh frame,
+    as its images have them; False when the capture was made without wrinkles or its scene has no normal map."""
+    if "wrinkles" in capture.ground_truth.get("without", []):
+        return False
+    wrinkles = capture_wrinkles(capture.folder, frame)
+    return wrinkles is not None and pose_wrinkles(params, wrinkles)
+
+
 def pose_wrinkles(params, normal_map: np.ndarray) -> bool:
     """Set a frame's wrinkle normal map on a ground-truth scene's ``normalmap`` BSDF (``mi.traverse`` parameters);
     False when the scene has none (a one-bounce ground truth)."""
