@@ -10,7 +10,8 @@ held-out cameras. Prints a Markdown page.
 
 ``--effects`` instead asks what holds the fit back: it makes one capture per ground truth (the full path-traced
 one, then without the effects the one-bounce model leaves out, one group at a time, then gra-mi's own one-bounce
-model) and fits each from the same OLAT subset, so that the rows differ in the truth alone.
+model) and fits each from the same OLAT subset, so that the rows differ in the truth alone. A rerun with the same
+``--work`` reads its captures and fits back.
 
     .venv/bin/python benchmarks/olat_fit.py --effects --preset olat_quick --step 5 [--write docs/results/olat-fit-effects.md]
 """
@@ -44,10 +45,14 @@ def rows_of(record: dict, leading: list[str], timed: bool = True) -> list[str]:
             "| "
             + " | ".join([*leading, region, str(record["scored_texels"][region])])
             + f" | {ours['roughness_mae']:.4f} | {base['roughness_mae']:.4f} | {ours['roughness_mae'] / base['roughness_mae']:.2f} "
-            f"| {100 * ours['albedo_rel_median']:.1f} % | {100 * base['albedo_rel_median']:.1f} % "
+            f"| {100 * ours['albedo_rel_median']:.1f} % | {_percent(ours.get('albedo_bias'))} | {100 * base['albedo_rel_median']:.1f} % "
             f"| {relight['psnr']:.2f} |" + (f" {record['seconds']:.0f} |" if timed else "")
         )
     return rows
+
+
+def _percent(value: float | None) -> str:
+    return "–" if value is None else f"{100 * value:+.1f} %"  # fits made before fit.json had the number
 
 
 TRUTHS = [  # (what the ground truth has, `gra-mi capture` options)
@@ -56,19 +61,21 @@ TRUTHS = [  # (what the ground truth has, `gra-mi capture` options)
     ("without sheen and wrinkles", {"without": ["sheen", "wrinkles"]}),
     ("without all three (the principled BSDF's direct light)", {"without": ["sheen", "wrinkles", "interreflection"]}),
     ("gra-mi's own one-bounce model (`--renderer onebounce`)", {"renderer": "onebounce"}),
-]
+]  # every row at the preset's samples per pixel: the same pixel coverage, so the same texels are scored
 
 
 def effects_page(preset: str, step: int, work: Path, variant: str) -> str:
     """Fit captures that differ only in their ground truth (:data:`TRUTHS`): a row per truth and region."""
-    from gra_mi.capture.synthetic import CaptureConfig, generate_capture
+    from gra_mi.capture.synthetic import PRESETS, CaptureConfig, generate_capture
     from gra_mi.core.stamp import run_stamp, stamp_said
 
     table = []
     for i, (label, options) in enumerate(TRUTHS):
-        capture = generate_capture(work / f"truth{i}", CaptureConfig(preset=preset, measure_noise=False, **options))
+        config = CaptureConfig(preset=preset, measure_noise=False, spp=PRESETS[preset].spp, **options)
+        capture = generate_capture(work / f"truth{i}", config)
         olats = sum("olat_" in (f.pattern or "") for f in [f for f in capture.frames if f.split == "train"][::step])  # alike in every row
-        record = run(capture.folder, work / f"truth{i}_fit", step, calibrate=False)
+        fitted = work / f"truth{i}_fit" / "fit.json"  # a rerun with the same --work reads the fits back
+        record = json.loads(fitted.read_text()) if fitted.is_file() else run(capture.folder, fitted.parent, step, calibrate=False)
         table += rows_of(record, [label], timed=False)
         print("\n".join(table[-2:]), file=sys.stderr)
     return "\n".join(
@@ -80,11 +87,12 @@ def effects_page(preset: str, step: int, work: Path, variant: str) -> str:
             f"> {olats} OLATs (`--frame-step {step}`) with the fit's defaults, without the brightness calibration.",
             "",
             "Scored as in [olat-fit.md](olat-fit.md): texels ≥ 3 training cameras see, against the true maps, next to the",
-            "constant baseline; *ratio*: the fit's roughness MAE over the baseline's; relit PSNR: held-out lighting from the",
-            "held-out cameras, one bounce, against that row's own truth.",
+            "constant baseline; *ratio*: the fit's roughness MAE over the baseline's; *albedo bias*: the median of fitted /",
+            "true albedo − 1 (the part of the error one gain would remove); relit PSNR: held-out lighting from the held-out",
+            "cameras, one bounce, against that row's own truth.",
             "",
-            "| ground truth | region | texels | roughness MAE | constant | ratio | albedo median rel. error | constant | relit PSNR (dB) |",
-            "|---|---|---|---|---|---|---|---|---|",
+            "| ground truth | region | texels | roughness MAE | constant | ratio | albedo median rel. error | albedo bias | constant | relit PSNR (dB) |",
+            "|---|---|---|---|---|---|---|---|---|---|",
             *table,
         ]
     )
@@ -137,8 +145,8 @@ def main() -> None:
             "calibration (one albedo gain so the training views' renders hold their captured light). Relit PSNR: the",
             "held-out lighting (the envmap frames and the held-out OLATs) from the held-out cameras, one bounce.",
             "",
-            "| OLATs | calibration | region | texels | roughness MAE | constant | ratio | albedo median rel. error | constant | relit PSNR (dB) | fit time (s) |",
-            "|---|---|---|---|---|---|---|---|---|---|---|",
+            "| OLATs | calibration | region | texels | roughness MAE | constant | ratio | albedo median rel. error | albedo bias | constant | relit PSNR (dB) | fit time (s) |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|",
             *table,
         ]
     )

@@ -166,3 +166,12 @@ def test_training_lightings_option_grows_the_clips_in_whole_cycles():
         assert n <= relit < n + len(resolved.train_clips) * resolved.relit_per_uniform
         assert len(kinds) % (resolved.relit_per_uniform + 1) == 0 and kinds[0] == "uniform"
         assert config.record()["training_lightings"] == n
+
+
+def test_the_one_bounce_truth_takes_the_samples_per_pixel_it_is_given():
+    """`--renderer onebounce --spp N` renders with N samples (16 by default): a capture compared with a path-traced
+    one at the same count covers the same pixels fully, so both fits are scored on the same texels."""
+    assert CaptureConfig(preset="olat_quick", renderer="onebounce").record()["spp"] == 16
+    assert CaptureConfig(preset="olat_quick", renderer="onebounce", spp=4).record()["spp"] == 4
+    path = CaptureConfig(preset="olat_quick", spp=4).record()
+    assert path["spp"] == 4 and path == CaptureConfig(preset="olat_quick").record()  # the preset's own count: one identity

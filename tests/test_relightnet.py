@@ -319,3 +319,35 @@ def test_the_views_eval_scores_never_choose_the_weights():
     lighting = [cam for split, cam in chosen if split == "novel lighting (envmap)"]
     assert lighting and set(lighting) == {"cam00"} and len(lighting) == 4  # at most half of the 8 candidates
     assert {cam for split, cam in chosen if split == "novel view"} >= {"cam06", "cam07"}
+
+
+def test_the_display_loss_weighs_an_error_by_what_it_looks_like():
+    """Equal linear errors: in a shadow (1/16 of the exposure) the display loss counts it ≈ 16^(1 − 1/2.2) ≈ 4.5×
+    more than in the light (a display's tone curve is steeper in the dark, as the sRGB values the metrics compare),
+    the linear loss the same; a perfect image scores 0 either way, and the loss is a mean over the subject's pixels."""
+    from gra_mi.relightnet.train import normalised_l1
+
+    pixels = torch.ones(1, 1, 1, 2)
+    scale = torch.ones(1, 1, 1, 1)
+    target = torch.tensor([1 / 16, 1.0]).reshape(1, 1, 1, 2).expand(1, 3, 1, 2)
+    delta = 0.01
+    shadow_error = target + torch.tensor([delta, 0.0]).reshape(1, 1, 1, 2)
+    light_error = target + torch.tensor([0.0, delta]).reshape(1, 1, 1, 2)
+    for encoding in ("display", "linear"):
+        assert float(normalised_l1(target, target, pixels, scale, encoding)) == 0.0
+    assert float(normalised_l1(shadow_error, target, pixels, scale, "linear")) == pytest.approx(delta / 2)
+    assert float(normalised_l1(light_error, target, pixels, scale, "linear")) == pytest.approx(delta / 2)
+    ratio = float(normalised_l1(shadow_error, target, pixels, scale, "display")) / float(
+        normalised_l1(light_error, target, pixels, scale, "display")
+    )
+    curve = lambda x: x ** (1 / 2.2)  # noqa: E731 — the slope ratio, from finite differences of the curve itself
+    expected = (curve(1 / 16 + delta) - curve(1 / 16)) / (curve(1 + delta) - curve(1.0))
+    assert ratio == pytest.approx(expected, rel=0.02) and 4.0 < ratio < 5.0
+
+
+def test_an_unknown_loss_encoding_is_refused():
+    from gra_mi.core.errors import GraMiParameterError
+    from gra_mi.relightnet.train import TrainConfig
+
+    with pytest.raises(GraMiParameterError, match="loss"):
+        TrainConfig(loss="perceptual").validate()

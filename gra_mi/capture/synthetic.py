@@ -134,6 +134,7 @@ PRESETS = {
 }  # fmt: skip
 
 RENDERERS = ("path", "onebounce")
+ONEBOUNCE_SPP = 16  # the one-bounce truth's default samples per pixel (anti-aliasing only: its lighting is exact)
 ABLATABLE_EFFECTS = ("sheen", "wrinkles", "interreflection")  # what the one-bounce model does not explain
 
 OLAT_KEY_DIRECTION = np.array([0.5, 0.6, 0.62])  # the test OLAT: a key light front-left and above the subject
@@ -372,15 +373,16 @@ class CaptureConfig:
     renderer: str = field(default="path", metadata=option(choices=RENDERERS))
     """Ground truth: Mitsuba path tracing of a richer material (default), or gra-mi's one-bounce model (recovery tests)."""
     spp: int | None = None
-    """Samples per pixel of the exact direct light (a power of 4). Default: the preset's. The environment-lit training
-    frames of `small` and `medium` keep their own, lower counts (capture.json: relit_spp, relit_indirect_spp)."""
+    """Samples per pixel of the exact direct light (a power of 4). Default: the preset's (with --renderer onebounce,
+    whose samples only anti-alias: 16). The environment-lit training frames of `small` and `medium` keep their own,
+    lower counts (capture.json: relit_spp, relit_indirect_spp)."""
     indirect_spp: int | None = None
     """Path samples per pixel of the interreflections (a power of 4). Default: the preset's."""
     without: list[str] = field(default_factory=list, metadata=option(parse=comma_list))
     """Effects to leave out of the path-traced ground truth, comma-separated: sheen, wrinkles, interreflection.
     Fitting such captures shows what each effect costs the one-bounce fit (docs/results/fit.md)."""
     measure_noise: bool = True
-    """Measure the ground truth's noise against 4x the samples on a few views (capture.json)."""
+    """Measure the ground truth's noise against 16x the samples on a few views (capture.json)."""
     training_lightings: int | None = None
     """Environment-lit training frames, each under its own map (default: the preset's). The training clips get as many
     frames as that takes, keeping the preset's relit frames per uniformly lit one."""
@@ -443,7 +445,7 @@ class CaptureConfig:
         since a resume with other counts would mix two estimators."""
         preset = self.resolved()
         if self.renderer == "onebounce":  # deterministic lighting, samples only anti-alias
-            counts = {"spp": 16, "indirect_spp": 0, "max_depth": 2}
+            counts = {"spp": self.spp or ONEBOUNCE_SPP, "indirect_spp": 0, "max_depth": 2}
         elif "interreflection" in self.without:
             counts = {"spp": preset.spp, "indirect_spp": 0, "max_depth": 2}
         else:

@@ -23,13 +23,16 @@ SCORED_MIN_CAMERAS = 3
 
 
 def map_errors(albedo: np.ndarray, roughness: np.ndarray, true_albedo: np.ndarray, true_roughness: np.ndarray) -> dict[str, float]:
-    """Albedo MAE and median relative error, roughness MAE and median absolute error over the given texels."""
+    """Albedo MAE, median relative error and scale bias (the median of fit / truth − 1: the part of the error one
+    gain would remove), roughness MAE and median absolute error over the given texels."""
     if roughness.size == 0:
         return {}
-    rel = np.abs(albedo - true_albedo) / np.maximum(true_albedo, 1e-3)
+    floor = np.maximum(true_albedo, 1e-3)
+    rel = np.abs(albedo - true_albedo) / floor
     return {
         "albedo_mae": float(np.mean(np.abs(albedo - true_albedo))),
         "albedo_rel_median": float(np.median(rel)),
+        "albedo_bias": float(np.median(albedo / floor) - 1),
         "roughness_mae": float(np.mean(np.abs(roughness - true_roughness))),
         "roughness_median_abs": float(np.median(np.abs(roughness - true_roughness))),
     }

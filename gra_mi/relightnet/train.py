@@ -76,6 +76,9 @@ class TrainConfig:
     LEDs, each target the sum of the capture's training OLATs (docs/evaluation.md); 0: the capture's own only."""
     synthesized_validation: int = 16
     """With --synthesized-lightings: held-out procedural envmaps (another seed range), truth from the OLATs."""
+    loss: str = "display"
+    """How the L1 compares images (also the score that selects the weights): "display" through a display's tone curve,
+    as the metrics see them (an error in a shadow weighs what it looks like); "linear": radiance itself."""
 
     def validate(self) -> None:
 
@@ -93,6 +96,8 @@ class TrainConfig:
         for name, value in (("weight_decay", self.weight_decay), ("env_dropout", self.env_dropout)):
             if not (0 <= value < 1):
                 raise GraMiParameterError(name, f"must be in [0, 1), got {value}")
+        if self.loss not in LOSS_ENCODINGS:
+            raise GraMiParameterError("loss", f"must be one of {', '.join(LOSS_ENCODINGS)}, got {self.loss!r}")
         if self.patch not in (None, 1, 2, 4):
             raise GraMiParameterError("patch", f"must be 1, 2 or 4, got {self.patch}")
         if self.env_height % 4:
@@ -198,10 +203,22 @@ def stack(samples: list[Sample]) -> Sample:
     return Sample("batch", "train", *(cat(n) for n in ("features", "mask", "env", "grid", "pixels", "target")))
 
 
-def normalised_l1(image: torch.Tensor, target: torch.Tensor, pixels: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
-    """L1 over the subject's pixels in units of each view's exposure (:func:`exposure`): every view weighs the same,
-    whether lit by a dim OLAT or a bright sky."""
-    return (torch.abs(image - target) / scale * pixels).sum() / (3 * pixels.sum()).clamp(min=1)
+LOSS_ENCODINGS = ("display", "linear")
+DISPLAY_GAMMA = 1 / 2.2
+DISPLAY_FLOOR = 1e-3  # keeps the tone curve's slope finite at black (in units of the exposure)
+
+
+def normalised_l1(
+    image: torch.Tensor, target: torch.Tensor, pixels: torch.Tensor, scale: torch.Tensor, encoding: str = "display"
+) -> torch.Tensor:
+    """L1 over the subject's pixels in units of each view's exposure (:func:`exposure`: every view weighs the same,
+    whether lit by a dim OLAT or a bright sky), compared as ``encoding``: "display" through a display's tone curve
+    (x^(1/2.2), unclipped), as the metrics see the images (PSNR, SSIM and ꟻLIP compare sRGB display values), so an error
+    in a shadow weighs what it looks like; "linear": radiance itself."""
+    a, b = image / scale, target / scale
+    if encoding == "display":
+        a, b = ((x.clamp(min=0) + DISPLAY_FLOOR) ** DISPLAY_GAMMA for x in (a, b))
+    return (torch.abs(a - b) * pixels).sum() / (3 * pixels.sum()).clamp(min=1)
 
 
 def image_metrics(image: torch.Tensor, target: torch.Tensor, pixels: torch.Tensor) -> tuple[float, float, float]:
@@ -238,7 +255,7 @@ def train_relightnet(capture_dir: str | Path, fit_dir: str | Path, out: str | Pa
     )
     model = RelightNet(net_config).to(device)
     optimizer = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
-    selector = Selector(model, [s for s in samples if s.selection], loop)
+    selector = Selector(model, [s for s in samples if s.selection], loop, config.loss)
     _resume(loop, model, optimizer, selector, config, device)
     if selector.best is None and loop.rank == 0:
         selector(0)  # the untrained network is the microfacet render: the baseline every later step must beat
@@ -311,11 +328,12 @@ class Selector:
     model: RelightNet
     views: list[Sample]
     loop: TrainingLoop
+    encoding: str = "display"  # the training loss's
     best: dict | None = None
     rows: list[dict] = field(default_factory=list)
 
     def __call__(self, step: int) -> None:
-        row = selection_scores(self.model, self.views, step)
+        row = selection_scores(self.model, self.views, step, self.encoding)
         # A capture without held-out views has nothing to select on: the latest weights are kept.
         score = row["score"] if self.views else -float(step)
         if not (np.isfinite(score) and all_finite(self.model)):
@@ -355,7 +373,7 @@ def _train_step(step: int, config: TrainConfig, loop: TrainingLoop, ddp, optimiz
     optimizer.zero_grad(set_to_none=True)
     texture = ddp(batch.features, batch.env, batch.mask, drop.to(device))
     scale = exposure(batch.features[:, :3], batch.mask).detach()
-    loss = normalised_l1(sample_texture(texture, batch.grid, batch.mask), batch.target, batch.pixels, scale)
+    loss = normalised_l1(sample_texture(texture, batch.grid, batch.mask), batch.target, batch.pixels, scale, config.loss)
     loss.backward()
     if loop.diverged(step, float(loss.detach())):
         return False
@@ -397,14 +415,14 @@ def calibrate_output_gain(model: RelightNet, views: list[Sample]) -> float:
 
 
 @torch.no_grad()
-def selection_scores(model: RelightNet, views: list[Sample], step: int) -> dict:
-    """The exposure-normalised L1 of the selection views (their mean: the score that picks the weights, lower is
-    better) and each held-out split's mean PSNR, for the validation curve."""
+def selection_scores(model: RelightNet, views: list[Sample], step: int, encoding: str = "display") -> dict:
+    """The training loss on the selection views (:func:`normalised_l1`; their mean: the score that picks the weights,
+    lower is better) and each held-out split's mean PSNR, for the validation curve."""
     per_split: dict[str, list] = {}
     l1s = []
     for s in views:
         image = sample_texture(model(s.features, s.env, s.mask), s.grid, s.mask)
-        l1s.append(float(normalised_l1(image, s.target, s.pixels, exposure(s.features[:, :3], s.mask))))
+        l1s.append(float(normalised_l1(image, s.target, s.pixels, exposure(s.features[:, :3], s.mask), encoding)))
         per_split.setdefault(s.split, []).append(image_metrics(image, s.target, s.pixels)[0])
     return {
         "step": step,
