@@ -7,7 +7,8 @@ eval-lighting` (the reference maps against their path-traced truth, RelightNet b
 with the mean and the spread (max − min) / 2 of every number, and where the demo's own RelightNet moves ꟻLIP (the
 silhouette band against the interior).
 
-    .venv/bin/python benchmarks/demo_seeds.py --run outputs/demo [--seeds 3] [--more-steps 2000] [--write docs/results/demo-seeds.md]
+    .venv/bin/python benchmarks/demo_seeds.py --run outputs/demo [--seeds 3] [--more-steps 2000] [--lightings 4,16]
+        [--write docs/results/demo-seeds.md]
 
 Each run keeps its numbers in its folder under --work (RUN/seeds/…/result.json): a rerun reads them back.
 """
@@ -26,14 +27,15 @@ import numpy as np
 METRICS = (("psnr", "PSNR", 2), ("ssim", "SSIM", 3), ("flip", "ꟻLIP", 3))
 
 
-def train_and_score(run: Path, out: Path, seed: int, steps: int, lighting_spp: int) -> dict:
-    """One seed: RelightNet trained, then both evaluations; the numbers the page needs (kept in ``out/result.json``,
-    which a rerun reads instead of training again)."""
+def train_and_score(run: Path, out: Path, seed: int, steps: int, lighting_spp: int, lightings: int | None = None) -> dict:
+    """One seed: RelightNet trained (on ``lightings`` of the capture's training lightings: None, all), then both
+    evaluations; the numbers the page needs (kept in ``out/result.json``, which a rerun reads instead of training
+    again)."""
     from gra_mi.eval.lighting import EnvmapAccuracyConfig, envmap_accuracy
     from gra_mi.eval.protocol import EvalInputs, evaluate
     from gra_mi.relightnet.train import TrainConfig, train_relightnet
 
-    config = TrainConfig(steps=steps, seed=seed)
+    config = TrainConfig(steps=steps, seed=seed, training_lightings=lightings)
     model = demos_own(run, config) or out / "relightnet"
     if (out / "result.json").is_file():
         return json.loads((out / "result.json").read_text()) | dict(zip(("seconds", "resumed"), training_seconds(model), strict=True))
@@ -51,7 +53,15 @@ def train_and_score(run: Path, out: Path, seed: int, steps: int, lighting_spp: i
     }
     rows = envmap_accuracy(capture, fit, out.parent / "lighting", relightnet_dir=model, config=EnvmapAccuracyConfig(spp=lighting_spp))
     lighting = {f"{r['map']}|{r['method']}": r["psnr"] for r in rows}
-    result = {"seed": seed, "steps": steps, "seconds": seconds, "resumed": resumed, "splits": splits, "lighting": lighting}
+    result = {
+        "seed": seed,
+        "steps": steps,
+        "lightings": lightings,
+        "seconds": seconds,
+        "resumed": resumed,
+        "splits": splits,
+        "lighting": lighting,
+    }
     (out / "result.json").write_text(json.dumps(result, indent=1) + "\n")
     return result
 
@@ -59,9 +69,11 @@ def train_and_score(run: Path, out: Path, seed: int, steps: int, lighting_spp: i
 def demos_own(run: Path, config) -> Path | None:
     """The demo's own RelightNet where it was trained with these options (seed 0 at the demo's steps): not trained again."""
     own = run / "relightnet"
-    if (own / "relightnet.json").is_file() and json.loads((own / "provenance.json").read_text()).get("config") == asdict(config):
-        return own
-    return None
+    if not (own / "relightnet.json").is_file():
+        return None
+    said, defaults = json.loads((own / "provenance.json").read_text()).get("config"), asdict(type(config)())
+    # An option added since the demo ran counts at its default.
+    return own if said is not None and all(said.get(k, defaults[k]) == v for k, v in asdict(config).items()) else None
 
 
 def training_seconds(model: Path) -> tuple[float, bool]:
@@ -150,24 +162,36 @@ def lighting_table(runs: list[dict]) -> list[str]:
     return lines
 
 
-def steps_curve(runs: list[dict]) -> list[str]:
-    """RelightNet's gain over its input against its training steps (one seed each): what more training buys."""
+def steps_curve(runs: list[dict], all_lightings: int) -> list[str]:
+    """RelightNet's gain over its input against its training steps and training lightings (one seed each): what more
+    training, or more lightings, buys."""
     splits = list(runs[0]["splits"])
-    lines = ["| steps | seed | " + " | ".join(f"{s} PSNR / SSIM / ꟻLIP gain" for s in splits) + " | training (s) |"]
-    lines.append("|---|---|" + "---|" * len(splits) + "---|")
-    for r in sorted(runs, key=lambda r: (r["steps"], r["seed"])):
+    head = "| training lightings | steps | seed | " + " | ".join(f"{s} PSNR / SSIM / ꟻLIP gain" for s in splits)
+    lines = [head + " | training (s) |", "|---|---|---|" + "---|" * len(splits) + "---|"]
+    for r in sorted(runs, key=lambda r: (r.get("lightings") or all_lightings, r["steps"], r["seed"])):
         cells = []
         for split in splits:
             base, ours = r["splits"][split]["microfacet"], r["splits"][split]["RelightNet"]
             cells.append(" / ".join(f"{ours[k] - base[k]:+.{d}f}" for k, _, d in METRICS))
         said = f"{r['seconds']:.0f}" + (" (after a resume)" if r.get("resumed") else "")
-        lines.append(f"| {r['steps']} | {r['seed']} | " + " | ".join(cells) + f" | {said} |")
+        count = r.get("lightings") or all_lightings
+        lines.append(f"| {count} | {r['steps']} | {r['seed']} | " + " | ".join(cells) + f" | {said} |")
     return lines
+
+
+def training_lightings(run: Path) -> int:
+    """How many distinct lightings lit the capture's training frames (uniform light aside)."""
+    from gra_mi.capture.dataset import Capture
+    from gra_mi.relightnet.train import lighting_of
+
+    frames = [f for f in Capture.load(run / "capture").frames if f.split == "train"]
+    return len({lighting_of(f) for f in frames} - {None})
 
 
 def markdown(runs: list[dict], run: Path, stamp: str, regions: dict) -> list[str]:
     demo = json.loads((run / "demo.json").read_text())
-    seeds = [r for r in runs if r["steps"] == demo["preset"]["relightnet_steps"]]
+    lightings = training_lightings(run)
+    seeds = [r for r in runs if r["steps"] == demo["preset"]["relightnet_steps"] and not r.get("lightings")]
     said = demo["eval"]["protocol"]
     tall = [s.get("subject_pixels", [0, 0]) for s in said["splits"].values()]
     return [
@@ -192,10 +216,11 @@ def markdown(runs: list[dict], run: Path, stamp: str, regions: dict) -> list[str
         *regions_table(regions),
         "",
         "Each run (with `--more-steps`, also longer ones: the demo trains "
-        f"{demo['preset']['relightnet_steps']} steps; the learning-rate schedule spans each run's steps). Training: seconds "
-        "in the training loop since it last started (noisy: other work may have shared the cores):",
+        f"{demo['preset']['relightnet_steps']} steps; the learning-rate schedule spans each run's steps; with `--lightings`, "
+        f"also on the lit frames of fewer of the capture's {lightings} training lightings, every uniformly lit frame kept). "
+        "Training: seconds in the training loop since it last started (noisy: other work may have shared the cores):",
         "",
-        *steps_curve(runs),
+        *steps_curve(runs, lightings),
         "",
     ]
 
@@ -205,6 +230,9 @@ def main() -> None:
     parser.add_argument("--run", type=Path, required=True, help="A `gra-mi demo` output folder (its capture/ and fit/ are used).")
     parser.add_argument("--seeds", type=int, default=3, help="RelightNet training seeds 0 … N−1. Default: 3.")
     parser.add_argument("--more-steps", default="", help="Also train seed 0 this many steps, comma-separated (the steps curve).")
+    parser.add_argument(
+        "--lightings", default="", help="Also train seed 0 on this many of the training lightings, comma-separated (the lightings curve)."
+    )
     parser.add_argument("--work", type=Path, default=None, help="Folder for the runs. Default: RUN/seeds.")
     parser.add_argument("--write", type=Path, default=None, help="Also write the Markdown page here (stamped).")
     args = parser.parse_args()
@@ -216,11 +244,13 @@ def main() -> None:
     preset = demo["preset"]
     variant = start_runtime("llvm_ad_rgb", torch=True).variant
     work = args.work or args.run / "seeds"
-    jobs = [(work / f"seed{seed}", seed, preset["relightnet_steps"]) for seed in range(args.seeds)]
-    jobs += [(work / f"steps{steps}_seed0", 0, int(steps)) for steps in args.more_steps.split(",") if steps]
+    steps = preset["relightnet_steps"]
+    jobs = [(work / f"seed{seed}", seed, steps, None) for seed in range(args.seeds)]
+    jobs += [(work / f"steps{more}_seed0", 0, int(more), None) for more in args.more_steps.split(",") if more]
+    jobs += [(work / f"lightings{count}_seed0", 0, steps, int(count)) for count in args.lightings.split(",") if count]
     runs = []
-    for out, seed, steps in jobs:
-        runs.append(train_and_score(args.run, out, seed, steps, preset["lighting_spp"]))
+    for out, seed, run_steps, lightings in jobs:
+        runs.append(train_and_score(args.run, out, seed, run_steps, preset["lighting_spp"], lightings))
         print(json.dumps(runs[-1]), file=sys.stderr)
     stamp = run_stamp(preset=preset["name"], variant=variant)
     regions = flip_regions(args.run, demos_own(args.run, TrainConfig(steps=preset["relightnet_steps"])) or work / "seed0" / "relightnet")

@@ -351,3 +351,24 @@ def test_an_unknown_loss_encoding_is_refused():
 
     with pytest.raises(GraMiParameterError, match="loss"):
         TrainConfig(loss="perceptual").validate()
+
+
+def test_training_on_fewer_lightings_keeps_every_uniformly_lit_frame():
+    """`--training-lightings K`: the lit frames of K of the capture's lightings (evenly spaced), every camera of
+    them, and every uniformly lit frame; more than the capture has is refused, naming the option."""
+    from gra_mi.capture.dataset import FrameLighting
+    from gra_mi.core.errors import GraMiParameterError
+    from gra_mi.relightnet.train import of_lightings
+
+    frames = [
+        FrameLighting(t, "train", 0, "uniform" if t % 3 == 0 else "envmap", None if t % 3 == 0 else f"env/{t}.exr") for t in range(12)
+    ]
+    jobs = [(f, cam, "train") for f in frames for cam in ("cam00", "cam01")]
+    assert of_lightings(jobs, None) == jobs
+    kept = of_lightings(jobs, 2)
+    assert {j[0].frame for j in kept if j[0].kind == "uniform"} == {0, 3, 6, 9}
+    lit = sorted({j[0].envmap for j in kept if j[0].kind == "envmap"})
+    assert lit == ["env/1.exr", "env/11.exr"] and len(kept) == 2 * (4 + 2)
+    assert of_lightings(jobs, 8) == jobs
+    with pytest.raises(GraMiParameterError, match="training_lightings"):
+        of_lightings(jobs, 9)

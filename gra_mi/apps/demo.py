@@ -50,6 +50,7 @@ class DemoPreset:
     refiner_zoom: float  # the refiner's subject crop, magnified over refiner_scale (1: a framed capture's subject)
     refiner_steps: int  # training steps of the tiny refiner
     refiner_euler_steps: int
+    refiner_train_cameras: int | None  # the refiner's training sequences come from this many training cameras (None: all)
     lighting_spp: int  # samples per pixel of the path-traced truth under the reference environments
     platform_spp: int  # samples per pixel of the platform layer of the composites
 
@@ -76,11 +77,13 @@ PRESETS = {
     ),
     "tiny": DemoPreset(
         name="tiny", capture="tiny", renderer="onebounce", roughness_candidates=5, fit_frame_step=1, relightnet_steps=20,
-        refiner_scale=0.25, refiner_zoom=4.0, refiner_steps=20, refiner_euler_steps=4, lighting_spp=16, platform_spp=4,
+        refiner_scale=0.25, refiner_zoom=4.0, refiner_steps=20, refiner_euler_steps=4, refiner_train_cameras=None,
+        lighting_spp=16, platform_spp=4,
     ),
     "small": DemoPreset(
         name="small", capture="small", renderer="path", roughness_candidates=11, fit_frame_step=3, relightnet_steps=1000,
-        refiner_scale=1.0, refiner_zoom=1.0, refiner_steps=30, refiner_euler_steps=10, lighting_spp=256, platform_spp=32,
+        refiner_scale=1.0, refiner_zoom=1.0, refiner_steps=30, refiner_euler_steps=10, refiner_train_cameras=3,
+        lighting_spp=256, platform_spp=32,
     ),
 }  # fmt: skip
 
@@ -354,7 +357,9 @@ def _refiner_stage(preset: DemoPreset, capture, out: Path, timings: dict) -> dic
                 out / "fit",
                 data_dir,
                 relightnet_dir=out / "relightnet",
-                config=CaptureSequencesConfig(scale=preset.refiner_scale, zoom=preset.refiner_zoom),
+                config=CaptureSequencesConfig(
+                    scale=preset.refiner_scale, zoom=preset.refiner_zoom, train_cameras=preset.refiner_train_cameras
+                ),
                 cache_dir=out / "cache" / "visibility",
             )
     with _timed(timings, f"video refiner training (tiny, {preset.refiner_steps} steps)"):

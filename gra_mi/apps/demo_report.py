@@ -218,8 +218,8 @@ def _noise(r: dict) -> list[str]:
     lines = [
         "## Ground-truth noise",
         "",
-        "Relative RMSE over the subject's pixels of one ground-truth image against a render of the same view with "
-        f"16× the samples (direct light from every LED: {truth.get('spp', '?')} spp; interreflections: "
+        "Relative RMS noise over the subject's pixels of one ground-truth image, against a render of the same view with "
+        f"{_reference_said(truth)} (direct light from every LED: {truth.get('spp', '?')} spp; interreflections: "
         f"{truth.get('indirect_spp', '?')} spp"
         + (
             f"; the environment-lit training frames at {truth['relit_spp']} and {truth['relit_indirect_spp']} spp: training data, "
@@ -240,6 +240,11 @@ def _noise(r: dict) -> list[str]:
             f"| {row['seconds_per_image']:.2f} |"
         )
     return lines + [""]
+
+
+def _reference_said(truth: dict) -> str:
+    factor = next(iter(truth.get("noise", {}).values()), {}).get("reference_factor")
+    return "16× the samples" if factor is None else f"{factor}× the samples, its own noise divided out"
 
 
 def _samples_said(row: dict, truth: dict) -> str:

@@ -305,7 +305,14 @@ class GroundTruthRenderer:
         return image.astype(np.float32)
 
 
-NOISE_REFERENCE_FACTOR = 16
+NOISE_REFERENCE_FACTOR = 4
+
+
+def own_noise(image: np.ndarray, reference: np.ndarray, mask: np.ndarray, factor: int) -> float:
+    """The relative RMS noise of ``image`` measured against a ``reference`` rendered by the same estimator with
+    ``factor`` times the samples (other seeds): the reference's own noise variance is 1/factor of the image's, so the
+    difference's mean square is (1 + 1/factor) times the image's, divided out here."""
+    return relative_rmse(image, reference, mask=mask) / math.sqrt(1 + 1 / factor)
 
 
 def noise_probe_frames(capture: Capture) -> dict[str, FrameLighting]:
@@ -335,11 +342,11 @@ def ground_truth_renderers(record: dict):
 
 
 def measure_ground_truth_noise(capture: Capture, source, renderer_for, camera: str, pose=None) -> dict[str, dict]:
-    """Relative RMSE of the ground truth against a render of the same view with 16x the samples (other seeds).
+    """Relative RMS noise of the ground truth, against a render of the same view with 4x the samples (other seeds),
+    the reference's own noise divided out (:func:`own_noise`).
 
     ``renderer_for(entry)``: each frame's renderer (:func:`ground_truth_renderers`). ``pose(frame)`` moves
-    ``source`` to a frame (default: ``source.set_frame``). The reference's own noise is a quarter of the image's, so
-    the figure overstates the noise by at most 3 % of itself."""
+    ``source`` to a frame (default: ``source.set_frame``)."""
     import time
 
     out = {}
@@ -355,9 +362,10 @@ def measure_ground_truth_noise(capture: Capture, source, renderer_for, camera: s
             "frame": entry.frame,
             "camera": camera,
             "envmap": entry.envmap,
-            "relative_rmse": round(relative_rmse(image, reference, mask=reference[..., 3] > 0.5), 5),
+            "relative_rmse": round(own_noise(image, reference, reference[..., 3] > 0.5, NOISE_REFERENCE_FACTOR), 5),
             "seconds_per_image": round(seconds, 3),
             "spp": [renderer.spp, renderer.indirect_spp],
+            "reference_factor": NOISE_REFERENCE_FACTOR,  # older records: 16, the reference's own noise left in
         }
     return out
 
@@ -382,7 +390,7 @@ class CaptureConfig:
     """Effects to leave out of the path-traced ground truth, comma-separated: sheen, wrinkles, interreflection.
     Fitting such captures shows what each effect costs the one-bounce fit (docs/results/fit.md)."""
     measure_noise: bool = True
-    """Measure the ground truth's noise against 16x the samples on a few views (capture.json)."""
+    """Measure the ground truth's noise against 4x the samples on a few views (capture.json)."""
     training_lightings: int | None = None
     """Environment-lit training frames, each under its own map (default: the preset's). The training clips get as many
     frames as that takes, keeping the preset's relit frames per uniformly lit one."""

@@ -433,9 +433,13 @@ class CaptureSequencesConfig:
     """Frames per training sequence (looping clips repeat)."""
     test_length: int = 41
     """Frames per test sequence (41 = three 17-frame windows)."""
+    train_cameras: int | None = None
+    """Training sequences from this many of the capture's training cameras (evenly spaced); default: all."""
 
     def validate(self) -> None:
         require_positive({"scale": self.scale, "train_length": self.train_length, "test_length": self.test_length})
+        if self.train_cameras is not None:
+            require_positive({"train_cameras": self.train_cameras})
         if self.env_height < 4:
             raise GraMiParameterError("env_height", f"must be >= 4 (lat-long rows), got {self.env_height}")
         if self.zoom != 0 and not self.zoom >= 1:
@@ -443,10 +447,14 @@ class CaptureSequencesConfig:
 
     def record(self) -> dict:
         """The run's identity in provenance.json (zoom 0 is recorded as None, whole frames)."""
-        return {"scale": self.scale, "env_height": self.env_height, "train_length": self.train_length} | {
-            "test_length": self.test_length,
-            "zoom": self.zoom or None,
-        }
+        return (
+            {"scale": self.scale, "env_height": self.env_height, "train_length": self.train_length}
+            | {
+                "test_length": self.test_length,
+                "zoom": self.zoom or None,
+            }
+            | ({"train_cameras": self.train_cameras} if self.train_cameras else {})
+        )  # older records: all cameras
 
 
 def dataset_from_capture(
@@ -564,7 +572,12 @@ def _sequence_jobs(capture, config: CaptureSequencesConfig):
     if not relit:
         raise GraMiInputError(capture.folder / "capture.json", "no relit (envmap or pattern) training frame to train the refiner on")
     held_out = [f for f in capture.frames if f.split == "test"]
-    jobs = [("train", cam, relit, config.train_length) for cam in capture.train_cameras]
+    cameras = capture.train_cameras
+    if config.train_cameras:
+        if config.train_cameras > len(cameras):
+            raise GraMiParameterError("train_cameras", f"the capture has {len(cameras)} training cameras, asked for {config.train_cameras}")
+        cameras = [cameras[k] for k in np.unique(np.linspace(0, len(cameras) - 1, config.train_cameras).round().astype(int))]
+    jobs = [("train", cam, relit, config.train_length) for cam in cameras]
     # The held-out lighting on the first training camera (RelightNet's "novel lighting" view): a continuous video
     # that training never sees and the evaluation never scores, on which training chooses the refiner's mix.
     jobs += [("selection", cam, held_out, config.test_length) for cam in capture.train_cameras[:1] if held_out]

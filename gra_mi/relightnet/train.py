@@ -69,6 +69,9 @@ class TrainConfig:
     """Height of the camera-space envmap the network sees (width = 2x)."""
     max_train_views: int | None = None
     """Train on the first N training views only (an overfitting check, or a quick look); default: all."""
+    training_lightings: int | None = None
+    """Train on the lit frames of this many of the capture's training lightings only (envmaps or patterns, evenly
+    spaced; every uniformly lit frame is kept): how the gain grows with the lightings seen; default: all."""
     held_out_views: int = 64
     """Held-out views per held-out split (evenly spaced) that validation and the report score."""
     synthesized_lightings: int = 0
@@ -88,8 +91,9 @@ class TrainConfig:
         positive |= {"held_out_views": self.held_out_views, "synthesized_validation": self.synthesized_validation}
         if self.synthesized_lightings < 0:
             raise GraMiParameterError("synthesized_lightings", f"must be >= 0, got {self.synthesized_lightings}")
-        if self.max_train_views is not None:
-            positive["max_train_views"] = self.max_train_views
+        for name in ("max_train_views", "training_lightings"):
+            if getattr(self, name) is not None:
+                positive[name] = getattr(self, name)
         require_positive(positive)
         require_positive({"lr": self.lr})
         require_seed(self.seed)
@@ -291,7 +295,7 @@ def _views(capture, relighter, config: TrainConfig, device: str, cache: Path | N
     jobs = [j for split in HELD_OUT for j in _evenly([j for j in jobs if j[2] == split], config.held_out_views)]
     held_out = [make(j) for j in progress(jobs, description="RelightNet held-out views")]
     held_out = lit(held_out)
-    train_jobs = view_jobs(capture, ("train",))[: config.max_train_views or None]
+    train_jobs = of_lightings(view_jobs(capture, ("train",)), config.training_lightings)[: config.max_train_views or None]
     if not train_jobs:
         raise GraMiInputError(capture.folder / "capture.json", "no training views")
     synth = None
@@ -303,6 +307,23 @@ def _views(capture, relighter, config: TrainConfig, device: str, cache: Path | N
     if synth is None and len(train_jobs) * 4 * 20 * r * r <= held_training_bytes():
         return TrainingViews([make(j) for j in progress(train_jobs, description="RelightNet samples")], make), held_out
     return TrainingViews(train_jobs, make, synth), held_out
+
+
+def lighting_of(entry) -> tuple | None:
+    """What lit a frame: (kind, file), None for a uniformly lit one."""
+    return None if entry.kind == "uniform" else (entry.kind, entry.envmap or entry.pattern)
+
+
+def of_lightings(jobs: list[tuple], count: int | None) -> list[tuple]:
+    """The jobs of uniformly lit frames and of ``count`` of the other lightings (evenly spaced in capture order; all
+    of them when None or when the capture has no more). Refused when the capture has fewer than asked for."""
+    if not count:
+        return jobs
+    lightings = [k for k in dict.fromkeys(lighting_of(entry) for entry, _, _ in jobs) if k is not None]
+    if len(lightings) < count:
+        raise GraMiParameterError("training_lightings", f"the capture has {len(lightings)} training lightings, asked for {count}")
+    kept = set(_evenly(lightings, count))
+    return [job for job in jobs if lighting_of(job[0]) in kept | {None}]
 
 
 def lit(samples: list[Sample]) -> list[Sample]:
