@@ -51,6 +51,20 @@ def rows_of(record: dict, leading: list[str], timed: bool = True) -> list[str]:
     return rows
 
 
+def rescore(capture, fit: Path, step: int) -> dict:
+    """A fit folder's maps scored against the true maps as the fit scores them (the texels its views saw), without
+    fitting again."""
+    from gra_mi.core.io import read_exr
+    from gra_mi.fit.materials import FitConfig, FitResult, MaterialFitter
+    from gra_mi.fit.report import score_maps
+
+    fitter = MaterialFitter(capture, FitConfig(frame_step=step), cache_dir=fit / "cache")
+    seen = fitter.cameras_seen(fitter.gather_views(progress_bar=False))
+    maps = FitResult(read_exr(fit / "albedo.exr")[..., :3], read_exr(fit / "roughness.exr")[..., :1], seen)
+    ours, baseline, _ = score_maps(fitter, maps)
+    return {"regions": ours, "baseline": baseline}
+
+
 def _percent(value: float | None) -> str:
     return "–" if value is None else f"{100 * value:+.1f} %"  # fits made before fit.json had the number
 
@@ -76,6 +90,8 @@ def effects_page(preset: str, step: int, work: Path, variant: str) -> str:
         olats = sum("olat_" in (f.pattern or "") for f in [f for f in capture.frames if f.split == "train"][::step])  # alike in every row
         fitted = work / f"truth{i}_fit" / "fit.json"  # a rerun with the same --work reads the fits back
         record = json.loads(fitted.read_text()) if fitted.is_file() else run(capture.folder, fitted.parent, step, calibrate=False)
+        if "albedo_bias" not in record["regions"]["skin"]:  # a fit made before fit.json had it: its maps scored again
+            record |= rescore(capture, fitted.parent, step)
         table += rows_of(record, [label], timed=False)
         print("\n".join(table[-2:]), file=sys.stderr)
     return "\n".join(
