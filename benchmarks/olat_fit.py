@@ -51,6 +51,17 @@ def rows_of(record: dict, leading: list[str], timed: bool = True) -> list[str]:
     return rows
 
 
+def fit_record(capture, folder: Path, step: int) -> dict:
+    """The fit of ``capture`` in ``folder``, made unless a rerun finds it there; one that predates fit.json's albedo
+    bias is scored again from its maps (kept in rescored.json)."""
+    done = [folder / name for name in ("rescored.json", "fit.json") if (folder / name).is_file()]
+    record = json.loads(done[0].read_text()) if done else run(capture.folder, folder, step, calibrate=False)
+    if "albedo_bias" not in record["regions"]["skin"]:
+        record |= rescore(capture, folder, step)
+        (folder / "rescored.json").write_text(json.dumps(record, indent=1) + "\n")
+    return record
+
+
 def rescore(capture, fit: Path, step: int) -> dict:
     """A fit folder's maps scored against the true maps as the fit scores them (the texels its views saw), without
     fitting again."""
@@ -88,11 +99,7 @@ def effects_page(preset: str, step: int, work: Path, variant: str) -> str:
         config = CaptureConfig(preset=preset, measure_noise=False, spp=PRESETS[preset].spp, **options)
         capture = generate_capture(work / f"truth{i}", config)
         olats = sum("olat_" in (f.pattern or "") for f in [f for f in capture.frames if f.split == "train"][::step])  # alike in every row
-        fitted = work / f"truth{i}_fit" / "fit.json"  # a rerun with the same --work reads the fits back
-        record = json.loads(fitted.read_text()) if fitted.is_file() else run(capture.folder, fitted.parent, step, calibrate=False)
-        if "albedo_bias" not in record["regions"]["skin"]:  # a fit made before fit.json had it: its maps scored again
-            record |= rescore(capture, fitted.parent, step)
-        table += rows_of(record, [label], timed=False)
+        table += rows_of(fit_record(capture, work / f"truth{i}_fit", step), [label], timed=False)
         print("\n".join(table[-2:]), file=sys.stderr)
     return "\n".join(
         [

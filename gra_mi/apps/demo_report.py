@@ -119,6 +119,11 @@ def _zoom_said(zoom: float) -> str:
     return "the subject's box at the delivered frames' own resolution" if zoom == 1 else f"{zoom:g}× the delivered frames"
 
 
+def _cameras_said(preset: dict) -> str:
+    count = preset.get("refiner_train_cameras")
+    return "the training cameras" if not count else f"{count} of the training cameras"
+
+
 def _refiner(r: dict) -> list[str]:
     f = r["refiner"]
     train, chosen = f["train"], f["train"]["mix"]["chosen"]
@@ -127,7 +132,7 @@ def _refiner(r: dict) -> list[str]:
         "",
         f"Fine-tuned {train['steps']} steps (LoRA, VACE and envmap layers: {train['parameters']['trainable']:,} of "
         f"{train['parameters']['total']:,} parameters) from the shipped tiny prior — a DiT pretrained on another subject "
-        "(`pipelines/pretrain_tiny_refiner.py`) — on RelightNet renders of the training cameras, seen as subject crops of "
+        f"(`pipelines/pretrain_tiny_refiner.py`) — on RelightNet renders of {_cameras_said(r['preset'])}, seen as subject crops of "
         f"{f['size']} pixels ({_zoom_said(r['preset'].get('refiner_zoom', 4.0))}; the refined crop's change goes back into the "
         "frame), then rolled over "
         f"the held-out sequence `{f['sequence']}`: {f['frames']} frames in {f['windows']} windows of 17 "
