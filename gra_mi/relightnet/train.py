@@ -1,7 +1,7 @@
 """Training, validation and inference of RelightNet on a capture and its fitted maps (``gra-mi train-relightnet``).
 
 Loss (paper Sec. 3.2): L1 between the predicted UV texture rasterised into each camera and the captured image, over
-the subject's pixels, multi-view. Each sample is one (frame, training camera) of the capture's training frames.
+the subject's pixels, multi-view, compared through a display's tone curve (:func:`normalised_l1`). Each sample is one (frame, training camera) of the capture's training frames.
 Validation: held-out cameras on training frames (novel views) and all cameras on the test sequences (held-out
 envmaps), with PSNR and SSIM (kornia) for the microfacet render alone and with RelightNet — the ablation.
 
@@ -316,7 +316,7 @@ def lighting_of(entry) -> tuple | None:
 
 def of_lightings(jobs: list[tuple], count: int | None) -> list[tuple]:
     """The jobs of uniformly lit frames and of ``count`` of the other lightings (evenly spaced in capture order; all
-    of them when None or when the capture has no more). Refused when the capture has fewer than asked for."""
+    jobs when ``count`` is None). Refused when the capture has fewer lightings than asked for."""
     if not count:
         return jobs
     lightings = [k for k in dict.fromkeys(lighting_of(entry) for entry, _, _ in jobs) if k is not None]
