@@ -402,6 +402,9 @@ OPTION_CASES = [
     ("rn-patch", [*RN, "--patch", "-1"], ["--patch"]),
     ("rn-env-height", [*RN, "--env-height", "1"], ["--env-height"]),
     ("rn-views", [*RN, "--max-train-views", "0"], ["--max-train-views"]),
+    ("rn-loss", [*RN, "--loss", "perceptual"], ["--loss", "display"]),
+    ("rn-lightings-zero", [*RN, "--training-lightings", "0"], ["--training-lightings"]),
+    ("rn-lightings-too-many", [*RN, "--training-lightings", "999"], ["--training-lightings", "asked for 999"]),
     ("rn-seed", [*RN, "--seed", "-1"], ["--seed"]),
     ("rn-weight-decay", [*RN, "--weight-decay", "-1"], ["--weight-decay"]),
     # refiner
@@ -409,6 +412,8 @@ OPTION_CASES = [
     ("rd-scale-nan", [*RD, "--scale", "nan"], ["--scale"]),
     ("rd-train-length", [*RD, "--train-length", "0"], ["--train-length"]),
     ("rd-env-height", [*RD, "--env-height", "0"], ["--env-height"]),
+    ("rd-train-cameras-zero", [*RD, "--train-cameras", "0"], ["--train-cameras"]),
+    ("rd-train-cameras-too-many", [*RD, "--train-cameras", "99"], ["--train-cameras", "asked for 99"]),
     ("rd-zoom", [*RD, "--zoom", "0.5"], ["--zoom"]),
     ("rd-zoom-nan", [*RD, "--zoom", "nan"], ["--zoom"]),
     ("rd-resolution", ["refiner-data", "--synthetic", "--resolution", "20"], ["--resolution"]),

@@ -249,8 +249,9 @@ def train_relightnet(capture_dir: str | Path, fit_dir: str | Path, out: str | Pa
     torch.manual_seed(config.seed)
     out = Path(out)
     capture, relighter = fitted_relighter(capture_dir, fit_dir, out / "cache" if loop.rank == 0 else None)
+    train_jobs = of_lightings(view_jobs(capture, ("train",)), config.training_lightings)  # refused before any output
     loop.claim("train-relightnet", {"capture": capture_dir, "fit": fit_dir}, config, overwrite)
-    train, held_out = _views(capture, relighter, config, device, out / "cache" if loop.rank == 0 else None)
+    train, held_out = _views(capture, relighter, train_jobs, config, device, out / "cache" if loop.rank == 0 else None)
     train_views = train.spread(config.held_out_views)  # made once: the output gain and the report's training row
     samples = lit(train_views) + held_out  # what the report scores
     mine = train.share(loop.rank, loop.world)  # each process its share
@@ -287,7 +288,9 @@ def train_relightnet(capture_dir: str | Path, fit_dir: str | Path, out: str | Pa
     return _write_outputs(out, model, selector, train_views, samples, loop)
 
 
-def _views(capture, relighter, config: TrainConfig, device: str, cache: Path | None) -> tuple[TrainingViews, list[Sample]]:
+def _views(
+    capture, relighter, train_jobs: list, config: TrainConfig, device: str, cache: Path | None
+) -> tuple[TrainingViews, list[Sample]]:
     """The training views (held, or made when drawn when they would not fit :func:`held_training_bytes` or lightings are
     synthesized) and the held-out views (at most ``held_out_views`` per split, the selection views marked)."""
     make = CapturedView(capture, relighter, config.env_height, device)
@@ -295,7 +298,7 @@ def _views(capture, relighter, config: TrainConfig, device: str, cache: Path | N
     jobs = [j for split in HELD_OUT for j in _evenly([j for j in jobs if j[2] == split], config.held_out_views)]
     held_out = [make(j) for j in progress(jobs, description="RelightNet held-out views")]
     held_out = lit(held_out)
-    train_jobs = of_lightings(view_jobs(capture, ("train",)), config.training_lightings)[: config.max_train_views or None]
+    train_jobs = train_jobs[: config.max_train_views or None]
     if not train_jobs:
         raise GraMiInputError(capture.folder / "capture.json", "no training views")
     synth = None
