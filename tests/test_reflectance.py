@@ -302,3 +302,41 @@ def test_bad_reflectance_field_options_are_refused(olat_captures, tmp_path, caps
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and needle in err[0], err
     assert not (tmp_path / "out").exists()
+
+
+def test_held_out_frames_have_their_own_sample_counts(llvm_variant):
+    """olat_quick renders the frames its scores use at 4x the samples of its 4-spp training frames (never fewer than
+    the training frames that --spp asks for), and the renderer of each frame follows its split."""
+    from gra_mi.capture.dataset import FrameLighting
+    from gra_mi.capture.synthetic import CaptureConfig, ground_truth_renderers
+
+    record = CaptureConfig(preset="olat_quick").record()
+    assert (record["spp"], record["indirect_spp"], record["held_out_spp"], record["held_out_indirect_spp"]) == (4, 4, 16, 16)
+    assert CaptureConfig(preset="olat_quick", spp=64).record()["held_out_spp"] == 64
+    assert CaptureConfig(preset="olat_quick", without=["interreflection"]).record()["held_out_indirect_spp"] == 0
+    assert "held_out_spp" not in CaptureConfig(preset="olat_quick", renderer="onebounce").record()
+    assert "held_out_spp" not in CaptureConfig(preset="olat").record()
+    renderer_for = ground_truth_renderers(record)
+    entry = lambda split, kind: FrameLighting(frame=0, split=split, sequence=0, kind=kind, envmap=None, pattern=None)  # noqa: E731
+    assert (renderer_for(entry("test", "pattern")).spp, renderer_for(entry("test", "envmap")).indirect_spp) == (16, 16)
+    assert (renderer_for(entry("train", "pattern")).spp, renderer_for(entry("train", "pattern")).indirect_spp) == (4, 4)
+
+
+def test_an_olat_captures_noise_is_measured_on_white_an_olat_and_a_held_out_olat(olat_captures):
+    """The probes of a static OLAT capture: the white frame and, of the training and of the held-out OLATs, the one
+    whose LED is nearest the measuring camera (the subject lit where it looks), each measured (finite, positive)."""
+    from gra_mi.capture.synthetic import ground_truth_renderers, measure_ground_truth_noise, noise_probe_frames
+    from gra_mi.stage.scene import LightstageScene
+
+    capture = olat_captures["path"]
+    source = LightstageScene.load(capture.folder / "scene_gt.xml")
+    stage, camera = source.stage, source.stage.cameras[0].name
+    probes = noise_probe_frames(capture, stage, camera)
+    assert set(probes) == {"white", "OLAT", "held-out OLAT"} and probes["held-out OLAT"].split == "test"
+    distance = lambda e: np.linalg.norm(stage.led_positions[np.argmax(capture.lighting(stage, e).sum(1))] - stage.camera(camera).position)  # noqa: E731
+    for label, split in (("OLAT", "train"), ("held-out OLAT", "test")):
+        olats = [f for f in capture.frames if f.split == split and "olat_" in (f.pattern or "")]
+        assert distance(probes[label]) == min(distance(e) for e in olats)
+    noise = measure_ground_truth_noise(capture, source, ground_truth_renderers(capture.ground_truth), camera)
+    assert set(noise) == set(probes) and all(0 < row["relative_rmse"] < 1 for row in noise.values())
+    assert noise["held-out OLAT"]["pattern"] == probes["held-out OLAT"].pattern

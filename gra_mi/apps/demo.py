@@ -73,7 +73,7 @@ class OlatDemoPreset:
 PRESETS = {
     "olat": OlatDemoPreset(
         name="olat", capture="olat_quick", renderer="path", roughness_candidates=11, calibrate_brightness=False,
-        relightnet_steps=1000, synthesized_lightings=1024, library_envmaps=8,
+        relightnet_steps=1600, synthesized_lightings=1024, library_envmaps=8,
     ),
     "tiny": DemoPreset(
         name="tiny", capture="tiny", renderer="onebounce", roughness_candidates=5, fit_frame_step=1, relightnet_steps=20,

@@ -17,7 +17,7 @@ NAN = float("nan")
 def demo_markdown(record: dict) -> str:
     sections = (_header, _stages, _fit, _relightnet, _refiner, _lighting, _noise, _fidelity, _files)
     if "refiner" not in record:  # the static-pose (OLAT) demo: no video stages, no reference-map lighting models
-        sections = (_header, _stages, _fit, _relightnet, _files)
+        sections = (_header, _stages, _fit, _relightnet, _noise, _files)
     return "\n".join(line for section in sections for line in section(record)) + "\n"
 
 
@@ -232,6 +232,12 @@ def _noise(r: dict) -> list[str]:
             if "relit_spp" in truth
             else ""
         )
+        + (
+            f"; the held-out frames, which every score is measured against, at {truth['held_out_spp']} and "
+            f"{truth['held_out_indirect_spp']} spp: their noise would cap each score and shrink each stage's gain"
+            if "held_out_spp" in truth
+            else ""
+        )
         + ").",
         "",
         "| frame | lighting | samples (direct, indirect) | relative RMSE | s / image |",
@@ -241,7 +247,7 @@ def _noise(r: dict) -> list[str]:
         lines.append(f"| – | not measured: the `{r['capture']['renderer']}` ground truth | – | – | – |")
     for label, row in truth.get("noise", {}).items():
         lines.append(
-            f"| {row['frame']} | {label} ({row['envmap'] or 'all LEDs'}) | {_samples_said(row, truth)} | {100 * row['relative_rmse']:.2f} % "
+            f"| {row['frame']} | {label} ({row['envmap'] or row.get('pattern') or 'all LEDs'}) | {_samples_said(row, truth)} | {100 * row['relative_rmse']:.2f} % "
             f"| {row['seconds_per_image']:.2f} |"
         )
     return lines + [""]

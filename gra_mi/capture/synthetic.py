@@ -75,6 +75,10 @@ class CapturePreset:
     # unbiased noise averages out over many frames, can be cheaper than the test frames that scores are measured on.
     relit_spp: int | None = None
     relit_indirect_spp: int | None = None
+    # The held-out frames' own sample counts (default: spp, indirect_spp): the truth every score is measured against,
+    # whose noise would otherwise cap each score and shrink each stage's measured gain.
+    held_out_spp: int | None = None
+    held_out_indirect_spp: int | None = None
     framed: bool = False  # each camera cropped to the subject's box over the whole sequence (stage/framing.py)
     framing_margin: float = 0.04  # of the image, per side, around that box
 
@@ -123,7 +127,7 @@ PRESETS = {
     "olat_quick": CapturePreset(
         name="olat_quick", subject="anny", train_clips=["walk"], test_clips=[], frames_per_clip=1, num_leds=331,
         num_cameras=8, eval_cameras=2, width=72, height=128, camera_distance=1.8, uv_resolution=128, envmap_height=32,
-        spp=4, indirect_spp=4, static_olat=True, envmap_frames=4,
+        spp=4, indirect_spp=4, static_olat=True, envmap_frames=4, held_out_spp=16, held_out_indirect_spp=16,
     ),
     # The paper's protocol: 40 cameras at 1024x540, interleaved full-on / relit frames (a GPU's work).
     "full": CapturePreset(
@@ -315,30 +319,52 @@ def own_noise(image: np.ndarray, reference: np.ndarray, mask: np.ndarray, factor
     return relative_rmse(image, reference, mask=mask) / math.sqrt(1 + 1 / factor)
 
 
-def noise_probe_frames(capture: Capture) -> dict[str, FrameLighting]:
-    """The frames the ground truth's noise is measured on: a uniform one, a sky with a sun and a room (training)."""
+def noise_probe_frames(capture: Capture, stage=None, camera=None) -> dict[str, FrameLighting]:
+    """The frames the ground truth's noise is measured on: a uniform one, a sky with a sun and a room (training); in a
+    static OLAT capture the white frame, an OLAT and a held-out OLAT (the images its scores use), each the one whose
+    LED is nearest ``camera`` (of ``stage``), so that the subject is lit where that camera looks."""
     kinds: dict[str, str] = {}
     for folder in {Path(f.envmap).parent for f in capture.frames if f.envmap}:
         index = capture.folder / folder / "index.json"
         if index.is_file():
             kinds.update({str(folder / e["file"]): e["kind"] for e in json.loads(index.read_text())})
     probes: dict[str, FrameLighting] = {}
+    olats: dict[str, list[FrameLighting]] = {}
     for entry in capture.frames:
-        label = "uniform" if entry.kind == "uniform" else kinds.get(entry.envmap or "", "")
-        if label in ("uniform", "sky", "room") and label not in probes and entry.split == "train":
-            probes[label] = entry
+        label = "uniform" if entry.kind == "uniform" else kinds.get(entry.envmap or "", _pattern_probe(entry))
+        if label in ("uniform", "sky", "room", "white") and entry.split == "train":
+            probes.setdefault(label, entry)
+        elif label in ("OLAT", "held-out OLAT"):
+            olats.setdefault(label, []).append(entry)
+    for label, entries in olats.items():
+        probes[label] = entries[0] if stage is None else min(entries, key=lambda e: _led_distance(capture, stage, e, camera))
     return probes
 
 
+def _led_distance(capture: Capture, stage, entry: FrameLighting, camera) -> float:
+    led = int(np.argmax(capture.lighting(stage, entry).sum(axis=1)))
+    return float(np.linalg.norm(stage.led_positions[led] - np.asarray(stage.camera(camera).position)))
+
+
+def _pattern_probe(entry: FrameLighting) -> str:
+    name = Path(entry.pattern or "").stem
+    if name == "white":
+        return "white"
+    return ("OLAT" if entry.split == "train" else "held-out OLAT") if "olat_" in name else ""
+
+
 def ground_truth_renderers(record: dict):
-    """``renderer_for(entry)``: the renderer of a capture frame, with the environment-lit training frames' own sample
-    counts where the record has them (``relit_spp``, ``relit_indirect_spp``)."""
+    """``renderer_for(entry)``: the renderer of a capture frame, with the environment-lit training frames' and the
+    held-out frames' own sample counts where the record has them (``relit_spp``, ``held_out_spp`` and their
+    ``*_indirect_spp``)."""
     depth = record["max_depth"]
-    default = GroundTruthRenderer(spp=record["spp"], indirect_spp=record["indirect_spp"], max_depth=depth)
-    if "relit_spp" not in record:
-        return lambda entry: default
-    relit = GroundTruthRenderer(spp=record["relit_spp"], indirect_spp=record["relit_indirect_spp"], max_depth=depth)
-    return lambda entry: relit if (entry.split == "train" and entry.kind == "envmap") else default
+
+    def renderer(kind: str) -> GroundTruthRenderer:
+        prefix = f"{kind}_" if f"{kind}_spp" in record else ""
+        return GroundTruthRenderer(spp=record[f"{prefix}spp"], indirect_spp=record[f"{prefix}indirect_spp"], max_depth=depth)
+
+    default, relit, held_out = renderer(""), renderer("relit"), renderer("held_out")
+    return lambda entry: held_out if entry.split == "test" else relit if entry.kind == "envmap" else default
 
 
 def measure_ground_truth_noise(capture: Capture, source, renderer_for, camera: str, pose=None) -> dict[str, dict]:
@@ -350,7 +376,7 @@ def measure_ground_truth_noise(capture: Capture, source, renderer_for, camera: s
     import time
 
     out = {}
-    for label, entry in noise_probe_frames(capture).items():
+    for label, entry in noise_probe_frames(capture, source.stage, camera).items():
         (pose or source.set_frame)(entry.mesh_frame)
         source.set_led_intensities(capture.lighting(source.stage, entry))
         sensor, renderer = source.sensor_index(camera), renderer_for(entry)
@@ -362,6 +388,7 @@ def measure_ground_truth_noise(capture: Capture, source, renderer_for, camera: s
             "frame": entry.frame,
             "camera": camera,
             "envmap": entry.envmap,
+            **({"pattern": entry.pattern} if entry.kind == "pattern" else {}),
             "relative_rmse": round(own_noise(image, reference, reference[..., 3] > 0.5, NOISE_REFERENCE_FACTOR), 5),
             "seconds_per_image": round(seconds, 3),
             "spp": [renderer.spp, renderer.indirect_spp],
@@ -383,7 +410,8 @@ class CaptureConfig:
     spp: int | None = None
     """Samples per pixel of the exact direct light (a power of 4). Default: the preset's (with --renderer onebounce,
     whose samples only anti-alias: 16). The environment-lit training frames of `small` and `medium` keep their own,
-    lower counts (capture.json: relit_spp, relit_indirect_spp)."""
+    lower counts (capture.json: relit_spp, relit_indirect_spp); the held-out frames of `olat_quick`, which every
+    score is measured against, 4x its counts (held_out_spp, held_out_indirect_spp)."""
     indirect_spp: int | None = None
     """Path samples per pixel of the interreflections (a power of 4). Default: the preset's."""
     without: list[str] = field(default_factory=list, metadata=option(parse=comma_list))
@@ -458,10 +486,15 @@ class CaptureConfig:
             counts = {"spp": preset.spp, "indirect_spp": 0, "max_depth": 2}
         else:
             counts = {"spp": preset.spp, "indirect_spp": preset.indirect_spp, "max_depth": preset.max_depth}
-        if self.renderer == "path" and (preset.relit_spp or preset.relit_indirect_spp):
-            counts["relit_spp"] = preset.relit_spp or counts["spp"]
-            relit_indirect = preset.relit_indirect_spp or counts["indirect_spp"]
-            counts["relit_indirect_spp"] = relit_indirect if counts["indirect_spp"] else 0  # --without interreflection
+        for kind in ("relit", "held_out") if self.renderer == "path" else ():
+            spp, indirect = getattr(preset, f"{kind}_spp"), getattr(preset, f"{kind}_indirect_spp")
+            if not (spp or indirect):
+                continue
+            spp, indirect = spp or counts["spp"], indirect or counts["indirect_spp"]
+            if kind == "held_out":  # never noisier than the training frames (--spp, --indirect-spp)
+                spp, indirect = max(spp, counts["spp"]), max(indirect, counts["indirect_spp"])
+            counts[f"{kind}_spp"] = spp
+            counts[f"{kind}_indirect_spp"] = indirect if counts["indirect_spp"] else 0  # --without interreflection
         chosen = {k: getattr(self, k) for k in ("training_lightings", "framing_margin") if getattr(self, k) is not None}
         return {"renderer": self.renderer, **counts, **({"without": sorted(self.without)} if self.without else {}), **chosen}
 
