@@ -160,14 +160,15 @@ def effects_page(preset: str, step: int, work: Path, variant: str) -> str:
     from gra_mi.capture.synthetic import PRESETS, CaptureConfig, generate_capture
     from gra_mi.core.stamp import run_stamp, stamp_said
 
-    table, ceiling, clean = [], [], None
+    table, ceiling, clean, counts = [], [], None, {}
     for i, (label, options) in enumerate(TRUTHS):
         config = CaptureConfig(preset=preset, measure_noise=False, spp=PRESETS[preset].spp, **options)
         capture = generate_capture(work / f"truth{i}", config)
         olats = sum("olat_" in (f.pattern or "") for f in [f for f in capture.frames if f.split == "train"][::step])  # alike in every row
         table += rows_of(fit_record(capture, work / f"truth{i}_fit", step), [label], timed=False)
         ceiling += ceiling_rows(label, capture)
-        clean = clean_truth_scores(capture) if i == 0 else clean
+        if i == 0:
+            clean, counts = clean_truth_scores(capture), capture.ground_truth
         print("\n".join(table[-2:] + ceiling[-1:]), file=sys.stderr)
     return "\n".join(
         [
@@ -181,6 +182,8 @@ def effects_page(preset: str, step: int, work: Path, variant: str) -> str:
             "constant baseline; *ratio*: the fit's roughness MAE over the baseline's; *albedo bias*: the median of fitted /",
             "true albedo − 1 (the part of the error one gain would remove); relit PSNR: held-out lighting from the held-out",
             "cameras, one bounce, against that row's own truth.",
+            f"Samples per pixel (direct, interreflections): training frames {counts['spp']}, {counts['indirect_spp']}; held-out",
+            f"frames, which every relit score uses, {counts.get('held_out_spp', counts['spp'])}, {counts.get('held_out_indirect_spp', counts['indirect_spp'])}.",
             "",
             "| ground truth | region | texels | roughness MAE | constant | ratio | albedo median rel. error | albedo bias | constant | relit PSNR (dB) |",
             "|---|---|---|---|---|---|---|---|---|---|",
