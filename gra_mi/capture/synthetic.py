@@ -319,7 +319,7 @@ def own_noise(image: np.ndarray, reference: np.ndarray, mask: np.ndarray, factor
     return relative_rmse(image, reference, mask=mask) / math.sqrt(1 + 1 / factor)
 
 
-def noise_probe_frames(capture: Capture, stage=None, camera=None) -> dict[str, FrameLighting]:
+def noise_probe_frames(capture: Capture, stage, camera: str) -> dict[str, FrameLighting]:
     """The frames the ground truth's noise is measured on: a uniform one, a sky with a sun and a room (training); in a
     static OLAT capture the white frame, an OLAT and a held-out OLAT (the images its scores use), each the one whose
     LED is nearest ``camera`` (of ``stage``), so that the subject is lit where that camera looks."""
@@ -337,7 +337,7 @@ def noise_probe_frames(capture: Capture, stage=None, camera=None) -> dict[str, F
         elif label in ("OLAT", "held-out OLAT"):
             olats.setdefault(label, []).append(entry)
     for label, entries in olats.items():
-        probes[label] = entries[0] if stage is None else min(entries, key=lambda e: _led_distance(capture, stage, e, camera))
+        probes[label] = min(entries, key=lambda e: _led_distance(capture, stage, e, camera))
     return probes
 
 
