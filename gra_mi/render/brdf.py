@@ -12,9 +12,21 @@
   angles the diffuse part yields to the specular one, which keeps the BRDF energy conserving (white furnace ≤ 1
   at every roughness and angle, tests/test_brdf.py) where a plain sum would reflect up to ~1.4× the light.
 
+Float32 at grazing angles (docs/accuracy.md, "The BRDF"): every term is written so that no cosine is divided by and
+no clamp is needed. With s(c) = sqrt(α² + (1 − α²) c²), G1(c) = 2c / (c + s(c)), so the specular term is
+
+    f_spec cosθo = D F cosθo / ((cosθi + s_i)(cosθo + s_o)),     pdf_spec = D / (2 (cosθi + s_i)),
+
+both finite as either cosine → 0 (c + s ≥ α), symmetric in (ωi, ωo), and sharing one D(h). The Fresnel cosine
+ωi·h = ωo·h = |ωi + ωo| / 2 is taken from the same sum: never negative, the same in eval, pdf and sample.
+
+Texel values outside the model (NaN, ±Inf, < 0, > 1) are defined per lane, never spread: albedo non-finite → 0,
+roughness non-finite → 1, both clamped to [0, 1] (:func:`sanitize_albedo`, :func:`sanitize_roughness`). gra-mi's
+own map loaders refuse such files; the plugin warns when a scene's texture holds them.
+
 Directions are in the local shading frame (z = normal). α is clamped below at :data:`ALPHA_MIN` so that
-roughness exactly 0 stays finite (docs/accuracy.md). Functions take Dr.Jit arrays (Mitsuba types) and are pure, so
-the BSDF plugin, the image-space integrator and the UV-space texel shader share them and their derivatives.
+roughness exactly 0 stays finite. Functions take Dr.Jit arrays (Mitsuba types) and are pure, so the BSDF plugin,
+the image-space integrator and the UV-space texel shader share them and their derivatives.
 """
 
 from __future__ import annotations
@@ -26,39 +38,73 @@ F0 = 0.04
 ALPHA_MIN = 1e-3  # roughness 0 → α = 1e-3: a very sharp but finite GGX lobe (a delta would be invisible to point lights)
 
 
+def sanitize_albedo(albedo):
+    """Albedo as the model reads it: non-finite → 0, then clamped to [0, 1] (per channel, per lane)."""
+    return dr.select(dr.isfinite(albedo), dr.clip(albedo, 0.0, 1.0), 0.0)
+
+
+def sanitize_roughness(roughness):
+    """Roughness as the model reads it: non-finite → 1 (the lobe that cannot make fireflies), clamped to [0, 1]."""
+    return dr.select(dr.isfinite(roughness), dr.clip(roughness, 0.0, 1.0), 1.0)
+
+
 def alpha_from_roughness(roughness):
     return dr.maximum(dr.square(roughness), ALPHA_MIN)
 
 
 def ggx_d(h, alpha):
-    """GGX normal distribution D(h) for a half vector h in the local frame (any length > 0).
+    """GGX normal distribution D(h) for a half vector h in the local frame (any length; 0 for h = 0 or h_z ≤ 0).
 
-    Written as α² |h|⁴ / (π (α² h_z² + h_x² + h_y²)²), i.e. from the tangential components, as Mitsuba's microfacet
-    code does: the textbook denominator cos²θh (α² − 1) + 1 cancels in float32 near the peak (at α = 1e-3 it erred
-    by up to 75 % within 3α of the normal); here every term is positive, so float32 stays exact to a few ulps.
+    Written as α² / (π q²) with q = (α² h_z² + h_x² + h_y²) / |h|², from the tangential components as Mitsuba's
+    microfacet code does: the textbook denominator cos²θh (α² − 1) + 1 cancels in float32 near the peak. q ≥ α² for
+    every direction, so the clamp below is exact in real arithmetic; it keeps q² far from float32's underflow (and
+    h = 0 finite), where 1/q² and its derivative would otherwise become inf at grazing mirror pairs.
     """
     a2 = dr.square(alpha)
-    len2 = dr.squared_norm(h)
-    denom = a2 * dr.square(h.z) + (dr.square(h.x) + dr.square(h.y))
-    return dr.select(h.z > 0, a2 * dr.square(len2) * dr.inv_pi * dr.rcp(dr.square(dr.maximum(denom, 1e-18))), 0.0)
+    q = _ggx_q(h, a2)
+    return dr.select(h.z > 0, a2 / (dr.pi * dr.square(q)), 0.0)
+
+
+def _ggx_q(h, a2):
+    """(α² h_z² + h_x² + h_y²) / |h|², at least α² (its exact minimum, at h = +z)."""
+    len2 = dr.maximum(dr.squared_norm(h), 1e-37)
+    return dr.maximum((a2 * dr.square(h.z) + (dr.square(h.x) + dr.square(h.y))) / len2, a2)
+
+
+def _g1_denominator(cos_theta, a2):
+    """c + sqrt(α² + (1 − α²) c²): G1 = 2c / this. At least α, so its reciprocal never overflows."""
+    return cos_theta + dr.sqrt(a2 + (1.0 - a2) * dr.square(cos_theta))
 
 
 def smith_g1(cos_theta, alpha):
-    """Smith masking for GGX: 2 / (1 + sqrt(1 + α² tan²θ)), written without tan to stay finite at grazing angles."""
-    c2 = dr.square(cos_theta)
-    tan2 = dr.maximum(1.0 - c2, 0.0) / dr.maximum(c2, 1e-12)
-    return dr.select(cos_theta > 0, 2.0 / (1.0 + dr.sqrt(1.0 + dr.square(alpha) * tan2)), 0.0)
+    """Smith masking for GGX, 2 / (1 + sqrt(1 + α² tan²θ)) = 2c / (c + sqrt(α² + (1 − α²) c²)): no tan, no clamp."""
+    c = dr.maximum(cos_theta, 0.0)
+    return dr.select(cos_theta > 0, 2.0 * c * dr.rcp(_g1_denominator(c, dr.square(alpha))), 0.0)
 
 
 def fresnel_schlick(cos_d):
-    x = dr.maximum(1.0 - cos_d, 0.0)
+    x = dr.clip(1.0 - cos_d, 0.0, 1.0)
     x2 = dr.square(x)
     return F0 + (1.0 - F0) * (dr.square(x2) * x)  # x⁵ by multiplication: dr.power would go through exp/log
 
 
 def diffuse_transmission(cos_theta):
-    """T(ω) = (1 − F(cosθ)) / (1 − F0): 1 head-on, 0 at grazing."""
-    return (1.0 - fresnel_schlick(dr.maximum(cos_theta, 0.0))) / (1.0 - F0)
+    """T(ω) = (1 − F(cosθ)) / (1 − F0) = 1 − (1 − c)⁵: 1 head-on, 0 at grazing.
+
+    Written as c (1 + x + x² + x³ + x⁴) with x = 1 − c: the subtraction 1 − F cancels in float32 near grazing angles
+    (F → 1), where it erred by up to 60 % at c = 1e-7; the factored form is exact to a few ulps at every angle."""
+    c = dr.clip(cos_theta, 0.0, 1.0)
+    x = 1.0 - c
+    return c * (1.0 + x * (1.0 + x * (1.0 + x * (1.0 + x))))
+
+
+def half_vector_terms(wi, wo):
+    """(h = ωi + ωo unnormalised, the Fresnel cosine ωi·ĥ = ωo·ĥ = |h| / 2): one h for eval, pdf and sample.
+
+    |h| / 2 equals ωi·ĥ for unit vectors but is never negative: the float32 dot product of two nearly opposite
+    unit vectors is dominated by their rounding and can come out ≤ 0, which dropped the lobe from the pdf only."""
+    h = wi + wo
+    return h, dr.minimum(0.5 * dr.norm(h), 1.0)
 
 
 class PreparedBRDF:
@@ -68,17 +114,19 @@ class PreparedBRDF:
     """
 
     def __init__(self, albedo, roughness, wi):
+        roughness = sanitize_roughness(roughness)
         self.wi = wi
         self.alpha = alpha_from_roughness(roughness)
         self.alpha2 = dr.square(self.alpha)
-        # G1(ωi) / (4 cosθi): with f_spec cosθo = D F G1(ωo) · G1(ωi) / (4 cosθi), the cosθo cancels.
-        self.spec_scale = smith_g1(wi.z, self.alpha) / (4.0 * dr.maximum(wi.z, 1e-12))
+        cos_i = dr.maximum(wi.z, 0.0)
+        # G1(ωi) / (4 cosθi) = 1 / (2 (cosθi + s_i)): the cosine cancels exactly, finite at grazing incidence.
+        self.spec_scale = 0.5 * dr.rcp(_g1_denominator(cos_i, self.alpha2))
         self.diffuse_unit = dr.inv_pi * diffuse_transmission(wi.z)
-        self.albedo = albedo
+        self.albedo = sanitize_albedo(albedo)
         self.front = wi.z > 0
         # dα/dr (0 where the clamp at ALPHA_MIN holds) and ∂ ln G1(ωi) / ∂α, for roughness derivatives.
         self.dalpha_dr = dr.select(dr.square(roughness) > ALPHA_MIN, 2.0 * roughness, 0.0)
-        self.dlog_g1_i = self._dlog_g1(wi.z)
+        self.dlog_g1_i = self._dlog_g1(cos_i)
 
     def _dlog_g1(self, cos_theta):
         """∂ ln G1 / ∂α for G1 = 2c / (c + s), s = sqrt(α² + (1 − α²) c²): −α (1 − c²) / (s (c + s))."""
@@ -92,22 +140,20 @@ class PreparedBRDF:
         third value: ∂ specular / ∂ roughness, analytic (material fitting differentiates the LED sums with it;
         Dr.Jit's AD cannot go through their per-lane loops).
         """
-        cos_o = wo.z
-        h_raw = self.wi + wo  # unnormalised: ggx_d needs only its direction, exactly
-        d = ggx_d(h_raw, self.alpha)
-        h = h_raw * dr.rsqrt(dr.squared_norm(h_raw))
-        # Smith G1 written as 2 cos / (cos + sqrt(α² + (1 − α²) cos²)): no tan, finite at grazing angles.
-        g1_o = 2.0 * cos_o * dr.rcp(cos_o + dr.sqrt(self.alpha2 + (1.0 - self.alpha2) * dr.square(cos_o)))
-        spec = dr.select(h.z > 0, d * fresnel_schlick(dr.dot(self.wi, h)) * g1_o * self.spec_scale, 0.0)
-        valid = self.front & (cos_o > 0)
+        cos_o = dr.maximum(wo.z, 0.0)
+        h, cos_d = half_vector_terms(self.wi, wo)
+        d = ggx_d(h, self.alpha)
+        # f_spec cosθo = D F G1(ωi) G1(ωo) / (4 cosθi) = D F · spec_scale · 2 cosθo / (cosθo + s_o): no cosine divides.
+        spec = d * fresnel_schlick(cos_d) * cos_o * (2.0 * self.spec_scale) * dr.rcp(_g1_denominator(cos_o, self.alpha2))
+        valid = self.front & (wo.z > 0)
         diffuse = self.diffuse_unit * (diffuse_transmission(cos_o) * cos_o)
         diffuse, spec = dr.select(valid, diffuse, 0.0), dr.select(valid, spec, 0.0)
         if not roughness_derivative:
             return diffuse, spec
-        # ∂ ln D / ∂α for D = α² |h|⁴ / (π q²), q = α² h_z² + h_x² + h_y²: 2/α − 4 α h_z² / q (h unnormalised).
-        hz2 = dr.square(h_raw.z)
-        q = self.alpha2 * hz2 + dr.square(h_raw.x) + dr.square(h_raw.y)
-        dlog_d = 2.0 * dr.rcp(self.alpha) - 4.0 * self.alpha * hz2 * dr.rcp(dr.maximum(q, 1e-18))
+        # ∂ ln D / ∂α for D = α² / (π q²), q = α² ĥ_z² + ĥ_x² + ĥ_y²: 2/α − 4 α ĥ_z² / q.
+        q = _ggx_q(h, self.alpha2)
+        hz2 = dr.square(h.z) * dr.rcp(dr.maximum(dr.squared_norm(h), 1e-37))
+        dlog_d = 2.0 * dr.rcp(self.alpha) - 4.0 * self.alpha * hz2 * dr.rcp(q)
         dlog_spec = dlog_d + self._dlog_g1(cos_o) + self.dlog_g1_i
         return diffuse, spec, spec * dlog_spec * self.dalpha_dr
 
@@ -129,7 +175,7 @@ def eval_cos(albedo, roughness, wi, wo):
 
 def specular_probability(albedo):
     """Probability of sampling the specular lobe: its share of the normal-incidence reflectance."""
-    diffuse = dr.mean(albedo) * (1.0 - F0)
+    diffuse = dr.mean(sanitize_albedo(albedo)) * (1.0 - F0)
     return F0 / (F0 + diffuse + 1e-6) * 0.9 + 0.05  # never 0 or 1: both lobes stay sampled
 
 
@@ -150,13 +196,16 @@ def sample_visible_normal(wi, alpha, sample: mi.Point2f):
 
 
 def pdf(albedo, roughness, wi, wo):
-    """Density (solid angle) of :func:`sample` producing wo."""
-    alpha = alpha_from_roughness(roughness)
+    """Density (solid angle) of :func:`sample` producing wo.
+
+    Visible normals: G1(ωi) (ωi·h) D(h) / cosθi, times the reflection Jacobian 1 / (4 ωo·h); with ωi·h = ωo·h that
+    is G1(ωi) D(h) / (4 cosθi) = D(h) / (2 (cosθi + s_i)), the same D(h) as :meth:`PreparedBRDF.eval_parts`.
+    """
+    alpha = alpha_from_roughness(sanitize_roughness(roughness))
     p_spec = specular_probability(albedo)
-    h = dr.normalize(wi + wo)
-    # Visible-normal density: G1(wi) max(0, wi·h) D(h) / cosθi, then the reflection Jacobian 1 / (4 wo·h).
-    d_visible = smith_g1(wi.z, alpha) * dr.maximum(dr.dot(wi, h), 0.0) * ggx_d(h, alpha) / dr.maximum(wi.z, 1e-12)
-    spec = d_visible / (4.0 * dr.maximum(dr.dot(wo, h), 1e-12))
+    h, _ = half_vector_terms(wi, wo)
+    cos_i = dr.maximum(wi.z, 0.0)
+    spec = ggx_d(h, alpha) * 0.5 * dr.rcp(_g1_denominator(cos_i, dr.square(alpha)))
     diff = dr.maximum(wo.z, 0.0) * dr.inv_pi
     valid = (wi.z > 0) & (wo.z > 0)
     return dr.select(valid, p_spec * spec + (1.0 - p_spec) * diff, 0.0)
@@ -164,7 +213,7 @@ def pdf(albedo, roughness, wi, wo):
 
 def sample(albedo, roughness, wi, sample1, sample2: mi.Point2f):
     """Sample wo; returns (wo, pdf)."""
-    alpha = alpha_from_roughness(roughness)
+    alpha = alpha_from_roughness(sanitize_roughness(roughness))
     p_spec = specular_probability(albedo)
     choose_spec = sample1 < p_spec
     h = sample_visible_normal(wi, alpha, sample2)

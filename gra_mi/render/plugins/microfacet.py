@@ -13,16 +13,25 @@
      - texture or float
      - Perceptual roughness r in [0, 1] (α = r², clamped at 1e-3), single channel. Default: 0.5.
 
-The maths lives in :mod:`gra_mi.brdf`. One-sided (back faces are black), reflection only. ``sample`` mixes cosine
-sampling of the diffuse lobe with GGX visible-normal sampling, so any Mitsuba integrator renders it.
+The maths lives in :mod:`gra_mi.render.brdf`. One-sided (back faces are black), reflection only. ``sample`` mixes
+cosine sampling of the diffuse lobe with GGX visible-normal sampling, so any Mitsuba integrator renders it.
+
+Texel values outside the model are read per lane as :func:`~gra_mi.render.brdf.sanitize_albedo` and
+:func:`~gra_mi.render.brdf.sanitize_roughness` define (non-finite albedo → 0, non-finite roughness → 1, both clamped to
+[0, 1]); a bitmap that holds any is named in a warning when the scene loads.
 """
 
 from __future__ import annotations
 
+import logging
+
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 from gra_mi.render import brdf
+
+log = logging.getLogger(__name__)
 
 
 def _as_texture(props, name: str, default: float, single_channel: bool):
@@ -39,11 +48,35 @@ def _as_texture(props, name: str, default: float, single_channel: bool):
     return mi.load_dict({"type": "rgb", "value": value})
 
 
+def _warn_out_of_model(bsdf_id: str, name: str, texture) -> None:
+    """Warn, naming the texture, when a bitmap holds values the model reads differently (non-finite, outside [0, 1])."""
+    params = mi.traverse(texture)
+    if "data" not in params:  # constants are checked by the sanitizers' clamps alone
+        return
+    values = np.asarray(params["data"], dtype=np.float64)
+    non_finite = int(np.count_nonzero(~np.isfinite(values)))
+    finite = values[np.isfinite(values)]
+    outside = int(np.count_nonzero((finite < 0) | (finite > 1)))
+    if non_finite or outside:
+        read_as = "0" if name == "albedo" else "1"
+        log.warning(
+            "gra_microfacet '%s': %s texture %s holds %d non-finite values (read as %s) and %d outside [0, 1] (clamped)",
+            bsdf_id,
+            name,
+            texture,
+            non_finite,
+            read_as,
+            outside,
+        )
+
+
 class GraMicrofacet(mi.BSDF):
     def __init__(self, props: mi.Properties):
         mi.BSDF.__init__(self, props)
         self.albedo = _as_texture(props, "albedo", 0.5, single_channel=False)
         self.roughness = _as_texture(props, "roughness", 0.5, single_channel=True)
+        _warn_out_of_model(props.id(), "albedo", self.albedo)
+        _warn_out_of_model(props.id(), "roughness", self.roughness)
         flags = mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.FrontSide | mi.BSDFFlags.SpatiallyVarying
         self.m_components = [flags]
         self.m_flags = flags
