@@ -13,7 +13,6 @@ import csv
 import json
 import logging
 import statistics
-import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
@@ -22,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from gra_mi.core import metrics
+from gra_mi.core.guard import scratch_folder
 from gra_mi.core.io import atomic_write_text, pyplot, save_figure, to_srgb8, write_exr, write_png
 from gra_mi.core.progress import progress
 from gra_mi.render.leds import LedLayout
@@ -136,7 +136,7 @@ class BenchSetup:
         from gra_mi.render.relighter import Relighter
 
         self.preset, self.out = preset, out
-        self.work = Path(tempfile.mkdtemp(prefix="gra_mi_bench_"))
+        self.work = scratch_folder("gra_mi_bench_")
         self.stage = default_lightstage(width=preset.width, height=preset.height)
         write_rig(self.stage, self.work / "rig")
         save_sequence(anny_sequence(["walk"], frames_per_clip=2 * preset.frames), self.work / "subject")

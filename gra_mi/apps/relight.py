@@ -19,6 +19,7 @@ import numpy as np
 from gra_mi.core.color import display_exposure
 from gra_mi.core.config import option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
+from gra_mi.core.guard import path_component
 from gra_mi.core.io import atomic_path, atomic_write_text, write_exr, write_mp4_srgb8, write_png
 from gra_mi.core.progress import progress
 from gra_mi.core.runtime import torch_device
@@ -104,25 +105,42 @@ class RelightSummary:
 
 
 def collect_lights(
-    stage, envmaps: dict[str, np.ndarray], olats: list[int], patterns: dict[str, np.ndarray], point_light=None, paths: list | None = None
+    stage,
+    envmaps: list[tuple[Path, np.ndarray]] | dict[str, np.ndarray],
+    olats: list[int],
+    patterns: list[tuple[Path, np.ndarray]] | dict[str, np.ndarray],
+    point_light=None,
+    paths: list | None = None,
 ):
     """Name → :class:`Light` for every lighting asked for (patterns are LED drive values, emitted = drive × gain;
-    ``paths``: :class:`LightPath` objects, named by their file)."""
+    ``paths``: :class:`LightPath` objects, named by their file). Envmaps and patterns come as (file, array) pairs, or
+    as a dict name → array from library callers. A lighting's name is its output folder: envmaps and
+    patterns are named by their file's stem, OLATs ``olatNNN``; two lightings with one name, of one kind or of two, are
+    refused naming both (one would overwrite the other's images)."""
 
     lights: dict[str, Light] = {}
+    origins: dict[str, str] = {}
+
+    def add(name: str, origin: str, light: Light) -> None:
+        path_component(name, origin, "lighting name")
+        if name in lights:
+            raise GraMiParameterError(
+                "lights", f"{origins[name]} and {origin} are both named '{name}' and would write one output folder: rename one"
+            )
+        lights[name], origins[name] = light, origin
+
     if point_light is not None:
-        lights["point_light"] = Light(np.zeros((stage.num_leds, 3)), path=LightPath.still(point_light))
+        add("point_light", "--point-light", Light(np.zeros((stage.num_leds, 3)), path=LightPath.still(point_light)))
     for path in paths or []:
-        if path.name in lights:
-            raise GraMiParameterError("lights", f"two light path files are named '{path.name}': rename one")
-        lights[path.name] = Light(np.zeros((stage.num_leds, 3)), path=path)
-    for name, env in envmaps.items():
+        add(path.name, str(path.source), Light(np.zeros((stage.num_leds, 3)), path=path))
+    for file, env in envmaps.items() if isinstance(envmaps, dict) else envmaps:
         lighting = envmap_to_leds(env, stage)
-        lights[name] = Light(lighting.radiant_intensity(stage), envmap=env, plate_scale=lighting.scale)
+        add(Path(file).stem, str(file), Light(lighting.radiant_intensity(stage), envmap=env, plate_scale=lighting.scale))
     for k in olats:
-        lights[f"olat{k:03d}"] = Light(olat_pattern(stage, k) * stage.gains)
-    for name, drive in patterns.items():
-        lights[name] = Light(validate_pattern(stage, drive, source=name) * stage.gains)
+        add(f"olat{k:03d}", f"--olat {k}", Light(olat_pattern(stage, k) * stage.gains))
+    for file, drive in patterns.items() if isinstance(patterns, dict) else patterns:
+        name = Path(file).stem
+        add(name, str(file), Light(validate_pattern(stage, drive, source=name) * stage.gains))
     if not lights:
         raise GraMiParameterError("lights", "give at least one envmap, OLAT, pattern or point light")
     return lights

@@ -39,6 +39,7 @@ from gra_mi.capture.humanolat import (
 )
 from gra_mi.core.config import comma_list, option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive
+from gra_mi.core.guard import path_component
 from gra_mi.core.io import atomic_write_text, read_exr, write_exr, write_png
 from gra_mi.core.progress import progress
 from gra_mi.core.provenance import claim_output
@@ -122,6 +123,13 @@ class Source:
     mesh_units: float | None = None  # metres per unit of the meshes (None: as the calibration)
     frame_masks: list[dict[int, Path]] | None = None  # per camera: frame key → its own mask file (a moving subject)
     mask_cache: dict[int, np.ndarray] = field(default_factory=dict, repr=False)  # per camera: a mask every frame shares
+
+    def __post_init__(self) -> None:
+        # Camera names become folder names in the capture (and in every later command's output): plain and unique.
+        for i, name in enumerate(self.names):
+            path_component(name, self.calib_path, f"camera {i} name")
+            if name in self.names[:i]:
+                raise GraMiInputError(self.calib_path, f"cameras {self.names.index(name)} and {i} are both named '{name}'", field="cameras")
 
     def mesh_metres(self, positions: np.ndarray) -> np.ndarray:
         return positions * (self.units if self.mesh_units is None else self.mesh_units)

@@ -30,6 +30,7 @@ from gra_mi.capture.dataset import Capture, FrameLighting
 from gra_mi.capture.wrinkles import pose_capture_wrinkles, wrinkle_normal_map
 from gra_mi.core.config import comma_list, option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
+from gra_mi.core.guard import scratch_directory
 from gra_mi.core.io import atomic_write_text, write_exr, write_png
 from gra_mi.core.metrics import relative_rmse
 from gra_mi.core.progress import progress
@@ -725,13 +726,11 @@ def render_envmap_truth(
 
     The environment is hidden from the cameras (alpha is the subject's coverage, the background black), as in
     the capture. Interreflections follow the capture's ``max_depth`` (none when it was made without them)."""
-    import tempfile
-
     import mitsuba as mi
 
     ensure_mitsuba()
     max_depth = int(capture.ground_truth.get("max_depth", 4))
-    with tempfile.TemporaryDirectory() as tmp:
+    with scratch_directory() as tmp:
         env_path = Path(tmp) / "envmap.exr"
         write_exr(env_path, np.asarray(envmap, np.float32)[..., :3])
         scene = load_envmap_truth(capture, env_path, frame)

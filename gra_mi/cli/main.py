@@ -15,8 +15,9 @@ import logging
 import sys
 from dataclasses import dataclass
 
-from gra_mi.cli.options import add_config, config_from_args, option_flags
+from gra_mi.cli.options import add_config, command_paths, config_from_args, option_flags
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
+from gra_mi.core.guard import check_apart, writing_into
 from gra_mi.core.provenance import discard_unused_claims
 from gra_mi.core.runtime import SUPPORTED_VARIANTS, bind_local_gpu
 from gra_mi.render.runtime import start_runtime
@@ -183,7 +184,10 @@ def main(argv: list[str] | None = None) -> int:
         config_class, run = command.load(args.command)
         config = config_from_args(config_class, args)
         config.validate()
-        code = run(config)
+        outputs, inputs = command_paths(config)
+        check_apart(outputs, inputs)  # before anything is written
+        with writing_into(outputs.values()):
+            code = run(config)
     except GraMiInputError as exc:
         discard_unused_claims()
         if args.verbose:

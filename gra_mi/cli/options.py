@@ -9,6 +9,7 @@ import argparse
 import dataclasses
 import types
 import typing
+from collections.abc import Iterator
 from pathlib import Path
 
 from gra_mi.core.config import Option, field_help, option_of
@@ -135,3 +136,41 @@ class Restartable(CommandConfig):
     overwrite: bool = False
     """Start over: empty the output folder first (only a folder gra-mi made). Without it, rerunning the same run
     resumes, and a folder made by a different run (other inputs or options; its provenance.json says which) is refused."""
+
+
+# What a command reads and where it writes, from its config's Path fields: the guard's view (gra_mi.core.guard).
+WRITTEN_FIELDS = ("out", "vis_cache")  # folders a command writes into (a cache is written as well as read)
+RUN_PARTS = ("capture", "fit", "relightnet", "refiner")  # a run folder's inputs: its stages, not the folder itself
+
+
+def _path_values(config, prefix: str = "") -> Iterator[tuple[str, Path]]:
+    for f in dataclasses.fields(config):
+        value = getattr(config, f.name)
+        if dataclasses.is_dataclass(value):
+            yield from _path_values(value, f"{prefix}{f.name}.")
+        elif isinstance(value, Path):
+            yield prefix + f.name, value
+        elif isinstance(value, list | tuple):
+            yield from ((f"{prefix}{f.name}[{i}]", v) for i, v in enumerate(value) if isinstance(v, Path))
+
+
+def command_paths(config) -> tuple[dict[str, Path], dict[str, Path]]:
+    """(output folders, inputs) of a command's config, by option name. The files a scene names count as inputs (an
+    output folder holding the scene or its textures could overwrite them); a run folder's inputs are its stages' folders
+    (its eval/ is an output). A config may name its output folder itself (``output_folder()``: a default that
+    depends on other options)."""
+    from gra_mi.core.guard import scene_references
+
+    outputs, inputs = {}, {}
+    for name, path in _path_values(config):
+        if name.split(".")[-1] in WRITTEN_FIELDS:
+            outputs["--" + name.replace("_", "-")] = path
+        elif name == "run":
+            inputs.update({f"run's {part}": path / part for part in RUN_PARTS if (path / part).exists()})
+        else:
+            inputs[name] = path
+            if name == "scene" and path.is_file():
+                inputs.update({f"scene's {ref.name}": ref for ref in scene_references(path)})
+    if hasattr(config, "output_folder"):
+        outputs["--out"] = config.output_folder()
+    return {k: v for k, v in outputs.items() if v is not None}, inputs

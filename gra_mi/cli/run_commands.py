@@ -68,6 +68,9 @@ class EvalCommand(CommandConfig):
         if self.run is None and self.capture is None:
             raise GraMiParameterError("run", "give a run folder, or --capture (with the stages' folders to score)")
 
+    def output_folder(self) -> Path:
+        return self.out or (self.run / "eval" if self.run is not None else Path("outputs/eval"))
+
 
 def run_eval(c: EvalCommand) -> int:
 
@@ -79,7 +82,7 @@ def run_eval(c: EvalCommand) -> int:
     if c.refined:
         inputs.refined = list(c.refined)
         inputs.explicit.add("refined")
-    out = c.out or (c.run / "eval" if c.run is not None else Path("outputs/eval"))
+    out = c.output_folder()
     report = evaluate(inputs, out, c.eval)
     print((out / "eval.md").read_text())
     for problem in report["problems"]:

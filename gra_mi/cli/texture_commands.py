@@ -134,10 +134,6 @@ class RelightCommand(CommandConfig):
         if not (self.envmap or self.olat or self.pattern or self.point_light or self.lights):
             raise GraMiInputError("lighting", "give at least one --envmap, --olat, --pattern, --point-light or --lights")
         super().validate()
-        for name, paths in (("envmap", self.envmap), ("pattern", self.pattern), ("lights", self.lights)):
-            stems = [p.stem for p in paths]
-            if twice := sorted({s for s in stems if stems.count(s) > 1}):
-                raise GraMiParameterError(name, f"two files named '{twice[0]}' would write to one folder {self.out / twice[0]}; rename one")
 
 
 def run_relight(c: RelightCommand) -> None:
@@ -147,7 +143,7 @@ def run_relight(c: RelightCommand) -> None:
 
     point_light = parse_point_light(c.point_light, c.point_light_intensity, c.point_light_radius) if c.point_light else None
     paths = [LightPath.load(p) for p in c.lights]
-    envmaps = {p.stem: c.envmaps.load(p) for p in c.envmap}
+    envmaps = [(p, c.envmaps.load(p)) for p in c.envmap]
     maps = SubjectMaps(
         albedo=load_texture(c.albedo, 3, "albedo") if c.albedo else None,
         roughness=load_texture(c.roughness, 1, "roughness") if c.roughness else None,
@@ -155,7 +151,7 @@ def run_relight(c: RelightCommand) -> None:
         vis_cache=c.vis_cache,
     )
     ls = LightstageScene.load(c.scene)
-    patterns = {p.stem: load_pattern(ls.stage, p) for p in c.pattern}
+    patterns = [(p, load_pattern(ls.stage, p)) for p in c.pattern]
     lights = collect_lights(ls.stage, envmaps, c.olat, patterns, point_light, paths)
     frames = select(c.frames, ls.sequence.num_frames, "frames", integers=True)
     cameras = select(c.cameras, len(ls.stage.cameras), "cameras")
@@ -195,8 +191,8 @@ class RelightFieldCommand(CommandConfig):
 def run_relight_field(c: RelightFieldCommand) -> None:
     capture = Capture.load(c.capture)
     stage = load_calibration(capture.folder / "rig" / "calibration.json")
-    envmaps = {p.stem: c.envmaps.load(p) for p in c.envmap}
-    lights = collect_lights(stage, envmaps, c.olat, {p.stem: load_pattern(stage, p) for p in c.pattern})
+    envmaps = [(p, c.envmaps.load(p)) for p in c.envmap]
+    lights = collect_lights(stage, envmaps, c.olat, [(p, load_pattern(stage, p)) for p in c.pattern])
     names = capture.train_cameras + capture.eval_cameras
     cameras = [names[int(x)] if x.isdigit() and x not in names else x for x in select(c.cameras, len(names), "cameras")]
     if unknown := [x for x in cameras if x not in names]:

@@ -19,14 +19,17 @@ import numpy as np
 
 from gra_mi.core.color import display_exposure, to_display
 from gra_mi.core.errors import GraMiInputError
+from gra_mi.core.guard import check_output_path
 
 logger = logging.getLogger(__name__)
 
 
 @contextlib.contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
-    """Yield a temporary path beside ``path``; rename it onto ``path`` only if the block succeeds."""
+    """Yield a temporary path beside ``path``; rename it onto ``path`` only if the block succeeds. A path outside the
+    running command's output folders is refused first (:func:`gra_mi.core.guard.check_output_path`)."""
     path = Path(path)
+    check_output_path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
     os.close(fd)

@@ -20,6 +20,7 @@ import shutil
 from pathlib import Path
 
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
+from gra_mi.core.guard import check_apart
 from gra_mi.core.io import atomic_write_text
 
 logger = logging.getLogger(__name__)
@@ -164,9 +165,8 @@ def claim_output(
     sharded = shard is not None and not shard.whole
     if sharded and overwrite:
         raise GraMiParameterError("overwrite", "cannot be combined with --shard: empty the folder once, then start the shards")
-    for name, given in inputs.items():  # --overwrite empties the output folder: never one holding an input
-        if given is not None and folder.resolve() in (Path(given).resolve(), *Path(given).resolve().parents):
-            raise GraMiInputError(folder, f"is the {name} input {given} or holds it; write the output to another folder")
+    # --overwrite empties the output folder, a resume rewrites it: never one that is, holds or lies in an input
+    check_apart({"output folder": folder}, {name: Path(given) for name, given in inputs.items() if given is not None})
     record = {
         "command": command,
         "inputs": {name: content_id(path) if path is not None else None for name, path in inputs.items()},

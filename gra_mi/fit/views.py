@@ -9,10 +9,11 @@ how many views it works on at once, not by how many the capture has (the paper's
 from __future__ import annotations
 
 import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
+
+from gra_mi.core.guard import check_output_path, scratch_folder
 
 
 class ViewStore:
@@ -31,7 +32,7 @@ class ViewStore:
         """In memory, or (``streamed``) in ``out``/views.tmp, or a temporary folder when the fit has no output folder."""
         if not streamed:
             return cls()
-        return cls(Path(tempfile.mkdtemp(prefix="gra-mi-views-")) if out is None else Path(out) / "views.tmp")
+        return cls(scratch_folder("gra-mi-views-") if out is None else Path(out) / "views.tmp")
 
     @property
     def on_disk(self) -> bool:
@@ -44,6 +45,7 @@ class ViewStore:
         if self.folder is None:
             self._memory[name] = arrays
             return
+        check_output_path(self._path(name))
         with open(self._path(name), "wb") as fh:
             np.savez(fh, **arrays)
 

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
+from gra_mi.core.guard import path_component
 from gra_mi.core.io import atomic_path, write_exr, write_png
 from gra_mi.stage import scene_keys as keys
 from gra_mi.stage.scene import make_integrator, scene_defaults
@@ -68,8 +69,10 @@ def load_scene_file(path: str | Path, defines: dict[str, str] | None = None):
         raise GraMiInputError(path, f"Mitsuba could not load the scene: {str(exc).splitlines()[0]}") from None
 
 
-def sensor_name(index: int, sensor) -> str:
-    return sensor.id() or f"sensor{index}"
+def sensor_name(index: int, sensor, source: Path | None = None) -> str:
+    """The sensor's id (its output files' name), or ``sensorN`` for a sensor without one; an id that is not a plain
+    file name (``../x``, ``/abs``) is refused, naming the scene."""
+    return path_component(sensor.id() or f"sensor{index}", source, f"sensor {index} id")
 
 
 def select_sensors(path: Path, scene, wanted: list[str]) -> list[int]:
@@ -77,7 +80,12 @@ def select_sensors(path: Path, scene, wanted: list[str]) -> list[int]:
     sensors = list(scene.sensors())
     if not sensors:
         raise GraMiInputError(path, "the scene has no sensor to render from")
-    names = [sensor_name(i, s) for i, s in enumerate(sensors)]
+    names = [sensor_name(i, s, path) for i, s in enumerate(sensors)]
+    for i, name in enumerate(names):
+        if name in names[:i]:
+            raise GraMiInputError(
+                path, f"sensors {names.index(name)} and {i} are both named '{name}': their images would overwrite each other"
+            )
     if not wanted:
         return list(range(len(sensors)))
     chosen = []
@@ -131,7 +139,7 @@ def render_scene_file(
     for index in chosen:
         sensor = scene.sensors()[index]
         image = np.array(mi.render(scene, sensor=index, integrator=chosen_integrator, spp=spp or 0, seed=seed), dtype=np.float32)
-        name = sensor_name(index, sensor)
+        name = sensor_name(index, sensor, path)
         if image.shape[-1] > 4:  # AOVs: every channel, named and ordered as Mitsuba's own writer does
             with atomic_path(out / f"{name}.exr") as tmp:
                 sensor.film().bitmap().write(str(tmp))

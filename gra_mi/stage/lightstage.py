@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive
+from gra_mi.core.guard import path_component
 from gra_mi.core.io import atomic_write_text, read_json
 
 CALIBRATION_FORMAT = "gra-mi-lightstage/1"
@@ -455,7 +456,8 @@ def _read_camera(cam, i: int, source: str) -> Camera:
         raise GraMiInputError(
             source, "rotation part must be orthonormal with det +1 and last row [0,0,0,1]", field=f"{where}.camera_to_world"
         )
-    return Camera(str(cam.get("name", f"cam{i:02d}")), size[0], size[1], fx, fy, cx, cy, m)
+    name = path_component(cam.get("name", f"cam{i:02d}"), source, f"{where}.name")
+    return Camera(name, size[0], size[1], fx, fy, cx, cy, m)
 
 
 MAX_IMAGE_SIDE = 16384

@@ -1,0 +1,196 @@
+"""The doors of issue 51, families 1, 2 and 6 (lightings): a name read from an input never becomes a path that leads
+out of ``--out``, an output folder never is, holds or lies inside an input, and two lightings with one name are
+refused naming both. Each case asserts exit code 2, the file and field named, and that nothing outside ``--out``
+and nothing inside the inputs changed."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gra_mi.core.errors import GraMiInputError
+from gra_mi.core.guard import check_apart, path_component, writing_into
+from gra_mi.core.io import atomic_write_text, write_exr
+
+from .conftest import SCENES
+from .test_bad_input import assert_refused
+
+HOSTILE = ["../../../X", "/abs/X", "a/b", "a\\b", "..", ".", "", "   ", "a\x00b", "line\nbreak", "x" * 300]
+
+
+def snapshot(*folders: Path) -> dict[str, str]:
+    """Every file under the folders, by content: what must not change."""
+    found = {}
+    for folder in folders:
+        for p in sorted(Path(folder).rglob("*")):
+            if p.is_file() and not p.name.startswith(".gra-mi.lock"):
+                found[str(p)] = hashlib.sha256(p.read_bytes()).hexdigest()
+    return found
+
+
+# --------------------------------------------------------------------------------------------------------------
+# The mechanism
+# --------------------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", HOSTILE + [5, None])
+def test_a_hostile_name_is_refused_naming_file_and_field(name):
+    with pytest.raises(GraMiInputError) as err:
+        path_component(name, "calibration.json", "cameras[0].name")
+    assert "calibration.json" in str(err.value) and "cameras[0].name" in str(err.value)
+
+
+@pytest.mark.parametrize("name", ["cam00", "sky.v2", "Kamera-ü", "olat003", "a b"])
+def test_plain_names_pass(name):
+    assert path_component(name, "x.json", "name") == name
+
+
+def test_writers_refuse_files_outside_the_output_folder(tmp_path):
+    out, outside = tmp_path / "out", tmp_path / "elsewhere"
+    out.mkdir()
+    (out / "link").symlink_to(tmp_path)  # a symlink inside --out that leads out of it
+    with writing_into([out]):
+        atomic_write_text(out / "ok.txt", "fine")
+        for target in (outside / "x.txt", out / ".." / "x.txt", out / "link" / "x.txt"):
+            with pytest.raises(GraMiInputError, match="outside the output folder"):
+                atomic_write_text(target, "no")
+    assert (out / "ok.txt").is_file() and not (tmp_path / "x.txt").exists() and not outside.exists()
+    atomic_write_text(outside / "x.txt", "a library caller outside a command writes where it likes")
+
+
+@pytest.mark.parametrize("relation", ["is", "holds", "lies inside"])
+def test_an_output_folder_overlapping_an_input_is_refused(tmp_path, relation):
+    capture = tmp_path / "capture"
+    capture.mkdir()
+    out = {"is": capture, "holds": tmp_path, "lies inside": capture / "sub"}[relation]
+    with pytest.raises(GraMiInputError, match=relation):
+        check_apart({"--out": out}, {"capture": capture})
+    check_apart({"--out": tmp_path / "elsewhere"}, {"capture": capture})
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Family 1: names from input files (sensor ids, calibration camera names)
+# --------------------------------------------------------------------------------------------------------------
+
+
+def plain_scene(folder: Path, sensor_ids: list[str | None]) -> Path:
+    """A Mitsuba scene with a textured floor (its texture beside it) and one sensor per id (None: no id)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    write_exr(folder / "cam.exr", np.full((4, 4, 3), 0.5, np.float32))  # a texture named like a sensor's output
+    sensors = "".join(  # at distinct distances: Mitsuba merges identical sensors, ids and all
+        f'<sensor type="perspective"{"" if i is None else f" id={json.dumps(i)}"}><float name="fov" value="40"/>'
+        f'<transform name="to_world"><lookat origin="0, 0, {3 + k}" target="0, 0, 0" up="0, 1, 0"/></transform>'
+        '<film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="8"/></film></sensor>'
+        for k, i in enumerate(sensor_ids)
+    )
+    xml = (
+        '<scene version="3.0.0"><integrator type="direct"/>' + sensors + '<shape type="rectangle"><bsdf type="diffuse">'
+        '<texture type="bitmap" name="reflectance"><string name="filename" value="cam.exr"/></texture></bsdf></shape>'
+        '<emitter type="constant"/></scene>'
+    )
+    (folder / "scene.xml").write_text(xml)
+    return folder / "scene.xml"
+
+
+@pytest.mark.parametrize("sensor_id", ["../../../X", "/tmp/gra-mi-hostile/X", "a/b"])
+def test_render_refuses_a_sensor_id_that_is_a_path(tmp_path, capsys, llvm_variant, sensor_id):
+    scene = plain_scene(tmp_path / "scene", [sensor_id])
+    out = tmp_path / "deep" / "er" / "out"
+    before = snapshot(tmp_path)
+    assert_refused(["render", scene, "--out", out, "--spp", "1"], capsys, str(scene), "sensor 0 id")
+    assert snapshot(tmp_path) == before
+    assert not Path("/tmp/gra-mi-hostile").exists()
+
+
+def test_render_refuses_two_sensors_with_one_name(tmp_path, capsys, llvm_variant):
+    scene = plain_scene(tmp_path / "scene", [None, "sensor0"])  # the unnamed one is called sensor0 too
+    assert_refused(["render", scene, "--out", tmp_path / "out", "--spp", "1"], capsys, "sensors 0 and 1", "sensor0")
+
+
+def test_render_into_the_scenes_own_folder_is_refused(tmp_path, capsys, llvm_variant):
+    # Sensor "cam" would write cam.exr over the scene's own texture.
+    scene = plain_scene(tmp_path / "scene", ["cam"])
+    before = snapshot(tmp_path)
+    for out in (scene.parent, tmp_path):
+        assert_refused(["render", scene, "--out", out, "--spp", "1"], capsys, "scene")
+    assert snapshot(tmp_path) == before
+    # A folder beside the scene's files, holding none of them, is where renders usually go.
+    assert main_code(["render", scene, "--out", scene.parent / "renders", "--spp", "1"]) == 0
+    texture = scene.parent / "cam.exr"
+    assert (scene.parent / "renders" / "cam.exr").is_file()
+    assert hashlib.sha256(texture.read_bytes()).hexdigest() == before[str(texture)]
+
+
+def main_code(argv) -> int:
+    from gra_mi.cli import main
+
+    return main([str(a) for a in argv])
+
+
+@pytest.mark.parametrize("name", ["../../../X", "/abs/X", ".."])
+def test_a_calibration_camera_named_like_a_path_is_refused(tmp_path, capsys, llvm_variant, name):
+    calibration = json.loads((SCENES / "rigs" / "tiny" / "calibration.json").read_text())
+    calibration["cameras"][1]["name"] = name
+    path = tmp_path / "calibration.json"
+    path.write_text(json.dumps(calibration))
+    before = snapshot(tmp_path)
+    assert_refused(
+        ["rig", "--out", tmp_path / "rig", "--from-calibration", path], capsys, str(path), "cameras[1].name", out=tmp_path / "rig"
+    )
+    assert snapshot(tmp_path) == before
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Family 2: one name, one thing (lightings of one kind or two)
+# --------------------------------------------------------------------------------------------------------------
+
+
+def _pattern(path: Path, leds: int = 64) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps({"intensities": np.full((leds, 3), 0.1).tolist()}))
+    return path
+
+
+def _envmap(path: Path) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_exr(path, np.full((8, 16, 3), 0.3, np.float32))
+    return path
+
+
+@pytest.mark.parametrize("case", ["two envmaps, two folders", "envmap and pattern", "envmap and OLAT", "two patterns"])
+def test_relight_refuses_two_lightings_with_one_name(tmp_path, capsys, llvm_variant, case):
+    lightings = {
+        "two envmaps, two folders": ["--envmap", _envmap(tmp_path / "env" / "sky.exr"), "--envmap", _envmap(tmp_path / "env2" / "sky.exr")],
+        "envmap and pattern": ["--envmap", _envmap(tmp_path / "key.exr"), "--pattern", _pattern(tmp_path / "key.json")],
+        "envmap and OLAT": ["--envmap", _envmap(tmp_path / "olat003.exr"), "--olat", "3"],
+        "two patterns": ["--pattern", _pattern(tmp_path / "a" / "p.json"), "--pattern", _pattern(tmp_path / "b" / "p.json")],
+    }[case]
+    out = tmp_path / "out"
+    line = assert_refused(["relight", SCENES / "tiny_lightstage.xml", *lightings, "--out", out], capsys, "both named", out=out)
+    assert "rename one" in line
+
+
+def test_relight_field_refuses_two_envmaps_with_one_stem_and_an_out_inside_its_capture(inputs, tmp_path, capsys, llvm_variant):
+    cap = inputs["cap"]
+    before = snapshot(cap)
+    for out in (cap, cap / "relit"):
+        assert_refused(["relight-field", cap, "--olat", "3", "--out", out], capsys, "capture")
+    maps = ["--envmap", _envmap(tmp_path / "a" / "sky.exr"), "--envmap", _envmap(tmp_path / "b" / "sky.exr")]
+    assert_refused(["relight-field", cap, *maps, "--out", tmp_path / "out"], capsys, "both named", out=tmp_path / "out")
+    assert snapshot(cap) == before
+
+
+def test_fit_refuses_an_output_inside_its_capture(inputs, capsys, llvm_variant):
+    cap = inputs["cap"]
+    before = snapshot(cap)
+    assert_refused(["fit", cap, "--out", cap / "fit"], capsys, "lies inside", "capture")
+    assert snapshot(cap) == before
+
+
+@pytest.fixture
+def inputs(path_traced_fit):
+    return {"cap": path_traced_fit / "cap", "fit": path_traced_fit / "fit"}
