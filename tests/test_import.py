@@ -431,7 +431,7 @@ def test_a_tracked_sequence_under_environment_maps_imports(path_traced_fit, tmp_
                     | {"envmap": str(native.folder / entry.envmap), "mesh_frame": k}
                 )
         (tmp_path / f"transforms_{split}.json").write_text(json.dumps({"frames": frames}))
-    out = tmp_path / "imported"
+    out = tmp_path.parent / f"{tmp_path.name}_imported"  # beside the source: an output inside an input is refused
     args = ["import", "transforms", str(tmp_path), "--out", str(out), "--mesh", str(tmp_path / "meshes")]
     assert main([*args, "--leds", str(tmp_path / "leds.pc"), "--uv-resolution", "32"]) == 0
     capture = Capture.load(out)
