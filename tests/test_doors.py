@@ -194,3 +194,152 @@ def test_fit_refuses_an_output_inside_its_capture(inputs, capsys, llvm_variant):
 @pytest.fixture
 def inputs(path_traced_fit):
     return {"cap": path_traced_fit / "cap", "fit": path_traced_fit / "fit"}
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Family 7: light paths — a clear error or a correct finite result, never a render that disagrees with its
+# conditioning
+# --------------------------------------------------------------------------------------------------------------
+
+
+def _light_path(path: Path, radius: float = 0.03, intensity=2.0, position=(0.6, 1.2, 0.4)) -> Path:
+    light = {
+        "name": "key",
+        "type": "point",
+        "radius": radius,
+        "intensity": intensity,
+        "keyframes": [{"frame": 0, "position": list(position)}],
+    }
+    path.write_text(json.dumps({"lights": [light]}))
+    return path
+
+
+def test_a_light_whose_sphere_reaches_into_the_subject_is_refused(tmp_path, capsys, llvm_variant):
+    path = _light_path(tmp_path / "big.json", radius=5.0)
+    out = tmp_path / "out"
+    assert_refused(
+        ["relight", SCENES / "tiny_lightstage.xml", "--lights", path, "--frames", "0", "--out", out],
+        capsys,
+        "big.json",
+        "reaches into the subject",
+        out=out,
+    )
+
+
+@pytest.mark.parametrize("intensity", [1e39, [1, 1, 1e39], -1.0])
+def test_a_light_intensity_beyond_float32_is_refused_by_file_and_field(tmp_path, intensity):
+    from gra_mi.render.light_path import LightPath
+
+    with pytest.raises(GraMiInputError, match=r"lights\[0\]\.keyframes\[0\]\.intensity"):
+        LightPath.load(_light_path(tmp_path / "hot.json", intensity=intensity))
+
+
+def test_point_light_intensity_option_is_bounded(tmp_path, capsys, llvm_variant):
+    out = tmp_path / "out"
+    argv = ["relight", SCENES / "tiny_lightstage.xml", "--point-light", "0.6,1.2,0.4", "--point-light-intensity", "1e39", "--out", out]
+    assert_refused(argv, capsys, "--point-light-intensity", out=out)
+
+
+def test_a_light_at_an_led_gives_a_finite_conditioning(llvm_variant):
+    from gra_mi.render.point_light import PointLight, conditioning_envmap, conditioning_pattern
+    from gra_mi.stage.scene import LightstageScene
+
+    ls = LightstageScene.load(SCENES / "tiny_lightstage.xml")
+    for radius in (0.0, 0.03):
+        light = PointLight(ls.stage.led_positions[5], np.full(3, 2.0), radius)
+        pattern = conditioning_pattern(ls.stage, ls.scene, light)
+        assert np.isfinite(pattern).all() and pattern[5].max() > 0
+        assert np.isfinite(conditioning_envmap(ls.stage, pattern)).all()
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Family 8: sizes checked against memory before any output is claimed
+# --------------------------------------------------------------------------------------------------------------
+
+
+def test_sizes_beyond_memory_are_refused_before_anything_is_written(inputs, tmp_path, capsys, llvm_variant):
+    cap, fit = inputs["cap"], inputs["fit"]
+    out = tmp_path / "out"
+    assert_refused(["fit", cap, "--levels", "16,100000", "--out", out], capsys, "--levels", "GiB", out=out)
+    assert_refused(
+        ["train-relightnet", cap, "--fit", fit, "--synthesized-lightings", "1000000000", "--out", out],
+        capsys,
+        "--synthesized-lightings",
+        "GiB",
+        out=out,
+    )
+    assert_refused(
+        ["eval", "--capture", cap, "--fit", fit, "--library-envmaps", "100000000", "--out", out],
+        capsys,
+        "--library-envmaps",
+        "GiB",
+        out=out,
+    )
+
+
+def test_a_film_too_large_for_memory_is_refused(tmp_path, capsys, llvm_variant):
+    scene = plain_scene(tmp_path / "scene", ["cam"])
+    scene.write_text(
+        scene.read_text()
+        .replace('name="width" value="8"', 'name="width" value="100000"')
+        .replace('name="height" value="8"', 'name="height" value="100000"')
+    )
+    out = tmp_path / "out"
+    assert_refused(["render", scene, "--out", out, "--spp", "1"], capsys, "sensor 0 film", "100000 × 100000", out=out)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Family 10: shards say so
+# --------------------------------------------------------------------------------------------------------------
+
+
+def test_a_shard_taken_from_a_launcher_says_so(capsys):
+    from gra_mi.core import shard as shards
+
+    shards._ANNOUNCED.clear()
+    env = {"SLURM_ARRAY_TASK_ID": "2", "SLURM_ARRAY_TASK_COUNT": "3", "SLURM_ARRAY_TASK_MIN": "1"}
+    assert str(shards.resolve_shard(None, env)) == "1/3"
+    assert "shard 1/3 from the launcher" in capsys.readouterr().err
+    shards.resolve_shard(None, env)
+    assert capsys.readouterr().err == ""  # once per process
+
+
+def test_relight_refuses_a_second_shard_count_in_one_folder(tmp_path, capsys, llvm_variant):
+    from gra_mi.cli import main
+
+    out = tmp_path / "out"
+    base = ["relight", str(SCENES / "tiny_lightstage.xml"), "--olat", "0", "--frames", "0", "--out", str(out)]
+    assert main([*base, "--shard", "0/2"]) == 0
+    assert_refused([*base, "--shard", "0/3"], capsys, "2 shards", "--shard I/2")
+    assert main([*base, "--shard", "1/2"]) == 0  # the same count resumes
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Family 11 (build list 10): the door LEDs leave the rig with their OLATs
+# --------------------------------------------------------------------------------------------------------------
+
+
+def _humanolat_source(leds: int):
+    from gra_mi.capture.importer import Source
+
+    order = np.random.default_rng(0).permutation(leds)
+    positions = np.random.default_rng(1).normal(size=(leds, 3))
+    return Source(Path("subject"), "humanolat", Path("cameras.calib"), [], [], [], [], 0.001, positions, [], [], order=order)
+
+
+def test_the_door_leds_are_left_out_of_the_rig_by_default():
+    from gra_mi.capture.humanolat import DOOR_LEDS
+    from gra_mi.capture.importer import HumanolatOptions, humanolat_frames
+
+    source = _humanolat_source(331)
+    original = source.leds.copy()
+    plan, left_out = humanolat_frames(source, HumanolatOptions(test_olat_every=1000))
+    assert len(source.leds) == 331 - len(DOOR_LEDS) and set(DOOR_LEDS) <= set(left_out)
+    assert all(drive != "white" for _, _, drive in plan)  # the white frame lit the door too: not imported
+    kept = [i for i in range(331) if i not in DOOR_LEDS]
+    for _, entry, drive in plan:  # each OLAT's LED, renumbered in the rig, is where the source put it
+        assert entry.pattern == f"patterns/olat_{drive:03d}.json"
+        np.testing.assert_array_equal(source.leds[drive], original[kept[drive]])
+    source = _humanolat_source(331)
+    plan, left_out = humanolat_frames(source, HumanolatOptions(keep_door_leds=True))
+    assert len(source.leds) == 331 and not left_out and plan[0][2] == "white"

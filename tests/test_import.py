@@ -399,6 +399,25 @@ def test_a_transforms_json_without_intrinsics_or_lights_is_refused(olat_capture,
     data["frames"][0] |= {"light_idx": 0, "k1": 0.05}
     (folder / "transforms_train.json").write_text(json.dumps(data))
     _one_line_error(capsys, args, "transforms_train.json", "k1", "undistort")
+    del data["frames"][0]["k1"]
+    mirrored = np.array(data["frames"][2]["transform_matrix"])
+    mirrored[:3, 0] *= -1
+    for bad, needles in (
+        ({"camera_angle_x": 0}, ["frames[2].camera_angle_x", "greater than 0"]),
+        ({"fl_x": "abc"}, ["frames[2].fl_x", "valid number"]),
+        ({"w": 0}, ["frames[2].w", "greater than 0"]),
+        ({"camera_intrinsics": [1.0, 2.0, 3.0]}, ["frames[2].camera_intrinsics", "4 numbers"]),
+        ({"camera_intrinsics": [36.0, 48.0, -100.0, 100.0]}, ["frames[2].camera_intrinsics", "fx, fy > 0"]),
+        ({"transform_matrix": mirrored.tolist()}, ["frames[2].transform_matrix", "mirrored"]),
+        ({"transform_matrix": [[1, 0], [0, 1]]}, ["frames[2].transform_matrix", "4 × 4"]),
+        ({"light_idx": -3}, ["frames[2].light_idx"]),
+        ({"pl_pos": [0, "x", 1]}, ["frames[2].pl_pos"]),
+    ):
+        broken = json.loads(json.dumps(data))
+        broken["frames"][2] |= bad
+        (folder / "transforms_train.json").write_text(json.dumps(broken))
+        _one_line_error(capsys, args, "transforms_train.json", *needles)
+        assert not (tmp_path / "out").exists()
 
 
 def test_a_tracked_sequence_under_environment_maps_imports(path_traced_fit, tmp_path):
@@ -455,6 +474,13 @@ def _opencv_matrix(name: str, m: np.ndarray) -> str:
     """One entry as cv2.FileStorage writes it."""
     data = ", ".join(f"{v:.17g}" for v in np.asarray(m, float).ravel())
     return f"{name}: !!opencv-matrix\n   rows: {m.shape[0]}\n   cols: {m.shape[1]}\n   dt: d\n   data: [ {data} ]\n"
+
+
+def _with_matrix(text: str, name: str, m: np.ndarray) -> str:
+    """``text`` (an OpenCV YAML file) with the entry ``name`` replaced by ``m``."""
+    import re
+
+    return re.sub(rf"{name}: !!opencv-matrix\n(?:\s+\w+: .*\n){{3}}\s+data: \[[^\]]*\]\n", _opencv_matrix(name, m), text)
 
 
 def write_easymocap(native, folder: Path, frames: list) -> None:
@@ -548,12 +574,25 @@ def test_broken_easymocap_rigs_stop_with_one_line(path_traced_fit, tmp_path, cap
         ({"frames": [{"frame": 0, "led": 10_000}]}, intri, ["lighting.json", "frames[0].led", "out of range"]),
         (good, intri.replace("data: [ 0, 0, 0, 0, 0 ]", "data: [ 0.1, 0, 0, 0, 0 ]", 1), ["intri.yml", "dist_01", "undistort"]),
         (good, intri.replace("K_02:", "Kx_02:"), ["intri.yml", "K_02"]),
+        ({"frames": [{"frame": 0, "uniform": 0.5}, {"frame": 0, "led": 1}]}, intri, ["lighting.json", "frames[1].frame", "listed twice"]),
+        ({"frames": [{"frame": 0, "uniform": float("nan")}]}, intri, ["lighting.json", "frames[0].uniform"]),
+        ({"frames": [{"frame": 0, "uniform": -0.5}]}, intri, ["lighting.json", "frames[0].uniform"]),
+        ({"frames": [{"frame": -1, "uniform": 0.5}]}, intri, ["lighting.json", "frames[0].frame"]),
+        (good, _with_matrix(intri, "K_01", np.zeros((3, 3))), ["intri.yml", "K_01", "last row"]),
+        (good, _with_matrix(intri, "K_01", np.eye(2)), ["intri.yml", "K_01", "3 × 3"]),
+        (good, _with_matrix(intri, "K_01", np.diag([-500.0, 500.0, 1.0])), ["intri.yml", "K_01", "focal lengths"]),
     ]
     for lighting, text, needles in cases:
         (tmp_path / "lighting.json").write_text(json.dumps(lighting))
         (rig / "intri.yml").write_text(text)
         _one_line_error(capsys, args, *needles)
         assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
+    (tmp_path / "lighting.json").write_text(json.dumps(good))
+    (rig / "intri.yml").write_text(intri)
+    extri = (rig / "extri.yml").read_text()
+    (rig / "extri.yml").write_text(_with_matrix(extri, "R_02", np.zeros((1, 2))))  # a 1 × 2 Rodrigues vector
+    _one_line_error(capsys, args, "extri.yml", "R_02", "3 numbers")
+    (rig / "extri.yml").write_text(extri)
     _one_line_error(capsys, args[:-2], "--lighting")
 
 
@@ -565,8 +604,213 @@ def test_import_shards_write_what_one_process_writes(olat_capture, imported):
 
     root, _, subject = olat_capture
     _imported(root, subject, "sharded", "--shard", "0/2")
-    assert not (root / "sharded" / "capture.json").exists() and (root / "sharded" / "parts").is_dir()
+    # staged until the last shard has checked the whole capture and published it
+    assert not (root / "sharded").exists() and (root / ".sharded.partial" / "parts").is_dir()
     _imported(root, subject, "sharded", "--shard", "1/2")
-    assert not (root / "sharded" / "parts").exists()
+    assert not (root / "sharded" / "parts").exists() and not (root / ".sharded.partial").exists()
     differ = same_files(imported, root / "sharded", ignore=lambda p: p.name == PROVENANCE or is_lock(p.name))
     assert not differ, differ
+
+
+# --------------------------------------------------------------------------------------------------------------
+# The doors (issue 51): the source's own checks, staging, provenance over what the import reads
+# --------------------------------------------------------------------------------------------------------------
+
+
+def _calib_edit(edit):
+    def damage(s: Path) -> None:
+        from gra_mi.capture.humanolat import read_calib, write_calib
+
+        calib = read_calib(s / "shared" / "cameras.calib")
+        edit(calib)
+        write_calib(s / "shared" / "cameras.calib", calib)
+
+    return damage
+
+
+def _text_edit(relative: str, edit):
+    def damage(s: Path) -> None:
+        path = s / relative
+        path.write_text(edit(path.read_text()))
+
+    return damage
+
+
+def _zero_focal(calib):
+    calib[0].intrinsic[0, 0] = 0.0
+
+
+def _one_negative_focal(calib):
+    calib[0].intrinsic[1, 1] *= -1
+
+
+def _negative_focal_pair(calib):
+    calib[0].intrinsic[0, 0] *= -1
+    calib[0].intrinsic[1, 1] *= -1
+
+
+def _singular_rotation(calib):
+    calib[0].extrinsic[:3, :3] = 0.0
+
+
+def _mirrored_rotation(calib):
+    calib[0].extrinsic[:3, 0] *= -1
+
+
+def _camera_listed_twice(calib):
+    calib[1] = calib[0]
+
+
+def _first_line_starting(text: str, prefix: str, replace) -> str:
+    lines = text.splitlines()
+    k = next(i for i, line in enumerate(lines) if line.startswith(prefix))
+    lines[k] = replace(lines[k])
+    return "\n".join(lines) + "\n"
+
+
+def _duplicate_led(text: str) -> str:
+    lines = text.splitlines()
+    lines[1] = lines[0]
+    return "\n".join(lines) + "\n"
+
+
+def _spiral_not_a_permutation(text: str) -> str:
+    words = text.split()
+    words[1] = words[0]
+    return "\n".join(words) + "\n"
+
+
+def _second_image_with_one_number(s: Path) -> None:
+    first = next((s / "POSE_00" / "images_processed" / "Cam03").glob("*.000016.avif"))
+    shutil.copyfile(first, first.with_suffix(".png"))
+
+
+@pytest.mark.parametrize(
+    ("damage", "needles"),
+    [
+        (_calib_edit(_zero_focal), ["cameras.calib", "camera 1", "line 1", "focal lengths must be > 0"]),
+        (_calib_edit(_one_negative_focal), ["cameras.calib", "camera 1", "focal lengths must be > 0"]),
+        (_calib_edit(_negative_focal_pair), ["cameras.calib", "camera 1", "focal lengths must be > 0"]),
+        (_calib_edit(_singular_rotation), ["cameras.calib", "camera 1.extrinsic", "not orthonormal"]),
+        (_calib_edit(_mirrored_rotation), ["cameras.calib", "camera 1.extrinsic", "mirrored"]),
+        (_calib_edit(_camera_listed_twice), ["cameras.calib", "Cam01 and Cam02", "listed twice"]),
+        (_text_edit("shared/LSX_light_positions_aligned.pc", _duplicate_led), ["LSX_light_positions_aligned.pc", "LEDs 0 and 1"]),
+        (_text_edit("shared/LSX3_light_z_spiral.txt", _spiral_not_a_permutation), ["LSX3_light_z_spiral.txt", "fires twice"]),
+        (
+            _text_edit("POSE_00/model/model.obj", lambda t: _first_line_starting(t, "v ", lambda line: " ".join(line.split()[:3]))),
+            ["model.obj", "line", "cannot read"],
+        ),
+        (
+            _text_edit("POSE_00/model/model.obj", lambda t: _first_line_starting(t, "v ", lambda line: "v nan 0 0")),
+            ["model.obj", "line", "cannot read"],
+        ),
+        (
+            _text_edit("POSE_00/model/model.obj", lambda t: _first_line_starting(t, "vt ", lambda line: "vt 1.5 0.5")),
+            ["model.obj", "several unit tiles"],
+        ),
+        (_second_image_with_one_number, ["Cam03", "image number 16"]),
+    ],
+    ids=[
+        "zero-focal", "one-negative-focal", "negative-focal-pair", "singular-rotation", "mirrored-rotation", "camera-twice",
+        "duplicate-led", "spiral-not-permutation", "obj-two-coordinates", "obj-nan-vertex", "uvs-over-tiles", "image-number-twice",
+    ],
+)  # fmt: skip
+def test_hostile_sources_stop_naming_file_and_field_and_write_nothing(olat_capture, tmp_path, capsys, damage, needles):
+    subject = _broken(olat_capture, tmp_path, damage)
+    out = tmp_path / "out"
+    _one_line_error(capsys, ["import", "humanolat", str(subject), "--out", str(out)], *needles)
+    assert not out.exists() and not (tmp_path / ".out.partial").exists()
+
+
+def test_every_camera_held_out_is_refused(olat_capture, tmp_path, capsys):
+    _, _, subject = olat_capture
+    every = ",".join(f"Cam{i:02d}" for i in range(1, 9))
+    out = tmp_path / "out"
+    _one_line_error(capsys, ["import", "humanolat", str(subject), "--out", str(out), "--eval-cameras", every], "--eval-cameras", "every")
+    assert not out.exists()
+
+
+def test_uvs_in_one_tile_are_moved_into_the_atlas_not_clamped(olat_capture, imported, tmp_path):
+    from gra_mi.subject.sequence import load_sequence
+
+    def shift(text: str) -> str:
+        return "\n".join(
+            f"vt {float(line.split()[1]) + 1:.9g} {float(line.split()[2]) + 2:.9g}" if line.startswith("vt ") else line
+            for line in text.splitlines()
+        )
+
+    subject = _broken(olat_capture, tmp_path, _text_edit("POSE_00/model/model.obj", shift))
+    moved = _imported(tmp_path, subject, "moved")
+    np.testing.assert_allclose(load_sequence(moved / "subject").uvs, load_sequence(imported / "subject").uvs, atol=1e-6)
+
+
+def test_a_failure_mid_import_leaves_nothing_and_the_fixed_rerun_resumes_without_overwrite(olat_capture, tmp_path, capsys):
+    _, _, subject = olat_capture
+    copy = _broken(olat_capture, tmp_path, lambda s: None)
+    late = sorted((copy / "POSE_00" / "images_processed" / "Cam05").glob("*.avif"))[-1]
+    good = late.read_bytes()
+    late.write_bytes(good[: len(good) // 3])  # truncated: found only when its camera is imported
+    out = tmp_path / "out"
+    truth = json.loads((subject / "synthetic.json").read_text())
+    args = ["import", "humanolat", str(copy), "--out", str(out), "--uv-resolution", "32", "--test-olat-every", "5"]
+    args += ["--led-intensity", str(truth["import_led_intensity"])]
+    _one_line_error(capsys, args, late.name)
+    assert not out.exists()
+    late.write_bytes(good)
+    assert main(args) == 0
+    assert (out / "capture.json").is_file() and not (tmp_path / ".out.partial").exists()
+
+
+def test_a_file_read_outside_the_source_is_part_of_the_run(path_traced_fit, tmp_path, capsys):
+    # EasyMocap's mesh and lighting live beside the rig folder, not in it: editing the mesh (3 cm) after an import
+    # makes a rerun into the same folder another run, refused; an edited envmap likewise.
+    from gra_mi.capture.dataset import Capture
+    from gra_mi.capture.humanolat import write_obj, write_points
+    from gra_mi.stage.lightstage import load_calibration
+    from gra_mi.subject.sequence import load_sequence
+
+    native = Capture.load(path_traced_fit / "cap")
+    stage, seq = load_calibration(native.folder / "rig" / "calibration.json"), load_sequence(native.folder / "subject")
+    write_easymocap(native, tmp_path / "rig", native.frames[:2])
+    (tmp_path / "meshes").mkdir()
+    write_obj(tmp_path / "meshes", seq.vertices[0], seq.uvs, seq.faces, None)
+    write_points(tmp_path / "leds.pc", stage.led_positions)
+    frames = [
+        {"frame": f.frame, "split": "train", "mesh_frame": 0}
+        | ({"uniform": 0.5} if f.kind == "uniform" else {"envmap": str(native.folder / f.envmap)})
+        for f in native.frames[:2]
+    ]
+    (tmp_path / "lighting.json").write_text(json.dumps({"frames": frames}))
+    out = tmp_path / "out"
+    args = ["import", "easymocap", str(tmp_path / "rig"), "--out", str(out), "--mesh", str(tmp_path / "meshes"), "--uv-resolution", "32"]
+    args += ["--leds", str(tmp_path / "leds.pc"), "--lighting", str(tmp_path / "lighting.json")]
+    assert main(args) == 0
+    assert main(args) == 0  # the same run: already complete
+    write_obj(tmp_path / "meshes", seq.vertices[0] + np.array([0.03, 0, 0]), seq.uvs, seq.faces, None)
+    _one_line_error(capsys, args, "another run", "files outside the source")
+
+
+def test_envmaps_are_read_before_anything_is_written(path_traced_fit, tmp_path, capsys):
+    from gra_mi.capture.dataset import Capture
+    from gra_mi.capture.humanolat import write_obj, write_points
+    from gra_mi.core.io import write_exr
+    from gra_mi.stage.lightstage import load_calibration
+    from gra_mi.subject.sequence import load_sequence
+
+    native = Capture.load(path_traced_fit / "cap")
+    stage, seq = load_calibration(native.folder / "rig" / "calibration.json"), load_sequence(native.folder / "subject")
+    write_easymocap(native, tmp_path / "rig", native.frames[:1])
+    (tmp_path / "meshes").mkdir()
+    write_obj(tmp_path / "meshes", seq.vertices[0], seq.uvs, seq.faces, None)
+    write_points(tmp_path / "leds.pc", stage.led_positions)
+    nan_map = np.ones((8, 16, 3), np.float32)
+    nan_map[2, 3] = np.nan
+    write_exr(tmp_path / "nan.exr", nan_map)
+    (tmp_path / "text.exr").write_text("not an image")
+    out = tmp_path / "out"
+    args = ["import", "easymocap", str(tmp_path / "rig"), "--out", str(out), "--mesh", str(tmp_path / "meshes")]
+    args += ["--leds", str(tmp_path / "leds.pc"), "--lighting", str(tmp_path / "lighting.json")]
+    for envmap, needle in (("nan.exr", "nan.exr"), ("text.exr", "text.exr"), ("../../../../../../etc/passwd", "passwd")):
+        (tmp_path / "lighting.json").write_text(json.dumps({"frames": [{"frame": 0, "envmap": envmap}]}))
+        _one_line_error(capsys, args, needle)
+        assert not out.exists()

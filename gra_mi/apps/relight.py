@@ -23,7 +23,7 @@ from gra_mi.core.guard import path_component
 from gra_mi.core.io import atomic_path, atomic_write_text, write_exr, write_mp4_srgb8, write_png
 from gra_mi.core.progress import progress
 from gra_mi.core.runtime import torch_device
-from gra_mi.core.shard import Shard
+from gra_mi.core.shard import Shard, record_shard_count
 from gra_mi.render.composite import PlatformCompositor
 from gra_mi.render.light_path import LightPath
 from gra_mi.render.runtime import ensure_mitsuba
@@ -198,6 +198,8 @@ def relight_batch(
     for light in lights.values():
         if light.path is not None:
             light.path.check_frames(frames)
+            light.path.check_clear_of(ls.sequence.vertices, frames)
+    record_shard_count(out, shard)
     if config.fidelity:
         _write_fidelity(out, lights, ls.stage)
 

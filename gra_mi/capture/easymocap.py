@@ -25,15 +25,18 @@ import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated, Literal
 
 import numpy as np
+from pydantic import BeforeValidator, Field, field_validator, model_validator
 
 from gra_mi.capture.dataset import FrameLighting
-from gra_mi.capture.humanolat import CalibCamera, image_size, read_points
+from gra_mi.capture.humanolat import CalibCamera, add_numbered, image_size, read_points
 from gra_mi.capture.importer import ImportConfig, Source, import_capture
 from gra_mi.capture.transforms import UNITS, TransformsOptions, read_meshes
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.io import read_json
+from gra_mi.core.schema import Count, Record, intrinsic_matrix, matrix, parse, rigid_rotation
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".avif", ".exr")
 
@@ -83,19 +86,48 @@ def _rodrigues(r: np.ndarray) -> np.ndarray:
     return np.eye(3) + math.sin(theta) * kx + (1 - math.cos(theta)) * kx @ kx
 
 
+class OpenCVIntrinsics(Record):
+    """One camera of intri.yml: ``K_<cam>`` (a pinhole K) and ``dist_<cam>`` (must be zero: undistort first)."""
+
+    K: matrix(3, 3)
+    dist: Annotated[np.ndarray, BeforeValidator(lambda v: np.asarray(v, float).ravel())] | None = None
+
+    @field_validator("K")
+    @classmethod
+    def _pinhole(cls, k: np.ndarray) -> np.ndarray:
+        return intrinsic_matrix(k)
+
+
+class OpenCVExtrinsics(Record):
+    """One camera of extri.yml: world-to-camera ``Rot_<cam>`` (3 × 3) or ``R_<cam>`` (Rodrigues), and ``T_<cam>``."""
+
+    Rot: matrix(3, 3) | None = None
+    R: matrix(3) | None = None
+    T: matrix(3)
+
+    @field_validator("Rot")
+    @classmethod
+    def _rigid(cls, rot: np.ndarray | None) -> np.ndarray | None:
+        return None if rot is None else rigid_rotation(rot, "world-to-camera rotation")
+
+
+def _per_camera(values: dict, name: str, keys: tuple[str, ...]) -> dict:
+    """The ``<key>_<cam>`` entries of one camera, keyed by ``key`` (what its schema names)."""
+    return {key: values[f"{key}_{name}"] for key in keys if f"{key}_{name}" in values}
+
+
 def _camera(intri: dict, extri: dict, name: str, images: dict[int, Path], folder: Path) -> tuple[CalibCamera, tuple[int, int]]:
-    for source, key in ((folder / "intri.yml", f"K_{name}"), (folder / "extri.yml", f"T_{name}")):
-        if key not in (intri if "intri" in source.name else extri):
-            raise GraMiInputError(source, f"camera {name}: missing", field=key)
-    dist = intri.get(f"dist_{name}", np.zeros(5)).ravel()
-    if np.abs(dist).max() > 0:
+    k = parse(OpenCVIntrinsics, _per_camera(intri, name, ("K", "dist")), folder / "intri.yml", key_suffix=f"_{name}")
+    pose = parse(OpenCVExtrinsics, _per_camera(extri, name, ("Rot", "R", "T")), folder / "extri.yml", key_suffix=f"_{name}")
+    dist = k.dist if k.dist is not None else np.zeros(5)
+    if not np.isfinite(dist).all() or np.abs(dist).max(initial=0) > 0:
         raise GraMiInputError(
             folder / "intri.yml", f"camera {name}: distortion {dist.tolist()}: undistort the images first", field=f"dist_{name}"
         )
-    rot = extri[f"Rot_{name}"] if f"Rot_{name}" in extri else _rodrigues(extri.get(f"R_{name}", np.zeros(3)))
-    c2w = np.concatenate([rot.T, -rot.T @ extri[f"T_{name}"].reshape(3, 1)], axis=1)
+    rot = pose.Rot if pose.Rot is not None else _rodrigues(pose.R if pose.R is not None else np.zeros(3))
+    c2w = np.concatenate([rot.T, -rot.T @ pose.T.reshape(3, 1)], axis=1)
     width, height = image_size(next(iter(images.values())))
-    intrinsic = intri[f"K_{name}"] / width
+    intrinsic = k.K / width
     intrinsic[2] = [0, 0, 1]
     return CalibCamera(intrinsic, c2w, dist.tolist()), (width, height)
 
@@ -105,29 +137,46 @@ def _images(folder: Path, name: str, kind: str = "images", required: bool = True
     found = {}
     for path in sorted((folder / kind / name).glob("*")):
         if path.suffix.lower() in IMAGE_SUFFIXES and path.stem.isdigit():
-            found[int(path.stem)] = path
+            add_numbered(found, int(path.stem), path)
     if not found and required:
         raise GraMiInputError(folder / kind / name, "no images (expected <frame, 6 digits>.jpg/.png/.avif/.exr)")
     return found
 
 
-def _lighting(path: Path, i: int, entry: dict, leds: int) -> tuple[str, object]:
+class LightingEntry(Record):
+    """One entry of the lighting file: the image's frame number, its split, and exactly one lighting."""
+
+    frame: Count
+    split: Literal["train", "test"] = "train"
+    mesh_frame: Count | None = None
+    sequence: Count = 0
+    uniform: Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)] | None = None  # a fraction of the LEDs' maximum
+    led: Count | None = None
+    envmap: str | None = None
+    pattern: str | None = None
+
+    @model_validator(mode="after")
+    def _one_lighting(self) -> LightingEntry:
+        given = [k for k in ("uniform", "led", "envmap", "pattern") if getattr(self, k) is not None]
+        if len(given) != 1:
+            raise ValueError(f"expected exactly one of uniform, led, envmap or pattern, got {given or 'none'}")
+        return self
+
+
+def _lighting(path: Path, i: int, entry: LightingEntry, leds: int) -> tuple[str, object]:
     """(FrameLighting kind, the importer's drive) of one entry of the lighting file."""
     where = f"frames[{i}]"
-    if "uniform" in entry:
-        return "pattern", ("uniform", float(entry["uniform"]))
-    if "led" in entry:
-        led = int(entry["led"])
-        if not 0 <= led < leds:
-            raise GraMiInputError(path, f"LED {led} out of range [0, {leds}) of --leds", field=f"{where}.led")
-        return "pattern", led
-    for kind in ("envmap", "pattern"):
-        if kind in entry:
-            file = path.parent / entry[kind]
-            if not file.is_file():
-                raise GraMiInputError(path, f"{file} not found", field=f"{where}.{kind}")
-            return kind, ("pattern", file) if kind == "pattern" else file
-    raise GraMiInputError(path, "expected one of uniform, led, envmap or pattern", field=where)
+    if entry.uniform is not None:
+        return "pattern", ("uniform", entry.uniform)
+    if entry.led is not None:
+        if entry.led >= leds:
+            raise GraMiInputError(path, f"LED {entry.led} out of range [0, {leds}) of --leds", field=f"{where}.led")
+        return "pattern", entry.led
+    kind = "envmap" if entry.envmap is not None else "pattern"
+    file = path.parent / getattr(entry, kind)
+    if not file.is_file():
+        raise GraMiInputError(path, f"{file} not found", field=f"{where}.{kind}")
+    return kind, ("pattern", file) if kind == "pattern" else file
 
 
 def read_easymocap(folder: Path, options: EasymocapOptions, files: TransformsOptions) -> Source:
@@ -145,17 +194,17 @@ def read_easymocap(folder: Path, options: EasymocapOptions, files: TransformsOpt
     entries = lighting.get("frames") if isinstance(lighting, dict) else None
     if not isinstance(entries, list) or not entries:
         raise GraMiInputError(options.lighting, "expected an object with a non-empty 'frames' list", field="frames")
-    frames = []
-    for i, entry in enumerate(entries):
-        if not isinstance(entry, dict) or not isinstance(entry.get("frame"), int) or entry["frame"] < 0:
+    frames, listed = [], {}
+    for i, raw in enumerate(entries):
+        entry = parse(LightingEntry, raw, options.lighting, f"frames[{i}]")
+        number, split = entry.frame, entry.split
+        if number in listed:  # one image, two lightings: one would relabel the other
             raise GraMiInputError(
-                options.lighting, "expected an object with the image's frame number (an integer >= 0)", field=f"frames[{i}].frame"
+                options.lighting, f"frame {number} is listed twice (entries {listed[number]} and {i})", field=f"frames[{i}].frame"
             )
-        number, split = entry["frame"], entry.get("split", "train")
-        if split not in ("train", "test"):
-            raise GraMiInputError(options.lighting, f"expected train or test, got {split!r}", field=f"frames[{i}].split")
+        listed[number] = i
         kind, drive = _lighting(options.lighting, i, entry, len(leds))
-        pose, sequence = int(entry.get("mesh_frame", number)), int(entry.get("sequence", 0))
+        pose, sequence = entry.mesh_frame if entry.mesh_frame is not None else number, entry.sequence
         if kind == "envmap":
             lit = FrameLighting(i, split, sequence, "envmap", f"envmaps/{Path(drive).name}", pose=pose)
         else:
@@ -165,7 +214,7 @@ def read_easymocap(folder: Path, options: EasymocapOptions, files: TransformsOpt
     return Source(
         folder, "easymocap", folder / "extri.yml", [f"cam{n}" for n in names], [c for c, _ in cameras], [s for _, s in cameras],
         images, units, leds, meshes, [None] * len(names), frames, mesh_units=UNITS[files.mesh_units],
-        frame_masks=[_images(folder, n, "mask", required=False) for n in names],
+        frame_masks=[_images(folder, n, "mask", required=False) for n in names], leds_path=files.leds, mesh_files=[files.mesh],
     )  # fmt: skip
 
 

@@ -26,12 +26,14 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from pydantic import field_validator
 
 from gra_mi.capture.dataset import load_observation
 from gra_mi.core.color import srgb_decode, srgb_encode
 from gra_mi.core.errors import GraMiInputError
 from gra_mi.core.io import atomic_path, atomic_write_text, read_exr
 from gra_mi.core.progress import progress
+from gra_mi.core.schema import Finite, NonNegative, Positive, Record, intrinsic_matrix, matrix, parse, rigid_rotation
 from gra_mi.stage.lightstage import load_calibration, load_pattern
 from gra_mi.subject.sequence import load_sequence
 
@@ -80,6 +82,28 @@ class CalibCamera:
         return self.intrinsic * np.array([[width, width, width], [width, width, width], [1, 1, 1]], float)
 
 
+class CalibBlock(Record):
+    """One camera block of a ``.calib`` as the schema checks it: K / width a pinhole with positive focal lengths, the
+    camera-to-world 3 × 4 rigid and right-handed."""
+
+    intrinsic: matrix(3, 3)
+    extrinsic: matrix(3, 4)
+    distortion: list[Finite] = []
+    focal_length: NonNegative = 0.0
+    pixel_aspect: Positive = 1.0
+
+    @field_validator("intrinsic")
+    @classmethod
+    def _pinhole(cls, k: np.ndarray) -> np.ndarray:
+        return intrinsic_matrix(k)
+
+    @field_validator("extrinsic")
+    @classmethod
+    def _rigid(cls, m: np.ndarray) -> np.ndarray:
+        rigid_rotation(m[:, :3], "camera-to-world rotation")
+        return m
+
+
 def write_calib(path: Path, cameras: list[CalibCamera]) -> None:
     lines = []
     for i, cam in enumerate(cameras):
@@ -95,17 +119,19 @@ def read_calib(path: Path) -> list[CalibCamera]:
     as the dataset's reader does."""
     if not path.is_file():
         raise GraMiInputError(path, "missing: HumanOLAT's calibration (shared/cameras.calib)")
-    lines, cameras, current = path.read_text().splitlines(), [], {}
-    i = 0
+    lines, cameras, current = path.read_text(errors="replace").splitlines(), [], {}
+    i, start = 0, 1
     while i < len(lines):
         line = lines[i].strip()
         words = line.split()
+        if line.startswith("name"):
+            start = i + 1
         if line.startswith("distortion") and "distortionModel" not in line:
-            current["distortion"] = [float(w) for w in words[1:]]
+            current["distortion"] = words[1:]
         elif line.startswith("focalLength"):
-            current["focal_length"] = float(words[1])
+            current["focal_length"] = words[1] if len(words) > 1 else None
         elif line.startswith("pixelAspect"):
-            current["pixel_aspect"] = float(words[1])
+            current["pixel_aspect"] = words[1] if len(words) > 1 else None
         elif "extrinsic" in line:
             current["extrinsic"] = _matrix_rows(path, lines, i + 1, 4, "extrinsic")
             i += 3
@@ -117,7 +143,8 @@ def read_calib(path: Path) -> list[CalibCamera]:
                 i += 3
                 if "extrinsic" not in current:
                     raise GraMiInputError(path, f"camera {len(cameras) + 1}: 'intrinsic' before 'extrinsic'", field="extrinsic")
-                cameras.append(CalibCamera(current.pop("intrinsic"), current.pop("extrinsic"), current.pop("distortion", []), **current))
+                block = parse(CalibBlock, current, path, f"camera {len(cameras) + 1}", line=start)
+                cameras.append(CalibCamera(block.intrinsic, block.extrinsic, block.distortion, block.focal_length, block.pixel_aspect))
                 current = {}
         i += 1
     if not cameras:
@@ -182,6 +209,9 @@ def read_spiral(path: Path, leds: int) -> np.ndarray:
         raise GraMiInputError(path, "expected one 1-based LED index per line") from None
     if len(order) != leds or order.min(initial=0) < 0 or order.max(initial=0) >= leds:
         raise GraMiInputError(path, f"{len(order)} entries with indices in [1, {leds}] expected (the LED file has {leds} LEDs)")
+    values, counts = np.unique(order, return_counts=True)
+    if (counts > 1).any():  # then some LED never fires, and one image would be labelled with two LEDs
+        raise GraMiInputError(path, f"LED {int(values[counts > 1][0]) + 1} fires twice: the firing order must name every LED once")
     return order
 
 
@@ -226,13 +256,14 @@ def read_obj(path: Path) -> ObjMesh:
             continue
         try:
             if words[0] == "v":
-                positions.append([float(w) for w in words[1:4]])
+                positions.append(_finite_numbers(words[1:4], 3))
             elif words[0] == "vt":
-                uvs.append([float(words[1]), 1.0 - float(words[2])])
+                uvs.append(_finite_numbers(words[1:3], 2))
             elif words[0] == "f":
                 corners = [w.split("/") for w in words[1:]]
-                p = [int(c[0]) for c in corners]
-                t = [int(c[1]) if len(c) > 1 and c[1] else 0 for c in corners]
+                # OBJ indices are 1-based; negative ones count back from the last defined (-1: the newest)
+                p = [_obj_index(int(c[0]), len(positions)) for c in corners]
+                t = [_obj_index(int(c[1]), len(uvs)) if len(c) > 1 and c[1] else 0 for c in corners]
                 for j in range(1, len(p) - 1):
                     faces.append([p[0], p[j], p[j + 1]])
                     face_uvs.append([t[0], t[j], t[j + 1]])
@@ -247,7 +278,37 @@ def read_obj(path: Path) -> ObjMesh:
         raise GraMiInputError(path, "some faces have texture coordinates (f v/vt) and some none: give all or none")
     if ft.max() >= len(uvs):
         raise GraMiInputError(path, "a face refers to a texture coordinate the file does not define")
-    return ObjMesh(np.array(positions, float), np.clip(np.array(uvs, float), 0, 1), _checked_faces(path, f, len(positions)), ft)
+    st = one_uv_tile(path, np.array(uvs, float))
+    return ObjMesh(np.array(positions, float), np.stack([st[:, 0], 1.0 - st[:, 1]], 1), _checked_faces(path, f, len(positions)), ft)
+
+
+def _finite_numbers(words: list[str], count: int) -> list[float]:
+    values = [float(w) for w in words]
+    if len(values) != count or not np.isfinite(values).all():
+        raise ValueError(f"expected {count} finite numbers")
+    return values
+
+
+def _obj_index(index: int, defined: int) -> int:
+    return defined + index + 1 if index < 0 else index
+
+
+def one_uv_tile(path: Path, st: np.ndarray) -> np.ndarray:
+    """Texture coordinates (s, t) in [0, 1]², by gra-mi's rule for a mesh whose UVs lie outside it: UVs that all lie in
+    one unit tile ([i, i + 1] × [j, j + 1], a UDIM tile) are moved into [0, 1]² (exact: nothing is lost); UVs spread
+    over several tiles are refused (gra-mi's atlas is one tile) — never clamped, which would collapse the charts."""
+    if st.size == 0:
+        return st
+    low = np.floor(st.min(axis=0))
+    if np.any(st.max(axis=0) > low + 1):
+        span = ", ".join(f"{a} {lo:g} … {hi:g}" for a, lo, hi in zip("st", st.min(axis=0), st.max(axis=0), strict=True))
+        raise GraMiInputError(
+            path,
+            f"texture coordinates span several unit tiles ({span}); gra-mi's UV atlas is one [0, 1]² tile: repack the "
+            "UVs into it (e.g. Blender's Pack Islands), or remove them and gra-mi generates an atlas",
+            field="vt",
+        )
+    return st - low
 
 
 def _checked_faces(path: Path, faces: np.ndarray, count: int) -> np.ndarray:
@@ -319,13 +380,21 @@ def write_mask(path: Path, mask: np.ndarray) -> None:
 
 
 def images_of(camera_dir: Path) -> dict[int, Path]:
-    """Image number → file of one camera's folder."""
+    """Image number → file of one camera's folder; two files with one number (``000012.jpg`` and ``000012.png``) are
+    refused naming both, where one would silently win."""
     found = {}
     for path in sorted(camera_dir.iterdir()) if camera_dir.is_dir() else []:
         match = NUMBER.search(path.name)
         if match:
-            found[int(match.group(1))] = path
+            add_numbered(found, int(match.group(1)), path)
     return found
+
+
+def add_numbered(found: dict[int, Path], number: int, path: Path) -> None:
+    """``found[number] = path``, refusing a second file with the same number."""
+    if number in found:
+        raise GraMiInputError(path, f"has the image number {number} of {found[number].name} too: one image per number (remove one)")
+    found[number] = path
 
 
 def resample_columns(image: np.ndarray, width: int) -> np.ndarray:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 import shutil
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -39,10 +40,11 @@ from gra_mi.capture.humanolat import (
 )
 from gra_mi.core.config import comma_list, option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive
-from gra_mi.core.guard import path_component
+from gra_mi.core.guard import path_component, staging_folder
 from gra_mi.core.io import atomic_write_text, read_exr, write_exr, write_png
 from gra_mi.core.progress import progress
-from gra_mi.core.provenance import claim_output
+from gra_mi.core.provenance import PROVENANCE, claim_output, release_folder, run_differences, run_record
+from gra_mi.core.schema import rigid_rotation
 from gra_mi.core.shard import Shard
 from gra_mi.render.runtime import ensure_mitsuba
 from gra_mi.stage.lightstage import Camera, Lightstage, load_pattern, olat_pattern, uniform_pattern
@@ -93,7 +95,9 @@ class HumanolatOptions:
     test_olat_every: int = 10
     """humanolat: every Nth imported OLAT is held out as test lighting (with the white frame); the others train."""
     keep_door_leds: bool = False
-    """humanolat: import the OLATs of the 21 LEDs on the stage's door, whose positions the dataset calls unreliable."""
+    """humanolat: keep the 21 LEDs on the stage's door, whose positions the dataset calls unreliable, in the rig and
+    import their OLATs. By default they are left out of both (an environment map is then never driven onto them), and
+    so is the white frame, which they lit too."""
 
     def validate(self) -> None:
         require_positive({"olat_step": self.olat_step, "test_olat_every": self.test_olat_every})
@@ -124,12 +128,79 @@ class Source:
     frame_masks: list[dict[int, Path]] | None = None  # per camera: frame key → its own mask file (a moving subject)
     mask_cache: dict[int, np.ndarray] = field(default_factory=dict, repr=False)  # per camera: a mask every frame shares
 
-    def __post_init__(self) -> None:
+    leds_path: Path | None = None  # what an LED error names (None: the calibration)
+    mesh_files: list[Path] = field(default_factory=list)  # the mesh file(s) or folder read (for provenance)
+
+    def check(self) -> None:
+        """What every source must satisfy before anything is written, whichever reader filled it: the checks gra-mi's
+        own loaders make of a capture, stated here against the source's files (each reader checks its format).
+        :func:`import_capture` calls it first."""
+        self._check_cameras()
+        self._check_leds()
+        self._check_meshes()
+        self._check_frames()
+
+    def _check_cameras(self) -> None:
         # Camera names become folder names in the capture (and in every later command's output): plain and unique.
-        for i, name in enumerate(self.names):
+        seen: dict[tuple, str] = {}
+        for i, (name, cam) in enumerate(zip(self.names, self.calib, strict=True)):
             path_component(name, self.calib_path, f"camera {i} name")
             if name in self.names[:i]:
                 raise GraMiInputError(self.calib_path, f"cameras {self.names.index(name)} and {i} are both named '{name}'", field="cameras")
+            if not (np.isfinite(cam.extrinsic).all() and np.isfinite(cam.intrinsic).all()):
+                raise GraMiInputError(self.calib_path, "non-finite calibration values", field=f"camera {name}")
+            try:
+                rigid_rotation(np.asarray(cam.extrinsic)[:3, :3], "camera-to-world rotation")
+            except ValueError as exc:
+                raise GraMiInputError(self.calib_path, str(exc), field=f"camera {name}") from None
+            key = tuple(np.round(np.concatenate([np.ravel(cam.extrinsic), np.ravel(cam.intrinsic)]), 6))
+            if key in seen:
+                raise GraMiInputError(
+                    self.calib_path, f"cameras {seen[key]} and {name} have one pose and intrinsics: a camera listed twice", field="cameras"
+                )
+            seen[key] = name
+        if not (np.isfinite(self.units) and self.units > 0):
+            raise GraMiInputError(self.calib_path, f"units must be a positive length in metres, got {self.units}")
+
+    def _check_leds(self) -> None:
+        from scipy.spatial import cKDTree
+
+        where = self.leds_path or self.calib_path
+        leds = np.asarray(self.leds, float)
+        if leds.ndim != 2 or leds.shape[1] != 3 or not np.isfinite(leds).all():
+            raise GraMiInputError(where, "LED positions must be finite (x, y, z) triples")
+        pairs = sorted(cKDTree(leds).query_pairs(1e-6)) if len(leds) > 1 else []
+        if pairs:
+            a, b = pairs[0]
+            raise GraMiInputError(where, f"LEDs {a} and {b} are at one position {leds[a].round(6).tolist()}: an LED listed twice")
+
+    def _check_meshes(self) -> None:
+        for k, mesh in enumerate(self.meshes):
+            bad = ~np.isfinite(np.asarray(mesh.positions, float)).all(axis=1)
+            if bad.any():
+                raise GraMiInputError(
+                    self.folder, f"the mesh of pose {k} has {int(bad.sum())} non-finite vertices (first: {int(np.argmax(bad))})"
+                )
+
+    def _check_frames(self) -> None:
+        keys = [key for key, _, _ in self.frames]
+        if not keys:
+            raise GraMiInputError(self.folder, "no frames to import")
+        if twice := sorted({k for k in keys if keys.count(k) > 1}):
+            raise GraMiInputError(self.folder, f"frame {twice[0]} is listed twice")
+        # One name, one thing: envmaps are stored by file name; two different files with one name get distinct names.
+        stored: dict[str, Path] = {}
+        for _, entry, drive in self.frames:
+            if entry.kind != "envmap":
+                continue
+            name, source = entry.envmap, Path(drive).resolve()
+            if name in stored and stored[name] != source:
+                stem, suffix = Path(name).stem, Path(name).suffix
+                n = 1
+                while f"envmaps/{stem}_{n}{suffix}" in stored and stored[f"envmaps/{stem}_{n}{suffix}"] != source:
+                    n += 1
+                entry.envmap = name = f"envmaps/{stem}_{n}{suffix}"
+            stored[name] = source
 
     def mesh_metres(self, positions: np.ndarray) -> np.ndarray:
         return positions * (self.units if self.mesh_units is None else self.mesh_units)
@@ -160,6 +231,7 @@ def read_humanolat(subject_dir: Path, config: HumanolatOptions) -> Source:
     source = Source(
         subject_dir, "humanolat", subject_dir / CALIB, names, calib, sizes, images, 0.001, leds,
         [read_obj(pose / "model" / "model.obj")], [m if m.is_file() else None for m in masks], white=WHITE, order=order,
+        leds_path=subject_dir / LEDS, mesh_files=[pose / "model" / "model.obj"],
     )  # fmt: skip
     source.frames, source.left_out = humanolat_frames(source, config)
     return source
@@ -436,15 +508,19 @@ def humanolat_frames(source: Source, config: HumanolatOptions) -> tuple[list, li
     """[(image number, frame entry, LED or "white")] and the LEDs whose OLATs were left out. The white frame is test
     lighting (sequence 0); every ``test_olat_every``-th imported OLAT is too (sequence 1); the rest train."""
     olat_at, _ = olat_numbers(len(source.order))
-    door = set() if config.keep_door_leds else set(DOOR_LEDS)
+    door = set() if config.keep_door_leds else {d for d in DOOR_LEDS if d < len(source.leds)}
     chosen = [
         (n, int(led)) for k, (n, led) in enumerate(zip(olat_at, source.order, strict=True)) if k % config.olat_step == 0 and led not in door
     ]
     left_out = sorted({int(led) for led in source.order} - {led for _, led in chosen})
-    plan = [(WHITE, FrameLighting(0, "test", 0, "pattern", None, "patterns/white.json", pose=0), "white")]
+    rig_index = {old: new for new, old in enumerate(i for i in range(len(source.leds)) if i not in door)}
+    plan = [] if door else [(WHITE, FrameLighting(0, "test", 0, "pattern", None, "patterns/white.json", pose=0), "white")]
     for k, (number, led) in enumerate(chosen):
         split, sequence = ("test", 1) if (k + 1) % config.test_olat_every == 0 else ("train", 0)
-        plan.append((number, FrameLighting(k + 1, split, sequence, "pattern", None, f"patterns/olat_{led:03d}.json", pose=0), led))
+        index = rig_index[led]  # the LED's index in the rig gra-mi writes (the door's left out)
+        plan.append((number, FrameLighting(k + 1, split, sequence, "pattern", None, f"patterns/olat_{index:03d}.json", pose=0), index))
+    if door:
+        source.leds = source.leds[sorted(rig_index)]
     return plan, left_out
 
 
@@ -484,41 +560,130 @@ def import_humanolat(
 def import_capture(
     source: Source, out: Path, config: ImportConfig, record: dict, overwrite: bool = False, options=None, shard: Shard | None = None
 ) -> Capture | None:
-    """The import, whatever the source: its frame, cameras, the reprojection check, then the files. ``shard``: import
-    only its frames' images (every shard writes the rig and subject alike); the shard that finds every shard's images
-    done writes capture.json and the report and returns the capture, the others return None."""
+    """The import, whatever the source: its checks, frame, cameras, the reprojection check, then the files.
 
+    Everything is built in a staging folder beside ``out`` (:func:`gra_mi.core.guard.staging_folder`; an interrupted
+    import resumes there), loaded back with gra-mi's own readers, and published by renaming it to ``out`` only when
+    they accept it: a failure leaves nothing at ``out``. ``shard``: import only its frames' images (every shard writes
+    the rig and subject alike); the shard that finds every shard's images done checks and publishes the capture and
+    returns it, the others return None."""
+
+    source.check()
     ensure_mitsuba()
     frame = world_frame(source, config.up)
     plans = _camera_plans(source, frame, config)
+    eval_cameras = config.eval_cameras or _held_out(plans)
+    train_cameras = [p.camera.name for p in plans if p.camera.name not in eval_cameras]
+    if not train_cameras:
+        raise GraMiParameterError("eval_cameras", "holds every imported camera: at least one camera must be left to fit on")
     check_images_present(source, plans)
+    check_envmaps(source)
     sequence, atlas_said = build_sequence(source, frame, config.uv_resolution)
     key, pose = source.frames[0][0], source.frames[0][1].mesh_frame  # the frame every camera's mask is checked on
     masks = [frame_mask(source, plan, key) for plan in plans]
     checks = _reprojection_checks(source, frame, sequence, plans, masks, config.min_iou, pose)
     said = asdict(config) | (asdict(options) if options is not None else {})
-    shard = shard or Shard()
-    claim_output(out, f"import {source.format}", {"source": source.folder}, said, overwrite=overwrite, shard=shard)
+    shard, command = shard or Shard(), f"import {source.format}"
+    inputs = {"source": source.folder, "files outside the source": files_read_outside(source)}
+    if (done := _already_published(out, run_record(command, inputs, said), overwrite)) is not None:
+        return done
+    staging = staging_folder(out)
+    claim_output(staging, command, inputs, said, shard=shard, restart=shard.whole)  # a changed source restarts the staging
     stage = build_stage(source, frame, plans, config.led_intensity)
-    _write_stage_files(out, stage, sequence, source.frames)
-    eval_cameras = config.eval_cameras or _held_out(plans)
-    train_cameras = [p.camera.name for p in plans if p.camera.name not in eval_cameras]
+    _write_stage_files(staging, stage, sequence, source.frames)
     record = {"format": source.format, "folder": str(source.folder), "transform": frame.matrix(), **record}
     record |= {"gains": "assumed equal (the source has none)", "left_out_leds": source.left_out, "uv_atlas": atlas_said, "images": {}}
     frames = [f for _, f, _ in source.frames]
-    capture = Capture(out, source.format, "captured", config.uv_resolution, train_cameras, eval_cameras, frames, source=record)
+    capture = Capture(staging, source.format, "captured", config.uv_resolution, train_cameras, eval_cameras, frames, source=record)
     mine = shard.take(source.frames)
     saturated = {plan.camera.name: _import_camera(source, plan, capture, mine) for plan in plans}
     if not shard.whole:
-        saturated = _merge_shards(out, shard, saturated)
+        saturated = _merge_shards(staging, shard, saturated)
         if saturated is None:
-            return None  # other shards' images are still being written: the last shard writes capture.json
+            return None  # other shards' images are still being written: the last shard checks and publishes
     for plan in plans:
         record["images"][plan.camera.name] = _camera_summary(source, plan, saturated[plan.camera.name])
     capture.save()
-    _write_report(out, source, frame, plans, checks, record)
-    shutil.rmtree(out / "parts", ignore_errors=True)
-    return capture
+    _write_report(staging, source, frame, plans, checks, record)
+    shutil.rmtree(staging / "parts", ignore_errors=True)
+    check_loadable(staging, source)
+    publish(staging, out)
+    return Capture.load(out)
+
+
+def files_read_outside(source: Source) -> list[Path]:
+    """Every file the import reads that lies outside the source folder (a mesh, LED file, lighting file, envmaps or
+    images reached through ``../``): the run's provenance covers them by content, so an edited one is another run."""
+    folder = source.folder.resolve()
+    found = {source.calib_path, source.leds_path, *(p for images in source.images for p in images.values())}
+    found |= {p for p in source.masks if p is not None} | {Path(d) for _, f, d in source.frames if f.kind == "envmap"}
+    found |= {p for masks in source.frame_masks or [] for p in masks.values()}
+    found |= {Path(d[1]) for _, _, d in source.frames if isinstance(d, tuple) and d[0] == "pattern"}
+    found |= set(source.mesh_files)
+    return sorted(p for p in found if p is not None and folder not in Path(p).resolve().parents)
+
+
+def check_envmaps(source: Source) -> None:
+    """Every environment map a frame names, read as the HDR image it claims to be (finite, non-negative, 2:1), before
+    anything is written: a text file, a NaN map or a file reached through ``../`` by mistake stops here, by name."""
+    from gra_mi.stage.envmap import load_envmap
+
+    for path in sorted({Path(d) for _, f, d in source.frames if f.kind == "envmap"}):
+        load_envmap(path)
+
+
+def _already_published(out: Path, record: dict, overwrite: bool) -> Capture | None:
+    """The capture at ``out`` when this same import already finished there; None when ``out`` is new or empty (or
+    ``overwrite``: it is replaced on publishing); otherwise the difference is named."""
+    if not out.exists() or (out.is_dir() and not any(out.iterdir())):
+        return None
+    if not out.is_dir():
+        raise GraMiInputError(out, "is a file; expected an output folder")
+    differences = run_differences(out, record)
+    if differences is None:
+        raise GraMiInputError(out, "is not empty and was not made by gra-mi (no provenance.json); choose an empty or new output folder")
+    if overwrite:
+        return None
+    if differences:
+        raise GraMiInputError(
+            out / PROVENANCE,
+            f"this folder was made by another run ({'; '.join(differences)}). Use --overwrite to start over, or choose another output folder",
+        )
+    capture = Capture.load(out)
+    cameras = capture.train_cameras + capture.eval_cameras
+    if all(capture.image_path(c, f.frame).is_file() for c in cameras for f in capture.frames):
+        logger.info("%s: this import is already complete", out)
+        return capture
+    logger.info("%s: images are missing; the import resumes", out)
+    staging = staging_folder(out)
+    shutil.rmtree(staging, ignore_errors=True)  # a leftover of an older attempt: the published images are newer
+    os.replace(out, staging)  # back into staging: published again once complete and checked
+    return None
+
+
+def check_loadable(staging: Path, source: Source) -> None:
+    """gra-mi's own readers on the staged capture: the capture record, its calibration, the subject, every frame's
+    lighting and every image. What they refuse is a fault of the import (its source passed every check), said so."""
+    from gra_mi.stage.lightstage import load_calibration
+    from gra_mi.subject.sequence import load_sequence
+
+    try:
+        capture = Capture.load(staging)
+        stage = load_calibration(staging / "rig" / "calibration.json")
+        load_sequence(staging / "subject")
+        for entry in capture.frames:
+            capture.lighting(stage, entry)
+        capture.check_images()
+    except GraMiInputError as exc:
+        raise GraMiInputError(source.folder, f"the import of this source would not load in gra-mi ({exc}); please report it") from None
+
+
+def publish(staging: Path, out: Path) -> None:
+    """Rename the checked staging folder to ``out`` (replacing an older import there: ``--overwrite``)."""
+    release_folder(staging)
+    if out.exists():
+        shutil.rmtree(out)
+    os.replace(staging, out)
 
 
 def _merge_shards(out: Path, shard: Shard, saturated: dict[str, list[float]]) -> dict[str, list[float]] | None:

@@ -18,15 +18,18 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
+from pydantic import Field, field_validator
 
 from gra_mi.capture.dataset import FrameLighting
-from gra_mi.capture.humanolat import CalibCamera, ObjMesh, image_size, read_obj, read_points
+from gra_mi.capture.humanolat import CalibCamera, ObjMesh, image_size, one_uv_tile, read_obj, read_points
 from gra_mi.capture.importer import ImportConfig, Source, import_capture
 from gra_mi.core.config import option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.io import read_json
+from gra_mi.core.schema import Count, Finite, Positive, PositiveCount, Record, matrix, parse, rigid_rotation
 
 SUFFIXES = ("", ".png", ".jpg", ".jpeg", ".avif", ".exr")
 DISTORTION = ("k1", "k2", "k3", "k4", "p1", "p2")
@@ -86,19 +89,21 @@ def read_transforms(folder: Path, options: TransformsOptions) -> Source:
     leds = {} if options.leds is None else dict(enumerate(read_points(options.leds)))
     for path, split in files:
         data = _read(path)
-        for i, entry in enumerate(data["frames"]):
+        shared = parse(TransformsCamera, {k: v for k, v in data.items() if k != "frames"}, path)
+        for i, raw in enumerate(data["frames"]):
             where = f"frames[{i}]"
-            image = _image_path(path, entry, where)
-            camera, intrinsic, c2w, size = _camera(path, data, entry, where, image)
+            entry = parse(TransformsFrame, raw, path, where)
+            image = _image_path(path, entry.file_path, where)
+            camera, intrinsic, c2w, size = _camera(path, shared, entry, where, image)
             if not isinstance(camera, str):  # named by its first appearance
                 camera = unnamed.setdefault(camera, f"cam{len(unnamed):02d}")
             if camera in calib and not np.allclose(calib[camera].extrinsic, c2w, atol=1e-6):
                 raise GraMiInputError(path, f"camera {camera} appears with two different poses", field=f"{where}.transform_matrix")
             calib.setdefault(camera, CalibCamera(intrinsic, c2w, []))
             sizes.setdefault(camera, size)
-            frames.append(_Frame(image, camera, _lighting(path, entry, where, leds), int(entry.get("mesh_frame", 0)), split))
-            if "mask_path" in entry and camera not in masks:  # nerfstudio's per-frame mask; a static pose needs one per camera
-                masks[camera] = _image_path(path, {"file_path": entry["mask_path"]}, f"{where}.mask_path")
+            frames.append(_Frame(image, camera, _lighting(path, entry, where, leds), entry.mesh_frame, split))
+            if entry.mask_path is not None and camera not in masks:  # nerfstudio's per-frame mask; a static pose needs one per camera
+                masks[camera] = _image_path(path, entry.mask_path, f"{where}.mask_path")
     if not leds:
         raise GraMiInputError(files[0][0], "no LEDs: frames with light_idx and pl_pos, or --leds: gra-mi fits materials under known lights")
     names = sorted(calib)
@@ -117,7 +122,7 @@ def read_transforms(folder: Path, options: TransformsOptions) -> Source:
         folder, "transforms", files[0][0], names, [calib[n] for n in names], [sizes[n] for n in names], images, UNITS[options.units],
         np.array([leds[k] for k in sorted(leds)]) * UNITS[options.units], meshes,
         [masks.get(n) if len(meshes) == 1 else None for n in names], source_frames,
-        mesh_units=UNITS[options.mesh_units],
+        mesh_units=UNITS[options.mesh_units], leds_path=options.leds or files[0][0], mesh_files=[options.mesh],
     )  # fmt: skip
 
 
@@ -139,10 +144,8 @@ def _read(path: Path) -> dict:
     return data
 
 
-def _image_path(path: Path, entry: dict, where: str) -> Path:
-    if "file_path" not in entry:
-        raise GraMiInputError(path, "missing", field=f"{where}.file_path")
-    base = Path(entry["file_path"]) if Path(entry["file_path"]).is_absolute() else path.parent / entry["file_path"]
+def _image_path(path: Path, file_path: str, where: str) -> Path:
+    base = Path(file_path) if Path(file_path).is_absolute() else path.parent / file_path
     for suffix in SUFFIXES:
         candidate = base.with_name(base.name + suffix) if suffix else base
         if candidate.is_file():
@@ -150,9 +153,56 @@ def _image_path(path: Path, entry: dict, where: str) -> Path:
     raise GraMiInputError(path, f"image {base} not found", field=f"{where}.file_path")
 
 
-def _camera(path: Path, data: dict, entry: dict, where: str, image: Path):
+class TransformsCamera(Record):
+    """Intrinsics a frame holds or shares from the file's top level (nerfstudio's and NeRF's spellings)."""
+
+    w: PositiveCount | None = None
+    h: PositiveCount | None = None
+    fl_x: Positive | None = None
+    fl_y: Positive | None = None
+    cx: Finite | None = None
+    cy: Finite | None = None
+    camera_angle_x: Annotated[float, Field(gt=0, lt=math.pi, allow_inf_nan=False)] | None = None
+    k1: Finite | None = None
+    k2: Finite | None = None
+    k3: Finite | None = None
+    k4: Finite | None = None
+    p1: Finite | None = None
+    p2: Finite | None = None
+
+
+class TransformsFrame(TransformsCamera):
+    """One entry of ``frames``."""
+
+    file_path: str
+    transform_matrix: matrix(4, 4)
+    camera_intrinsics: matrix(4) | None = None  # HumanOLAT's tools: [cx, cy, fx, fy]
+    cam_idx: Count | None = None
+    light_idx: Count | None = None
+    pl_pos: matrix(3) | None = None
+    mesh_frame: Count = 0
+    envmap: str | None = None
+    mask_path: str | None = None
+
+    @field_validator("transform_matrix")
+    @classmethod
+    def _rigid(cls, m: np.ndarray) -> np.ndarray:
+        if not np.allclose(m[3], [0, 0, 0, 1], atol=1e-6):
+            raise ValueError(f"the last row must be (0, 0, 0, 1), got {m[3].tolist()}")
+        rigid_rotation(m[:3, :3], "camera-to-world rotation")
+        return m
+
+    @field_validator("camera_intrinsics")
+    @classmethod
+    def _focal(cls, v: np.ndarray | None) -> np.ndarray | None:
+        if v is not None and (v[2] <= 0 or v[3] <= 0):
+            raise ValueError(f"[cx, cy, fx, fy] needs fx, fy > 0, got {v.tolist()}")
+        return v
+
+
+def _camera(path: Path, shared: TransformsCamera, entry: TransformsFrame, where: str, image: Path):
     """(camera name, K / width, camera-to-world 3 × 4 with OpenCV axes, (width, height))."""
-    value = lambda key: entry.get(key, data.get(key))  # noqa: E731  (per frame, else shared)
+    value = lambda key: getattr(entry, key) if getattr(entry, key) is not None else getattr(shared, key)  # noqa: E731
     for key in DISTORTION:
         if value(key):
             raise GraMiInputError(
@@ -161,48 +211,41 @@ def _camera(path: Path, data: dict, entry: dict, where: str, image: Path):
     width, height = value("w"), value("h")
     if width is None or height is None:
         width, height = image_size(image)
-    if "camera_intrinsics" in entry:
-        cx, cy, fx, fy = (float(v) for v in entry["camera_intrinsics"])
+    if entry.camera_intrinsics is not None:
+        cx, cy, fx, fy = (float(v) for v in entry.camera_intrinsics)
     elif value("fl_x") is not None:
-        fx, fy = float(value("fl_x")), float(value("fl_y") or value("fl_x"))
-        cx, cy = float(value("cx") if value("cx") is not None else width / 2), float(value("cy") if value("cy") is not None else height / 2)
+        fx, fy = value("fl_x"), value("fl_y") or value("fl_x")
+        cx, cy = (value("cx") if value("cx") is not None else width / 2), (value("cy") if value("cy") is not None else height / 2)
     elif value("camera_angle_x") is not None:
-        fx = fy = 0.5 * width / math.tan(0.5 * float(value("camera_angle_x")))
+        fx = fy = 0.5 * width / math.tan(0.5 * value("camera_angle_x"))
         cx, cy = width / 2, height / 2
     else:
         raise GraMiInputError(path, "no intrinsics: expected fl_x/fl_y/cx/cy, camera_intrinsics or camera_angle_x", field=where)
-    try:
-        m = np.array(entry["transform_matrix"], float)
-    except (KeyError, TypeError, ValueError):
-        raise GraMiInputError(path, "expected a 4 × 4 camera-to-world matrix", field=f"{where}.transform_matrix") from None
-    if m.shape != (4, 4) or not np.isfinite(m).all():
-        raise GraMiInputError(
-            path, f"expected a finite 4 × 4 camera-to-world matrix, got shape {m.shape}", field=f"{where}.transform_matrix"
-        )
-    m[:3, 1:3] *= -1  # OpenGL / Blender → OpenCV camera axes
+    m = entry.transform_matrix.copy()
+    m[:3, 1:3] *= -1  # OpenGL / Blender → OpenCV camera axes (two axes: still right-handed)
     intrinsic = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, width]], float) / width
     intrinsic[2] = [0, 0, 1]
     # a camera without cam_idx is its pose and intrinsics (rounded to 0.1 mm and 0.01 px)
     name = (
-        f"Cam{int(entry['cam_idx']) + 1:02d}"
-        if "cam_idx" in entry
+        f"Cam{entry.cam_idx + 1:02d}"
+        if entry.cam_idx is not None
         else tuple(np.round(m[:3].ravel(), 4)) + tuple(np.round((fx, fy, cx, cy), 2))
     )
     return name, intrinsic, m[:3], (int(width), int(height))
 
 
-def _lighting(path: Path, entry: dict, where: str, leds: dict) -> tuple:
-    if "light_idx" in entry:
-        index = int(entry["light_idx"])
-        position = np.array(entry.get("pl_pos", leds.get(index, [])), float)
-        if position.shape != (3,) or not np.isfinite(position).all():
-            raise GraMiInputError(path, f"LED {index} needs its position (3 finite numbers)", field=f"{where}.pl_pos")
+def _lighting(path: Path, entry: TransformsFrame, where: str, leds: dict) -> tuple:
+    if entry.light_idx is not None:
+        index = entry.light_idx
+        position = entry.pl_pos if entry.pl_pos is not None else leds.get(index)
+        if position is None:
+            raise GraMiInputError(path, f"LED {index} needs its position (3 finite numbers, or --leds)", field=f"{where}.pl_pos")
         if index in leds and not np.allclose(leds[index], position, atol=1e-6):
             raise GraMiInputError(path, f"LED {index} appears at two positions", field=f"{where}.pl_pos")
-        leds[index] = position
+        leds[index] = np.asarray(position, float)
         return ("led", index)
-    if "envmap" in entry:
-        envmap = Path(entry["envmap"]) if Path(entry["envmap"]).is_absolute() else path.parent / entry["envmap"]
+    if entry.envmap is not None:
+        envmap = Path(entry.envmap) if Path(entry.envmap).is_absolute() else path.parent / entry.envmap
         if not envmap.is_file():
             raise GraMiInputError(path, f"environment map {envmap} not found", field=f"{where}.envmap")
         return ("envmap", envmap)
@@ -251,5 +294,5 @@ def read_mesh(path: Path) -> ObjMesh:
     uv = getattr(getattr(mesh, "visual", None), "uv", None)
     if uv is None:
         return ObjMesh(np.asarray(mesh.vertices, float), np.zeros((0, 2)), faces, None)
-    uv = np.asarray(uv, float)
-    return ObjMesh(np.asarray(mesh.vertices, float), np.clip(np.stack([uv[:, 0], 1.0 - uv[:, 1]], 1), 0, 1), faces, faces)
+    uv = one_uv_tile(path, np.asarray(uv, float))
+    return ObjMesh(np.asarray(mesh.vertices, float), np.stack([uv[:, 0], 1.0 - uv[:, 1]], 1), faces, faces)

@@ -62,6 +62,17 @@ def writing_into(roots: Iterable[str | Path]) -> Iterator[None]:
         _ROOTS.reset(token)
 
 
+def staging_folder(out: str | Path) -> Path:
+    """The hidden sibling a command builds ``out`` in before publishing it by rename (``.NAME.partial``); while a
+    command runs with ``out`` among its output folders, its staging folder is one too."""
+    out = Path(out)
+    staging = out.parent / f".{out.name}.partial"
+    roots = _ROOTS.get()
+    if roots and out.resolve() in roots and staging.resolve() not in roots:
+        _ROOTS.set((*roots, staging.resolve()))
+    return staging
+
+
 def scratch_folder(prefix: str = "gra-mi-") -> Path:
     """A new temporary folder that the running command may write into (its caller removes it)."""
     folder = Path(tempfile.mkdtemp(prefix=prefix)).resolve()

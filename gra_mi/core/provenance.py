@@ -166,13 +166,8 @@ def claim_output(
     if sharded and overwrite:
         raise GraMiParameterError("overwrite", "cannot be combined with --shard: empty the folder once, then start the shards")
     # --overwrite empties the output folder, a resume rewrites it: never one that is, holds or lies in an input
-    check_apart({"output folder": folder}, {name: Path(given) for name, given in inputs.items() if given is not None})
-    record = {
-        "command": command,
-        "inputs": {name: content_id(path) if path is not None else None for name, path in inputs.items()},
-        "input_paths": {name: str(path) if path is not None else None for name, path in inputs.items()},
-        "config": _plain(config) | ({"shards": shard.count} if sharded else {}),
-    }
+    check_apart({"output folder": folder}, {name: Path(given) for name, given in inputs.items() if isinstance(given, str | Path)})
+    record = run_record(command, inputs, config, shard.count if sharded else None)
     path = folder / PROVENANCE
     if not folder.exists():
         _FRESH.add(folder.resolve())
@@ -201,6 +196,40 @@ def claim_output(
     lock_folder(folder, shard.lock_suffix if sharded else "")
     atomic_write_text(path, json.dumps(record, indent=1) + "\n")
     return folder
+
+
+def run_record(command: str, inputs: dict, config=None, shards: int | None = None) -> dict:
+    """What provenance.json records of a run. An input may be a list of files (those a run read outside its input
+    folders: one id over all of them)."""
+
+    def ident(given):
+        if isinstance(given, list | tuple):
+            return hashlib.sha256("".join(f"{p}:{content_id(p)}\n" for p in given).encode()).hexdigest()[:16] if given else None
+        return content_id(given) if given is not None else None
+
+    def shown(given):
+        if isinstance(given, list | tuple):
+            return f"{len(given)} files" if given else None
+        return str(given) if given is not None else None
+
+    return {
+        "command": command,
+        "inputs": {name: ident(given) for name, given in inputs.items()},
+        "input_paths": {name: shown(given) for name, given in inputs.items()},
+        "config": _plain(config) | ({"shards": shards} if shards else {}),
+    }
+
+
+def run_differences(folder: str | Path, record: dict, free: tuple[str, ...] = ()) -> list[str] | None:
+    """How the run that made ``folder`` differs from ``record`` (:func:`run_record`); None for a folder without
+    provenance (absent, empty, or not made by gra-mi)."""
+    path = Path(folder) / PROVENANCE
+    if not path.is_file():
+        return None
+    try:
+        return _differences(json.loads(path.read_text()), record, free)
+    except ValueError as exc:
+        raise GraMiInputError(path, f"unreadable ({exc}); remove the folder or use --overwrite") from None
 
 
 def _empty(folder: Path) -> None:

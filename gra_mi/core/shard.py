@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import os
 import re
+import sys
 from dataclasses import dataclass, field
 
 from gra_mi.core.config import option
@@ -94,8 +95,44 @@ def shard_from_environment(env=None) -> Shard | None:
     return None
 
 
+_ANNOUNCED: set[Shard] = set()
+SHARDS_RECORD = ".gra-mi.shards"  # an output folder's shard count, where no provenance records it
+
+
 def resolve_shard(option: str | None, env=None) -> Shard:
-    """``--shard`` if given, else the launcher's, else the whole job."""
+    """``--shard`` if given, else the launcher's (said on stderr, once: a job array's task that silently did only its
+    share would look like a whole run), else the whole job."""
     if option is not None:
         return parse_shard(option)
-    return shard_from_environment(env) or Shard()
+    shard = shard_from_environment(env)
+    if shard is None:
+        return Shard()
+    if not shard.whole and shard not in _ANNOUNCED:
+        _ANNOUNCED.add(shard)
+        print(
+            f"gra-mi: shard {shard} from the launcher's variables: this process does only its share of the frames "
+            "(--shard 0/1 does all of them)",
+            file=sys.stderr,
+            flush=True,
+        )
+    return shard
+
+
+def record_shard_count(folder, shard: Shard) -> None:
+    """Refuse a folder that shards of another count are writing (their frames would overlap and miss), else record
+    this count. A whole run may always write a folder (it does every frame)."""
+    from pathlib import Path
+
+    from gra_mi.core.io import atomic_write_text
+
+    if shard.whole:
+        return
+    path = Path(folder) / SHARDS_RECORD
+    if path.is_file():
+        old = path.read_text().strip()
+        if old != str(shard.count):
+            raise GraMiInputError(
+                folder, f"is being written by {old} shards; this process is shard {shard} (of {shard.count}): use --shard I/{old}"
+            )
+        return
+    atomic_write_text(path, f"{shard.count}\n")

@@ -39,6 +39,7 @@ from gra_mi.core.color import display_exposure, to_display
 from gra_mi.core.config import option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.io import atomic_write_text, pyplot, read_exr, read_json, save_figure, write_mp4
+from gra_mi.core.limits import DRIVE_BYTES, require_memory
 from gra_mi.core.metrics import compare, flip, flip_map, subject_mask, temporal_error
 from gra_mi.core.progress import progress
 from gra_mi.core.runtime import torch_device
@@ -87,6 +88,7 @@ class EvalConfig:
     def validate(self) -> None:
         if self.library_envmaps < 0:
             raise GraMiParameterError("library_envmaps", f"must be >= 0, got {self.library_envmaps}")
+        require_memory("library_envmaps", self.library_envmaps * DRIVE_BYTES, f"{self.library_envmaps:,} library maps' LED drives")
         self.envmaps.validate()
         if self.frames not in FRAME_SELECTIONS:
             raise GraMiParameterError("frames", f"expected one of {', '.join(FRAME_SELECTIONS)}, got '{self.frames}'")

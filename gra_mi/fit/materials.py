@@ -38,6 +38,7 @@ from gra_mi.capture.dataset import Capture, load_fit_observation
 from gra_mi.core.config import comma_list, option
 from gra_mi.core.errors import GraMiParameterError
 from gra_mi.core.io import atomic_path, read_checkpoint_npz
+from gra_mi.core.limits import require_memory
 from gra_mi.core.metrics import subject_mask
 from gra_mi.core.progress import progress
 from gra_mi.core.provenance import claim_output
@@ -75,6 +76,9 @@ def _resolutions(text: str) -> list[int]:
         return [int(x) for x in comma_list(text)]
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a comma list of UV resolutions such as 256,512,1024, got '{text}'") from None
+
+
+FIT_BYTES_PER_TEXEL = 160  # float32 state per texel of a fit, views' texel lists included (a lower bound)
 
 
 @dataclass
@@ -146,6 +150,9 @@ class FitConfig:
             raise GraMiParameterError("batch_views", f"must be >= 0 (0: every view each step), got {self.batch_views}")
         if self.levels is not None:
             self._validate_levels(self.levels)
+        largest = max(self.levels or [self.resolution or 0])
+        # per texel during a fit: the maps, their Adam moments and gradients, the atlas and the views' texel lists
+        require_memory("levels" if self.levels else "resolution", largest**2 * FIT_BYTES_PER_TEXEL, f"a {largest}² UV fit")
 
     def _validate_levels(self, levels: list[int]) -> None:
         if not levels or any(r < 8 for r in levels) or any(b <= a for a, b in zip(levels, levels[1:], strict=False)):

@@ -25,6 +25,7 @@ from gra_mi.capture.dataset import load_observation
 from gra_mi.core import metrics
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive, require_seed
 from gra_mi.core.io import atomic_path, atomic_write_text, pyplot, save_figure, write_png
+from gra_mi.core.limits import DRIVE_BYTES, require_memory
 from gra_mi.core.progress import progress
 from gra_mi.core.runtime import torch_device
 from gra_mi.core.training import TrainingLoop, write_training_log
@@ -91,6 +92,9 @@ class TrainConfig:
         positive |= {"held_out_views": self.held_out_views, "synthesized_validation": self.synthesized_validation}
         if self.synthesized_lightings < 0:
             raise GraMiParameterError("synthesized_lightings", f"must be >= 0, got {self.synthesized_lightings}")
+        require_memory(
+            "synthesized_lightings", self.synthesized_lightings * DRIVE_BYTES, f"{self.synthesized_lightings:,} lightings' LED drives"
+        )
         for name in ("max_train_views", "training_lightings"):
             if getattr(self, name) is not None:
                 positive[name] = getattr(self, name)

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from gra_mi.core.errors import GraMiInputError
-from gra_mi.render.point_light import PointLight
+from gra_mi.render.point_light import MAX_INTENSITY, PointLight
 
 KINDS = ("point", "spot")
 PER_KEYFRAME = ("intensity", "direction", "target", "cutoff_angle", "beam_width")
@@ -76,6 +76,23 @@ class LightPath:
 
     def at(self, frame: int) -> list[PointLight]:
         return [light.at(frame) for light in self.lights]
+
+    def check_clear_of(self, vertices: np.ndarray, frames: list[int]) -> None:
+        """No light's sphere reaches into the subject (``vertices``: (T, V, 3)) at any of ``frames``: texels inside a
+        light cannot be lit by it, so the render would be black where its conditioning says lit."""
+        from scipy.spatial import cKDTree
+
+        for f in frames:
+            tree = cKDTree(vertices[f])
+            for path_light in self.lights:
+                light = path_light.at(f)
+                nearest = float(tree.query(light.position)[0])
+                if light.radius >= nearest:
+                    raise GraMiInputError(
+                        self.source,
+                        f"light '{path_light.name}' (radius {light.radius:g} m) reaches into the subject at frame {f}: its centre is "
+                        f"{nearest:.3g} m from the nearest vertex. Give it a radius below {nearest:.3g} m or move it away",
+                    )
 
     def check_frames(self, frames: list[int]) -> None:
         """Every frame to render lies within every light's keyframes: no extrapolation."""
@@ -176,13 +193,11 @@ def _aim(path: Path, where: str, values: dict, position: np.ndarray) -> np.ndarr
 
 
 def _intensity(path: Path, where: str, value) -> np.ndarray:
-    """W/sr: a number (white) or [r, g, b], finite and >= 0."""
-    if isinstance(value, list):
-        rgb = _vector(path, where, value)
-        if np.any(rgb < 0):
-            raise GraMiInputError(path, f"expected values >= 0, got {rgb.tolist()}", field=where)
-        return rgb
-    return np.full(3, _number(path, where, value, low=0.0))
+    """W/sr: a number (white) or [r, g, b], finite, >= 0 and at most :data:`MAX_INTENSITY`."""
+    rgb = _vector(path, where, value) if isinstance(value, list) else np.full(3, _number(path, where, value, low=0.0))
+    if np.any(rgb < 0) or np.any(rgb > MAX_INTENSITY):
+        raise GraMiInputError(path, f"expected values in [0, {MAX_INTENSITY:g}] W/sr, got {rgb.tolist()}", field=where)
+    return rgb
 
 
 def _vector(path: Path, where: str, value) -> np.ndarray:

@@ -29,6 +29,10 @@ from gra_mi.stage.envmap import leds_to_envmap
 logger = logging.getLogger(__name__)
 
 
+MAX_INTENSITY = 1e20  # W/sr: above it, intensity × BRDF × 1/d² leaves float32 (NaN renders), far past any real lamp
+MIN_CONDITIONING_DISTANCE = 1e-3  # metres: a light closer to an LED than this (or its radius) counts as that far
+
+
 @dataclass
 class PointLight:
     position: np.ndarray  # (3,) metres, world
@@ -44,8 +48,8 @@ class PointLight:
         self.intensity = np.broadcast_to(np.asarray(self.intensity, np.float64), (3,)).copy()
         if not np.all(np.isfinite(self.position)):
             raise GraMiParameterError("point_light", f"position must be three finite numbers, got {self.position.tolist()}")
-        if not np.all(np.isfinite(self.intensity)) or np.any(self.intensity < 0):
-            raise GraMiParameterError("point_light_intensity", f"must be finite and >= 0, got {self.intensity.tolist()}")
+        if not np.all(np.isfinite(self.intensity)) or np.any(self.intensity < 0) or np.any(self.intensity > MAX_INTENSITY):
+            raise GraMiParameterError("point_light_intensity", f"must be in [0, {MAX_INTENSITY:g}] W/sr, got {self.intensity.tolist()}")
         if not (np.isfinite(self.radius) and self.radius >= 0) or not self.conditioning_radius > 0:
             raise GraMiParameterError("point_light_radius", f"must be a finite number >= 0 (metres), got {self.radius}")
         if self.direction is not None:
@@ -181,7 +185,9 @@ def conditioning_pattern(stage, scene: mi.Scene, light: PointLight) -> np.ndarra
         mi.Point3f(*start.T.astype(np.float32)), mi.Vector3f(*d[idx].T.astype(np.float32)), mi.Float(remaining.astype(np.float32))
     )
     hits[idx] = ~np.array(scene.ray_test(ray))
-    dist2 = np.sum((stage.led_positions - light.position) ** 2, axis=1)
+    # I/d² at the LED, with d no less than the light's own radius (a light at an LED would give +inf)
+    floor = max(light.radius, MIN_CONDITIONING_DISTANCE) ** 2
+    dist2 = np.maximum(np.sum((stage.led_positions - light.position) ** 2, axis=1), floor)
     intensity = light.intensity * light.falloff(c - light.position)[0]
     return np.where(hits[:, None], intensity[None] / dist2[:, None], 0.0)
 

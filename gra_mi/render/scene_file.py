@@ -19,11 +19,13 @@ import numpy as np
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.guard import path_component
 from gra_mi.core.io import atomic_path, write_exr, write_png
+from gra_mi.core.limits import require_memory_for
 from gra_mi.stage import scene_keys as keys
 from gra_mi.stage.scene import make_integrator, scene_defaults
 
 logger = logging.getLogger(__name__)
 NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+FILM_BYTES_PER_PIXEL = 4 * 4 * 4  # RGBA float32 in the film, its developed image, the NumPy copy and the PNG's
 
 
 def is_lightstage_scene(path: Path) -> bool:
@@ -129,6 +131,9 @@ def render_scene_file(
     path, out = Path(path), Path(out)
     scene = load_scene_file(path, defines)
     chosen = select_sensors(path, scene, list(sensors or []))
+    for index in chosen:  # a film too large for memory is named before a render allocates it
+        width, height = scene.sensors()[index].film().size()
+        require_memory_for(path, f"sensor {index} film", float(width) * height * FILM_BYTES_PER_PIXEL, f"a {width} × {height} film")
     chosen_integrator = make_integrator(integrator)
     if chosen_integrator is None and scene.integrator() is None:
         logger.info("%s has no <integrator>: rendering with Mitsuba's path tracer (--integrator chooses another)", path)
