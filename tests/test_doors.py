@@ -328,8 +328,7 @@ def _humanolat_source(leds: int):
 
 
 def test_the_door_leds_are_left_out_of_the_rig_by_default():
-    from gra_mi.capture.humanolat import DOOR_LEDS
-    from gra_mi.capture.importer import HumanolatOptions, humanolat_frames
+    from gra_mi.capture.humanolat import DOOR_LEDS, HumanolatOptions, humanolat_frames
 
     source = _humanolat_source(331)
     original = source.leds.copy()

@@ -300,7 +300,8 @@ def write_transforms_as_humanolat_tools_do(subject: Path, folder: Path, nerfstud
     camera-to-world in metres with the y and z columns negated (OpenCV → Blender), ``camera_intrinsics = [cx, cy, fx,
     fy]``, ``light_idx``, ``pl_pos`` in metres. ``nerfstudio``: the same with shared ``fl_x``/``fl_y``/``cx``/``cy``/
     ``w``/``h`` and relative paths without their extension."""
-    from gra_mi.capture.humanolat import camera_name, image_size, images_of, olat_numbers, read_calib, read_points, read_spiral
+    from gra_mi.capture.humanolat import camera_name, images_of, olat_numbers, read_calib, read_spiral
+    from gra_mi.capture.source_files import image_size, read_points
 
     calib = read_calib(subject / "shared" / "cameras.calib")
     leds = read_points(subject / "shared" / "LSX_light_positions_aligned.pc")
@@ -361,7 +362,7 @@ def test_a_mesh_without_uvs_gets_an_atlas_and_fits(olat_capture, tmp_path):
     (xatlas), reprojects as well as the mesh with its own atlas, and the fit runs in the new atlas."""
     import trimesh
 
-    from gra_mi.capture.humanolat import read_obj
+    from gra_mi.capture.source_files import read_obj
     from gra_mi.fit.materials import FitConfig, run_fit
 
     _, _, subject = olat_capture
@@ -385,7 +386,8 @@ def test_a_transforms_json_without_intrinsics_or_lights_is_refused(olat_capture,
     folder = tmp_path / "json"
     write_transforms_as_humanolat_tools_do(subject, folder)
     mesh = str(subject / "POSE_00" / "model" / "model.obj")
-    data = json.loads((folder / "transforms_train.json").read_text())
+    original = (folder / "transforms_train.json").read_text()
+    data = json.loads(original)
     del data["frames"][3]["camera_intrinsics"]
     (folder / "transforms_train.json").write_text(json.dumps(data))
     args = ["import", "transforms", str(folder), "--out", str(tmp_path / "out"), "--mesh", mesh, "--mesh-units", "mm"]
@@ -399,7 +401,7 @@ def test_a_transforms_json_without_intrinsics_or_lights_is_refused(olat_capture,
     data["frames"][0] |= {"light_idx": 0, "k1": 0.05}
     (folder / "transforms_train.json").write_text(json.dumps(data))
     _one_line_error(capsys, args, "transforms_train.json", "k1", "undistort")
-    del data["frames"][0]["k1"]
+    data = json.loads(original)
     mirrored = np.array(data["frames"][2]["transform_matrix"])
     mirrored[:3, 0] *= -1
     for bad, needles in (
@@ -424,7 +426,7 @@ def test_a_tracked_sequence_under_environment_maps_imports(path_traced_fit, tmp_
     """A moving subject (one OBJ per mesh frame) under environment maps, as a transforms.json with `mesh_frame`,
     linear EXR images with alpha masks and the rig's LEDs from --leds: every frame keeps its own pose."""
     from gra_mi.capture.dataset import Capture, load_observation
-    from gra_mi.capture.humanolat import write_obj, write_points
+    from gra_mi.capture.source_files import write_obj, write_points
     from gra_mi.stage.lightstage import load_calibration
     from gra_mi.subject.sequence import load_sequence
 
@@ -515,7 +517,7 @@ def write_easymocap(native, folder: Path, frames: list) -> None:
 
 def test_an_easymocap_rig_with_a_moving_subject_imports(path_traced_fit, tmp_path):
     from gra_mi.capture.dataset import Capture, load_observation
-    from gra_mi.capture.humanolat import write_obj, write_points
+    from gra_mi.capture.source_files import write_obj, write_points
     from gra_mi.stage.lightstage import load_calibration
     from gra_mi.subject.sequence import load_sequence
 
@@ -553,7 +555,7 @@ def test_an_easymocap_rig_with_a_moving_subject_imports(path_traced_fit, tmp_pat
 
 def test_broken_easymocap_rigs_stop_with_one_line(path_traced_fit, tmp_path, capsys):
     from gra_mi.capture.dataset import Capture
-    from gra_mi.capture.humanolat import write_obj, write_points
+    from gra_mi.capture.source_files import write_obj, write_points
     from gra_mi.stage.lightstage import load_calibration
     from gra_mi.subject.sequence import load_sequence
 
@@ -765,7 +767,7 @@ def test_a_file_read_outside_the_source_is_part_of_the_run(path_traced_fit, tmp_
     # EasyMocap's mesh and lighting live beside the rig folder, not in it: editing the mesh (3 cm) after an import
     # makes a rerun into the same folder another run, refused; an edited envmap likewise.
     from gra_mi.capture.dataset import Capture
-    from gra_mi.capture.humanolat import write_obj, write_points
+    from gra_mi.capture.source_files import write_obj, write_points
     from gra_mi.stage.lightstage import load_calibration
     from gra_mi.subject.sequence import load_sequence
 
@@ -792,7 +794,7 @@ def test_a_file_read_outside_the_source_is_part_of_the_run(path_traced_fit, tmp_
 
 def test_envmaps_are_read_before_anything_is_written(path_traced_fit, tmp_path, capsys):
     from gra_mi.capture.dataset import Capture
-    from gra_mi.capture.humanolat import write_obj, write_points
+    from gra_mi.capture.source_files import write_obj, write_points
     from gra_mi.core.io import write_exr
     from gra_mi.stage.lightstage import load_calibration
     from gra_mi.subject.sequence import load_sequence
@@ -814,3 +816,65 @@ def test_envmaps_are_read_before_anything_is_written(path_traced_fit, tmp_path, 
         (tmp_path / "lighting.json").write_text(json.dumps({"frames": [{"frame": 0, "envmap": envmap}]}))
         _one_line_error(capsys, args, needle)
         assert not out.exists()
+
+
+def _swap_cameras(calib):
+    calib[2], calib[5] = calib[5], calib[2]
+
+
+def _stray_vertex(text: str) -> str:
+    return f"{text}\nv 0 0 -100000\n"  # 100 m below the subject (millimetres), referenced by no face
+
+
+def _empty_mask(s: Path) -> None:
+    from PIL import Image
+
+    path = s / "POSE_00" / "segmentations" / "masks" / "000" / "Cam04.png"
+    size = Image.open(path).size
+    Image.new("L", size, 0).save(path)
+
+
+def _full_mask(s: Path) -> None:
+    from PIL import Image
+
+    path = s / "POSE_00" / "segmentations" / "masks" / "000" / "Cam04.png"
+    size = Image.open(path).size
+    Image.new("L", size, 255).save(path)
+
+
+@pytest.mark.parametrize(
+    ("damage", "extra", "needles"),
+    [
+        (_calib_edit(_swap_cameras), [], ["Cam03", "Cam06", "swapped"]),
+        (_empty_mask, [], ["Cam04.png", "mask is empty"]),
+        (_full_mask, [], ["Cam04.png", "whole image"]),
+        (lambda s: None, ["--up", "+y"], ["lying on its side", "--up"]),
+        (lambda s: None, ["--scale", "0.01"], ["--scale", "too small"]),
+    ],
+    ids=["swapped-cameras", "empty-mask", "full-mask", "wrong-up", "tiny-scale"],
+)
+def test_the_reprojection_check_names_the_real_culprit(olat_capture, tmp_path, capsys, damage, extra, needles):
+    subject = _broken(olat_capture, tmp_path, damage)
+    out = tmp_path / "out"
+    _one_line_error(capsys, ["import", "humanolat", str(subject), "--out", str(out), *extra], *needles)
+    assert not out.exists()
+
+
+def test_a_mesh_in_the_wrong_units_is_named(olat_capture, tmp_path, capsys):
+    _, _, subject = olat_capture
+    folder = tmp_path / "json"
+    write_transforms_as_humanolat_tools_do(subject, folder)
+    mesh = str(subject / "POSE_00" / "model" / "model.obj")
+    args = ["import", "transforms", str(folder), "--out", str(tmp_path / "out"), "--mesh", mesh, "--mesh-units", "m"]
+    _one_line_error(capsys, args, "IoU", "--mesh-units mm")
+
+
+def test_a_stray_vertex_does_not_move_the_floor(olat_capture, imported, tmp_path):
+    from gra_mi.subject.sequence import load_sequence
+
+    subject = _broken(olat_capture, tmp_path, _text_edit("POSE_00/model/model.obj", _stray_vertex))
+    out = _imported(tmp_path, subject, "stray")
+    floor = load_sequence(imported / "subject").vertices[0][:, 1].min()
+    stray = load_sequence(out / "subject").vertices[0]
+    assert abs(np.percentile(stray[:, 1], 1) - np.percentile(load_sequence(imported / "subject").vertices[0][:, 1], 1)) < 1e-4
+    assert floor == pytest.approx(0, abs=1e-6)

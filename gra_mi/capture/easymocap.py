@@ -31,8 +31,8 @@ import numpy as np
 from pydantic import BeforeValidator, Field, field_validator, model_validator
 
 from gra_mi.capture.dataset import FrameLighting
-from gra_mi.capture.humanolat import CalibCamera, add_numbered, image_size, read_points
 from gra_mi.capture.importer import ImportConfig, Source, import_capture
+from gra_mi.capture.source_files import CalibCamera, add_numbered, image_size, read_points
 from gra_mi.capture.transforms import UNITS, TransformsOptions, read_meshes
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.io import read_json
@@ -110,6 +110,12 @@ class OpenCVExtrinsics(Record):
     def _rigid(cls, rot: np.ndarray | None) -> np.ndarray | None:
         return None if rot is None else rigid_rotation(rot, "world-to-camera rotation")
 
+    @model_validator(mode="after")
+    def _has_rotation(self) -> OpenCVExtrinsics:
+        if self.Rot is None and self.R is None:  # it would otherwise be read as the identity, silently
+            raise ValueError("the camera has no rotation (Rot_<cam> as 3 × 3, or R_<cam> as a Rodrigues vector)")
+        return self
+
 
 def _per_camera(values: dict, name: str, keys: tuple[str, ...]) -> dict:
     """The ``<key>_<cam>`` entries of one camera, keyed by ``key`` (what its schema names)."""
@@ -124,7 +130,7 @@ def _camera(intri: dict, extri: dict, name: str, images: dict[int, Path], folder
         raise GraMiInputError(
             folder / "intri.yml", f"camera {name}: distortion {dist.tolist()}: undistort the images first", field=f"dist_{name}"
         )
-    rot = pose.Rot if pose.Rot is not None else _rodrigues(pose.R if pose.R is not None else np.zeros(3))
+    rot = pose.Rot if pose.Rot is not None else _rodrigues(pose.R)
     c2w = np.concatenate([rot.T, -rot.T @ pose.T.reshape(3, 1)], axis=1)
     width, height = image_size(next(iter(images.values())))
     intrinsic = k.K / width

@@ -1,5 +1,6 @@
 """HumanOLAT's processed layout (ICCV 2025, MPI Informatics; its tools: the public repository TMT22/HumanOLAT), read
-and written file by file as the dataset ships them:
+and written file by file as the dataset ships them, and imported (:func:`import_humanolat`: its files into a
+:class:`~gra_mi.capture.importer.Source`, then the path every format shares):
 
 ```
 SUBJECT_<id>/POSE_<nn>/images_processed/Cam<01..>/<capture_id>.<image number, 6 digits>.avif   sRGB, masked, undistorted
@@ -15,7 +16,7 @@ Image numbers: 0 the white frame, 1–2 gradients, 3–12 environment maps (whic
 is not described by the dataset's readers; the writer here puts a full-bright frame there so that, as in the
 dataset's tools, an image's number is its position in sorted order. :func:`write_humanolat` writes a gra-mi capture of
 a static pose (``gra-mi capture --preset olat``) in this layout, in a Z-up millimetre frame with an offset stage
-centre, so that the importer (:mod:`gra_mi.capture.importer`) is tested on files as the dataset ships them.
+centre, so that the import is tested on files as the dataset ships them.
 """
 
 from __future__ import annotations
@@ -28,12 +29,25 @@ from pathlib import Path
 import numpy as np
 from pydantic import field_validator
 
-from gra_mi.capture.dataset import load_observation
-from gra_mi.core.color import srgb_decode, srgb_encode
-from gra_mi.core.errors import GraMiInputError
+from gra_mi.capture.dataset import Capture, FrameLighting, load_observation
+from gra_mi.capture.importer import ImportConfig, Source, import_capture
+from gra_mi.capture.source_files import (
+    CalibCamera,
+    add_numbered,
+    image_size,
+    read_obj,
+    read_points,
+    resample_columns,
+    write_mask,
+    write_obj,
+    write_points,
+)
+from gra_mi.core.color import srgb_encode
+from gra_mi.core.errors import GraMiInputError, require_positive
 from gra_mi.core.io import atomic_path, atomic_write_text, read_exr
 from gra_mi.core.progress import progress
 from gra_mi.core.schema import Finite, NonNegative, Positive, Record, intrinsic_matrix, matrix, parse, rigid_rotation
+from gra_mi.core.shard import Shard
 from gra_mi.stage.lightstage import load_calibration, load_pattern
 from gra_mi.subject.sequence import load_sequence
 
@@ -65,21 +79,6 @@ def camera_name(index: int) -> str:
 # --------------------------------------------------------------------------------------------------------------
 # cameras.calib
 # --------------------------------------------------------------------------------------------------------------
-
-
-@dataclass
-class CalibCamera:
-    """One camera of an MPII ``.calib``: ``intrinsic`` is K divided by the image width (cy too), ``extrinsic`` the
-    OpenCV camera-to-world 3 × 4 in the file's units (millimetres for HumanOLAT)."""
-
-    intrinsic: np.ndarray  # (3, 3)
-    extrinsic: np.ndarray  # (3, 4)
-    distortion: list[float]
-    focal_length: float = 0.0
-    pixel_aspect: float = 1.0
-
-    def k_matrix(self, width: int) -> np.ndarray:
-        return self.intrinsic * np.array([[width, width, width], [width, width, width], [1, 1, 1]], float)
 
 
 class CalibBlock(Record):
@@ -171,30 +170,6 @@ def _matrix_rows(path: Path, lines: list[str], start: int, columns: int, what: s
 # --------------------------------------------------------------------------------------------------------------
 
 
-def write_points(path: Path, positions: np.ndarray) -> None:
-    atomic_write_text(path, "".join(f"v {x:.8f} {y:.8f} {z:.8f}\n" for x, y, z in positions))
-
-
-def read_points(path: Path) -> np.ndarray:
-    if not path.is_file():
-        raise GraMiInputError(path, "missing: HumanOLAT's LED positions (shared/LSX_light_positions_aligned.pc)")
-    points = []
-    for k, line in enumerate(path.read_text().splitlines()):
-        words = line.split()
-        if words[:1] != ["v"]:
-            continue
-        try:
-            point = [float(w) for w in words[1:4]]
-        except ValueError:
-            point = []
-        if len(point) != 3 or not np.isfinite(point).all():
-            raise GraMiInputError(path, f"line {k + 1}: expected 'v x y z' with finite numbers, got '{line.strip()}'")
-        points.append(point)
-    if not points:
-        raise GraMiInputError(path, "no 'v x y z' line")
-    return np.array(points, float)
-
-
 def write_spiral(path: Path, order: np.ndarray) -> None:
     atomic_write_text(path, "".join(f"{int(i) + 1}\n" for i in order))
 
@@ -220,147 +195,9 @@ def read_spiral(path: Path, leds: int) -> np.ndarray:
 # --------------------------------------------------------------------------------------------------------------
 
 
-def write_obj(folder: Path, positions: np.ndarray, uvs: np.ndarray, faces: np.ndarray, texture: np.ndarray | None) -> None:
-    """model.obj (one ``vt`` per vertex; OBJ's v points up the image, so it is 1 − gra-mi's v), material.mtl and
-    model.jpeg (the texture, row 0 at the top)."""
-    from PIL import Image
-
-    lines = ["mtllib material.mtl", "usemtl material0"]
-    lines += [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in positions]
-    lines += [f"vt {u:.8f} {1.0 - v:.8f}" for u, v in uvs]
-    lines += [f"f {a + 1}/{a + 1} {b + 1}/{b + 1} {c + 1}/{c + 1}" for a, b, c in faces]
-    atomic_write_text(folder / "model.obj", "\n".join(lines) + "\n")
-    atomic_write_text(folder / "material.mtl", "newmtl material0\nKd 1 1 1\nmap_Kd model.jpeg\n")
-    if texture is not None:
-        with atomic_path(folder / "model.jpeg") as tmp:
-            Image.fromarray(np.round(srgb_encode(np.clip(texture, 0, 1)) * 255).astype(np.uint8)).save(tmp, format="JPEG", quality=95)
-
-
-@dataclass
-class ObjMesh:
-    positions: np.ndarray  # (P, 3) in the file's units
-    uvs: np.ndarray  # (T, 2) gra-mi's v (row 0 at the top)
-    faces: np.ndarray  # (F, 3) position indices
-    face_uvs: np.ndarray | None  # (F, 3) UV indices; None: the file has no UVs (the import generates an atlas)
-
-
-def read_obj(path: Path) -> ObjMesh:
-    """Triangles and polygons (fanned) with their ``vt`` corners; a mesh without faces is refused, one without UVs
-    read with ``face_uvs`` None."""
-    if not path.is_file():
-        raise GraMiInputError(path, "missing: the pose's mesh (model/model.obj)")
-    positions, uvs, faces, face_uvs = [], [], [], []
-    for k, line in enumerate(path.read_text().splitlines()):
-        words = line.split()
-        if not words:
-            continue
-        try:
-            if words[0] == "v":
-                positions.append(_finite_numbers(words[1:4], 3))
-            elif words[0] == "vt":
-                uvs.append(_finite_numbers(words[1:3], 2))
-            elif words[0] == "f":
-                corners = [w.split("/") for w in words[1:]]
-                # OBJ indices are 1-based; negative ones count back from the last defined (-1: the newest)
-                p = [_obj_index(int(c[0]), len(positions)) for c in corners]
-                t = [_obj_index(int(c[1]), len(uvs)) if len(c) > 1 and c[1] else 0 for c in corners]
-                for j in range(1, len(p) - 1):
-                    faces.append([p[0], p[j], p[j + 1]])
-                    face_uvs.append([t[0], t[j], t[j + 1]])
-        except (ValueError, IndexError):
-            raise GraMiInputError(path, f"line {k + 1}: cannot read '{line.strip()}'") from None
-    if not faces:
-        raise GraMiInputError(path, "no faces: the pose's mesh must be a surface with UVs")
-    f, ft = np.array(faces) - 1, np.array(face_uvs) - 1
-    if not uvs and ft.max() < 0:
-        return ObjMesh(np.array(positions, float), np.zeros((0, 2)), _checked_faces(path, f, len(positions)), None)
-    if ft.min() < 0:
-        raise GraMiInputError(path, "some faces have texture coordinates (f v/vt) and some none: give all or none")
-    if ft.max() >= len(uvs):
-        raise GraMiInputError(path, "a face refers to a texture coordinate the file does not define")
-    st = one_uv_tile(path, np.array(uvs, float))
-    return ObjMesh(np.array(positions, float), np.stack([st[:, 0], 1.0 - st[:, 1]], 1), _checked_faces(path, f, len(positions)), ft)
-
-
-def _finite_numbers(words: list[str], count: int) -> list[float]:
-    values = [float(w) for w in words]
-    if len(values) != count or not np.isfinite(values).all():
-        raise ValueError(f"expected {count} finite numbers")
-    return values
-
-
-def _obj_index(index: int, defined: int) -> int:
-    return defined + index + 1 if index < 0 else index
-
-
-def one_uv_tile(path: Path, st: np.ndarray) -> np.ndarray:
-    """Texture coordinates (s, t) in [0, 1]², by gra-mi's rule for a mesh whose UVs lie outside it: UVs that all lie in
-    one unit tile ([i, i + 1] × [j, j + 1], a UDIM tile) are moved into [0, 1]² (exact: nothing is lost); UVs spread
-    over several tiles are refused (gra-mi's atlas is one tile) — never clamped, which would collapse the charts."""
-    if st.size == 0:
-        return st
-    low = np.floor(st.min(axis=0))
-    if np.any(st.max(axis=0) > low + 1):
-        span = ", ".join(f"{a} {lo:g} … {hi:g}" for a, lo, hi in zip("st", st.min(axis=0), st.max(axis=0), strict=True))
-        raise GraMiInputError(
-            path,
-            f"texture coordinates span several unit tiles ({span}); gra-mi's UV atlas is one [0, 1]² tile: repack the "
-            "UVs into it (e.g. Blender's Pack Islands), or remove them and gra-mi generates an atlas",
-            field="vt",
-        )
-    return st - low
-
-
-def _checked_faces(path: Path, faces: np.ndarray, count: int) -> np.ndarray:
-    if faces.min() < 0 or faces.max() >= count:
-        raise GraMiInputError(path, "a face refers to a vertex the file does not define")
-    return faces
-
-
 # --------------------------------------------------------------------------------------------------------------
 # Images
 # --------------------------------------------------------------------------------------------------------------
-
-
-def read_image(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """(linear RGB float32, saturated pixels, alpha in [0, 1] or None): AVIF, PNG or JPEG, 8 or 16 bit, decoded with
-    the exact sRGB curve (a pixel is saturated where a channel is at the top of its range); EXR as linear radiance
-    (nothing saturates)."""
-    from PIL import Image
-
-    if path.suffix.lower() == ".exr":
-        image = read_exr(path)
-        return image[..., :3], np.zeros(image.shape[:2], bool), image[..., 3] if image.shape[2] == 4 else None
-    try:
-        with Image.open(path) as image:
-            pixels = np.asarray(image if image.mode in ("I;16", "I;16B", "RGB", "RGBA") else image.convert("RGBA"))
-    except (OSError, SyntaxError, ValueError) as exc:
-        raise GraMiInputError(path, f"not a readable image ({exc})") from None
-    top = 65535 if pixels.dtype == np.uint16 else 255
-    alpha = pixels[..., 3].astype(np.float32) / top if pixels.ndim == 3 and pixels.shape[2] == 4 else None
-    pixels = pixels[..., :3] if pixels.ndim == 3 else np.repeat(pixels[..., None], 3, axis=-1)
-    rgb = srgb_decode(pixels.astype(np.float32) / top).astype(np.float32)
-    return rgb, (pixels >= top).any(axis=-1), None if alpha is None or alpha.min() == 1 else alpha
-
-
-def image_size(path: Path) -> tuple[int, int]:
-    """(width, height) from the file's header."""
-    from PIL import Image
-
-    if path.suffix.lower() == ".exr":
-        import OpenEXR
-
-        try:
-            with OpenEXR.File(str(path), header_only=True) as exr:
-                (x0, y0), (x1, y1) = exr.header()["dataWindow"]
-            return int(x1 - x0 + 1), int(y1 - y0 + 1)
-        except Exception as exc:  # OpenEXR raises several kinds for a damaged file
-            raise GraMiInputError(path, f"not a readable EXR ({exc})") from None
-    try:
-        with Image.open(path) as image:
-            return image.size
-    except (OSError, SyntaxError, ValueError) as exc:
-        raise GraMiInputError(path, f"not a readable image ({exc})") from None
 
 
 def write_avif(path: Path, linear: np.ndarray) -> None:
@@ -372,13 +209,6 @@ def write_avif(path: Path, linear: np.ndarray) -> None:
         Image.fromarray(pixels).save(tmp, format="AVIF", quality=100, subsampling="4:4:4")
 
 
-def write_mask(path: Path, mask: np.ndarray) -> None:
-    from PIL import Image
-
-    with atomic_path(path) as tmp:
-        Image.fromarray((mask > 0.5).astype(np.uint8) * 255).save(tmp, format="PNG")
-
-
 def images_of(camera_dir: Path) -> dict[int, Path]:
     """Image number → file of one camera's folder; two files with one number (``000012.jpg`` and ``000012.png``) are
     refused naming both, where one would silently win."""
@@ -388,23 +218,6 @@ def images_of(camera_dir: Path) -> dict[int, Path]:
         if match:
             add_numbered(found, int(match.group(1)), path)
     return found
-
-
-def add_numbered(found: dict[int, Path], number: int, path: Path) -> None:
-    """``found[number] = path``, refusing a second file with the same number."""
-    if number in found:
-        raise GraMiInputError(path, f"has the image number {number} of {found[number].name} too: one image per number (remove one)")
-    found[number] = path
-
-
-def resample_columns(image: np.ndarray, width: int) -> np.ndarray:
-    """Resample an image along x to ``width`` columns (area-weighted: each output column averages the input it
-    covers), for cameras whose pixels are not square (fx ≠ fy)."""
-    w = image.shape[1]
-    edges = np.linspace(0.0, w, width + 1)
-    weights = np.clip(np.minimum(edges[1:, None], np.arange(1, w + 1)[None]) - np.maximum(edges[:-1, None], np.arange(w)[None]), 0, None)
-    weights /= weights.sum(axis=1, keepdims=True)
-    return np.moveaxis(np.tensordot(weights, image, axes=([1], [1])), 0, 1).astype(image.dtype)  # BLAS, not an einsum loop
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -487,3 +300,95 @@ def _image_numbers(capture, stage, load_pattern) -> tuple[dict[int, int], np.nda
     numbers |= {n: named["white"] for n in [13, *bright]}  # full-bright frames: every LED at the maximum, the white frame
     numbers |= {n: frame for n, (frame, _) in zip(olat_at, olats, strict=True)}
     return dict(sorted(numbers.items())), np.array([led for _, led in olats])
+
+
+# --------------------------------------------------------------------------------------------------------------
+# The import: a pose's files into a Source, the frames it imports
+# --------------------------------------------------------------------------------------------------------------
+
+
+@dataclass(kw_only=True)
+class HumanolatOptions:
+    """Which of a HumanOLAT pose's images are imported (:func:`import_humanolat`)."""
+
+    pose: str = "POSE_00"
+    """humanolat: the pose folder under the subject (POSE_00 is the A-pose)."""
+    olat_step: int = 1
+    """humanolat: import every Nth OLAT of the firing order (1: all)."""
+    test_olat_every: int = 10
+    """humanolat: every Nth imported OLAT is held out as test lighting (with the white frame); the others train."""
+    keep_door_leds: bool = False
+    """humanolat: keep the 21 LEDs on the stage's door, whose positions the dataset calls unreliable, in the rig and
+    import their OLATs. By default they are left out of both (an environment map is then never driven onto them), and
+    so is the white frame, which they lit too."""
+
+    def validate(self) -> None:
+        require_positive({"olat_step": self.olat_step, "test_olat_every": self.test_olat_every})
+
+
+def read_humanolat(subject_dir: Path, config: HumanolatOptions) -> Source:
+    """Every file of the pose, checked before anything is written: camera count against the image folders, LED count
+    against the firing order, the white frame present for every camera."""
+    pose = subject_dir / config.pose
+    if not (pose / "images_processed").is_dir():
+        raise GraMiInputError(pose / "images_processed", "missing: a HumanOLAT pose folder holds images_processed/Cam01 …")
+    calib = read_calib(subject_dir / CALIB)
+    folders = sorted(p.name for p in (pose / "images_processed").iterdir() if p.is_dir() and p.name.startswith("Cam"))
+    if len(folders) != len(calib):
+        raise GraMiInputError(
+            subject_dir / CALIB, f"{len(calib)} cameras, but {len(folders)} image folders in {pose / 'images_processed'}", field="cameras"
+        )
+    leds = read_points(subject_dir / LEDS)
+    order = read_spiral(subject_dir / SPIRAL, len(leds))
+    names = [camera_name(i) for i in range(len(calib))]
+    images = [images_of(pose / "images_processed" / name) for name in names]
+    sizes = []
+    for name, found in zip(names, images, strict=True):
+        if WHITE not in found:
+            raise GraMiInputError(pose / "images_processed" / name, f"missing the white frame (image number {WHITE:06d})")
+        sizes.append(image_size(found[WHITE]))
+    masks = [pose / "segmentations" / "masks" / "000" / f"{name}.png" for name in names]
+    source = Source(
+        subject_dir, "humanolat", subject_dir / CALIB, names, calib, sizes, images, 0.001, leds,
+        [read_obj(pose / "model" / "model.obj")], [m if m.is_file() else None for m in masks], white=WHITE, order=order, olat_keys=olat_numbers(len(order))[0],
+        leds_path=subject_dir / LEDS, mesh_files=[pose / "model" / "model.obj"],
+    )  # fmt: skip
+    source.frames, source.left_out = humanolat_frames(source, config)
+    return source
+
+
+def humanolat_frames(source: Source, config: HumanolatOptions) -> tuple[list, list[int]]:
+    """[(image number, frame entry, LED or "white")] and the LEDs whose OLATs were left out. The white frame is test
+    lighting (sequence 0); every ``test_olat_every``-th imported OLAT is too (sequence 1); the rest train."""
+    olat_at, _ = olat_numbers(len(source.order))
+    door = set() if config.keep_door_leds else {d for d in DOOR_LEDS if d < len(source.leds)}
+    chosen = [
+        (n, int(led)) for k, (n, led) in enumerate(zip(olat_at, source.order, strict=True)) if k % config.olat_step == 0 and led not in door
+    ]
+    left_out = sorted({int(led) for led in source.order} - {led for _, led in chosen})
+    rig_index = {old: new for new, old in enumerate(i for i in range(len(source.leds)) if i not in door)}
+    plan = [] if door else [(WHITE, FrameLighting(0, "test", 0, "pattern", None, "patterns/white.json", pose=0), "white")]
+    for k, (number, led) in enumerate(chosen):
+        split, sequence = ("test", 1) if (k + 1) % config.test_olat_every == 0 else ("train", 0)
+        index = rig_index[led]  # the LED's index in the rig gra-mi writes (the door's left out)
+        plan.append((number, FrameLighting(k + 1, split, sequence, "pattern", None, f"patterns/olat_{index:03d}.json", pose=0), index))
+    if door:
+        source.leds = source.leds[sorted(rig_index)]
+    return plan, left_out
+
+
+def import_humanolat(
+    subject_dir: str | Path,
+    out: str | Path,
+    config: ImportConfig | None = None,
+    options: HumanolatOptions | None = None,
+    overwrite: bool = False,
+    shard: Shard | None = None,
+) -> Capture | None:
+    """Import one pose of a HumanOLAT subject into ``out``; rerunning resumes (images already written are kept)."""
+    config, options = config or ImportConfig(), options or HumanolatOptions()
+    config.validate()
+    options.validate()
+    source = read_humanolat(Path(subject_dir), options)
+    record = {"pose": options.pose, "units": "millimetres (calibration, mesh), metres (LEDs)"}
+    return import_capture(source, Path(out), config, record, overwrite, options, shard)

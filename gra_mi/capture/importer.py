@@ -1,10 +1,14 @@
-"""``gra-mi import humanolat``: a HumanOLAT pose (:mod:`gra_mi.capture.humanolat`) into the capture layout every stage
-reads (docs/data-format.md), in gra-mi's world frame, with an import report a user reads first.
+"""``gra-mi import``: the path every source format shares, from a :class:`Source` to a capture in the layout every
+stage reads (docs/data-format.md), in gra-mi's world frame, with an import report a user reads first.
 
-load (calibration, LEDs, firing order, mesh, image lists; everything checked) → the frame (:func:`world_frame`:
-millimetres to metres, the up axis, the LED sphere's centre, the floor) → the mesh reprojected over every camera's
-mask (a convention mistake stops here, named) → write (rig, subject, scene, patterns, images streamed one at a time,
-capture.json, import_report.{md,json}).
+One module per source format reads its files into a :class:`Source` (:mod:`~gra_mi.capture.humanolat`,
+:mod:`~gra_mi.capture.transforms`, :mod:`~gra_mi.capture.easymocap`, with the files they share in
+:mod:`~gra_mi.capture.source_files`); the format's quirks stay there. Then, here, for every format:
+:meth:`Source.check` (what gra-mi's readers would refuse, named against the source's files) → the frame
+(:func:`world_frame`: units to metres, the up axis, the LED sphere's centre, the floor) → the mesh reprojected over
+every camera's mask (what spoils it, or a convention mistake, stops here, named) → written into a staging folder (rig,
+subject, scene, patterns, images streamed one at a time, capture.json, import_report.{md,json}) → loaded back by
+gra-mi's own readers → published by rename (:func:`import_capture`).
 """
 
 from __future__ import annotations
@@ -19,25 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from gra_mi.capture.dataset import Capture, FrameLighting
-from gra_mi.capture.humanolat import (
-    CALIB,
-    DOOR_LEDS,
-    LEDS,
-    SPIRAL,
-    WHITE,
-    camera_name,
-    image_size,
-    images_of,
-    olat_numbers,
-    read_calib,
-    read_image,
-    read_obj,
-    read_points,
-    read_spiral,
-    resample_columns,
-    write_mask,
-)
+from gra_mi.capture.dataset import Capture
+from gra_mi.capture.source_files import image_size, read_image, resample_columns, write_mask
 from gra_mi.core.config import comma_list, option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive
 from gra_mi.core.guard import path_component, staging_folder
@@ -84,25 +71,6 @@ class ImportConfig:
             raise GraMiParameterError("up", f"expected auto or one of {', '.join(UP_AXES)}, got {self.up!r}")
 
 
-@dataclass(kw_only=True)
-class HumanolatOptions:
-    """Which of a HumanOLAT pose's images are imported (:func:`import_humanolat`)."""
-
-    pose: str = "POSE_00"
-    """humanolat: the pose folder under the subject (POSE_00 is the A-pose)."""
-    olat_step: int = 1
-    """humanolat: import every Nth OLAT of the firing order (1: all)."""
-    test_olat_every: int = 10
-    """humanolat: every Nth imported OLAT is held out as test lighting (with the white frame); the others train."""
-    keep_door_leds: bool = False
-    """humanolat: keep the 21 LEDs on the stage's door, whose positions the dataset calls unreliable, in the rig and
-    import their OLATs. By default they are left out of both (an environment map is then never driven onto them), and
-    so is the white frame, which they lit too."""
-
-    def validate(self) -> None:
-        require_positive({"olat_step": self.olat_step, "test_olat_every": self.test_olat_every})
-
-
 @dataclass
 class Source:
     """A capture as read, before anything is written: everything in the source's own frame and units. Readers
@@ -123,6 +91,7 @@ class Source:
     frames: list = field(default_factory=list)  # (frame key, FrameLighting, drive): an LED, "white" or an envmap file
     left_out: list[int] = field(default_factory=list)  # LEDs whose OLATs were not imported
     white: int | None = None  # the frame key of an all-LEDs frame (the linearity check)
+    olat_keys: list[int] | None = None  # the frame keys of every LED's OLAT, imported or not (the linearity check)
     order: np.ndarray | None = None  # the OLAT firing order (HumanOLAT)
     mesh_units: float | None = None  # metres per unit of the meshes (None: as the calibration)
     frame_masks: list[dict[int, Path]] | None = None  # per camera: frame key → its own mask file (a moving subject)
@@ -206,37 +175,6 @@ class Source:
         return positions * (self.units if self.mesh_units is None else self.mesh_units)
 
 
-def read_humanolat(subject_dir: Path, config: HumanolatOptions) -> Source:
-    """Every file of the pose, checked before anything is written: camera count against the image folders, LED count
-    against the firing order, the white frame present for every camera."""
-    pose = subject_dir / config.pose
-    if not (pose / "images_processed").is_dir():
-        raise GraMiInputError(pose / "images_processed", "missing: a HumanOLAT pose folder holds images_processed/Cam01 …")
-    calib = read_calib(subject_dir / CALIB)
-    folders = sorted(p.name for p in (pose / "images_processed").iterdir() if p.is_dir() and p.name.startswith("Cam"))
-    if len(folders) != len(calib):
-        raise GraMiInputError(
-            subject_dir / CALIB, f"{len(calib)} cameras, but {len(folders)} image folders in {pose / 'images_processed'}", field="cameras"
-        )
-    leds = read_points(subject_dir / LEDS)
-    order = read_spiral(subject_dir / SPIRAL, len(leds))
-    names = [camera_name(i) for i in range(len(calib))]
-    images = [images_of(pose / "images_processed" / name) for name in names]
-    sizes = []
-    for name, found in zip(names, images, strict=True):
-        if WHITE not in found:
-            raise GraMiInputError(pose / "images_processed" / name, f"missing the white frame (image number {WHITE:06d})")
-        sizes.append(image_size(found[WHITE]))
-    masks = [pose / "segmentations" / "masks" / "000" / f"{name}.png" for name in names]
-    source = Source(
-        subject_dir, "humanolat", subject_dir / CALIB, names, calib, sizes, images, 0.001, leds,
-        [read_obj(pose / "model" / "model.obj")], [m if m.is_file() else None for m in masks], white=WHITE, order=order,
-        leds_path=subject_dir / LEDS, mesh_files=[pose / "model" / "model.obj"],
-    )  # fmt: skip
-    source.frames, source.left_out = humanolat_frames(source, config)
-    return source
-
-
 # --------------------------------------------------------------------------------------------------------------
 # The world frame
 # --------------------------------------------------------------------------------------------------------------
@@ -301,7 +239,10 @@ def world_frame(source: Source, up: str) -> WorldFrame:
     rotation = _rotation_to_y(direction)
     centre, radius, rms = fit_sphere(source.leds)
     mesh_m = source.mesh_metres(np.concatenate([m.positions for m in source.meshes]))
-    floor = float(((mesh_m - centre) @ rotation.T)[:, 1].min())
+    # the floor under the subject the cameras see: vertices inside the LED sphere (a stray vertex 100 m away is not)
+    inside = np.linalg.norm(mesh_m - centre, axis=1) < radius
+    heights = ((mesh_m[inside] if inside.any() else mesh_m) - centre) @ rotation.T
+    floor = float(heights[:, 1].min())
     translation = -rotation @ centre - np.array([0.0, floor, 0.0])
     return WorldFrame(rotation, translation, direction, up == "auto", off_axis, radius, rms)
 
@@ -467,6 +408,15 @@ def mask_iou(sequence: MeshSequence, camera: Camera, mask: np.ndarray, pose: int
     return (float((seen & inside).sum()) / union if union else 0.0), seen
 
 
+def _rescaled(sequence: MeshSequence, frame: WorldFrame, factor: float) -> MeshSequence:
+    """The sequence as it would be with the mesh's units ``factor`` × what they were read as, in the same world frame as
+    the cameras (whose floor, taken from the misread mesh, is off by as much as the mesh's)."""
+    from dataclasses import replace
+
+    vertices = factor * (np.asarray(sequence.vertices, float) - frame.translation) + frame.translation
+    return replace(sequence, vertices=vertices.astype(np.float32))
+
+
 def _mistaken(extrinsic: np.ndarray, kind: str) -> np.ndarray:
     """A source camera-to-world (3 × 4, the source's units) with ``kind``'s mistake undone."""
     m = np.eye(4)
@@ -482,9 +432,19 @@ def _mistaken(extrinsic: np.ndarray, kind: str) -> np.ndarray:
     return m[:3]
 
 
-def likely_mistake(source: Source, frame: WorldFrame, plan: CameraPlan, sequence: MeshSequence, mask: np.ndarray, pose: int) -> str:
-    """Which convention mistake, undone in the source's own calibration, makes the reprojection fit the mask (the
-    best of them), in words."""
+def likely_mistake(
+    source: Source,
+    frame: WorldFrame,
+    plan: CameraPlan,
+    sequence: MeshSequence,
+    mask: np.ndarray,
+    pose: int,
+    plans: list[CameraPlan] | None = None,
+    masks: list | None = None,
+) -> str:
+    """Which mistake, undone in the source's own calibration, makes the reprojection fit the mask (the best of them),
+    in words with the IoU it reaches: a convention (inverted, OpenGL axes, units), the mesh's units, or the camera's
+    calibration swapped with another camera's."""
     from dataclasses import replace
 
     scores = {}
@@ -493,35 +453,31 @@ def likely_mistake(source: Source, frame: WorldFrame, plan: CameraPlan, sequence
         calib[plan.index] = replace(calib[plan.index], extrinsic=_mistaken(calib[plan.index].extrinsic, kind))
         camera = plan_camera(replace(source, calib=calib), plan.index, frame, plan.camera.width / plan.square_width).camera
         scores[said] = mask_iou(sequence, camera, mask, pose)[0]
+    for k, said in (
+        (1e-3, "a mesh in millimetres read as metres (--mesh-units mm)"),
+        (1e3, "a mesh in metres read as millimetres (--mesh-units m)"),
+    ):
+        scores[said] = mask_iou(_rescaled(sequence, frame, k), plan.camera, mask, pose)[0]
+    for other, other_mask in zip(plans or [], masks or [], strict=True):  # swapped calibrations: both fit once exchanged
+        if other.index == plan.index:
+            continue
+        calib = list(source.calib)
+        calib[plan.index], calib[other.index] = calib[other.index], calib[plan.index]
+        swapped = replace(source, calib=calib)
+        scale = plan.camera.width / plan.square_width
+        mine = mask_iou(sequence, plan_camera(swapped, plan.index, frame, scale).camera, mask, pose)[0]
+        theirs = mask_iou(sequence, plan_camera(swapped, other.index, frame, scale).camera, other_mask, pose)[0]
+        scores[f"the calibrations of {plan.camera.name} and {other.camera.name} swapped (camera order)"] = min(mine, theirs)
     best = max(scores, key=scores.get)
-    if scores[best] >= 0.5:
-        return f"likely {best} (IoU {scores[best]:.2f} if so)"
+    if scores[best] >= 0.5:  # explanations one view cannot tell apart (calibration or mesh units) are all named
+        alike = [said for said in scores if scores[said] >= scores[best] - 0.03]
+        return f"likely {' or '.join(alike)} (IoU {scores[best]:.2f} if so)"
     return "no single convention mistake explains it: check the calibration's units, axes and camera order against the images"
 
 
 # --------------------------------------------------------------------------------------------------------------
 # Frames: the white frame and the OLATs, each its own lighting of the one pose
 # --------------------------------------------------------------------------------------------------------------
-
-
-def humanolat_frames(source: Source, config: HumanolatOptions) -> tuple[list, list[int]]:
-    """[(image number, frame entry, LED or "white")] and the LEDs whose OLATs were left out. The white frame is test
-    lighting (sequence 0); every ``test_olat_every``-th imported OLAT is too (sequence 1); the rest train."""
-    olat_at, _ = olat_numbers(len(source.order))
-    door = set() if config.keep_door_leds else {d for d in DOOR_LEDS if d < len(source.leds)}
-    chosen = [
-        (n, int(led)) for k, (n, led) in enumerate(zip(olat_at, source.order, strict=True)) if k % config.olat_step == 0 and led not in door
-    ]
-    left_out = sorted({int(led) for led in source.order} - {led for _, led in chosen})
-    rig_index = {old: new for new, old in enumerate(i for i in range(len(source.leds)) if i not in door)}
-    plan = [] if door else [(WHITE, FrameLighting(0, "test", 0, "pattern", None, "patterns/white.json", pose=0), "white")]
-    for k, (number, led) in enumerate(chosen):
-        split, sequence = ("test", 1) if (k + 1) % config.test_olat_every == 0 else ("train", 0)
-        index = rig_index[led]  # the LED's index in the rig gra-mi writes (the door's left out)
-        plan.append((number, FrameLighting(k + 1, split, sequence, "pattern", None, f"patterns/olat_{index:03d}.json", pose=0), index))
-    if door:
-        source.leds = source.leds[sorted(rig_index)]
-    return plan, left_out
 
 
 def check_images_present(source: Source, plans: list[CameraPlan]) -> None:
@@ -538,23 +494,6 @@ def check_images_present(source: Source, plans: list[CameraPlan]) -> None:
 # --------------------------------------------------------------------------------------------------------------
 # The import
 # --------------------------------------------------------------------------------------------------------------
-
-
-def import_humanolat(
-    subject_dir: str | Path,
-    out: str | Path,
-    config: ImportConfig | None = None,
-    options: HumanolatOptions | None = None,
-    overwrite: bool = False,
-    shard: Shard | None = None,
-) -> Capture | None:
-    """Import one pose of a HumanOLAT subject into ``out``; rerunning resumes (images already written are kept)."""
-    config, options = config or ImportConfig(), options or HumanolatOptions()
-    config.validate()
-    options.validate()
-    source = read_humanolat(Path(subject_dir), options)
-    record = {"pose": options.pose, "units": "millimetres (calibration, mesh), metres (LEDs)"}
-    return import_capture(source, Path(out), config, record, overwrite, options, shard)
 
 
 def import_capture(
@@ -721,19 +660,62 @@ def _camera_plans(source: Source, frame: WorldFrame, config: ImportConfig) -> li
 def _reprojection_checks(
     source: Source, frame: WorldFrame, sequence, plans: list[CameraPlan], masks: list, min_iou: float, pose: int
 ) -> list[dict]:
-    """Per camera, the mesh reprojected over its mask: IoU and the silhouette (for the overlays); a camera below
-    ``min_iou`` stops the import, naming the likely convention mistake."""
+    """Per camera, the mesh reprojected over its mask: IoU and the silhouette (for the overlays). What would spoil the
+    comparison is ruled out first (an empty or full mask, images too small to compare, a subject lying on its side);
+    a camera below ``min_iou``, or far below the others (a swapped pair passes a loose threshold), stops the import
+    naming the likely cause with the IoUs."""
+    _check_upright(source, frame, sequence, pose)
+    for plan, mask in zip(plans, masks, strict=True):
+        _check_mask(source, plan, mask)
     checks = []
     for plan, mask in progress(list(zip(plans, masks, strict=True)), description="mesh over masks"):
         iou, seen = mask_iou(sequence, plan.camera, mask, pose)
-        if iou < min_iou:
+        checks.append({"camera": plan.camera.name, "iou": iou, "silhouette": seen})
+    median = float(np.median([c["iou"] for c in checks]))
+    for plan, mask, check in zip(plans, masks, checks, strict=True):
+        iou = check["iou"]
+        if iou < min_iou or (len(plans) > 2 and iou < median - OUTLIER_IOU):
+            below = f"(< {min_iou})" if iou < min_iou else f"(the other cameras' median is {median:.2f})"
             raise GraMiInputError(
                 source.calib_path,
-                f"camera {plan.camera.name}: the mesh reprojected over its mask overlaps it by IoU {iou:.2f} (< {min_iou}); "
-                + likely_mistake(source, frame, plan, sequence, mask, pose),
+                f"camera {plan.camera.name}: the mesh reprojected over its mask overlaps it by IoU {iou:.2f} {below}; "
+                + likely_mistake(source, frame, plan, sequence, mask, pose, plans, masks),
             )
-        checks.append({"camera": plan.camera.name, "iou": iou, "silhouette": seen})
     return checks
+
+
+OUTLIER_IOU = 0.1  # a camera this far below the others' median IoU is wrong even above the threshold
+MIN_CHECK_PIXELS = 16  # images smaller than this on a side cannot be compared with the mesh
+
+
+def _check_mask(source: Source, plan: CameraPlan, mask: np.ndarray) -> None:
+    """A mask that is empty, full or too small to compare is named as the culprit, not the calibration."""
+    where = source.masks[plan.index] or source.images[plan.index][source.frames[0][0]]
+    if min(mask.shape) < MIN_CHECK_PIXELS:
+        raise GraMiParameterError(
+            "scale", f"leaves camera {plan.camera.name}'s images at {mask.shape[1]} × {mask.shape[0]} pixels, too small to import or check"
+        )
+    covered = float((mask > 0.5).mean())
+    if covered < 1e-3:
+        raise GraMiInputError(where, f"camera {plan.camera.name}: the subject's mask is empty (it must show the subject)")
+    if covered > 0.99:
+        raise GraMiInputError(
+            where, f"camera {plan.camera.name}: the subject's mask covers the whole image (it must show the subject alone)"
+        )
+
+
+def _check_upright(source: Source, frame: WorldFrame, sequence, pose: int) -> None:
+    """A subject whose height is well below its width along the chosen up axis would import lying on its side."""
+    v = np.asarray(sequence.vertices[pose], float)
+    low, high = np.percentile(v, [1, 99], axis=0)
+    extent = high - low
+    if extent[1] < 0.6 * max(extent[0], extent[2]):
+        axis = "the up axis estimated from the cameras" if frame.up_estimated else "--up"
+        raise GraMiInputError(
+            source.folder,
+            f"the subject is {extent[1]:.2f} m tall and {max(extent[0], extent[2]):.2f} m wide along {axis}: it would import lying "
+            "on its side. Give the source's up axis with --up (e.g. +z for a Z-up source)",
+        )
 
 
 def _write_stage_files(out: Path, stage: Lightstage, sequence: MeshSequence, frames: list) -> None:
@@ -819,15 +801,14 @@ def _resampling_error(image: np.ndarray, plan: CameraPlan) -> float | None:
 def linearity(source: Source, plan: CameraPlan, mask: np.ndarray) -> dict:
     """The white frame against the sum of every OLAT (door LEDs included) of one camera, over the subject: 1 for a
     linear sensor, a subject that held still and equal LED gains."""
-    olat_at, _ = olat_numbers(len(source.order))
     inside = mask_at_source(mask, plan) > 0.5
     total = np.zeros(int(inside.sum()) * 3)
-    for number in progress(olat_at, description=f"linearity {plan.camera.name}"):
+    for number in progress(source.olat_keys, description=f"linearity {plan.camera.name}"):
         if number in source.images[plan.index]:
             total += read_image(source.images[plan.index][number])[0][inside].ravel()
     white = read_image(source.images[plan.index][source.white])[0][inside].ravel()
     ratio = float(total.sum() / max(white.sum(), 1e-12))
-    return {"camera": plan.camera.name, "olats_over_white": ratio, "olats": len(olat_at)}
+    return {"camera": plan.camera.name, "olats_over_white": ratio, "olats": len(source.olat_keys)}
 
 
 def _write_report(out: Path, source: Source, frame: WorldFrame, plans: list[CameraPlan], checks: list[dict], record: dict) -> None:
@@ -850,7 +831,7 @@ def _write_report(out: Path, source: Source, frame: WorldFrame, plans: list[Came
         },
         "leds": {"count": len(source.leds), "left_out": record["left_out_leds"], "gains": record["gains"]},
         "linearity": linearity(source, plans[0], read_exr(out / "images" / plans[0].camera.name / "frame_0000.exr")[..., 3])
-        if source.order is not None
+        if source.olat_keys is not None and source.white is not None
         else None,
         "frames": {"imported": sum(1 for _ in (out / "images" / plans[0].camera.name).glob("frame_*.exr"))},
         "uv_atlas": record["uv_atlas"],

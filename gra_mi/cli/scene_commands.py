@@ -6,13 +6,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from gra_mi.capture.easymocap import EasymocapOptions, import_easymocap
-from gra_mi.capture.humanolat import write_humanolat
-from gra_mi.capture.importer import HumanolatOptions, ImportConfig, import_humanolat
+from gra_mi.capture.humanolat import HumanolatOptions, import_humanolat, write_humanolat
+from gra_mi.capture.importer import ImportConfig
 from gra_mi.capture.synthetic import PRESETS, CaptureConfig, generate_capture
 from gra_mi.capture.transforms import TransformsOptions, import_transforms
 from gra_mi.cli.options import CommandConfig, Restartable
 from gra_mi.core.config import comma_list, option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive
+from gra_mi.core.guard import names_of
 from gra_mi.core.shard import ShardOptions
 from gra_mi.render.scene_file import is_lightstage_scene, parse_defines, render_scene_file
 from gra_mi.stage.envmap import EnvmapOptions
@@ -206,9 +207,7 @@ class CaptureCommand(Restartable):
         super().validate()
         if self.layout == "humanolat" and not PRESETS[self.capture.preset].static_olat:
             raise GraMiParameterError("layout", f"the HumanOLAT layout holds a static pose: use --preset olat, not {self.capture.preset}")
-        stems = [path.stem for path in self.test_envmap]
-        if len(set(stems)) != len(stems):
-            raise GraMiParameterError("test_envmap", f"two maps share a name ({stems}); the capture stores them by name")
+        names_of(self.test_envmap, "test_envmap")  # the capture stores them by name
 
 
 def run_capture(c: CaptureCommand) -> None:

@@ -115,6 +115,20 @@ def _relation(out: Path, given: Path) -> str | None:
     return None
 
 
+def names_of(paths: Iterable[str | Path], parameter: str) -> dict[str, Path]:
+    """Files named by their stem (an envmap, a pattern), each stem a plain name and used once: two files with one stem
+    are refused naming both (one would overwrite or replace the other)."""
+    from gra_mi.core.errors import GraMiParameterError
+
+    named: dict[str, Path] = {}
+    for path in map(Path, paths):
+        stem = path_component(path.stem, path, "file name")
+        if stem in named:
+            raise GraMiParameterError(parameter, f"{named[stem]} and {path} are both named '{stem}': rename one")
+        named[stem] = path
+    return named
+
+
 def check_apart(outputs: dict[str, Path], inputs: dict[str, Path]) -> None:
     """Refuse an output folder that is, holds or lies inside an input, before anything is written."""
     for out_name, out in outputs.items():

@@ -38,6 +38,7 @@ from gra_mi.capture.dataset import Capture, load_observation
 from gra_mi.core.color import display_exposure, to_display
 from gra_mi.core.config import option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
+from gra_mi.core.guard import names_of
 from gra_mi.core.io import atomic_write_text, pyplot, read_exr, read_json, save_figure, write_mp4
 from gra_mi.core.limits import DRIVE_BYTES, require_memory
 from gra_mi.core.metrics import compare, flip, flip_map, subject_mask, temporal_error
@@ -90,6 +91,7 @@ class EvalConfig:
             raise GraMiParameterError("library_envmaps", f"must be >= 0, got {self.library_envmaps}")
         require_memory("library_envmaps", self.library_envmaps * DRIVE_BYTES, f"{self.library_envmaps:,} library maps' LED drives")
         self.envmaps.validate()
+        names_of(self.envmap, "envmap")  # the scores are keyed by the map's name
         if self.frames not in FRAME_SELECTIONS:
             raise GraMiParameterError("frames", f"expected one of {', '.join(FRAME_SELECTIONS)}, got '{self.frames}'")
         if self.scale is not None and not (0 < self.scale <= 1):

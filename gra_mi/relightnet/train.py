@@ -22,6 +22,7 @@ import numpy as np
 import torch
 
 from gra_mi.capture.dataset import load_observation
+from gra_mi.capture.reflectance import static_pose
 from gra_mi.core import metrics
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive, require_seed
 from gra_mi.core.io import atomic_path, atomic_write_text, pyplot, save_figure, write_png
@@ -254,6 +255,8 @@ def train_relightnet(capture_dir: str | Path, fit_dir: str | Path, out: str | Pa
     out = Path(out)
     capture, relighter = fitted_relighter(capture_dir, fit_dir, out / "cache" if loop.rank == 0 else None)
     train_jobs = of_lightings(view_jobs(capture, ("train",)), config.training_lightings)  # refused before any output
+    if config.synthesized_lightings:
+        static_pose(capture)  # a moving capture has no reflectance field: refused before the folder is claimed
     loop.claim("train-relightnet", {"capture": capture_dir, "fit": fit_dir}, config, overwrite)
     train, held_out = _views(capture, relighter, train_jobs, config, device, out / "cache" if loop.rank == 0 else None)
     train_views = train.spread(config.held_out_views)  # made once: the output gain and the report's training row
