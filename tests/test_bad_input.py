@@ -716,8 +716,8 @@ PROVENANCE_CASES = [
     ("capture-other-preset", ["capture", "--preset", "small", "--out", "{cap_other}"], ["preset: 'tiny' then, 'small' now"]),
     ("relightnet-into-fit", [*RN, "--out", "{fit_copy}"], ["command 'fit'"]),
     ("fit-into-foreign", ["fit", "{cap}", "--out", "{root}/cap_json_list/rig"], ["not made by gra-mi"]),
-    ("fit-into-its-capture", ["fit", "{cap}", "--out", "{cap}", "--overwrite"], ["is the capture input"]),
-    ("fit-around-its-capture", ["fit", "{cap}", "--out", "{cap}/..", "--overwrite"], ["holds the capture"]),
+    ("fit-into-its-capture", ["fit", "{cap}", "--out", "{cap}", "--overwrite"], ["output folder (--out) is", "(the capture input)"]),
+    ("fit-around-its-capture", ["fit", "{cap}", "--out", "{cap}/..", "--overwrite"], ["(the capture input)"]),
     ("fit-overwrite-foreign", ["fit", "{cap}", "--out", "{root}", "--overwrite"], ["only folders gra-mi made"]),
     ("fit-out-is-file", ["fit", "{cap}", "--out", "{root}/a_file"], ["a_file", "is a file"]),
     ("relightnet-out-is-file", [*RN, "--out", "{root}/a_file"], ["a_file", "is a file"]),
@@ -760,7 +760,7 @@ def test_deflicker_never_writes_over_its_input(inputs, capsys):
     before = {p: p.read_bytes() for p in frames.iterdir()}
     for folder in ("defl_frames", "defl_stable"):
         argv = ["deflicker", frames, "--stable", inputs["root"] / "defl_stable", "--out", inputs["root"] / folder]
-        assert_refused(argv, capsys, folder, "is the")
+        assert_refused(argv, capsys, folder, "input); write the output to another folder")
     assert {p: p.read_bytes() for p in frames.iterdir()} == before
 
 

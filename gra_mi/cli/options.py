@@ -170,7 +170,9 @@ def command_paths(config) -> tuple[dict[str, Path], dict[str, Path]]:
         else:
             inputs[name] = path
             if name == "scene" and path.is_file():
-                inputs.update({f"scene's {ref.name}": ref for ref in scene_references(path)})
+                for ref in scene_references(path):
+                    label = f"scene's {ref.name}"
+                    inputs[label if label not in inputs else f"{label} ({ref})"] = ref
     if hasattr(config, "output_folder"):
         outputs["--out"] = config.output_folder()
     return {k: v for k, v in outputs.items() if v is not None}, inputs

@@ -137,17 +137,30 @@ def check_apart(outputs: dict[str, Path], inputs: dict[str, Path]) -> None:
             relation = _relation(out_r, Path(given).resolve())
             if relation:
                 raise GraMiInputError(
-                    out, f"the output folder ({out_name}) {relation} the {in_name} input {given}; write the output to another folder"
+                    out,
+                    f"the output folder{f' ({out_name})' if out_name else ''} {relation} {given} (the {in_name} input); write the output to another folder",
                 )
 
 
 def scene_references(scene_file: Path) -> list[Path]:
-    """The files a Mitsuba scene names (``<string name="filename" value=…>``), resolved against its folder as Mitsuba
-    resolves them: what writing into the scene's folder could overwrite."""
+    """The files and folders a Mitsuba scene reads — ``<include filename=…>``, ``<string name="filename" value=…>`` and
+    ``<default>`` values that name a path (a lightstage scene's subject and calibration) — with ``$name`` replaced by
+    the scene's defaults and resolved against its folder as Mitsuba resolves them: what an output folder must not
+    hold."""
     try:
         text = scene_file.read_text(errors="replace")
     except OSError:
         return []
-    found = re.findall(r'name\s*=\s*"filename"\s+value\s*=\s*"([^"$]+)"', text)
-    found += re.findall(r'value\s*=\s*"([^"$]+)"\s+name\s*=\s*"filename"', text)
-    return [(scene_file.parent / f) for f in found]
+    defaults = dict(re.findall(r'<default\s+name\s*=\s*"([^"]+)"\s+value\s*=\s*"([^"]*)"', text))
+    found = re.findall(r'<include\s+filename\s*=\s*"([^"]+)"', text)
+    found += re.findall(r'name\s*=\s*"filename"\s+value\s*=\s*"([^"]+)"', text)
+    found += re.findall(r'value\s*=\s*"([^"]+)"\s+name\s*=\s*"filename"', text)
+    found += list(defaults.values())
+    paths = []
+    for value in found:
+        for name, default in defaults.items():
+            value = value.replace(f"${name}", default)
+        path = scene_file.parent / value
+        if "$" not in value and value and path.exists():
+            paths.append(path)
+    return paths

@@ -166,7 +166,7 @@ def claim_output(
     if sharded and overwrite:
         raise GraMiParameterError("overwrite", "cannot be combined with --shard: empty the folder once, then start the shards")
     # --overwrite empties the output folder, a resume rewrites it: never one that is, holds or lies in an input
-    check_apart({"output folder": folder}, {name: Path(given) for name, given in inputs.items() if isinstance(given, str | Path)})
+    check_apart({"": folder}, {name: Path(given) for name, given in inputs.items() if isinstance(given, str | Path)})
     record = run_record(command, inputs, config, shard.count if sharded else None)
     path = folder / PROVENANCE
     if not folder.exists():
