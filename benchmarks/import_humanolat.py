@@ -25,7 +25,7 @@ import json, resource, sys, time
 from gra_mi.render.runtime import start_runtime
 start_runtime("llvm_ad_rgb")
 from gra_mi.capture.humanolat import import_humanolat
-from gra_mi.capture.importer import ImportConfig
+from gra_mi.capture.source import ImportConfig
 start = time.perf_counter()
 capture = import_humanolat(sys.argv[1], sys.argv[2], ImportConfig(scale=float(sys.argv[3]), uv_resolution=64))
 seconds = time.perf_counter() - start

@@ -320,7 +320,7 @@ def test_relight_refuses_a_second_shard_count_in_one_folder(tmp_path, capsys, ll
 
 
 def _humanolat_source(leds: int):
-    from gra_mi.capture.importer import Source
+    from gra_mi.capture.source import Source
 
     order = np.random.default_rng(0).permutation(leds)
     positions = np.random.default_rng(1).normal(size=(leds, 3))

@@ -31,7 +31,8 @@ import numpy as np
 from pydantic import BeforeValidator, Field, field_validator, model_validator
 
 from gra_mi.capture.dataset import FrameLighting
-from gra_mi.capture.importer import ImportConfig, Source, import_capture
+from gra_mi.capture.importer import import_capture
+from gra_mi.capture.source import ImportConfig, Source
 from gra_mi.capture.source_files import CalibCamera, add_numbered, image_size, read_points
 from gra_mi.capture.transforms import UNITS, TransformsOptions, read_meshes
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError

@@ -1,6 +1,6 @@
 """HumanOLAT's processed layout (ICCV 2025, MPI Informatics; its tools: the public repository TMT22/HumanOLAT), read
 and written file by file as the dataset ships them, and imported (:func:`import_humanolat`: its files into a
-:class:`~gra_mi.capture.importer.Source`, then the path every format shares):
+:class:`~gra_mi.capture.source.Source`, then the path every format shares):
 
 ```
 SUBJECT_<id>/POSE_<nn>/images_processed/Cam<01..>/<capture_id>.<image number, 6 digits>.avif   sRGB, masked, undistorted
@@ -30,7 +30,8 @@ import numpy as np
 from pydantic import field_validator
 
 from gra_mi.capture.dataset import Capture, FrameLighting, load_observation
-from gra_mi.capture.importer import ImportConfig, Source, import_capture
+from gra_mi.capture.importer import import_capture
+from gra_mi.capture.source import ImportConfig, Source
 from gra_mi.capture.source_files import (
     CalibCamera,
     add_numbered,

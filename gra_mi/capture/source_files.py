@@ -1,7 +1,7 @@
 """Files every source format shares, read and written as other tools write them: a camera's calibration record, OBJ
 and PLY meshes with their texture coordinates, LED point files (``v x y z``), 8/16-bit sRGB, AVIF and EXR images and
 mask PNGs. Each source format's own module (:mod:`~gra_mi.capture.humanolat`, :mod:`~gra_mi.capture.transforms`,
-:mod:`~gra_mi.capture.easymocap`) reads its layout with these and fills a :class:`~gra_mi.capture.importer.Source`."""
+:mod:`~gra_mi.capture.easymocap`) reads its layout with these and fills a :class:`~gra_mi.capture.source.Source`."""
 
 from __future__ import annotations
 

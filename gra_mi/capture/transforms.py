@@ -24,7 +24,8 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from gra_mi.capture.dataset import FrameLighting
-from gra_mi.capture.importer import ImportConfig, Source, import_capture
+from gra_mi.capture.importer import import_capture
+from gra_mi.capture.source import ImportConfig, Source
 from gra_mi.capture.source_files import CalibCamera, ObjMesh, image_size, one_uv_tile, read_obj, read_points
 from gra_mi.core.config import option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from gra_mi.capture.easymocap import EasymocapOptions, import_easymocap
 from gra_mi.capture.humanolat import HumanolatOptions, import_humanolat, write_humanolat
-from gra_mi.capture.importer import ImportConfig
+from gra_mi.capture.source import ImportConfig
 from gra_mi.capture.synthetic import PRESETS, CaptureConfig, generate_capture
 from gra_mi.capture.transforms import TransformsOptions, import_transforms
 from gra_mi.cli.options import CommandConfig, Restartable

@@ -1,0 +1,149 @@
+"""What an import reads, as one record whatever the source format: :class:`Source` (filled by each format's reader,
+checked by :meth:`Source.check` before anything is written) and the options every import shares
+(:class:`ImportConfig`). One floor below the import that drives them (:mod:`gra_mi.capture.importer`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from gra_mi.core.config import comma_list, option
+from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive
+from gra_mi.core.guard import path_component
+from gra_mi.core.schema import rigid_rotation
+
+UP_AXES = {"+x": (1, 0, 0), "-x": (-1, 0, 0), "+y": (0, 1, 0), "-y": (0, -1, 0), "+z": (0, 0, 1), "-z": (0, 0, -1)}
+
+
+@dataclass(kw_only=True)
+class ImportConfig:
+    """What every import route shares (:func:`import_capture`)."""
+
+    cameras: list[str] | None = field(default=None, metadata=option(parse=comma_list))
+    """Cameras to import, comma-separated (Cam01,Cam05,...). Default: all."""
+    eval_cameras: list[str] | None = field(default=None, metadata=option(parse=comma_list))
+    """Cameras held out for novel-view evaluation, comma-separated. Default: two, spread over the rig."""
+    scale: float = 1.0
+    """Image scale after the pixels are made square (0.25: a quarter of the size; a full HumanOLAT pose is ~13,700
+    images)."""
+    up: str = field(default="auto", metadata=option(choices=("auto", *UP_AXES)))
+    """The source frame's up axis; auto: level to every camera's image x axis, signed by their image up (reported)."""
+    led_intensity: float = 4.0
+    """Radiant intensity (W/sr) of a fully driven LED (the source does not say; sets the albedo's scale only)."""
+    uv_resolution: int = 256
+    """UV resolution of the maps fitted to the capture."""
+    min_iou: float = 0.5
+    """Stop when the mesh reprojected over a camera's mask overlaps it less than this (intersection over union)."""
+
+    def validate(self) -> None:
+        require_positive({"scale": self.scale, "led_intensity": self.led_intensity, "uv_resolution": self.uv_resolution})
+        if not 0 <= self.min_iou <= 1:
+            raise GraMiParameterError("min_iou", f"must be in [0, 1], got {self.min_iou}")
+        if self.up not in ("auto", *UP_AXES):
+            raise GraMiParameterError("up", f"expected auto or one of {', '.join(UP_AXES)}, got {self.up!r}")
+
+
+@dataclass
+class Source:
+    """A capture as read, before anything is written: everything in the source's own frame and units. Readers
+    (:func:`read_humanolat`, :func:`gra_mi.capture.transforms.read_transforms`) fill it; the rest of the import is
+    the same for every source."""
+
+    folder: Path
+    format: str  # "humanolat", "transforms"
+    calib_path: Path  # what a camera error names
+    names: list[str]  # camera names
+    calib: list  # CalibCamera per camera: K / width, camera-to-world (OpenCV axes) in the source's units
+    sizes: list[tuple[int, int]]  # (width, height) of each camera's images
+    images: list[dict[int, Path]]  # per camera: frame key → image file
+    units: float  # metres per source unit of the calibration (0.001: millimetres)
+    leds: np.ndarray  # (L, 3) metres, the source's frame
+    meshes: list  # ObjMesh per pose (one topology), source units
+    masks: list[Path | None]  # per camera: a mask file, else the images' alpha or non-black pixels
+    frames: list = field(default_factory=list)  # (frame key, FrameLighting, drive): an LED, "white" or an envmap file
+    left_out: list[int] = field(default_factory=list)  # LEDs whose OLATs were not imported
+    white: int | None = None  # the frame key of an all-LEDs frame (the linearity check)
+    olat_keys: list[int] | None = None  # the frame keys of every LED's OLAT, imported or not (the linearity check)
+    order: np.ndarray | None = None  # the OLAT firing order (HumanOLAT)
+    mesh_units: float | None = None  # metres per unit of the meshes (None: as the calibration)
+    frame_masks: list[dict[int, Path]] | None = None  # per camera: frame key → its own mask file (a moving subject)
+    mask_cache: dict[int, np.ndarray] = field(default_factory=dict, repr=False)  # per camera: a mask every frame shares
+
+    leds_path: Path | None = None  # what an LED error names (None: the calibration)
+    mesh_files: list[Path] = field(default_factory=list)  # the mesh file(s) or folder read (for provenance)
+
+    def check(self) -> None:
+        """What every source must satisfy before anything is written, whichever reader filled it: the checks gra-mi's
+        own loaders make of a capture, stated here against the source's files (each reader checks its format).
+        :func:`import_capture` calls it first."""
+        self._check_cameras()
+        self._check_leds()
+        self._check_meshes()
+        self._check_frames()
+
+    def _check_cameras(self) -> None:
+        # Camera names become folder names in the capture (and in every later command's output): plain and unique.
+        seen: dict[tuple, str] = {}
+        for i, (name, cam) in enumerate(zip(self.names, self.calib, strict=True)):
+            path_component(name, self.calib_path, f"camera {i} name")
+            if name in self.names[:i]:
+                raise GraMiInputError(self.calib_path, f"cameras {self.names.index(name)} and {i} are both named '{name}'", field="cameras")
+            if not (np.isfinite(cam.extrinsic).all() and np.isfinite(cam.intrinsic).all()):
+                raise GraMiInputError(self.calib_path, "non-finite calibration values", field=f"camera {name}")
+            try:
+                rigid_rotation(np.asarray(cam.extrinsic)[:3, :3], "camera-to-world rotation")
+            except ValueError as exc:
+                raise GraMiInputError(self.calib_path, str(exc), field=f"camera {name}") from None
+            key = tuple(np.round(np.concatenate([np.ravel(cam.extrinsic), np.ravel(cam.intrinsic)]), 6))
+            if key in seen:
+                raise GraMiInputError(
+                    self.calib_path, f"cameras {seen[key]} and {name} have one pose and intrinsics: a camera listed twice", field="cameras"
+                )
+            seen[key] = name
+        if not (np.isfinite(self.units) and self.units > 0):
+            raise GraMiInputError(self.calib_path, f"units must be a positive length in metres, got {self.units}")
+
+    def _check_leds(self) -> None:
+        from scipy.spatial import cKDTree
+
+        where = self.leds_path or self.calib_path
+        leds = np.asarray(self.leds, float)
+        if leds.ndim != 2 or leds.shape[1] != 3 or not np.isfinite(leds).all():
+            raise GraMiInputError(where, "LED positions must be finite (x, y, z) triples")
+        pairs = sorted(cKDTree(leds).query_pairs(1e-6)) if len(leds) > 1 else []
+        if pairs:
+            a, b = pairs[0]
+            raise GraMiInputError(where, f"LEDs {a} and {b} are at one position {leds[a].round(6).tolist()}: an LED listed twice")
+
+    def _check_meshes(self) -> None:
+        for k, mesh in enumerate(self.meshes):
+            bad = ~np.isfinite(np.asarray(mesh.positions, float)).all(axis=1)
+            if bad.any():
+                raise GraMiInputError(
+                    self.folder, f"the mesh of pose {k} has {int(bad.sum())} non-finite vertices (first: {int(np.argmax(bad))})"
+                )
+
+    def _check_frames(self) -> None:
+        keys = [key for key, _, _ in self.frames]
+        if not keys:
+            raise GraMiInputError(self.folder, "no frames to import")
+        if twice := sorted({k for k in keys if keys.count(k) > 1}):
+            raise GraMiInputError(self.folder, f"frame {twice[0]} is listed twice")
+        # One name, one thing: envmaps are stored by file name; two different files with one name get distinct names.
+        stored: dict[str, Path] = {}
+        for _, entry, drive in self.frames:
+            if entry.kind != "envmap":
+                continue
+            name, source = entry.envmap, Path(drive).resolve()
+            if name in stored and stored[name] != source:
+                stem, suffix = Path(name).stem, Path(name).suffix
+                n = 1
+                while f"envmaps/{stem}_{n}{suffix}" in stored and stored[f"envmaps/{stem}_{n}{suffix}"] != source:
+                    n += 1
+                entry.envmap = name = f"envmaps/{stem}_{n}{suffix}"
+            stored[name] = source
+
+    def mesh_metres(self, positions: np.ndarray) -> np.ndarray:
+        return positions * (self.units if self.mesh_units is None else self.mesh_units)
