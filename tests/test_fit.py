@@ -81,7 +81,8 @@ def test_fit_cli_resumes_from_checkpoint(onebounce_capture, tmp_path):
 def test_unseen_texels(onebounce_capture, tmp_path):
     # Closed form: texels no camera saw keep the defaults. Adam: they take their neighbours' values (the prior).
     from gra_mi.capture.dataset import Capture
-    from gra_mi.fit.materials import DEFAULT_ALBEDO, DEFAULT_ROUGHNESS, FitConfig, MaterialFitter
+    from gra_mi.fit.maps import DEFAULT_ALBEDO, DEFAULT_ROUGHNESS
+    from gra_mi.fit.materials import FitConfig, MaterialFitter
 
     capture = Capture.load(onebounce_capture)
     capture.train_cameras = capture.train_cameras[:1]  # one camera sees only one side
@@ -273,7 +274,7 @@ def test_minibatch_fit_matches_the_full_batch_fit(onebounce_capture, tmp_path):
 def test_resample_between_levels_is_exact_on_linear_maps():
     # Bilinear upsampling reproduces a map linear in UV at every texel whose coarse neighbours are all in the atlas.
     from gra_mi.core.runtime import choose_variant
-    from gra_mi.fit.levels import resample
+    from gra_mi.fit.maps import resample
     from gra_mi.render.atlas import UVAtlas, texel_uvs
 
     choose_variant("llvm_ad_rgb")

@@ -152,7 +152,7 @@ def test_relightnet_trains_on_lightings_synthesized_from_the_olats(olat_captures
     stay out of every sum, and held-out procedural maps are a validation split of their own."""
     from gra_mi.capture.dataset import Capture
     from gra_mi.capture.reflectance import OlatIndex
-    from gra_mi.relightnet.lightings import SYNTHESIZED_SPLIT
+    from gra_mi.relightnet.data import SYNTHESIZED_SPLIT
     from gra_mi.stage.lightstage import load_calibration
 
     capture = olat_captures["path"]

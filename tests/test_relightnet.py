@@ -305,7 +305,8 @@ def test_training_views_are_held_up_to_a_quarter_of_the_memory():
 def test_the_views_eval_scores_never_choose_the_weights():
     """Selection views under the test lighting come from the training camera: the held-out cameras' test frames are
     `gra-mi eval`'s headline, so no training choice may look at them (novel views of training frames may)."""
-    from gra_mi.relightnet.train import Sample, mark_selection
+    from gra_mi.relightnet.data import Sample
+    from gra_mi.relightnet.train import mark_selection
 
     t = torch.zeros(1)
     views = [

@@ -43,7 +43,8 @@ from gra_mi.core.metrics import subject_mask
 from gra_mi.core.progress import progress
 from gra_mi.core.provenance import claim_output
 from gra_mi.core.runtime import columns
-from gra_mi.fit.levels import LevelStart, fit_levels
+from gra_mi.fit.levels import fit_levels
+from gra_mi.fit.maps import DEFAULT_ALBEDO, DEFAULT_ROUGHNESS, LevelStart
 from gra_mi.fit.optimize import Evidence
 from gra_mi.fit.prior import SurfaceGraph
 from gra_mi.fit.report import write_fit_outputs
@@ -53,8 +54,6 @@ from gra_mi.stage.scene import LightstageScene
 
 logger = logging.getLogger(__name__)
 
-DEFAULT_ALBEDO = 0.5
-DEFAULT_ROUGHNESS = 0.5
 L1_DELTA = 1e-3  # IRLS weight floor: residuals below this count as this
 ALBEDO_FILL_STRENGTH = 0.01  # texels no camera saw take their neighbours' closed-form albedo (observed ones keep theirs)
 
@@ -231,7 +230,8 @@ class MaterialFitter:
         self.ls = LightstageScene.load(capture.folder / "scene.xml")
         self.stage = self.ls.stage
         resolution = config.resolution or capture.uv_resolution
-        self.relighter = Relighter(self.ls, resolution, cache_dir=cache_dir)
+        # streamed: 4 frames' visibility held in memory, the rest read from the cache folder
+        self.relighter = Relighter(self.ls, resolution, cache_dir=cache_dir, visibility_keep=4 if config.batch_views > 0 else None)
         self.atlas = self.relighter.atlas
         self.train = [f for f in capture.frames if f.split == "train"][:: config.frame_step]
         self.train_cameras = config.cameras or capture.train_cameras
@@ -244,8 +244,6 @@ class MaterialFitter:
         self._loops: dict = {}  # (frame, camera) → TexelLedLoop of the view's observed texels (streamed: the last)
         self.streamed = config.batch_views > 0
         self.store = ViewStore()  # :meth:`fit` puts it on disk when streamed
-        if self.streamed:
-            self.relighter.cache.keep = 4  # frames' visibility held in memory; the rest is read from the cache folder
 
     # ----------------------------------------------------------------------------------------------------------
 
@@ -525,8 +523,8 @@ def run_fit(capture_dir: str | Path, out: str | Path, config: FitConfig, overwri
     ensure_mitsuba()
     out = claim_output(out, "fit", {"capture": capture_dir}, config, overwrite=overwrite)
     if config.levels:
-        fitter, result = fit_levels(capture, config, out)
+        fitter, result = fit_levels(capture, config, out, MaterialFitter)
     else:
         fitter = MaterialFitter(capture, config, cache_dir=out / "cache")
         result = fitter.fit(out)
-    return result, write_fit_outputs(fitter, result, out)
+    return result, write_fit_outputs(fitter, result, out, config)  # the fit as asked for, levels included

@@ -48,7 +48,7 @@ def _true_maps(fitter):
     region = gt / "cloth.exr" if (gt / "cloth.exr").is_file() else gt / "sheen.exr"
     cloth = read_exr(region)[..., :1] if region.is_file() else np.zeros_like(true_rough)
     if true_albedo.shape[0] != atlas.resolution:  # fitted at another resolution: the truth resampled onto its texels
-        from gra_mi.fit.levels import resample
+        from gra_mi.fit.maps import resample
         from gra_mi.render.atlas import UVAtlas
 
         seq = fitter.ls.sequence
@@ -168,12 +168,12 @@ def _table(ours: dict, baseline: dict, counts: dict) -> list[str]:
     return lines
 
 
-def write_fit_outputs(fitter, result, out: Path) -> Path:
+def write_fit_outputs(fitter, result, out: Path, config) -> Path:
     """Everything a fit folder holds besides its checkpoints: the maps, the confidence map, plots, fit.json (the
     record) and fit_report.md (rendered from it); returns the report's path."""
     out.mkdir(parents=True, exist_ok=True)
     _write_maps(fitter.atlas, result, out)
-    record = fit_record(fitter, result, out)
+    record = fit_record(fitter, result, out, config)
     _plot_convergence(result, record["map_curve"], out / "convergence.png")
     if _true_maps(fitter) is not None:
         _plot_maps_vs_truth(fitter, result, out / "maps_vs_truth.png")
@@ -195,7 +195,7 @@ def _write_maps(atlas, result, out: Path) -> None:
         write_png(out / "confidence.png", atlas.scatter(preview.astype(np.float32)))
 
 
-def fit_record(fitter, result, out: Path) -> dict:
+def fit_record(fitter, result, out: Path, config) -> dict:
     """fit.json: the maps against the truth (and the constant baseline), relighting the held-out lighting, the
     convergence, and what the views said about the texels."""
     ours, baseline, counts = score_maps(fitter, result)
@@ -210,7 +210,7 @@ def fit_record(fitter, result, out: Path) -> dict:
     ev = result.evidence
     seen = None if ev is None else ev.views > 0
     return {
-        "config": asdict(fitter.config),
+        "config": asdict(config),
         "metrics": dict(ours.get("all", {})),
         "regions": ours,
         "baseline": baseline,

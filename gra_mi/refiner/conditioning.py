@@ -4,14 +4,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import torch
 
 from gra_mi.refiner.config import TEMPORAL_FACTOR
-
-if TYPE_CHECKING:
-    from gra_mi.refiner.model import VideoRefiner
 
 
 @dataclass(frozen=True)
@@ -39,14 +35,6 @@ def seed_mask(frames: int, height: int, width: int, seeded: int) -> torch.Tensor
     mask = torch.ones(1, 1, frames, height, width)
     mask[:, :, :seeded] = 0
     return mask
-
-
-def conditioning(
-    model: VideoRefiner, coarse: torch.Tensor, mask: torch.Tensor, reference: torch.Tensor, env: torch.Tensor, reference_env: torch.Tensor
-):
-    """(control, env latents before the MLP) for one window; batch of 1. Videos (3, T, H, W) in [-1, 1]."""
-    control = model.control(coarse[None], mask, reference[None])
-    return control, model.env_latents(env[None], reference_env[None])
 
 
 def latent_frames(pixel_frames: int) -> int:

@@ -33,7 +33,7 @@ from gra_mi.core.metrics import display_psnr
 from gra_mi.core.progress import progress
 from gra_mi.core.provenance import claim_output
 from gra_mi.core.runtime import torch_device
-from gra_mi.refiner.conditioning import conditioning, latent_frames, seed_mask
+from gra_mi.refiner.conditioning import latent_frames, seed_mask
 from gra_mi.refiner.data import RefinerDataset, video_to_image
 from gra_mi.refiner.deflicker import DeflickerConfig, deflicker_frame
 from gra_mi.refiner.flow import euler_sample
@@ -143,8 +143,8 @@ def rollout(
             coarse = torch.cat([carried, coarse[:, carry:]], dim=1)
             seeded = carry
         _, t, h, w = coarse.shape
-        control, env_latents = conditioning(
-            model, coarse, seed_mask(t, h, w, seeded).to(model.device), win["reference"], win["env"], win["reference_env"]
+        control, env_latents = model.conditioning(
+            coarse, seed_mask(t, h, w, seeded).to(model.device), win["reference"], win["env"], win["reference_env"]
         )
         env = model.env_tokens(env_latents)
         # The inactive latents of the seed frames are their encoding alone (the VAE is causal in time).

@@ -265,6 +265,12 @@ class VideoRefiner(nn.Module):
             latents = torch.cat([self.encode(reference_env[:, :, None]), latents], dim=2)
         return latents
 
+    def conditioning(
+        self, coarse: torch.Tensor, mask: torch.Tensor, reference: torch.Tensor, env: torch.Tensor, reference_env: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """(control, env latents before the MLP) for one window; batch of 1. Videos (3, T, H, W) in [-1, 1]."""
+        return self.control(coarse[None], mask, reference[None]), self.env_latents(env[None], reference_env[None])
+
     def env_tokens(self, env_latents: torch.Tensor) -> torch.Tensor:
         """(B, 16, F', h, w) envmap latents → (B, F', h·w, D): one token per latent pixel, through the shared MLP.
 

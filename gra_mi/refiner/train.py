@@ -32,7 +32,7 @@ from gra_mi.core.errors import GraMiInputError, require_positive, require_seed
 from gra_mi.core.io import atomic_write_text
 from gra_mi.core.runtime import torch_device
 from gra_mi.core.training import TrainingLoop, write_training_log
-from gra_mi.refiner.conditioning import conditioning, latent_frames, seed_mask
+from gra_mi.refiner.conditioning import latent_frames, seed_mask
 from gra_mi.refiner.config import RefinerConfig
 from gra_mi.refiner.data import RefinerDataset
 from gra_mi.refiner.flow import noisy_latent, recycling_residuals, sampling_sigmas, shift_sigma, velocity_target
@@ -189,8 +189,8 @@ def encode_window(model: VideoRefiner, window: dict, seeded: int) -> Encoded:
     if seeded:
         coarse = torch.cat([window["target"][:, :seeded], coarse[:, seeded:]], dim=1)
     _, t, h, w = coarse.shape
-    control, env_latents = conditioning(
-        model, coarse, seed_mask(t, h, w, seeded), window["reference"], window["env"], window["reference_env"]
+    control, env_latents = model.conditioning(
+        coarse, seed_mask(t, h, w, seeded), window["reference"], window["env"], window["reference_env"]
     )
     clean = torch.cat([model.encode(window["reference"][None, :, None]), model.encode(window["target"][None])], dim=2)
     return Encoded(clean, control, env_latents, 1 + latent_frames(seeded))

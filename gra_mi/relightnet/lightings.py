@@ -21,13 +21,13 @@ import numpy as np
 from gra_mi.capture.reflectance import OlatIndex, ReflectanceField, static_pose
 from gra_mi.core.io import atomic_path
 from gra_mi.core.progress import progress
+from gra_mi.relightnet.data import SYNTHESIZED_SPLIT, Sample
 from gra_mi.render.bridge import camera_uv_grid, to_torch
 from gra_mi.stage.envmap import envmap_to_leds
 from gra_mi.stage.envmap_library import SPLIT_SEED_BASE, envmap_from_seed
 
 logger = logging.getLogger(__name__)
 
-SYNTHESIZED_SPLIT = "novel lighting (envmap, truth from OLATs)"
 LIBRARY_HEIGHT = 32  # rows of each procedural map before the LED mapping (331 LEDs resolve no finer)
 
 
@@ -83,7 +83,6 @@ class SynthesizedViews:
 
     def view(self, k: int, camera: str):
         from gra_mi.relightnet.infer import view_inputs
-        from gra_mi.relightnet.train import Sample
 
         pose = static_pose(self.capture)
         intensities = self.drives[k]

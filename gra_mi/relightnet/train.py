@@ -30,8 +30,9 @@ from gra_mi.core.limits import DRIVE_BYTES, require_memory
 from gra_mi.core.progress import progress
 from gra_mi.core.runtime import torch_device
 from gra_mi.core.training import TrainingLoop, write_training_log
+from gra_mi.relightnet.data import HELD_OUT, TEST_LIGHTING, Sample, stack
 from gra_mi.relightnet.infer import view_inputs
-from gra_mi.relightnet.lightings import SYNTHESIZED_SPLIT, TrainingViews, synthesized_views
+from gra_mi.relightnet.lightings import TrainingViews, synthesized_views
 from gra_mi.relightnet.model import RelightNet, RelightNetConfig, exposure
 from gra_mi.render.bridge import camera_uv_grid, sample_texture, to_torch
 from gra_mi.render.runtime import ensure_mitsuba
@@ -120,27 +121,6 @@ class TrainConfig:
         return self.lr * (0.05 + 0.95 * 0.5 * (1 + np.cos(np.pi * min(t, 1.0))))
 
 
-@dataclass
-class Sample:
-    name: str
-    split: str  # "train", "novel view", "novel lighting (envmap)" or "novel lighting (OLAT)"
-    features: torch.Tensor  # (1, 15, R, R)
-    mask: torch.Tensor  # (1, 1, R, R)
-    env: torch.Tensor  # (1, 3, h, 2h)
-    grid: torch.Tensor  # (1, H, W, 2)
-    pixels: torch.Tensor  # (1, 1, H, W) subject pixels in both the render and the capture
-    target: torch.Tensor  # (1, 3, H, W)
-    selection: bool = False  # one of the held-out views that choose the weights (reported apart)
-
-    @property
-    def camera(self) -> str:
-        return self.name.split("/")[0]
-
-
-HELD_OUT = ("novel view", "novel lighting (envmap)", "novel lighting (OLAT)", SYNTHESIZED_SPLIT)
-TEST_LIGHTING = ("novel lighting (envmap)", "novel lighting (OLAT)")  # the capture's test frames: what eval scores
-
-
 def held_training_bytes() -> int:
     """Training views are held in memory up to a quarter of the machine's memory (at least 2 GiB); above it they are
     made when drawn (a UV render each time)."""
@@ -204,12 +184,6 @@ def mark_selection(samples: list[Sample], per_split: int, scored_cameras: tuple[
         count = min(per_split, max(1, len(views) // 2))
         for k in np.unique(np.linspace(0, len(views) - 1, count).round().astype(int)) if views else []:
             views[k].selection = True
-
-
-def stack(samples: list[Sample]) -> Sample:
-    """A batch of views as one Sample (every view of a capture has the same UV and image size)."""
-    cat = lambda name: torch.cat([getattr(s, name) for s in samples])  # noqa: E731
-    return Sample("batch", "train", *(cat(n) for n in ("features", "mask", "env", "grid", "pixels", "target")))
 
 
 LOSS_ENCODINGS = ("display", "linear")

@@ -64,6 +64,7 @@ class Relighter:
         roughness: np.ndarray | None = None,
         far_field: bool = False,
         cache_dir: str | Path | None = None,
+        visibility_keep: int | None = None,
     ):
         self.ls = ls
         if albedo is not None:
@@ -84,7 +85,7 @@ class Relighter:
         self.albedo = self.atlas.gather(albedo)
         self.roughness = self.atlas.gather(roughness)[:, 0]
         self.far_field = far_field
-        self.cache = VisibilityCache(cache_dir)
+        self.cache = VisibilityCache(cache_dir, keep=visibility_keep)
         self._geometry: dict[int, TexelGeometry] = {}
         self._point_light_vis: dict[tuple, object] = {}
         self.job_cameras = None  # :meth:`only_for`
