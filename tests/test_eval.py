@@ -568,7 +568,8 @@ def test_refiner_data_shards_write_what_one_process_writes(tiny_run, tmp_path):
 def test_a_stage_that_delivers_its_input_is_marked_as_such():
     # The refiner at mix 0 and flicker correction of a steady video deliver their input: the headline table says so
     # in the row and in a note, instead of showing the input's numbers as the stage's own result.
-    from gra_mi.eval.protocol import UNCHANGED, eval_table, same_frames
+    from gra_mi.eval.protocol import same_frames
+    from gra_mi.eval.report import UNCHANGED, eval_table
 
     rng = np.random.default_rng(0)
     frames = [rng.uniform(0.1, 1.0, (8, 8, 4)).astype(np.float32) for _ in range(3)]

@@ -9,7 +9,7 @@ import math
 
 from gra_mi.core.stamp import stamp_said
 from gra_mi.eval.lighting import accuracy_table
-from gra_mi.eval.protocol import eval_table, protocol_said
+from gra_mi.eval.report import eval_table, protocol_said
 
 NAN = float("nan")
 

@@ -23,12 +23,9 @@ platform with the subject's shadow).
 
 from __future__ import annotations
 
-import csv
-import io
 import json
 import logging
 import time
-from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -39,27 +36,22 @@ from gra_mi.core.color import display_exposure, to_display
 from gra_mi.core.config import option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.guard import names_of
-from gra_mi.core.io import atomic_write_text, pyplot, read_exr, read_json, save_figure, write_mp4
+from gra_mi.core.io import atomic_write_text, read_exr, read_json
 from gra_mi.core.limits import DRIVE_BYTES, require_memory
-from gra_mi.core.metrics import compare, flip, flip_map, subject_mask, temporal_error
+from gra_mi.core.metrics import compare, flip, subject_mask, temporal_error
 from gra_mi.core.progress import progress
 from gra_mi.core.runtime import torch_device
+from gra_mi.eval.media import contact_sheet, write_videos
 from gra_mi.eval.reflectance import TRUTH
+from gra_mi.eval.report import STAGES, UNCHANGED, eval_csv, eval_markdown
 from gra_mi.refiner.config import RefinerConfig
-from gra_mi.render.composite import PLATFORM_FLAGS, PlatformCompositor, PlatformConfig
+from gra_mi.render.composite import PLATFORM_FLAGS, PlatformConfig
 from gra_mi.render.runtime import ensure_mitsuba
-from gra_mi.stage.envmap import EnvmapOptions, envmap_to_leds, load_envmap
+from gra_mi.stage.envmap import EnvmapOptions
 
 logger = logging.getLogger(__name__)
 
 FRAME_SELECTIONS = ("every10", "window-middles", "all")
-STAGES = ("microfacet", "RelightNet", "refined", "deflickered")
-STAGE_TITLES = {
-    "microfacet": "microfacet (fitted maps)",
-    "RelightNet": "+ RelightNet",
-    "refined": "+ video refiner",
-    "deflickered": "+ flicker correction",
-}
 
 
 @dataclass
@@ -273,7 +265,7 @@ def evaluate(inputs: EvalInputs, out: str | Path, config: EvalConfig | None = No
     _settle(status.results, splits, videos, frames_of.seconds)
     if i3d is not None:
         _fvd(i3d, status.results, videos)
-    composited = _write_videos(out / "videos", videos, splits, capture, relighter, scale, config)
+    composited = write_videos(out / "videos", videos, splits, capture, relighter, scale, config.platform if config.composite else None)
     report = {
         "protocol": _protocol(config, scale, splits, capture, videos)
         | {"lpips": lpips_model is not None, "fvd": i3d is not None, "composited": composited},
@@ -430,7 +422,7 @@ def _score_split(split: Split, frames: dict, results: dict, config: EvalConfig, 
             row["unchanged_from"] = previous  # the stage delivered its input: its numbers are not its own result
         results[stage].splits[split.name] = row
         previous = stage
-    _contact_sheet(out / f"contact_{split.name}.png", frames, truths, masks, exposure, scored, split.name)
+    contact_sheet(out / f"contact_{split.name}.png", frames, truths, masks, exposure, scored, split.name)
     heights = [subject_height(masks[f]) for f in scored]
     return {
         "frames": frames,
@@ -444,9 +436,6 @@ def subject_height(mask: np.ndarray) -> int:
     """How many pixel rows the subject spans (0 without a subject)."""
     rows = np.flatnonzero(np.asarray(mask).any(axis=1))
     return int(rows[-1] - rows[0] + 1) if rows.size else 0
-
-
-UNCHANGED = 1e-3  # a stage whose frames differ from its input's by less (relative mean |Δ|) delivered its input
 
 
 def same_frames(frames: list[np.ndarray], inputs: list[np.ndarray]) -> bool:
@@ -562,37 +551,6 @@ def _fvd(i3d, results: dict[str, StageResult], videos: dict) -> None:
             results[stage].fvd_clips = len(real)
 
 
-def _contact_sheet(path: Path, frames: dict, truths, masks, exposure: float, scored: list[int], split: str) -> None:
-    """Truth and each stage at the middle scored frame, their ꟻLIP maps below."""
-
-    i = scored[len(scored) // 2]
-    stages = [s for s in STAGES if s in frames]
-    ys, xs = np.nonzero(masks[i])
-    pad = 4
-    box = (
-        (slice(max(ys.min() - pad, 0), ys.max() + pad + 1), slice(max(xs.min() - pad, 0), xs.max() + pad + 1))
-        if ys.size
-        else (slice(None), slice(None))
-    )
-    plt = pyplot()
-    fig, axes = plt.subplots(2, 1 + len(stages), figsize=(1.9 * (1 + len(stages)), 5.2), squeeze=False)
-    axes[0, 0].imshow(to_display(truths[i], exposure)[box])
-    axes[0, 0].set_title("truth", fontsize=8)
-    axes[1, 0].imshow(masks[i][box], cmap="gray")
-    axes[1, 0].set_title("mask (truth α ≥ 0.5)", fontsize=8)
-    for k, stage in enumerate(stages, start=1):
-        axes[0, k].imshow(to_display(frames[stage][i], exposure)[box])
-        axes[0, k].set_title(STAGE_TITLES[stage], fontsize=8)
-        error = np.where(masks[i], flip_map(frames[stage][i], truths[i], exposure), 0.0)
-        axes[1, k].imshow(error[box], cmap="magma", vmin=0, vmax=1)
-        axes[1, k].set_title(f"ꟻLIP (mean {error[masks[i]].mean():.3f})", fontsize=8)
-    for ax in axes.ravel():
-        ax.axis("off")
-    fig.suptitle(f"{split}, frame {i}", fontsize=9)
-    fig.tight_layout()
-    save_figure(fig, path)
-
-
 def _lighting_said(capture, split: Split) -> str:
     """The held-out lighting of a split in words: its envmaps' names, or 'LED pattern'."""
     if split.lights:
@@ -600,221 +558,3 @@ def _lighting_said(capture, split: Split) -> str:
     entries = {f.frame: f for f in capture.frames}
     names = dict.fromkeys(Path(entries[f].envmap).stem if entries[f].envmap else "LED pattern" for f in split.capture_frames)
     return ", ".join(names)
-
-
-def _write_videos(folder: Path, videos: dict, splits: list[Split], capture, relighter, scale: float, config: EvalConfig) -> list[str]:
-    """Truth | each stage side by side per split; with ``config.composite`` also over the environment on a platform.
-    Returns the splits that were composited (environment lighting only)."""
-    composited = []
-
-    fps = 12.0
-    for split in splits:
-        video = videos[split.name]
-        frames, exposure = video["frames"], video["exposure"]
-        order = ["truth"] + [s for s in STAGES if s in frames]
-        panels = [np.concatenate([frames[s][i][..., :3] for s in order], axis=1) for i in range(len(frames["truth"]))]
-        write_mp4(folder / f"{split.name}.mp4", panels, fps=fps, exposure=exposure)
-        if not config.composite or relighter is None:
-            continue
-
-        stage = relighter.ls.stage
-        entries = {f.frame: f for f in capture.frames}
-        if split.lights:
-            logger.warning("%s: no composites of reflectance-field splits (their maps are not capture frames), skipped", split.name)
-            continue
-        if any(entries[f].kind != "envmap" for f in split.capture_frames):
-            logger.warning("%s: composites need environment lighting; this sequence has LED patterns, skipped", split.name)
-            continue
-        cam = stage.camera(split.camera).resized(scale)
-        compositor = PlatformCompositor(relighter.ls.sequence, config.platform)
-        envmaps = {e: load_envmap(capture.folder / e) for e in {entries[f].envmap for f in split.capture_frames}}
-        composites = []
-        for i, f in progress(list(enumerate(split.capture_frames)), description=f"composites {split.name}"):
-            env = envmaps[entries[f].envmap]
-            scale_env = envmap_to_leds(env, stage).scale
-            # stages without an alpha of their own (the refiner's frames) are shown where the geometry covers
-            covered = (video["coverage"][i][..., 3:4] if video["coverage"] is not None else frames["truth"][i][..., 3:4]) > 0
-            row = [
-                compositor(frames[s][i][..., :3] * covered, entries[f].mesh_frame, cam, env, scale_env, entries[f].envmap) for s in order
-            ]
-            composites.append(np.concatenate(row, axis=1))
-        write_mp4(folder / f"{split.name}_composite.mp4", composites, fps=fps, exposure=exposure)
-        composited.append(split.name)
-    return composited
-
-
-# --------------------------------------------------------------------------------------------------------------
-# The table
-# --------------------------------------------------------------------------------------------------------------
-
-METRICS: list[tuple[str, str, Callable[[float], str]]] = [
-    ("psnr", "PSNR ↑", lambda v: f"{v:.2f}"),
-    ("ssim", "SSIM ↑", lambda v: f"{v:.3f}"),
-    ("flip", "ꟻLIP ↓", lambda v: f"{v:.3f}"),
-    ("lpips", "LPIPS ↓", lambda v: f"{v:.3f}"),
-    ("temporal", "temporal ↓", lambda v: f"{100 * v:.2f}"),
-]
-
-
-def _metrics(report: dict) -> list[tuple[str, str, Callable]]:
-    return [m for m in METRICS if m[0] != "lpips" or report["protocol"]["lpips"]]
-
-
-WIDE_SPLITS = 2  # more splits than this: one column group of their means, and a per-split table below
-
-
-def _split_means(stages: dict, splits: list[str]) -> dict:
-    """Each stage's metrics averaged over the splits, for stages scored on all of them."""
-    means = {}
-    for stage, result in stages.items():
-        scored = [result["splits"].get(s) for s in splits]
-        if all(m and "skipped" not in m for m in scored):
-            numbers = [k for k, v in scored[0].items() if isinstance(v, int | float)]
-            means[stage] = {k: float(np.mean([m[k] for m in scored])) for k in numbers}
-            if _unchanged(result):
-                means[stage]["unchanged_from"] = _unchanged(result)
-    return means
-
-
-def eval_table(report: dict) -> tuple[list[str], list[str]]:
-    """The Table-2-like Markdown table (rows: stages; columns: metrics × splits, FVD, time; with more than
-    ``WIDE_SPLITS`` splits, metrics × their mean, then one row per stage and split) and the notes on what was skipped
-    and why."""
-    protocol, stages = report["protocol"], report["stages"]
-    splits, metrics = list(protocol["splits"]), _metrics(report)
-    notes = []
-    for stage, result in stages.items():
-        for split in splits:
-            scored = result["splits"].get(split)
-            if scored and "skipped" in scored:
-                notes.append(f"- {STAGE_TITLES[stage]}, {split}: skipped: {scored['skipped']}")
-            elif scored is None and result["status"] == "done":
-                notes.append(f"- {STAGE_TITLES[stage]}, {split}: no output for this sequence")
-        if result["status"] != "done":
-            notes.append(f"- {STAGE_TITLES[stage]}: {result['status']}")
-        if _unchanged(result):
-            notes.append(
-                f"- {STAGE_TITLES[stage]}: delivered its input ({STAGE_TITLES[_unchanged(result)]}) unchanged on every split "
-                f"(mean difference below {UNCHANGED:.1%}): its row repeats its input's numbers"
-                + (" (the refiner's mix is 0: refine.json)" if stage == "refined" else "")
-            )
-    notes += [f"- problem: {p}" for p in report["problems"]]
-    if len(splits) <= WIDE_SPLITS:
-        return _wide_table(stages, splits, metrics, protocol["fvd"]), notes
-    label = f"mean of {len(splits)} splits"
-    means = _split_means(stages, splits)
-    table = _wide_table(
-        {s: {**r, "splits": {label: means[s]} if s in means else {}} for s, r in stages.items()}, [label], metrics, protocol["fvd"]
-    )
-    table += ["", "| stage | split | " + " | ".join(label for _, label, _ in metrics) + " |", "|---|---|" + "---|" * len(metrics)]
-    for stage, result in stages.items():
-        for split in splits:
-            m = result["splits"].get(split)
-            if m and "skipped" not in m:
-                table.append(f"| {STAGE_TITLES[stage]} | {split} | " + " | ".join(_cell(m, k, fmt) for k, _, fmt in metrics) + " |")
-    return table, notes
-
-
-def _unchanged(result: dict) -> str | None:
-    """The stage whose frames this one delivered unchanged on every scored split, or None."""
-    sources = {m.get("unchanged_from") for m in result["splits"].values() if "skipped" not in m}
-    return next(iter(sources)) if len(sources) == 1 and None not in sources else None
-
-
-def _title(stage: str, result: dict) -> str:
-    return STAGE_TITLES[stage] + (" (= its input, unchanged)" if _unchanged(result) else "")
-
-
-def _cell(scored: dict | None, key: str, fmt: Callable[[float], str]) -> str:
-    return fmt(scored[key]) if scored and key in scored and np.isfinite(scored[key]) else "–"
-
-
-def _wide_table(stages: dict, splits: list[str], metrics, fvd: bool) -> list[str]:
-    header = ["stage"] + [f"{split} {label}" if k == 0 else label for split in splits for k, (_, label, _) in enumerate(metrics)]
-    header += ["FVD ↓"] if fvd else []
-    header.append("s / frame")
-    lines = ["| " + " | ".join(header) + " |", "|---" * len(header) + "|"]
-    for stage, result in stages.items():
-        cells = [_title(stage, result)] + [_cell(result["splits"].get(split), key, fmt) for split in splits for key, _, fmt in metrics]
-        if fvd:
-            cells.append(f"{result['fvd']:.1f} ({result['fvd_clips']} clips)" if result.get("fvd") is not None else "–")
-        cells.append(f"{result['seconds_per_frame']:.2f}" if result.get("seconds_per_frame") else "–")
-        lines.append("| " + " | ".join(cells) + " |")
-    return lines
-
-
-def protocol_said(report: dict) -> str:
-    """One paragraph: what was scored, how, at which size."""
-    protocol = report["protocol"]
-    scored = next(iter(protocol["splits"].values()))
-    frames = (
-        f"{_frames_said(protocol['frames'])} ({scored['frames']} frames per sequence, {len(scored['scored'])} scored)"
-        if not all(s.get("lighting_set") for s in protocol["splits"].values())
-        else "every lighting of each held-out set (a static pose: "
-        + "–".join(
-            str(n)
-            for n in sorted({min(s["frames"] for s in protocol["splits"].values()), max(s["frames"] for s in protocol["splits"].values())})
-        )
-        + " lightings per split)"
-    )
-    tall = [s["subject_pixels"] for s in protocol["splits"].values() if "subject_pixels" in s]
-    least, most = (min(t[0] for t in tall), max(t[1] for t in tall)) if tall else (0, 0)
-    tall_said = f", the subject {least}–{most} pixels tall" if least < most else f", the subject {most} pixels tall" if tall else ""
-    return (
-        f"Held-out cameras under the held-out lighting, at {protocol['resolution'][0]}×{protocol['resolution'][1]} "
-        f"(capture images × {protocol['scale']:.3g}{tall_said}). Per-frame metrics on {frames}; the temporal error on every consecutive pair"
-        + ("; FVD on all 17-frame clips" if protocol["fvd"] else "")
-        + ". One mask per frame for every stage: the truth's alpha ≥ 0.5. PSNR, SSIM, ꟻLIP"
-        + (", LPIPS" if protocol["lpips"] else "")
-        + " on display values at the truth's exposure; temporal: mean |Δframe − Δtruth| in % of the display range "
-        "(docs/evaluation.md). s / frame: render time (the microfacet render includes each frame's visibility trace, "
-        "which RelightNet then reuses), the refiner's rollout."
-    )
-
-
-def eval_markdown(report: dict) -> str:
-    protocol = report["protocol"]
-    lines, notes = eval_table(report)
-    text = ["# Evaluation: every stage against the truth", "", protocol_said(report), "", *lines, ""]
-    if notes:
-        text += ["Skipped, and why:", "", *notes, ""]
-    if not protocol["lpips"]:
-        text.append("LPIPS: not measured (give `--lpips-weights`). ")
-    if not protocol["fvd"]:
-        text.append("FVD: not measured (give `--i3d-weights`).")
-    text.append("")
-    for s, about in protocol["splits"].items():
-        text.append(f"- {s}: camera {about['camera']}, lighting {about['lighting']}, {about['frames']} frames, truth {about['truth']}")
-    text.append("")
-    for s in protocol["splits"]:
-        videos = f"[videos/{s}.mp4](videos/{s}.mp4)"
-        if s in protocol.get("composited", []):
-            videos += f", over the environment on a platform: [videos/{s}_composite.mp4](videos/{s}_composite.mp4)"
-        text.append(f"{s}: truth | each stage, ꟻLIP below: ![contact sheet](contact_{s}.png) · side by side: {videos}")
-    return "\n".join(text) + "\n"
-
-
-def _frames_said(how: str) -> str:
-    return {
-        "every10": "every 10th frame (the paper's protocol)",
-        "window-middles": "the middle frame of each 17-frame refiner window",
-        "all": "every frame",
-    }[how]
-
-
-def eval_csv(report: dict) -> str:
-    buffer = io.StringIO()
-    writer = csv.writer(buffer)
-    writer.writerow(
-        ["stage", "split", "status", "psnr", "ssim", "brightness", "flip", "lpips", "temporal", "frames_scored", "fvd", "seconds_per_frame"]
-    )
-    for stage, result in report["stages"].items():
-        if not result["splits"]:
-            writer.writerow([stage, "", result["status"]] + [""] * 9)
-        for split, m in result["splits"].items():
-            writer.writerow(
-                [stage, split, m.get("skipped", result["status"])]
-                + [m.get(k, "") for k in ("psnr", "ssim", "brightness", "flip", "lpips", "temporal", "frames_scored")]
-                + [result.get("fvd") or "", result.get("seconds_per_frame") or ""]
-            )
-    return buffer.getvalue()
