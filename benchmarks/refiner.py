@@ -27,8 +27,9 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from gra_mi.refiner.config import RefinerConfig
-from gra_mi.refiner.data import RefinerDataset, synthetic_dataset
+from gra_mi.refiner.dataset import RefinerDataset
 from gra_mi.refiner.model import VideoRefiner, parameter_counts
+from gra_mi.refiner.synthetic import synthetic_dataset
 from gra_mi.refiner.train import ErrorBank, RefinerTrainConfig, encode_window, flow_matching_loss
 
 

@@ -4,7 +4,7 @@ The refiner's tiny configuration needs a VAE that actually reconstructs (a rando
 sizes have Wan2.1's pretrained VAE. This script trains the tiny config (gra_mi.refiner.config.VAE_CONFIGS: 4× in space, 4× in time, 16 channels) as a
 plain autoencoder (MSE on the posterior mean, which is what the refiner encodes with, plus the same error after 4×
 area averaging) on 5-frame clips (two latent frames: the causal first frame and one 4-frame group) of: procedural
-textured balls under changing light (gra_mi.refiner.data.synthetic_sequence), smooth random colour fields with
+textured balls under changing light (gra_mi.refiner.synthetic.synthetic_sequence), smooth random colour fields with
 moving edges, log-encoded envmaps, and the subject crops of captures' training cameras (``--capture``, repeatable),
 cut as `gra-mi refiner-data` cuts them. It then measures the latents' per-channel mean and std, which the file
 carries in its metadata (the refiner normalises latents with them).
@@ -32,7 +32,8 @@ import torch.nn.functional as F
 
 
 def procedural_clip(rng: np.random.Generator, size: int, frames: int) -> torch.Tensor:
-    from gra_mi.refiner.data import env_to_video, image_to_video, synthetic_sequence
+    from gra_mi.refiner.dataset import env_to_video, image_to_video
+    from gra_mi.refiner.synthetic import synthetic_sequence
 
     kind = rng.choice(3, p=[0.6, 0.25, 0.15])
     if kind == 0:
@@ -63,7 +64,8 @@ def _capture_crops(folder: Path, cameras: str, frames: list[int] | None, zoom: f
     (gra_mi.refiner.data: a fixed box per camera, magnified ``zoom``× over ``scale``), linear (3, T, h, w), with the
     whole frames at ``scale`` (T, fh, fw, 4), the box and the refiner data's exposure."""
     from gra_mi.capture.dataset import Capture, load_observation
-    from gra_mi.refiner.data import crop_box, subject_boxes
+    from gra_mi.refiner.data import subject_boxes
+    from gra_mi.refiner.dataset import crop_box
 
     capture = Capture.load(folder)
     names = capture.train_cameras if cameras == "train" else capture.eval_cameras
@@ -82,7 +84,7 @@ def _capture_crops(folder: Path, cameras: str, frames: list[int] | None, zoom: f
 
 def capture_clips(folder: Path, zoom: float) -> list[torch.Tensor]:
     """The training cameras' subject crops as videos in [-1, 1] (the held-out cameras are kept for scoring)."""
-    from gra_mi.refiner.data import image_to_video
+    from gra_mi.refiner.dataset import image_to_video
 
     return [image_to_video(crop, exposure) for crop, _, _, exposure in _capture_crops(folder, "train", None, zoom)]
 
@@ -100,7 +102,7 @@ def round_trip_scores(vae, videos) -> tuple[float, float]:
     """Mean display PSNR over the subject and mean temporal error of encode + decode on the held-out videos, in the
     delivered frames (the crop's change put back, as `gra-mi refine` does)."""
     from gra_mi.core.metrics import compare, temporal_error
-    from gra_mi.refiner.data import image_to_video, paste_box, video_to_image
+    from gra_mi.refiner.dataset import image_to_video, paste_box, video_to_image
 
     psnrs, temporals = [], []
     for crop, whole, box, exposure in videos:

@@ -43,9 +43,9 @@ def main() -> None:
     require_positive({f"sequences[{i}]": n for i, n in enumerate(args.sequences)})
     from gra_mi.core.io import atomic_write_text
     from gra_mi.refiner.config import RefinerConfig
-    from gra_mi.refiner.data import synthetic_dataset
     from gra_mi.refiner.infer import refine_to_folder
     from gra_mi.refiner.model import VideoRefiner
+    from gra_mi.refiner.synthetic import synthetic_dataset
     from gra_mi.refiner.train import RefinerTrainConfig, mean_estimate_error, train_refiner
 
     rows = []

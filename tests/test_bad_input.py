@@ -231,7 +231,7 @@ def inputs(path_traced_fit, tmp_path_factory):
     (rn / "relightnet.safetensors").write_bytes(b"")
     (rn / "relightnet.safetensors").write_bytes(b"")
     # Refiner data (a tiny synthetic set) and broken copies of its dataset.json; refiner folders with a bad refiner.json
-    from gra_mi.refiner.data import synthetic_dataset
+    from gra_mi.refiner.synthetic import synthetic_dataset
 
     synthetic_dataset(root / "rd", {0: (1, 1)}, frames=5, height=16, width=16, env_height=4, test_frames=5)
     good = json.loads((root / "rd" / "dataset.json").read_text())

@@ -412,7 +412,8 @@ def tiny_run(path_traced_fit, tmp_path_factory):
 
     from gra_mi.core.io import atomic_write_text, write_exr
     from gra_mi.core.runtime import choose_variant
-    from gra_mi.refiner.data import CaptureSequencesConfig, RefinerDataset, dataset_from_capture
+    from gra_mi.refiner.data import CaptureSequencesConfig, dataset_from_capture
+    from gra_mi.refiner.dataset import RefinerDataset
     from gra_mi.refiner.deflicker import DeflickerConfig, deflicker_frame
     from gra_mi.relightnet.model import RelightNet, RelightNetConfig
 
@@ -479,7 +480,7 @@ def test_refiner_data_trains_on_relit_frames_and_passes_highlights_through(tiny_
     crop clipped at its video range's white) delivers the stored whole frame exactly, highlights above that white
     included, and so does flicker correction of a frame that needs none."""
     from gra_mi.capture.dataset import Capture
-    from gra_mi.refiner.data import RefinerDataset
+    from gra_mi.refiner.dataset import RefinerDataset
 
     data = RefinerDataset(tiny_run / "refiner" / "data")
     capture = Capture.load(tiny_run / "capture")

@@ -12,9 +12,10 @@ import torch
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.refiner.conditioning import latent_frames
 from gra_mi.refiner.config import TRANSFORMER_CONFIGS, RefinerConfig
-from gra_mi.refiner.data import RefinerDataset, env_to_video, image_to_video, synthetic_dataset, video_to_image
+from gra_mi.refiner.dataset import RefinerDataset, env_to_video, image_to_video, video_to_image
 from gra_mi.refiner.flow import noisy_latent, recycling_residuals, sampling_sigmas, velocity_target
 from gra_mi.refiner.model import AtemporalCrossAttention, VideoRefiner
+from gra_mi.refiner.synthetic import synthetic_dataset
 from gra_mi.refiner.train import ErrorBank, RefinerTrainConfig, augment, pan_zoom, train_refiner, validation_loss
 
 from .conftest import free_port, poison_optimizer_after
@@ -956,7 +957,8 @@ def test_subject_crop_goes_back_exactly():
     """A box magnified 4× lines 4 × 4 crop pixels up with one delivered pixel: a change that keeps every block mean
     (the tiny VAE's start) leaves the delivered frame as it was, to float precision; a constant change comes back
     as itself inside the box and nothing outside."""
-    from gra_mi.refiner.data import crop_box, paste_box, subject_boxes
+    from gra_mi.refiner.data import subject_boxes
+    from gra_mi.refiner.dataset import crop_box, paste_box
 
     rng = np.random.default_rng(2)
     full = rng.uniform(0, 2, (2, 64, 80, 3)).astype(np.float32)  # capture resolution

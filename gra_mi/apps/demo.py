@@ -342,7 +342,8 @@ def relit_contact_sheet(capture, relighter, test_frames, out: Path) -> None:
 
 def _refiner_stage(preset: DemoPreset, capture, out: Path, timings: dict) -> dict:
     """RelightNet renders → refiner sequences → train the tiny refiner → roll it over a held-out sequence."""
-    from gra_mi.refiner.data import CaptureSequencesConfig, RefinerDataset, dataset_from_capture
+    from gra_mi.refiner.data import CaptureSequencesConfig, dataset_from_capture
+    from gra_mi.refiner.dataset import RefinerDataset
     from gra_mi.refiner.deflicker import DeflickerConfig
     from gra_mi.refiner.infer import refine_to_folder
     from gra_mi.refiner.train import RefinerTrainConfig, train_refiner

@@ -74,7 +74,8 @@ class RefinerDataCommand(Restartable):
 
 
 def run_refiner_data(c: RefinerDataCommand) -> None:
-    from gra_mi.refiner.data import dataset_from_capture, synthetic_dataset
+    from gra_mi.refiner.data import dataset_from_capture
+    from gra_mi.refiner.synthetic import synthetic_dataset
 
     if c.synthetic:
         subjects = {s: (c.sequences, 1, 1) for s in range(c.subjects)}
@@ -140,7 +141,7 @@ class RefineCommand(Restartable):
 
 
 def run_refine(c: RefineCommand) -> None:
-    from gra_mi.refiner.data import RefinerDataset
+    from gra_mi.refiner.dataset import RefinerDataset
     from gra_mi.refiner.infer import refine_to_folder
 
     sequence = c.sequence

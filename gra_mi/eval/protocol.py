@@ -320,7 +320,7 @@ def _texture_stages(inputs: EvalInputs, capture, out: Path, status: _Status):
 
 def _video_stages(inputs: EvalInputs, status: _Status):
     """(the refiner's dataset, sequence name → refined folder); refined sequences need the dataset for their frames."""
-    from gra_mi.refiner.data import RefinerDataset
+    from gra_mi.refiner.dataset import RefinerDataset
 
     dataset = None
     try:

@@ -34,7 +34,7 @@ from gra_mi.core.progress import progress
 from gra_mi.core.provenance import claim_output
 from gra_mi.core.runtime import torch_device
 from gra_mi.refiner.conditioning import latent_frames, seed_mask
-from gra_mi.refiner.data import RefinerDataset, video_to_image
+from gra_mi.refiner.dataset import RefinerDataset, video_to_image
 from gra_mi.refiner.deflicker import DeflickerConfig, deflicker_frame
 from gra_mi.refiner.flow import euler_sample
 from gra_mi.refiner.model import VideoRefiner

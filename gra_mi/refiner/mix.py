@@ -58,7 +58,7 @@ def mix_scores(model, dataset, sequences: list[str], steps: int, shift: float, s
     """Refine the first window of each sequence once (mix 1), and score input + s·(refined − input) for every s
     against the ground truth: the delivered frames' display PSNR and ꟻLIP, and the temporal error, each averaged over
     the sequences. One window has no hand-off, so the blend is exactly what ``rollout(mix=s)`` delivers."""
-    from gra_mi.refiner.data import video_to_image
+    from gra_mi.refiner.dataset import video_to_image
     from gra_mi.refiner.infer import _subject, rollout
 
     if not sequences:

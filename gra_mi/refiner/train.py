@@ -34,7 +34,7 @@ from gra_mi.core.runtime import torch_device
 from gra_mi.core.training import TrainingLoop, write_training_log
 from gra_mi.refiner.conditioning import latent_frames, seed_mask
 from gra_mi.refiner.config import RefinerConfig
-from gra_mi.refiner.data import RefinerDataset
+from gra_mi.refiner.dataset import RefinerDataset
 from gra_mi.refiner.flow import noisy_latent, recycling_residuals, sampling_sigmas, shift_sigma, velocity_target
 from gra_mi.refiner.mix import PSNR_BUDGET, choose_mix, mix_scores, write_mix_report
 from gra_mi.refiner.model import VideoRefiner, parameter_counts
