@@ -127,7 +127,7 @@ def clean_truth_scores(capture) -> tuple[float, float]:
     against the capture's own image, on NOISE_FRAMES held-out OLATs from the first held-out camera: the most any
     relight can score against a truth with this much noise."""
     from gra_mi.capture.dataset import load_observation
-    from gra_mi.capture.synthetic import ground_truth_renderers
+    from gra_mi.capture.truth import ground_truth_renderers
     from gra_mi.core.metrics import compare, subject_mask
     from gra_mi.stage.scene import LightstageScene
 

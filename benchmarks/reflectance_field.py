@@ -35,7 +35,7 @@ def agreement(capture, cameras: list[str]) -> list[dict]:
     """Per combined lighting (every non-OLAT frame) and camera: Σ OLAT vs direct, direct vs a re-render, Σ vs far field."""
     from gra_mi.capture.dataset import load_observation
     from gra_mi.capture.reflectance import OlatIndex, ReflectanceField
-    from gra_mi.capture.synthetic import GroundTruthRenderer, render_envmap_truth
+    from gra_mi.capture.truth import GroundTruthRenderer, render_envmap_truth
     from gra_mi.capture.wrinkles import pose_capture_wrinkles
     from gra_mi.stage.envmap import envmap_to_leds, load_envmap
     from gra_mi.stage.lightstage import load_calibration

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from gra_mi.capture.dataset import Capture
-from gra_mi.capture.synthetic import PRESETS, CaptureConfig, GroundTruthRenderer, _schedule, generate_capture
+from gra_mi.capture.synthetic import PRESETS, CaptureConfig, _schedule, generate_capture
+from gra_mi.capture.truth import GroundTruthRenderer
 from gra_mi.core.metrics import relative_rmse
 from gra_mi.stage import scene_keys as keys
 from tests.conftest import SCENES
@@ -56,7 +57,7 @@ def test_noise_against_a_reference_of_4x_the_samples_is_the_images_own(llvm_vari
     variance) divided out, it agrees with the figure against 64× the samples (whose own noise moves it < 1 %); left
     in, it would read 12 % high. Averaged over three images (one image's figure scatters by ±10 % on this tiny scene
     with a sun)."""
-    from gra_mi.capture.synthetic import own_noise
+    from gra_mi.capture.truth import own_noise
 
     ls, _ = _lit_tiny_scene()
     renderer = GroundTruthRenderer(spp=4, indirect_spp=4)

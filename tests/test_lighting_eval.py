@@ -89,7 +89,7 @@ def test_envmap_truth_has_the_captures_wrinkles_and_writes_nothing_into_it(path_
     import mitsuba as mi
 
     from gra_mi.capture.dataset import Capture
-    from gra_mi.capture.synthetic import load_envmap_truth
+    from gra_mi.capture.truth import load_envmap_truth
     from gra_mi.capture.wrinkles import REST_SLOPE, capture_wrinkles, pose_wrinkles
     from gra_mi.core.io import read_exr, write_exr
     from gra_mi.stage.scene import LightstageScene

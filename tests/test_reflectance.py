@@ -308,7 +308,8 @@ def test_held_out_frames_have_their_own_sample_counts(llvm_variant):
     """olat_quick renders the frames its scores use at 4x the samples of its 4-spp training frames (never fewer than
     the training frames that --spp asks for), and the renderer of each frame follows its split."""
     from gra_mi.capture.dataset import FrameLighting
-    from gra_mi.capture.synthetic import CaptureConfig, ground_truth_renderers
+    from gra_mi.capture.synthetic import CaptureConfig
+    from gra_mi.capture.truth import ground_truth_renderers
 
     record = CaptureConfig(preset="olat_quick").record()
     assert (record["spp"], record["indirect_spp"], record["held_out_spp"], record["held_out_indirect_spp"]) == (4, 4, 16, 16)
@@ -325,7 +326,7 @@ def test_held_out_frames_have_their_own_sample_counts(llvm_variant):
 def test_an_olat_captures_noise_is_measured_on_white_an_olat_and_a_held_out_olat(olat_captures):
     """The probes of a static OLAT capture: the white frame and, of the training and of the held-out OLATs, the one
     whose LED is nearest the measuring camera (the subject lit where it looks), each measured (finite, positive)."""
-    from gra_mi.capture.synthetic import ground_truth_renderers, measure_ground_truth_noise, noise_probe_frames
+    from gra_mi.capture.truth import ground_truth_renderers, measure_ground_truth_noise, noise_probe_frames
     from gra_mi.stage.scene import LightstageScene
 
     capture = olat_captures["path"]

@@ -1,7 +1,7 @@
 """Relighting under environments against the physical truth: the lighting models side by side.
 
 The truth is the capture's subject with its true materials (sheen, wrinkles, interreflections) path-traced by
-Mitsuba under the environment itself, at infinity (:func:`gra_mi.capture.synthetic.render_envmap_truth`). Against
+Mitsuba under the environment itself, at infinity (:func:`gra_mi.capture.truth.render_envmap_truth`). Against
 it, for every map and held-out camera:
 
 - ``near field``: the fitted maps lit by the stage's LEDs where they are (how the capture was lit);
@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gra_mi.capture.synthetic import TRUTH_VERSION, render_envmap_truth
+from gra_mi.capture.truth import TRUTH_VERSION, render_envmap_truth
 from gra_mi.core.color import display_exposure
 from gra_mi.core.config import comma_list, option
 from gra_mi.core.errors import GraMiParameterError
