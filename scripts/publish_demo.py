@@ -1,6 +1,6 @@
-"""Put a demo run's headline table into the README (between its ``<!-- headline -->`` markers; ``<!-- olat-headline
--->`` for `--preset olat`) and its results section into docs/results/demo.md (olat-demo.md), stamped with the run's
-commit, preset and machine.
+"""Put a demo run's headline table into the README (between its ``<!-- headline -->`` markers; for `--preset olat`,
+into docs/guides/reflectance-fields.md between ``<!-- olat-headline -->``) and its results section into
+docs/results/demo.md (olat-demo.md), stamped with the run's commit, preset and machine.
 
     .venv/bin/python scripts/publish_demo.py outputs/demo
 """
@@ -28,10 +28,10 @@ def main(argv: list[str] | None = None) -> int:
     record = json.loads(source.read_text())
     static = "refiner" not in record  # `--preset olat`: its own block and page
     block, page = ("olat-headline", "olat-demo.md") if static else ("headline", "demo.md")
-    readme = ROOT / "README.md"
-    readme.write_text(with_block(readme.read_text(), block, headline(record)))
+    target = ROOT / ("docs/guides/reflectance-fields.md" if static else "README.md")
+    target.write_text(with_block(target.read_text(), block, headline(record)))
     (ROOT / "docs" / "results" / page).write_text(results_page(record))
-    print(f"updated {readme} ({block}) and docs/results/{page} from {source}")
+    print(f"updated {target} ({block}) and docs/results/{page} from {source}")
     return 0
 
 
