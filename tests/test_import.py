@@ -878,3 +878,24 @@ def test_a_stray_vertex_does_not_move_the_floor(olat_capture, imported, tmp_path
     stray = load_sequence(out / "subject").vertices[0]
     assert abs(np.percentile(stray[:, 1], 1) - np.percentile(load_sequence(imported / "subject").vertices[0][:, 1], 1)) < 1e-4
     assert floor == pytest.approx(0, abs=1e-6)
+
+
+def test_door_leds_leave_the_rig_with_their_olats_and_the_white_frame(olat_capture, tmp_path, monkeypatch):
+    # The test layout has 24 LEDs, fewer than HumanOLAT's door indices: three of its LEDs play the door here.
+    from gra_mi.capture import humanolat
+    from gra_mi.capture.dataset import Capture
+    from gra_mi.stage.lightstage import load_calibration
+
+    monkeypatch.setattr(humanolat, "DOOR_LEDS", (3, 7, 11))
+    root, _, subject = olat_capture
+    out = _imported(tmp_path, subject, "no_door")
+    capture, stage = Capture.load(out), load_calibration(out / "rig" / "calibration.json")
+    report = json.loads((out / "import_report.json").read_text())
+    assert stage.num_leds == 21 and {3, 7, 11} <= set(report["leds"]["left_out"])
+    assert all(f.pattern != "patterns/white.json" for f in capture.frames)
+    assert report["linearity"]["olats_over_white"] > 0  # the white frame still checks the sensor's linearity
+    for entry in capture.frames:  # each OLAT lights one LED of the rig
+        assert np.count_nonzero(capture.lighting(stage, entry).max(axis=1)) == 1
+    kept = _imported(tmp_path, subject, "with_door", "--keep-door-leds")
+    assert load_calibration(kept / "rig" / "calibration.json").num_leds == 24
+    assert any(f.pattern == "patterns/white.json" for f in Capture.load(kept).frames)

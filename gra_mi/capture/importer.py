@@ -188,8 +188,11 @@ def check_loadable(staging: Path, source: Source) -> None:
 
 
 def publish(staging: Path, out: Path) -> None:
-    """Rename the checked staging folder to ``out`` (replacing an older import there: ``--overwrite``)."""
+    """Rename the checked staging folder to ``out`` (replacing an older import there: ``--overwrite``). Two shards that
+    finish together may both get here: the second finds the capture published."""
     release_folder(staging)
+    if not staging.exists() and (out / "capture.json").is_file():
+        return
     if out.exists():
         shutil.rmtree(out)
     os.replace(staging, out)
@@ -315,6 +318,7 @@ def linearity(source: Source, plan: CameraPlan, mask: np.ndarray) -> dict:
 def _write_report(out: Path, source: Source, frame: WorldFrame, plans: list[CameraPlan], checks: list[dict], record: dict) -> None:
     """import_report.json and .md, and an overlay per camera (mask green, reprojected mesh magenta, both white)."""
     check_of = {c["camera"]: c for c in checks}
+    first = source.frames[0][1].frame  # every frame of a static pose shares the mask
     for plan in plans:
         mask = read_exr(out / "images" / plan.camera.name / "frame_0000.exr")[..., 3] > 0.5
         seen = check_of[plan.camera.name]["silhouette"]
@@ -331,7 +335,7 @@ def _write_report(out: Path, source: Source, frame: WorldFrame, plans: list[Came
             "led_sphere_rms_m": round(frame.led_fit_rms, 5),
         },
         "leds": {"count": len(source.leds), "left_out": record["left_out_leds"], "gains": record["gains"]},
-        "linearity": linearity(source, plans[0], read_exr(out / "images" / plans[0].camera.name / "frame_0000.exr")[..., 3])
+        "linearity": linearity(source, plans[0], read_exr(out / "images" / plans[0].camera.name / f"frame_{first:04d}.exr")[..., 3])
         if source.olat_keys is not None and source.white is not None
         else None,
         "frames": {"imported": sum(1 for _ in (out / "images" / plans[0].camera.name).glob("frame_*.exr"))},
