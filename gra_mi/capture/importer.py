@@ -320,7 +320,7 @@ def _write_report(out: Path, source: Source, frame: WorldFrame, plans: list[Came
     check_of = {c["camera"]: c for c in checks}
     first = source.frames[0][1].frame  # every frame of a static pose shares the mask
     for plan in plans:
-        mask = read_exr(out / "images" / plan.camera.name / "frame_0000.exr")[..., 3] > 0.5
+        mask = read_exr(out / "images" / plan.camera.name / f"frame_{first:04d}.exr")[..., 3] > 0.5
         seen = check_of[plan.camera.name]["silhouette"]
         overlay = np.stack([seen.astype(float), mask.astype(float), seen.astype(float)], axis=-1)
         write_png(out / "import" / f"overlay_{plan.camera.name}.png", overlay, exposure=1.0)
