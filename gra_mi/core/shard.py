@@ -131,8 +131,6 @@ def record_shard_count(folder, shard: Shard) -> None:
     if path.is_file():
         old = path.read_text().strip()
         if old != str(shard.count):
-            raise GraMiInputError(
-                folder, f"is being written by {old} shards; this process is shard {shard} (of {shard.count}): use --shard I/{old}"
-            )
+            raise GraMiInputError(folder, f"is being written by {old} shards; this process is shard {shard}: use --shard I/{old}")
         return
     atomic_write_text(path, f"{shard.count}\n")
