@@ -197,13 +197,3 @@ def run_deflicker(c: DeflickerCommand) -> None:
 
     written = deflicker_folder(c.frames, c.stable, c.out, c.flicker, c.exposure)
     print(f"deflickered {len(written)} frames into {c.out}")
-
-
-COMMANDS = {
-    "train-relightnet": (TrainRelightnetCommand, run_train_relightnet),
-    "refiner-data": (RefinerDataCommand, run_refiner_data),
-    "train-refiner": (TrainRefinerCommand, run_train_refiner),
-    "refine": (RefineCommand, run_refine),
-    "refiner-prompt": (RefinerPromptCommand, run_refiner_prompt),
-    "deflicker": (DeflickerCommand, run_deflicker),
-}

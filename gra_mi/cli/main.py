@@ -33,8 +33,11 @@ class Command:
     torch: bool = False  # picks the torch device: --device
 
     def load(self, name: str):
-        """(config class, run function)."""
-        return importlib.import_module(f"gra_mi.cli.{self.group}_commands").COMMANDS[name]
+        """(config class, run function): ``<Name>Command`` and ``run_<name>`` of its group's module (``relight-field`` →
+        ``RelightFieldCommand``, ``run_relight_field``), so that a command's name is written once, in :data:`COMMANDS`."""
+        module = importlib.import_module(f"gra_mi.cli.{self.group}_commands")
+        words = name.split("-")
+        return getattr(module, "".join(w.capitalize() for w in words) + "Command"), getattr(module, "run_" + "_".join(words))
 
 
 def _add_runtime(p: argparse.ArgumentParser, command: Command) -> None:

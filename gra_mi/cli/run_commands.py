@@ -167,11 +167,3 @@ def run_view(c: ViewCommand) -> None:
             time.sleep(0.2)
     finally:
         page.close()
-
-
-COMMANDS = {
-    "demo": (DemoCommand, run_demo),
-    "bench": (BenchCommand, run_bench),
-    "eval": (EvalCommand, run_eval),
-    "view": (ViewCommand, run_view),
-}

@@ -258,14 +258,3 @@ def run_import(c: ImportCommand) -> None:
         return
     cameras = len(capture.train_cameras) + len(capture.eval_cameras)
     print(f"imported {len(capture.frames)} lightings × {cameras} cameras into {c.out}; read {c.out / 'import_report.md'} first")
-
-
-COMMANDS = {
-    "rig": (RigCommand, run_rig),
-    "envmaps": (EnvmapsCommand, run_envmaps),
-    "subject": (SubjectCommand, run_subject),
-    "scene": (SceneCommand, run_scene),
-    "render": (RenderCommand, run_render),
-    "capture": (CaptureCommand, run_capture),
-    "import": (ImportCommand, run_import),
-}

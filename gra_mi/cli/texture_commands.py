@@ -225,13 +225,3 @@ def run_eval_lighting(c: EvalLightingCommand) -> None:
         return
     print((c.out / "accuracy.md").read_text())
     print(f"done: open {c.out / 'accuracy.md'}")
-
-
-COMMANDS = {
-    "fit": (FitCommand, run_fit),
-    "edit-texture": (EditTextureCommand, run_edit_texture),
-    "export-gltf": (ExportGltfCommand, run_export_gltf),
-    "relight": (RelightCommand, run_relight),
-    "relight-field": (RelightFieldCommand, run_relight_field),
-    "eval-lighting": (EvalLightingCommand, run_eval_lighting),
-}
