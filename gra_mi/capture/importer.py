@@ -97,7 +97,8 @@ def import_capture(
     if (done := _already_published(out, run_record(command, inputs, said), overwrite)) is not None:
         return done
     staging = staging_folder(out)
-    claim_output(staging, command, inputs, said, shard=shard, restart=shard.whole)  # a changed source restarts the staging
+    # a changed source restarts the staging (its images would mix two exports); --overwrite empties it too
+    claim_output(staging, command, inputs, said, overwrite=overwrite, shard=shard, restart=shard.whole)
     stage = build_stage(source, frame, plans, config.led_intensity)
     _write_stage_files(staging, stage, sequence, source.frames)
     record = {"format": source.format, "folder": str(source.folder), "transform": frame.matrix(), **record}
