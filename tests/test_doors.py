@@ -342,3 +342,14 @@ def test_the_door_leds_are_left_out_of_the_rig_by_default():
     source = _humanolat_source(331)
     plan, left_out = humanolat_frames(source, HumanolatOptions(keep_door_leds=True))
     assert len(source.leds) == 331 and not left_out and plan[0][2] == "white"
+
+
+def test_an_output_file_may_have_siblings_of_its_own_stem_only(tmp_path):
+    # `edit-texture --out edited.exr` writes edited.png beside it; nothing else beside it.
+    out = tmp_path / "edited.exr"
+    with writing_into([out]):
+        atomic_write_text(out, "exr")
+        atomic_write_text(tmp_path / "edited.png", "preview")
+        for target in (tmp_path / "other.png", tmp_path / "edited_x" / "y.png", tmp_path / "editedx.png"):
+            with pytest.raises(GraMiInputError, match="outside the output folder"):
+                atomic_write_text(target, "no")

@@ -389,17 +389,17 @@ def test_handoff_frames_are_the_previous_windows_output(trained, monkeypatch):
 
     model = VideoRefiner.load(trained["root"] / "model")
     seen, decoded = [], []
-    real_conditioning, real_decode = infer.conditioning, model.decode_output
+    real_conditioning, real_decode = model.conditioning, model.decode_output
 
-    def spy(model, coarse, mask, *rest):
+    def spy(coarse, mask, *rest):
         seen.append((coarse.clone(), mask.clone()))
-        return real_conditioning(model, coarse, mask, *rest)
+        return real_conditioning(coarse, mask, *rest)
 
     def decode(*args):  # each window's refined video
         decoded.append(real_decode(*args))
         return decoded[-1]
 
-    monkeypatch.setattr(infer, "conditioning", spy)
+    monkeypatch.setattr(model, "conditioning", spy)
     monkeypatch.setattr(model, "decode_output", decode)
     frames = list(infer.rollout(model, trained["a"], "s0_test00", steps=2, frames=29))
     assert len(seen) == 2 and len(decoded) == 2 and [f.index for f in frames] == list(range(29))

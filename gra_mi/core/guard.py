@@ -91,13 +91,22 @@ def scratch_directory(prefix: str = "gra-mi-") -> Iterator[Path]:
         _SCRATCH.discard(folder)
 
 
+def _within(target: Path, root: Path) -> bool:
+    """``target`` inside the output ``root``: a folder, or an output file (``--out edited.exr``), which may have
+    siblings of its own stem (``edited.png``, its preview)."""
+    if target == root or root in target.parents:
+        return True
+    is_file = bool(root.suffix) and not root.is_dir()
+    return is_file and target.parent == root.parent and target.name.startswith(root.stem + ".")
+
+
 def check_output_path(path: str | Path) -> None:
     """Refuse a file that would land outside the running command's output folders (symlinks resolved)."""
     roots = _ROOTS.get()
     if not roots:
         return
     target = Path(path).resolve()
-    if not any(target == root or root in target.parents for root in (*roots, *_SCRATCH)):
+    if not any(_within(target, root) for root in (*roots, *_SCRATCH)):
         said = ", ".join(str(r) for r in roots)
         raise GraMiInputError(
             path, f"gra-mi would write this file outside the output folder ({said}); a name taken from an input must not lead out of it"
