@@ -37,7 +37,9 @@ def test_torch_commands_use_the_gpu_when_torch_sees_one(monkeypatch, tmp_path, f
     seen: dict[str, str] = {}
     _spy(monkeypatch, train, "train_refiner", seen, tmp_path)
     _spy(monkeypatch, infer, "refine_to_folder", seen, {"frames": 1, "windows": 1, "frames_per_second": 1.0, "mix": 1.0})
-    assert main(["train-refiner", str(tmp_path), "--out", str(tmp_path / "m")]) == 0
+    data = tmp_path / "data"  # beside the output: an output inside an input is refused
+    data.mkdir()
+    assert main(["train-refiner", str(data), "--out", str(tmp_path / "m")]) == 0
     monkeypatch.setattr(runtime, "RUNTIME", runtime.Runtime())
     assert main(["refine", str(tmp_path), "--model", str(tmp_path), "--sequence", "s"]) == 0
     assert seen == {"train_refiner": "cuda", "refine_to_folder": "cuda"}
