@@ -850,8 +850,10 @@ def _full_mask(s: Path) -> None:
         (_full_mask, [], ["Cam04.png", "whole image"]),
         (lambda s: None, ["--up", "+y"], ["lying on its side", "--up"]),
         (lambda s: None, ["--scale", "0.01"], ["--scale", "too small"]),
+        (lambda s: None, ["--scale", "2000"], ["--scale", "GiB"]),
+        (lambda s: None, ["--uv-resolution", "100000"], ["--uv-resolution", "GiB"]),
     ],
-    ids=["swapped-cameras", "empty-mask", "full-mask", "wrong-up", "tiny-scale"],
+    ids=["swapped-cameras", "empty-mask", "full-mask", "wrong-up", "tiny-scale", "huge-scale", "huge-uv-resolution"],
 )
 def test_the_reprojection_check_names_the_real_culprit(olat_capture, tmp_path, capsys, damage, extra, needles):
     subject = _broken(olat_capture, tmp_path, damage)

@@ -39,6 +39,7 @@ from gra_mi.capture.source_files import image_size, read_image, resample_columns
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.guard import staging_folder
 from gra_mi.core.io import atomic_write_text, read_exr, write_exr, write_png
+from gra_mi.core.limits import require_memory
 from gra_mi.core.progress import progress
 from gra_mi.core.provenance import PROVENANCE, claim_output, release_folder, run_differences, run_record
 from gra_mi.core.shard import Shard
@@ -48,6 +49,7 @@ from gra_mi.stage.scene import subject_scene_xml, write_rig
 from gra_mi.subject.sequence import MeshSequence, save_sequence
 
 logger = logging.getLogger(__name__)
+IMAGE_BYTES_PER_PIXEL = 4 * 4 * 8  # RGBA float32: the decoded source, its resampling and mask, the written EXR
 
 
 def check_images_present(source: Source, plans: list[CameraPlan]) -> None:
@@ -81,6 +83,8 @@ def import_capture(
     ensure_mitsuba()
     frame = world_frame(source, config.up)
     plans = _camera_plans(source, frame, config)
+    largest = max(p.camera.width * p.camera.height for p in plans)
+    require_memory("scale", largest * IMAGE_BYTES_PER_PIXEL, f"images of {largest:,} pixels at --scale {config.scale:g}")
     eval_cameras = config.eval_cameras or _held_out(plans)
     train_cameras = [p.camera.name for p in plans if p.camera.name not in eval_cameras]
     if not train_cameras:

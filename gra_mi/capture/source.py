@@ -12,8 +12,10 @@ import numpy as np
 from gra_mi.core.config import comma_list, option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive
 from gra_mi.core.guard import path_component
+from gra_mi.core.limits import require_memory
 from gra_mi.core.schema import rigid_rotation
 
+TEXEL_BYTES = 64  # per texel of an imported capture's atlas: positions, normals, masks, the maps (a lower bound)
 UP_AXES = {"+x": (1, 0, 0), "-x": (-1, 0, 0), "+y": (0, 1, 0), "-y": (0, -1, 0), "+z": (0, 0, 1), "-z": (0, 0, -1)}
 
 
@@ -43,16 +45,18 @@ class ImportConfig:
             raise GraMiParameterError("min_iou", f"must be in [0, 1], got {self.min_iou}")
         if self.up not in ("auto", *UP_AXES):
             raise GraMiParameterError("up", f"expected auto or one of {', '.join(UP_AXES)}, got {self.up!r}")
+        # the atlas, the maps and their per-texel checks of the import, and later the fit, at this resolution
+        require_memory("uv_resolution", self.uv_resolution**2 * TEXEL_BYTES, f"a {self.uv_resolution}² UV atlas")
 
 
 @dataclass
 class Source:
-    """A capture as read, before anything is written: everything in the source's own frame and units. Readers
-    (:func:`read_humanolat`, :func:`gra_mi.capture.transforms.read_transforms`) fill it; the rest of the import is
-    the same for every source."""
+    """A capture as read, before anything is written: everything in the source's own frame and units. Each format's
+    reader (:func:`gra_mi.capture.humanolat.read_humanolat`, :func:`gra_mi.capture.transforms.read_transforms`,
+    :func:`gra_mi.capture.easymocap.read_easymocap`) fills it; the rest of the import is the same for every source."""
 
     folder: Path
-    format: str  # "humanolat", "transforms"
+    format: str  # "humanolat", "transforms", "easymocap"
     calib_path: Path  # what a camera error names
     names: list[str]  # camera names
     calib: list  # CalibCamera per camera: K / width, camera-to-world (OpenCV axes) in the source's units

@@ -7,8 +7,8 @@
   :func:`gra_mi.core.io.atomic_path`) must resolve inside one of the command's output folders; anything else is
   refused before a byte is written. This is the second lock on the same door: a name that slipped past the first
   cannot write outside ``--out``.
-- :func:`check_apart`: a command's output folder may not be, hold, or lie inside one of its inputs (an input file's
-  folder counts where the file references others: a scene's textures and meshes).
+- :func:`check_apart`: a command's output folder may not be, hold, or lie inside one of its inputs (the files a
+  scene reads count: :func:`scene_references`).
 """
 
 from __future__ import annotations
