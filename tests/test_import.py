@@ -763,9 +763,9 @@ def test_a_failure_mid_import_leaves_nothing_and_the_fixed_rerun_resumes_without
     assert (out / "capture.json").is_file() and not (tmp_path / ".out.partial").exists()
 
 
-def test_a_file_read_outside_the_source_is_part_of_the_run(path_traced_fit, tmp_path, capsys):
-    # EasyMocap's mesh and lighting live beside the rig folder, not in it: editing the mesh (3 cm) after an import
-    # makes a rerun into the same folder another run, refused; an edited envmap likewise.
+def _static_easymocap_rig(path_traced_fit, tmp_path: Path, frames: int):
+    """The tiny capture's first ``frames`` as an EasyMocap rig (``tmp_path/rig``), its first mesh beside it
+    (``meshes/``, one pose) and its LEDs (``leds.pc``): (the native capture, its mesh sequence)."""
     from gra_mi.capture.dataset import Capture
     from gra_mi.capture.source_files import write_obj, write_points
     from gra_mi.stage.lightstage import load_calibration
@@ -773,10 +773,19 @@ def test_a_file_read_outside_the_source_is_part_of_the_run(path_traced_fit, tmp_
 
     native = Capture.load(path_traced_fit / "cap")
     stage, seq = load_calibration(native.folder / "rig" / "calibration.json"), load_sequence(native.folder / "subject")
-    write_easymocap(native, tmp_path / "rig", native.frames[:2])
+    write_easymocap(native, tmp_path / "rig", native.frames[:frames])
     (tmp_path / "meshes").mkdir()
     write_obj(tmp_path / "meshes", seq.vertices[0], seq.uvs, seq.faces, None)
     write_points(tmp_path / "leds.pc", stage.led_positions)
+    return native, seq
+
+
+def test_a_file_read_outside_the_source_is_part_of_the_run(path_traced_fit, tmp_path, capsys):
+    # EasyMocap's mesh and lighting live beside the rig folder, not in it: editing the mesh (3 cm) after an import
+    # makes a rerun into the same folder another run, refused; an edited envmap likewise.
+    from gra_mi.capture.source_files import write_obj
+
+    native, seq = _static_easymocap_rig(path_traced_fit, tmp_path, 2)
     frames = [
         {"frame": f.frame, "split": "train", "mesh_frame": 0}
         | ({"uniform": 0.5} if f.kind == "uniform" else {"envmap": str(native.folder / f.envmap)})
@@ -793,18 +802,9 @@ def test_a_file_read_outside_the_source_is_part_of_the_run(path_traced_fit, tmp_
 
 
 def test_envmaps_are_read_before_anything_is_written(path_traced_fit, tmp_path, capsys):
-    from gra_mi.capture.dataset import Capture
-    from gra_mi.capture.source_files import write_obj, write_points
     from gra_mi.core.io import write_exr
-    from gra_mi.stage.lightstage import load_calibration
-    from gra_mi.subject.sequence import load_sequence
 
-    native = Capture.load(path_traced_fit / "cap")
-    stage, seq = load_calibration(native.folder / "rig" / "calibration.json"), load_sequence(native.folder / "subject")
-    write_easymocap(native, tmp_path / "rig", native.frames[:1])
-    (tmp_path / "meshes").mkdir()
-    write_obj(tmp_path / "meshes", seq.vertices[0], seq.uvs, seq.faces, None)
-    write_points(tmp_path / "leds.pc", stage.led_positions)
+    _static_easymocap_rig(path_traced_fit, tmp_path, 1)
     nan_map = np.ones((8, 16, 3), np.float32)
     nan_map[2, 3] = np.nan
     write_exr(tmp_path / "nan.exr", nan_map)
