@@ -142,7 +142,8 @@ class PreparedBRDF:
         """
         cos_o = dr.maximum(wo.z, 0.0)
         h, cos_d = half_vector_terms(self.wi, wo)
-        d = ggx_d(h, self.alpha)
+        q = _ggx_q(h, self.alpha2)  # shared with the roughness derivative below (the fit's per-LED loop)
+        d = dr.select(h.z > 0, self.alpha2 / (dr.pi * dr.square(q)), 0.0)
         # f_spec cosθo = D F G1(ωi) G1(ωo) / (4 cosθi) = D F · spec_scale · 2 cosθo / (cosθo + s_o): no cosine divides.
         spec = d * fresnel_schlick(cos_d) * cos_o * (2.0 * self.spec_scale) * dr.rcp(_g1_denominator(cos_o, self.alpha2))
         valid = self.front & (wo.z > 0)
@@ -151,7 +152,6 @@ class PreparedBRDF:
         if not roughness_derivative:
             return diffuse, spec
         # ∂ ln D / ∂α for D = α² / (π q²), q = α² ĥ_z² + ĥ_x² + ĥ_y²: 2/α − 4 α ĥ_z² / q.
-        q = _ggx_q(h, self.alpha2)
         hz2 = dr.square(h.z) * dr.rcp(dr.maximum(dr.squared_norm(h), 1e-37))
         dlog_d = 2.0 * dr.rcp(self.alpha) - 4.0 * self.alpha * hz2 * dr.rcp(q)
         dlog_spec = dlog_d + self._dlog_g1(cos_o) + self.dlog_g1_i
