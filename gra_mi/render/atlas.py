@@ -48,6 +48,7 @@ class UVAtlas:
     barycentrics: np.ndarray  # (M, 3)
     device_arrays: dict = field(default_factory=dict, repr=False, compare=False)
     """Mitsuba variant → (face columns, barycentric columns) as Dr.Jit arrays, filled by :meth:`on_device`."""
+    _nearest: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     @property
     def num_texels(self) -> int:
@@ -105,6 +106,20 @@ class UVAtlas:
     def gather(self, texture: np.ndarray) -> np.ndarray:
         """(R, R, C) texture → (M, C) values at the valid texels."""
         return texture.reshape(self.resolution * self.resolution, -1)[self.texel_index]
+
+    def nearest_texel(self) -> np.ndarray:
+        """(R·R,) the valid-texel index at each texel of the texture, the nearest valid one's where the texel is
+        outside the atlas: a UV looked up at a chart's edge (a ray's hit) lands on the chart, not on the background."""
+        if self._nearest is None:
+            from scipy.ndimage import distance_transform_edt
+
+            lookup = np.full(self.resolution * self.resolution, -1, np.int64)
+            lookup[self.texel_index] = np.arange(self.num_texels)
+            if self.num_texels and self.num_texels < lookup.size:
+                _, (rows, cols) = distance_transform_edt(~self.mask, return_indices=True)
+                lookup = lookup[(rows * self.resolution + cols).ravel()]
+            self._nearest = lookup
+        return self._nearest
 
     def on_device(self) -> tuple[list[mi.UInt32], list[mi.Float]]:
         """The three vertex-index columns of ``faces`` and of ``barycentrics`` as Dr.Jit arrays, uploaded once per variant."""

@@ -23,6 +23,7 @@ from gra_mi.core.errors import GraMiParameterError
 from gra_mi.core.runtime import opaque
 from gra_mi.render import brdf
 from gra_mi.render.atlas import TexelGeometry
+from gra_mi.render.shading import local_view
 from gra_mi.render.visibility import RAY_EPSILON
 from gra_mi.stage.envmap import leds_to_envmap
 
@@ -128,12 +129,14 @@ def point_light_visibility(scene: mi.Scene, geom: TexelGeometry, light: PointLig
 
 
 def shade_point_light(
-    geom: TexelGeometry, fraction: mi.Float, light: PointLight, roughness: np.ndarray, camera_position: np.ndarray
+    geom: TexelGeometry, fraction: mi.Float, light: PointLight, roughness: np.ndarray, camera_position
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(diffuse per unit albedo, specular) of every texel lit by the point light: I/d² · f cos · visible fraction."""
+    """(diffuse per unit albedo, specular) of every texel lit by the point light: I/d² · f cos · visible fraction.
+    ``camera_position``: any viewer :func:`~gra_mi.render.shading.local_view` takes (a camera, along each normal,
+    per-lane directions)."""
     frame = mi.Frame3f(geom.normal)
-    view = dr.normalize(opaque(mi.Point3f, camera_position) - geom.position)
-    material = brdf.PreparedBRDF(mi.Color3f(1.0), mi.Float(np.asarray(roughness, np.float32)), frame.to_local(view))
+    wi = local_view(frame, geom.position, camera_position)
+    material = brdf.PreparedBRDF(mi.Color3f(1.0), mi.Float(np.asarray(roughness, np.float32)), wi)
     offset = opaque(mi.Point3f, light.position) - geom.position
     inv_d2 = dr.rcp(dr.maximum(dr.squared_norm(offset), 1e-8))
     wo = frame.to_local(offset * dr.sqrt(inv_d2))

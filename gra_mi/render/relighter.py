@@ -7,20 +7,24 @@ lighting → :func:`gra_mi.uvspace.shade_texels` → :func:`gra_mi.uvspace.raste
 
 from __future__ import annotations
 
+import hashlib
 import logging
 from dataclasses import dataclass
 from pathlib import Path
 
 import drjit as dr
+import mitsuba as mi
 import numpy as np
 
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.io import read_exr
 from gra_mi.render.atlas import TexelGeometry, UVAtlas
+from gra_mi.render.bounce import BounceOperator, light_along_rays, operator_key, texels_that_see_the_body, trace_operator
 from gra_mi.render.leds import LedLayout
 from gra_mi.render.point_light import PointLight, as_light_list, point_light_visibility, shade_point_light
 from gra_mi.render.rasterize import RASTER_SAMPLES, rasterize_to_camera
-from gra_mi.render.shading import TexelShading, led_cell_roughness, shade_texels
+from gra_mi.render.shading import TexelLedLoop, TexelShading, led_cell_roughness, shade_texels
+from gra_mi.render.transport import LightTransport
 from gra_mi.render.visibility import VisibilityCache, texels_seen_by
 from gra_mi.stage.scene import LightstageScene
 
@@ -65,7 +69,10 @@ class Relighter:
         far_field: bool = False,
         cache_dir: str | Path | None = None,
         visibility_keep: int | None = None,
+        transport: LightTransport | None = None,
     ):
+        self.transport = transport or LightTransport()
+        self.transport.validate()
         self.ls = ls
         if albedo is not None:
             resolution = albedo.shape[0]
@@ -88,6 +95,8 @@ class Relighter:
         self.cache = VisibilityCache(cache_dir, keep=visibility_keep)
         self._geometry: dict[int, TexelGeometry] = {}
         self._point_light_vis: dict[tuple, object] = {}
+        self._operators: dict[str, BounceOperator] = {}  # the last frames' bounce operators (bounces > 1)
+        self._indirect: tuple | None = None  # (key, indirect light) of the last lighting: a frame's cameras share it
         self.job_cameras = None  # :meth:`only_for`
 
     def leds(self, far_field: bool | None = None) -> LedLayout:
@@ -104,10 +113,76 @@ class Relighter:
         """The frame's per-LED visibility: of every texel, or (after :meth:`only_for`) of those the job's cameras see."""
         self.ls.set_frame(frame)  # the scene's mesh must be this frame's to trace against
         geom = self.geometry(frame)
+        return self.cache.get(self.ls.scene, geom, self.leds(far_field), self.job_texels(frame))
+
+    def job_texels(self, frame: int) -> np.ndarray | None:
+        """The texels whose light the job's cameras need (None: all): those they see and, with more than one
+        bounce, every texel whose light reaches those within the extra bounces."""
+        geom = self.geometry(frame)
         texels = None if self.job_cameras is None else texels_seen_by(geom, self.job_cameras)
+        if texels is not None and self.transport.bounces > 1:
+            texels = self.bounce_operator(frame).closure(texels, self.transport.bounces)
         if texels is not None and len(texels) > CULL_AT_MOST * dr.width(geom.position):
             texels = None  # cameras around the body see most of it: the full trace is as fast, and serves every job
-        return self.cache.get(self.ls.scene, geom, self.leds(far_field), texels)
+        return texels
+
+    def bounce_operator(self, frame: int) -> BounceOperator:
+        """The frame's texel-to-texel bounce operator: from memory, the cache folder, or traced (and kept in both)."""
+        geom = self.geometry(frame)
+        key = operator_key(geom, self.transport.bounce_rays, 0)
+        if key not in self._operators:
+            folder = self.cache.folder
+            path = None if folder is None else folder / f"bounce_{key}.npz"
+            op = None if path is None else BounceOperator.load(path, dr.width(geom.position), self.transport.bounce_rays)
+            if op is None:
+                self.ls.set_frame(frame)
+                texels = texels_that_see_the_body(geom, self.ls.sequence.vertices[frame])
+                seq = self.ls.sequence
+                op = trace_operator(
+                    self.ls.scene, self.ls.subject_shape(), geom, self.atlas, seq.uvs, seq.faces, texels, self.transport.bounce_rays
+                )
+                if path is not None:
+                    op.save(path)
+            self._operators = {k: v for k, v in list(self._operators.items())[-1:]}  # this frame and the one before
+            self._operators[key] = op
+        return self._operators[key]
+
+    def indirect(self, frame: int, led_intensities: np.ndarray, lights: list[PointLight], fractions: list, far_field: bool):
+        """The light after the first bounce for this lighting, as (light along each ray of the frame's bounce operator,
+        (M, 3) what each texel's diffuse layer takes in per unit albedo and T(ω_view)); the cameras of one frame and
+        lighting share it."""
+        digest = hashlib.sha1(np.ascontiguousarray(led_intensities, np.float32).tobytes())
+        digest.update(np.ascontiguousarray(self.albedo, np.float32).tobytes())
+        digest.update(np.ascontiguousarray(self.roughness, np.float32).tobytes())
+        for light in lights:
+            digest.update(repr(light).encode())
+        key = (frame, far_field, self.transport.bounces, digest.hexdigest())
+        if self._indirect is None or self._indirect[0] != key:
+            op, geom = self.bounce_operator(frame), self.geometry(frame)
+            first = self.light_toward_receivers(frame, op, led_intensities, lights, fractions, far_field)
+            light = light_along_rays(op, geom, mi.Color3f(*self.albedo.T.astype(np.float32)), first, self.transport.bounces)
+            diffuse = op.gather_diffuse(geom, light)
+            dr.eval(light, diffuse)
+            self._indirect = (key, (light, np.array(diffuse).T.reshape(-1, 3)))
+        return self._indirect[1]
+
+    def light_toward_receivers(self, frame, op: BounceOperator, led_intensities, lights, fractions, far_field) -> tuple:
+        """Per ray of ``op``: (diffuse per unit albedo, specular) that its source texel sends back toward the receiver
+        under the LEDs and the near lights: the same LED loop as a camera's view, one lane per ray."""
+        geom = self.geometry(frame)
+        sources, toward = op.sources, op.toward_receivers()
+        diffuse, spec = dr.zeros(mi.Color3f, op.entries), dr.zeros(mi.Color3f, op.entries)
+        roughness = mi.Float(self.roughness[sources])
+        if np.max(led_intensities) > 0 and op.entries:
+            loop = TexelLedLoop.build(geom, self.visibility(frame, far_field), sources, self.leds(far_field), led_intensities, toward)
+            diffuse, spec = loop.run(roughness)
+        if lights and op.entries:
+            s = mi.UInt32(sources)
+            at_sources = TexelGeometry(*(dr.gather(type(a), a, s) for a in (geom.position, geom.normal, geom.geo_normal)), "")
+            for light, fraction in zip(lights, fractions, strict=True):
+                d, sp = shade_point_light(at_sources, dr.gather(mi.Float, fraction, s), light, self.roughness[sources], toward)
+                diffuse, spec = diffuse + mi.Color3f(*d.T), spec + mi.Color3f(*sp.T)
+        return diffuse, spec
 
     def only_for(self, cameras) -> None:
         """Render only from these cameras from now on (a batch relight, an evaluation): a new frame's visibility is
@@ -150,22 +225,37 @@ class Relighter:
         stage = self.ls.stage
         # Far field: the LEDs sample an environment, so each lobe is widened to the LEDs' spacing (no sparkles).
         roughness = led_cell_roughness(self.roughness, stage.num_leds) if far_field else self.roughness
-        shading = shade_texels(geom, vis, self.leds(far_field), led_intensities, self.albedo, roughness, cam.position)
-        self.ls.set_frame(frame)
         lights = as_light_list(near_lights)
+        fractions = self._near_light_visibility(frame, geom, lights)
+        indirect = self.indirect(frame, led_intensities, lights, fractions, far_field) if self.transport.bounces > 1 else None
+        diffuse_in = None if indirect is None else indirect[1]
+        shading = shade_texels(geom, vis, self.leds(far_field), led_intensities, self.albedo, roughness, cam.position, diffuse_in)
+        if indirect is not None:
+            op = self.bounce_operator(frame)
+            spec = op.specular_response(geom, cam.position, mi.Float(np.asarray(roughness, np.float32)), indirect[0])
+            shading.specular = shading.specular + np.array(spec).T.reshape(-1, 3)
+            shading.radiance = self.albedo * shading.diffuse_unit + shading.specular
+        for light, fraction in zip(lights, fractions, strict=True):
+            diffuse, spec = shade_point_light(geom, fraction, light, self.roughness, cam.position)
+            shading.diffuse_unit = shading.diffuse_unit + diffuse
+            shading.specular = shading.specular + spec
+        if lights:
+            shading.radiance = self.albedo * shading.diffuse_unit + shading.specular
+        return shading, geom
+
+    def _near_light_visibility(self, frame: int, geom: TexelGeometry, lights: list[PointLight]) -> list:
+        """Each near light's visible fraction per texel: traced once per (frame, placement), the next camera of the
+        same frame reuses it."""
+        self.ls.set_frame(frame)
         visible = {}
         for light in lights:
             key = (frame, tuple(light.position), light.radius)  # depends on geometry and light placement only
             visible[key] = self._point_light_vis.get(key)
             if visible[key] is None:
                 visible[key] = point_light_visibility(self.ls.scene, geom, light)
-            diffuse, spec = shade_point_light(geom, visible[key], light, self.roughness, cam.position)
-            shading.diffuse_unit = shading.diffuse_unit + diffuse
-            shading.specular = shading.specular + spec
         if lights:
-            self._point_light_vis = visible  # this view's lights: the next camera of the same frame reuses them
-            shading.radiance = self.albedo * shading.diffuse_unit + shading.specular
-        return shading, geom
+            self._point_light_vis = visible
+        return [visible[(frame, tuple(light.position), light.radius)] for light in lights]
 
     def texel_inputs(self, view: ViewRender) -> dict[str, np.ndarray]:
         """The later RelightNet inputs as (R, R, C) textures: normal, position, view direction, mask."""

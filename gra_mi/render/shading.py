@@ -34,11 +34,13 @@ def shade_texels(
     albedo: np.ndarray,
     roughness: np.ndarray,
     camera_position: np.ndarray,
+    indirect: np.ndarray | None = None,
 ) -> TexelShading:
     """Outgoing radiance of every valid texel toward ``camera_position`` (paper Eq. 1, one bounce).
 
     ``albedo`` (M, 3) and ``roughness`` (M,) are per valid texel. LEDs that are off are dropped before the loop;
-    ``visibility`` may be None when every LED is off.
+    ``visibility`` may be None when every LED is off. ``indirect`` (M, 3): the light after the first bounce each
+    texel's diffuse layer receives (:func:`gra_mi.render.bounce.indirect_unit`), added to the diffuse part.
     """
     m = dr.width(geom.position)
     words, on_words, pos, inten = led_loop_inputs(leds, led_intensities)
@@ -53,10 +55,35 @@ def shade_texels(
         )
     else:  # every LED off: nothing to do
         diffuse, spec = dr.zeros(mi.Color3f, m), dr.zeros(mi.Color3f, m)
+    if indirect is not None:
+        diffuse += indirect_toward(wi, mi.Color3f(*np.asarray(indirect, np.float32).T))
     dr.eval(diffuse, spec, view, wi)
     diffuse, spec = np.array(diffuse).T.reshape(m, 3), np.array(spec).T.reshape(m, 3)
     radiance = np.asarray(albedo, np.float32) * diffuse + spec
     return TexelShading(radiance, np.array(view).T.reshape(m, 3), np.array(wi.z > 0), diffuse, spec)
+
+
+def indirect_toward(wi: mi.Vector3f, indirect: mi.Color3f) -> mi.Color3f:
+    """The diffuse radiance per unit albedo that light after the first bounce (``indirect``, per unit T of the
+    receiving texel) sends toward ``wi``: the diffuse layer's transmission toward the viewer, 0 below the horizon."""
+    return dr.select(wi.z > 0, brdf.diffuse_transmission(wi.z), 0.0) * indirect
+
+
+ALONG_NORMAL = None
+"""``camera_position`` that shades each texel as seen along its own normal: T(ω_view) = 1, so the diffuse part is the
+view-independent light each texel's diffuse layer sends out per unit albedo (what a later bounce starts from)."""
+
+
+def local_view(frame: mi.Frame3f, position: mi.Point3f, viewer) -> mi.Vector3f:
+    """ωi in each lane's shading frame for ``viewer``: a camera position (3,), :data:`ALONG_NORMAL`, or per-lane world
+    directions toward the viewer (``mi.Vector3f``: light leaving one texel toward another)."""
+    if viewer is ALONG_NORMAL:
+        wi = dr.zeros(mi.Vector3f, dr.width(position))
+        wi.z = 1.0
+        return wi
+    if isinstance(viewer, mi.Vector3f):
+        return frame.to_local(viewer)
+    return frame.to_local(dr.normalize(opaque(mi.Point3f, viewer) - position))
 
 
 @dataclass
@@ -73,6 +100,8 @@ class TexelLedLoop:
     position: mi.Point3f
     frame: mi.Frame3f
     wi: mi.Vector3f
+    far_field: bool = False
+    indirect: mi.Color3f | None = None  # per lane: the diffuse part of the light after the first bounce
 
     @classmethod
     def build(
@@ -83,27 +112,34 @@ class TexelLedLoop:
         leds: LedLayout,
         led_intensities: np.ndarray,
         camera_position,
+        indirect: np.ndarray | None = None,
     ) -> TexelLedLoop:
-        if leds.far_field:
-            raise ValueError("the fit's LED loop reproduces the capture: near field only")
+        """The loop of ``texels`` (repeats allowed) seen from ``camera_position`` (any viewer :func:`local_view`
+        takes); ``indirect`` (M, 3) as :func:`shade_texels` takes it."""
         m = dr.width(geom.position)
         words, on_words, led_pos, led_int = led_loop_inputs(leds, led_intensities)
         t = mi.UInt32(np.asarray(texels, np.uint32))
         position = dr.gather(mi.Point3f, geom.position, t)
         frame = mi.Frame3f(dr.gather(mi.Vector3f, geom.normal, t))
-        wi = frame.to_local(dr.normalize(opaque(mi.Point3f, camera_position) - position))
+        wi = local_view(frame, position, camera_position)
+        extra = None
+        if indirect is not None:
+            extra = indirect_toward(wi, dr.gather(mi.Color3f, mi.Color3f(*np.asarray(indirect, np.float32).T), t))
         # Visibility words are word-major over all texels (w * M + t): gather this subset's, in the same layout.
         index = (np.arange(words, dtype=np.uint64)[:, None] * m + np.asarray(texels, np.uint64)[None, :]).ravel()
         vis = dr.gather(mi.UInt32, visibility, mi.UInt32(index.astype(np.uint32)))
-        dr.eval(position, frame, wi, vis)
-        return cls(int(len(texels)), words, vis, on_words, led_pos, led_int, position, frame, wi)
+        dr.eval(position, frame, wi, vis, extra)
+        return cls(int(len(texels)), words, vis, on_words, led_pos, led_int, position, frame, wi, leds.far_field, extra)
 
     def run(self, roughness: mi.Float, roughness_derivative: bool = False):
         """(diffuse per unit albedo, specular) per texel of the subset, and ∂ specular / ∂ roughness if asked."""
-        return _led_sum(
+        parts = _led_sum(
             self.count, self.words, self.visibility, self.on_words, self.led_pos, self.led_int, self.position, self.frame, self.wi,
-            roughness, False, roughness_derivative,
+            roughness, self.far_field, roughness_derivative,
         )  # fmt: skip
+        if self.indirect is None:
+            return parts
+        return (parts[0] + self.indirect, *parts[1:])
 
 
 def led_cell_roughness(roughness: np.ndarray, num_leds: int) -> np.ndarray:

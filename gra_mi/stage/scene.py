@@ -269,6 +269,10 @@ class LightstageScene:
 
     # ----------------------------------------------------------------------------------------------------------
 
+    def subject_shape(self):
+        """The tracked mesh's Mitsuba shape (id :data:`~gra_mi.stage.scene_keys.SUBJECT_ID`)."""
+        return next(s for s in self.scene.shapes() if s.id() == keys.SUBJECT_ID)
+
     def set_frame(self, frame: int) -> bool:
         """Move the subject to ``frame`` (positions and normals; ``params.update`` rebuilds the BVH). Idempotent: the
         current frame costs nothing, so callers just say which frame they need. Returns whether the mesh changed."""

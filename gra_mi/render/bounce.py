@@ -1,0 +1,234 @@
+"""Light after the first bounce, in UV space (docs/accuracy.md, "Interreflections").
+
+Light transport is linear, so the light a texel receives from the rest of the body is a fixed, sparse texel-to-texel
+operator per frame geometry, traced once and cached like the visibility:
+
+    P[x, y] = Σ_k [ray k of texel x first hits the body at texel y] · T(cosθx,k) T(cosθy,k) / K
+
+from K cosine-distributed rays per texel (closest hit, its UV looked up in the atlas; T is the diffuse layer's Fresnel
+transmission, :func:`~gra_mi.render.brdf.diffuse_transmission`). With E the one-bounce diffuse radiance per unit albedo
+that leaves each texel along its normal (the view-independent part of the LED sum), the light that leaves the body
+per unit T after b bounces is U = Σ_{j < b−1} (a ⊙ P)^j (a ⊙ E), and a texel's radiance toward a camera gains
+a(x) T(ω_view) (P U)(x). Both ends of every extra segment are the diffuse layer (Lambert with its Fresnel
+transmission); the specular lobes of later bounces are left out (docs/accuracy.md measures what that costs).
+
+Only texels whose hemisphere sees the body trace rays. A point of the body above a texel's tangent plane is exactly
+what one of its rays can hit (the first surface along the segment to that point lies above the plane too), so comparing
+the plane with the vertices of the body's convex hull decides it, exactly and without a ray: the top of the head and
+most of the chest and back trace nothing and receive nothing.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from gra_mi.core.io import atomic_path
+from gra_mi.render import brdf
+from gra_mi.render.atlas import TexelGeometry, UVAtlas
+from gra_mi.render.shading import local_view
+from gra_mi.render.transport import DEFAULT_RAYS
+from gra_mi.render.visibility import RAY_EPSILON
+
+CHUNK_RAYS = 1 << 20  # rays per kernel: bounds the surface interactions held at once (~100 MB)
+GOLDEN = 0.6180339887498949
+
+
+@dataclass
+class BounceOperator:
+    """The sparse operator P of one frame's geometry: one entry per ray that hit the body (misses are not stored),
+    sorted by the texel whose ray it is."""
+
+    receivers: np.ndarray  # (E,) uint32: the texel whose ray it is
+    sources: np.ndarray  # (E,) uint32: the texel the ray hit
+    direction: np.ndarray  # (E, 3) float32: the ray's unit direction (world), from the receiver toward the source
+    num_texels: int
+    rays: int
+    traced: int  # texels that traced rays (their hemisphere sees the body)
+
+    @property
+    def entries(self) -> int:
+        return int(self.receivers.size)
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.receivers.nbytes + self.sources.nbytes + self.direction.nbytes)
+
+    def device(self) -> tuple[mi.UInt32, mi.UInt32, mi.Vector3f]:
+        """(receivers, sources, directions) as Dr.Jit arrays, uploaded once per variant."""
+        if getattr(self, "_device", (None,))[0] != mi.variant():
+            d = np.ascontiguousarray(self.direction.T)
+            self._device = (mi.variant(), mi.UInt32(self.receivers), mi.UInt32(self.sources), mi.Vector3f(*d))
+        return self._device[1:]
+
+    def gather_diffuse(self, geom: TexelGeometry, light: mi.Color3f) -> mi.Color3f:
+        """(1/K) Σ_k T(cosθx,k) L_k per texel: the light along each ray (``light``, per entry) that the receiving
+        texel's diffuse layer takes in, per unit albedo and T(ω_view) (0 where a texel traced nothing)."""
+        r, _, d = self.device()
+        cos_x = dr.dot(d, dr.gather(mi.Vector3f, geom.normal, r))
+        out = dr.zeros(mi.Color3f, self.num_texels)
+        dr.scatter_reduce(dr.ReduceOp.Add, out, light * (brdf.diffuse_transmission(cos_x) / self.rays), r)
+        return out
+
+    def specular_response(self, geom: TexelGeometry, viewer, roughness: mi.Float, light: mi.Color3f) -> mi.Color3f:
+        """(π/K) Σ_k f_spec(ω_view, ω_k) L_k per texel: the receivers' specular lobe lit by the light along their rays
+        (the cosine-distributed rays' estimate of ∫ f_spec L cos dω), toward ``viewer`` (a camera position)."""
+        r, _, d = self.device()
+        frame = mi.Frame3f(dr.gather(mi.Vector3f, geom.normal, r))
+        wi = local_view(frame, dr.gather(mi.Point3f, geom.position, r), viewer)
+        wo = frame.to_local(d)
+        _, spec = brdf.PreparedBRDF(mi.Color3f(1.0), dr.gather(mi.Float, roughness, r), wi).eval_parts(wo)
+        # spec = f_spec cosθo; the ray's pdf is cosθo / π. Rays left the texel above its horizon: cosθo > 0.
+        value = spec * (dr.pi / self.rays) * dr.rcp(dr.maximum(wo.z, 1e-6))
+        out = dr.zeros(mi.Color3f, self.num_texels)
+        dr.scatter_reduce(dr.ReduceOp.Add, out, value * light, r)
+        return out
+
+    def toward_receivers(self) -> mi.Vector3f:
+        """Per entry: the direction from the source texel back to the receiver (world)."""
+        return -self.device()[2]
+
+    def sources_of(self, texels: np.ndarray) -> np.ndarray:
+        """The texels whose light reaches ``texels`` in one bounce (sorted)."""
+        picked = np.isin(self.receivers, np.asarray(texels, np.int64))
+        return np.unique(self.sources[picked]).astype(np.int64)
+
+    def closure(self, texels: np.ndarray, bounces: int) -> np.ndarray:
+        """``texels`` and every texel whose light reaches them within ``bounces − 1`` extra bounces: where the
+        one-bounce light (and its visibility) must be known to shade ``texels`` with ``bounces`` bounces."""
+        needed = frontier = np.asarray(texels, np.int64)
+        for _ in range(bounces - 1):
+            frontier = np.setdiff1d(self.sources_of(frontier), needed)
+            if not len(frontier):
+                break
+            needed = np.union1d(needed, frontier)
+        return needed
+
+    def save(self, path: Path) -> None:
+        with atomic_path(path) as tmp:
+            with open(tmp, "wb") as fh:
+                np.savez(fh, receivers=self.receivers, sources=self.sources, direction=self.direction,
+                         meta=np.array([self.num_texels, self.rays, self.traced], np.int64))  # fmt: skip
+
+    @classmethod
+    def load(cls, path: Path, num_texels: int, rays: int) -> BounceOperator | None:
+        """The operator cached at ``path``, or None if it is missing, cut short or not of this atlas and ray count."""
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                meta = data["meta"]
+                op = cls(data["receivers"], data["sources"], data["direction"], int(meta[0]), int(meta[1]), int(meta[2]))
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+            return None
+        entries = op.receivers.size
+        shapes = op.sources.shape == (entries,) and op.direction.shape == (entries, 3) and op.receivers.ndim == 1
+        in_range = shapes and (entries == 0 or int(max(op.sources.max(), op.receivers.max())) < num_texels)
+        return op if (in_range and op.num_texels == num_texels and op.rays == rays) else None
+
+
+def texels_that_see_the_body(geom: TexelGeometry, vertices: np.ndarray) -> np.ndarray:
+    """Indices of the texels some point of the body lies above the tangent plane (geometric normal) of: the only ones
+    a ray can bring light after the first bounce to. Exact, from the vertices of the body's convex hull."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    vertices = np.asarray(vertices, np.float64)
+    try:
+        corners = vertices[ConvexHull(vertices).vertices]
+    except (QhullError, ValueError):  # a flat or degenerate body: every vertex is a corner
+        corners = vertices
+    p = np.array(geom.position, np.float64).T
+    ng = np.array(geom.geo_normal, np.float64).T
+    above = np.empty(len(p))
+    for s in range(0, len(p), 8192):
+        n = ng[s : s + 8192]
+        above[s : s + 8192] = (n @ corners.T).max(axis=1) - np.sum(p[s : s + 8192] * n, axis=1)
+    # A ray leaves RAY_EPSILON above the plane, so what it hits lies at least that far above it.
+    return np.flatnonzero(above > 0.5 * RAY_EPSILON)
+
+
+def trace_operator(
+    scene: mi.Scene, subject: mi.Shape, geom: TexelGeometry, atlas: UVAtlas, uvs: np.ndarray, faces: np.ndarray,
+    texels: np.ndarray, rays: int = DEFAULT_RAYS, seed: int = 0,
+) -> BounceOperator:  # fmt: skip
+    """Trace ``rays`` cosine-distributed rays from each of ``texels`` (a shifted Fibonacci lattice per texel: stratified
+    and deterministic) and keep those that first hit ``subject`` (its ``faces`` and per-vertex ``uvs``) from its front.
+    Other shapes of the scene block rays but bounce no light (they have no texels)."""
+    texels = np.asarray(texels, np.uint32)
+    mesh = (
+        mi.UInt32(atlas.nearest_texel().astype(np.uint32)),
+        mi.Point2f(*np.asarray(uvs, np.float32).T),
+        [mi.UInt32(np.ascontiguousarray(faces[:, k], np.uint32)) for k in range(3)],
+    )
+    per_chunk = max(CHUNK_RAYS // rays, 1)
+    parts = [np.zeros(0, np.uint32), np.zeros(0, np.uint32), np.zeros((0, 3), np.float32)]
+    chunks = [parts]
+    for start in range(0, len(texels), per_chunk):
+        chunk = texels[start : start + per_chunk]
+        chunks.append(_trace_chunk(scene, mi.ShapePtr(subject), geom, atlas.resolution, mesh, chunk, rays, seed))
+    receivers, sources, direction = (np.concatenate([c[k] for c in chunks]) for k in range(3))
+    return BounceOperator(receivers, sources, direction, dr.width(geom.position), rays, len(texels))
+
+
+def _trace_chunk(scene, subject_ptr, geom, resolution, mesh, chunk, rays, seed):
+    lookup, uv_table, face_columns = mesh
+    n = len(chunk)
+    lane = dr.arange(mi.UInt32, n * rays)
+    i = lane // rays
+    k = lane - i * rays
+    t = dr.gather(mi.UInt32, mi.UInt32(chunk), i)
+    p = dr.gather(mi.Point3f, geom.position, t)
+    frame = mi.Frame3f(dr.gather(mi.Vector3f, geom.normal, t))
+    ng = dr.gather(mi.Vector3f, geom.geo_normal, t)
+    # A Fibonacci lattice shifted per texel (Cranley–Patterson): stratified over the hemisphere, uncorrelated between
+    # neighbouring texels, the same on every run.
+    kf = mi.Float(k)
+    u = _fraction((kf + 0.5) / rays + mi.sample_tea_float32(t, 2 * seed))
+    v = _fraction(kf * GOLDEN + mi.sample_tea_float32(t, 2 * seed + 1))
+    local = mi.warp.square_to_cosine_hemisphere(mi.Point2f(u, v))
+    d = frame.to_world(local)
+    above = (dr.dot(d, ng) > 0) & (local.z > 0)
+    pi = scene.ray_intersect_preliminary(mi.Ray3f(p + ng * RAY_EPSILON, d), coherent=False, active=above)
+    hit = above & pi.is_valid() & (pi.shape == subject_ptr)
+    # The hit's UV from its triangle's barycentrics (no full surface interaction: only the texel is needed).
+    b1, b2 = pi.prim_uv.x, pi.prim_uv.y
+    corner = [dr.gather(mi.Point2f, uv_table, dr.gather(mi.UInt32, f, pi.prim_index, hit), hit) for f in face_columns]
+    uv = corner[0] * (1.0 - b1 - b2) + corner[1] * b1 + corner[2] * b2
+    col = mi.UInt32(dr.clip(mi.Int32(dr.floor(uv.x * resolution)), 0, resolution - 1))
+    row = mi.UInt32(dr.clip(mi.Int32(dr.floor(uv.y * resolution)), 0, resolution - 1))
+    source = dr.gather(mi.UInt32, lookup, row * resolution + col, hit)
+    # Light leaves the source's diffuse layer only above its own horizon (its texel's shading normal).
+    hit &= dr.dot(dr.gather(mi.Vector3f, geom.normal, source, hit), d) < 0
+    keep = dr.compress(hit)
+    out = (dr.gather(mi.UInt32, t, keep), dr.gather(mi.UInt32, source, keep), dr.gather(mi.Vector3f, d, keep))
+    dr.eval(*out)
+    return np.array(out[0]), np.array(out[1]), np.array(out[2]).T.reshape(-1, 3).astype(np.float32)
+
+
+def _fraction(x):
+    return x - dr.floor(x)
+
+
+def light_along_rays(op: BounceOperator, geom: TexelGeometry, albedo: mi.Color3f, first: tuple, bounces: int) -> mi.Color3f:
+    """L_k: the radiance arriving along each ray after up to ``bounces`` bounces in all. ``first`` = (diffuse per
+    unit albedo, specular) that each ray's source texel sends toward the receiver under the one-bounce lighting;
+    the later bounces' light leaves the sources through their diffuse layer only."""
+    _, s, d = op.device()
+    source_albedo = dr.gather(mi.Color3f, albedo, s)
+    light = source_albedo * first[0] + first[1]
+    if bounces > 2:
+        # T(cosθy) toward the receiver, times the source's albedo: how a source's own indirect light leaves toward x.
+        toward = source_albedo * brdf.diffuse_transmission(-dr.dot(d, dr.gather(mi.Vector3f, geom.normal, s)))
+        term = light
+        for _ in range(bounces - 2):
+            term = toward * dr.gather(mi.Color3f, op.gather_diffuse(geom, term), s)
+            light += term
+    return light
+
+
+def operator_key(geom: TexelGeometry, rays: int, seed: int) -> str:
+    return hashlib.sha1(f"{geom.digest}_{rays}_{seed}".encode()).hexdigest()[:16]

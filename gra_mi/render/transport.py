@@ -1,0 +1,34 @@
+"""How much light transport a stage that shades texels models: the paper's one bounce, or the light after it
+(gra_mi.render.bounce). One config, nested in every command that shades texels (relight, fit, eval, eval-lighting,
+relight-field, train-relightnet, view, bench), so the option reads the same everywhere."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from gra_mi.core.errors import GraMiParameterError
+
+MAX_BOUNCES = 8
+DEFAULT_RAYS = 32  # docs/results/interreflection.md: bias, noise and cost against K on the demo's body
+MAX_RAYS = 4096
+
+
+@dataclass(kw_only=True)
+class LightTransport:
+    bounces: int = 1
+    """Bounces of light: 1 is the paper's one-bounce model; 2 adds the light the body reflects onto itself once (an
+    armpit, the inner thighs, a hand by the hip; docs/accuracy.md, "Interreflections"), 3 or more adds further
+    diffuse bounces. Each extra bounce costs one texel-to-texel operator per frame, traced once and cached."""
+    bounce_rays: int = DEFAULT_RAYS
+    """Rays per texel of that operator (with --bounces >= 2): more rays, less noise in the light after the first
+    bounce, a longer trace per new frame."""
+
+    def validate(self) -> None:
+        if isinstance(self.bounces, bool) or not isinstance(self.bounces, int) or not 1 <= self.bounces <= MAX_BOUNCES:
+            raise GraMiParameterError("bounces", f"expected an integer in [1, {MAX_BOUNCES}], got {self.bounces!r}")
+        if isinstance(self.bounce_rays, bool) or not isinstance(self.bounce_rays, int) or not 1 <= self.bounce_rays <= MAX_RAYS:
+            raise GraMiParameterError("bounce_rays", f"expected an integer in [1, {MAX_RAYS}], got {self.bounce_rays!r}")
+
+    @property
+    def label(self) -> str:
+        return "1 bounce" if self.bounces == 1 else f"{self.bounces} bounces ({self.bounce_rays} rays/texel)"

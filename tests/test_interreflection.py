@@ -1,0 +1,158 @@
+"""Light after the first bounce (gra_mi.render.bounce): against Mitsuba's own ``path`` integrator where the body lights
+itself, the hull test's exactness, the operator's cache, culled jobs, linearity and bad options."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gra_mi.stage.lightstage import uniform_pattern
+
+from .conftest import SCENES
+
+TINY = SCENES / "tiny_lightstage.xml"
+
+
+@pytest.fixture
+def tiny(variant):
+    from gra_mi.render.plugins import register_plugins
+    from gra_mi.stage.scene import LightstageScene
+
+    register_plugins()
+    return LightstageScene.load(TINY, frame=2)
+
+
+def relighters(ls, resolution, bounces=(1, 2), rays=32, albedo=None, roughness=None, **kwargs):
+    from gra_mi.render.relighter import Relighter
+    from gra_mi.render.transport import LightTransport
+
+    return {
+        b: Relighter(ls, resolution, albedo, roughness, transport=LightTransport(bounces=b, bounce_rays=rays), **kwargs) for b in bounces
+    }
+
+
+def smooth_maps(resolution: int, albedo: float = 0.8):
+    u = (np.arange(resolution) + 0.5) / resolution
+    roughness = (0.3 + 0.5 * u[None, :, None] * u[:, None, None]).astype(np.float32)
+    return np.full((resolution, resolution, 3), albedo, np.float32), roughness
+
+
+def test_two_bounces_match_mitsuba_path_on_the_tiny_subject(tiny, tmp_path):
+    from gra_mi.render.path_reference import bounce_errors, path_reference
+
+    albedo, roughness = smooth_maps(128)
+    rel = relighters(tiny, 128, bounces=(1, 2, 3), albedo=albedo, roughness=roughness)
+    leds = uniform_pattern(tiny.stage, 0.5)
+    for cam in (0, 1):
+        ours = {b: r.render(2, cam, leds).image for b, r in rel.items()}
+        path = {d: path_reference(rel[1], 2, cam, leds, max_depth=d, spp=256, folder=tmp_path) for d in (2, 3, 4)}
+        two = bounce_errors(ours[1], ours[2], path[2], path[3])
+        three = bounce_errors(ours[1], ours[3], path[2], path[4])
+        assert two["bias_one"] < -0.008, two  # the light after the first bounce is there to be found
+        assert abs(two["bias_more"]) < 0.003, two
+        assert abs(three["bias_more"]) < 0.003, three
+
+
+@pytest.fixture(scope="module")
+def posed_anny(tmp_path_factory):
+    """The anny body in the hard cases' poses, in the default rig (building anny takes ~1.5 min on a fresh machine)."""
+    from gra_mi.render.path_reference import HARD_CASE_CLIP, HARD_CASE_FRAMES
+    from gra_mi.subject.anny_body import anny_sequence
+    from gra_mi.subject.sequence import save_sequence
+
+    folder = tmp_path_factory.mktemp("anny_hard")
+    save_sequence(anny_sequence([HARD_CASE_CLIP], HARD_CASE_FRAMES), folder / "subject")
+    return folder / "subject"
+
+
+@pytest.mark.slow
+def test_hard_cases_match_mitsuba_path(llvm_variant, posed_anny, tmp_path):
+    """An armpit, the face under raised arms, the inner thighs, a hand by the hip, each lit by a point light close
+    to the body: two bounces against Mitsuba's path with max_depth 3 over the subject and where the one-bounce
+    light is ≥ 10 % short (the issue's goals: 1 % and 3 %)."""
+    from gra_mi.render.path_reference import HARD_CASES, bounce_errors, path_reference
+    from gra_mi.render.plugins import register_plugins
+    from gra_mi.stage.scene import LightstageScene
+
+    register_plugins()
+    ls = LightstageScene.load(SCENES / "body_lightstage.xml", spp=1, subject=str(posed_anny))
+    rel = relighters(ls, 512)
+    off = np.zeros((ls.stage.num_leds, 3))
+    dark_blocks = 0
+    for case in HARD_CASES:
+        camera, light = case.camera(), case.point_light()
+        one, two = (rel[b].render(case.frame, camera, off, [light]).image for b in (1, 2))
+        paths = [path_reference(rel[1], case.frame, camera, off, [light], d, 1024, tmp_path / case.name) for d in (2, 3)]
+        e = bounce_errors(one, two, *paths)
+        assert e["bias_one"] < -0.012, (case.name, e)  # one bounce misses ≥ 1.2 % of the light here
+        assert abs(e["bias_more"]) <= 0.01, (case.name, e)
+        if e["dark_blocks"]:
+            assert e["dark_block_error_more"] <= 0.03 and e["added_light_error"] <= 0.01, (case.name, e)
+        dark_blocks += e["dark_blocks"]
+    assert dark_blocks >= 2  # the block goal was checked somewhere
+
+
+def test_hull_test_finds_every_texel_a_ray_can_reach(tiny):
+    """Texels the convex-hull test leaves out trace nothing: tracing them anyway hits nothing."""
+    from gra_mi.render.bounce import texels_that_see_the_body, trace_operator
+
+    (rel,) = relighters(tiny, 64, bounces=(2,), rays=64).values()
+    geom, seq = rel.geometry(2), tiny.sequence
+    tiny.set_frame(2)
+    candidates = texels_that_see_the_body(geom, seq.vertices[2])
+    everyone = trace_operator(tiny.scene, tiny.subject_shape(), geom, rel.atlas, seq.uvs, seq.faces, np.arange(rel.atlas.num_texels), 64)
+    assert 0 < len(candidates) < rel.atlas.num_texels
+    assert np.isin(np.unique(everyone.receivers), candidates).all()
+    assert len(np.unique(everyone.receivers)) > 0.3 * len(candidates)  # and most of them do see the body
+
+
+def test_light_only_adds_and_scales_linearly(tiny):
+    rel = relighters(tiny, 64)
+    leds = uniform_pattern(tiny.stage, 0.5)
+    one, two = (rel[b].render(2, 1, leds).image[..., :3] for b in (1, 2))
+    twice = rel[2].render(2, 1, 2 * leds).image[..., :3]
+    assert np.all(two >= one - 1e-6) and two.sum() > one.sum() * 1.002
+    np.testing.assert_allclose(twice, 2 * two, rtol=1e-4, atol=1e-6)
+    dark = rel[2].render(2, 1, np.zeros_like(leds)).image[..., :3]
+    assert not dark.any()
+
+
+def test_operator_cache_on_disk_is_reused_and_bad_files_are_traced_again(tiny, tmp_path, monkeypatch):
+    from gra_mi.render import relighter as relighter_module
+    from gra_mi.render.bounce import BounceOperator
+
+    leds = uniform_pattern(tiny.stage, 0.5)
+    first = relighters(tiny, 64, bounces=(2,), cache_dir=tmp_path)[2]
+    image = first.render(2, 1, leds).image
+    (path,) = tmp_path.glob("bounce_*.npz")
+    op = BounceOperator.load(path, first.atlas.num_texels, 32)
+    assert op is not None and op.entries == first.bounce_operator(2).entries
+    assert BounceOperator.load(path, first.atlas.num_texels, 64) is None  # another ray count
+    assert BounceOperator.load(path, first.atlas.num_texels + 1, 32) is None  # another atlas
+
+    def no_trace(*a, **k):
+        raise AssertionError("traced although the cache holds the frame")
+
+    monkeypatch.setattr(relighter_module, "trace_operator", no_trace)
+    np.testing.assert_array_equal(relighters(tiny, 64, bounces=(2,), cache_dir=tmp_path)[2].render(2, 1, leds).image, image)
+    monkeypatch.undo()
+    path.write_bytes(path.read_bytes()[:100])  # cut short: traced again, the same
+    np.testing.assert_array_equal(relighters(tiny, 64, bounces=(2,), cache_dir=tmp_path)[2].render(2, 1, leds).image, image)
+
+
+def test_jobs_culled_to_their_cameras_render_the_same(tiny):
+    """A job's cameras need the visibility of the texels they see and of every texel whose light reaches those."""
+    full, culled = relighters(tiny, 64, bounces=(2,))[2], relighters(tiny, 64, bounces=(2,))[2]
+    culled.only_for([tiny.stage.cameras[1].name])
+    leds = uniform_pattern(tiny.stage, 0.5)
+    np.testing.assert_allclose(culled.render(2, 1, leds).image, full.render(2, 1, leds).image, rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.parametrize(("field", "value"), [("bounces", 0), ("bounces", 9), ("bounces", True), ("bounces", "2"), ("bounces", 2.0),
+                                              ("bounce_rays", 0), ("bounce_rays", 10**6)])  # fmt: skip
+def test_bad_transport_settings_name_the_field(field, value):
+    from gra_mi.core.errors import GraMiParameterError
+    from gra_mi.render.transport import LightTransport
+
+    with pytest.raises(GraMiParameterError, match=field):
+        LightTransport(**{field: value}).validate()
