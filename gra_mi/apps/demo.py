@@ -32,6 +32,7 @@ from gra_mi.eval.lighting import EnvmapAccuracyConfig, envmap_accuracy
 from gra_mi.eval.protocol import EvalConfig, EvalInputs, evaluate
 from gra_mi.render.composite import PlatformCompositor, PlatformConfig
 from gra_mi.render.runtime import ensure_mitsuba
+from gra_mi.render.transport import LightTransport
 from gra_mi.stage.envmap import direction_to_uv, envmap_to_leds, load_envmap, stage_background_plate
 from gra_mi.stage.scene import LightstageScene, composite_over
 
@@ -162,37 +163,42 @@ def contact_sheet(images: list[list[np.ndarray]]) -> np.ndarray:
 # --------------------------------------------------------------------------------------------------------------
 
 
-def run_demo(preset_name: str, out: Path, overwrite: bool = False) -> Path:
-    """Run every stage on ``preset_name`` into ``out``; write demo.json (the stages' records) and report.md from it."""
+def run_demo(preset_name: str, out: Path, overwrite: bool = False, transport: LightTransport | None = None) -> Path:
+    """Run every stage on ``preset_name`` into ``out`` with ``transport``'s bounces of light in every stage that shades
+    texels; write demo.json (the stages' records) and report.md from it."""
+    transport = transport or LightTransport()
+    transport.validate()
 
     if preset_name not in PRESETS:
         raise GraMiParameterError("preset", f"unknown preset '{preset_name}', expected one of {sorted(PRESETS)}")
     preset = PRESETS[preset_name]
-    out = claim_output(out, "demo", {}, {"preset": preset_name}, overwrite=overwrite)  # a rerun resumes its own run only
+    claimed = {"preset": preset_name} | ({"transport": asdict(transport)} if transport != LightTransport() else {})
+    out = claim_output(out, "demo", {}, claimed, overwrite=overwrite)  # a rerun resumes its own run only
     (out / "plots").mkdir(exist_ok=True)
     runtime = {"variant": ensure_mitsuba(), "torch_device": torch_device()}
     record = {"stamp": run_stamp(preset=preset_name, variant=runtime["variant"]), "preset": asdict(preset), "runtime": runtime}
+    record["transport"] = asdict(transport)
     record["timings"] = {}
     atomic_write_text(out / "config.json", json.dumps({"preset": record["preset"], **record["runtime"]}, indent=1) + "\n")
     timings = record["timings"]
     with _timed(timings, f"capture ({preset.capture}, {preset.renderer} ground truth)"):
         capture, ls = _capture_stage(preset, out, record)
     if isinstance(preset, OlatDemoPreset):
-        return _olat_demo(preset, capture, ls, out, record)
+        return _olat_demo(preset, capture, ls, out, record, transport)
     with _timed(timings, "envmap→LED"):
         record["led_mappings"] = _led_mapping_plots(capture, ls.stage, out)
-    fit_result = _learn_stages(preset, capture, out, record)
-    _render_stages(preset, capture, ls, fit_result, out, record)
+    fit_result = _learn_stages(preset, capture, out, record, transport)
+    _render_stages(preset, capture, ls, fit_result, out, record, transport)
 
     with _timed(timings, "evaluation (gra-mi eval)"):
-        eval_config = EvalConfig(composite=True, platform=PlatformConfig(spp=preset.platform_spp))
+        eval_config = EvalConfig(composite=True, platform=PlatformConfig(spp=preset.platform_spp), transport=transport)
         record["eval"] = evaluate(EvalInputs.from_run(out), out / "eval", eval_config)
     atomic_write_text(out / "demo.json", json.dumps(record, indent=1, default=float) + "\n")
     atomic_write_text(out / "report.md", demo_markdown(record))
     return out / "report.md"
 
 
-def _olat_demo(preset: OlatDemoPreset, capture, ls, out: Path, record: dict) -> Path:
+def _olat_demo(preset: OlatDemoPreset, capture, ls, out: Path, record: dict, transport: LightTransport) -> Path:
     """Fit from the OLATs, RelightNet on synthesized lightings, the relit contact sheet, `gra-mi eval` (the capture's
     held-out envmaps and OLATs, and library maps whose truth is the OLAT sum), glTF; demo.json and report.md."""
     from gra_mi.fit.materials import FitConfig, run_fit
@@ -201,18 +207,22 @@ def _olat_demo(preset: OlatDemoPreset, capture, ls, out: Path, record: dict) -> 
 
     timings = record["timings"]
     with _timed(timings, "material fit from the OLATs"):
-        config = FitConfig(roughness_candidates=preset.roughness_candidates, calibrate_brightness=preset.calibrate_brightness)
+        config = FitConfig(
+            roughness_candidates=preset.roughness_candidates, calibrate_brightness=preset.calibrate_brightness, transport=transport
+        )
         fit_result, _ = run_fit(capture.folder, out / "fit", config)
     record["fit"] = json.loads((out / "fit" / "fit.json").read_text())
     with _timed(timings, f"RelightNet training ({preset.relightnet_steps} steps, {preset.synthesized_lightings} synthesized lightings)"):
-        train = TrainConfig(steps=preset.relightnet_steps, synthesized_lightings=preset.synthesized_lightings)
+        train = TrainConfig(steps=preset.relightnet_steps, synthesized_lightings=preset.synthesized_lightings, transport=transport)
         train_relightnet(capture.folder, out / "fit", out / "relightnet", train)
     record["relightnet"] = json.loads((out / "relightnet" / "validation.json").read_text())
-    relighter = Relighter(ls, albedo=fit_result.albedo, roughness=fit_result.roughness, cache_dir=out / "cache" / "visibility")
-    with _timed(timings, "relight (fitted maps, one-bounce)"):
+    cache = out / "cache" / "visibility"
+    relighter = Relighter(ls, albedo=fit_result.albedo, roughness=fit_result.roughness, cache_dir=cache, transport=transport)
+    with _timed(timings, f"relight (fitted maps, {transport.label})"):
         relit_contact_sheet(capture, relighter, [f for f in capture.frames if f.split == "test"], out)
     with _timed(timings, "evaluation (gra-mi eval; library maps' truth from the OLATs)"):
-        record["eval"] = evaluate(EvalInputs.from_run(out), out / "eval", EvalConfig(library_envmaps=preset.library_envmaps))
+        eval_config = EvalConfig(library_envmaps=preset.library_envmaps, transport=transport)
+        record["eval"] = evaluate(EvalInputs.from_run(out), out / "eval", eval_config)
     with _timed(timings, "glTF export"):
         export_glb(out / "avatar.glb", ls.sequence, fit_result.albedo, fit_result.roughness)
     atomic_write_text(out / "demo.json", json.dumps(record, indent=1, default=float) + "\n")
@@ -250,34 +260,35 @@ def _led_mapping_plots(capture, stage, out: Path) -> list[str]:
     return [Path(p).stem for p in (train_env, test_env)]
 
 
-def _learn_stages(preset: DemoPreset, capture, out: Path, record: dict):
+def _learn_stages(preset: DemoPreset, capture, out: Path, record: dict, transport: LightTransport):
     """Material fit → RelightNet → video refiner; their records. Returns the fit."""
     from gra_mi.fit.materials import FitConfig, run_fit
     from gra_mi.relightnet.train import TrainConfig, train_relightnet
 
     timings = record["timings"]
     with _timed(timings, "material fit"):
-        fit_config = FitConfig(roughness_candidates=preset.roughness_candidates, frame_step=preset.fit_frame_step)
+        fit_config = FitConfig(roughness_candidates=preset.roughness_candidates, frame_step=preset.fit_frame_step, transport=transport)
         fit_result, _ = run_fit(capture.folder, out / "fit", fit_config)
     record["fit"] = json.loads((out / "fit" / "fit.json").read_text())
     with _timed(timings, f"RelightNet training ({preset.relightnet_steps} steps) + validation"):
-        train_relightnet(capture.folder, out / "fit", out / "relightnet", TrainConfig(steps=preset.relightnet_steps))
+        train_relightnet(capture.folder, out / "fit", out / "relightnet", TrainConfig(steps=preset.relightnet_steps, transport=transport))
     record["relightnet"] = json.loads((out / "relightnet" / "validation.json").read_text())
     record["refiner"] = _refiner_stage(preset, capture, out, timings)
     return fit_result
 
 
-def _render_stages(preset: DemoPreset, capture, ls, fit_result, out: Path, record: dict) -> None:
+def _render_stages(preset: DemoPreset, capture, ls, fit_result, out: Path, record: dict, transport: LightTransport) -> None:
     """Relit contact sheet, lighting models against the path-traced truth, a point light, composites, glTF."""
     from gra_mi.render.relighter import Relighter
 
     timings = record["timings"]
-    relighter = Relighter(ls, albedo=fit_result.albedo, roughness=fit_result.roughness, cache_dir=out / "cache" / "visibility")
+    cache = out / "cache" / "visibility"
+    relighter = Relighter(ls, albedo=fit_result.albedo, roughness=fit_result.roughness, cache_dir=cache, transport=transport)
     test_frames = [f for f in capture.frames if f.split == "test"]
-    with _timed(timings, "relight (fitted maps, one-bounce)"):
+    with _timed(timings, f"relight (fitted maps, {transport.label})"):
         relit_contact_sheet(capture, relighter, test_frames, out)
     with _timed(timings, "lighting models vs path-traced truth (reference maps)"):
-        config = EnvmapAccuracyConfig(spp=preset.lighting_spp)
+        config = EnvmapAccuracyConfig(spp=preset.lighting_spp, transport=transport)
         envmap_accuracy(capture.folder, out / "fit", out / "lighting", relightnet_dir=out / "relightnet", config=config)
     record["lighting"] = json.loads((out / "lighting" / "accuracy.json").read_text())
     with _timed(timings, "near-field point light"):

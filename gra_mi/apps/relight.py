@@ -27,6 +27,7 @@ from gra_mi.core.shard import Shard, record_shard_count
 from gra_mi.render.composite import PlatformCompositor
 from gra_mi.render.light_path import LightPath
 from gra_mi.render.runtime import ensure_mitsuba
+from gra_mi.render.transport import LightTransport
 from gra_mi.stage.envmap import background_plate, envmap_to_leds, led_fidelity
 from gra_mi.stage.lightstage import olat_pattern, validate_pattern
 from gra_mi.stage.scene import LightstageScene, composite_over, lighting_warnings
@@ -59,8 +60,10 @@ class RelightConfig:
     fidelity: bool = False
     """Also measure how well the LEDs reproduce each envmap's irradiance at the stage centre (envmap_fidelity.json:
     error over 256 normals next to the NNLS optimum; about 9 s per map on 2 cores with 331 LEDs)."""
+    transport: LightTransport = field(default_factory=LightTransport)
 
     def validate(self) -> None:
+        self.transport.validate()
         if self.stage not in STAGES:
             raise GraMiParameterError("stage", f"expected one of {STAGES}, got '{self.stage}'")
         if self.lighting_model not in LIGHTING_MODELS:
@@ -239,13 +242,14 @@ def _stage_model(ls, config: RelightConfig, maps: SubjectMaps):
     if config.stage == "relightnet":
         if maps.relightnet is None:
             raise GraMiParameterError("relightnet", "the relightnet stage needs the folder of a trained RelightNet")
-        from gra_mi.relightnet.model import RelightNet
+        from gra_mi.relightnet.model import RelightNet, check_input_transport
 
         model = RelightNet.load(maps.relightnet, torch_device())
+        check_input_transport(model.config, config.transport, maps.relightnet)
         if maps.albedo is not None and maps.albedo.shape[0] != model.config.resolution:
             raise GraMiInputError("albedo", f"RelightNet runs at {model.config.resolution}², the albedo is {maps.albedo.shape[0]}²")
         resolution = model.config.resolution
-    relighter = Relighter(ls, resolution, maps.albedo, maps.roughness, cache_dir=maps.vis_cache)
+    relighter = Relighter(ls, resolution, maps.albedo, maps.roughness, cache_dir=maps.vis_cache, transport=config.transport)
     relighter.cache.keep = 4  # the jobs are frame-major: a frame's entries (near, far field) are done before the next
     return model, relighter
 

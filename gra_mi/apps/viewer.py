@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gra_mi.core.errors import GraMiInputError
+from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.stage.envmap import EnvmapOptions, envmap_to_leds, rotate, rotation_y
 from gra_mi.stage.envmap_library import REFERENCE_MAPS, reference_map
 from gra_mi.stage.lightstage import Camera, olat_pattern
@@ -67,6 +67,7 @@ class Lighting:
     stage: str = "microfacet"
     frame: int = 0
     exposure: float = 0.0  # EV on top of the automatic exposure
+    bounces: int = 1  # of light (gra_mi.render.transport): 2 adds what the body reflects onto itself
 
 
 @dataclass
@@ -79,7 +80,7 @@ class ViewImage:
 class ViewerSession:
     """The subject, its maps and the lighting; renders views for free cameras (thread-safe: one render at a time)."""
 
-    def __init__(self, sources: ViewSources, envmap_options: EnvmapOptions | None = None, device: str = "cpu"):
+    def __init__(self, sources: ViewSources, envmap_options: EnvmapOptions | None = None, device: str = "cpu", transport=None):
         from gra_mi.render.relighter import Relighter
         from gra_mi.stage.scene import LightstageScene
 
@@ -87,11 +88,11 @@ class ViewerSession:
         self.lock = threading.RLock()
         self.ls = LightstageScene.load(sources.scene)
         albedo, roughness, self.confidence = self._maps()
-        self.relighter = Relighter(self.ls, sources.uv_resolution, albedo, roughness, cache_dir=sources.vis_cache)
+        self.relighter = Relighter(self.ls, sources.uv_resolution, albedo, roughness, cache_dir=sources.vis_cache, transport=transport)
         self.model = self._relightnet(device)
         self.envmap_options = envmap_options or EnvmapOptions()
         self.envmap_sources = self._envmap_sources()
-        self.lighting = Lighting(envmap=next(iter(self.envmap_sources)))
+        self.lighting = Lighting(envmap=next(iter(self.envmap_sources)), bounces=self.relighter.transport.bounces)
         self._envmaps: dict[str, np.ndarray] = {}
         self._base_exposure: dict[tuple, float] = {}
         self.capture = self._capture()
@@ -249,7 +250,7 @@ class ViewerSession:
         if light.stage in ("albedo", "roughness", "confidence"):
             base = 1.0
         else:
-            key = (light.mode, light.envmap, light.rotation, light.olat, light.point_intensity, light.stage, light.far_field)
+            key = (light.mode, light.envmap, light.rotation, light.olat, light.point_intensity, light.stage, light.far_field, light.bounces)
             if key not in self._base_exposure:
                 self._base_exposure = {key: display_exposure(rgb, alpha[..., 0] > 0.5) if alpha.max() > 0 else 1.0}
             base = self._base_exposure[key]
@@ -363,6 +364,16 @@ def with_lighting(session: ViewerSession, **changes) -> Lighting:
         raise GraMiInputError("viewer", f"no LED {light.olat} or envmap {light.envmap!r}")
     if light.mode == "envmap":
         session.envmap(light.envmap)  # a map that cannot be read says so here, before the lighting changes
+    transport = replace(session.relighter.transport, bounces=light.bounces)
+    transport.validate()
+    if session.model is not None and light.stage == "relightnet":
+        from gra_mi.relightnet.model import check_input_transport
+
+        try:
+            check_input_transport(session.model.config, transport, session.sources.relightnet)
+        except GraMiParameterError as exc:
+            raise GraMiInputError("viewer", str(exc)) from None
     with session.lock:
+        session.relighter.transport = transport
         session.lighting = light
     return light

@@ -94,6 +94,9 @@ class ViewerPage:
             self.envmap = gui.add_dropdown("envmap", list(s.envmap_sources), initial_value=light.envmap)
             self.rotation = gui.add_slider("rotation (deg)", -180, 180, 5, 0)
             self.field = gui.add_dropdown("lighting model", ("far field", "near field"), initial_value="far field")
+            self.bounces = gui.add_dropdown(
+                "bounces of light", tuple(sorted({"1", "2", "3", str(light.bounces)}, key=int)), initial_value=str(light.bounces)
+            )
             self.olat = gui.add_slider("LED (OLAT)", 0, s.ls.stage.num_leds - 1, 1, 0)
             self.point = gui.add_vector3("point light (m)", light.point, min=(-5.0, -5.0, -5.0), max=(5.0, 5.0, 5.0), step=0.05)
             self.intensity = gui.add_slider("point light W/sr", 0.1, 10.0, 0.1, light.point_intensity)
@@ -113,6 +116,7 @@ class ViewerPage:
             self.envmap,
             self.rotation,
             self.field,
+            self.bounces,
             self.olat,
             self.point,
             self.intensity,
@@ -164,7 +168,7 @@ class ViewerPage:
                 self.session, mode=self.mode.value, envmap=self.envmap.value, rotation=float(self.rotation.value),
                 far_field=self.field.value == "far field", olat=int(self.olat.value), point=point,
                 point_intensity=float(self.intensity.value), stage=self.stage.value, frame=int(self.frame.value),
-                exposure=float(self.exposure.value),
+                exposure=float(self.exposure.value), bounces=int(self.bounces.value),
             )  # fmt: skip
         except GraMiInputError as exc:  # e.g. an envmap file that cannot be read: said, and the last lighting stays
             self.say(str(exc))

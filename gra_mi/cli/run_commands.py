@@ -10,6 +10,7 @@ from gra_mi.cli.options import CommandConfig, Restartable
 from gra_mi.core.config import option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.eval.protocol import EvalConfig, EvalInputs, evaluate
+from gra_mi.render.transport import LightTransport
 from gra_mi.stage.envmap import EnvmapOptions
 
 
@@ -21,12 +22,13 @@ class DemoCommand(Restartable):
     lightings synthesized from them, scored under held-out envmaps and OLATs."""
     out: Path = Path("outputs/demo")
     """Output folder (renders, plots, report.md)."""
+    transport: LightTransport = field(default_factory=LightTransport)
 
 
 def run_demo(c: DemoCommand) -> None:
     from gra_mi.apps.demo import run_demo as demo
 
-    print(f"done: open {demo(c.preset, c.out, c.overwrite)}")
+    print(f"done: open {demo(c.preset, c.out, c.overwrite, c.transport)}")
 
 
 @dataclass(kw_only=True)
@@ -121,6 +123,8 @@ class ViewCommand(CommandConfig):
     seconds: float | None = None
     """Stop after this many seconds (scripts, tests). Default: run until Ctrl-C."""
     envmaps: EnvmapOptions = field(default_factory=EnvmapOptions)
+    transport: LightTransport = field(default_factory=LightTransport)
+    """The bounces of light the page starts with (it has a control for them)."""
 
     def validate(self) -> None:
         super().validate()
@@ -156,7 +160,7 @@ def run_view(c: ViewCommand) -> None:
         sources = ViewSources(c.capture / "scene.xml", c.capture, c.fit, c.relightnet, **extra)
     else:
         sources = ViewSources(c.scene, None, c.fit, c.relightnet, **extra)
-    session = ViewerSession(sources, c.envmaps, str(torch_device()))
+    session = ViewerSession(sources, c.envmaps, str(torch_device()), c.transport)
     for notice in session.notices:
         print(f"gra-mi view: note: {notice}")
     page = ViewerPage(session, c.host, c.port, c.max_size)

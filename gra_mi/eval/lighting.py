@@ -32,6 +32,7 @@ from gra_mi.core.progress import progress
 from gra_mi.core.runtime import torch_device
 from gra_mi.core.shard import Shard
 from gra_mi.render.runtime import ensure_mitsuba
+from gra_mi.render.transport import LightTransport
 from gra_mi.stage.envmap import envmap_to_leds
 from gra_mi.stage.envmap_library import REFERENCE_MAPS, reference_map
 
@@ -52,9 +53,10 @@ class EnvmapAccuracyConfig:
     """Samples per pixel of the path-traced truth."""
     map_height: int = 64
     """Rows of the reference maps (lat-long, twice as wide)."""
+    transport: LightTransport = field(default_factory=LightTransport)
 
     def validate(self) -> None:
-
+        self.transport.validate()
         unknown = sorted(set(self.maps) - set(REFERENCE_MAPS))
         if unknown or not self.maps:
             raise GraMiParameterError("maps", f"expected names among {', '.join(REFERENCE_MAPS)}, got {', '.join(self.maps) or 'none'}")
@@ -110,7 +112,7 @@ def envmap_accuracy(
     config.validate()
     ensure_mitsuba()
     out, shard = Path(out), shard or Shard()
-    capture, methods = _lighting_models(capture_dir, fit_dir, relightnet_dir)
+    capture, methods = _lighting_models(capture_dir, fit_dir, relightnet_dir, config.transport)
     ls = methods[0][1].ls
     frame, cameras = _views(config, capture, ls)
     if not shard.whole and not _shard_truths(out, capture, ls, config, frame, cameras, shard):
@@ -150,23 +152,27 @@ def _shard_truths(out: Path, capture, ls, config: EnvmapAccuracyConfig, frame: i
     return not waiting
 
 
-def _lighting_models(capture_dir, fit_dir, relightnet_dir):
+def _lighting_models(capture_dir, fit_dir, relightnet_dir, transport):
     """(capture, [(name, relighter, RelightNet or None, far field)]): near and far field with the fitted maps, far
-    field with the true maps, and RelightNet on the far-field render when given."""
+    field with the true maps, and RelightNet on the far-field render when given; every render with ``transport``'s
+    bounces."""
     from gra_mi.fit.fitted import fitted_relighter
     from gra_mi.render.relighter import Relighter, load_texture
 
-    capture, fitted = fitted_relighter(capture_dir, fit_dir)
+    capture, fitted = fitted_relighter(capture_dir, fit_dir, transport=transport)
     truth_maps = Relighter(
         fitted.ls,
         albedo=load_texture(capture.folder / "gt" / "albedo.exr", 3, "albedo"),
         roughness=load_texture(capture.folder / "gt" / "roughness.exr", 1, "roughness"),
+        transport=transport,
     )
     methods = [("near field", fitted, None, False), ("far field", fitted, None, True), ("far field, true maps", truth_maps, None, True)]
     if relightnet_dir is not None:
-        from gra_mi.relightnet.model import RelightNet
+        from gra_mi.relightnet.model import RelightNet, check_input_transport
 
-        methods.append(("RelightNet (far field)", fitted, RelightNet.load(relightnet_dir, torch_device()), True))
+        net = RelightNet.load(relightnet_dir, torch_device())
+        check_input_transport(net.config, transport, relightnet_dir)
+        methods.append(("RelightNet (far field)", fitted, net, True))
     return capture, methods
 
 

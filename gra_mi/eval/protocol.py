@@ -47,6 +47,7 @@ from gra_mi.eval.report import STAGES, UNCHANGED, eval_csv, eval_markdown
 from gra_mi.refiner.config import RefinerConfig
 from gra_mi.render.composite import PLATFORM_FLAGS, PlatformConfig
 from gra_mi.render.runtime import ensure_mitsuba
+from gra_mi.render.transport import LightTransport
 from gra_mi.stage.envmap import EnvmapOptions
 
 logger = logging.getLogger(__name__)
@@ -77,8 +78,10 @@ class EvalConfig:
     library_envmaps: int = 0
     """A static OLAT capture: also score under this many held-out procedural maps (skies, rooms), truth from the OLATs."""
     envmaps: EnvmapOptions = field(default_factory=EnvmapOptions)
+    transport: LightTransport = field(default_factory=LightTransport)
 
     def validate(self) -> None:
+        self.transport.validate()
         if self.library_envmaps < 0:
             raise GraMiParameterError("library_envmaps", f"must be >= 0, got {self.library_envmaps}")
         require_memory("library_envmaps", self.library_envmaps * DRIVE_BYTES, f"{self.library_envmaps:,} library maps' LED drives")
@@ -251,7 +254,7 @@ def evaluate(inputs: EvalInputs, out: str | Path, config: EvalConfig | None = No
     out = Path(out)
     capture = Capture.load(inputs.capture)
     status = _Status(inputs)
-    relighter, model = _texture_stages(inputs, capture, out, status)
+    relighter, model = _texture_stages(inputs, capture, out, status, config.transport)
     dataset, refined = _video_stages(inputs, status)
     splits = _splits(capture, dataset if refined else None, refined) + _field_splits(capture, config)
     scale = config.scale
@@ -295,24 +298,26 @@ class _Status:
             self.problems.append(why)
 
 
-def _texture_stages(inputs: EvalInputs, capture, out: Path, status: _Status):
+def _texture_stages(inputs: EvalInputs, capture, out: Path, status: _Status, transport: LightTransport):
     """(the fitted relighter, RelightNet), None for a stage that cannot be scored (said in ``status``)."""
     from gra_mi.fit.fitted import fitted_relighter
 
     try:
         if inputs.fit is None or not (inputs.fit / "albedo.exr").is_file():
             raise GraMiInputError(inputs.fit or "--fit", "no albedo.exr (a fit folder from `gra-mi fit`)")
-        _, relighter = fitted_relighter(capture.folder, inputs.fit, out / "cache")
+        _, relighter = fitted_relighter(capture.folder, inputs.fit, out / "cache", transport)
     except GraMiInputError as exc:
         for stage in ("microfacet", "RelightNet"):
             status.skip(stage, str(exc), "fit")
         return None, None
     try:
-        from gra_mi.relightnet.model import RelightNet
+        from gra_mi.relightnet.model import RelightNet, check_input_transport
 
         if inputs.relightnet is None or not (inputs.relightnet / "relightnet.json").is_file():
             raise GraMiInputError(inputs.relightnet or "--relightnet", "no relightnet.json (a folder from `gra-mi train-relightnet`)")
-        return relighter, RelightNet.load(inputs.relightnet, torch_device())
+        model = RelightNet.load(inputs.relightnet, torch_device())
+        check_input_transport(model.config, transport, inputs.relightnet)
+        return relighter, model
     except GraMiInputError as exc:
         status.skip("RelightNet", str(exc), "relightnet")
         return relighter, None

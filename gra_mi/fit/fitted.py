@@ -8,11 +8,15 @@ from pathlib import Path
 from gra_mi.capture.dataset import Capture
 from gra_mi.core.errors import GraMiInputError
 from gra_mi.render.relighter import Relighter, load_texture
+from gra_mi.render.transport import LightTransport
 from gra_mi.stage.scene import LightstageScene
 
 
-def fitted_relighter(capture_dir: str | Path, fit_dir: str | Path, cache_dir: str | Path | None = None):
-    """(capture, relighter) for a capture and its fitted maps (``gra-mi fit``): what RelightNet and the refiner train on."""
+def fitted_relighter(
+    capture_dir: str | Path, fit_dir: str | Path, cache_dir: str | Path | None = None, transport: LightTransport | None = None
+):
+    """(capture, relighter) for a capture and its fitted maps (``gra-mi fit``): what RelightNet and the refiner train
+    on; ``transport``: the bounces of light it renders (default: one)."""
     capture = Capture.load(capture_dir)
     capture.check_images()
     fit_dir = Path(fit_dir)
@@ -25,4 +29,4 @@ def fitted_relighter(capture_dir: str | Path, fit_dir: str | Path, cache_dir: st
             field="resolution",
         )
     ls = LightstageScene.load(capture.folder / "scene.xml")
-    return capture, Relighter(ls, albedo=albedo, roughness=roughness, cache_dir=cache_dir)
+    return capture, Relighter(ls, albedo=albedo, roughness=roughness, cache_dir=cache_dir, transport=transport)

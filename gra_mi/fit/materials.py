@@ -50,6 +50,7 @@ from gra_mi.fit.prior import SurfaceGraph
 from gra_mi.fit.report import write_fit_outputs
 from gra_mi.fit.views import ViewStore
 from gra_mi.render.runtime import ensure_mitsuba
+from gra_mi.render.transport import LightTransport
 from gra_mi.stage.scene import LightstageScene
 
 logger = logging.getLogger(__name__)
@@ -77,6 +78,7 @@ def _resolutions(text: str) -> list[int]:
         raise argparse.ArgumentTypeError(f"expected a comma list of UV resolutions such as 256,512,1024, got '{text}'") from None
 
 
+INDIRECT_ROUNDS = 2  # closed forms solved again with the light after the first bounce frozen (docs/accuracy.md)
 FIT_BYTES_PER_TEXEL = 160  # float32 state per texel of a fit, views' texel lists included (a lower bound)
 
 
@@ -125,8 +127,10 @@ class FitConfig:
     """After the fit, scale the albedo (one gain per channel) so that renders of the training views hold the captured
     total light: L1 fits each pixel's median, and the light the one-bounce model leaves out (interreflections, sheen)
     is one-sided, so without it every render comes out a few per cent too dark."""
+    transport: LightTransport = field(default_factory=LightTransport)
 
     def validate(self) -> None:
+        self.transport.validate()
         if self.solver not in SOLVERS:
             raise GraMiParameterError("solver", f"expected one of {', '.join(SOLVERS)}, got {self.solver!r}")
         if self.iterations < 0:
@@ -231,7 +235,10 @@ class MaterialFitter:
         self.stage = self.ls.stage
         resolution = config.resolution or capture.uv_resolution
         # streamed: 4 frames' visibility held in memory, the rest read from the cache folder
-        self.relighter = Relighter(self.ls, resolution, cache_dir=cache_dir, visibility_keep=4 if config.batch_views > 0 else None)
+        self.relighter = Relighter(
+            self.ls, resolution, cache_dir=cache_dir, visibility_keep=4 if config.batch_views > 0 else None, transport=config.transport
+        )
+        self._frozen: tuple | None = None  # (the maps' relighter, frame → its light after the first bounce)
         self.atlas = self.relighter.atlas
         self.train = [f for f in capture.frames if f.split == "train"][:: config.frame_step]
         self.train_cameras = config.cameras or capture.train_cameras
@@ -297,7 +304,7 @@ class MaterialFitter:
                 self._loops.clear()
             self._loops[key] = TexelLedLoop.build(
                 self.relighter.geometry(view.pose), self.relighter.visibility(view.pose, False), texels, self.relighter.leds(False),
-                self._lighting[view.frame], self.stage.camera(view.camera).position,
+                self._lighting[view.frame], self.stage.camera(view.camera).position, self.frozen_indirect(view.frame, view.pose, view.camera),
             )  # fmt: skip
         diffuse, spec = self._loops[key].run(mi.Float(np.asarray(roughness, np.float32)[texels]))
         return columns(diffuse), columns(spec)
@@ -310,10 +317,36 @@ class MaterialFitter:
         self.store = ViewStore.for_fit(self.streamed, out)
         try:
             closed = self.fit_closed_form(out) if start is None else self.start_from(start)
+            for _ in range(INDIRECT_ROUNDS if self.config.transport.bounces > 1 else 0):
+                self.freeze_indirect(closed)  # the closed form again, its light after the first bounce held fixed
+                closed = self.fit_closed_form(None) if start is None else self.start_from(start)
             result = closed if self.config.solver == "closed-form" else self.optimize(closed, out, start)
         finally:
             self.store.close()
         return self.calibrate_brightness(result) if self.config.calibrate_brightness else result
+
+    def freeze_indirect(self, result: FitResult) -> None:
+        """Hold the light after the first bounce at what ``result``'s maps make of it: from now on every view's LED loop
+        adds it (the operator is linear in the albedo of the hit texels, so a closed-form solve with it fixed, repeated,
+        converges to the maps that explain the images with it)."""
+        maps = self.relighter.with_maps(result.albedo, result.roughness)
+        light = {f.frame: maps.indirect(f.mesh_frame, self._lighting[f.frame], [], [], False) for f in self.train}
+        self._frozen = (maps, light)
+        self._loops.clear()
+
+    def frozen_indirect(self, frame: int, pose: int, camera: str) -> tuple[np.ndarray, np.ndarray] | None:
+        """(what each texel's diffuse layer takes in, the specular light toward ``camera``) of the frozen light after the
+        first bounce in training frame ``frame``; None while the fit models one bounce."""
+        import mitsuba as mi
+
+        if self._frozen is None:
+            return None
+        maps, light = self._frozen
+        along_rays, diffuse = light[frame]
+        spec = maps.bounce_operator(pose).specular_response(
+            maps.geometry(pose), self.stage.camera(camera).position, mi.Float(maps.roughness), along_rays
+        )
+        return diffuse, columns(spec)
 
     def calibrate_brightness(self, result: FitResult) -> FitResult:
         """One gain per albedo channel (a ratio of sums) that gives renders of every training view (rasterised as the
@@ -321,10 +354,7 @@ class MaterialFitter:
         by its own brightness. The roughness and the specular light stay as fitted."""
         from dataclasses import replace
 
-        from gra_mi.render.relighter import Relighter
-
-        relighter = Relighter(self.ls, albedo=result.albedo, roughness=result.roughness)
-        relighter.cache = self.relighter.cache  # the visibility the fit traced
+        relighter = self.relighter.with_maps(result.albedo, result.roughness)  # the visibility the fit traced
         sums = np.zeros((3, 3))  # rows: captured, diffuse, specular
         for entry in self.train:
             for cam in self.train_cameras:

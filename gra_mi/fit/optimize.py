@@ -207,7 +207,7 @@ class TrainingViews:
         f = self.fitter
         loop = TexelLedLoop.build(
             f.relighter.geometry(key.pose), f.relighter.visibility(key.pose, False), a["lanes"], f.relighter.leds(False),
-            f._lighting[key.frame], f.stage.camera(key.camera).position,
+            f._lighting[key.frame], f.stage.camera(key.camera).position, f.frozen_indirect(key.frame, key.pose, key.camera),
         )  # fmt: skip
         return ViewBatch(
             key.name, loop.count, mi.UInt32(a["lanes"]), int(a["observed"].shape[0]), mi.Color3f(*a["observed"].T),

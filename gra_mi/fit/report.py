@@ -80,15 +80,17 @@ def score_maps(fitter, result) -> tuple[dict, dict, dict]:
 
 
 def relight_scores(fitter, result, cache_dir: Path | None) -> dict[str, dict]:
-    """PSNR and mean L1 of one-bounce renders with the fitted maps under the capture's held-out (test) lighting, from
-    held-out and training cameras, against the captured images."""
+    """PSNR and mean L1 of renders with the fitted maps (and the fit's bounces of light) under the capture's held-out
+    (test) lighting, from held-out and training cameras, against the captured images."""
     from gra_mi.render.relighter import Relighter
 
     capture = fitter.capture
     test = [f for f in capture.frames if f.split == "test"]
     if not test:
         return {}
-    relighter = Relighter(fitter.ls, albedo=result.albedo, roughness=result.roughness, cache_dir=cache_dir)
+    relighter = Relighter(
+        fitter.ls, albedo=result.albedo, roughness=result.roughness, cache_dir=cache_dir, transport=fitter.config.transport
+    )
     scores: dict[str, list] = {"held-out cameras": [], "training cameras": []}
     cameras = [(c, "held-out cameras") for c in capture.eval_cameras] + [(capture.train_cameras[0], "training cameras")]
     for entry in progress(test, description="relight held-out lighting"):

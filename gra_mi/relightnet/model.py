@@ -31,7 +31,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from gra_mi.core.errors import GraMiInputError
+from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.render.bridge import IN_CHANNELS
 
 FORMAT = "gra-mi-relightnet/2"
@@ -63,6 +63,8 @@ class RelightNetConfig:
     env_token_dim: int = 64
     in_channels: int = IN_CHANNELS
     out_channels: int = 3
+    input_bounces: int = 1
+    """The bounces of light in the coarse renders it was trained on (``--bounces``): it is fed the same."""
     output_gain: float = 1.0
     """One gain on the output, fitted after training (:func:`gra_mi.relightnet.train.calibrate_output_gain`) so
     that the training views keep their total light: L1 learns each pixel's median, and the light the coarse render
@@ -89,6 +91,16 @@ class RelightNetConfig:
             raise GraMiInputError("relightnet.patch", f"must be 1, 2 or 4 and leave ≥ {self.lowest_resolution}² texels, got {self.patch}")
         if any(self.channels(i) % self.heads for i, r in enumerate(self.levels()) if r < self.attention_below):
             raise GraMiInputError("relightnet.heads", "attention channels must divide by the number of heads")
+
+
+def check_input_transport(config: RelightNetConfig, transport, where) -> None:
+    """Refuse to feed a RelightNet coarse renders with other bounces of light than those it was trained on."""
+    if config.input_bounces != transport.bounces:
+        raise GraMiParameterError(
+            "bounces",
+            f"the RelightNet at {where} was trained on renders with {config.input_bounces} bounce(s) of light; "
+            f"run with --bounces {config.input_bounces} (got {transport.bounces})",
+        )
 
 
 def _groups(channels: int) -> int:

@@ -36,6 +36,7 @@ from gra_mi.relightnet.lightings import TrainingViews, synthesized_views
 from gra_mi.relightnet.model import RelightNet, RelightNetConfig, exposure
 from gra_mi.render.bridge import camera_uv_grid, sample_texture, to_torch
 from gra_mi.render.runtime import ensure_mitsuba
+from gra_mi.render.transport import LightTransport
 
 logger = logging.getLogger(__name__)
 
@@ -82,12 +83,13 @@ class TrainConfig:
     LEDs, each target the sum of the capture's training OLATs (docs/evaluation.md); 0: the capture's own only."""
     synthesized_validation: int = 16
     """With --synthesized-lightings: held-out procedural envmaps (another seed range), truth from the OLATs."""
+    transport: LightTransport = field(default_factory=LightTransport)
     loss: str = "display"
     """How the L1 compares images (also the score that selects the weights): "display" through a display's tone curve,
     as the metrics see them (an error in a shadow weighs what it looks like); "linear": radiance itself."""
 
     def validate(self) -> None:
-
+        self.transport.validate()
         positive = {"steps": self.steps, "checkpoint_every": self.checkpoint_every, "log_every": self.log_every}
         positive |= {"base_channels": self.base_channels, "env_height": self.env_height, "batch_size": self.batch_size}
         positive |= {"validate_every": self.validate_every, "selection_views": self.selection_views}
@@ -227,7 +229,7 @@ def train_relightnet(capture_dir: str | Path, fit_dir: str | Path, out: str | Pa
     device = torch_device()
     torch.manual_seed(config.seed)
     out = Path(out)
-    capture, relighter = fitted_relighter(capture_dir, fit_dir, out / "cache" if loop.rank == 0 else None)
+    capture, relighter = fitted_relighter(capture_dir, fit_dir, out / "cache" if loop.rank == 0 else None, config.transport)
     train_jobs = of_lightings(view_jobs(capture, ("train",)), config.training_lightings)  # refused before any output
     if config.synthesized_lightings:
         static_pose(capture)  # a moving capture has no reflectance field: refused before the folder is claimed
@@ -237,7 +239,11 @@ def train_relightnet(capture_dir: str | Path, fit_dir: str | Path, out: str | Pa
     samples = lit(train_views) + held_out  # what the report scores
     mine = train.share(loop.rank, loop.world)  # each process its share
     net_config = RelightNetConfig(
-        resolution=relighter.albedo_tex.shape[0], base_channels=config.base_channels, env_height=config.env_height, patch=config.patch
+        resolution=relighter.albedo_tex.shape[0],
+        base_channels=config.base_channels,
+        env_height=config.env_height,
+        patch=config.patch,
+        input_bounces=config.transport.bounces,
     )
     model = RelightNet(net_config).to(device)
     optimizer = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)

@@ -7,6 +7,7 @@ lighting → :func:`gra_mi.uvspace.shade_texels` → :func:`gra_mi.uvspace.raste
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import logging
 from dataclasses import dataclass
@@ -98,6 +99,15 @@ class Relighter:
         self._operators: dict[str, BounceOperator] = {}  # the last frames' bounce operators (bounces > 1)
         self._indirect: tuple | None = None  # (key, indirect light) of the last lighting: a frame's cameras share it
         self.job_cameras = None  # :meth:`only_for`
+
+    def with_maps(self, albedo: np.ndarray, roughness: np.ndarray) -> Relighter:
+        """The same subject, atlas, transport and caches (geometry, visibility, bounce operators) with other maps of
+        this atlas's resolution: a fit's estimates, rendered without tracing anything again."""
+        other = copy.copy(self)
+        other.albedo_tex, other.roughness_tex = albedo, roughness
+        other.albedo, other.roughness = self.atlas.gather(albedo), self.atlas.gather(roughness)[:, 0]
+        other._indirect = None
+        return other
 
     def leds(self, far_field: bool | None = None) -> LedLayout:
         """The rig's LEDs, lit near or far field (None: the relighter's own setting)."""

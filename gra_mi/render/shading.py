@@ -101,7 +101,7 @@ class TexelLedLoop:
     frame: mi.Frame3f
     wi: mi.Vector3f
     far_field: bool = False
-    indirect: mi.Color3f | None = None  # per lane: the diffuse part of the light after the first bounce
+    indirect: tuple | None = None  # per lane: (diffuse per unit albedo, specular) of the light after the first bounce
 
     @classmethod
     def build(
@@ -112,10 +112,11 @@ class TexelLedLoop:
         leds: LedLayout,
         led_intensities: np.ndarray,
         camera_position,
-        indirect: np.ndarray | None = None,
+        indirect: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> TexelLedLoop:
         """The loop of ``texels`` (repeats allowed) seen from ``camera_position`` (any viewer :func:`local_view`
-        takes); ``indirect`` (M, 3) as :func:`shade_texels` takes it."""
+        takes). ``indirect``: the light after the first bounce, held fixed, as ((M, 3) what each texel's diffuse layer
+        takes in, as :func:`shade_texels` takes it; (M, 3) the specular light it sends toward this viewer)."""
         m = dr.width(geom.position)
         words, on_words, led_pos, led_int = led_loop_inputs(leds, led_intensities)
         t = mi.UInt32(np.asarray(texels, np.uint32))
@@ -124,7 +125,8 @@ class TexelLedLoop:
         wi = local_view(frame, position, camera_position)
         extra = None
         if indirect is not None:
-            extra = indirect_toward(wi, dr.gather(mi.Color3f, mi.Color3f(*np.asarray(indirect, np.float32).T), t))
+            diffuse_in, specular = (mi.Color3f(*np.asarray(x, np.float32).T) for x in indirect)
+            extra = (indirect_toward(wi, dr.gather(mi.Color3f, diffuse_in, t)), dr.gather(mi.Color3f, specular, t))
         # Visibility words are word-major over all texels (w * M + t): gather this subset's, in the same layout.
         index = (np.arange(words, dtype=np.uint64)[:, None] * m + np.asarray(texels, np.uint64)[None, :]).ravel()
         vis = dr.gather(mi.UInt32, visibility, mi.UInt32(index.astype(np.uint32)))
@@ -139,7 +141,7 @@ class TexelLedLoop:
         )  # fmt: skip
         if self.indirect is None:
             return parts
-        return (parts[0] + self.indirect, *parts[1:])
+        return (parts[0] + self.indirect[0], parts[1] + self.indirect[1], *parts[2:])
 
 
 def led_cell_roughness(roughness: np.ndarray, num_leds: int) -> np.ndarray:
