@@ -91,35 +91,8 @@ TRUTHS = [  # (what the ground truth has, `gra-mi capture` options)
 ]  # every row at the preset's samples per pixel: the same pixel coverage, so the same texels are scored
 
 
-HELD_OUT_GROUPS = {"pattern": "held-out OLATs", "envmap": "held-out envmaps"}
 NOISE_FRAMES = 6  # held-out OLATs rendered again at NOISE_FACTOR x the samples
 NOISE_FACTOR = 16
-
-
-def true_maps_relit(capture) -> dict[str, tuple[float, float]]:
-    """Display PSNR and SSIM of gra-mi's one-bounce render with the *true* maps against the capture's images, per
-    held-out lighting group, from the held-out cameras: what a relight with a perfect fit scores against this truth."""
-    from gra_mi.capture.dataset import load_observation
-    from gra_mi.core.metrics import compare, subject_mask
-    from gra_mi.render.relighter import Relighter, load_texture
-    from gra_mi.stage.scene import LightstageScene
-
-    gt = capture.folder / "gt"
-    relighter = Relighter(
-        LightstageScene.load(capture.folder / "scene.xml"),
-        albedo=load_texture(gt / "albedo.exr", 3, "albedo"), roughness=load_texture(gt / "roughness.exr", 1, "roughness"),
-    )  # fmt: skip
-    scores: dict[str, list] = {group: [] for group in HELD_OUT_GROUPS.values()}
-    for entry in (f for f in capture.frames if f.split == "test" and f.kind in HELD_OUT_GROUPS):
-        for camera in capture.eval_cameras:
-            truth = load_observation(capture, camera, entry.frame)
-            mask = subject_mask(truth)
-            if not truth[mask, :3].sum() > 0:
-                continue  # an OLAT behind the subject: nothing to score
-            image = relighter.render(entry.mesh_frame, camera, capture.lighting(relighter.ls.stage, entry)).image
-            score = compare(image, truth, mask)
-            scores[HELD_OUT_GROUPS[entry.kind]].append((score["psnr"], score["ssim"]))
-    return {group: tuple(np.mean(values, axis=0)) for group, values in scores.items() if values}
 
 
 def clean_truth_scores(capture) -> tuple[float, float]:
@@ -149,10 +122,12 @@ def clean_truth_scores(capture) -> tuple[float, float]:
 
 
 def ceiling_rows(label: str, capture) -> list[str]:
-    """The effects page's second table: one row per ground truth, the true maps relit against it."""
-    relit = true_maps_relit(capture)
-    cells = [f"{relit[g][0]:.2f} / {relit[g][1]:.3f}" if g in relit else "–" for g in HELD_OUT_GROUPS.values()]
-    return [f"| {label} | " + " | ".join(cells) + " |"]
+    """The effects page's second table: one row per ground truth, the true maps relit against it with one and two
+    bounces of light."""
+    from gra_mi.eval.ceiling import ceiling_cells
+    from gra_mi.render.transport import LightTransport
+
+    return [f"| {label} | " + " | ".join(ceiling_cells(capture, [LightTransport(), LightTransport(bounces=2)])) + " |"]
 
 
 def effects_page(preset: str, step: int, work: Path, variant: str) -> str:
@@ -191,13 +166,13 @@ def effects_page(preset: str, step: int, work: Path, variant: str) -> str:
             "",
             "## What each truth leaves a perfect fit",
             "",
-            "gra-mi's one-bounce render with the **true** maps against each truth, from the held-out cameras (display PSNR",
-            "in dB / SSIM, as `gra-mi eval` scores): the most the microfacet stage could score with a perfect fit, so what",
+            "gra-mi's render with the **true** maps against each truth, one bounce and two (`--bounces 2`), from the held-out",
+            "cameras (display PSNR in dB / SSIM, as `gra-mi eval` scores): the most the microfacet stage could score with a perfect fit, so what",
             "RelightNet has to make up. Against gra-mi's own one-bounce truth the gap is the UV-space render itself (per-texel",
             "shading and visibility at the capture's texel size, rasterised; the truth shades per pixel).",
             "",
-            "| ground truth | held-out OLATs | held-out envmaps |",
-            "|---|---|---|",
+            "| ground truth | held-out OLATs, 1 bounce | held-out envmaps, 1 bounce | held-out OLATs, 2 bounces | held-out envmaps, 2 bounces |",
+            "|---|---|---|---|---|",
             *ceiling,
             "",
             f"The full truth's own noise: a render of {NOISE_FRAMES} held-out OLATs at {NOISE_FACTOR}× its samples (another seed) scores",

@@ -156,3 +156,57 @@ def test_bad_transport_settings_name_the_field(field, value):
 
     with pytest.raises(GraMiParameterError, match=field):
         LightTransport(**{field: value}).validate()
+
+
+def test_relightnet_is_fed_the_bounces_it_was_trained_on():
+    from gra_mi.core.errors import GraMiParameterError
+    from gra_mi.relightnet.model import RelightNetConfig, check_input_transport
+    from gra_mi.render.transport import LightTransport
+
+    check_input_transport(RelightNetConfig(resolution=64, input_bounces=2), LightTransport(bounces=2), "rn")
+    with pytest.raises(GraMiParameterError, match="trained on renders with 2 bounce.*--bounces 2"):
+        check_input_transport(RelightNetConfig(resolution=64, input_bounces=2), LightTransport(), "rn")
+
+
+def test_viewer_toggles_the_bounces(variant):
+    from gra_mi.apps.viewer import ViewerSession, ViewSources, with_lighting
+    from gra_mi.render.plugins import register_plugins
+
+    register_plugins()
+    session = ViewerSession(ViewSources(scene=TINY, uv_resolution=64))
+    camera = session.ls.stage.cameras[1]
+    with_lighting(session, mode="olat", olat=3)
+    one = session.render(camera).image
+    with_lighting(session, bounces=2)
+    assert session.relighter.transport.bounces == 2
+    assert session.render(camera).image.astype(int).sum() > one.astype(int).sum()
+    with pytest.raises(Exception, match="bounces"):
+        with_lighting(session, bounces=0)
+    assert session.relighter.transport.bounces == 2 and session.lighting.bounces == 2  # a refused change changes nothing
+
+
+def test_relight_cli_with_two_bounces_is_brighter_where_the_body_sees_itself(tmp_path):
+    from gra_mi.core.io import read_exr
+
+    from .test_cli import run_cli
+
+    for bounces in (1, 2):
+        out = run_cli("relight", str(TINY), "--frames", "2", "--cameras", "1", "--olat", "5", "--bounces", str(bounces),
+                      "--out", str(tmp_path / f"b{bounces}"))  # fmt: skip
+        assert out.returncode == 0, out.stderr
+    one, two = (read_exr(next((tmp_path / f"b{b}").rglob("*.exr")))[..., :3] for b in (1, 2))
+    assert two.sum() > one.sum() * 1.001 and np.all(two >= one - 1e-5)
+    bad = run_cli("relight", str(TINY), "--olat", "5", "--bounces", "0", "--out", str(tmp_path / "bad"))
+    assert bad.returncode != 0 and "bounces" in bad.stderr
+
+
+def test_fit_with_two_bounces_leaves_less_light_to_the_albedo(path_traced_fit, tmp_path):
+    """The path-traced truth holds interreflections: with them modelled, the fitted albedo has less to explain."""
+    from gra_mi.core.io import read_json
+    from gra_mi.fit.materials import FitConfig, run_fit
+    from gra_mi.render.transport import LightTransport
+
+    run_fit(path_traced_fit / "cap", tmp_path / "fit2", FitConfig(transport=LightTransport(bounces=2)))
+    one, two = (read_json(folder / "fit.json")["metrics"] for folder in (path_traced_fit / "fit", tmp_path / "fit2"))
+    assert two["albedo_bias"] < one["albedo_bias"] - 0.003, (one, two)
+    assert two["albedo_mae"] < one["albedo_mae"], (one, two)

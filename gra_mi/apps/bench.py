@@ -29,9 +29,8 @@ from gra_mi.render.runtime import ensure_mitsuba
 from gra_mi.stage.envmap import envmap_to_leds
 from gra_mi.stage.envmap_library import SkyParams, bake_sunsky
 from gra_mi.stage.lightstage import Lightstage, default_lightstage
-from gra_mi.stage.scene import LightstageScene, camera_xml, led_sampling_weights, subject_scene_xml, write_rig, xml_attribute
+from gra_mi.stage.scene import LightstageScene, camera_xml, led_sampling_weights, rig_scene, xml_attribute
 from gra_mi.subject.anny_body import anny_sequence
-from gra_mi.subject.sequence import save_sequence
 
 logger = logging.getLogger(__name__)
 
@@ -48,16 +47,19 @@ class BenchPreset:
     visibility_resolutions: list[int]
     share_frames: list[int]
     direct_spp: list[int]
+    bounce_rays: list[int]  # rays per texel of the two-bounce rows
+    path_spp: int  # samples per pixel of their reference (Mitsuba's path, max_depth 3)
 
 
 PRESETS = {
     "quick": BenchPreset(
         uv_resolution=128, width=256, height=135, frames=3, repeats=2, led_counts=[16, 64], uv_resolutions=[64, 128, 256],
-        visibility_resolutions=[64], share_frames=[2], direct_spp=[4, 16],
+        visibility_resolutions=[64], share_frames=[2], direct_spp=[4, 16], bounce_rays=[8, 32], path_spp=256,
     ),
     "full": BenchPreset(
         uv_resolution=512, width=512, height=270, frames=6, repeats=5, led_counts=[8, 16, 32, 64, 128, 331],
         uv_resolutions=[128, 256, 512, 1024], visibility_resolutions=[128, 256], share_frames=[2, 4], direct_spp=[4, 16, 64, 256],
+        bounce_rays=[8, 16, 32, 64, 128], path_spp=1024,
     ),
 }  # fmt: skip
 
@@ -138,10 +140,7 @@ class BenchSetup:
         self.preset, self.out = preset, out
         self.work = scratch_folder("gra_mi_bench_")
         self.stage = default_lightstage(width=preset.width, height=preset.height)
-        write_rig(self.stage, self.work / "rig")
-        save_sequence(anny_sequence(["walk"], frames_per_clip=2 * preset.frames), self.work / "subject")
-        atomic_write_text(self.work / "scene.xml", subject_scene_xml("rig", "subject"))
-        self.ls = LightstageScene.load(self.work / "scene.xml")
+        self.ls = LightstageScene.load(rig_scene(self.work, anny_sequence(["walk"], frames_per_clip=2 * preset.frames), self.stage))
         self.seq = self.ls.sequence
         self.frame = preset.frames - 1  # the evaluated frame; earlier frames feed visibility sharing
         self.cam = self.stage.cameras[0]
@@ -318,6 +317,50 @@ def bench_mitsuba_direct(b: BenchSetup) -> None:
         b.record("Mitsuba direct", f"direct {spp} spp", t, t, 0.0, img)
 
 
+def bench_bounces(b: BenchSetup) -> None:
+    """Light after the first bounce against Mitsuba's ``path`` (max_depth 3: one interreflection) with the same maps and
+    LEDs: one bounce, then two with K rays per texel. Time per view under a new lighting (the frame's visibility and
+    bounce operator cached); amortised: a new frame (its visibility trace and operator trace) for that one view."""
+    import itertools
+
+    from gra_mi.render.path_reference import path_reference
+    from gra_mi.render.relighter import Relighter
+    from gra_mi.render.transport import LightTransport
+
+    def relighter(bounces: int, rays: int = 1):
+        return Relighter(b.ls, b.R, b.albedo_tex, b.rough_tex, transport=LightTransport(bounces=bounces, bounce_rays=rays))
+
+    start = time.perf_counter()
+    reference = path_reference(relighter(1), b.frame, b.cam, b.intensities, 3, b.preset.path_spp, b.work / "path")
+    t_path = 1e3 * (time.perf_counter() - start)
+    b.record(
+        "bounces", f"Mitsuba path, max_depth 3, {b.preset.path_spp} spp (this group's reference)", t_path, t_path, 0.0, reference, reference
+    )
+    change = itertools.count(1)  # a new lighting each call: nothing after the first bounce is reused
+    for bounces, rays in [(1, 1)] + [(2, k) for k in b.preset.bounce_rays]:
+        rel = relighter(bounces, rays)
+        t, img = b.timed(lambda rel=rel: rel.render(b.frame, b.cam, b.intensities * (1 + 1e-6 * next(change))).image)
+        label, t_op, mb = "1 bounce (the paper's model)", 0.0, b.cache_mb(b.R)
+        if bounces > 1:
+            op = rel.bounce_operator(b.frame)
+            t_op, _ = b.timed(lambda rel=rel: (rel._operators.clear(), rel.bounce_operator(b.frame)))
+            label, mb = f"2 bounces, {rays} rays/texel ({op.traced / op.num_texels:.0%} of texels trace)", mb + op.nbytes / 2**20
+        b.record("bounces", label, t, t + b.t_vis_ref + t_op, mb, img, reference)
+        if rays == LightTransport().bounce_rays and bounces > 1:  # the hull test's saving: every texel traced instead
+            t_all = _trace_every_texel(b, rel, rays)
+            b.record("bounces", f"{label[:-1]}; without the hull test: every texel traces)", t, t + b.t_vis_ref + t_all, mb, img, reference)
+
+
+def _trace_every_texel(b: BenchSetup, rel, rays: int) -> float:
+    """Milliseconds of the bounce operator's trace from every texel of the evaluated frame (no hull test)."""
+    from gra_mi.render.bounce import trace_operator
+
+    every, geom = np.arange(rel.atlas.num_texels), rel.geometry(b.frame)
+    b.ls.set_frame(b.frame)
+    t, _ = b.timed(lambda: trace_operator(b.ls.scene, b.ls.subject_shape(), geom, rel.atlas, b.seq.uvs, b.seq.faces, every, rays))
+    return t
+
+
 def run_bench(out: Path, preset_name: str = "full") -> Path:
     """Every approximation of the one-bounce render against the exact one: time, amortised time, memory, error."""
 
@@ -347,6 +390,7 @@ def run_bench(out: Path, preset_name: str = "full") -> Path:
     ]
     jobs += [(f"uv {res}", lambda res=res: bench_uv_resolution(b, res)) for res in preset.uv_resolutions if res != R]
     jobs.append(("direct", lambda: bench_mitsuba_direct(b)))
+    jobs.append(("bounces", lambda: bench_bounces(b)))
     for _, job in progress(jobs, description="bench"):
         job()
     return _write_report(out, preset_name, chosen, stage, b.atlas(R).num_texels, b.results)

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import math
 import shutil
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -224,6 +224,8 @@ def _coarse_stages(capture_dir, fit_dir, relightnet_dir, cache_dir):
             "train RelightNet on this fit",
             field="resolution",
         )
+    # RelightNet is fed the coarse renders it was trained on (their bounces of light are in its config).
+    relighter.transport = replace(relighter.transport, bounces=model.config.input_bounces)
     return capture, relighter, model
 
 

@@ -55,8 +55,9 @@ def _emitter(position, intensity) -> str:
 
 
 def path_reference(
-    relighter, frame: int, camera, led_intensities: np.ndarray, near_lights=(), max_depth: int = 3, spp: int = 256, folder: Path | str = "."
-) -> np.ndarray:
+    relighter, frame: int, camera, led_intensities: np.ndarray, near_lights=(), max_depth: int = 3, spp: int = 256, folder: Path | str = ".",
+    seed: int = 0,
+) -> np.ndarray:  # fmt: skip
     """(H, W, 4) Mitsuba ``path`` render of ``relighter``'s frame, maps and LEDs (near field) plus point ``near_lights``
     (radius 0), from ``camera`` (a :class:`~gra_mi.stage.lightstage.Camera` or the rig's name/index). Writes its
     scene's files (the frame's PLY, the maps) into ``folder``."""
@@ -81,7 +82,7 @@ def path_reference(
         '<boolean name="raw" value="true"/></texture></bsdf></shape></scene>'
     )
     scene = mi.load_string(xml)
-    return np.array(mi.render(scene, integrator=mi.load_dict({"type": "path", "max_depth": max_depth}), spp=spp), np.float64)
+    return np.array(mi.render(scene, integrator=mi.load_dict({"type": "path", "max_depth": max_depth}), spp=spp, seed=seed), np.float64)
 
 
 def bounce_errors(one: np.ndarray, more: np.ndarray, path_one: np.ndarray, path_more: np.ndarray, block: int = 8) -> dict:

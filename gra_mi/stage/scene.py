@@ -25,7 +25,7 @@ from gra_mi.core.runtime import opaque
 from gra_mi.stage import scene_keys as keys
 from gra_mi.stage.envmap import LedLighting, envmap_to_leds, stage_background_plate
 from gra_mi.stage.lightstage import Camera, Lightstage, load_calibration, save_calibration, validate_pattern
-from gra_mi.subject.sequence import MeshSequence, load_sequence
+from gra_mi.subject.sequence import MeshSequence, load_sequence, save_sequence
 
 logger = logging.getLogger(__name__)
 
@@ -173,6 +173,16 @@ def subject_scene_xml(rig_dir: str, subject_dir: str, frame: int = 0, spp: int =
     </shape>
 </scene>
 """
+
+
+def rig_scene(folder: str | Path, sequence: MeshSequence, stage: Lightstage) -> Path:
+    """A lightstage scene in ``folder`` (rig/, subject/, scene.xml) of ``sequence`` in ``stage``: what benchmarks and
+    tests that need a body in a rig load. Returns the scene file."""
+    folder = Path(folder)
+    write_rig(stage, folder / "rig")
+    save_sequence(sequence, folder / "subject")
+    atomic_write_text(folder / "scene.xml", subject_scene_xml("rig", "subject"))
+    return folder / "scene.xml"
 
 
 # --------------------------------------------------------------------------------------------------------------
