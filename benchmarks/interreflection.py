@@ -86,14 +86,15 @@ def _frame_costs(ls, one, two, frame: int, leds: np.ndarray, repeats: int) -> di
         },
         repeats,
     )
-    op = two.bounce_operator(frame)
+    op, used = two.bounce_operator(frame), two.job_operator(frame)
     # a new lighting per call: nothing after the first bounce is reused
     views = _side_by_side(
         {name: lambda rel=rel: rel.render(frame, 0, leds * (1 + 1e-6 * next(change))) for name, rel in (("one", one), ("two", two))},
         repeats,
     )
     return {
-        "frame": frame, "texels": op.num_texels, "traced": op.traced / op.num_texels, "entries": op.entries, "mb": op.nbytes / 2**20,
+        "frame": frame, "texels": op.num_texels, "traced": op.traced / op.num_texels, "entries": op.entries, "used": used.entries,
+        "mb": op.nbytes / 2**20,
         "vis_ms": trace["vis"], "op_ms": trace["op"], "view_one_ms": views["one"], "view_two_ms": views["two"],
     }  # fmt: skip
 
@@ -114,6 +115,8 @@ def cost_rows(folder: Path, resolutions, frames: int, repeats: int) -> list[dict
     for resolution in resolutions:
         one = Relighter(ls, resolution)
         two = Relighter(ls, resolution, transport=LightTransport(bounces=2))
+        for rel in (one, two):
+            rel.only_for([ls.stage.cameras[0].name])  # as `gra-mi relight` renders: the light its camera can see
         rows += [{"resolution": resolution} | _frame_costs(ls, one, two, f, leds, repeats) for f in range(0, 2 * frames, 2)]
     return rows
 
@@ -127,20 +130,54 @@ CEILING_TRUTHS = (
 def ceiling_rows(folder: Path, preset: str) -> list[str]:
     """olat-fit-effects.md's "what each truth leaves a perfect fit" for the two truths that differ by the light after
     the first bounce: the true maps relit with one and two bounces."""
+    from gra_mi.capture.dataset import Capture
     from gra_mi.capture.synthetic import PRESETS, CaptureConfig, generate_capture
     from gra_mi.eval.ceiling import ceiling_cells
     from gra_mi.render.transport import LightTransport
 
     rows = []
     for i, (label, options) in enumerate(CEILING_TRUTHS):
-        capture = generate_capture(
-            folder / f"truth{i}", CaptureConfig(preset=preset, measure_noise=False, spp=PRESETS[preset].spp, **options)
-        )
+        where = folder / (f"capture_{preset}" if not options else f"capture_{preset}_{i}")  # the full truth: the fits' too
+        if not (where / "capture.json").is_file():
+            generate_capture(where, CaptureConfig(preset=preset, measure_noise=False, spp=PRESETS[preset].spp, **options))
+        capture = Capture.load(where)
         rows.append(f"| {label} | " + " | ".join(ceiling_cells(capture, [LightTransport(), LightTransport(bounces=2)])) + " |")
     return rows
 
 
-def markdown(accuracy: list[dict], cost: list[dict], ceiling: list[str], stamp: str) -> str:
+FIT_PRESETS = {"olat_quick": 5, "small": 3}  # capture preset → the frame step its fit uses (as the effects page, the demo)
+
+
+def fit_rows(folder: Path, presets: list[str]) -> list[str]:
+    """The fit's albedo bias and roughness ratio (its roughness MAE over the constant baseline's) with one and two
+    bounces, on the same capture, scored against the true maps as `gra-mi fit` scores them; and each fit's time."""
+    from gra_mi.capture.synthetic import PRESETS, CaptureConfig, generate_capture
+    from gra_mi.core.io import read_json
+    from gra_mi.fit.materials import FitConfig, run_fit
+    from gra_mi.render.transport import LightTransport
+
+    rows = []
+    for preset in presets:
+        capture = folder / f"capture_{preset}"
+        if not (capture / "capture.json").is_file():
+            generate_capture(capture, CaptureConfig(preset=preset, measure_noise=False, spp=PRESETS[preset].spp))
+        for bounces in (1, 2):
+            start = time.perf_counter()
+            config = FitConfig(frame_step=FIT_PRESETS[preset], calibrate_brightness=False, transport=LightTransport(bounces=bounces))
+            run_fit(capture, folder / f"fit_{preset}_{bounces}", config)
+            seconds = time.perf_counter() - start
+            record = read_json(folder / f"fit_{preset}_{bounces}" / "fit.json")
+            for region in ("skin", "cloth"):
+                m, b = record["regions"][region], record["baseline"][region]
+                relit = record.get("relight", {}).get("held-out cameras", {}).get("psnr", float("nan"))
+                rows.append(
+                    f"| {preset} | {bounces} | {region} | {100 * m['albedo_bias']:+.1f} % | {100 * m['albedo_rel_median']:.1f} % | "
+                    f"{m['roughness_mae'] / b['roughness_mae']:.2f} | {relit:.2f} | {seconds:.0f} |"
+                )
+    return rows
+
+
+def markdown(accuracy: list[dict], cost: list[dict], ceiling: list[str], fits: list[str], stamp: str) -> str:
     lines = [
         "# Light after the first bounce: accuracy and cost",
         "",
@@ -160,9 +197,10 @@ def markdown(accuracy: list[dict], cost: list[dict], ceiling: list[str], stamp: 
         "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     pct = lambda x: "–" if not np.isfinite(x) else f"{100 * x:+.2f} %"  # noqa: E731
+    size = lambda x: "–" if not np.isfinite(x) else f"{100 * x:.2f} %"  # noqa: E731
     for r in accuracy:
-        blocks = f"{pct(r['dark_block_error_one'])} / {pct(r['dark_block_error_more'])}" if r["dark_blocks"] else "–"
-        added = pct(r["added_light_error"]) if r["dark_blocks"] else "–"
+        blocks = f"{size(r['dark_block_error_one'])} / {size(r['dark_block_error_more'])}" if r["dark_blocks"] else "–"
+        added = size(r["added_light_error"]) if r["dark_blocks"] else "–"
         lines.append(
             f"| {r['case']} | {r['resolution']}² | {r['rays']} | {pct(r['bias_one_vs_path_one'])} | {pct(r['bias_one'])} | "
             f"{pct(r['bias_more'])} | {r['dark_blocks']} | {blocks} | {added} | {pct(r['noise'])} | "
@@ -173,15 +211,16 @@ def markdown(accuracy: list[dict], cost: list[dict], ceiling: list[str], stamp: 
         "## Cost on the demo's body",
         "",
         "The anny body walking, the default 331-LED rig, near field, K = 32 rays per texel (the default), median over "
-        "repeats, measured side by side in one run. *new frame*: the per-LED visibility trace and the bounce operator's "
-        "trace; *cached frame*: one view under a new envmap (`interior`), every LED on, one and two bounces.",
+        "repeats, measured side by side in one run. *new frame*: the per-LED visibility trace (every texel) and the bounce "
+        "operator's trace; *cached frame*: one view under a new envmap (`interior`), every LED on, one and two bounces, "
+        "rendered as `gra-mi relight` renders one camera (*rays used*: those whose light can reach what it sees).",
         "",
-        "| UV | frame | texels | trace (hull test) | operator entries | MB / frame | visibility ms | operator ms | × visibility | view ms, 1 bounce | 2 bounces | × |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| UV | frame | texels | trace (hull test) | operator entries | rays used | MB / frame | visibility ms | operator ms | × visibility | view ms, 1 bounce | 2 bounces | × |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in cost:
         lines.append(
-            f"| {r['resolution']}² | {r['frame']} | {r['texels']:,} | {100 * r['traced']:.0f} % | {r['entries']:,} | {r['mb']:.1f} | "
+            f"| {r['resolution']}² | {r['frame']} | {r['texels']:,} | {100 * r['traced']:.0f} % | {r['entries']:,} | {r['used']:,} | {r['mb']:.1f} | "
             f"{r['vis_ms']:.0f} | {r['op_ms']:.0f} | {r['op_ms'] / r['vis_ms']:.2f} | {r['view_one_ms']:.0f} | {r['view_two_ms']:.0f} | "
             f"{r['view_two_ms'] / r['view_one_ms']:.2f} |"
         )
@@ -198,6 +237,21 @@ def markdown(accuracy: list[dict], cost: list[dict], ceiling: list[str], stamp: 
             "|---|---|---|---|---|",
             *ceiling,
         ]
+    if fits:
+        lines += [
+            "",
+            "## The material fit with one and two bounces",
+            "",
+            "Each preset's capture (path-traced truth: principled BSDF, sheen, wrinkles, interreflections) fitted with the",
+            "fit's defaults and `--frame-step` (olat_quick 5, small 3), without the brightness calibration, once with",
+            "`--bounces 1` and once with `--bounces 2`; scored on the texels ≥ 3 training cameras see, against the true maps.",
+            "*albedo bias*: median fitted / true − 1; *roughness ratio*: the fit's roughness MAE over the constant baseline's;",
+            "*relit*: display PSNR of the fit's own relight (with its bounces) under the held-out lighting, held-out cameras.",
+            "",
+            "| preset | bounces | region | albedo bias | albedo median rel. error | roughness ratio | relit PSNR (dB) | fit s |",
+            "|---|---|---|---|---|---|---|---|",
+            *fits,
+        ]
     return "\n".join(lines) + "\n"
 
 
@@ -206,9 +260,15 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="UV 256² only, K = 8 and 32, 2 frames, 2 repeats.")
     parser.add_argument("--write", type=Path, default=None, help="Also write the Markdown page here.")
     parser.add_argument(
+        "--fits", default="olat_quick,small", help="Capture presets to fit with 1 and 2 bounces, comma-separated ('none': skip)."
+    )
+    parser.add_argument(
         "--ceiling", default="olat_quick", help="Static OLAT preset of the perfect-fit table ('none': skip it). Default: olat_quick."
     )
     args = parser.parse_args()
+    unknown = [p for p in args.fits.split(",") if p not in FIT_PRESETS and args.fits != "none"]
+    if unknown:
+        parser.error(f"--fits: no fit settings for {', '.join(unknown)}; choose among {', '.join(FIT_PRESETS)}")
     from gra_mi.core.stamp import publish_page, run_stamp, stamp_said
     from gra_mi.render.runtime import start_runtime
 
@@ -219,7 +279,10 @@ def main() -> None:
         accuracy = accuracy_rows(Path(tmp), resolutions, rays)
         cost = cost_rows(Path(tmp), resolutions, 2 if args.quick else 3, 2 if args.quick else 5)
         ceiling = [] if args.ceiling == "none" else ceiling_rows(Path(tmp), args.ceiling)
-    publish_page(markdown(accuracy, cost, ceiling, stamp_said(run_stamp(preset="hard cases + small rig", variant=variant))), args.write)
+        fits = [] if args.fits == "none" else fit_rows(Path(tmp), args.fits.split(","))
+    publish_page(
+        markdown(accuracy, cost, ceiling, fits, stamp_said(run_stamp(preset="hard cases + small rig", variant=variant))), args.write
+    )
 
 
 if __name__ == "__main__":

@@ -108,21 +108,6 @@ def subsample_leds(envmap: np.ndarray, stage, k: int, scale: float) -> np.ndarra
     return out
 
 
-def importance_leds(intensities: np.ndarray, stage, k: int) -> np.ndarray:
-    """Keep the k brightest LEDs; give each dropped LED's flux to the nearest kept one (energy conserved)."""
-    if k >= stage.num_leds:
-        return intensities.copy()
-    keep = np.argsort(-intensities.sum(axis=1))[:k]
-    d = stage.led_directions()
-    nearest = keep[np.argmax(d @ d[keep].T, axis=1)]
-    # Flux at the stage centre is I / r²: move it, then convert back with the receiving LED's distance.
-    r2 = stage.led_distances() ** 2
-    flux = intensities / r2[:, None]
-    out_flux = np.zeros_like(flux)
-    np.add.at(out_flux, nearest, flux)
-    return out_flux * r2[:, None]
-
-
 def half(x: np.ndarray) -> np.ndarray:
     return np.asarray(x, np.float32).astype(np.float16).astype(np.float32)
 
@@ -226,7 +211,7 @@ def bench_led_sampling(b: BenchSetup, k: int) -> None:
     """Fewer LEDs: every n-th (subsampled, re-normalised) or the k brightest (importance)."""
     for name, leds in (
         ("subsample", subsample_leds(b.env, b.stage, k, b.lighting.scale)),
-        ("importance", importance_leds(b.intensities, b.stage, k)),
+        ("importance", LedLayout.of(b.stage).brightest(b.intensities, k)),
     ):
         t, img = b.timed(lambda leds=leds: b.render(b.R, b.ref_geom, b.ref_vis, leds))
         b.record("LEDs", f"{name} k={k}", t, t + b.t_vis_ref, b.cache_mb(b.R), img)
@@ -328,7 +313,9 @@ def bench_bounces(b: BenchSetup) -> None:
     from gra_mi.render.transport import LightTransport
 
     def relighter(bounces: int, rays: int = 1):
-        return Relighter(b.ls, b.R, b.albedo_tex, b.rough_tex, transport=LightTransport(bounces=bounces, bounce_rays=rays))
+        rel = Relighter(b.ls, b.R, b.albedo_tex, b.rough_tex, transport=LightTransport(bounces=bounces, bounce_rays=rays))
+        rel.only_for([b.cam.name])  # as `gra-mi relight` renders: the light its cameras can see
+        return rel
 
     start = time.perf_counter()
     reference = path_reference(relighter(1), b.frame, b.cam, b.intensities, 3, b.preset.path_spp, b.work / "path")

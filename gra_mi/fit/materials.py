@@ -342,10 +342,8 @@ class MaterialFitter:
         if self._frozen is None:
             return None
         maps, light = self._frozen
-        along_rays, diffuse = light[frame]
-        spec = maps.bounce_operator(pose).specular_response(
-            maps.geometry(pose), self.stage.camera(camera).position, mi.Float(maps.roughness), along_rays
-        )
+        op, along_rays, diffuse = light[frame]
+        spec = op.specular_response(maps.geometry(pose), self.stage.camera(camera).position, mi.Float(maps.roughness), along_rays)
         return diffuse, columns(spec)
 
     def calibrate_brightness(self, result: FitResult) -> FitResult:

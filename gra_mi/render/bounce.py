@@ -90,6 +90,11 @@ class BounceOperator:
         dr.scatter_reduce(dr.ReduceOp.Add, out, value * light, r)
         return out
 
+    def restricted(self, receivers: np.ndarray) -> BounceOperator:
+        """The entries of the rays of ``receivers`` only (a job's cameras need no others)."""
+        keep = np.isin(self.receivers, receivers)
+        return BounceOperator(self.receivers[keep], self.sources[keep], self.direction[keep], self.num_texels, self.rays, self.traced)
+
     def toward_receivers(self) -> mi.Vector3f:
         """Per entry: the direction from the source texel back to the receiver (world)."""
         return -self.device()[2]

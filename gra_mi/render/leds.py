@@ -40,6 +40,21 @@ class LedLayout:
         data = np.ascontiguousarray(self.positions, np.float32).tobytes() + np.ascontiguousarray(self.center, np.float32).tobytes()
         return hashlib.sha1(data + bytes([self.far_field])).hexdigest()[:16]
 
+    def brightest(self, intensities: np.ndarray, k: int) -> np.ndarray:
+        """The ``k`` brightest LEDs lit, each other LED's flux (at the centre, I / r²) given to its nearest lit one: the
+        same energy from fewer LEDs, for light whose direction matters little (what reaches a texel after a bounce)."""
+        intensities = np.asarray(intensities, np.float64)
+        if k >= self.num_leds or np.count_nonzero(intensities.max(axis=1) > 0) <= k:
+            return intensities.copy()
+        keep = np.argsort(-intensities.sum(axis=1))[:k]
+        offset = self.positions - self.center
+        r2 = np.sum(offset**2, axis=1)
+        direction = offset / np.sqrt(r2)[:, None]
+        nearest = keep[np.argmax(direction @ direction[keep].T, axis=1)]
+        moved = np.zeros_like(intensities)
+        np.add.at(moved, nearest, intensities / r2[:, None])
+        return moved * r2[:, None]
+
     def as_lights(self, intensities: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(targets, intensities) as the shading loop and shadow rays take them. Near field: the LED positions and
         radiant intensities. Far field: unit directions from the centre and the irradiance I / r² measured there."""

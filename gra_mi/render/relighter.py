@@ -25,7 +25,7 @@ from gra_mi.render.leds import LedLayout
 from gra_mi.render.point_light import PointLight, as_light_list, point_light_visibility, shade_point_light
 from gra_mi.render.rasterize import RASTER_SAMPLES, rasterize_to_camera
 from gra_mi.render.shading import TexelLedLoop, TexelShading, led_cell_roughness, shade_texels
-from gra_mi.render.transport import LightTransport
+from gra_mi.render.transport import BOUNCE_LEDS, LightTransport
 from gra_mi.render.visibility import VisibilityCache, texels_seen_by
 from gra_mi.stage.scene import LightstageScene
 
@@ -98,6 +98,8 @@ class Relighter:
         self._point_light_vis: dict[tuple, object] = {}
         self._operators: dict[str, BounceOperator] = {}  # the last frames' bounce operators (bounces > 1)
         self._indirect: tuple | None = None  # (key, indirect light) of the last lighting: a frame's cameras share it
+        self._job_operator: tuple | None = None  # (key, the operator reduced to what the job's cameras need)
+        self._job_texels: tuple | None = None  # (key, the texels whose light the job's cameras need)
         self.job_cameras = None  # :meth:`only_for`
 
     def with_maps(self, albedo: np.ndarray, roughness: np.ndarray) -> Relighter:
@@ -128,13 +130,21 @@ class Relighter:
     def job_texels(self, frame: int) -> np.ndarray | None:
         """The texels whose light the job's cameras need (None: all): those they see and, with more than one
         bounce, every texel whose light reaches those within the extra bounces."""
-        geom = self.geometry(frame)
-        texels = None if self.job_cameras is None else texels_seen_by(geom, self.job_cameras)
-        if texels is not None and self.transport.bounces > 1:
-            texels = self.bounce_operator(frame).closure(texels, self.transport.bounces)
-        if texels is not None and len(texels) > CULL_AT_MOST * dr.width(geom.position):
-            texels = None  # cameras around the body see most of it: the full trace is as fast, and serves every job
-        return texels
+        if self.job_cameras is None:
+            return None
+        key = (frame, self.transport.bounces, self.transport.bounce_rays, self._job_key())
+        if self._job_texels is None or self._job_texels[0] != key:
+            geom = self.geometry(frame)
+            texels = texels_seen_by(geom, self.job_cameras)
+            if self.transport.bounces > 1:
+                texels = self.bounce_operator(frame).closure(texels, self.transport.bounces)
+            if len(texels) > CULL_AT_MOST * dr.width(geom.position):
+                texels = None  # cameras around the body see most of it: the full trace is as fast, and serves every job
+            self._job_texels = (key, texels)
+        return self._job_texels[1]
+
+    def _job_key(self) -> tuple:
+        return tuple((c.name, *c.camera_to_world.ravel()) for c in self.job_cameras)
 
     def bounce_operator(self, frame: int) -> BounceOperator:
         """The frame's texel-to-texel bounce operator: from memory, the cache folder, or traced (and kept in both)."""
@@ -157,23 +167,35 @@ class Relighter:
             self._operators[key] = op
         return self._operators[key]
 
+    def job_operator(self, frame: int) -> BounceOperator:
+        """The frame's bounce operator, reduced (after :meth:`only_for`) to the rays whose light can reach what the job's
+        cameras see: the rays of the texels they see and, with more bounces, of the texels those rays hit."""
+        op = self.bounce_operator(frame)
+        if self.job_cameras is None:
+            return op
+        key = (frame, op.rays, self.transport.bounces, self._job_key())
+        if self._job_operator is None or self._job_operator[0] != key:
+            seen = texels_seen_by(self.geometry(frame), self.job_cameras)
+            self._job_operator = (key, op.restricted(op.closure(seen, self.transport.bounces - 1)))
+        return self._job_operator[1]
+
     def indirect(self, frame: int, led_intensities: np.ndarray, lights: list[PointLight], fractions: list, far_field: bool):
-        """The light after the first bounce for this lighting, as (light along each ray of the frame's bounce operator,
-        (M, 3) what each texel's diffuse layer takes in per unit albedo and T(ω_view)); the cameras of one frame and
-        lighting share it."""
+        """The light after the first bounce for this lighting, as (the operator it was computed on, the light along
+        each of its rays, (M, 3) what each texel's diffuse layer takes in per unit albedo and T(ω_view)); the cameras
+        of one frame and lighting share it."""
         digest = hashlib.sha1(np.ascontiguousarray(led_intensities, np.float32).tobytes())
         digest.update(np.ascontiguousarray(self.albedo, np.float32).tobytes())
         digest.update(np.ascontiguousarray(self.roughness, np.float32).tobytes())
         for light in lights:
             digest.update(repr(light).encode())
-        key = (frame, far_field, self.transport.bounces, digest.hexdigest())
+        key = (frame, far_field, self.transport.bounces, digest.hexdigest(), id(self.job_operator(frame)))
         if self._indirect is None or self._indirect[0] != key:
-            op, geom = self.bounce_operator(frame), self.geometry(frame)
+            op, geom = self.job_operator(frame), self.geometry(frame)
             first = self.light_toward_receivers(frame, op, led_intensities, lights, fractions, far_field)
             light = light_along_rays(op, geom, mi.Color3f(*self.albedo.T.astype(np.float32)), first, self.transport.bounces)
             diffuse = op.gather_diffuse(geom, light)
             dr.eval(light, diffuse)
-            self._indirect = (key, (light, np.array(diffuse).T.reshape(-1, 3)))
+            self._indirect = (key, (op, light, np.array(diffuse).T.reshape(-1, 3)))
         return self._indirect[1]
 
     def light_toward_receivers(self, frame, op: BounceOperator, led_intensities, lights, fractions, far_field) -> tuple:
@@ -184,7 +206,9 @@ class Relighter:
         diffuse, spec = dr.zeros(mi.Color3f, op.entries), dr.zeros(mi.Color3f, op.entries)
         roughness = mi.Float(self.roughness[sources])
         if np.max(led_intensities) > 0 and op.entries:
-            loop = TexelLedLoop.build(geom, self.visibility(frame, far_field), sources, self.leds(far_field), led_intensities, toward)
+            leds = self.leds(far_field)
+            fewer = leds.brightest(led_intensities, BOUNCE_LEDS)
+            loop = TexelLedLoop.build(geom, self.visibility(frame, far_field), sources, leds, fewer, toward)
             diffuse, spec = loop.run(roughness)
         if lights and op.entries:
             s = mi.UInt32(sources)
@@ -238,11 +262,11 @@ class Relighter:
         lights = as_light_list(near_lights)
         fractions = self._near_light_visibility(frame, geom, lights)
         indirect = self.indirect(frame, led_intensities, lights, fractions, far_field) if self.transport.bounces > 1 else None
-        diffuse_in = None if indirect is None else indirect[1]
+        diffuse_in = None if indirect is None else indirect[2]
         shading = shade_texels(geom, vis, self.leds(far_field), led_intensities, self.albedo, roughness, cam.position, diffuse_in)
         if indirect is not None:
-            op = self.bounce_operator(frame)
-            spec = op.specular_response(geom, cam.position, mi.Float(np.asarray(roughness, np.float32)), indirect[0])
+            op, along_rays = indirect[0], indirect[1]
+            spec = op.specular_response(geom, cam.position, mi.Float(np.asarray(roughness, np.float32)), along_rays)
             shading.specular = shading.specular + np.array(spec).T.reshape(-1, 3)
             shading.radiance = self.albedo * shading.diffuse_unit + shading.specular
         for light, fraction in zip(lights, fractions, strict=True):

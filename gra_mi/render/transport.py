@@ -11,6 +11,10 @@ from gra_mi.core.errors import GraMiParameterError
 MAX_BOUNCES = 8
 DEFAULT_RAYS = 32  # docs/results/interreflection.md: bias, noise and cost against K on the demo's body
 MAX_RAYS = 4096
+BOUNCE_LEDS = 32
+"""The light that bounces is computed from this many LEDs: the brightest, each other's flux moved to its nearest
+(``LedLayout.brightest``). An OLAT or a pattern of fewer LEDs is exact; under an envmap every ray's LED loop then
+walks ~10× fewer LEDs (docs/results/interreflection.md measures what it changes)."""
 
 
 @dataclass(kw_only=True)
