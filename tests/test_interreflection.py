@@ -210,3 +210,18 @@ def test_fit_with_two_bounces_leaves_less_light_to_the_albedo(path_traced_fit, t
     one, two = (read_json(folder / "fit.json")["metrics"] for folder in (path_traced_fit / "fit", tmp_path / "fit2"))
     assert two["albedo_bias"] < one["albedo_bias"] - 0.003, (one, two)
     assert two["albedo_mae"] < one["albedo_mae"], (one, two)
+
+
+def test_fewer_leds_keep_the_flux_at_the_centre_and_leave_sparse_patterns_alone(default_stage):
+    from gra_mi.render.leds import LedLayout
+
+    layout = LedLayout.of(default_stage)
+    rng = np.random.default_rng(0)
+    envmap_like = rng.uniform(0, 1, (default_stage.num_leds, 3))
+    fewer = layout.brightest(envmap_like, 32)
+    r2 = np.sum((default_stage.led_positions - default_stage.center) ** 2, axis=1)[:, None]
+    np.testing.assert_allclose((fewer / r2).sum(axis=0), (envmap_like / r2).sum(axis=0), rtol=1e-12)
+    assert np.count_nonzero(fewer.max(axis=1)) == 32
+    olat = np.zeros_like(envmap_like)
+    olat[[3, 100]] = 1.0
+    np.testing.assert_array_equal(layout.brightest(olat, 32), olat)
