@@ -225,3 +225,20 @@ def test_fewer_leds_keep_the_flux_at_the_centre_and_leave_sparse_patterns_alone(
     olat = np.zeros_like(envmap_like)
     olat[[3, 100]] = 1.0
     np.testing.assert_array_equal(layout.brightest(olat, 32), olat)
+
+
+def test_a_convex_body_has_no_light_after_the_first_bounce(variant, tmp_path):
+    """A sphere never sees itself: nothing traces, and two bounces are one, bit for bit."""
+    from gra_mi.render.plugins import register_plugins
+    from gra_mi.stage.lightstage import default_lightstage
+    from gra_mi.stage.scene import LightstageScene, rig_scene
+    from gra_mi.subject.sequence import _uv_sphere, sequence_from_frames
+
+    register_plugins()
+    positions, uvs, faces = _uv_sphere(24, 48)
+    sequence = sequence_from_frames([0.3 * positions + [0.0, 1.0, 0.0]], faces, uvs)
+    ls = LightstageScene.load(rig_scene(tmp_path, sequence, default_lightstage(width=64, height=48)), spp=1)
+    rel = relighters(ls, 64)
+    leds = uniform_pattern(ls.stage, 0.5)
+    assert rel[2].bounce_operator(0).traced == 0 and rel[2].bounce_operator(0).entries == 0
+    np.testing.assert_array_equal(rel[2].render(0, 0, leds).image, rel[1].render(0, 0, leds).image)

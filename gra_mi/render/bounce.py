@@ -70,6 +70,8 @@ class BounceOperator:
     def gather_diffuse(self, geom: TexelGeometry, light: mi.Color3f) -> mi.Color3f:
         """(1/K) Σ_k T(cosθx,k) L_k per texel: the light along each ray (``light``, per entry) that the receiving
         texel's diffuse layer takes in, per unit albedo and T(ω_view) (0 where a texel traced nothing)."""
+        if self.entries == 0:  # a body that never sees itself (a convex one)
+            return dr.zeros(mi.Color3f, self.num_texels)
         r, _, d = self.device()
         cos_x = dr.dot(d, dr.gather(mi.Vector3f, geom.normal, r))
         out = dr.zeros(mi.Color3f, self.num_texels)
@@ -79,6 +81,8 @@ class BounceOperator:
     def specular_response(self, geom: TexelGeometry, viewer, roughness: mi.Float, light: mi.Color3f) -> mi.Color3f:
         """(π/K) Σ_k f_spec(ω_view, ω_k) L_k per texel: the receivers' specular lobe lit by the light along their rays
         (the cosine-distributed rays' estimate of ∫ f_spec L cos dω), toward ``viewer`` (a camera position)."""
+        if self.entries == 0:
+            return dr.zeros(mi.Color3f, self.num_texels)
         r, _, d = self.device()
         frame = mi.Frame3f(dr.gather(mi.Vector3f, geom.normal, r))
         wi = local_view(frame, dr.gather(mi.Point3f, geom.position, r), viewer)
@@ -222,6 +226,8 @@ def light_along_rays(op: BounceOperator, geom: TexelGeometry, albedo: mi.Color3f
     """L_k: the radiance arriving along each ray after up to ``bounces`` bounces in all. ``first`` = (diffuse per
     unit albedo, specular) that each ray's source texel sends toward the receiver under the one-bounce lighting;
     the later bounces' light leaves the sources through their diffuse layer only."""
+    if op.entries == 0:
+        return dr.zeros(mi.Color3f, 0)
     _, s, d = op.device()
     source_albedo = dr.gather(mi.Color3f, albedo, s)
     light = source_albedo * first[0] + first[1]

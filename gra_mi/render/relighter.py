@@ -204,13 +204,15 @@ class Relighter:
         geom = self.geometry(frame)
         sources, toward = op.sources, op.toward_receivers()
         diffuse, spec = dr.zeros(mi.Color3f, op.entries), dr.zeros(mi.Color3f, op.entries)
+        if op.entries == 0:
+            return diffuse, spec
         roughness = mi.Float(self.roughness[sources])
-        if np.max(led_intensities) > 0 and op.entries:
+        if np.max(led_intensities) > 0:
             leds = self.leds(far_field)
             fewer = leds.brightest(led_intensities, BOUNCE_LEDS)
             loop = TexelLedLoop.build(geom, self.visibility(frame, far_field), sources, leds, fewer, toward)
             diffuse, spec = loop.run(roughness)
-        if lights and op.entries:
+        if lights:
             s = mi.UInt32(sources)
             at_sources = TexelGeometry(*(dr.gather(type(a), a, s) for a in (geom.position, geom.normal, geom.geo_normal)), "")
             for light, fraction in zip(lights, fractions, strict=True):
