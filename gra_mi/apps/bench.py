@@ -318,7 +318,7 @@ def bench_bounces(b: BenchSetup) -> None:
         return rel
 
     start = time.perf_counter()
-    reference = path_reference(relighter(1), b.frame, b.cam, b.intensities, 3, b.preset.path_spp, b.work / "path")
+    reference = path_reference(relighter(1), b.frame, b.cam, b.intensities, max_depth=3, spp=b.preset.path_spp, folder=b.work / "path")
     t_path = 1e3 * (time.perf_counter() - start)
     b.record(
         "bounces", f"Mitsuba path, max_depth 3, {b.preset.path_spp} spp (this group's reference)", t_path, t_path, 0.0, reference, reference
