@@ -206,12 +206,14 @@ class Relighter:
         diffuse, spec = dr.zeros(mi.Color3f, op.entries), dr.zeros(mi.Color3f, op.entries)
         if op.entries == 0:
             return diffuse, spec
-        roughness = mi.Float(self.roughness[sources])
         if np.max(led_intensities) > 0:
             leds = self.leds(far_field)
             fewer = leds.brightest(led_intensities, BOUNCE_LEDS)
+            # Fewer LEDs stand for the lighting: a lobe narrower than their spacing would reflect points, not it.
+            reduced = not np.array_equal(fewer, led_intensities)
+            rough = led_cell_roughness(self.roughness[sources], BOUNCE_LEDS) if reduced else self.roughness[sources]
             loop = TexelLedLoop.build(geom, self.visibility(frame, far_field), sources, leds, fewer, toward)
-            diffuse, spec = loop.run(roughness)
+            diffuse, spec = loop.run(mi.Float(np.asarray(rough, np.float32)))
         if lights:
             s = mi.UInt32(sources)
             at_sources = TexelGeometry(*(dr.gather(type(a), a, s) for a in (geom.position, geom.normal, geom.geo_normal)), "")
