@@ -180,7 +180,9 @@ def test_viewer_toggles_the_bounces(variant):
     with_lighting(session, bounces=2)
     assert session.relighter.transport.bounces == 2
     assert session.render(camera).image.astype(int).sum() > one.astype(int).sum()
-    with pytest.raises(Exception, match="bounces"):
+    from gra_mi.core.errors import GraMiParameterError
+
+    with pytest.raises(GraMiParameterError, match="bounces"):
         with_lighting(session, bounces=0)
     assert session.relighter.transport.bounces == 2 and session.lighting.bounces == 2  # a refused change changes nothing
 
