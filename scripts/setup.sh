@@ -56,4 +56,17 @@ if ! .venv/bin/python -c "import gra_mi, mitsuba, drjit, anny, pytest" 2>/dev/nu
     "${PIP[@]}" -e ".[dev]"
     touch .venv/.gra-mi-installed
 fi
+
+# 4. What `gra-mi export`'s checks use, each skipped (saying so) where it cannot be installed: the Khronos glTF-Validator
+#    (npm, ~0.4 MB, into .tools/) and Blender as a Python module (bpy 4.5 LTS, the release for Python 3.11: a ~370 MB
+#    download, ~950 MB installed, in its own .venv-blender because it pins NumPy 1.26 and ships its own USD).
+if [ ! -d .tools/node_modules/gltf-validator ] && command -v npm >/dev/null; then
+    say "installing the Khronos glTF-Validator (npm) into .tools/"
+    npm install --prefix .tools --no-audit --no-fund --silent gltf-validator@2.0.0-dev.3.10 >/dev/null || say "gltf-validator not installed: .glb checks will be skipped"
+fi
+if [ -z "${GRA_MI_NO_BLENDER:-}" ] && ! .venv-blender/bin/python -c "import bpy" 2>/dev/null; then
+    say "installing Blender as a Python module (bpy 4.5) into .venv-blender (set GRA_MI_NO_BLENDER=1 to skip)"
+    { "$PYTHON" -m venv .venv-blender && .venv-blender/bin/python -m pip install -q --disable-pip-version-check "bpy==4.5.*"; } \
+        || say "bpy not installed: the Blender comparison will be skipped"
+fi
 say "ready: .venv/bin/gra-mi --help"

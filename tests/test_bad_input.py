@@ -460,7 +460,7 @@ OPTION_CASES = [
         ["--platform-spp"],
     ),
     ("refine-model-missing", ["refine", "{root}/nodata", "--model", "{root}/nomodel", "--sequence", "s"], ["no"]),
-    # edit-texture, export-gltf, deflicker, eval
+    # edit-texture, export, deflicker, eval
     ("edit-color-nan", [*EDIT, "--color", "nan,0,0"], ["--color"]),
     ("edit-color-count", [*EDIT, "--color", "1,0"], ["--color"]),
     ("edit-color-range", [*EDIT, "--color", "2,0,0"], ["--color"]),
@@ -498,7 +498,7 @@ OPTION_CASES = [
     (
         "gltf-frames",
         [
-            "export-gltf",
+            "export",
             "--subject",
             "{cap}/subject",
             "--albedo",
@@ -512,7 +512,15 @@ OPTION_CASES = [
     ),
     (
         "gltf-subject",
-        ["export-gltf", "--subject", "{root}/nosubject", "--albedo", "{fit}/albedo.exr", "--roughness", "{fit}/roughness.exr"],
+        [
+            "export",
+            "--subject",
+            "{root}/nosubject",
+            "--albedo",
+            "{fit}/albedo.exr",
+            "--roughness",
+            "{fit}/roughness.exr",
+        ],
         ["nosubject"],
     ),
     ("deflicker-eps", ["deflicker", "{root}", "--stable", "{root}", "--filter-eps", "-1"], ["--filter-eps"]),

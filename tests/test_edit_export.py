@@ -92,15 +92,15 @@ def test_export_gltf_opens_and_carries_textures_and_frames(tmp_path):
     write_exr(tmp_path / "albedo.exr", np.full((16, 16, 3), 0.3, np.float32))
     write_exr(tmp_path / "rough.exr", np.full((16, 16, 1), 0.6, np.float32))
     out = run_cli(
-        "export-gltf",
+        "export",
+        "--out",
+        str(tmp_path / "avatar.glb"),
         "--subject",
         str(tmp_path / "subject"),
         "--albedo",
         str(tmp_path / "albedo.exr"),
         "--roughness",
         str(tmp_path / "rough.exr"),
-        "--out",
-        str(tmp_path / "avatar.glb"),
     )
     assert out.returncode == 0, out.stderr
     gltf = _glb_json(tmp_path / "avatar.glb")

@@ -286,8 +286,8 @@ def test_every_later_stage_runs_on_the_imported_capture(imported, tmp_path, caps
     report = json.loads((tmp_path / "eval" / "eval.json").read_text())
     assert report["stages"]["microfacet"]["status"] == report["stages"]["RelightNet"]["status"] == "done"
     glb = tmp_path / "avatar.glb"
-    args = ["export-gltf", "--subject", str(imported / "subject"), "--albedo", str(fit / "albedo.exr")]
-    assert main([*args, "--roughness", str(fit / "roughness.exr"), "--out", str(glb)]) == 0 and glb.stat().st_size > 0
+    args = ["export", "--out", str(glb), "--subject", str(imported / "subject"), "--albedo", str(fit / "albedo.exr")]
+    assert main([*args, "--roughness", str(fit / "roughness.exr")]) == 0 and glb.stat().st_size > 0
 
 
 # --------------------------------------------------------------------------------------------------------------

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from gra_mi.apps.demo_report import demo_markdown
-from gra_mi.apps.gltf import export_glb
+from gra_mi.apps.export import export_avatar
 from gra_mi.capture.dataset import load_observation
 from gra_mi.capture.synthetic import CaptureConfig, generate_capture
 from gra_mi.core.errors import GraMiParameterError
@@ -223,8 +223,7 @@ def _olat_demo(preset: OlatDemoPreset, capture, ls, out: Path, record: dict, tra
     with _timed(timings, "evaluation (gra-mi eval; library maps' truth from the OLATs)"):
         eval_config = EvalConfig(library_envmaps=preset.library_envmaps, transport=transport)
         record["eval"] = evaluate(EvalInputs.from_run(out), out / "eval", eval_config)
-    with _timed(timings, "glTF export"):
-        export_glb(out / "avatar.glb", ls.sequence, fit_result.albedo, fit_result.roughness)
+    record["export"] = _export(out, ls, fit_result, timings)
     atomic_write_text(out / "demo.json", json.dumps(record, indent=1, default=float) + "\n")
     atomic_write_text(out / "report.md", demo_markdown(record))
     return out / "report.md"
@@ -295,8 +294,19 @@ def _render_stages(preset: DemoPreset, capture, ls, fit_result, out: Path, recor
         _point_light(capture, relighter, test_frames[0].mesh_frame, out)
     with _timed(timings, "composites on a platform (RelightNet, held-out camera)"):
         record["video"] = _composite_video(preset, capture, relighter, test_frames, out)
-    with _timed(timings, "glTF export"):
-        export_glb(out / "avatar.glb", ls.sequence, fit_result.albedo, fit_result.roughness)
+    record["export"] = _export(out, ls, fit_result, timings)
+
+
+def _export(out: Path, ls, fit_result, timings: dict) -> dict[str, str]:
+    """The avatar as USD (with the rig's cameras) and glTF, each with its validator's verdict."""
+    verdicts = {}
+    with _timed(timings, "export (USD + glTF, validated)"):
+        for name, rig in (("avatar.usdz", ls.stage), ("avatar.glb", None)):
+            report = export_avatar(out / name, ls.sequence, fit_result.albedo, fit_result.roughness, rig=rig)
+            verdicts[name] = report.summary()
+            if report.errors:
+                raise RuntimeError(f"{report.summary()}: {report.errors[:3]}")
+    return verdicts
 
 
 def _point_light(capture, relighter, frame: int, out: Path) -> None:

@@ -292,7 +292,9 @@ def _fidelity(r: dict) -> list[str]:
 def _files(r: dict) -> list[str]:
     video = f"Video: [{r['video']}]({r['video']}) · " if "video" in r else ""
     return [
-        f"{video}Avatar: [avatar.glb](avatar.glb) (opens in Blender)",
+        f"{video}Avatar: [avatar.usdz](avatar.usdz) (USD, with the rig's cameras) · [avatar.glb](avatar.glb) (glTF); "
+        "both open in Blender (docs/export.md)",
+        *(f"- {verdict}" for verdict in r.get("export", {}).values()),
         "",
         "Data: `capture/` (images, masks, true maps, `scene.xml` loads in plain Mitsuba), `fit/` (albedo.exr, roughness.exr),",
         "`renders/` (linear RGBA EXR), `demo.json` (this report's numbers, from the stages' own records).",

@@ -105,9 +105,10 @@ COMMANDS: dict[str, Command] = {
         "Edit a fitted albedo: paint an image over it, or tint a UV mask; re-render with `relight --albedo`.",
         mitsuba=False,
     ),
-    "export-gltf": Command(
+    "export": Command(
         "texture",
-        "Export the fitted avatar as glTF 2.0 (.glb): mesh, textures, frames as morph targets.",
+        "Export the avatar as USD (.usdz/.usda/.usdc: animated mesh, UsdPreviewSurface, cameras, lights) or glTF (.glb), "
+        "checked by the format's validator.",
         mitsuba=False,
     ),
     "train-relightnet": Command(

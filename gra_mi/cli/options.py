@@ -175,4 +175,6 @@ def command_paths(config) -> tuple[dict[str, Path], dict[str, Path]]:
                     inputs[label if label not in inputs else f"{label} ({ref})"] = ref
     if hasattr(config, "output_folder"):
         outputs["--out"] = config.output_folder()
+    if hasattr(config, "output_paths"):  # what a command writes besides --out (an export's textures beside its file)
+        outputs.update(config.output_paths())
     return {k: v for k, v in outputs.items() if v is not None}, inputs

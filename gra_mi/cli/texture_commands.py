@@ -1,4 +1,4 @@
-"""Commands on the physics-based texture: ``fit``, ``edit-texture``, ``export-gltf``, ``relight``, ``relight-field``,
+"""Commands on the physics-based texture: ``fit``, ``edit-texture``, ``export``, ``relight``, ``relight-field``,
 ``eval-lighting``."""
 
 from __future__ import annotations
@@ -7,7 +7,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from gra_mi.apps.field_relight import FieldRelightConfig, relight_from_field
-from gra_mi.apps.gltf import export_glb
 from gra_mi.apps.relight import RelightConfig, SubjectMaps, collect_lights, relight_batch, select
 from gra_mi.apps.texture_edit import edit_albedo_file, parse_color
 from gra_mi.capture.dataset import Capture
@@ -68,28 +67,61 @@ def run_edit_texture(c: EditTextureCommand) -> None:
 
 
 @dataclass(kw_only=True)
-class ExportGltfCommand(CommandConfig):
+class ExportCommand(CommandConfig):
+    out: Path
+    """The file to write; its suffix picks the format: .usdz (one package), .usda / .usdc (textures in a folder
+    NAME_textures beside it) or .glb. Each is checked by its format's validator after writing."""
     subject: Path
-    """Tracked mesh sequence folder (e.g. CAPTURE/subject)."""
+    """Tracked mesh sequence folder (e.g. CAPTURE/subject), or an avatar exported before (.usd*, .glb)."""
     albedo: Path
     """Albedo UV texture (EXR), e.g. from `gra-mi fit`."""
     roughness: Path
     """Roughness UV texture (EXR), e.g. from `gra-mi fit`."""
     frames: int | None = None
-    """Frames to include as morph targets (default: all)."""
-    out: Path
-    """The .glb file to write."""
+    """Frames to include (default: all)."""
+    rig: Path | None = None
+    """USD only: a rig calibration (calibration.json, or a capture or rig folder holding one) whose cameras are
+    written as USD cameras, and whose LEDs --pattern lights."""
+    envmap: Path | None = None
+    """USD only: an environment map to hand over as a DomeLight (lat-long, read like `relight --envmap`)."""
+    pattern: Path | None = None
+    """USD only: LED drive values (JSON or .npy, as `relight --pattern`); the LEDs that are on become SphereLights.
+    Needs --rig."""
+    envmaps: EnvmapOptions = field(default_factory=EnvmapOptions)
 
     def validate(self) -> None:
         if self.frames is not None:
             require_positive({"frames": self.frames})
+        if self.pattern is not None and self.rig is None:
+            raise GraMiParameterError("pattern", "needs --rig (the LEDs the pattern drives)")
+
+    def output_paths(self) -> dict[str, Path]:
+        """What the export writes besides --out: an unpackaged layer's textures."""
+        from gra_mi.apps.usd import textures_beside
+
+        return {"--out's textures": textures_beside(self.out)} if self.out.suffix.lower() in (".usda", ".usdc", ".usd") else {}
 
 
-def run_export_gltf(c: ExportGltfCommand) -> None:
+def _rig_calibration(path: Path):
+    for candidate in (path, path / "calibration.json", path / "rig" / "calibration.json"):
+        if candidate.is_file():
+            return load_calibration(candidate)
+    raise GraMiInputError(path, "no calibration.json here (give the file, a rig folder or a capture folder)")
+
+
+def run_export(c: ExportCommand) -> int:
+    from gra_mi.apps.export import export_avatar
     from gra_mi.render.relighter import load_texture
 
     albedo, roughness = load_texture(c.albedo, 3, "albedo"), load_texture(c.roughness, 1, "roughness")
-    print(f"wrote {export_glb(c.out, load_sequence(c.subject), albedo, roughness, c.frames)}")
+    rig = _rig_calibration(c.rig) if c.rig is not None else None
+    envmap = c.envmaps.load(c.envmap) if c.envmap is not None else None
+    leds = load_pattern(rig, c.pattern) * rig.gains if c.pattern is not None else None  # emitted = drive × gain (W/sr)
+    report = export_avatar(c.out, load_sequence(c.subject), albedo, roughness, c.frames, rig, envmap, leds)
+    print(f"wrote {report.summary()}")
+    for line in report.errors + report.warnings:
+        print(f"  {line}")
+    return 1 if report.errors else 0
 
 
 @dataclass(kw_only=True)

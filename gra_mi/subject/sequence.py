@@ -21,6 +21,8 @@ import numpy as np
 
 from gra_mi.core.errors import GraMiInputError
 from gra_mi.core.io import atomic_path
+from gra_mi.subject.geometry import split_uv_seams, vertex_normals  # noqa: F401  (part of this module's interface)
+from gra_mi.subject.interchange import is_interchange_file, read_interchange
 
 
 @dataclass
@@ -40,31 +42,6 @@ class MeshSequence:
     @property
     def num_vertices(self) -> int:
         return int(self.vertices.shape[1])
-
-
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted vertex normals, (..., V, 3); isolated vertices get +Y."""
-    batched = vertices if vertices.ndim == 3 else vertices[None]
-    v0, v1, v2 = (batched[:, faces[:, k], :].astype(np.float64) for k in range(3))
-    face_n = np.cross(v1 - v0, v2 - v0)  # length = 2 * area: area weighting for free
-    normals = np.zeros(batched.shape, dtype=np.float64)
-    for k in range(3):
-        np.add.at(normals, (slice(None), faces[:, k]), face_n)
-    normals = normals if vertices.ndim == 3 else normals[0]
-    length = np.linalg.norm(normals, axis=-1, keepdims=True)
-    fallback = np.zeros_like(normals)
-    fallback[..., 1] = 1.0
-    return np.where(length > 1e-12, normals / np.maximum(length, 1e-30), fallback).astype(np.float32)
-
-
-def split_uv_seams(faces: np.ndarray, face_uv_indices: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Turn (position index, UV index) corners into one vertex per unique pair.
-
-    Returns new faces (F, 3), the position index of each new vertex, and the UV index of each new vertex.
-    """
-    pairs = np.stack([faces.ravel(), face_uv_indices.ravel()], axis=1)
-    unique, inverse = np.unique(pairs, axis=0, return_inverse=True)
-    return inverse.reshape(faces.shape).astype(np.int32), unique[:, 0], unique[:, 1]
 
 
 def validate_sequence(seq: MeshSequence, source: str = "<sequence>") -> None:
@@ -162,10 +139,16 @@ def save_sequence(seq: MeshSequence, folder: str | Path, write_plys: bool = True
 
 
 def load_sequence(folder: str | Path) -> MeshSequence:
-    """Load and validate a sequence folder (or a ``sequence.npz`` path)."""
+    """Load and validate a sequence folder (or a ``sequence.npz`` path, or an avatar exported as USD / .glb)."""
     path = Path(folder)
+    if is_interchange_file(path):
+        seq = MeshSequence(**read_interchange(path))
+        validate_sequence(seq, str(path))
+        return seq
     if path.is_dir():
         path = path / "sequence.npz"
+    elif path.is_file() and path.suffix.lower() != ".npz":
+        raise GraMiInputError(path, "not a subject: expected a sequence folder, its sequence.npz, or an exported avatar (.usd*, .glb)")
     if not path.is_file():
         raise GraMiInputError(path, "file not found (generate a subject with `gra-mi subject`)")
     try:

@@ -1,0 +1,109 @@
+"""``gra-mi export``: the avatar (tracked mesh sequence + fitted maps, optionally the capture's cameras and a lighting)
+as USD or glTF binary, chosen by the file name, then checked by the format's own validator:
+
+- USD: usd-core's validation framework (the rules ``usdchecker`` runs: stage metadata, material bindings, shader
+  compliance, package encapsulation and the usdz layout, ...), in-process;
+- glTF: the Khronos glTF-Validator (npm ``gltf-validator``, run with node; ``scripts/setup.sh`` installs it into
+  ``.tools/``). Where node or the validator is missing the export says so and is not checked.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import subprocess
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from gra_mi.apps.gltf import export_glb
+from gra_mi.apps.usd import UsdLighting, export_usd
+from gra_mi.core.errors import GraMiInputError
+from gra_mi.stage.lightstage import Lightstage
+from gra_mi.subject.interchange import GLTF_SUFFIXES, USD_SUFFIXES
+from gra_mi.subject.sequence import MeshSequence
+
+logger = logging.getLogger(__name__)
+
+GLTF_VALIDATOR_MODULES = Path(__file__).resolve().parents[2] / ".tools" / "node_modules"
+"""Where scripts/setup.sh installs the npm package ``gltf-validator``; ``GRA_MI_NODE_PATH`` names another."""
+_VALIDATE_JS = """
+const validator = require('gltf-validator');
+const data = new Uint8Array(require('fs').readFileSync(process.argv[1]));
+validator.validateBytes(data, {maxIssues: 200}).then(r => console.log(JSON.stringify(r)))
+    .catch(e => { console.error(String(e)); process.exit(3); });
+"""
+
+
+@dataclass
+class ExportReport:
+    path: Path
+    validator: str  # what checked it, or why nothing did
+    errors: list[str]
+    warnings: list[str]
+
+    def summary(self) -> str:
+        return f"{self.path}: {self.validator}: {len(self.errors)} errors, {len(self.warnings)} warnings"
+
+
+def validate_usd(path: Path) -> ExportReport:
+    """Every validator usd-core registers, on the stage ``path`` opens."""
+    from pxr import Usd, UsdValidation
+
+    stage = Usd.Stage.Open(str(path))
+    validators = UsdValidation.ValidationRegistry().GetOrLoadAllValidators()
+    found = UsdValidation.ValidationContext(validators).Validate(stage)
+    kinds = UsdValidation.ValidationErrorType
+    errors = [f"{e.GetName()}: {e.GetMessage()}" for e in found if e.GetType() == kinds.Error]
+    warnings = [f"{e.GetName()}: {e.GetMessage()}" for e in found if e.GetType() == kinds.Warn]
+    return ExportReport(
+        path, f"usd-core {'.'.join(map(str, Usd.GetVersion()[1:]))} validation ({len(validators)} validators)", errors, warnings
+    )
+
+
+def gltf_validator() -> tuple[str, dict[str, str]] | None:
+    """(node, its environment) that can ``require('gltf-validator')``, or None."""
+    node = shutil.which("node")
+    modules = os.environ.get("GRA_MI_NODE_PATH") or str(GLTF_VALIDATOR_MODULES)
+    if node is None or not (Path(modules) / "gltf-validator").is_dir():
+        return None
+    return node, {**os.environ, "NODE_PATH": modules}
+
+
+def validate_glb(path: Path) -> ExportReport:
+    """The Khronos glTF-Validator's verdict on ``path`` (not checked, saying why, where it is missing)."""
+    found = gltf_validator()
+    if found is None:
+        return ExportReport(path, "not checked (node or the npm package gltf-validator is missing: scripts/setup.sh)", [], [])
+    node, env = found
+    done = subprocess.run([node, "-e", _VALIDATE_JS, str(path)], capture_output=True, text=True, env=env, timeout=300)
+    if done.returncode != 0:
+        return ExportReport(path, "glTF-Validator", [f"the validator failed: {done.stderr.strip()[-500:]}"], [])
+    result = json.loads(done.stdout)
+    messages = result["issues"]["messages"]
+    said = [f"{m['code']} at {m.get('pointer', '')}: {m['message']}" for m in messages]
+    errors = [s for s, m in zip(said, messages, strict=True) if m["severity"] == 0]
+    warnings = [s for s, m in zip(said, messages, strict=True) if m["severity"] == 1]
+    return ExportReport(path, f"glTF-Validator {result.get('validatorVersion', '')}", errors, warnings)
+
+
+def export_avatar(
+    out: Path, seq: MeshSequence, albedo: np.ndarray, roughness: np.ndarray, frames: int | None = None,
+    rig: Lightstage | None = None, envmap: np.ndarray | None = None, led_intensities: np.ndarray | None = None,
+) -> ExportReport:  # fmt: skip
+    """Write ``out`` in the format its suffix names and validate it. Cameras and lights travel in USD only (glTF's
+    punctual lights cannot hold an environment map); asking for them in a .glb is an error, not a silent drop."""
+    suffix = out.suffix.lower()
+    if suffix in GLTF_SUFFIXES:
+        if rig is not None or envmap is not None or led_intensities is not None:
+            raise GraMiInputError(out, "a .glb carries the mesh, its animation and the material; export cameras and lights to .usd*")
+        return validate_glb(export_glb(out, seq, albedo, roughness, frames))
+    if suffix not in USD_SUFFIXES:
+        raise GraMiInputError(out, f"unknown format '{suffix}': expected one of {', '.join(USD_SUFFIXES + GLTF_SUFFIXES)}")
+    lighting = None
+    if envmap is not None or led_intensities is not None:
+        lighting = UsdLighting(envmap=envmap, stage=rig, led_intensities=led_intensities)
+    return validate_usd(export_usd(out, seq, albedo, roughness, frames, rig.cameras if rig is not None else None, lighting))
