@@ -13,7 +13,7 @@ from gra_mi.apps.export import export_avatar, gltf_validator, validate_glb, vali
 from gra_mi.apps.gltf import export_glb
 from gra_mi.apps.usd import LED_RADIUS_M, UsdLighting, export_usd
 from gra_mi.core.errors import GraMiInputError
-from gra_mi.eval.blender import compare_with_blender, find_blender, render_in_mitsuba, subject_window
+from gra_mi.eval.blender import compare_with_blender, find_blender, reexport_in_blender, render_in_mitsuba, subject_window
 from gra_mi.stage.envmap import shift_longitude
 from gra_mi.stage.envmap_library import reference_map
 from gra_mi.stage.lightstage import default_lightstage, olat_pattern
@@ -236,10 +236,14 @@ def test_the_blender_comparison_sees_a_turned_envmap_and_a_flipped_texture(blend
 def test_export_command_round_trip_and_hostile_outputs(tmp_path, avatar, capsys):
     from gra_mi.cli.main import main
     from gra_mi.core.io import write_exr
+    from gra_mi.stage.lightstage import save_calibration
     from gra_mi.subject.sequence import save_sequence
 
     seq, albedo, roughness = avatar
     save_sequence(seq, tmp_path / "subject")
+    save_calibration(default_lightstage(), tmp_path / "rig" / "calibration.json")
+    (tmp_path / "three_leds.json").write_text("[[1, 1, 1], [0, 0, 0], [1, 0, 0]]")
+    write_exr(tmp_path / "nan.exr", np.full((8, 16, 3), np.nan, np.float32))
     write_exr(tmp_path / "albedo.exr", albedo)
     write_exr(tmp_path / "rough.exr", roughness)
     maps = ["--albedo", str(tmp_path / "albedo.exr"), "--roughness", str(tmp_path / "rough.exr")]
@@ -252,8 +256,37 @@ def test_export_command_round_trip_and_hostile_outputs(tmp_path, avatar, capsys)
         (["--out", str(tmp_path / "c.glb"), "--subject", str(tmp_path / "subject"), "--rig", str(tmp_path / "subject")], "calibration"),
         (["--out", str(tmp_path / "c.fbx"), "--subject", str(tmp_path / "subject")], "unknown format"),
         (["--out", str(tmp_path / "c.usdz"), "--subject", str(tmp_path / "albedo.exr")], "not a subject"),
-    ]
+        (["--out", str(tmp_path / "a.usdz"), "--subject", str(tmp_path / "a.usdz")], "the subject input"),
+        (["--out", str(tmp_path / "c.usdz"), "--subject", str(tmp_path / "subject"), "--rig", str(tmp_path / "rig"),
+          "--pattern", str(tmp_path / "three_leds.json")], "three_leds.json"),
+        (["--out", str(tmp_path / "c.usdz"), "--subject", str(tmp_path / "subject"), "--envmap", str(tmp_path / "nan.exr")], "nan.exr"),
+    ]  # fmt: skip
     for args, said in refused:
         assert main(["export", *args, *maps]) == 2
         assert said in capsys.readouterr().err
     assert not (tmp_path / "c.usdz").exists() and not (tmp_path / "subject" / "x.usdz").exists()
+
+
+@needs_blender
+@pytest.mark.parametrize(
+    ("ours", "blenders", "offset"),
+    [
+        ("avatar.glb", "edited.glb", 0),  # morph targets, sparse accessors, LINEAR keys
+        ("avatar.usdz", "edited.usdc", 0),  # time-sampled points, UVs per face corner
+        ("avatar.glb", "edited.usda", 1),  # shape keys as UsdSkel blend shapes; Blender's frames start at 1
+    ],
+)
+def test_an_avatar_that_blender_wrote_back_reads_as_the_same_performance(blender_scene, tmp_path, ours, blenders, offset):
+    """The importer on files written the way the DCC tool writes them, not only by gra-mi's own exporter."""
+    from scipy.spatial import cKDTree
+
+    seq, assets = blender_scene[0], blender_scene[5]
+    asset = assets[0] if ours.endswith(".usdz") else assets[1]
+    back = load_sequence(reexport_in_blender(asset, tmp_path / blenders))
+    assert back.num_frames >= seq.num_frames - offset and back.fps == pytest.approx(seq.fps)
+    for j in range(seq.num_frames - offset):
+        truth = seq.vertices[j + offset]
+        assert cKDTree(truth).query(back.vertices[j])[0].max() < 1e-5, f"frame {j}"
+        assert cKDTree(back.vertices[j]).query(truth)[0].max() < 1e-5, f"frame {j}: a vertex went missing"
+    with_uv = cKDTree(np.concatenate([seq.vertices[offset], seq.uvs], axis=1))
+    assert with_uv.query(np.concatenate([back.vertices[0], back.uvs], axis=1))[0].max() < 1e-5, "every (position, UV) pair is gra-mi's"

@@ -41,15 +41,31 @@ def find_blender() -> list[str] | None:
     return [chosen, "-I", str(JOB_SCRIPT)]  # -I: nothing from the working folder shadows Blender's add-ons
 
 
+def _run_job(job: dict, job_file: Path, timeout: float) -> None:
+    command = find_blender()
+    if command is None:
+        raise GraMiInputError(BLENDER_ENV, "no Blender found: run scripts/setup.sh (it makes .venv-blender), or set it to a bpy Python")
+    job_file.write_text(json.dumps(job))
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PYTHON")}  # gra-mi's paths must not reach bpy
+    done = subprocess.run([*command, str(job_file)], capture_output=True, text=True, timeout=timeout, cwd=job_file.parent, env=env)
+    written = job.get("reexport", job.get("out"))
+    if done.returncode != 0 or not Path(written).is_file():
+        raise RuntimeError(f"Blender failed ({done.returncode}):\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}")
+
+
+def reexport_in_blender(asset: Path, out: Path, timeout: float = 600.0) -> Path:
+    """``asset`` imported into Blender and written back out by Blender's own exporter (``out``: .glb or .usd*)."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    _run_job({"asset": str(Path(asset).resolve()), "reexport": str(out.resolve())}, out.with_name(f"{out.name}.job.json"), timeout)
+    return out
+
+
 def render_in_blender(
     asset: Path, frame: int, fps: float, envmap: Path, camera: Camera, folder: Path, spp: int = 128, lambert: bool = False,
     seed: int = 0, timeout: float = 900.0,
 ) -> tuple[np.ndarray, dict]:  # fmt: skip
     """(RGBA image, report) of Blender's Cycles render of ``asset`` at sequence frame ``frame``; the report has
     Blender's version and the imported mesh's vertices at that frame (gra-mi's world)."""
-    command = find_blender()
-    if command is None:
-        raise GraMiInputError(BLENDER_ENV, "no Blender found: run scripts/setup.sh (it makes .venv-blender), or set it to a bpy Python")
     folder.mkdir(parents=True, exist_ok=True)
     tag = f"{Path(asset).name}_f{frame}{'_lambert' if lambert else ''}"
     job = {
@@ -61,12 +77,7 @@ def render_in_blender(
             "fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy,
         },
     }  # fmt: skip
-    job_file = folder / f"blender_{tag}.job.json"
-    job_file.write_text(json.dumps(job))
-    env = {k: v for k, v in os.environ.items() if not k.startswith("PYTHON")}  # gra-mi's paths must not reach bpy
-    done = subprocess.run([*command, str(job_file)], capture_output=True, text=True, timeout=timeout, cwd=folder, env=env)
-    if done.returncode != 0 or not Path(job["out"]).is_file():
-        raise RuntimeError(f"Blender failed ({done.returncode}):\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}")
+    _run_job(job, folder / f"blender_{tag}.job.json", timeout)
     return read_exr(job["out"]), json.loads(Path(job["report"]).read_text())
 
 

@@ -6,6 +6,7 @@ It imports only Blender and the standard library (it runs in Blender's own Pytho
 convention), ``camera`` (OpenCV ``camera_to_world`` in gra-mi's world, ``fx fy cx cy width height``), ``spp``,
 ``lambert`` (swap the imported Principled BSDF for a Diffuse BSDF on the same base colour), ``out`` (RGBA EXR) and
 ``report`` (JSON: Blender's version, the frame shown, the imported mesh's vertices at that frame in gra-mi's world).
+A job with ``reexport`` (a .glb or .usd* path) instead writes the imported asset back out with Blender's exporters.
 
 Conventions handled here, each checked by tests/test_export.py against Mitsuba:
 - Blender is Z up; both importers turn a Y-up file by (x, y, z) → (x, −z, y);
@@ -118,9 +119,20 @@ def set_cycles(scene, spp: int, seed: int) -> None:
     settings.file_format, settings.color_mode, settings.color_depth = "OPEN_EXR", "RGBA", "32"
 
 
+def reexport(path: str) -> None:
+    """Write what was imported as Blender writes it (an avatar edited in Blender and handed back to gra-mi)."""
+    if path.lower().endswith(".glb"):
+        bpy.ops.export_scene.gltf(filepath=path, export_format="GLB")
+    else:
+        bpy.ops.wm.usd_export(filepath=path, export_animation=True)
+
+
 def main(job_path: str) -> None:
     job = json.load(open(job_path))
     import_asset(job["asset"])
+    if "reexport" in job:
+        reexport(job["reexport"])
+        return
     scene = bpy.context.scene
     glb = job["asset"].lower().endswith(".glb")
     shown = show_frame(scene, job["frame"], job["fps"], glb)

@@ -97,9 +97,27 @@ def _usd_uvs(mesh, corners: np.ndarray, indices: np.ndarray, num_points: int, pa
     if interpolation in (UsdGeom.Tokens.vertex, UsdGeom.Tokens.varying) and len(uv) == num_points:
         return faces, np.arange(num_points), uv
     if interpolation == UsdGeom.Tokens.faceVarying and len(uv) == indices.size:
-        new_faces, position_of, uv_of = split_uv_seams(faces, corners)
-        return new_faces, position_of, uv[uv_of]
+        # corners that share a position and a UV value share a vertex (writers index UVs per corner or not at all)
+        unique_uv, uv_index = np.unique(uv, axis=0, return_inverse=True)
+        new_faces, position_of, uv_of = split_uv_seams(faces, uv_index.reshape(-1)[corners])
+        return new_faces, position_of, unique_uv[uv_of]
     raise GraMiInputError(path, f"'{chosen.GetPrimvarName()}' has {len(uv)} values with {interpolation} interpolation", field="primvars:st")
+
+
+def _bake_skinning(stage, mesh) -> list[float]:
+    """A skinned mesh or one animated by blend shapes (UsdSkel: how Blender writes shape keys) baked into time-sampled
+    points by usd-core's own ``UsdSkel.BakeSkinning``, in the session layer (the file is not touched); its time codes
+    are the animation's. [] for a mesh that is not skinned."""
+    from pxr import UsdSkel
+
+    if not UsdSkel.BindingAPI(mesh.GetPrim()).GetSkeleton() and not UsdSkel.Root.Find(mesh.GetPrim()):
+        return []
+    animations = [p for p in stage.Traverse() if p.IsA(UsdSkel.Animation)]
+    times = sorted({t for p in animations for a in p.GetAttributes() for t in a.GetTimeSamples()})
+    stage.SetEditTarget(stage.GetSessionLayer())
+    if not times or not UsdSkel.BakeSkinning(stage.Traverse()):
+        return []
+    return times
 
 
 def _read_usd(path: Path) -> dict:
@@ -117,7 +135,7 @@ def _read_usd(path: Path) -> dict:
     corners = _fan(counts, indices, path)
     if mesh.GetOrientationAttr().Get() == UsdGeom.Tokens.leftHanded:
         corners = corners[:, ::-1]
-    times = mesh.GetPointsAttr().GetTimeSamples() or [Usd.TimeCode.Default()]
+    times = _bake_skinning(stage, mesh) or mesh.GetPointsAttr().GetTimeSamples() or [Usd.TimeCode.Default()]
     to_gra_mi = UsdGeom.GetStageMetersPerUnit(stage) * (Z_UP_TO_Y_UP if UsdGeom.GetStageUpAxis(stage) == UsdGeom.Tokens.z else np.eye(3))
     frames = []
     for t in times:
@@ -158,25 +176,55 @@ def _glb_chunks(path: Path) -> tuple[dict, bytes]:
     return gltf, binary
 
 
+def _view_rows(gltf: dict, binary: bytes, view_index: int, offset: int, dtype: np.dtype, width: int, count: int, where: str, path: Path):
+    """``count`` rows of ``width`` ``dtype`` values from a buffer view (its stride honoured), as float64."""
+    view = gltf["bufferViews"][view_index]
+    if view.get("buffer", 0) != 0:
+        raise GraMiInputError(path, f"{where}: only data in the binary chunk is read", field="bufferViews")
+    start = int(view.get("byteOffset", 0)) + offset
+    stride = int(view.get("byteStride", 0)) or dtype.itemsize * width
+    end = start + stride * (count - 1) + dtype.itemsize * width
+    if count < 1 or end > len(binary):
+        raise GraMiInputError(path, f"{where} runs past the binary chunk (truncated file?)", field="accessors")
+    raw = np.frombuffer(binary, np.uint8, end - start, start)
+    rows = np.lib.stride_tricks.as_strided(raw, (count, dtype.itemsize * width), (stride, 1))
+    return np.ascontiguousarray(rows).view(dtype).reshape(count, width).astype(np.float64)
+
+
 def _accessor(gltf: dict, binary: bytes, index: int, path: Path) -> np.ndarray:
+    """An accessor's values, (count, width): from its buffer view, or zeros without one, then its sparse
+    substitutions (Blender writes morph targets that way)."""
+    where = f"accessor {index}"
     try:
         acc = gltf["accessors"][index]
-        view = gltf["bufferViews"][acc["bufferView"]]
         dtype, width, count = np.dtype(COMPONENTS[acc["componentType"]]), WIDTH[acc["type"]], int(acc["count"])
-        start = int(view.get("byteOffset", 0)) + int(acc.get("byteOffset", 0))
-        stride = int(view.get("byteStride", 0)) or dtype.itemsize * width
-        if view.get("buffer", 0) != 0 or "sparse" in acc:
-            raise GraMiInputError(path, f"accessor {index}: only dense data in the binary chunk is read", field="accessors")
-        end = start + stride * (count - 1) + dtype.itemsize * width
-        if count < 1 or end > len(binary):
-            raise GraMiInputError(path, f"accessor {index} runs past the binary chunk (truncated file?)", field="accessors")
-        raw = np.frombuffer(binary, np.uint8, end - start, start)
-        rows = np.lib.stride_tricks.as_strided(raw, (count, dtype.itemsize * width), (stride, 1))
-        return np.ascontiguousarray(rows).view(dtype).reshape(count, width).astype(np.float64)
+        if "bufferView" in acc:
+            values = _view_rows(gltf, binary, acc["bufferView"], int(acc.get("byteOffset", 0)), dtype, width, count, where, path)
+        else:
+            values = np.zeros((count, width))
+        if "sparse" in acc:
+            sparse = acc["sparse"]
+            n, ind, val = int(sparse["count"]), sparse["indices"], sparse["values"]
+            rows = _view_rows(
+                gltf,
+                binary,
+                ind["bufferView"],
+                int(ind.get("byteOffset", 0)),
+                np.dtype(COMPONENTS[ind["componentType"]]),
+                1,
+                n,
+                where,
+                path,
+            )
+            rows = rows[:, 0].astype(np.int64)
+            if rows.min() < 0 or rows.max() >= count:
+                raise GraMiInputError(path, f"{where}: sparse indices outside [0, {count})", field="accessors")
+            values[rows] = _view_rows(gltf, binary, val["bufferView"], int(val.get("byteOffset", 0)), dtype, width, n, where, path)
+        return values
     except (KeyError, IndexError, TypeError, ValueError) as exc:
         if isinstance(exc, GraMiInputError):
             raise
-        raise GraMiInputError(path, f"accessor {index} is malformed ({exc!r})", field="accessors") from None
+        raise GraMiInputError(path, f"{where} is malformed ({exc!r})", field="accessors") from None
 
 
 def _node_matrix(node: dict) -> np.ndarray:
@@ -219,7 +267,7 @@ def _morph_frames(gltf, binary, node: int, base: np.ndarray, targets: list[np.nd
                 if weights.shape[1] != len(targets):  # CUBICSPLINE keeps in/out tangents around each value
                     weights = weights.reshape(len(times), 3, len(targets))[:, 1]
                 frames = base[None] + np.einsum("tk,kvc->tvc", weights, np.stack(targets)) if targets else base[None]
-                fps = 1.0 / float(np.median(np.diff(times))) if len(times) > 1 else 24.0
+                fps = round(1.0 / float(np.median(np.diff(times))), 3) if len(times) > 1 else 24.0  # keyframes are float32 seconds
                 return frames, fps
     return base[None], 24.0
 
