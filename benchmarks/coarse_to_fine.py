@@ -11,17 +11,14 @@ the held-out relighting come from each fit's fit.json.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from gra_mi.apps.harness import BenchmarkRun, run_benchmark
 
 COMMON = ["--batch-views", "8", "--iterations", "60"]
 RUNS = {
@@ -82,31 +79,26 @@ def markdown(rows: list[dict], target: float, stamp: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--capture", type=Path, default=None, help="A `small` capture (default: a one-bounce one made here).")
-    parser.add_argument("--write", type=Path, default=None, help="Also write the Markdown page here.")
-    args = parser.parse_args()
+def measure(run: BenchmarkRun) -> str:
     from gra_mi.capture.synthetic import CaptureConfig, generate_capture
-    from gra_mi.core.stamp import publish_page, run_stamp, stamp_said
-    from gra_mi.render.runtime import start_runtime
 
-    variant = start_runtime("llvm_ad_rgb").variant
-    with tempfile.TemporaryDirectory(prefix="gra_mi_c2f_") as tmp:
-        tmp = Path(tmp)
-        capture = args.capture
-        if capture is None:
-            capture = tmp / "capture"
-            generate_capture(capture, CaptureConfig(preset="small", renderer="onebounce", measure_noise=False))
-        records = {name: fit(capture, tmp / f"fit_{k}", run) for k, (name, run) in enumerate(RUNS.items())}
+    capture = run.args.capture
+    if capture is None:
+        capture = run.work / "capture"
+        generate_capture(capture, CaptureConfig(preset="small", renderer="onebounce", measure_noise=False))
+    records = {name: fit(capture, run.work / f"fit_{k}", options) for k, (name, options) in enumerate(RUNS.items())}
     target = at_resolution(records["flat 256²"], 256)[-1][1]
     rows = []
     for name, record in records.items():
         points = at_resolution(record, record["resolution"])
         rows.append({"name": name, "record": record, "time_to": time_to(points, target), "final": points[-1][1]})
         print(name, rows[-1]["time_to"], rows[-1]["final"], flush=True)
-    publish_page(markdown(rows, target, stamp_said(run_stamp(preset="small", variant=variant))), args.write)
+    return markdown(rows, target, run.stamp("small"))
+
+
+def arguments(parser) -> None:
+    parser.add_argument("--capture", type=Path, default=None, help="A `small` capture (default: a one-bounce one made here).")
 
 
 if __name__ == "__main__":
-    main()
+    run_benchmark(__doc__, measure, arguments=arguments)

@@ -10,12 +10,11 @@ silhouette band against the interior).
     .venv/bin/python benchmarks/demo_seeds.py --run outputs/demo [--seeds 3] [--more-steps 2000] [--lightings 4,16]
         [--write docs/results/demo-seeds.md]
 
-Each run keeps its numbers in its folder under --work (RUN/seeds/…/result.json): a rerun reads them back.
+Each run keeps its numbers in its folder under --work (default RUN/seeds/…/result.json): a rerun reads them back.
 """
 
 from __future__ import annotations
 
-import argparse
 import csv
 import json
 import sys
@@ -23,6 +22,8 @@ from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
+
+from gra_mi.apps.harness import BenchmarkRun, run_benchmark
 
 METRICS = (("psnr", "PSNR", 2), ("ssim", "SSIM", 3), ("flip", "ꟻLIP", 3))
 
@@ -225,25 +226,13 @@ def markdown(runs: list[dict], run: Path, stamp: str, regions: dict) -> list[str
     ]
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--run", type=Path, required=True, help="A `gra-mi demo` output folder (its capture/ and fit/ are used).")
-    parser.add_argument("--seeds", type=int, default=3, help="RelightNet training seeds 0 … N−1. Default: 3.")
-    parser.add_argument("--more-steps", default="", help="Also train seed 0 this many steps, comma-separated (the steps curve).")
-    parser.add_argument(
-        "--lightings", default="", help="Also train seed 0 on this many of the training lightings, comma-separated (the lightings curve)."
-    )
-    parser.add_argument("--work", type=Path, default=None, help="Folder for the runs. Default: RUN/seeds.")
-    parser.add_argument("--write", type=Path, default=None, help="Also write the Markdown page here (stamped).")
-    args = parser.parse_args()
-    from gra_mi.core.stamp import publish_page, run_stamp, stamp_said
+def measure(run: BenchmarkRun) -> str:
     from gra_mi.relightnet.train import TrainConfig
-    from gra_mi.render.runtime import start_runtime
 
+    args = run.args
     demo = json.loads((args.run / "demo.json").read_text())
     preset = demo["preset"]
-    variant = start_runtime("llvm_ad_rgb", torch=True).variant
-    work = args.work or args.run / "seeds"
+    work = args.work or args.run / "seeds"  # kept: a rerun reads each seed's result back
     steps = preset["relightnet_steps"]
     jobs = [(work / f"seed{seed}", seed, steps, None) for seed in range(args.seeds)]
     jobs += [(work / f"steps{more}_seed0", 0, int(more), None) for more in args.more_steps.split(",") if more]
@@ -252,10 +241,18 @@ def main() -> None:
     for out, seed, run_steps, lightings in jobs:
         runs.append(train_and_score(args.run, out, seed, run_steps, preset["lighting_spp"], lightings))
         print(json.dumps(runs[-1]), file=sys.stderr)
-    stamp = run_stamp(preset=preset["name"], variant=variant)
     regions = flip_regions(args.run, demos_own(args.run, TrainConfig(steps=preset["relightnet_steps"])) or work / "seed0" / "relightnet")
-    publish_page("\n".join(markdown(runs, args.run, stamp_said(stamp), regions)) + "\n", args.write)
+    return "\n".join(markdown(runs, args.run, run.stamp(preset["name"]), regions))
+
+
+def arguments(parser) -> None:
+    parser.add_argument("--run", type=Path, required=True, help="A `gra-mi demo` output folder (its capture/ and fit/ are used).")
+    parser.add_argument("--seeds", type=int, default=3, help="RelightNet training seeds 0 … N−1. Default: 3.")
+    parser.add_argument("--more-steps", default="", help="Also train seed 0 this many steps, comma-separated (the steps curve).")
+    parser.add_argument(
+        "--lightings", default="", help="Also train seed 0 on this many of the training lightings, comma-separated (the lightings curve)."
+    )
 
 
 if __name__ == "__main__":
-    main()
+    run_benchmark(__doc__, measure, arguments=arguments, torch=True)

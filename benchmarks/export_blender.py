@@ -7,17 +7,17 @@ from a capture camera cropped to the body; Mitsuba renders the same mesh and map
 max_depth 2) under the same map as an `envmap` emitter. The same again with a Lambert material on both sides
 separates the material model (Blender's Principled BSDF is not gra-mi's BRDF) from the handover itself.
 
-    python benchmarks/export_blender.py --write docs/results/export-blender.md
+    python benchmarks/export_blender.py --write docs/results/export-blender.md   (the picture goes beside the page)
 """
 
 from __future__ import annotations
 
-import argparse
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+
+from gra_mi.apps.harness import BenchmarkRun, run_benchmark
 
 FRAMES = (0, 3)  # of a 7-frame walk: the pose moves by ~0.4 m
 SPP = 256
@@ -77,41 +77,36 @@ def markdown(rows: list[dict], timing: dict, stamp: str, image: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--write", type=Path, default=None, help="Also write the Markdown page (and its PNG beside it) here.")
-    parser.add_argument("--size", type=int, default=256, help="Long side of the rendered window, pixels. Default: 256.")
-    args = parser.parse_args()
+def measure(run: BenchmarkRun) -> str:
     from gra_mi.apps.export import export_avatar
     from gra_mi.core.io import write_exr
-    from gra_mi.core.stamp import publish_page, run_stamp, stamp_said
     from gra_mi.eval.blender import compare_with_blender, find_blender, subject_window
-    from gra_mi.render.runtime import start_runtime
     from gra_mi.stage.envmap_library import reference_map
     from gra_mi.stage.lightstage import default_lightstage
     from gra_mi.subject.anny_body import anny_sequence
 
     if find_blender() is None:
-        parser.error("no Blender: run scripts/setup.sh (it makes .venv-blender) or set GRA_MI_BLENDER")
-    variant = start_runtime("llvm_ad_rgb").variant
+        raise SystemExit("no Blender: run scripts/setup.sh (it makes .venv-blender) or set GRA_MI_BLENDER")
     seq = anny_sequence(["walk"], max(FRAMES) + 1)
     albedo, roughness = structured_maps()
-    with tempfile.TemporaryDirectory(prefix="gra_mi_export_") as tmp:
-        folder = Path(tmp)
-        start = time.perf_counter()
-        assets = [export_avatar(folder / name, seq, albedo, roughness).path for name in ("avatar.usdz", "avatar.glb")]
-        timing = {"export_s": time.perf_counter() - start, "frames": seq.num_frames, "vertices": seq.num_vertices}
-        timing |= {"usdz_mb": assets[0].stat().st_size / 1e6, "glb_mb": assets[1].stat().st_size / 1e6}
-        write_exr(folder / "studio.exr", reference_map("studio", 128))
-        camera = subject_window(default_lightstage().cameras[0], seq.vertices[list(FRAMES)].reshape(-1, 3), args.size)
-        start = time.perf_counter()
-        rows, images = compare_with_blender(assets, seq, list(FRAMES), albedo, roughness, folder / "studio.exr", camera, folder, SPP)
-        timing["blender_s"] = (time.perf_counter() - start) / len(rows)
+    start = time.perf_counter()
+    assets = [export_avatar(run.work / name, seq, albedo, roughness).path for name in ("avatar.usdz", "avatar.glb")]
+    timing = {"export_s": time.perf_counter() - start, "frames": seq.num_frames, "vertices": seq.num_vertices}
+    timing |= {"usdz_mb": assets[0].stat().st_size / 1e6, "glb_mb": assets[1].stat().st_size / 1e6}
+    write_exr(run.work / "studio.exr", reference_map("studio", 128))
+    camera = subject_window(default_lightstage().cameras[0], seq.vertices[list(FRAMES)].reshape(-1, 3), run.args.size)
+    start = time.perf_counter()
+    rows, images = compare_with_blender(assets, seq, list(FRAMES), albedo, roughness, run.work / "studio.exr", camera, run.work, SPP)
+    timing["blender_s"] = (time.perf_counter() - start) / len(rows)
     image = "export-blender.png"
-    if args.write is not None:
-        picture(images, list(FRAMES), args.write.with_name(image))
-    publish_page(markdown(rows, timing, stamp_said(run_stamp(preset="anny, 2 frames", variant=variant)), image), args.write)
+    if run.beside_page(image) is not None:
+        picture(images, list(FRAMES), run.beside_page(image))
+    return markdown(rows, timing, run.stamp("anny, 2 frames"), image)
+
+
+def arguments(parser) -> None:
+    parser.add_argument("--size", type=int, default=256, help="Long side of the rendered window, pixels. Default: 256.")
 
 
 if __name__ == "__main__":
-    main()
+    run_benchmark(__doc__, measure, arguments=arguments)

@@ -1,8 +1,8 @@
 """Speed of the material fit, side by side with a tutorial-style Mitsuba fit (prb + Adam on the textures).
 
-    .venv/bin/python benchmarks/fit.py [--preset small] [--capture DIR] [--budget 600]
+    .venv/bin/python benchmarks/fit.py [--preset small] [--capture DIR] [--budget 600] [--write docs/results/fit.md]
 
-Prints a markdown table:
+Its page's table:
   - gra-mi's fit on the preset's capture: total time, time to reach 1.01× its final L1;
   - one fit pass (all LEDs, one view) at the ``full`` preset's sizes (512² UV, 1024×540), and the time of one pass
     over all of full's training views, extrapolated;
@@ -14,49 +14,19 @@ Prints a markdown table:
 
 from __future__ import annotations
 
-import argparse
-import statistics
-import sys
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
+from gra_mi.apps.harness import BenchmarkRun, run_benchmark, table_page, timed
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--preset", choices=["tiny", "small"], default="small", help="Capture preset to fit. Default: small.")
-    parser.add_argument("--capture", type=Path, default=None, help="Reuse an existing capture of that preset (default: generate one).")
-    parser.add_argument("--budget", type=float, default=600.0, help="Time budget of the tutorial-style fit in seconds. Default: 600.")
-    parser.add_argument("--eval-views", type=int, default=6, help="Training views used to measure both fits' error. Default: 6.")
-    parser.add_argument("--variant", default=None, help="Mitsuba variant (default: automatic).")
-    args = parser.parse_args(argv)
 
-    from gra_mi.core.runtime import choose_variant
-
-    variant = choose_variant(args.variant)
-    import drjit as dr
-    import mitsuba as mi
-
-    from gra_mi.capture.dataset import Capture, load_observation
-    from gra_mi.capture.synthetic import PRESETS, CaptureConfig, generate_capture
-    from gra_mi.core.io import atomic_write_text, write_exr
+def ours_fit(capture, preset: str) -> tuple[object, object, float, list[tuple]]:
+    """gra-mi's fit of ``capture``: (fitter, result, its seconds, the table's rows)."""
     from gra_mi.fit.materials import FitConfig, MaterialFitter
-    from gra_mi.render.plugins import register_plugins
-    from gra_mi.stage.scene import LightstageScene, subject_scene_xml
 
-    register_plugins()
-    work = Path(tempfile.mkdtemp(prefix="gra_mi_fitbench_"))
-    capture_dir = args.capture or work / "capture"
-    t = time.perf_counter()
-    if args.capture is None:
-        generate_capture(capture_dir, CaptureConfig(preset=args.preset))
-    t_capture = time.perf_counter() - t
-    capture = Capture.load(capture_dir)
     rows = []
-
-    # 1. gra-mi's fit -------------------------------------------------------------------------------------
     fitter = MaterialFitter(capture, FitConfig())
     t = time.perf_counter()
     result = fitter.fit()
@@ -67,19 +37,26 @@ def main(argv: list[str] | None = None) -> int:
     n_views = len(fitter.train) * len(capture.train_cameras)
     rows.append(
         (
-            f"gra-mi fit, `{args.preset}` ({n_views} views, {fitter.atlas.num_texels} texels)",
+            f"gra-mi fit, `{preset}` ({n_views} views, {fitter.atlas.num_texels} texels)",
             f"{t_fit:.1f} s",
             f"final L1 {final:.5f} ({result.loss_measure})",
         )
     )
     rows.append(("  time to reach 1.01× its final L1", f"{t_reach:.1f} s", ""))
+    return fitter, result, t_fit, rows
 
-    # 2. One pass at the full preset's sizes ------------------------------------------------------------------
-    full = PRESETS["full"]
+
+def full_pass_rows(capture_dir: Path, work: Path) -> list[tuple]:
+    """One view pass at the ``full`` preset's sizes, and one pass over all its training views, extrapolated."""
+    from gra_mi.capture.synthetic import PRESETS
+    from gra_mi.core.io import atomic_write_text
+    from gra_mi.fit.materials import FitConfig
     from gra_mi.render.relighter import Relighter
     from gra_mi.stage.lightstage import default_lightstage, uniform_pattern
-    from gra_mi.stage.scene import write_rig
+    from gra_mi.stage.scene import LightstageScene, subject_scene_xml, write_rig
 
+    rows = []
+    full = PRESETS["full"]
     stage = default_lightstage(width=full.width, height=full.height)
     write_rig(stage, work / "full_rig")
     atomic_write_text(work / "full_scene.xml", subject_scene_xml("full_rig", str((capture_dir / "subject").resolve())))
@@ -87,13 +64,8 @@ def main(argv: list[str] | None = None) -> int:
     relighter = Relighter(ls_full, full.uv_resolution)
     relighter.visibility(0)
     intensities = uniform_pattern(stage, 0.5)
-    times = []
-    for i in range(4):
-        dr.sync_thread()
-        t = time.perf_counter()
-        relighter.render(0, i % 3, intensities)
-        times.append(time.perf_counter() - t)
-    t_pass = statistics.median(times[1:])
+    views = iter(range(4))  # one untimed pass, then three timed ones on views 1, 2, 0
+    t_pass, _ = timed(lambda: relighter.render(0, next(views) % 3, intensities), repeats=3, warmup=True)
     full_views = (full.num_cameras - full.eval_cameras) * len(full.train_clips) * full.frames_per_clip
     cfg = FitConfig()
     passes = cfg.roughness_candidates + 1 + cfg.irls_iterations + (2 * cfg.iterations if cfg.solver == "adam" else 0)
@@ -111,11 +83,22 @@ def main(argv: list[str] | None = None) -> int:
             f"the fit makes about {passes} such passes (an Adam iteration shades with the roughness derivative: ~2)",
         )
     )
+    return rows
 
-    # 3. Both fits' error measured the same way -----------------------------------------------------------
+
+def image_error(capture, fitter, result, work: Path, eval_views: int):
+    """(scene with textured ``gra_microfacet``, its texture keys, the lighting per frame, the error measure): mean L1
+    over covered pixels of ``eval_views`` training views rendered by ``gra_onebounce``, for any maps."""
+    import mitsuba as mi
+
+    from gra_mi.capture.dataset import load_observation
+    from gra_mi.core.io import atomic_write_text, write_exr
+    from gra_mi.stage.scene import LightstageScene, subject_scene_xml
+
     ls = LightstageScene.load(capture.folder / "scene.xml")
     stage = ls.stage
-    views = [(f, c) for f in fitter.train for c in capture.train_cameras][:: max(1, n_views // args.eval_views)][: args.eval_views]
+    n_views = len(fitter.train) * len(capture.train_cameras)
+    views = [(f, c) for f in fitter.train for c in capture.train_cameras][:: max(1, n_views // eval_views)][:eval_views]
     observed = {(f.frame, c): load_observation(capture, c, f.frame) for f, c in views}
     write_exr(work / "albedo.exr", np.full_like(result.albedo, 0.5))
     write_exr(work / "rough.exr", np.full_like(result.roughness, 0.5))
@@ -144,10 +127,18 @@ def main(argv: list[str] | None = None) -> int:
             errors.append(np.abs(img[..., :3] - gt[..., :3])[mask].mean())
         return float(np.mean(errors))
 
-    ours = image_l1(result.albedo, result.roughness)
-    rows.append(("gra-mi fit, image-space L1 on the evaluation views", f"{ours:.5f}", ""))
+    return scene, keys, lighting, image_l1
 
-    # 4. Tutorial-style fit: prb + Adam on the textures ------------------------------------------------------
+
+def tutorial_fit(capture, fitter, result, probe, ours: float, budget: float) -> tuple[float | None, float, int, float]:
+    """A Mitsuba-tutorial fit: ``prb`` + Adam on the textures, one view per step, until it reaches ``ours`` or the
+    budget: (seconds when it reached it or None, seconds spent, steps, its best error)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    from gra_mi.capture.dataset import load_observation
+
+    scene, keys, lighting, image_l1 = probe
     prb = mi.load_dict({"type": "prb", "max_depth": 2})
     params = scene.params
     params[keys["albedo"]] = mi.TensorXf(np.full_like(result.albedo, 0.5))
@@ -161,7 +152,7 @@ def main(argv: list[str] | None = None) -> int:
     gts = {}
     start = time.perf_counter()
     reached, step, history = None, 0, []
-    while time.perf_counter() - start < args.budget:
+    while time.perf_counter() - start < budget:
         f, c = train_views[step % len(train_views)]
         if (f.frame, c) not in gts:
             gts[(f.frame, c)] = mi.TensorXf(load_observation(capture, c, f.frame))
@@ -186,7 +177,26 @@ def main(argv: list[str] | None = None) -> int:
                 reached = elapsed
                 break
     t_tutorial = reached if reached is not None else time.perf_counter() - start
-    best = min((e for _, e in history), default=float("nan"))
+    return reached, t_tutorial, step, min((e for _, e in history), default=float("nan"))
+
+
+def measure(run: BenchmarkRun) -> str:
+    from gra_mi.capture.dataset import Capture
+    from gra_mi.capture.synthetic import CaptureConfig, generate_capture
+
+    args = run.args
+    capture_dir = args.capture or run.work / "capture"
+    t = time.perf_counter()
+    if args.capture is None:
+        generate_capture(capture_dir, CaptureConfig(preset=args.preset))
+    t_capture = time.perf_counter() - t
+    capture = Capture.load(capture_dir)
+    fitter, result, t_fit, rows = ours_fit(capture, args.preset)
+    rows += full_pass_rows(capture_dir, run.work)
+    probe = image_error(capture, fitter, result, run.work, args.eval_views)
+    ours = probe[3](result.albedo, result.roughness)
+    rows.append(("gra-mi fit, image-space L1 on the evaluation views", f"{ours:.5f}", ""))
+    reached, t_tutorial, step, best = tutorial_fit(capture, fitter, result, probe, ours, args.budget)
     rows.append(
         (
             f"tutorial-style fit (`prb` + Adam, spp 4, one view per step), {step} steps",
@@ -196,14 +206,16 @@ def main(argv: list[str] | None = None) -> int:
     )
     speedup = t_tutorial / t_fit
     rows.append(("speedup at equal final error", f"{'≥ ' if reached is None else ''}{speedup:.1f}×", "goal ≥ 10×"))
+    title = f"Material fit — capture `{args.preset}` ({capture.renderer}, made in {t_capture:.0f} s)"
+    return table_page(title, "fit.py", run.stamp(args.preset), rows)
 
-    print(f"\n# Material fit — {variant}, capture `{args.preset}` ({capture.renderer}, made in {t_capture:.0f} s)\n")
-    print("| measurement | value | note |")
-    print("|---|---|---|")
-    for name, value, note in rows:
-        print(f"| {name} | {value} | {note} |")
-    return 0
+
+def arguments(parser) -> None:
+    parser.add_argument("--preset", choices=["tiny", "small"], default="small", help="Capture preset to fit. Default: small.")
+    parser.add_argument("--capture", type=Path, default=None, help="Reuse an existing capture of that preset (default: generate one).")
+    parser.add_argument("--budget", type=float, default=600.0, help="Time budget of the tutorial-style fit in seconds. Default: 600.")
+    parser.add_argument("--eval-views", type=int, default=6, help="Training views used to measure both fits' error. Default: 6.")
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run_benchmark(__doc__, measure, arguments=arguments, variant=None)

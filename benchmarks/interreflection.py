@@ -15,14 +15,13 @@ lights itself, and its cost on the demo's body, side by side in one run.
 from __future__ import annotations
 
 import argparse
-import statistics
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+from gra_mi.apps.harness import BenchmarkRun, run_benchmark, side_by_side
+
 SPP = 1024
 
 
@@ -56,30 +55,12 @@ def accuracy_rows(folder: Path, resolutions, rays_list) -> list[dict]:
     return rows
 
 
-def _side_by_side(calls: dict, repeats: int) -> dict[str, float]:
-    """Median milliseconds of each call, the calls alternated (after one untimed call each): a noisy machine slows
-    them alike."""
-    import drjit as dr
-
-    times = {name: [] for name in calls}
-    for call in calls.values():
-        call()
-    for _ in range(repeats):
-        for name, call in calls.items():
-            dr.sync_thread()
-            start = time.perf_counter()
-            call()
-            dr.sync_thread()
-            times[name].append(time.perf_counter() - start)
-    return {name: 1e3 * statistics.median(t) for name, t in times.items()}
-
-
 def _frame_costs(ls, one, two, frame: int, leds: np.ndarray, repeats: int) -> dict:
     from gra_mi.render.visibility import compute_visibility
 
     ls.set_frame(frame)
     geom, change = one.geometry(frame), iter(range(1, 10**9))
-    trace = _side_by_side(
+    trace = side_by_side(
         {
             "vis": lambda: compute_visibility(ls.scene, geom, one.leds()),
             "op": lambda: (two._operators.clear(), two.bounce_operator(frame)),
@@ -88,14 +69,14 @@ def _frame_costs(ls, one, two, frame: int, leds: np.ndarray, repeats: int) -> di
     )
     op, used = two.bounce_operator(frame), two.job_operator(frame)
     # a new lighting per call: nothing after the first bounce is reused
-    views = _side_by_side(
+    views = side_by_side(
         {name: lambda rel=rel: rel.render(frame, 0, leds * (1 + 1e-6 * next(change))) for name, rel in (("one", one), ("two", two))},
         repeats,
     )
     return {
         "frame": frame, "texels": op.num_texels, "traced": op.traced / op.num_texels, "entries": op.entries, "used": used.entries,
         "mb": op.nbytes / 2**20,
-        "vis_ms": trace["vis"], "op_ms": trace["op"], "view_one_ms": views["one"], "view_two_ms": views["two"],
+        "vis_ms": 1e3 * trace["vis"], "op_ms": 1e3 * trace["op"], "view_one_ms": 1e3 * views["one"], "view_two_ms": 1e3 * views["two"],
     }  # fmt: skip
 
 
@@ -255,35 +236,35 @@ def markdown(accuracy: list[dict], cost: list[dict], ceiling: list[str], fits: l
     return "\n".join(lines) + "\n"
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def measure(run: BenchmarkRun) -> str:
+    args = run.args
+    resolutions = [256] if args.quick else [256, 512]
+    rays = [8, 32] if args.quick else [8, 16, 32, 64]
+    accuracy = accuracy_rows(run.work, resolutions, rays)
+    cost = cost_rows(run.work, resolutions, 2 if args.quick else 3, 2 if args.quick else 5)
+    ceiling = [] if args.ceiling == "none" else ceiling_rows(run.work, args.ceiling)
+    fits = [] if args.fits == "none" else fit_rows(run.work, args.fits.split(","))
+    return markdown(accuracy, cost, ceiling, fits, run.stamp("hard cases + small rig"))
+
+
+def arguments(parser) -> None:
+    def presets(text: str) -> str:
+        unknown = [p for p in text.split(",") if p not in FIT_PRESETS and text != "none"]
+        if unknown:
+            raise argparse.ArgumentTypeError(f"no fit settings for {', '.join(unknown)}; choose among {', '.join(FIT_PRESETS)}")
+        return text
+
     parser.add_argument("--quick", action="store_true", help="UV 256² only, K = 8 and 32, 2 frames, 2 repeats.")
-    parser.add_argument("--write", type=Path, default=None, help="Also write the Markdown page here.")
     parser.add_argument(
-        "--fits", default="olat_quick,small", help="Capture presets to fit with 1 and 2 bounces, comma-separated ('none': skip)."
+        "--fits",
+        default="olat_quick,small",
+        type=presets,
+        help="Capture presets to fit with 1 and 2 bounces, comma-separated ('none': skip).",
     )
     parser.add_argument(
         "--ceiling", default="olat_quick", help="Static OLAT preset of the perfect-fit table ('none': skip it). Default: olat_quick."
     )
-    args = parser.parse_args()
-    unknown = [p for p in args.fits.split(",") if p not in FIT_PRESETS and args.fits != "none"]
-    if unknown:
-        parser.error(f"--fits: no fit settings for {', '.join(unknown)}; choose among {', '.join(FIT_PRESETS)}")
-    from gra_mi.core.stamp import publish_page, run_stamp, stamp_said
-    from gra_mi.render.runtime import start_runtime
-
-    variant = start_runtime("llvm_ad_rgb").variant
-    resolutions = [256] if args.quick else [256, 512]
-    rays = [8, 32] if args.quick else [8, 16, 32, 64]
-    with tempfile.TemporaryDirectory(prefix="gra_mi_bounce_") as tmp:
-        accuracy = accuracy_rows(Path(tmp), resolutions, rays)
-        cost = cost_rows(Path(tmp), resolutions, 2 if args.quick else 3, 2 if args.quick else 5)
-        ceiling = [] if args.ceiling == "none" else ceiling_rows(Path(tmp), args.ceiling)
-        fits = [] if args.fits == "none" else fit_rows(Path(tmp), args.fits.split(","))
-    publish_page(
-        markdown(accuracy, cost, ceiling, fits, stamp_said(run_stamp(preset="hard cases + small rig", variant=variant))), args.write
-    )
 
 
 if __name__ == "__main__":
-    main()
+    run_benchmark(__doc__, measure, arguments=arguments)

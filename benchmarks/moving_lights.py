@@ -1,7 +1,7 @@
 """Scene files and near-field lights: gra_onebounce against Mitsuba's `direct` where it is hardest, and what a
 moving-light video costs.
 
-1. **Emitters against `direct`** (tests/test_scene_files.py's hard cases: the tiny subject, a gra_microfacet material,
+1. **Emitters against `direct`** (gra_mi/render/near_field_cases.py's hard cases, tests/test_scene_files.py's: the tiny subject, a gra_microfacet material,
    96×128, 256 spp, one emitter per scene so `direct` never picks among lights): mean relative error over covered
    pixels and the time of each integrator at the same spp.
 2. **A moving-light video** at the demo's size (the `small` preset's camera, 256×135, UV 256², the anny body walking
@@ -15,29 +15,27 @@ moving-light video costs.
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
-import sys
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+from gra_mi.apps.harness import BenchmarkRun, run_benchmark, timed, walking_scene
+
+TINY_BODY = Path(__file__).resolve().parents[1] / "scenes" / "subjects" / "tiny" / "frames" / "frame_0000.ply"
 
 
 def emitter_rows() -> list[dict]:
     """Each hard case: error against direct and both integrators' times (same spp, same seed)."""
     import mitsuba as mi
 
-    sys.path.insert(0, str(ROOT))
-    from tests.test_scene_files import HARD_CASES, SPP, body_scene, mean_relative_error
+    from gra_mi.render.near_field_cases import HARD_CASES, SPP, body_scene, mean_relative_error
 
     rows = []
     for name, emitters in HARD_CASES.items():
-        scene = body_scene(emitters)
+        scene = body_scene(emitters, TINY_BODY)
         times = {}
         images = {}
         for label, spec in (
@@ -46,31 +44,12 @@ def emitter_rows() -> list[dict]:
         ):
             integrator = mi.load_dict(spec)
             np.array(mi.render(scene, integrator=integrator, spp=4))  # compile the kernels first
-            start = time.perf_counter()
-            images[label] = np.array(mi.render(scene, integrator=integrator, spp=SPP, seed=3))
-            times[label] = time.perf_counter() - start
+            times[label], images[label] = timed(lambda i=integrator, s=scene: np.array(mi.render(s, integrator=i, spp=SPP, seed=3)))
         ref = images["direct"]
         lit = ref[..., :3].max(axis=-1) > 0
         error = mean_relative_error(images["gra_onebounce"], ref, floor=0.05 * float(np.percentile(ref[..., :3][lit], 95)))
         rows.append({"case": name, "error": error, "ours_s": times["gra_onebounce"], "direct_s": times["direct"], "lit": int(lit.sum())})
     return rows
-
-
-def video_scene(folder: Path, frames: int, num_cameras: int = 1) -> Path:
-    """The anny body walking for ``frames`` frames in a 331-LED rig with ``num_cameras`` cameras at the demo's size."""
-    from gra_mi.capture.synthetic import PRESETS
-    from gra_mi.stage.lightstage import default_lightstage
-    from gra_mi.stage.scene import write_rig, write_scene_file
-    from gra_mi.subject.anny_body import anny_sequence
-    from gra_mi.subject.sequence import save_sequence
-
-    small = PRESETS["small"]
-    stage = default_lightstage(
-        num_leds=331, num_cameras=num_cameras, width=small.width, height=small.height, camera_distance=small.camera_distance
-    )
-    write_rig(stage, folder / "rig")
-    save_sequence(anny_sequence(["walk"], frames), folder / "subject")
-    return write_scene_file(folder / "scene.xml", folder / "rig", folder / "subject")
 
 
 def light_path(frames: int) -> dict:
@@ -98,7 +77,7 @@ def video_timing(folder: Path, frames: int, uv_resolution: int) -> dict:
     from gra_mi.render.relighter import Relighter
     from gra_mi.stage.scene import LightstageScene
 
-    scene = video_scene(folder, frames)
+    scene = walking_scene(folder, frames)
     (folder / "lights.json").write_text(json.dumps(light_path(frames)))
     path = LightPath.load(folder / "lights.json")
     ls = LightstageScene.load(scene)
@@ -165,22 +144,16 @@ def markdown(rows: list[dict], video: dict, stamp: str) -> str:
     return "\n".join(lines)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def measure(run: BenchmarkRun) -> str:
+    rows = emitter_rows()
+    video = video_timing(run.work, run.args.frames, run.args.uv_resolution)
+    return markdown(rows, video, run.stamp("small (camera, UV)"))
+
+
+def arguments(parser) -> None:
     parser.add_argument("--frames", type=int, default=48, help="Frames of the video. Default: 48.")
     parser.add_argument("--uv-resolution", type=int, default=256, help="UV resolution. Default: 256 (the small preset's).")
-    parser.add_argument("--write", type=Path, default=None, help="Also write the Markdown page here.")
-    args = parser.parse_args()
-    from gra_mi.core.stamp import publish_page, run_stamp, stamp_said
-    from gra_mi.render.runtime import start_runtime
-
-    variant = start_runtime("llvm_ad_rgb").variant
-    rows = emitter_rows()
-    with tempfile.TemporaryDirectory(prefix="gra_mi_lights_") as tmp:
-        video = video_timing(Path(tmp), args.frames, args.uv_resolution)
-    page = markdown(rows, video, stamp_said(run_stamp(preset="small (camera, UV)", variant=variant)))
-    publish_page(page, args.write)
 
 
 if __name__ == "__main__":
-    main()
+    run_benchmark(__doc__, measure, arguments=arguments)

@@ -18,17 +18,17 @@ model) and fits each from the same OLAT subset, so that the rows differ in the t
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
+from gra_mi.apps.harness import BenchmarkRun, run_benchmark
 
-def run(capture: Path, out: Path, step: int, calibrate: bool) -> dict:
+
+def fit_run(capture: Path, out: Path, step: int, calibrate: bool) -> dict:
     from gra_mi.fit.materials import FitConfig, run_fit
 
     start = time.perf_counter()
@@ -57,7 +57,7 @@ def fit_record(capture, folder: Path, step: int) -> dict:
     """The fit of ``capture`` in ``folder``, made unless a rerun finds it there; one that predates fit.json's albedo
     bias is scored again from its maps (kept in rescored.json)."""
     done = [folder / name for name in ("rescored.json", "fit.json") if (folder / name).is_file()]
-    record = json.loads(done[0].read_text()) if done else run(capture.folder, folder, step, calibrate=False)
+    record = json.loads(done[0].read_text()) if done else fit_run(capture.folder, folder, step, calibrate=False)
     if "albedo_bias" not in record["regions"]["skin"]:
         record |= rescore(capture, folder, step)
         (folder / "rescored.json").write_text(json.dumps(record, indent=1) + "\n")
@@ -130,10 +130,9 @@ def ceiling_rows(label: str, capture) -> list[str]:
     return [f"| {label} | " + " | ".join(ceiling_cells(capture, [LightTransport(), LightTransport(bounces=2)])) + " |"]
 
 
-def effects_page(preset: str, step: int, work: Path, variant: str) -> str:
+def effects_page(preset: str, step: int, work: Path, stamp: str) -> str:
     """Fit captures that differ only in their ground truth (:data:`TRUTHS`): a row per truth and region."""
     from gra_mi.capture.synthetic import PRESETS, CaptureConfig, generate_capture
-    from gra_mi.core.stamp import run_stamp, stamp_said
 
     table, ceiling, clean, counts = [], [], None, {}
     for i, (label, options) in enumerate(TRUTHS):
@@ -149,7 +148,7 @@ def effects_page(preset: str, step: int, work: Path, variant: str) -> str:
         [
             "# Results: what holds the OLAT fit back",
             "",
-            f"> `benchmarks/olat_fit.py --effects`, {stamp_said(run_stamp(preset=preset, variant=variant))}. One capture per",
+            f"> `benchmarks/olat_fit.py --effects`, {stamp}. One capture per",
             f"> ground truth (`gra-mi capture --preset {preset}` with the options of each row), each fitted from the same",
             f"> {olats} OLATs (`--frame-step {step}`) with the fit's defaults, without the brightness calibration.",
             "",
@@ -182,42 +181,25 @@ def effects_page(preset: str, step: int, work: Path, variant: str) -> str:
     )
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--capture", type=Path, help="An `olat` capture (`gra-mi capture --preset olat`).")
-    parser.add_argument("--effects", action="store_true", help="Make one capture per ground truth and fit each (see above).")
-    parser.add_argument("--preset", default="olat_quick", help="--effects: the static OLAT preset to capture. Default: olat_quick.")
-    parser.add_argument("--step", type=int, default=5, help="--effects: the frame step every fit uses. Default: 5.")
-    parser.add_argument("--steps", default="19,5,1", help="Frame steps to fit with (comma-separated). Default: 19,5,1.")
-    parser.add_argument("--calibrated", default="19", help="Frame steps also fitted with the brightness calibration. Default: 19.")
-    parser.add_argument("--work", type=Path, default=None, help="Folder for the fits (default: a temporary one).")
-    parser.add_argument("--write", type=Path, default=None, help="Also write the Markdown page here.")
-    args = parser.parse_args()
+def measure(run: BenchmarkRun) -> str:
     from gra_mi.capture.dataset import Capture
-    from gra_mi.core.stamp import run_stamp, stamp_said
-    from gra_mi.render.runtime import start_runtime
 
-    variant = start_runtime("llvm_ad_rgb").variant
-    work = args.work or Path(tempfile.mkdtemp(prefix="gra_mi_olat_fit_"))
+    args = run.args
     if args.effects:
-        page = effects_page(args.preset, args.step, work, variant)
-        print(page)
-        if args.write:
-            args.write.write_text(page + "\n")
-        return
+        return effects_page(args.preset, args.step, run.work, run.stamp(args.preset))
     if args.capture is None:
-        parser.error("--capture is required (or --effects)")
+        raise SystemExit("--capture is required (or --effects)")
     capture = Capture.load(args.capture)
     train = [f for f in capture.frames if f.split == "train"]
     table = []
     for step in (int(s) for s in args.steps.split(",")):
         olats = sum("olat_" in (f.pattern or "") for f in train[::step])
         for calibrate in (False, True)[: 2 if str(step) in args.calibrated.split(",") else 1]:
-            record = run(args.capture, work / f"step{step}_{'cal' if calibrate else 'raw'}", step, calibrate)
+            record = fit_run(args.capture, run.work / f"step{step}_{'cal' if calibrate else 'raw'}", step, calibrate)
             table += rows_of(record, [str(olats), "on" if calibrate else "off"])
             print(table[-2] + "\n" + table[-1], file=sys.stderr)
-    stamp = stamp_said(run_stamp(preset="olat", variant=variant))
-    page = "\n".join(
+    stamp = run.stamp("olat")
+    return "\n".join(
         [
             "# Results: the material fit from OLATs",
             "",
@@ -234,10 +216,16 @@ def main() -> None:
             *table,
         ]
     )
-    print(page)
-    if args.write:
-        args.write.write_text(page + "\n")
+
+
+def arguments(parser) -> None:
+    parser.add_argument("--capture", type=Path, help="An `olat` capture (`gra-mi capture --preset olat`).")
+    parser.add_argument("--effects", action="store_true", help="Make one capture per ground truth and fit each (see above).")
+    parser.add_argument("--preset", default="olat_quick", help="--effects: the static OLAT preset to capture. Default: olat_quick.")
+    parser.add_argument("--step", type=int, default=5, help="--effects: the frame step every fit uses. Default: 5.")
+    parser.add_argument("--steps", default="19,5,1", help="Frame steps to fit with (comma-separated). Default: 19,5,1.")
+    parser.add_argument("--calibrated", default="19", help="Frame steps also fitted with the brightness calibration. Default: 19.")
 
 
 if __name__ == "__main__":
-    main()
+    run_benchmark(__doc__, measure, arguments=arguments)

@@ -1,8 +1,8 @@
 """Speed of the one-bounce core on the default rig (anny body, 331 LEDs, 512² UV), measured side by side.
 
-    .venv/bin/python benchmarks/onebounce.py [--quick] [--image 1024x540] [--subject SAVED_SEQUENCE]
+    .venv/bin/python benchmarks/onebounce.py [--quick] [--image 1024x540] [--subject SAVED_SEQUENCE] [--write PAGE]
 
-Prints a markdown table:
+Its page's table:
   - visibility for one new frame, and its throughput against raw ``scene.ray_test`` on the same rays;
   - relight of a visibility-cached frame for one camera under a new envmap (texel shading, rasterisation);
   - equal-error speedup over Mitsuba's ``direct`` integrator on the same scene and material;
@@ -12,28 +12,12 @@ Timings are medians of repeated runs (the machine is shared and noisy).
 
 from __future__ import annotations
 
-import argparse
 import resource
-import statistics
-import sys
-import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 
-
-def timed(fn, repeats: int) -> tuple[float, object]:
-    import drjit as dr
-
-    times, out = [], None
-    for _ in range(repeats):
-        dr.sync_thread()
-        t = time.perf_counter()
-        out = fn()
-        dr.sync_thread()
-        times.append(time.perf_counter() - t)
-    return statistics.median(times), out
+from gra_mi.apps.harness import BenchmarkRun, run_benchmark, table_page, timed
 
 
 def relative_rmse(image: np.ndarray, reference: np.ndarray, mask: np.ndarray) -> float:
@@ -41,55 +25,35 @@ def relative_rmse(image: np.ndarray, reference: np.ndarray, mask: np.ndarray) ->
     return float(np.sqrt(np.mean(diff**2)) / np.mean(reference[..., :3][mask]))
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="Fewer repeats and spp (a smoke run).")
-    parser.add_argument("--uv-resolution", type=int, default=512, help="UV resolution. Default: 512.")
-    parser.add_argument("--variant", default=None, help="Mitsuba variant (default: automatic).")
-    parser.add_argument("--image", default="512x270", help="Camera image size WxH. Default: 512x270 (the paper's is 1024x540).")
-    parser.add_argument(
-        "--subject",
-        type=Path,
-        default=None,
-        help="A saved subject sequence (a folder with frames/, ≥ 6 frames) to use instead of building the anny walk.",
-    )
-    args = parser.parse_args(argv)
-    repeats = 2 if args.quick else 5
-
-    from gra_mi.core.runtime import choose_variant
-
-    variant = choose_variant(args.variant)
-    import drjit as dr
-    import mitsuba as mi
-
-    from gra_mi.core.io import atomic_write_text, write_exr
-    from gra_mi.render.leds import LedLayout
-    from gra_mi.render.plugins import register_plugins
-    from gra_mi.render.rasterize import rasterize_to_camera
+def setup(args, work: Path):
+    """(scene, relighter, stage) of the anny walk (or ``--subject``) in the default rig at ``--image``."""
+    from gra_mi.core.io import atomic_write_text
     from gra_mi.render.relighter import Relighter
-    from gra_mi.render.shading import shade_texels
-    from gra_mi.render.visibility import compute_visibility
-    from gra_mi.stage.envmap import envmap_to_leds
-    from gra_mi.stage.envmap_library import envmap_from_seed
     from gra_mi.stage.lightstage import default_lightstage
     from gra_mi.stage.scene import LightstageScene, subject_scene_xml, write_rig
     from gra_mi.subject.anny_body import anny_sequence
     from gra_mi.subject.sequence import save_sequence
 
-    register_plugins()
-    tmp = Path(tempfile.mkdtemp(prefix="gra_mi_bench_"))
     width, height = (int(v) for v in args.image.lower().split("x"))
     stage = default_lightstage(width=width, height=height)
-    write_rig(stage, tmp / "rig")
-    subject = args.subject.resolve() if args.subject else tmp / "subject"
+    write_rig(stage, work / "rig")
+    subject = args.subject.resolve() if args.subject else work / "subject"
     if args.subject is None:
         save_sequence(anny_sequence(["walk"], frames_per_clip=6), subject)
-    atomic_write_text(tmp / "scene.xml", subject_scene_xml("rig", str(subject)))
-    ls = LightstageScene.load(tmp / "scene.xml", frame=1)
-    relighter = Relighter(ls, args.uv_resolution)
-    rows: list[tuple[str, str, str]] = []
+    atomic_write_text(work / "scene.xml", subject_scene_xml("rig", str(subject)))
+    ls = LightstageScene.load(work / "scene.xml", frame=1)
+    return ls, Relighter(ls, args.uv_resolution), stage
 
-    # 1. Visibility for a new frame, against raw ray_test on the same rays ------------------------------------
+
+def visibility_rows(ls, relighter, stage, repeats: int) -> tuple[list, int, object]:
+    """1. Visibility for a new frame, against raw ray_test on the same rays: (rows, the frame, its geometry)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    from gra_mi.render.leds import LedLayout
+    from gra_mi.render.visibility import compute_visibility
+
+    rows = []
     frames = iter(range(1, 6))
 
     def new_frame_visibility():
@@ -130,9 +94,20 @@ def main(argv: list[str] | None = None) -> int:
     rows.append(("raw `scene.ray_test`, same rays", f"{t_raw * 1e3:.0f} ms", f"{n_rays / t_raw / 1e6:.1f} M rays/s"))
     rows.append(("visibility throughput / raw ray_test (whole new frame)", f"{t_raw / t_vis:.2f}", "goal ≥ 0.8 (CPU)"))
     rows.append(("`compute_visibility` throughput / raw ray_test", f"{t_raw / t_trace:.2f}", ""))
-    ray = origins = dirs = maxts = None  # free the materialised rays
 
-    # 2. Relight of a cached frame under a new envmap -----------------------------------------------------------
+    return rows, frame, geom
+
+
+def relight_rows(ls, relighter, stage, frame: int, geom, repeats: int) -> tuple[list, dict]:
+    """2. Relight of a cached frame under a new envmap: (rows, what the comparisons reuse)."""
+    from gra_mi.render.leds import LedLayout
+    from gra_mi.render.rasterize import rasterize_to_camera
+    from gra_mi.render.shading import shade_texels
+    from gra_mi.stage.envmap import envmap_to_leds
+    from gra_mi.stage.envmap_library import envmap_from_seed
+
+    rows = []
+    width, height = stage.cameras[0].width, stage.cameras[0].height
     relighter.visibility(frame)
     envs = [envmap_from_seed(s, 64)[0] for s in range(3)]
     intensities = [envmap_to_leds(e, stage).radiant_intensity(stage) for e in envs]
@@ -153,7 +128,22 @@ def main(argv: list[str] | None = None) -> int:
     rows.append(("relight, cached frame, new envmap: texel shading (all LEDs, GGX)", f"{t_shade * 1e3:.0f} ms", "goal ≤ 100 ms"))
     rows.append((f"  + rasterise the texture into the camera ({width}×{height})", f"{t_raster * 1e3:.0f} ms", ""))
 
-    # 3. Equal-error comparison with Mitsuba's direct integrator ---------------------------------------------
+    return rows, {"intensities": intensities, "cam": cam, "t_ours": t_shade + t_raster, "image_uv": image_uv}
+
+
+def direct_rows(ls, relighter, stage, frame: int, geom, ours: dict, quick: bool, work: Path, subject: Path) -> tuple[list, object]:
+    """3. Equal error against Mitsuba's direct integrator: (rows, the near-field shading)."""
+    import mitsuba as mi
+
+    from gra_mi.core.io import write_exr
+    from gra_mi.render.leds import LedLayout
+    from gra_mi.render.rasterize import rasterize_to_camera
+    from gra_mi.render.shading import shade_texels
+
+    repeats = 2 if quick else 5
+    intensities, cam, image_uv, t_ours = ours["intensities"], ours["cam"], ours["image_uv"], ours["t_ours"]
+    tmp = work
+    rows = []
     write_exr(tmp / "albedo.exr", relighter.albedo_tex)
     ply = subject / "frames" / f"frame_{frame:04d}.ply"
     from gra_mi.stage.scene import camera_xml, led_sampling_weights, xml_attribute
@@ -171,7 +161,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     scene = mi.load_string(xml)
     onebounce = mi.load_dict({"type": "gra_onebounce"})
-    ref_spp = 16 if args.quick else 64
+    ref_spp = 16 if quick else 64
     reference = np.array(mi.render(scene, integrator=onebounce, spp=ref_spp, seed=99))
     mask = (reference[..., 3] > 0.999) & (image_uv[..., 3] > 0.5)
     shading = shade_texels(
@@ -179,7 +169,6 @@ def main(argv: list[str] | None = None) -> int:
     )
     ours = rasterize_to_camera(ls, cam, relighter.atlas.scatter(shading.radiance), relighter.atlas.mask)
     err_ours = relative_rmse(ours, reference, mask)
-    t_ours = t_shade + t_raster
     rows.append(
         (f"gra-mi UV relight vs image-space one-bounce reference ({ref_spp} spp)", f"rel. RMSE {err_ours:.4f}", f"{t_ours * 1e3:.0f} ms")
     )
@@ -193,7 +182,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     direct = mi.load_dict({"type": "direct", "emitter_samples": 1, "bsdf_samples": 0})
     points = []
-    for spp in [4, 16] if args.quick else [4, 16, 64, 256]:
+    for spp in [4, 16] if quick else [4, 16, 64, 256]:
         t_d, img = timed(lambda spp=spp: np.array(mi.render(scene, integrator=direct, spp=spp, seed=spp)), 1 if spp > 16 else 2)
         err = relative_rmse(img, reference, mask)
         points.append((spp, t_d, err))
@@ -205,8 +194,16 @@ def main(argv: list[str] | None = None) -> int:
     rows.append(("`direct` at equal error (extrapolated)", f"{spp_equal:.0f} spp", f"{t_equal:.1f} s"))
     rows.append(("equal-error speedup over `direct`", f"{t_equal / t_ours:.0f}×", "goal ≥ 50×"))
 
-    # 4. Far field vs near field -----------------------------------------------------------------------------
-    far = Relighter(ls, args.uv_resolution, far_field=True)
+    return rows, shading
+
+
+def far_field_rows(ls, relighter, frame: int, shading, intensities, cam, uv_resolution: int) -> list:
+    """4. Far field against near field, and the peak memory."""
+    from gra_mi.render.relighter import Relighter
+    from gra_mi.render.shading import shade_texels
+
+    rows = []
+    far = Relighter(ls, uv_resolution, far_field=True)
     far_shading = shade_texels(
         far.geometry(frame), far.visibility(frame), far.leds(), intensities[1], far.albedo, far.roughness, cam.position
     )
@@ -216,13 +213,38 @@ def main(argv: list[str] | None = None) -> int:
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     rows.append(("peak memory (process)", f"{peak:.0f} MiB", ""))
 
-    print(f"\n# One-bounce core — {variant}, {dr.thread_count()} threads, {m} texels at {args.uv_resolution}², {stage.num_leds} LEDs\n")
-    print("| measurement | value | note |")
-    print("|---|---|---|")
-    for name, value, note in rows:
-        print(f"| {name} | {value} | {note} |")
-    return 0
+    return rows
+
+
+def measure(run: BenchmarkRun) -> str:
+    import drjit as dr
+
+    args = run.args
+    repeats = 2 if args.quick else 5
+    ls, relighter, stage = setup(args, run.work)
+    subject = args.subject.resolve() if args.subject else run.work / "subject"
+    rows, frame, geom = visibility_rows(ls, relighter, stage, repeats)
+    more, ours = relight_rows(ls, relighter, stage, frame, geom, repeats)
+    rows += more
+    more, shading = direct_rows(ls, relighter, stage, frame, geom, ours, args.quick, run.work, subject)
+    rows += more
+    rows += far_field_rows(ls, relighter, frame, shading, ours["intensities"], ours["cam"], args.uv_resolution)
+    texels = int(relighter.atlas.mask.sum())
+    title = f"One-bounce core — {dr.thread_count()} threads, {texels} texels at {args.uv_resolution}², {stage.num_leds} LEDs"
+    return table_page(title, "onebounce.py", run.stamp(f"anny walk, {args.image}"), rows)
+
+
+def arguments(parser) -> None:
+    parser.add_argument("--quick", action="store_true", help="Fewer repeats and spp (a smoke run).")
+    parser.add_argument("--uv-resolution", type=int, default=512, help="UV resolution. Default: 512.")
+    parser.add_argument("--image", default="512x270", help="Camera image size WxH. Default: 512x270 (the paper's is 1024x540).")
+    parser.add_argument(
+        "--subject",
+        type=Path,
+        default=None,
+        help="A saved subject sequence (a folder with frames/, ≥ 6 frames) to use instead of building the anny walk.",
+    )
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run_benchmark(__doc__, measure, arguments=arguments, variant=None)

@@ -5,27 +5,24 @@ the paper's runtime table (H100), with each inference mode's distance from the s
     .venv/bin/python benchmarks/refiner.py [--quick] [--real-1.3b-cpu] [--skip-tiny] [--real-size 14B]
                                            [--real-steps N] [--real-frames N]
 
-Prints a markdown table; every row of a comparison is measured in this one run.
+Its page: one table; every row of a comparison is measured in this one run (medians).
 """
 
 from __future__ import annotations
 
-import argparse
 import math
 import os
 import resource
 import statistics
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
+from gra_mi.apps.harness import BenchmarkRun, run_benchmark, table_page, timed
 from gra_mi.refiner.config import RefinerConfig
 from gra_mi.refiner.dataset import RefinerDataset
 from gra_mi.refiner.model import VideoRefiner, parameter_counts
@@ -58,10 +55,12 @@ def rollout_in_subprocess(model_dir: Path, data_dir: Path, sequence: str, frames
     """Each length in a fresh process, so peak memory (max RSS) is that rollout's own."""
     code = (
         "import json,sys,torch; torch.set_num_threads(2); from gra_mi.refiner.infer import refine_to_folder;"
-        f"s=refine_to_folder('{model_dir}','{data_dir}','{sequence}','{data_dir}/out_{frames}',steps={steps},frames={frames},write_exr_frames=False);"
+        f"s=refine_to_folder('{model_dir}','{data_dir}','{sequence}','{data_dir.parent}/rollout_{frames}',steps={steps},frames={frames},write_exr_frames=False);"
         "s.pop('per_frame'); print(json.dumps(s))"
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env={**os.environ, "GRA_MI_QUIET": "1"})
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env={**os.environ, "GRA_MI_QUIET": "1"})
+    if out.returncode != 0:
+        raise RuntimeError(f"the rollout of {frames} frames failed:\n{out.stderr[-3000:]}")
     import json
 
     return json.loads(out.stdout.strip().splitlines()[-1])
@@ -86,19 +85,6 @@ def real_window(
     from gra_mi.refiner.loading import cast_transformer, default_dtype
 
     cuda = device == "cuda"
-
-    def timed(fn, repeats: int = 1):
-        best, out = float("inf"), None
-        for _ in range(repeats):
-            if cuda:
-                torch.cuda.synchronize()
-            t = time.perf_counter()
-            out = fn()
-            if cuda:
-                torch.cuda.synchronize()
-            best = min(best, time.perf_counter() - t)
-        return best, out
-
     torch.manual_seed(0)
     t0 = time.perf_counter()
     with torch.device(device):
@@ -269,8 +255,38 @@ def tiny_rows(tmp: Path, quick: bool, euler_steps: int) -> tuple[list[tuple[str,
     return rows, parameter_counts(model)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def measure(run: BenchmarkRun) -> str:
+    args = run.args
+    if not torch.cuda.is_available():
+        torch.set_num_threads(2)  # the CPU rows are comparable across machines of the project's CI size
+    rows = []
+    counts = None
+    for part in ("tiny", "gpu", "cpu"):
+        (run.work / part).mkdir(exist_ok=True)
+    if not args.skip_tiny:
+        tiny, counts = tiny_rows(run.work / "tiny", args.quick, args.euler_steps)
+        rows += tiny
+    if torch.cuda.is_available():
+        size = args.real_size
+        r = real_window(size, "cuda", 544, 1024, args.real_steps, args.real_frames, run.work / "gpu", float32_reference=size == "1.3B")
+        rows += real_rows(r, "GPU", 544, 1024, args.real_steps)
+    else:
+        rows.append((f"{args.real_size} per window at 1024×544 (GPU)", "not measured", "no CUDA GPU on this machine"))
+    if args.real_cpu:
+        r = real_window("1.3B", "cpu", 64, 128, 2, 17, run.work / "cpu")
+        rows += real_rows(r, "CPU", 64, 128, 2)
+    notes = []
+    if counts:
+        notes.append(
+            f"tiny config: {counts['total']:,} parameters, {counts['trainable']:,} trainable (LoRA {counts['lora']:,}, VACE {counts['vace']:,}, env attention {counts['env_attention']:,})"
+        )
+    notes.append(f"max RSS of this process: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB")
+    return table_page(
+        "Video refiner speed", "refiner.py", run.stamp("tiny + real configurations"), rows, notes, ("measurement", "value", "notes")
+    )
+
+
+def arguments(parser) -> None:
     parser.add_argument("--quick", action="store_true", help="Fewer repeats and shorter rollouts (a CI smoke run).")
     parser.add_argument(
         "--real-1.3b-cpu", dest="real_cpu", action="store_true", help="Also run one 1.3B forward on the CPU (about 5 GB of RAM, minutes)."
@@ -280,35 +296,7 @@ def main() -> None:
     parser.add_argument("--real-size", choices=["1.3B", "14B"], default="1.3B", help="Real configuration timed on a GPU. Default: 1.3B.")
     parser.add_argument("--real-frames", type=int, default=41, help="Frames of the real-size rollout (17 per window). Default: 41.")
     parser.add_argument("--skip-tiny", action="store_true", help="Only the 1.3B rows (on a GPU machine: skips the CPU measurements).")
-    args = parser.parse_args()
-    if not torch.cuda.is_available():
-        torch.set_num_threads(2)  # the CPU rows are comparable across machines of the project's CI size
-    rows = []
-    counts = None
-    with tempfile.TemporaryDirectory() as tmp:
-        if not args.skip_tiny:
-            tiny, counts = tiny_rows(Path(tmp), args.quick, args.euler_steps)
-            rows += tiny
-    if torch.cuda.is_available():
-        with tempfile.TemporaryDirectory() as tmp:
-            size = args.real_size
-            r = real_window(size, "cuda", 544, 1024, args.real_steps, args.real_frames, Path(tmp), float32_reference=size == "1.3B")
-        rows += real_rows(r, "GPU", 544, 1024, args.real_steps)
-    else:
-        rows.append((f"{args.real_size} per window at 1024×544 (GPU)", "not measured", "no CUDA GPU on this machine"))
-    if args.real_cpu:
-        with tempfile.TemporaryDirectory() as tmp:
-            r = real_window("1.3B", "cpu", 64, 128, 2, 17, Path(tmp))
-        rows += real_rows(r, "CPU", 64, 128, 2)
-    if counts:
-        print(
-            f"tiny config: {counts['total']:,} parameters, {counts['trainable']:,} trainable (LoRA {counts['lora']:,}, VACE {counts['vace']:,}, env attention {counts['env_attention']:,})"
-        )
-    print(f"max RSS of this process: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB\n")
-    print("| measurement | value | notes |\n|---|---|---|")
-    for row in rows:
-        print("| " + " | ".join(row) + " |")
 
 
 if __name__ == "__main__":
-    main()
+    run_benchmark(__doc__, measure, arguments=arguments, mitsuba=False)

@@ -19,12 +19,11 @@ it; a random stack with the capture's subject fraction), held as float32 or floa
 
 from __future__ import annotations
 
-import argparse
-import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
+
+from gra_mi.apps.harness import BenchmarkRun, run_benchmark, timed
 
 
 def relative_rmse(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
@@ -60,9 +59,8 @@ def agreement(capture, cameras: list[str]) -> list[dict]:
         for cam in cameras:
             direct = load_observation(capture, cam, entry.frame)
             mask = direct[..., 3] > 0.5
-            start = time.perf_counter()
-            again = renderer.render(source.scene, source.sensor_index(cam), seed=7919 + entry.frame)
-            seconds = time.perf_counter() - start
+            seed = 7919 + entry.frame
+            seconds, again = timed(lambda cam=cam, seed=seed: renderer.render(source.scene, source.sensor_index(cam), seed=seed))
             summed = fields[cam].relight(index.weights(lighting, entry.pattern or entry.envmap))[0]
             row = {"lighting": Path(entry.pattern or entry.envmap).stem, "camera": cam, "render_s": seconds}
             row |= {"sum_vs_direct": relative_rmse(summed, direct, mask), "render_noise": relative_rmse(again, direct, mask)}
@@ -97,12 +95,8 @@ def speed(capture, camera: str) -> tuple[list[dict], float, int]:
             rf = real if label == "capture camera" and dtype == np.float32 else _stand_in(real, (h, w), fraction, dtype, rng)
             for batch in (1, 32):
                 weights = rng.uniform(0, 1, (batch, len(index.frames), 3))
-                rf.relight(weights)  # warm-up
-                start = time.perf_counter()
-                repeats = max(1, int(8 / batch))
-                for _ in range(repeats):
-                    rf.relight(weights)
-                ms = 1000 * (time.perf_counter() - start) / (repeats * batch)
+                seconds, _ = timed(lambda rf=rf, weights=weights: rf.relight(weights), max(1, int(8 / batch)), warmup=True)
+                ms = 1000 * seconds / batch
                 rows.append(
                     {"size": label, "w": w, "h": h, "dtype": np.dtype(dtype).name, "batch": batch, "ms": ms, "mib": rf.stack.nbytes / 2**20}
                 )
@@ -166,26 +160,22 @@ def markdown(capture, rows: list[dict], speeds: tuple, stamp: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--capture", type=Path, default=None, help="An `olat` capture (default: generate one, ~20 min).")
-    parser.add_argument("--write", type=Path, default=None, help="Also write the Markdown page here.")
-    args = parser.parse_args()
+def measure(run: BenchmarkRun) -> str:
     from gra_mi.capture import synthetic
     from gra_mi.capture.dataset import Capture
-    from gra_mi.core.stamp import publish_page, run_stamp, stamp_said
-    from gra_mi.render.runtime import start_runtime
 
-    variant = start_runtime("llvm_ad_rgb").variant
-    folder = args.capture or Path(tempfile.mkdtemp(prefix="gra_mi_rf_bench_")) / "olat"
-    if args.capture is None:
+    folder = run.args.capture or run.work / "olat"
+    if run.args.capture is None:
         synthetic.generate_capture(folder, synthetic.CaptureConfig(preset="olat", measure_noise=False))
     capture = Capture.load(folder)
     rows = agreement(capture, capture.eval_cameras)
     speeds = speed(capture, capture.eval_cameras[0])
-    page = markdown(capture, rows, speeds, stamp_said(run_stamp(preset="olat", variant=variant)))
-    publish_page(page, args.write)
+    return markdown(capture, rows, speeds, run.stamp("olat"))
+
+
+def arguments(parser) -> None:
+    parser.add_argument("--capture", type=Path, default=None, help="An `olat` capture (default: generate one, ~20 min).")
 
 
 if __name__ == "__main__":
-    main()
+    run_benchmark(__doc__, measure, arguments=arguments)

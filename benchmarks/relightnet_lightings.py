@@ -12,14 +12,14 @@ trained with several seeds and their spread reported. Prints a Markdown page.
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+
+from gra_mi.apps.harness import BenchmarkRun, run_benchmark
 
 GROUPS = ("held-out envmaps", "held-out OLATs", "library maps (Σ OLAT truth)")
 
@@ -88,33 +88,25 @@ def _spread(values: list[float], digits: int) -> str:
     return f"{mean:+.{digits}f} ± {(max(values) - min(values)) / 2:.{digits}f}"
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def measure(run: BenchmarkRun) -> str:
+    args = run.args
+    counts = [int(c) for c in args.counts.split(",")]
+    runs = []
+    for count in counts:
+        for seed in range(args.seeds if count == counts[-1] else 1):
+            runs.append(train_and_score(args.capture, args.fit, run.work, count, args.steps, seed, args.library))
+            print(json.dumps(runs[-1]), file=sys.stderr)
+    return "\n".join(markdown(runs, args.steps, run.stamp("olat")))
+
+
+def arguments(parser) -> None:
     parser.add_argument("--capture", type=Path, required=True, help="A static OLAT capture.")
     parser.add_argument("--fit", type=Path, required=True, help="Its fit (gra-mi fit).")
     parser.add_argument("--counts", default="4,48,256,1024", help="Numbers of synthesized lightings. Default: 4,48,256,1024.")
     parser.add_argument("--steps", type=int, default=1000, help="Training steps per run. Default: 1000.")
     parser.add_argument("--seeds", type=int, default=1, help="Seeds for the largest count (the spread). Default: 1.")
     parser.add_argument("--library", type=int, default=8, help="Held-out library maps scored. Default: 8.")
-    parser.add_argument("--work", type=Path, default=None, help="Folder for the runs (default: a temporary one).")
-    parser.add_argument("--write", type=Path, default=None, help="Also write the Markdown page here.")
-    args = parser.parse_args()
-    from gra_mi.core.stamp import run_stamp, stamp_said
-    from gra_mi.render.runtime import start_runtime
-
-    variant = start_runtime("llvm_ad_rgb", torch=True).variant
-    work = args.work or Path(tempfile.mkdtemp(prefix="gra_mi_rn_lightings_"))
-    counts = [int(c) for c in args.counts.split(",")]
-    runs = []
-    for count in counts:
-        for seed in range(args.seeds if count == counts[-1] else 1):
-            runs.append(train_and_score(args.capture, args.fit, work, count, args.steps, seed, args.library))
-            print(json.dumps(runs[-1]), file=sys.stderr)
-    page = "\n".join(markdown(runs, args.steps, stamp_said(run_stamp(preset="olat", variant=variant)))) + "\n"
-    print(page)
-    if args.write:
-        args.write.write_text(page)
 
 
 if __name__ == "__main__":
-    main()
+    run_benchmark(__doc__, measure, arguments=arguments, torch=True)

@@ -13,18 +13,15 @@ fitted maps, reading the fit's visibility cache. Shards: the 4× relight as 2 pr
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import subprocess
 import sys
-import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from gra_mi.apps.harness import BenchmarkRun, run_benchmark
 
 BATCH_VIEWS = 8
 FULL_BATCH_UP_TO = 4  # scales at which the full-batch fit is run too (at 16× it alone would take longer than the rest)
@@ -39,6 +36,9 @@ def scaled_preset(scale: int) -> str:
     name = f"small_x{scale}"
     PRESETS[name] = replace(PRESETS["small"], name=name, frames_per_clip=8 * scale, test_frames_per_clip=2)
     return name
+
+
+CAPTURE_JOB = "--capture-job"  # the child process whose time and memory run_scale measures: SCALE OUT
 
 
 def capture_job(scale: int, out: Path) -> None:
@@ -72,7 +72,7 @@ def run_scale(scale: int, work: Path, envmap: Path, stages: set[str]) -> list[di
     rows = []
     if "capture" in stages:
         rows.append({"stage": "capture", "scale": scale, "units": frames + 2, "unit": "frame"})
-        rows[-1] |= measured([sys.executable, __file__, "--job", "capture", "--scale", str(scale), "--out", str(cap)])
+        rows[-1] |= measured([sys.executable, __file__, CAPTURE_JOB, str(scale), str(cap)])
     fit_args = ["fit", str(cap), "--iterations", "60", "--overwrite"]
     if "fit" in stages:
         rows.append({"stage": f"fit, --batch-views {BATCH_VIEWS}", "scale": scale, "units": views, "unit": "view"})
@@ -165,38 +165,29 @@ def estimate(rows: list[dict]) -> list[str]:
     ]
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def measure(run: BenchmarkRun) -> str:
+    from gra_mi.core.io import write_exr
+    from gra_mi.stage.envmap_library import reference_map
+
+    write_exr(run.work / "sun.exr", reference_map("sun", 64))
+    rows = []
+    for scale in (int(s) for s in run.args.scales.split(",")):
+        rows += run_scale(scale, run.work, run.work / "sun.exr", set(run.args.stages.split(",")))
+        print(json.dumps(rows[-1]), flush=True)
+    return markdown(rows, run.stamp("small ×k"))
+
+
+def arguments(parser) -> None:
     parser.add_argument("--scales", default="1,4,16", help="Multiples of `small`'s training frames, comma-separated.")
-    parser.add_argument("--work", type=Path, default=None, help="Keep the captures and fits here (default: a temporary folder).")
-    parser.add_argument("--write", type=Path, default=None, help="Also write the Markdown page here.")
     parser.add_argument(
         "--stages", default="capture,fit,full-batch,relight",
         help="What to measure, comma-separated: capture, fit (streamed), full-batch (fit), relight (with shards at 4×). "
         "Without capture, the captures (and for relight, the fits) must already be in --work.",
     )  # fmt: skip
-    parser.add_argument("--job", choices=["capture"], help=argparse.SUPPRESS)
-    parser.add_argument("--scale", type=int, help=argparse.SUPPRESS)
-    parser.add_argument("--out", type=Path, help=argparse.SUPPRESS)
-    args = parser.parse_args()
-    if args.job == "capture":
-        return capture_job(args.scale, args.out)
-    from gra_mi.core.io import write_exr
-    from gra_mi.core.stamp import publish_page, run_stamp, stamp_said
-    from gra_mi.render.runtime import start_runtime
-    from gra_mi.stage.envmap_library import reference_map
-
-    variant = start_runtime("llvm_ad_rgb").variant
-    with tempfile.TemporaryDirectory(prefix="gra_mi_scale_") as tmp:
-        work = args.work or Path(tmp)
-        work.mkdir(parents=True, exist_ok=True)
-        write_exr(work / "sun.exr", reference_map("sun", 64))
-        rows = []
-        for scale in (int(s) for s in args.scales.split(",")):
-            rows += run_scale(scale, work, work / "sun.exr", set(args.stages.split(",")))
-            print(json.dumps(rows[-1]), flush=True)
-    publish_page(markdown(rows, stamp_said(run_stamp(preset="small ×k", variant=variant))), args.write)
 
 
 if __name__ == "__main__":
-    main()
+    if sys.argv[1:2] == [CAPTURE_JOB]:
+        capture_job(int(sys.argv[2]), Path(sys.argv[3]))
+    else:
+        run_benchmark(__doc__, measure, arguments=arguments)

@@ -10,16 +10,13 @@ command line, as a user would start it.
 
 from __future__ import annotations
 
-import argparse
 import os
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from gra_mi.apps.harness import BenchmarkRun, run_benchmark, walking_scene
 
 
 def timed_processes(commands: list[list[str]]) -> float:
@@ -38,12 +35,12 @@ def timed_processes(commands: list[list[str]]) -> float:
 
 
 def compare(job: str, base: list[str], tmp: Path) -> dict:
+    from gra_mi.core.io import different_files
     from gra_mi.core.provenance import PROVENANCE, is_lock
-    from tests.test_shards import same_files
 
     one = timed_processes([[*base, "--out", str(tmp / f"{job}_one")]])
     two = timed_processes([[*base, "--out", str(tmp / f"{job}_two"), "--shard", f"{i}/2"] for i in range(2)])
-    differ = same_files(tmp / f"{job}_one", tmp / f"{job}_two", ignore=lambda p: p.name == PROVENANCE or is_lock(p.name))
+    differ = different_files(tmp / f"{job}_one", tmp / f"{job}_two", ignore=lambda p: p.name == PROVENANCE or is_lock(p.name))
     return {"job": job, "one": one, "two": two, "same": not differ}
 
 
@@ -69,30 +66,21 @@ def markdown(rows: list[dict], stamp: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--write", type=Path, default=None, help="Also write the Markdown page here.")
-    args = parser.parse_args()
-    from benchmarks.moving_lights import video_scene
+def measure(run: BenchmarkRun) -> str:
     from gra_mi.core.io import write_exr
-    from gra_mi.core.stamp import publish_page, run_stamp, stamp_said
-    from gra_mi.render.runtime import start_runtime
     from gra_mi.stage.envmap_library import reference_map
 
-    variant = start_runtime("llvm_ad_rgb").variant
-    with tempfile.TemporaryDirectory(prefix="gra_mi_shards_") as tmp:
-        tmp = Path(tmp)
-        scene = video_scene(tmp / "scene", 8)
-        relight = ["relight", str(scene), "--envmap-height", "64", "--frames", "all", "--uv-resolution", "256"]
-        for name in ("sun", "studio"):
-            write_exr(tmp / f"{name}.exr", reference_map(name, 64))
-            relight += ["--envmap", str(tmp / f"{name}.exr")]
-        rows = [
-            compare("relight (8 frames, 2 envmaps)", relight, tmp),
-            compare("capture (tiny preset)", ["capture", "--preset", "tiny", "--no-measure-noise"], tmp),
-        ]
-    publish_page(markdown(rows, stamp_said(run_stamp(preset="small rig / tiny", variant=variant))), args.write)
+    scene = walking_scene(run.work / "scene", 8)
+    relight = ["relight", str(scene), "--envmap-height", "64", "--frames", "all", "--uv-resolution", "256"]
+    for name in ("sun", "studio"):
+        write_exr(run.work / f"{name}.exr", reference_map(name, 64))
+        relight += ["--envmap", str(run.work / f"{name}.exr")]
+    rows = [
+        compare("relight (8 frames, 2 envmaps)", relight, run.work),
+        compare("capture (tiny preset)", ["capture", "--preset", "tiny", "--no-measure-noise"], run.work),
+    ]
+    return markdown(rows, run.stamp("small rig / tiny"))
 
 
 if __name__ == "__main__":
-    main()
+    run_benchmark(__doc__, measure)

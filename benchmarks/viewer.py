@@ -14,18 +14,14 @@ skipped and says so.
 
 from __future__ import annotations
 
-import argparse
 import io
 import statistics
-import sys
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from gra_mi.apps.harness import BenchmarkRun, run_benchmark, walking_scene
 
 CHANGES = {  # what a viewer does, as lighting changes (value k: the k-th repetition)
     "new envmap": lambda k: {"mode": "envmap", "envmap": ("sun", "studio", "interior", "night")[k % 4]},
@@ -71,9 +67,9 @@ def server_rows(scene: Path, repeats: int = 5) -> list[dict]:
 
 def browser_rows(scene: Path, repeats: int = 5) -> list[dict] | str:
     """Key press / click → the new view's timings line in headless Chromium (median of ``repeats``)."""
-    from tests.test_viewer import _chromium, viewer_in_browser
+    from gra_mi.apps.viewer_browser import chromium, viewer_in_browser
 
-    if _chromium() is None:
+    if chromium() is None:
         return "skipped: chromium and chromedriver are not installed (scripts/setup.sh installs them with apt)"
     from selenium.webdriver.common.keys import Keys
 
@@ -138,22 +134,10 @@ def markdown(server: list[dict], browser, stamp: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--write", type=Path, default=None, help="Also write the Markdown page here.")
-    args = parser.parse_args()
-    from benchmarks.moving_lights import video_scene
-    from gra_mi.core.stamp import publish_page, run_stamp, stamp_said
-    from gra_mi.render.runtime import start_runtime
-
-    variant = start_runtime("llvm_ad_rgb").variant
-    with tempfile.TemporaryDirectory(prefix="gra_mi_view_") as tmp:
-        scene = video_scene(Path(tmp), 2)
-        server = server_rows(scene)
-        browser = browser_rows(scene)
-    page = markdown(server, browser, stamp_said(run_stamp(preset="anny, UV 512", variant=variant)))
-    publish_page(page, args.write)
+def measure(run: BenchmarkRun) -> str:
+    scene = walking_scene(run.work, 2)
+    return markdown(server_rows(scene), browser_rows(scene), run.stamp("anny, UV 512"))
 
 
 if __name__ == "__main__":
-    main()
+    run_benchmark(__doc__, measure)

@@ -11,16 +11,12 @@ visibilities are compared pixel for pixel.
 
 from __future__ import annotations
 
-import argparse
 import statistics
-import sys
-import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+from gra_mi.apps.harness import BenchmarkRun, run_benchmark, timed, walking_scene
 
 
 def timed_trace(ls, relighter, frame: int, texels) -> float:
@@ -30,15 +26,10 @@ def timed_trace(ls, relighter, frame: int, texels) -> float:
 
     ls.set_frame(frame)
     geom = relighter.geometry(frame)
-    dr.sync_thread()
-    start = time.perf_counter()
-    bits = compute_visibility(ls.scene, geom, relighter.leds(False), texels)
-    dr.eval(bits)
-    dr.sync_thread()
-    return time.perf_counter() - start
+    return timed(lambda: dr.eval(compute_visibility(ls.scene, geom, relighter.leds(False), texels)))[0]
 
 
-def measure(scene: Path, resolution: int, frames: int) -> dict:
+def trace_row(scene: Path, resolution: int, frames: int) -> dict:
     from gra_mi.render.relighter import Relighter
     from gra_mi.render.visibility import texels_seen_by
     from gra_mi.stage.envmap import envmap_to_leds
@@ -98,24 +89,17 @@ def markdown(rows: list[dict], stamp: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--frames", type=int, default=4, help="Frames to trace. Default: 4.")
-    parser.add_argument("--write", type=Path, default=None, help="Also write the Markdown page here.")
-    args = parser.parse_args()
-    sys.path.insert(0, str(ROOT))
-    from benchmarks.moving_lights import video_scene
+def measure(run: BenchmarkRun) -> str:
     from gra_mi.capture.synthetic import PRESETS
-    from gra_mi.core.stamp import publish_page, run_stamp, stamp_said
-    from gra_mi.render.runtime import start_runtime
 
-    variant = start_runtime("llvm_ad_rgb").variant
-    with tempfile.TemporaryDirectory(prefix="gra_mi_cull_") as tmp:
-        scene = video_scene(Path(tmp), args.frames, num_cameras=PRESETS["small"].num_cameras)
-        rows = [measure(scene, r, args.frames) for r in (256, 512)]
-    page = markdown(rows, stamp_said(run_stamp(preset="small (rig)", variant=variant)))
-    publish_page(page, args.write)
+    scene = walking_scene(run.work, run.args.frames, num_cameras=PRESETS["small"].num_cameras)
+    rows = [trace_row(scene, r, run.args.frames) for r in (256, 512)]
+    return markdown(rows, run.stamp("small (rig)"))
+
+
+def arguments(parser) -> None:
+    parser.add_argument("--frames", type=int, default=4, help="Frames to trace. Default: 4.")
 
 
 if __name__ == "__main__":
-    main()
+    run_benchmark(__doc__, measure, arguments=arguments)

@@ -82,12 +82,3 @@ def poison_optimizer_after(monkeypatch, updates: int) -> list:
 
     monkeypatch.setattr(torch.optim.AdamW, "step", poisoned_step)
     return calls
-
-
-def free_port() -> int:
-    """A TCP port nothing listens on now (for torchrun's rendezvous): fixed ports collide when test runs overlap."""
-    import socket
-
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]

@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
+from gra_mi.core.shard import free_port
 from gra_mi.refiner.conditioning import latent_frames
 from gra_mi.refiner.config import TRANSFORMER_CONFIGS, RefinerConfig
 from gra_mi.refiner.dataset import RefinerDataset, env_to_video, image_to_video, video_to_image
@@ -18,7 +19,7 @@ from gra_mi.refiner.model import AtemporalCrossAttention, VideoRefiner
 from gra_mi.refiner.synthetic import synthetic_dataset
 from gra_mi.refiner.train import ErrorBank, RefinerTrainConfig, augment, pan_zoom, train_refiner, validation_loss
 
-from .conftest import free_port, poison_optimizer_after
+from .conftest import poison_optimizer_after
 
 torch.set_num_threads(2)
 

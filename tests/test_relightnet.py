@@ -11,10 +11,11 @@ import numpy as np
 import pytest
 import torch
 
+from gra_mi.core.shard import free_port
 from gra_mi.relightnet.model import AttentionBlock, RelightNet, RelightNetConfig
 from gra_mi.render.bridge import IN_CHANNELS
 
-from .conftest import free_port, poison_optimizer_after
+from .conftest import poison_optimizer_after
 from .test_cli import run_cli
 
 

@@ -3,13 +3,13 @@ writes, byte for byte; per-shard locks; a folder keeps the shard count it was st
 
 from __future__ import annotations
 
-import filecmp
 import json
 from pathlib import Path
 
 import pytest
 
 from gra_mi.core.errors import GraMiInputError
+from gra_mi.core.io import different_files
 from gra_mi.core.shard import SHARDS_RECORD, Shard, parse_shard, resolve_shard, shard_from_environment
 
 from .conftest import SCENES
@@ -17,13 +17,6 @@ from .test_cli import run_cli
 from .test_presets import shrunk
 
 TINY = SCENES / "tiny_lightstage.xml"
-
-
-def same_files(a: Path, b: Path, ignore=lambda p: False) -> list[str]:
-    """Relative paths that differ between two folders (missing on one side, or other bytes)."""
-    left = {p.relative_to(a) for p in a.rglob("*") if p.is_file() and not ignore(p)}
-    right = {p.relative_to(b) for p in b.rglob("*") if p.is_file() and not ignore(p)}
-    return sorted(str(p) for p in left ^ right) + sorted(str(p) for p in left & right if not filecmp.cmp(a / p, b / p, shallow=False))
 
 
 def test_shards_from_the_option_and_the_launchers():
@@ -66,7 +59,7 @@ def test_two_relight_shards_write_what_one_process_writes(tmp_path, llvm_variant
     assert not (tmp_path / "two" / "sun" / "cam00.mp4").exists(), "no video before every frame is there"
     relight(tmp_path / "two", Shard(0, 2))
     assert (tmp_path / "two" / "sun" / "cam00.mp4").is_file()
-    assert same_files(tmp_path / "one", tmp_path / "two", ignore=lambda p: p.name == SHARDS_RECORD) == []
+    assert different_files(tmp_path / "one", tmp_path / "two", ignore=lambda p: p.name == SHARDS_RECORD) == []
 
 
 def test_two_capture_shards_write_what_one_process_writes(tmp_path, monkeypatch, llvm_variant):
@@ -82,7 +75,7 @@ def test_two_capture_shards_write_what_one_process_writes(tmp_path, monkeypatch,
         synthetic.generate_capture(tmp_path / "two", config, shard=Shard(index, 2))
     release_folder(tmp_path / "two")
     bookkeeping = lambda p: p.name == PROVENANCE or is_lock(p.name)  # noqa: E731  (provenance records the 2 shards)
-    assert same_files(tmp_path / "one", tmp_path / "two", ignore=bookkeeping) == []
+    assert different_files(tmp_path / "one", tmp_path / "two", ignore=bookkeeping) == []
     assert json.loads((tmp_path / "two" / PROVENANCE).read_text())["config"]["shards"] == 2
     # A folder started with 2 shards refuses 3; a shard whose lock another process holds is refused with its pid.
     with pytest.raises(GraMiInputError, match="shards: 2 then, 3 now"):

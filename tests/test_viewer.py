@@ -3,21 +3,16 @@ Chromium (screenshots kept in outputs/test-artifacts/viewer/)."""
 
 from __future__ import annotations
 
-import contextlib
 import json
-import os
-import shutil
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from gra_mi.apps.viewer_browser import chromium, viewer_in_browser
 from gra_mi.core.errors import GraMiInputError
 
-from .conftest import SCENES, free_port
+from .conftest import SCENES
 from .test_cli import run_cli
 
 TINY = SCENES / "tiny_lightstage.xml"
@@ -143,125 +138,7 @@ def test_view_command_bad_input(tmp_path):
 # ------------------------------------------------------------------------------------------------ in a real browser
 
 
-def _chromium() -> tuple[str, str] | None:
-    browser = shutil.which("chromium") or shutil.which("chromium-browser") or shutil.which("google-chrome")
-    driver = shutil.which("chromedriver")
-    return (browser, driver) if browser and driver else None
-
-
-class Page:
-    """The viewer's page in headless Chromium, driven through its own controls."""
-
-    def __init__(self, url: str):
-        from selenium import webdriver
-        from selenium.webdriver.chrome.service import Service
-
-        browser, driver = _chromium()
-        options = webdriver.ChromeOptions()
-        for flag in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--window-size=1000,700", "--use-angle=swiftshader",
-                     "--enable-unsafe-swiftshader"):  # fmt: skip
-            options.add_argument(flag)
-        options.binary_location = browser
-        self.driver = webdriver.Chrome(service=Service(driver), options=options)
-        self.driver.get(url)
-        self.view = self.wait_for_view(None, timeout=120)
-
-    def control(self, label: str):
-        from selenium.webdriver.common.by import By
-
-        found = [e for e in self.driver.find_elements(By.TAG_NAME, "label") if e.text == label]
-        assert found, f"no control labelled {label!r}"
-        return self.driver.find_element(By.ID, found[0].get_attribute("for"))
-
-    def choose(self, label: str, option: str) -> float:
-        from selenium.webdriver.common.by import By
-
-        self.control(label).click()
-        time.sleep(0.3)
-        [e for e in self.driver.find_elements(By.CSS_SELECTOR, "[role=option]") if e.text == option][0].click()
-        return time.perf_counter()
-
-    def press(self, label: str, key: str, times: int) -> float:
-        field = self.control(label)
-        field.click()
-        for _ in range(times):
-            field.send_keys(key)
-        return time.perf_counter()
-
-    def timings_text(self) -> str | None:
-        return self.driver.execute_script(
-            "const p = Array.from(document.querySelectorAll('p')).find(e => e.textContent.startsWith('view ')); return p ? p.textContent : null;"
-        )
-
-    def wait_for_view(self, previous: str | None, timeout: float = 60.0) -> str:
-        """Wait until the server has sent a view newer than ``previous`` (its counter is in the timings line)."""
-        deadline = time.perf_counter() + timeout
-        while time.perf_counter() < deadline:
-            text = self.timings_text()
-            if text and text != previous:
-                return text
-            time.sleep(0.02)
-        raise AssertionError(f"no new view within {timeout} s (last: {previous})")
-
-    def settle(self, since: float) -> float:
-        """Wait for the views a change asked for to stop coming; the browser-observed latency of the first one."""
-        first = self.wait_for_view(self.view)
-        latency = time.perf_counter() - since
-        self.view = first
-        self.quiet()
-        return latency
-
-    def quiet(self) -> None:
-        """Wait until no new view has come for 1.5 s."""
-        while True:
-            try:
-                self.view = self.wait_for_view(self.view, timeout=1.5)
-            except AssertionError:
-                return
-
-    def shot(self, name: str) -> np.ndarray:
-        """A screenshot once the page has drawn the last image (two in a row the same: software WebGL is slow)."""
-        import imageio.v3 as iio
-
-        ARTIFACTS.mkdir(parents=True, exist_ok=True)
-        path, previous = ARTIFACTS / f"{name}.png", None
-        # Chromium's software WebGL makes viser pin a notice over the canvas: out of the picture.
-        self.driver.execute_script("document.querySelectorAll('.mantine-Notification-root').forEach(e => e.remove());")
-        for _ in range(25):
-            time.sleep(0.2)
-            self.driver.save_screenshot(str(path))
-            image = iio.imread(path)[..., :3]
-            if previous is not None and np.array_equal(image[:, :600], previous[:, :600]):
-                return image
-            previous = image
-        return previous
-
-
-@contextlib.contextmanager
-def viewer_in_browser(scene: Path, uv_resolution: int):
-    """`gra-mi view SCENE` in a process of its own, and its page open in headless Chromium."""
-    port = free_port()
-    server = subprocess.Popen(
-        [sys.executable, "-m", "gra_mi.cli", "view", "--scene", str(scene), "--uv-resolution", str(uv_resolution), "--port", str(port),
-         "--seconds", "900"],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ, "GRA_MI_QUIET": "1"},
-    )  # fmt: skip
-    page = None
-    try:
-        for line in server.stdout:
-            if "open http://" in line:
-                break
-        page = Page(f"http://127.0.0.1:{port}")
-        page.quiet()  # the first views (and the background trace's) have come: changes are timed from here
-        yield page
-    finally:
-        if page is not None:
-            page.driver.quit()
-        server.terminate()
-        server.wait(timeout=30)
-
-
-@pytest.mark.skipif(_chromium() is None, reason="needs chromium and chromedriver (scripts/setup.sh installs them with apt)")
+@pytest.mark.skipif(chromium() is None, reason="needs chromium and chromedriver (scripts/setup.sh installs them with apt)")
 def test_the_page_in_headless_chromium():
     """The page loads with the subject, and its controls relight it: another envmap changes the subject's pixels, and
     the lit side follows a point light moved from left to right."""
@@ -270,22 +147,22 @@ def test_the_page_in_headless_chromium():
     with viewer_in_browser(TINY, 64) as page:
         latencies = {}
         latencies["stage"] = page.settle(page.choose("show", "albedo"))
-        albedo = page.shot("albedo")
+        albedo = page.shot(ARTIFACTS / "albedo.png")
         background = np.median(albedo[:, :600].reshape(-1, 3), axis=0)
         subject = np.zeros(albedo.shape[:2], bool)
         subject[:, :600] = np.abs(albedo[:, :600].astype(int) - background).sum(axis=-1) > 60  # the canvas, left of the panel
         subject = largest_blob(subject)  # the torso: not the arm, the LEDs' dots or the axes icon
         assert subject.sum() > 2000, "the subject is on the page"
         latencies["microfacet"] = page.settle(page.choose("show", "microfacet"))
-        sun = page.shot("envmap_sun")
+        sun = page.shot(ARTIFACTS / "envmap_sun.png")
         latencies["envmap"] = page.settle(page.choose("envmap", "night"))
-        night = page.shot("envmap_night")
+        night = page.shot(ARTIFACTS / "envmap_night.png")
         change = np.abs(sun.astype(int) - night.astype(int)).sum(axis=-1)[subject].mean()
         assert change > 10, f"another envmap must relight the subject (mean change {change:.1f})"
         page.settle(page.choose("mode", "point light"))
         latencies["point_left"] = page.settle(page.press("point light (m)", Keys.ARROW_DOWN, 28))  # x: 0.6 → -0.8
-        left = lit_sides(page.shot("point_light_left"), subject)
+        left = lit_sides(page.shot(ARTIFACTS / "point_light_left.png"), subject)
         latencies["point_right"] = page.settle(page.press("point light (m)", Keys.ARROW_UP, 32))  # x: -0.8 → 0.8
-        right = lit_sides(page.shot("point_light_right"), subject)
+        right = lit_sides(page.shot(ARTIFACTS / "point_light_right.png"), subject)
         assert left[0] > left[1] and right[1] > right[0], f"the lit side follows the light: left {left}, right {right}"
         (ARTIFACTS / "latency.json").write_text(json.dumps({k: round(1000 * v) for k, v in latencies.items()}, indent=1))

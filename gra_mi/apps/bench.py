@@ -12,7 +12,6 @@ from __future__ import annotations
 import csv
 import json
 import logging
-import statistics
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
@@ -20,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gra_mi.apps.harness import timed
 from gra_mi.core import metrics
 from gra_mi.core.guard import scratch_folder
 from gra_mi.core.io import atomic_write_text, pyplot, save_figure, to_srgb8, write_exr, write_png
@@ -145,16 +145,8 @@ class BenchSetup:
 
     def timed(self, fn: Callable[[], object]) -> tuple[float, object]:
         """Median milliseconds over the preset's repeats, after a first, untimed call that compiles the kernels."""
-        import drjit as dr
-
-        times, value = [], fn()
-        for _ in range(self.preset.repeats):
-            dr.sync_thread()
-            t = time.perf_counter()
-            value = fn()
-            dr.sync_thread()
-            times.append(time.perf_counter() - t)
-        return 1e3 * statistics.median(times), value
+        seconds, value = timed(fn, self.preset.repeats, warmup=True)
+        return 1e3 * seconds, value
 
     def atlas(self, res: int):
         from gra_mi.render.atlas import UVAtlas

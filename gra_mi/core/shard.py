@@ -134,3 +134,13 @@ def record_shard_count(folder, shard: Shard) -> None:
             raise GraMiInputError(folder, f"is being written by {old} shards; this process is shard {shard}: use --shard I/{old}")
         return
     atomic_write_text(path, f"{shard.count}\n")
+
+
+def free_port() -> int:
+    """A TCP port nothing listens on now (torchrun's rendezvous, a viewer under test): fixed ports collide when runs
+    overlap."""
+    import socket
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
