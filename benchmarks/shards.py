@@ -35,12 +35,11 @@ def timed_processes(commands: list[list[str]]) -> float:
 
 
 def compare(job: str, base: list[str], tmp: Path) -> dict:
-    from gra_mi.core.io import different_files
-    from gra_mi.core.provenance import PROVENANCE, is_lock
+    from gra_mi.core.provenance import different_outputs
 
     one = timed_processes([[*base, "--out", str(tmp / f"{job}_one")]])
     two = timed_processes([[*base, "--out", str(tmp / f"{job}_two"), "--shard", f"{i}/2"] for i in range(2)])
-    differ = different_files(tmp / f"{job}_one", tmp / f"{job}_two", ignore=lambda p: p.name == PROVENANCE or is_lock(p.name))
+    differ = different_outputs(tmp / f"{job}_one", tmp / f"{job}_two")
     return {"job": job, "one": one, "two": two, "same": not differ}
 
 

@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 
 from gra_mi.core.errors import GraMiInputError
-from gra_mi.core.io import different_files
-from gra_mi.core.shard import SHARDS_RECORD, Shard, parse_shard, resolve_shard, shard_from_environment
+from gra_mi.core.provenance import different_outputs
+from gra_mi.core.shard import Shard, parse_shard, resolve_shard, shard_from_environment
 
 from .conftest import SCENES
 from .test_cli import run_cli
@@ -59,14 +59,14 @@ def test_two_relight_shards_write_what_one_process_writes(tmp_path, llvm_variant
     assert not (tmp_path / "two" / "sun" / "cam00.mp4").exists(), "no video before every frame is there"
     relight(tmp_path / "two", Shard(0, 2))
     assert (tmp_path / "two" / "sun" / "cam00.mp4").is_file()
-    assert different_files(tmp_path / "one", tmp_path / "two", ignore=lambda p: p.name == SHARDS_RECORD) == []
+    assert different_outputs(tmp_path / "one", tmp_path / "two") == []
 
 
 def test_two_capture_shards_write_what_one_process_writes(tmp_path, monkeypatch, llvm_variant):
     import fcntl
 
     from gra_mi.capture import synthetic
-    from gra_mi.core.provenance import LOCK, PROVENANCE, is_lock, release_folder
+    from gra_mi.core.provenance import LOCK, PROVENANCE, release_folder
 
     monkeypatch.setitem(synthetic.PRESETS, "tiny", shrunk(synthetic.PRESETS["tiny"]))
     config = synthetic.CaptureConfig(preset="tiny", measure_noise=False)
@@ -74,8 +74,7 @@ def test_two_capture_shards_write_what_one_process_writes(tmp_path, monkeypatch,
     for index in (1, 0):
         synthetic.generate_capture(tmp_path / "two", config, shard=Shard(index, 2))
     release_folder(tmp_path / "two")
-    bookkeeping = lambda p: p.name == PROVENANCE or is_lock(p.name)  # noqa: E731  (provenance records the 2 shards)
-    assert different_files(tmp_path / "one", tmp_path / "two", ignore=bookkeeping) == []
+    assert different_outputs(tmp_path / "one", tmp_path / "two") == []  # provenance records the 2 shards: bookkeeping
     assert json.loads((tmp_path / "two" / PROVENANCE).read_text())["config"]["shards"] == 2
     # A folder started with 2 shards refuses 3; a shard whose lock another process holds is refused with its pid.
     with pytest.raises(GraMiInputError, match="shards: 2 then, 3 now"):

@@ -370,13 +370,3 @@ class Mp4Stream:
     def __exit__(self, *exc) -> None:
         self._writer.close()
         self._atomic.__exit__(*exc)
-
-
-def different_files(a: Path, b: Path, ignore=lambda p: False) -> list[str]:
-    """Relative paths that differ between two folders (missing on one side, or other bytes): are two runs' outputs the
-    same (one process against shards, a rerun against the first run)?"""
-    import filecmp
-
-    left = {p.relative_to(a) for p in a.rglob("*") if p.is_file() and not ignore(p)}
-    right = {p.relative_to(b) for p in b.rglob("*") if p.is_file() and not ignore(p)}
-    return sorted(str(p) for p in left ^ right) + sorted(str(p) for p in left & right if not filecmp.cmp(a / p, b / p, shallow=False))

@@ -274,3 +274,19 @@ def _differences(old: dict, new: dict, free: tuple[str, ...]) -> list[str]:
         if key.rsplit(".", 1)[-1] not in free and old_config.get(key) != new_config.get(key):
             said.append(f"{key}: {old_config.get(key)!r} then, {new_config.get(key)!r} now")
     return said
+
+
+def different_outputs(a: Path, b: Path, ignore=lambda p: False) -> list[str]:
+    """Relative paths that differ between two output folders (missing on one side, or other bytes), gra-mi's own
+    bookkeeping aside (provenance, locks, the shards record) and what ``ignore`` names: are two runs' outputs the
+    same (one process against shards, a rerun against the first run)?"""
+    import filecmp
+
+    from gra_mi.core.shard import SHARDS_RECORD
+
+    def kept(p: Path) -> bool:
+        return p.is_file() and not (p.name in (PROVENANCE, SHARDS_RECORD) or is_lock(p.name) or ignore(p))
+
+    left = {p.relative_to(a) for p in a.rglob("*") if kept(p)}
+    right = {p.relative_to(b) for p in b.rglob("*") if kept(p)}
+    return sorted(str(p) for p in left ^ right) + sorted(str(p) for p in left & right if not filecmp.cmp(a / p, b / p, shallow=False))
