@@ -312,14 +312,14 @@ def test_held_out_frames_have_their_own_sample_counts(llvm_variant):
     from gra_mi.capture.truth import ground_truth_renderers
 
     record = CaptureConfig(preset="olat_quick").record()
-    assert (record["spp"], record["indirect_spp"], record["held_out_spp"], record["held_out_indirect_spp"]) == (4, 4, 16, 16)
+    assert (record["spp"], record["indirect_spp"], record["held_out_spp"], record["held_out_indirect_spp"]) == (4, 4, 16, 256)
     assert CaptureConfig(preset="olat_quick", spp=64).record()["held_out_spp"] == 64
     assert CaptureConfig(preset="olat_quick", without=["interreflection"]).record()["held_out_indirect_spp"] == 0
     assert "held_out_spp" not in CaptureConfig(preset="olat_quick", renderer="onebounce").record()
     assert "held_out_spp" not in CaptureConfig(preset="olat").record()
     renderer_for = ground_truth_renderers(record)
     entry = lambda split, kind: FrameLighting(frame=0, split=split, sequence=0, kind=kind, envmap=None, pattern=None)  # noqa: E731
-    assert (renderer_for(entry("test", "pattern")).spp, renderer_for(entry("test", "envmap")).indirect_spp) == (16, 16)
+    assert (renderer_for(entry("test", "pattern")).spp, renderer_for(entry("test", "envmap")).indirect_spp) == (16, 256)
     assert (renderer_for(entry("train", "pattern")).spp, renderer_for(entry("train", "pattern")).indirect_spp) == (4, 4)
 
 
