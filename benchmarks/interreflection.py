@@ -14,8 +14,6 @@ lights itself, and its cost on the demo's body, side by side in one run.
 
 from __future__ import annotations
 
-import argparse
-import time
 from pathlib import Path
 
 import numpy as np
@@ -102,63 +100,7 @@ def cost_rows(folder: Path, resolutions, frames: int, repeats: int) -> list[dict
     return rows
 
 
-CEILING_TRUTHS = (
-    ("full: principled + sheen + wrinkles + interreflections", {}),
-    ("without interreflections", {"without": ["interreflection"]}),
-)
-
-
-def ceiling_rows(folder: Path, preset: str) -> list[str]:
-    """olat-fit-effects.md's "what each truth leaves a perfect fit" for the two truths that differ by the light after
-    the first bounce: the true maps relit with one and two bounces."""
-    from gra_mi.capture.dataset import Capture
-    from gra_mi.capture.synthetic import PRESETS, CaptureConfig, generate_capture
-    from gra_mi.eval.ceiling import ceiling_cells
-    from gra_mi.render.transport import LightTransport
-
-    rows = []
-    for i, (label, options) in enumerate(CEILING_TRUTHS):
-        where = folder / (f"capture_{preset}" if not options else f"capture_{preset}_{i}")  # the full truth: the fits' too
-        if not (where / "capture.json").is_file():
-            generate_capture(where, CaptureConfig(preset=preset, measure_noise=False, spp=PRESETS[preset].spp, **options))
-        capture = Capture.load(where)
-        rows.append(f"| {label} | " + " | ".join(ceiling_cells(capture, [LightTransport(), LightTransport(bounces=2)])) + " |")
-    return rows
-
-
-FIT_PRESETS = {"olat_quick": 5, "small": 3}  # capture preset → the frame step its fit uses (as the effects page, the demo)
-
-
-def fit_rows(folder: Path, presets: list[str]) -> list[str]:
-    """The fit's albedo bias and roughness ratio (its roughness MAE over the constant baseline's) with one and two
-    bounces, on the same capture, scored against the true maps as `gra-mi fit` scores them; and each fit's time."""
-    from gra_mi.capture.synthetic import PRESETS, CaptureConfig, generate_capture
-    from gra_mi.core.io import read_json
-    from gra_mi.fit.materials import FitConfig, run_fit
-    from gra_mi.render.transport import LightTransport
-
-    rows = []
-    for preset in presets:
-        capture = folder / f"capture_{preset}"
-        if not (capture / "capture.json").is_file():
-            generate_capture(capture, CaptureConfig(preset=preset, measure_noise=False, spp=PRESETS[preset].spp))
-        for bounces in (1, 2):
-            start = time.perf_counter()
-            config = FitConfig(frame_step=FIT_PRESETS[preset], calibrate_brightness=False, transport=LightTransport(bounces=bounces))
-            run_fit(capture, folder / f"fit_{preset}_{bounces}", config)
-            seconds = time.perf_counter() - start
-            record = read_json(folder / f"fit_{preset}_{bounces}" / "fit.json")
-            for region in ("skin", "cloth"):
-                m, b = record["regions"][region], record["baseline"][region]
-                relit = record.get("relight", {}).get("held-out cameras", {}).get("psnr", float("nan"))
-                rows.append(
-                    f"| {preset} | {bounces} | {region} | {100 * m['albedo_bias']:+.1f} % | {100 * m['albedo_rel_median']:.1f} % | "
-                    f"{m['roughness_mae'] / b['roughness_mae']:.2f} | {relit:.2f} | {seconds:.0f} |"
-                )
-    return rows
-
-
-def markdown(accuracy: list[dict], cost: list[dict], ceiling: list[str], fits: list[str], stamp: str) -> str:
+def markdown(accuracy: list[dict], cost: list[dict], stamp: str) -> str:
     lines = [
         "# Light after the first bounce: accuracy and cost",
         "",
@@ -205,34 +147,11 @@ def markdown(accuracy: list[dict], cost: list[dict], ceiling: list[str], fits: l
             f"{r['vis_ms']:.0f} | {r['op_ms']:.0f} | {r['op_ms'] / r['vis_ms']:.2f} | {r['view_one_ms']:.0f} | {r['view_two_ms']:.0f} | "
             f"{r['view_two_ms'] / r['view_one_ms']:.2f} |"
         )
-    if ceiling:
-        lines += [
-            "",
-            "## What a perfect fit scores with one and two bounces",
-            "",
-            "As olat-fit-effects.md: gra-mi's render with the capture's **true** maps against its held-out images from the",
-            "held-out cameras (display PSNR in dB / SSIM), for two `olat_quick` truths that differ only by the light after",
-            "the first bounce (`gra-mi capture --preset olat_quick [--without interreflection]`).",
-            "",
-            "| ground truth | held-out OLATs, 1 bounce | held-out envmaps, 1 bounce | held-out OLATs, 2 bounces | held-out envmaps, 2 bounces |",
-            "|---|---|---|---|---|",
-            *ceiling,
-        ]
-    if fits:
-        lines += [
-            "",
-            "## The material fit with one and two bounces",
-            "",
-            "Each preset's capture (path-traced truth: principled BSDF, sheen, wrinkles, interreflections) fitted with the",
-            "fit's defaults and `--frame-step` (olat_quick 5, small 3), without the brightness calibration, once with",
-            "`--bounces 1` and once with `--bounces 2`; scored on the texels ≥ 3 training cameras see, against the true maps.",
-            "*albedo bias*: median fitted / true − 1; *roughness ratio*: the fit's roughness MAE over the constant baseline's;",
-            "*relit*: display PSNR of the fit's own relight (with its bounces) under the held-out lighting, held-out cameras.",
-            "",
-            "| preset | bounces | region | albedo bias | albedo median rel. error | roughness ratio | relit PSNR (dB) | fit s |",
-            "|---|---|---|---|---|---|---|---|",
-            *fits,
-        ]
+    lines += [
+        "",
+        "What a perfect fit scores with one and two bounces, and the material fit with each: "
+        "[olat-fit-effects.md](olat-fit-effects.md) (`benchmarks/olat_fit.py --effects`).",
+    ]
     return "\n".join(lines) + "\n"
 
 
@@ -242,28 +161,11 @@ def measure(run: BenchmarkRun) -> str:
     rays = [8, 32] if args.quick else [8, 16, 32, 64]
     accuracy = accuracy_rows(run.work, resolutions, rays)
     cost = cost_rows(run.work, resolutions, 2 if args.quick else 3, 2 if args.quick else 5)
-    ceiling = [] if args.ceiling == "none" else ceiling_rows(run.work, args.ceiling)
-    fits = [] if args.fits == "none" else fit_rows(run.work, args.fits.split(","))
-    return markdown(accuracy, cost, ceiling, fits, run.stamp("hard cases + small rig"))
+    return markdown(accuracy, cost, run.stamp("hard cases + small rig"))
 
 
 def arguments(parser) -> None:
-    def presets(text: str) -> str:
-        unknown = [p for p in text.split(",") if p not in FIT_PRESETS and text != "none"]
-        if unknown:
-            raise argparse.ArgumentTypeError(f"no fit settings for {', '.join(unknown)}; choose among {', '.join(FIT_PRESETS)}")
-        return text
-
     parser.add_argument("--quick", action="store_true", help="UV 256² only, K = 8 and 32, 2 frames, 2 repeats.")
-    parser.add_argument(
-        "--fits",
-        default="olat_quick,small",
-        type=presets,
-        help="Capture presets to fit with 1 and 2 bounces, comma-separated ('none': skip).",
-    )
-    parser.add_argument(
-        "--ceiling", default="olat_quick", help="Static OLAT preset of the perfect-fit table ('none': skip it). Default: olat_quick."
-    )
 
 
 if __name__ == "__main__":

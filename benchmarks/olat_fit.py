@@ -10,8 +10,9 @@ held-out cameras. Prints a Markdown page.
 
 ``--effects`` instead asks what holds the fit back: it makes one capture per ground truth (the full path-traced
 one, then without the effects the one-bounce model leaves out, one group at a time, then gra-mi's own one-bounce
-model) and fits each from the same OLAT subset, so that the rows differ in the truth alone. A rerun with the same
-``--work`` reads its captures and fits back.
+model) and fits each from the same OLAT subset, so that the rows differ in the truth alone; the full truth is fitted
+once more with ``--bounces 2``. Every truth is also relit with its true maps, with one and two bounces: what a perfect
+fit would score. A rerun with the same ``--work`` reads its captures and fits back.
 
     .venv/bin/python benchmarks/olat_fit.py --effects --preset olat_quick --step 5 [--write docs/results/olat-fit-effects.md]
 """
@@ -28,11 +29,13 @@ import numpy as np
 from gra_mi.apps.harness import BenchmarkRun, run_benchmark
 
 
-def fit_run(capture: Path, out: Path, step: int, calibrate: bool) -> dict:
+def fit_run(capture: Path, out: Path, step: int, calibrate: bool, bounces: int = 1) -> dict:
     from gra_mi.fit.materials import FitConfig, run_fit
+    from gra_mi.render.transport import LightTransport
 
     start = time.perf_counter()
-    run_fit(capture, out, FitConfig(frame_step=step, calibrate_brightness=calibrate), overwrite=True)
+    config = FitConfig(frame_step=step, calibrate_brightness=calibrate, transport=LightTransport(bounces=bounces))
+    run_fit(capture, out, config, overwrite=True)
     record = json.loads((out / "fit.json").read_text())
     return record | {"seconds": time.perf_counter() - start}
 
@@ -53,11 +56,11 @@ def rows_of(record: dict, leading: list[str], timed: bool = True) -> list[str]:
     return rows
 
 
-def fit_record(capture, folder: Path, step: int) -> dict:
-    """The fit of ``capture`` in ``folder``, made unless a rerun finds it there; one that predates fit.json's albedo
-    bias is scored again from its maps (kept in rescored.json)."""
+def fit_record(capture, folder: Path, step: int, bounces: int = 1) -> dict:
+    """The fit of ``capture`` in ``folder`` (with ``bounces`` bounces of light), made unless a rerun finds it there; one
+    that predates fit.json's albedo bias is scored again from its maps (kept in rescored.json)."""
     done = [folder / name for name in ("rescored.json", "fit.json") if (folder / name).is_file()]
-    record = json.loads(done[0].read_text()) if done else fit_run(capture.folder, folder, step, calibrate=False)
+    record = json.loads(done[0].read_text()) if done else fit_run(capture.folder, folder, step, False, bounces)
     if "albedo_bias" not in record["regions"]["skin"]:
         record |= rescore(capture, folder, step)
         (folder / "rescored.json").write_text(json.dumps(record, indent=1) + "\n")
@@ -141,7 +144,10 @@ def effects_page(preset: str, step: int, work: Path, stamp: str) -> str:
         olats = sum("olat_" in (f.pattern or "") for f in [f for f in capture.frames if f.split == "train"][::step])  # alike in every row
         table += rows_of(fit_record(capture, work / f"truth{i}_fit", step), [label], timed=False)
         ceiling += ceiling_rows(label, capture)
-        if i == 0:
+        if i == 0:  # the light after the first bounce, fitted rather than left out
+            table += rows_of(
+                fit_record(capture, work / "truth0_fit_bounces2", step, bounces=2), [label + ", fitted with `--bounces 2`"], timed=False
+            )
             clean, counts = clean_truth_scores(capture), capture.ground_truth
         print("\n".join(table[-2:] + ceiling[-1:]), file=sys.stderr)
     return "\n".join(
@@ -155,7 +161,7 @@ def effects_page(preset: str, step: int, work: Path, stamp: str) -> str:
             "Scored as in [olat-fit.md](olat-fit.md): texels ≥ 3 training cameras see, against the true maps, next to the",
             "constant baseline; *ratio*: the fit's roughness MAE over the baseline's; *albedo bias*: the median of fitted /",
             "true albedo − 1 (the part of the error one gain would remove); relit PSNR: held-out lighting from the held-out",
-            "cameras, one bounce, against that row's own truth.",
+            "cameras, with the fit's own bounces of light (one, unless the row says two), against that row's own truth.",
             f"Samples per pixel (direct, interreflections): training frames {counts['spp']}, {counts['indirect_spp']}; held-out",
             f"frames, which every relit score uses, {counts.get('held_out_spp', counts['spp'])}, {counts.get('held_out_indirect_spp', counts['indirect_spp'])}.",
             "",

@@ -43,16 +43,14 @@ def shade_texels(
     texel's diffuse layer receives (:func:`gra_mi.render.bounce.indirect_unit`), added to the diffuse part.
     """
     m = dr.width(geom.position)
-    words, on_words, pos, inten = led_loop_inputs(leds, led_intensities)
-
     p, n = geom.position, geom.normal
     frame = mi.Frame3f(n)
     view = dr.normalize(opaque(mi.Point3f, camera_position) - p)
     wi = frame.to_local(view)
     if np.max(led_intensities, initial=0.0) > 0:
-        diffuse, spec = _led_sum(
-            m, words, visibility, on_words, pos, inten, p, frame, wi, mi.Float(np.asarray(roughness, np.float32)), leds.far_field
-        )
+        on, pos, inten = led_loop_inputs(leds, led_intensities)
+        words, vis = lane_visibility(visibility, m, None, on, leds.num_leds)
+        diffuse, spec = _led_sum(m, words, vis, pos, inten, p, frame, wi, mi.Float(np.asarray(roughness, np.float32)), leds.far_field)
     else:  # every LED off: nothing to do
         diffuse, spec = dr.zeros(mi.Color3f, m), dr.zeros(mi.Color3f, m)
     if indirect is not None:
@@ -93,8 +91,7 @@ class TexelLedLoop:
 
     count: int
     words: int
-    visibility: mi.UInt32
-    on_words: mi.UInt32
+    visibility: mi.UInt32  # per lane, one bit per LED that is on (:func:`lane_visibility`)
     led_pos: mi.Point3f
     led_int: mi.Color3f
     position: mi.Point3f
@@ -118,7 +115,7 @@ class TexelLedLoop:
         takes). ``indirect``: the light after the first bounce, held fixed, as ((M, 3) what each texel's diffuse layer
         takes in, as :func:`shade_texels` takes it; (M, 3) the specular light it sends toward this viewer)."""
         m = dr.width(geom.position)
-        words, on_words, led_pos, led_int = led_loop_inputs(leds, led_intensities)
+        on, led_pos, led_int = led_loop_inputs(leds, led_intensities)
         t = mi.UInt32(np.asarray(texels, np.uint32))
         position = dr.gather(mi.Point3f, geom.position, t)
         frame = mi.Frame3f(dr.gather(mi.Vector3f, geom.normal, t))
@@ -127,16 +124,14 @@ class TexelLedLoop:
         if indirect is not None:
             diffuse_in, specular = (mi.Color3f(*np.asarray(x, np.float32).T) for x in indirect)
             extra = (indirect_toward(wi, dr.gather(mi.Color3f, diffuse_in, t)), dr.gather(mi.Color3f, specular, t))
-        # Visibility words are word-major over all texels (w * M + t): gather this subset's, in the same layout.
-        index = (np.arange(words, dtype=np.uint64)[:, None] * m + np.asarray(texels, np.uint64)[None, :]).ravel()
-        vis = dr.gather(mi.UInt32, visibility, mi.UInt32(index.astype(np.uint32)))
+        words, vis = lane_visibility(visibility, m, t, on, leds.num_leds)
         dr.eval(position, frame, wi, vis, extra)
-        return cls(int(len(texels)), words, vis, on_words, led_pos, led_int, position, frame, wi, leds.far_field, extra)
+        return cls(int(len(texels)), words, vis, led_pos, led_int, position, frame, wi, leds.far_field, extra)
 
     def run(self, roughness: mi.Float, roughness_derivative: bool = False):
         """(diffuse per unit albedo, specular) per texel of the subset, and ∂ specular / ∂ roughness if asked."""
         parts = _led_sum(
-            self.count, self.words, self.visibility, self.on_words, self.led_pos, self.led_int, self.position, self.frame, self.wi,
+            self.count, self.words, self.visibility, self.led_pos, self.led_int, self.position, self.frame, self.wi,
             roughness, self.far_field, roughness_derivative,
         )  # fmt: skip
         if self.indirect is None:
@@ -155,24 +150,62 @@ def led_cell_roughness(roughness: np.ndarray, num_leds: int) -> np.ndarray:
     return np.minimum(np.sqrt(np.sqrt(alpha**2 + 1.0 / num_leds)), np.maximum(roughness, 1.0)).astype(np.float32)
 
 
-def led_loop_inputs(leds: LedLayout, led_intensities: np.ndarray) -> tuple[int, mi.UInt32, mi.Point3f, mi.Color3f]:
-    """What :func:`_led_sum` needs of the LEDs: (visibility words per texel, the mask of LEDs that are on in the same
-    word layout, LED targets and intensities as :meth:`LedLayout.as_lights` gives them)."""
-    num_leds = leds.num_leds
-    on = np.max(led_intensities, axis=1) > 0
+def led_loop_inputs(leds: LedLayout, led_intensities: np.ndarray) -> tuple[np.ndarray, mi.Point3f, mi.Color3f]:
+    """What :func:`_led_sum` needs of the LEDs: (the indices of the LEDs that are on, their targets and intensities as
+    :meth:`LedLayout.as_lights` gives them). LEDs that are off never enter the loop."""
+    on = np.flatnonzero(np.max(led_intensities, axis=1) > 0)
     pos, inten = leds.as_lights(led_intensities)
-    # One bit per LED that is on, in the same word layout as the visibility: off LEDs are masked out of every
-    # texel's word before the loop, so they cost nothing.
-    words = (num_leds + 31) // 32
-    on_bits = np.zeros(words * 32, bool)
-    on_bits[:num_leds] = on
-    on_words = (on_bits.reshape(words, 32) * (1 << np.arange(32, dtype=np.uint64))).sum(axis=1).astype(np.uint32)
-    return words, mi.UInt32(on_words), mi.Point3f(*pos.T.astype(np.float32)), mi.Color3f(*inten.T.astype(np.float32))
+    # Opaque: one LED's arrays (an OLAT) would otherwise be literals, and every OLAT its own kernel (an LLVM compile).
+    return on, _opaque_columns(mi.Point3f, pos[on]), _opaque_columns(mi.Color3f, inten[on])
+
+
+def _opaque_columns(kind, rows: np.ndarray):
+    value = kind(*np.asarray(rows, np.float32).T)
+    dr.make_opaque(value)
+    return value
+
+
+def lane_visibility(visibility: mi.UInt32, m: int, lanes: mi.UInt32 | None, on: np.ndarray, num_leds: int) -> tuple[int, mi.UInt32]:
+    """The visibility the LED loop walks: per lane (texel ``lanes[i]``, or texel i when ``lanes`` is None), one bit per
+    LED that is on, in the order of ``on``, word-major over the lanes. ``visibility`` is the frame's cache (one bit
+    per LED, word-major over its ``m`` texels). With every LED on that is its own layout; with fewer (an OLAT, a
+    pattern, the LEDs a bounce starts from) their bits are packed into fewer words, so a lane walks only those."""
+    if len(on) == num_leds:
+        words = (num_leds + 31) // 32
+        if lanes is None:
+            return words, visibility
+        n = dr.width(lanes)
+        lane = dr.arange(mi.UInt32, words * n)
+        w = lane // n
+        return words, dr.gather(mi.UInt32, visibility, w * m + dr.gather(mi.UInt32, lanes, lane - w * n))
+    words = (len(on) + 31) // 32
+    n = m if lanes is None else dr.width(lanes)
+    leds_on = mi.UInt32(np.asarray(on, np.uint32))
+    dr.make_opaque(leds_on)  # an OLAT's one index would be a literal: a kernel per LED
+    return words, _packed_bits(visibility, m, lanes, leds_on, len(on), words * n, n)
 
 
 @dr.syntax
-def _led_sum(m, words, visibility, on_words, led_pos, led_int, p, frame, wi, roughness, far_field, roughness_derivative=False):
-    """Σ over the LEDs that are on *and* visible from each texel, walking the set bits of its visibility words.
+def _packed_bits(visibility, m, lanes, on, count, size, n):
+    """Word c of lane i: bit b is LED on[32c + b]'s bit of texel lanes[i] (:func:`lane_visibility`). The sizes are
+    kernel inputs, not literals: one kernel for every pattern and subset."""
+    lane = dr.arange(mi.UInt32, size)
+    c = lane // dr.opaque(mi.UInt32, n)
+    i = lane - c * dr.opaque(mi.UInt32, n)
+    t = i if lanes is None else dr.gather(mi.UInt32, lanes, i)
+    stride, total = dr.opaque(mi.UInt32, m), dr.opaque(mi.UInt32, count)
+    word, b = mi.UInt32(0), mi.UInt32(0)
+    while (b < 32) & (c * 32 + b < total):
+        led = dr.gather(mi.UInt32, on, c * 32 + b)
+        word |= ((dr.gather(mi.UInt32, visibility, (led >> 5) * stride + t) >> (led & 31)) & 1) << b
+        b += 1
+    return word
+
+
+@dr.syntax
+def _led_sum(m, words, visibility, led_pos, led_int, p, frame, wi, roughness, far_field, roughness_derivative=False):
+    """Σ over the LEDs that are on *and* visible from each texel, walking the set bits of its visibility words
+    (:func:`lane_visibility`: only the LEDs that are on have bits; ``led_pos`` and ``led_int`` are theirs).
 
     Each lane loops over its own visible LEDs only (about a fifth of them on a body), instead of all LEDs masked.
     Returns (diffuse per unit albedo, specular), and ∂ specular / ∂ roughness with ``roughness_derivative``.
@@ -189,11 +222,11 @@ def _led_sum(m, words, visibility, on_words, led_pos, led_int, p, frame, wi, rou
     # Texels the camera sees from below their horizon reflect nothing toward it (the BRDF is zero there): they skip the
     # loop, exactly (about half of them on a body).
     w = dr.select(material.front, mi.UInt32(0), n_words)  # current visibility word
-    bits = dr.select(material.front, dr.gather(mi.UInt32, visibility, t) & dr.gather(mi.UInt32, on_words, mi.UInt32(0)), 0)
+    bits = dr.select(material.front, dr.gather(mi.UInt32, visibility, t), 0)
     while w < n_words:
         if bits == 0:
             w += 1
-            bits = dr.gather(mi.UInt32, visibility, w * stride + t, w < n_words) & dr.gather(mi.UInt32, on_words, w, w < n_words)
+            bits = dr.gather(mi.UInt32, visibility, w * stride + t, w < n_words)
         else:
             led = w * 32 + dr.tzcnt(bits)
             bits = bits & (bits - 1)  # clear the lowest set bit
