@@ -132,6 +132,37 @@ def test_shading_is_linear_in_led_intensities_and_off_leds_cost_nothing(tiny):
     assert dark.shading.radiance.max() == 0 and dark.image[..., :3].max() == 0
 
 
+def test_leds_that_are_on_packed_per_lane_sum_to_every_led_on(tiny):
+    """A pattern's LEDs are packed into their own visibility words (shading.lane_visibility); with every LED on the
+    cache's own layout is walked. Two complementary patterns of 33 and 31 LEDs (two packed words and one) must sum to
+    every LED on, for the whole atlas and for a subset of lanes in any order (a fit's view, a bounce's sources)."""
+    import mitsuba as mi
+
+    from gra_mi.render.relighter import Relighter
+    from gra_mi.render.shading import TexelLedLoop
+
+    relighter = Relighter(tiny, resolution=64)
+    rng = np.random.default_rng(1)
+    intensity = rng.uniform(0.5, 2.0, (tiny.stage.num_leds, 3))
+    first = np.zeros(tiny.stage.num_leds, bool)
+    first[rng.choice(tiny.stage.num_leds, 33, replace=False)] = True
+    patterns = {"all": intensity, "a": intensity * first[:, None], "b": intensity * ~first[:, None]}
+    shaded = {k: relighter.render(2, 0, p).shading for k, p in patterns.items()}
+    for part in ("diffuse_unit", "specular"):
+        whole = getattr(shaded["all"], part)
+        np.testing.assert_allclose(getattr(shaded["a"], part) + getattr(shaded["b"], part), whole, rtol=1e-5, atol=1e-6 * whole.max())
+    lanes = rng.permutation(relighter.atlas.num_texels)[:500].repeat(2)
+    geom, vis, leds = relighter.geometry(2), relighter.visibility(2, False), relighter.leds(False)
+    camera = tiny.stage.camera(0).position
+    rough = mi.Float(relighter.roughness[lanes].astype(np.float32))
+    run = {k: [np.array(x) for x in TexelLedLoop.build(geom, vis, lanes, leds, p, camera).run(rough)] for k, p in patterns.items()}
+    for k in range(2):
+        np.testing.assert_allclose(run["a"][k] + run["b"][k], run["all"][k], rtol=1e-5, atol=1e-6 * run["all"][k].max())
+        np.testing.assert_allclose(run["all"][k].T, getattr(shaded["all"], ("diffuse_unit", "specular")[k])[lanes], rtol=1e-5, atol=1e-7)
+    dark = TexelLedLoop.build(geom, vis, lanes, leds, np.zeros_like(intensity), camera).run(rough)
+    assert all(np.array(x).max() == 0 for x in dark)
+
+
 def test_uv_render_agrees_with_image_space_render(tiny, tmp_path):
     import mitsuba as mi
 

@@ -130,10 +130,13 @@ class TexelLedLoop:
 
     def run(self, roughness: mi.Float, roughness_derivative: bool = False):
         """(diffuse per unit albedo, specular) per texel of the subset, and ∂ specular / ∂ roughness if asked."""
-        parts = _led_sum(
-            self.count, self.words, self.visibility, self.led_pos, self.led_int, self.position, self.frame, self.wi,
-            roughness, self.far_field, roughness_derivative,
-        )  # fmt: skip
+        if self.words == 0:  # every LED off
+            parts = (dr.zeros(mi.Color3f, self.count),) * (3 if roughness_derivative else 2)
+        else:
+            parts = _led_sum(
+                self.count, self.words, self.visibility, self.led_pos, self.led_int, self.position, self.frame, self.wi,
+                roughness, self.far_field, roughness_derivative,
+            )  # fmt: skip
         if self.indirect is None:
             return parts
         return (parts[0] + self.indirect[0], parts[1] + self.indirect[1], *parts[2:])
@@ -178,8 +181,10 @@ def lane_visibility(visibility: mi.UInt32, m: int, lanes: mi.UInt32 | None, on: 
         lane = dr.arange(mi.UInt32, words * n)
         w = lane // n
         return words, dr.gather(mi.UInt32, visibility, w * m + dr.gather(mi.UInt32, lanes, lane - w * n))
-    words = (len(on) + 31) // 32
     n = m if lanes is None else dr.width(lanes)
+    if len(on) == 0:  # every LED off: no word to walk
+        return 0, dr.zeros(mi.UInt32, n)
+    words = (len(on) + 31) // 32
     leds_on = mi.UInt32(np.asarray(on, np.uint32))
     dr.make_opaque(leds_on)  # an OLAT's one index would be a literal: a kernel per LED
     return words, _packed_bits(visibility, m, lanes, leds_on, len(on), words * n, n)
