@@ -105,6 +105,7 @@ def relight_rows(ls, relighter, stage, frame: int, geom, repeats: int) -> tuple[
     from gra_mi.render.shading import shade_texels
     from gra_mi.stage.envmap import envmap_to_leds
     from gra_mi.stage.envmap_library import envmap_from_seed
+    from gra_mi.stage.lightstage import olat_pattern
 
     rows = []
     width, height = stage.cameras[0].width, stage.cameras[0].height
@@ -126,6 +127,17 @@ def relight_rows(ls, relighter, stage, frame: int, geom, repeats: int) -> tuple[
         lambda: rasterize_to_camera(ls, cam, relighter.atlas.scatter(shading.radiance), relighter.atlas.mask), repeats
     )
     rows.append(("relight, cached frame, new envmap: texel shading (all LEDs, GGX)", f"{t_shade * 1e3:.0f} ms", "goal ≤ 100 ms"))
+    olats = iter(range(10**6))
+
+    def shade_olat():  # a reflectance field's frames, an OLAT fit's views: one LED on, a new one each call
+        pattern = olat_pattern(stage, next(olats) % stage.num_leds)
+        return shade_texels(
+            geom, relighter.visibility(frame), LedLayout.of(stage), pattern, relighter.albedo, relighter.roughness, cam.position
+        )
+
+    shade_olat()  # compile
+    t_olat, _ = timed(shade_olat, repeats)
+    rows.append(("  the same, one LED on (an OLAT, another LED each call)", f"{t_olat * 1e3:.0f} ms", f"{t_shade / t_olat:.1f}× less"))
     rows.append((f"  + rasterise the texture into the camera ({width}×{height})", f"{t_raster * 1e3:.0f} ms", ""))
 
     return rows, {"intensities": intensities, "cam": cam, "t_ours": t_shade + t_raster, "image_uv": image_uv}
