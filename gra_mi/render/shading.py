@@ -179,8 +179,9 @@ def lane_visibility(visibility: mi.UInt32, m: int, lanes: mi.UInt32 | None, on: 
             return words, visibility
         n = dr.width(lanes)
         lane = dr.arange(mi.UInt32, words * n)
-        w = lane // n
-        return words, dr.gather(mi.UInt32, visibility, w * m + dr.gather(mi.UInt32, lanes, lane - w * n))
+        w = lane // dr.opaque(mi.UInt32, n)  # sizes as kernel inputs: one kernel for every view's lane count
+        i = lane - w * dr.opaque(mi.UInt32, n)
+        return words, dr.gather(mi.UInt32, visibility, w * dr.opaque(mi.UInt32, m) + dr.gather(mi.UInt32, lanes, i))
     n = m if lanes is None else dr.width(lanes)
     if len(on) == 0:  # every LED off: no word to walk
         return 0, dr.zeros(mi.UInt32, n)
