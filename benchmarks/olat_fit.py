@@ -19,6 +19,7 @@ fit would score. A rerun with the same ``--work`` reads its captures and fits ba
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 import time
@@ -144,12 +145,13 @@ def ray_count_rows(capture) -> list[str]:
     return [f"| {k} | " + " | ".join(ceiling_cells(capture, [LightTransport(bounces=2, bounce_rays=k)])) + " |" for k in RAY_COUNTS]
 
 
-def effects_page(preset: str, step: int, work: Path, stamp: str) -> str:
-    """Fit captures that differ only in their ground truth (:data:`TRUTHS`): a row per truth and region."""
+def effects_page(preset: str, step: int, work: Path, stamp: str, truths: list[int]) -> str:
+    """Fit captures that differ only in their ground truth (:data:`TRUTHS`, the ``truths`` among them; the first is
+    the full one): a row per truth and region."""
     from gra_mi.capture.synthetic import PRESETS, CaptureConfig, generate_capture
 
     table, ceiling, clean, counts, rays = [], [], None, {}, []
-    for i, (label, options) in enumerate(TRUTHS):
+    for i, (label, options) in ((i, TRUTHS[i]) for i in truths):
         config = CaptureConfig(preset=preset, measure_noise=False, spp=PRESETS[preset].spp, **options)
         capture = generate_capture(work / f"truth{i}", config)
         olats = sum("olat_" in (f.pattern or "") for f in [f for f in capture.frames if f.split == "train"][::step])  # alike in every row
@@ -210,7 +212,7 @@ def measure(run: BenchmarkRun) -> str:
 
     args = run.args
     if args.effects:
-        return effects_page(args.preset, args.step, run.work, run.stamp(args.preset))
+        return effects_page(args.preset, args.step, run.work, run.stamp(args.preset), args.truths)
     if args.capture is None:
         raise SystemExit("--capture is required (or --effects)")
     capture = Capture.load(args.capture)
@@ -242,11 +244,29 @@ def measure(run: BenchmarkRun) -> str:
     )
 
 
+def truth_list(text: str) -> list[int]:
+    try:
+        picked = sorted({int(t) for t in text.split(",")})
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated indices of ground truths, got {text!r}") from None
+    if not picked or picked[0] != 0 or picked[-1] >= len(TRUTHS):
+        raise argparse.ArgumentTypeError(f"expected indices in 0..{len(TRUTHS) - 1}, 0 (the full truth) among them, got {text!r}")
+    return picked
+
+
 def arguments(parser) -> None:
     parser.add_argument("--capture", type=Path, help="An `olat` capture (`gra-mi capture --preset olat`).")
     parser.add_argument("--effects", action="store_true", help="Make one capture per ground truth and fit each (see above).")
     parser.add_argument("--preset", default="olat_quick", help="--effects: the static OLAT preset to capture. Default: olat_quick.")
     parser.add_argument("--step", type=int, default=5, help="--effects: the frame step every fit uses. Default: 5.")
+    parser.add_argument(
+        "--truths",
+        type=truth_list,
+        default=list(range(len(TRUTHS))),
+        help="--effects: the ground truths to capture, comma-separated indices (0 must be among them): "
+        + "; ".join(f"{i} {label}" for i, (label, _) in enumerate(TRUTHS))
+        + ". Default: all.",
+    )
     parser.add_argument("--steps", default="19,5,1", help="Frame steps to fit with (comma-separated). Default: 19,5,1.")
     parser.add_argument("--calibrated", default="19", help="Frame steps also fitted with the brightness calibration. Default: 19.")
 
