@@ -134,23 +134,12 @@ def ceiling_rows(label: str, capture) -> list[str]:
     return [f"| {label} | " + " | ".join(ceiling_cells(capture, [LightTransport(), LightTransport(bounces=2)])) + " |"]
 
 
-RAY_COUNTS = (8, 16, 32, 128)  # rays per texel of the bounce operator, on the full truth's perfect fit
-
-
-def ray_count_rows(capture) -> list[str]:
-    """The perfect fit with two bounces at each of RAY_COUNTS rays per texel: what the K-ray estimate's noise costs."""
-    from gra_mi.eval.ceiling import ceiling_cells
-    from gra_mi.render.transport import LightTransport
-
-    return [f"| {k} | " + " | ".join(ceiling_cells(capture, [LightTransport(bounces=2, bounce_rays=k)])) + " |" for k in RAY_COUNTS]
-
-
 def effects_page(preset: str, step: int, work: Path, stamp: str, truths: list[int]) -> str:
     """Fit captures that differ only in their ground truth (:data:`TRUTHS`, the ``truths`` among them; the first is
     the full one): a row per truth and region."""
     from gra_mi.capture.synthetic import PRESETS, CaptureConfig, generate_capture
 
-    table, ceiling, clean, counts, rays = [], [], None, {}, []
+    table, ceiling, clean, counts = [], [], None, {}
     for i, (label, options) in ((i, TRUTHS[i]) for i in truths):
         config = CaptureConfig(preset=preset, measure_noise=False, spp=PRESETS[preset].spp, **options)
         capture = generate_capture(work / f"truth{i}", config)
@@ -161,7 +150,7 @@ def effects_page(preset: str, step: int, work: Path, stamp: str, truths: list[in
             table += rows_of(
                 fit_record(capture, work / "truth0_fit_bounces2", step, bounces=2), [label + ", fitted with `--bounces 2`"], timed=False
             )
-            clean, counts, rays = clean_truth_scores(capture), capture.ground_truth, ray_count_rows(capture)
+            clean, counts = clean_truth_scores(capture), capture.ground_truth
         print("\n".join(table[-2:] + ceiling[-1:]), file=sys.stderr)
     return "\n".join(
         [
@@ -197,12 +186,7 @@ def effects_page(preset: str, step: int, work: Path, stamp: str, truths: list[in
             f"**{clean[0]:.2f} dB / SSIM {clean[1]:.3f}** against the capture's image (the held-out camera): no relight, however",
             "right, scores above that against this truth.",
             "",
-            "The full truth's perfect fit with two bounces at K rays per texel (`--bounce-rays`; the default is 32): what the",
-            "operator's K-ray estimate of each texel's light after the first bounce costs.",
-            "",
-            "| K | held-out OLATs, 2 bounces | held-out envmaps, 2 bounces |",
-            "|---|---|---|",
-            *rays,
+            "What the two-bounce estimate's noise costs (rays per texel, smoothing): [bounce-noise.md](bounce-noise.md).",
         ]
     )
 

@@ -245,7 +245,8 @@ def test_bench_quick_writes_report(tmp_path):
         "float16",
         "64² UV",
         "direct 16 spp",
-        "2 bounces, 32 rays/texel",
+        "2 bounces, 32 rays/texel, smoothing radius 2",
+        "2 bounces, 32 rays/texel, not smoothed",
         "without the hull test",
     ):
         assert needle in report, needle

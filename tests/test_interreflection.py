@@ -140,6 +140,39 @@ def test_operator_cache_on_disk_is_reused_and_bad_files_are_traced_again(tiny, t
     np.testing.assert_array_equal(relighters(tiny, 64, bounces=(2,), cache_dir=tmp_path)[2].render(2, 1, leds).image, image)
 
 
+def test_smoothing_averages_noise_on_the_surface_and_nothing_across_it(tiny):
+    """The received light's average over the surface (atlas.SurfaceFilter): a constant stays itself, independent
+    noise shrinks (a 3 × 3 window: to under a third of its variance), no weight reaches a texel far in space or
+    facing away (a chart seam, the other side of a limb), and values outside the domain never leak in."""
+    import mitsuba as mi
+
+    from gra_mi.render.atlas import SurfaceFilter
+
+    rel = relighters(tiny, 64, bounces=(2,))[2]
+    geom, atlas = rel.geometry(2), rel.atlas
+    m = atlas.num_texels
+    smooth = SurfaceFilter.build(atlas, geom, 1)
+
+    def apply(values, f=smooth):
+        return np.array(f.apply(mi.Color3f(*np.asarray(values, np.float32).T))).T
+
+    np.testing.assert_allclose(apply(np.full((m, 3), 0.25)), 0.25, rtol=1e-6)
+    noise = np.random.default_rng(2).normal(size=(m, 3))
+    assert apply(noise).var() < noise.var() / 3
+    index, weight = np.array(smooth.neighbours).reshape(m, -1), np.array(smooth.weights).reshape(m, -1)
+    p, n = np.array(geom.position).T, np.array(geom.normal).T
+    used = weight > 0
+    far = np.linalg.norm(p[index] - p[:, None], axis=2)
+    spacing = np.sort(np.linalg.norm(p[index] - p[:, None], axis=2) + np.where(used, 0, np.inf), axis=1)[:, 1]
+    assert np.all(far[used] <= 2.0 * np.sqrt(2.0) * np.repeat(spacing, used.sum(1)) + 1e-6)
+    assert np.all(np.sum(n[index] * n[:, None], axis=2)[used] > 0.9)
+    domain = np.arange(0, m, 2)
+    inside = SurfaceFilter.build(atlas, geom, 1, domain)
+    values = np.full((m, 3), 1e6)
+    values[domain] = 1.0
+    np.testing.assert_allclose(apply(values, inside)[domain], 1.0, rtol=1e-6)
+
+
 def test_jobs_culled_to_their_cameras_render_the_same(tiny):
     """A job's cameras need the visibility of the texels they see and of every texel whose light reaches those."""
     full, culled = relighters(tiny, 64, bounces=(2,))[2], relighters(tiny, 64, bounces=(2,))[2]
@@ -149,7 +182,8 @@ def test_jobs_culled_to_their_cameras_render_the_same(tiny):
 
 
 @pytest.mark.parametrize(("field", "value"), [("bounces", 0), ("bounces", 9), ("bounces", True), ("bounces", "2"), ("bounces", 2.0),
-                                              ("bounce_rays", 0), ("bounce_rays", 10**6)])  # fmt: skip
+                                              ("bounce_rays", 0), ("bounce_rays", 10**6), ("bounce_smoothing", -1),
+                                              ("bounce_smoothing", 99), ("bounce_smoothing", 1.5)])  # fmt: skip
 def test_bad_transport_settings_name_the_field(field, value):
     from gra_mi.core.errors import GraMiParameterError
     from gra_mi.render.transport import LightTransport

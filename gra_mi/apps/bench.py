@@ -304,8 +304,9 @@ def bench_bounces(b: BenchSetup) -> None:
     from gra_mi.render.relighter import Relighter
     from gra_mi.render.transport import LightTransport
 
-    def relighter(bounces: int, rays: int = 1):
-        rel = Relighter(b.ls, b.R, b.albedo_tex, b.rough_tex, transport=LightTransport(bounces=bounces, bounce_rays=rays))
+    def relighter(bounces: int, rays: int = 1, smoothing: int = LightTransport().bounce_smoothing):
+        transport = LightTransport(bounces=bounces, bounce_rays=rays, bounce_smoothing=smoothing)
+        rel = Relighter(b.ls, b.R, b.albedo_tex, b.rough_tex, transport=transport)
         rel.only_for([b.cam.name])  # as `gra-mi relight` renders: the light its cameras can see
         return rel
 
@@ -316,16 +317,21 @@ def bench_bounces(b: BenchSetup) -> None:
         "bounces", f"Mitsuba path, max_depth 3, {b.preset.path_spp} spp (this group's reference)", t_path, t_path, 0.0, reference, reference
     )
     change = itertools.count(1)  # a new lighting each call: nothing after the first bounce is reused
-    for bounces, rays in [(1, 1)] + [(2, k) for k in b.preset.bounce_rays]:
-        rel = relighter(bounces, rays)
+    default = LightTransport()
+    for bounces, rays, smoothing in (
+        [(1, 1, 0)] + [(2, k, default.bounce_smoothing) for k in b.preset.bounce_rays] + [(2, default.bounce_rays, 0)]
+    ):
+        rel = relighter(bounces, rays, smoothing)
         t, img = b.timed(lambda rel=rel: rel.render(b.frame, b.cam, b.intensities * (1 + 1e-6 * next(change))).image)
         label, t_op, mb = "1 bounce (the paper's model)", 0.0, b.cache_mb(b.R)
         if bounces > 1:
             op = rel.bounce_operator(b.frame)
             t_op, _ = b.timed(lambda rel=rel: (rel._operators.clear(), rel.bounce_operator(b.frame)))
-            label, mb = f"2 bounces, {rays} rays/texel ({op.traced / op.num_texels:.0%} of texels trace)", mb + op.nbytes / 2**20
+            smoothed = f"smoothing radius {smoothing}" if smoothing else "not smoothed"
+            label = f"2 bounces, {rays} rays/texel, {smoothed} ({op.traced / op.num_texels:.0%} of texels trace)"
+            mb += op.nbytes / 2**20
         b.record("bounces", label, t, t + b.t_vis_ref + t_op, mb, img, reference)
-        if rays == LightTransport().bounce_rays and bounces > 1:  # the hull test's saving: every texel traced instead
+        if (rays, smoothing) == (default.bounce_rays, default.bounce_smoothing) and bounces > 1:  # the hull test's saving
             t_all = _trace_every_texel(b, rel, rays)
             b.record("bounces", f"{label[:-1]}; without the hull test: every texel traces)", t, t + b.t_vis_ref + t_all, mb, img, reference)
 

@@ -107,6 +107,18 @@ class UVAtlas:
         """(R, R, C) texture → (M, C) values at the valid texels."""
         return texture.reshape(self.resolution * self.resolution, -1)[self.texel_index]
 
+    def dilated(self, texels: np.ndarray, radius: int) -> np.ndarray:
+        """``texels`` and every valid texel within ``radius`` texels of one in the atlas (a (2·radius + 1)² window),
+        sorted."""
+        if radius == 0:
+            return np.asarray(texels, np.int64)
+        from scipy.ndimage import binary_dilation
+
+        picked = np.zeros(self.resolution * self.resolution, bool)
+        picked[self.texel_index[np.asarray(texels, np.int64)]] = True
+        grown = binary_dilation(picked.reshape(self.resolution, self.resolution), np.ones((2 * radius + 1,) * 2, bool))
+        return np.flatnonzero(grown.ravel()[self.texel_index])
+
     def nearest_texel(self) -> np.ndarray:
         """(R·R,) the valid-texel index at each texel of the texture, the nearest valid one's where the texel is
         outside the atlas: a UV looked up at a chart's edge (a ray's hit) lands on the chart, not on the background."""
@@ -164,3 +176,56 @@ class TexelGeometry:
         key.update(np.ascontiguousarray(atlas.texel_index, np.int64).tobytes())
         key.update(np.ascontiguousarray(atlas.faces, np.int64).tobytes())
         return cls(mi.Point3f(p), mi.Vector3f(n), mi.Vector3f(ng), key.hexdigest()[:16])
+
+
+@dataclass
+class SurfaceFilter:
+    """A weighted average of a per-texel quantity over each texel's UV neighbours that lie on the same surface: within
+    ``radius`` texels in the atlas, near in space (a Gaussian in world distance, σ = ``radius`` × the texel's own
+    spacing, cut at 2σ: texels across a chart seam are far) and facing the same way (normals within ~25°). For a
+    quantity that varies slowly over the surface and is estimated per texel with noise (the light after the first
+    bounce, from K rays each): averaging (2·radius + 1)² estimates cuts the noise up to that factor in variance."""
+
+    neighbours: mi.UInt32  # (M · W,) the W window entries of each texel (the texel itself where a slot is empty)
+    weights: mi.Float  # (M · W,) normalised per texel
+    width: int  # W
+
+    @classmethod
+    def build(cls, atlas: UVAtlas, geom: TexelGeometry, radius: int, domain: np.ndarray | None = None) -> SurfaceFilter:
+        """``domain``: the texels whose values exist (None: all); others are left out of every average."""
+        r = atlas.resolution
+        p, n = np.array(geom.position, np.float64).T, np.array(geom.normal, np.float64).T
+        grid = np.full(r * r, -1, np.int64)
+        grid[atlas.texel_index] = np.arange(atlas.num_texels)
+        valid = np.ones(atlas.num_texels, bool) if domain is None else np.isin(np.arange(atlas.num_texels), domain)
+        rows, cols = np.divmod(atlas.texel_index, r)
+
+        def at(dr_, dc):  # the texel at each texel's offset (dr_, dc) in the atlas, -1 where none
+            rr, cc = rows + dr_, cols + dc
+            inside = (rr >= 0) & (rr < r) & (cc >= 0) & (cc < r)
+            out = np.full(atlas.num_texels, -1, np.int64)
+            out[inside] = grid[rr[inside] * r + cc[inside]]
+            return out
+
+        def distance(other):
+            return np.where(other >= 0, np.linalg.norm(p - p[np.maximum(other, 0)], axis=1), np.inf)
+
+        spacing = np.min([distance(at(*o)) for o in ((0, 1), (0, -1), (1, 0), (-1, 0))], axis=0)
+        sigma = radius * np.where(np.isfinite(spacing), spacing, 0.0)
+        offsets = [(a, b) for a in range(-radius, radius + 1) for b in range(-radius, radius + 1)]
+        index = np.empty((atlas.num_texels, len(offsets)), np.int64)
+        weight = np.zeros((atlas.num_texels, len(offsets)))
+        for k, (a, b) in enumerate(offsets):
+            other = at(a, b)
+            d2 = np.square(distance(other))
+            same = (other >= 0) & valid[np.maximum(other, 0)] & (np.sum(n * n[np.maximum(other, 0)], axis=1) > 0.9)
+            close = same & (d2 <= 4.0 * sigma**2)
+            index[:, k] = np.where(close, other, np.arange(atlas.num_texels))
+            weight[:, k] = np.where(close, np.exp(-0.5 * d2 / np.maximum(sigma, 1e-12) ** 2), 0.0)
+        centre = len(offsets) // 2
+        weight[:, centre] = 1.0  # a texel always counts itself (also where its spacing is unknown)
+        weight /= weight.sum(axis=1, keepdims=True)
+        return cls(mi.UInt32(index.ravel().astype(np.uint32)), mi.Float(weight.ravel().astype(np.float32)), len(offsets))
+
+    def apply(self, values: mi.Color3f) -> mi.Color3f:
+        return dr.block_sum(dr.gather(mi.Color3f, values, self.neighbours) * self.weights, self.width)

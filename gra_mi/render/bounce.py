@@ -31,7 +31,7 @@ import numpy as np
 
 from gra_mi.core.io import atomic_path
 from gra_mi.render import brdf
-from gra_mi.render.atlas import TexelGeometry, UVAtlas
+from gra_mi.render.atlas import SurfaceFilter, TexelGeometry, UVAtlas
 from gra_mi.render.shading import local_view
 from gra_mi.render.transport import DEFAULT_RAYS
 from gra_mi.render.visibility import RAY_EPSILON
@@ -51,6 +51,7 @@ class BounceOperator:
     num_texels: int
     rays: int
     traced: int  # texels that traced rays (their hemisphere sees the body)
+    domain: np.ndarray | None = None  # the texels it answers for (:meth:`restricted`); None: every texel
 
     @property
     def entries(self) -> int:
@@ -97,7 +98,18 @@ class BounceOperator:
     def restricted(self, receivers: np.ndarray) -> BounceOperator:
         """The entries of the rays of ``receivers`` only (a job's cameras need no others)."""
         keep = np.isin(self.receivers, receivers)
-        return BounceOperator(self.receivers[keep], self.sources[keep], self.direction[keep], self.num_texels, self.rays, self.traced)
+        picked = (self.receivers[keep], self.sources[keep], self.direction[keep])
+        return BounceOperator(*picked, self.num_texels, self.rays, self.traced, np.unique(np.asarray(receivers, np.int64)))
+
+    def smoothed(self, atlas: UVAtlas, geom: TexelGeometry, received: mi.Color3f, radius: int) -> mi.Color3f:
+        """``received`` (per texel, e.g. :meth:`gather_diffuse`'s) averaged over the same surface within ``radius``
+        texels (:class:`~gra_mi.render.atlas.SurfaceFilter`, built once per operator and radius; 0: unchanged)."""
+        if radius == 0 or self.entries == 0:
+            return received
+        filters = self.__dict__.setdefault("_filters", {})
+        if radius not in filters:
+            filters[radius] = SurfaceFilter.build(atlas, geom, radius, self.domain)
+        return filters[radius].apply(received)
 
     def toward_receivers(self) -> mi.Vector3f:
         """Per entry: the direction from the source texel back to the receiver (world)."""

@@ -132,12 +132,13 @@ class Relighter:
         bounce, every texel whose light reaches those within the extra bounces."""
         if self.job_cameras is None:
             return None
-        key = (frame, self.transport.bounces, self.transport.bounce_rays, self._job_key())
+        t = self.transport
+        key = (frame, t.bounces, t.bounce_rays, t.bounce_smoothing, self._job_key())
         if self._job_texels is None or self._job_texels[0] != key:
             geom = self.geometry(frame)
             texels = texels_seen_by(geom, self.job_cameras)
-            if self.transport.bounces > 1:
-                texels = self.bounce_operator(frame).closure(texels, self.transport.bounces)
+            if t.bounces > 1:
+                texels = self.bounce_operator(frame).closure(self.atlas.dilated(texels, t.bounce_smoothing), t.bounces)
             if len(texels) > CULL_AT_MOST * dr.width(geom.position):
                 texels = None  # cameras around the body see most of it: the full trace is as fast, and serves every job
             self._job_texels = (key, texels)
@@ -169,14 +170,17 @@ class Relighter:
 
     def job_operator(self, frame: int) -> BounceOperator:
         """The frame's bounce operator, reduced (after :meth:`only_for`) to the rays whose light can reach what the job's
-        cameras see: the rays of the texels they see and, with more bounces, of the texels those rays hit."""
+        cameras see: the rays of the texels they see (and of their neighbours the smoothing averages in) and, with more
+        bounces, of the texels those rays hit."""
         op = self.bounce_operator(frame)
         if self.job_cameras is None:
             return op
-        key = (frame, op.rays, self.transport.bounces, self._job_key())
+        t = self.transport
+        key = (frame, op.rays, t.bounces, t.bounce_smoothing, self._job_key())
         if self._job_operator is None or self._job_operator[0] != key:
-            seen = texels_seen_by(self.geometry(frame), self.job_cameras)
-            self._job_operator = (key, op.restricted(op.closure(seen, self.transport.bounces - 1)))
+            # The texels they see and their neighbours within the smoothing radius, whose received light is averaged in.
+            receivers = self.atlas.dilated(texels_seen_by(self.geometry(frame), self.job_cameras), t.bounce_smoothing)
+            self._job_operator = (key, op.restricted(op.closure(receivers, t.bounces - 1)))
         return self._job_operator[1]
 
     def indirect(self, frame: int, led_intensities: np.ndarray, lights: list[PointLight], fractions: list, far_field: bool):
@@ -188,12 +192,12 @@ class Relighter:
         digest.update(np.ascontiguousarray(self.roughness, np.float32).tobytes())
         for light in lights:
             digest.update(repr(light).encode())
-        key = (frame, far_field, self.transport.bounces, digest.hexdigest(), id(self.job_operator(frame)))
+        key = (frame, far_field, self.transport.bounces, self.transport.bounce_smoothing, digest.hexdigest(), id(self.job_operator(frame)))
         if self._indirect is None or self._indirect[0] != key:
             op, geom = self.job_operator(frame), self.geometry(frame)
             first = self.light_toward_receivers(frame, op, led_intensities, lights, fractions, far_field)
             light = light_along_rays(op, geom, mi.Color3f(*self.albedo.T.astype(np.float32)), first, self.transport.bounces)
-            diffuse = op.gather_diffuse(geom, light)
+            diffuse = op.smoothed(self.atlas, geom, op.gather_diffuse(geom, light), self.transport.bounce_smoothing)
             dr.eval(light, diffuse)
             self._indirect = (key, (op, light, np.array(diffuse).T.reshape(-1, 3)))
         return self._indirect[1]

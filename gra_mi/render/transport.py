@@ -10,6 +10,8 @@ from gra_mi.core.errors import GraMiParameterError
 
 MAX_BOUNCES = 8
 DEFAULT_RAYS = 32  # docs/results/interreflection.md: bias, noise and cost against K on the demo's body
+DEFAULT_SMOOTHING = 2  # texels: a 5 × 5 window (docs/results/bounce-noise.md: the fit and the perfect fit against K and radius)
+MAX_SMOOTHING = 8
 MAX_RAYS = 4096
 BOUNCE_LEDS = 32
 """The light that bounces is computed from this many LEDs: the brightest, each other's flux moved to its nearest
@@ -26,13 +28,22 @@ class LightTransport:
     bounce_rays: int = DEFAULT_RAYS
     """Rays per texel of that operator (with --bounces >= 2): more rays, less noise in the light after the first
     bounce, a longer trace per new frame."""
+    bounce_smoothing: int = DEFAULT_SMOOTHING
+    """With --bounces >= 2: average the light each texel receives after the first bounce over its neighbours on the
+    same surface within this many texels (near in space, facing alike), cutting the noise of its K-ray estimate;
+    0 leaves each texel's own estimate."""
 
     def validate(self) -> None:
         if isinstance(self.bounces, bool) or not isinstance(self.bounces, int) or not 1 <= self.bounces <= MAX_BOUNCES:
             raise GraMiParameterError("bounces", f"expected an integer in [1, {MAX_BOUNCES}], got {self.bounces!r}")
         if isinstance(self.bounce_rays, bool) or not isinstance(self.bounce_rays, int) or not 1 <= self.bounce_rays <= MAX_RAYS:
             raise GraMiParameterError("bounce_rays", f"expected an integer in [1, {MAX_RAYS}], got {self.bounce_rays!r}")
+        smoothing = self.bounce_smoothing
+        if isinstance(smoothing, bool) or not isinstance(smoothing, int) or not 0 <= smoothing <= MAX_SMOOTHING:
+            raise GraMiParameterError("bounce_smoothing", f"expected an integer in [0, {MAX_SMOOTHING}], got {smoothing!r}")
 
     @property
     def label(self) -> str:
-        return "1 bounce" if self.bounces == 1 else f"{self.bounces} bounces ({self.bounce_rays} rays/texel)"
+        if self.bounces == 1:
+            return "1 bounce"
+        return f"{self.bounces} bounces ({self.bounce_rays} rays/texel, smoothing radius {self.bounce_smoothing})"
