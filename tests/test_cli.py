@@ -254,6 +254,6 @@ def test_bench_quick_writes_report(tmp_path):
     reference = next(r for r in rows if r["group"] == "reference")
     assert reference["mean_rel_error"] == 0.0
     assert all(r["mean_rel_error"] > 0 for r in rows if r["group"] in ("LEDs", "lighting model", "Mitsuba direct"))
-    bounces = [r for r in rows if r["group"] == "bounces"]  # path, 1 bounce, 2 with 8 and 32 rays, 32 without the hull test
-    assert len(bounces) == 5 and all(np.isfinite(r["mean_rel_error"]) and r["time_ms"] > 0 for r in bounces)
+    bounces = [r for r in rows if r["group"] == "bounces"]  # path, 1 bounce, 2 with 8 and 32 rays, 32 not smoothed, no hull test
+    assert len(bounces) == 6 and all(np.isfinite(r["mean_rel_error"]) and r["time_ms"] > 0 for r in bounces)
     assert (tmp_path / "bench" / "pareto.png").exists() and (tmp_path / "bench" / "results.csv").exists()
