@@ -17,7 +17,10 @@ from gra_mi.core.stamp import stamp_said
 
 def _label(record: dict) -> str:
     transport = record.get("transport") or {"bounces": 1}
-    return f"{transport['bounces']} bounce" + ("s" if transport["bounces"] > 1 else "")
+    if transport["bounces"] == 1:
+        return "1 bounce"
+    # Runs from before the smoothing existed (no such field) were not smoothed.
+    return f"{transport['bounces']} bounces (smoothing radius {transport.get('bounce_smoothing', 0)})"
 
 
 def eval_rows(a: dict, b: dict) -> list[str]:
