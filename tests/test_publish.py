@@ -55,7 +55,7 @@ def test_two_demo_runs_side_by_side(tmp_path):
         (tmp_path / name / "demo.json").write_text(json.dumps(_demo_record(bounces, shift)))
     assert main([str(tmp_path / "one"), str(tmp_path / "two"), "--write", str(tmp_path / "page.md")]) == 0
     page = (tmp_path / "page.md").read_text()
-    assert "| microfacet | test1_cam06 | 25.00 | 26.50 | +1.50 |" in page and "1 bounce and 2 bounces" in page
+    assert "| microfacet | test1_cam06 | 25.00 | 26.50 | +1.50 |" in page and "1 bounce and 2 bounces (smoothing radius 0)" in page
     assert "| novel lighting (OLAT) | 24.00 | 25.00 | +1.00 | 25.50 | 26.50 | +1.00 |" in page and "(selection)" not in page
     other = _demo_record(2, 0.0) | {"stamp": {"commit": "x", "preset": "small"}}
     (tmp_path / "two" / "demo.json").write_text(json.dumps(other))
