@@ -161,6 +161,12 @@ def test_leds_that_are_on_packed_per_lane_sum_to_every_led_on(tiny):
         np.testing.assert_allclose(run["all"][k].T, getattr(shaded["all"], ("diffuse_unit", "specular")[k])[lanes], rtol=1e-5, atol=1e-7)
     dark = TexelLedLoop.build(geom, vis, lanes, leds, np.zeros_like(intensity), camera).run(rough)
     assert all(np.array(x).max() == 0 for x in dark)
+    # Repeated lanes (a bounce's rays share sources) packed once per texel and spread: the very same bits.
+    distinct = np.unique(lanes, return_inverse=True)
+    for p in patterns.values():
+        once = TexelLedLoop.build(geom, vis, lanes, leds, p, camera, distinct=distinct)
+        per_lane = TexelLedLoop.build(geom, vis, lanes, leds, p, camera)
+        np.testing.assert_array_equal(np.array(once.visibility), np.array(per_lane.visibility))
 
 
 def test_uv_render_agrees_with_image_space_render(tiny, tmp_path):

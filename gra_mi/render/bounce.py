@@ -115,6 +115,13 @@ class BounceOperator:
         """Per entry: the direction from the source texel back to the receiver (world)."""
         return -self.device()[2]
 
+    def distinct_sources(self) -> tuple[np.ndarray, np.ndarray]:
+        """(the distinct source texels, each entry's index among them): rays share sources (about five a source on a
+        body), so what depends on the source alone is computed once per texel (kept with the operator)."""
+        if getattr(self, "_distinct", None) is None:
+            self._distinct = np.unique(self.sources, return_inverse=True)
+        return self._distinct
+
     def sources_of(self, texels: np.ndarray) -> np.ndarray:
         """The texels whose light reaches ``texels`` in one bounce (sorted)."""
         picked = np.isin(self.receivers, np.asarray(texels, np.int64))

@@ -216,7 +216,8 @@ class Relighter:
             # Fewer LEDs stand for the lighting: a lobe narrower than their spacing would reflect points, not it.
             reduced = not np.array_equal(fewer, led_intensities)
             rough = led_cell_roughness(self.roughness[sources], BOUNCE_LEDS) if reduced else self.roughness[sources]
-            loop = TexelLedLoop.build(geom, self.visibility(frame, far_field), sources, leds, fewer, toward)
+            vis = self.visibility(frame, far_field)
+            loop = TexelLedLoop.build(geom, vis, sources, leds, fewer, toward, distinct=op.distinct_sources())
             diffuse, spec = loop.run(mi.Float(np.asarray(rough, np.float32)))
         if lights:
             s = mi.UInt32(sources)

@@ -110,10 +110,13 @@ class TexelLedLoop:
         led_intensities: np.ndarray,
         camera_position,
         indirect: tuple[np.ndarray, np.ndarray] | None = None,
+        distinct: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> TexelLedLoop:
         """The loop of ``texels`` (repeats allowed) seen from ``camera_position`` (any viewer :func:`local_view`
         takes). ``indirect``: the light after the first bounce, held fixed, as ((M, 3) what each texel's diffuse layer
-        takes in, as :func:`shade_texels` takes it; (M, 3) the specular light it sends toward this viewer)."""
+        takes in, as :func:`shade_texels` takes it; (M, 3) the specular light it sends toward this viewer).
+        ``distinct``: ``np.unique(texels, return_inverse=True)`` when texels repeat (the rays of a bounce share their
+        sources): the visibility is then packed once per texel, not per lane."""
         m = dr.width(geom.position)
         on, led_pos, led_int = led_loop_inputs(leds, led_intensities)
         t = mi.UInt32(np.asarray(texels, np.uint32))
@@ -124,7 +127,7 @@ class TexelLedLoop:
         if indirect is not None:
             diffuse_in, specular = (mi.Color3f(*np.asarray(x, np.float32).T) for x in indirect)
             extra = (indirect_toward(wi, dr.gather(mi.Color3f, diffuse_in, t)), dr.gather(mi.Color3f, specular, t))
-        words, vis = lane_visibility(visibility, m, t, on, leds.num_leds)
+        words, vis = lane_visibility(visibility, m, t, on, leds.num_leds, distinct)
         dr.eval(position, frame, wi, vis, extra)
         return cls(int(len(texels)), words, vis, led_pos, led_int, position, frame, wi, leds.far_field, extra)
 
@@ -168,11 +171,18 @@ def _opaque_columns(kind, rows: np.ndarray):
     return value
 
 
-def lane_visibility(visibility: mi.UInt32, m: int, lanes: mi.UInt32 | None, on: np.ndarray, num_leds: int) -> tuple[int, mi.UInt32]:
+def lane_visibility(
+    visibility: mi.UInt32, m: int, lanes: mi.UInt32 | None, on: np.ndarray, num_leds: int, distinct: tuple | None = None
+) -> tuple[int, mi.UInt32]:
     """The visibility the LED loop walks: per lane (texel ``lanes[i]``, or texel i when ``lanes`` is None), one bit per
     LED that is on, in the order of ``on``, word-major over the lanes. ``visibility`` is the frame's cache (one bit
     per LED, word-major over its ``m`` texels). With every LED on that is its own layout; with fewer (an OLAT, a
-    pattern, the LEDs a bounce starts from) their bits are packed into fewer words, so a lane walks only those."""
+    pattern, the LEDs a bounce starts from) their bits are packed into fewer words, so a lane walks only those.
+    ``distinct`` (the distinct lane texels, each lane's index among them): packed once per texel, then spread."""
+    if distinct is not None and len(on) not in (0, num_leds):
+        texels, index = (mi.UInt32(np.asarray(a, np.uint32)) for a in distinct)
+        words, packed = lane_visibility(visibility, m, texels, on, num_leds)
+        return words, _spread_words(packed, dr.width(texels), index, words)
     if len(on) == num_leds:
         words = (num_leds + 31) // 32
         if lanes is None:
@@ -189,6 +199,15 @@ def lane_visibility(visibility: mi.UInt32, m: int, lanes: mi.UInt32 | None, on: 
     leds_on = mi.UInt32(np.asarray(on, np.uint32))
     dr.make_opaque(leds_on)  # an OLAT's one index would be a literal: a kernel per LED
     return words, _packed_bits(visibility, m, lanes, leds_on, len(on), words * n, n)
+
+
+def _spread_words(packed: mi.UInt32, count: int, index: mi.UInt32, words: int) -> mi.UInt32:
+    """Word c of lane i = word c of distinct texel index[i] (both layouts word-major)."""
+    n = dr.width(index)
+    lane = dr.arange(mi.UInt32, words * n)
+    c = lane // dr.opaque(mi.UInt32, n)
+    i = lane - c * dr.opaque(mi.UInt32, n)
+    return dr.gather(mi.UInt32, packed, c * dr.opaque(mi.UInt32, count) + dr.gather(mi.UInt32, index, i))
 
 
 @dr.syntax
