@@ -51,12 +51,22 @@ def test_two_demo_runs_side_by_side(tmp_path):
     from scripts.compare_demos import main
 
     for name, bounces, shift in (("one", 1, 0.0), ("two", 2, 1.5)):
-        (tmp_path / name).mkdir()
+        (tmp_path / name / "capture" / "images" / "cam00").mkdir(parents=True)
+        (tmp_path / name / "capture" / "images" / "cam00" / "0000.exr").write_bytes(b"pixels")
         (tmp_path / name / "demo.json").write_text(json.dumps(_demo_record(bounces, shift)))
     assert main([str(tmp_path / "one"), str(tmp_path / "two"), "--write", str(tmp_path / "page.md")]) == 0
     page = (tmp_path / "page.md").read_text()
     assert "| microfacet | test1_cam06 | 25.00 | 26.50 | +1.50 |" in page and "1 bounce and 2 bounces (smoothing radius 0)" in page
     assert "| novel lighting (OLAT) | 24.00 | 25.00 | +1.00 | 25.50 | 26.50 | +1.00 |" in page and "(selection)" not in page
+    assert "images (1 files) are byte-identical" in page and "commits differ" not in page
+    # Another capture, another commit: both said.
+    (tmp_path / "two" / "capture" / "images" / "cam00" / "0000.exr").write_bytes(b"other pixels")
+    later = _demo_record(2, 1.5)
+    later["stamp"]["commit"] = "def5678"
+    (tmp_path / "two" / "demo.json").write_text(json.dumps(later))
+    assert main([str(tmp_path / "one"), str(tmp_path / "two"), "--write", str(tmp_path / "page.md")]) == 0
+    page = (tmp_path / "page.md").read_text()
+    assert "are NOT identical" in page and "`git diff abc1234 def5678 -- gra_mi`" in page
     other = _demo_record(2, 0.0) | {"stamp": {"commit": "x", "preset": "small"}}
     (tmp_path / "two" / "demo.json").write_text(json.dumps(other))
     assert main([str(tmp_path / "one"), str(tmp_path / "two")]) == 2
