@@ -53,7 +53,8 @@ def accuracy_rows(folder: Path, resolutions, rays_list) -> list[dict]:
     return rows
 
 
-def _frame_costs(ls, one, two, frame: int, leds: np.ndarray, repeats: int) -> dict:
+def _frame_costs(ls, one, two, raw, frame: int, leds: np.ndarray, repeats: int) -> dict:
+    """``two`` with the default smoothing, ``raw`` without (what the smoothing costs)."""
     from gra_mi.render.visibility import compute_visibility
 
     ls.set_frame(frame)
@@ -68,13 +69,17 @@ def _frame_costs(ls, one, two, frame: int, leds: np.ndarray, repeats: int) -> di
     op, used = two.bounce_operator(frame), two.job_operator(frame)
     # a new lighting per call: nothing after the first bounce is reused
     views = side_by_side(
-        {name: lambda rel=rel: rel.render(frame, 0, leds * (1 + 1e-6 * next(change))) for name, rel in (("one", one), ("two", two))},
+        {
+            name: lambda rel=rel: rel.render(frame, 0, leds * (1 + 1e-6 * next(change)))
+            for name, rel in (("one", one), ("two", two), ("raw", raw))
+        },
         repeats,
     )
     return {
         "frame": frame, "texels": op.num_texels, "traced": op.traced / op.num_texels, "entries": op.entries, "used": used.entries,
         "mb": op.nbytes / 2**20,
         "vis_ms": 1e3 * trace["vis"], "op_ms": 1e3 * trace["op"], "view_one_ms": 1e3 * views["one"], "view_two_ms": 1e3 * views["two"],
+        "view_raw_ms": 1e3 * views["raw"],
     }  # fmt: skip
 
 
@@ -94,9 +99,10 @@ def cost_rows(folder: Path, resolutions, frames: int, repeats: int) -> list[dict
     for resolution in resolutions:
         one = Relighter(ls, resolution)
         two = Relighter(ls, resolution, transport=LightTransport(bounces=2))
-        for rel in (one, two):
+        raw = Relighter(ls, resolution, transport=LightTransport(bounces=2, bounce_smoothing=0))
+        for rel in (one, two, raw):
             rel.only_for([ls.stage.cameras[0].name])  # as `gra-mi relight` renders: the light its camera can see
-        rows += [{"resolution": resolution} | _frame_costs(ls, one, two, f, leds, repeats) for f in range(0, 2 * frames, 2)]
+        rows += [{"resolution": resolution} | _frame_costs(ls, one, two, raw, f, leds, repeats) for f in range(0, 2 * frames, 2)]
     return rows
 
 
@@ -109,7 +115,8 @@ def markdown(accuracy: list[dict], cost: list[dict], stamp: str) -> str:
         "## Against Mitsuba's `path` where the body lights itself",
         "",
         f"Each hard case (gra_mi.render.path_reference.HARD_CASES) at 128×128, a 0.3 W/sr point light near the body, "
-        f"the body's own colours, roughness 0.5; `path` at {SPP} spp with `gra_microfacet` and the same maps. *bias*: Σ "
+        f"the body's own colours, roughness 0.5; `path` at {SPP} spp with `gra_microfacet` and the same maps; two bounces with K rays per texel and the "
+        "default smoothing (radius 2). *bias*: Σ "
         "render / Σ `path` (max_depth 3) − 1 over the pixels all renders cover; *own*: gra-mi's one bounce against "
         "`path` max_depth 2 (UV resampling, no interreflection involved); *blocks*: 8×8 blocks where Mitsuba's one "
         "bounce is ≥ 10 % darker than max_depth 3, the largest error there of one and two bounces, and of the light "
@@ -136,16 +143,17 @@ def markdown(accuracy: list[dict], cost: list[dict], stamp: str) -> str:
         "The anny body walking, the default 331-LED rig, near field, K = 32 rays per texel (the default), median over "
         "repeats, measured side by side in one run. *new frame*: the per-LED visibility trace (every texel) and the bounce "
         "operator's trace; *cached frame*: one view under a new envmap (`interior`), every LED on, one and two bounces, "
-        "rendered as `gra-mi relight` renders one camera (*rays used*: those whose light can reach what it sees).",
+        "rendered as `gra-mi relight` renders one camera (*rays used*: those whose light can reach what it sees), two",
+        "bounces with the default smoothing (radius 2) and without it (*unsmoothed*: what the smoothing costs).",
         "",
-        "| UV | frame | texels | trace (hull test) | operator entries | rays used | MB / frame | visibility ms | operator ms | × visibility | view ms, 1 bounce | 2 bounces | × |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| UV | frame | texels | trace (hull test) | operator entries | rays used | MB / frame | visibility ms | operator ms | × visibility | view ms, 1 bounce | 2 bounces | × | 2 bounces, unsmoothed |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in cost:
         lines.append(
             f"| {r['resolution']}² | {r['frame']} | {r['texels']:,} | {100 * r['traced']:.0f} % | {r['entries']:,} | {r['used']:,} | {r['mb']:.1f} | "
             f"{r['vis_ms']:.0f} | {r['op_ms']:.0f} | {r['op_ms'] / r['vis_ms']:.2f} | {r['view_one_ms']:.0f} | {r['view_two_ms']:.0f} | "
-            f"{r['view_two_ms'] / r['view_one_ms']:.2f} |"
+            f"{r['view_two_ms'] / r['view_one_ms']:.2f} | {r['view_raw_ms']:.0f} |"
         )
     lines += [
         "",
