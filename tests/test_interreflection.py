@@ -171,6 +171,7 @@ def test_smoothing_averages_noise_on_the_surface_and_nothing_across_it(tiny):
     values = np.full((m, 3), 1e6)
     values[domain] = 1.0
     np.testing.assert_allclose(apply(values, inside)[domain], 1.0, rtol=1e-6)
+    assert not apply(values, inside)[1::2].any()  # outside the domain nothing is averaged into (no camera sees it)
 
 
 def test_jobs_culled_to_their_cameras_render_the_same(tiny):

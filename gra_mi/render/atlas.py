@@ -186,46 +186,56 @@ class SurfaceFilter:
     quantity that varies slowly over the surface and is estimated per texel with noise (the light after the first
     bounce, from K rays each): averaging (2·radius + 1)² estimates cuts the noise up to that factor in variance."""
 
-    neighbours: mi.UInt32  # (M · W,) the W window entries of each texel (the texel itself where a slot is empty)
-    weights: mi.Float  # (M · W,) normalised per texel
+    neighbours: mi.UInt32  # (N · W,) the W window entries of each output texel (the texel itself where a slot is empty)
+    weights: mi.Float  # (N · W,) normalised per output texel
     width: int  # W
+    rows: mi.UInt32 | None = None  # (N,) the output texels (a domain's); None: every texel, in order
+    count: int = 0  # texels of the atlas (the output's size)
 
     @classmethod
     def build(cls, atlas: UVAtlas, geom: TexelGeometry, radius: int, domain: np.ndarray | None = None) -> SurfaceFilter:
-        """``domain``: the texels whose values exist (None: all); others are left out of every average."""
-        r = atlas.resolution
+        """``domain``: the texels whose values exist (None: all); only they are averaged, and only they are averaged
+        into (elsewhere the output is 0: a job's cameras see no texel outside it)."""
+        r, m = atlas.resolution, atlas.num_texels
+        rows = np.arange(m) if domain is None else np.unique(np.asarray(domain, np.int64))
         p, n = np.array(geom.position, np.float64).T, np.array(geom.normal, np.float64).T
         grid = np.full(r * r, -1, np.int64)
-        grid[atlas.texel_index] = np.arange(atlas.num_texels)
-        valid = np.ones(atlas.num_texels, bool) if domain is None else np.isin(np.arange(atlas.num_texels), domain)
-        rows, cols = np.divmod(atlas.texel_index, r)
+        grid[atlas.texel_index] = np.arange(m)
+        valid = np.ones(m, bool) if domain is None else np.isin(np.arange(m), rows)
+        row, col = np.divmod(atlas.texel_index[rows], r)
 
-        def at(dr_, dc):  # the texel at each texel's offset (dr_, dc) in the atlas, -1 where none
-            rr, cc = rows + dr_, cols + dc
+        def at(dr_, dc):  # the texel at each output texel's offset (dr_, dc) in the atlas, -1 where none
+            rr, cc = row + dr_, col + dc
             inside = (rr >= 0) & (rr < r) & (cc >= 0) & (cc < r)
-            out = np.full(atlas.num_texels, -1, np.int64)
+            out = np.full(len(rows), -1, np.int64)
             out[inside] = grid[rr[inside] * r + cc[inside]]
             return out
 
         def distance(other):
-            return np.where(other >= 0, np.linalg.norm(p - p[np.maximum(other, 0)], axis=1), np.inf)
+            return np.where(other >= 0, np.linalg.norm(p[rows] - p[np.maximum(other, 0)], axis=1), np.inf)
 
         spacing = np.min([distance(at(*o)) for o in ((0, 1), (0, -1), (1, 0), (-1, 0))], axis=0)
         sigma = radius * np.where(np.isfinite(spacing), spacing, 0.0)
         offsets = [(a, b) for a in range(-radius, radius + 1) for b in range(-radius, radius + 1)]
-        index = np.empty((atlas.num_texels, len(offsets)), np.int64)
-        weight = np.zeros((atlas.num_texels, len(offsets)))
+        index = np.empty((len(rows), len(offsets)), np.int64)
+        weight = np.zeros((len(rows), len(offsets)))
         for k, (a, b) in enumerate(offsets):
             other = at(a, b)
             d2 = np.square(distance(other))
-            same = (other >= 0) & valid[np.maximum(other, 0)] & (np.sum(n * n[np.maximum(other, 0)], axis=1) > 0.9)
+            same = (other >= 0) & valid[np.maximum(other, 0)] & (np.sum(n[rows] * n[np.maximum(other, 0)], axis=1) > 0.9)
             close = same & (d2 <= 4.0 * sigma**2)
-            index[:, k] = np.where(close, other, np.arange(atlas.num_texels))
+            index[:, k] = np.where(close, other, rows)
             weight[:, k] = np.where(close, np.exp(-0.5 * d2 / np.maximum(sigma, 1e-12) ** 2), 0.0)
         centre = len(offsets) // 2
         weight[:, centre] = 1.0  # a texel always counts itself (also where its spacing is unknown)
         weight /= weight.sum(axis=1, keepdims=True)
-        return cls(mi.UInt32(index.ravel().astype(np.uint32)), mi.Float(weight.ravel().astype(np.float32)), len(offsets))
+        neighbours, weights = mi.UInt32(index.ravel().astype(np.uint32)), mi.Float(weight.ravel().astype(np.float32))
+        return cls(neighbours, weights, len(offsets), None if domain is None else mi.UInt32(rows.astype(np.uint32)), m)
 
     def apply(self, values: mi.Color3f) -> mi.Color3f:
-        return dr.block_sum(dr.gather(mi.Color3f, values, self.neighbours) * self.weights, self.width)
+        averaged = dr.block_sum(dr.gather(mi.Color3f, values, self.neighbours) * self.weights, self.width)
+        if self.rows is None:
+            return averaged
+        out = dr.zeros(mi.Color3f, self.count)
+        dr.scatter(out, averaged, self.rows)
+        return out
