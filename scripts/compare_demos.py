@@ -78,8 +78,13 @@ def provenance_lines(a: dict, b: dict, files: list[dict[str, str]]) -> list[str]
         lines = ["> Their captures' images were not compared (a run has no capture/images)."]
     else:
         lines = [f"> Their captures' images ({len(files[0])} files) are {'byte-identical' if files[0] == files[1] else 'NOT identical'}."]
-    if a["stamp"].get("commit") != b["stamp"].get("commit"):
-        lines.append(f"> Their commits differ: `git diff {a['stamp'].get('commit')} {b['stamp'].get('commit')} -- gra_mi` is what changed.")
+    commits = [str(r["stamp"].get("commit")) for r in (a, b)]
+    if commits[0] != commits[1]:
+        clean = [c.removesuffix("-dirty") for c in commits]
+        lines.append(f"> Their commits differ: `git diff {clean[0]} {clean[1]} -- gra_mi` is what changed between them.")
+    for label, commit in zip((_label(a), _label(b)), commits, strict=True):
+        if commit.endswith("-dirty"):
+            lines.append(f"> The {label} run's checkout had uncommitted changes (`-dirty`): they are not in that diff.")
     return lines
 
 

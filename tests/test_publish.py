@@ -62,11 +62,12 @@ def test_two_demo_runs_side_by_side(tmp_path):
     # Another capture, another commit: both said.
     (tmp_path / "two" / "capture" / "images" / "cam00" / "0000.exr").write_bytes(b"other pixels")
     later = _demo_record(2, 1.5)
-    later["stamp"]["commit"] = "def5678"
+    later["stamp"]["commit"] = "def5678-dirty"
     (tmp_path / "two" / "demo.json").write_text(json.dumps(later))
     assert main([str(tmp_path / "one"), str(tmp_path / "two"), "--write", str(tmp_path / "page.md")]) == 0
     page = (tmp_path / "page.md").read_text()
     assert "are NOT identical" in page and "`git diff abc1234 def5678 -- gra_mi`" in page
+    assert "The 2 bounces (smoothing radius 0) run's checkout had uncommitted changes" in page
     other = _demo_record(2, 0.0) | {"stamp": {"commit": "x", "preset": "small"}}
     (tmp_path / "two" / "demo.json").write_text(json.dumps(other))
     assert main([str(tmp_path / "one"), str(tmp_path / "two")]) == 2
