@@ -146,19 +146,17 @@ def added_light(full, without) -> dict[str, float]:
     the shortfall the bounced light inherits from the direct light it starts from."""
     from gra_mi.capture.dataset import load_observation
     from gra_mi.core.metrics import subject_mask
-    from gra_mi.render.relighter import Relighter, load_texture
+    from gra_mi.eval.ceiling import true_maps_relighter
     from gra_mi.render.transport import LightTransport
-    from gra_mi.stage.scene import LightstageScene
 
-    ls, gt = LightstageScene.load(full.folder / "scene.xml"), full.folder / "gt"
-    maps = {"albedo": load_texture(gt / "albedo.exr", 3, "albedo"), "roughness": load_texture(gt / "roughness.exr", 1, "roughness")}
-    one, two = (Relighter(ls, **maps, transport=LightTransport(bounces=b)) for b in (1, 2))
+    one, two = (true_maps_relighter(full, LightTransport(bounces=b)) for b in (1, 2))
+    stage = one.ls.stage
     sums = np.zeros(4)  # added by two bounces, added by the truth, one-bounce render, truth without interreflections
     for entry in (f for f in full.frames if f.split == "test" and f.kind == "pattern"):
         for camera in full.eval_cameras:
             truth, direct = load_observation(full, camera, entry.frame)[..., :3], load_observation(without, camera, entry.frame)[..., :3]
             mask = subject_mask(truth)
-            lighting = full.lighting(ls.stage, entry)
+            lighting = full.lighting(stage, entry)
             ours_one = one.render(entry.mesh_frame, camera, lighting).image[..., :3]
             ours_two = two.render(entry.mesh_frame, camera, lighting).image[..., :3]
             sums += [(ours_two - ours_one)[mask].sum(), (truth - direct)[mask].sum(), ours_one[mask].sum(), direct[mask].sum()]
@@ -185,6 +183,11 @@ def effects_page(preset: str, step: int, work: Path, stamp: str, truths: list[in
         captures[i] = capture
         print("\n".join(table[-2:] + ceiling[-1:]), file=sys.stderr)
     added = added_light(captures[0], captures[1]) if 1 in captures else None
+    return effects_markdown(preset, step, stamp, olats, counts, table, ceiling, added, clean)
+
+
+def effects_markdown(preset, step, stamp, olats, counts, table, ceiling, added, clean) -> str:
+    """The effects page from :func:`effects_page`'s measurements."""
     return "\n".join(
         [
             "# Results: what holds the OLAT fit back",

@@ -162,7 +162,7 @@ def test_leds_that_are_on_packed_per_lane_sum_to_every_led_on(tiny):
     dark = TexelLedLoop.build(geom, vis, lanes, leds, np.zeros_like(intensity), camera).run(rough)
     assert all(np.array(x).max() == 0 for x in dark)
     # Repeated lanes (a bounce's rays share sources) packed once per texel and spread: the very same bits.
-    distinct = np.unique(lanes, return_inverse=True)
+    distinct = tuple(mi.UInt32(a.astype(np.uint32)) for a in np.unique(lanes, return_inverse=True))
     for p in patterns.values():
         once = TexelLedLoop.build(geom, vis, lanes, leds, p, camera, distinct=distinct)
         per_lane = TexelLedLoop.build(geom, vis, lanes, leds, p, camera)

@@ -10,19 +10,25 @@ HELD_OUT_GROUPS = {"pattern": "held-out OLATs", "envmap": "held-out envmaps"}
 """Held-out frames by their lighting kind, as the scores group them."""
 
 
+def true_maps_relighter(capture, transport=None):
+    """gra-mi's relighter of ``capture``'s scene with its true maps (its gt/ folder) and ``transport``'s bounces."""
+    from gra_mi.render.relighter import Relighter, load_texture
+    from gra_mi.stage.scene import LightstageScene
+
+    gt = capture.folder / "gt"
+    return Relighter(
+        LightstageScene.load(capture.folder / "scene.xml"), albedo=load_texture(gt / "albedo.exr", 3, "albedo"),
+        roughness=load_texture(gt / "roughness.exr", 1, "roughness"), transport=transport,
+    )  # fmt: skip
+
+
 def true_maps_relit(capture, transport=None) -> dict[str, tuple[float, float]]:
     """Display PSNR and SSIM of gra-mi's render (``transport``'s bounces of light; default one) with the true maps
     against the capture's images, per held-out lighting group, from the held-out cameras."""
     from gra_mi.capture.dataset import load_observation
     from gra_mi.core.metrics import compare, subject_mask
-    from gra_mi.render.relighter import Relighter, load_texture
-    from gra_mi.stage.scene import LightstageScene
 
-    gt = capture.folder / "gt"
-    relighter = Relighter(
-        LightstageScene.load(capture.folder / "scene.xml"), albedo=load_texture(gt / "albedo.exr", 3, "albedo"),
-        roughness=load_texture(gt / "roughness.exr", 1, "roughness"), transport=transport,
-    )  # fmt: skip
+    relighter = true_maps_relighter(capture, transport)
     scores: dict[str, list] = {group: [] for group in HELD_OUT_GROUPS.values()}
     for entry in (f for f in capture.frames if f.split == "test" and f.kind in HELD_OUT_GROUPS):
         for camera in capture.eval_cameras:

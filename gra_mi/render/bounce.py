@@ -115,12 +115,14 @@ class BounceOperator:
         """Per entry: the direction from the source texel back to the receiver (world)."""
         return -self.device()[2]
 
-    def distinct_sources(self) -> tuple[np.ndarray, np.ndarray]:
-        """(the distinct source texels, each entry's index among them): rays share sources (about five a source on a
-        body), so what depends on the source alone is computed once per texel (kept with the operator)."""
-        if getattr(self, "_distinct", None) is None:
-            self._distinct = np.unique(self.sources, return_inverse=True)
-        return self._distinct
+    def distinct_sources(self) -> tuple[mi.UInt32, mi.UInt32]:
+        """(the distinct source texels, each entry's index among them) as Dr.Jit arrays: rays share sources (about five
+        a source on a body), so what depends on the source alone is computed once per texel (kept with the operator,
+        uploaded once per variant)."""
+        if getattr(self, "_distinct", (None,))[0] != mi.variant():
+            texels, index = np.unique(self.sources, return_inverse=True)
+            self._distinct = (mi.variant(), mi.UInt32(texels.astype(np.uint32)), mi.UInt32(index.astype(np.uint32)))
+        return self._distinct[1:]
 
     def sources_of(self, texels: np.ndarray) -> np.ndarray:
         """The texels whose light reaches ``texels`` in one bounce (sorted)."""

@@ -115,8 +115,8 @@ class TexelLedLoop:
         """The loop of ``texels`` (repeats allowed) seen from ``camera_position`` (any viewer :func:`local_view`
         takes). ``indirect``: the light after the first bounce, held fixed, as ((M, 3) what each texel's diffuse layer
         takes in, as :func:`shade_texels` takes it; (M, 3) the specular light it sends toward this viewer).
-        ``distinct``: ``np.unique(texels, return_inverse=True)`` when texels repeat (the rays of a bounce share their
-        sources): the visibility is then packed once per texel, not per lane."""
+        ``distinct``: ``np.unique(texels, return_inverse=True)`` as two ``mi.UInt32`` when texels repeat (the rays of a
+        bounce share their sources): the visibility is then packed once per texel, not per lane."""
         m = dr.width(geom.position)
         on, led_pos, led_int = led_loop_inputs(leds, led_intensities)
         t = mi.UInt32(np.asarray(texels, np.uint32))
@@ -172,15 +172,16 @@ def _opaque_columns(kind, rows: np.ndarray):
 
 
 def lane_visibility(
-    visibility: mi.UInt32, m: int, lanes: mi.UInt32 | None, on: np.ndarray, num_leds: int, distinct: tuple | None = None
-) -> tuple[int, mi.UInt32]:
+    visibility: mi.UInt32, m: int, lanes: mi.UInt32 | None, on: np.ndarray, num_leds: int,
+    distinct: tuple[mi.UInt32, mi.UInt32] | None = None,
+) -> tuple[int, mi.UInt32]:  # fmt: skip
     """The visibility the LED loop walks: per lane (texel ``lanes[i]``, or texel i when ``lanes`` is None), one bit per
     LED that is on, in the order of ``on``, word-major over the lanes. ``visibility`` is the frame's cache (one bit
     per LED, word-major over its ``m`` texels). With every LED on that is its own layout; with fewer (an OLAT, a
     pattern, the LEDs a bounce starts from) their bits are packed into fewer words, so a lane walks only those.
     ``distinct`` (the distinct lane texels, each lane's index among them): packed once per texel, then spread."""
     if distinct is not None and len(on) not in (0, num_leds):
-        texels, index = (mi.UInt32(np.asarray(a, np.uint32)) for a in distinct)
+        texels, index = distinct
         words, packed = lane_visibility(visibility, m, texels, on, num_leds)
         return words, _spread_words(packed, dr.width(texels), index, words)
     if len(on) == num_leds:
