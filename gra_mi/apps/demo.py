@@ -193,9 +193,7 @@ def run_demo(preset_name: str, out: Path, overwrite: bool = False, transport: Li
     with _timed(timings, "evaluation (gra-mi eval)"):
         eval_config = EvalConfig(composite=True, platform=PlatformConfig(spp=preset.platform_spp), transport=transport)
         record["eval"] = evaluate(EvalInputs.from_run(out), out / "eval", eval_config)
-    atomic_write_text(out / "demo.json", json.dumps(record, indent=1, default=float) + "\n")
-    atomic_write_text(out / "report.md", demo_markdown(record))
-    return out / "report.md"
+    return _finish(out, record)
 
 
 def _olat_demo(preset: OlatDemoPreset, capture, ls, out: Path, record: dict, transport: LightTransport) -> Path:
@@ -223,10 +221,8 @@ def _olat_demo(preset: OlatDemoPreset, capture, ls, out: Path, record: dict, tra
     with _timed(timings, "evaluation (gra-mi eval; library maps' truth from the OLATs)"):
         eval_config = EvalConfig(library_envmaps=preset.library_envmaps, transport=transport)
         record["eval"] = evaluate(EvalInputs.from_run(out), out / "eval", eval_config)
-    record["export"] = _export(out, ls, fit_result, timings)
-    atomic_write_text(out / "demo.json", json.dumps(record, indent=1, default=float) + "\n")
-    atomic_write_text(out / "report.md", demo_markdown(record))
-    return out / "report.md"
+    record["export"] = _export(out, ls, fit_result, record)
+    return _finish(out, record)
 
 
 def _capture_stage(preset: DemoPreset | OlatDemoPreset, out: Path, record: dict):
@@ -294,15 +290,35 @@ def _render_stages(preset: DemoPreset, capture, ls, fit_result, out: Path, recor
         _point_light(capture, relighter, test_frames[0].mesh_frame, out)
     with _timed(timings, "composites on a platform (RelightNet, held-out camera)"):
         record["video"] = _composite_video(preset, capture, relighter, test_frames, out)
-    record["export"] = _export(out, ls, fit_result, timings)
+    record["export"] = _export(out, ls, fit_result, record)
 
 
-def _export(out: Path, ls, fit_result, timings: dict) -> dict[str, str]:
-    """The avatar as USD (with the rig's cameras) and glTF, each with its validator's verdict."""
+def _finish(out: Path, record: dict) -> Path:
+    """demo.json and report.md, with the outputs this machine could not make (no ffmpeg, no usd-core) named."""
+    from gra_mi.core.io import PREVIEWS_NOT_MADE
+
+    not_made = record.setdefault("not_made", {})
+    not_made |= {str(Path(path).relative_to(out)): why for path, why in PREVIEWS_NOT_MADE.items() if Path(path).is_relative_to(out)}
+    for name, why in not_made.items():
+        logger.warning("not made: %s (%s)", name, why)
+    atomic_write_text(out / "demo.json", json.dumps(record, indent=1, default=float) + "\n")
+    atomic_write_text(out / "report.md", demo_markdown(record))
+    return out / "report.md"
+
+
+def _export(out: Path, ls, fit_result, record: dict) -> dict[str, str]:
+    """The avatar as USD (with the rig's cameras) and glTF, each with its validator's verdict. Without usd-core (a
+    machine that could not install it) the USD file is named in ``record["not_made"]`` and the run goes on."""
     verdicts = {}
-    with _timed(timings, "export (USD + glTF, validated)"):
+    with _timed(record["timings"], "export (USD + glTF, validated)"):
         for name, rig in (("avatar.usdz", ls.stage), ("avatar.glb", None)):
-            report = export_avatar(out / name, ls.sequence, fit_result.albedo, fit_result.roughness, rig=rig)
+            try:
+                report = export_avatar(out / name, ls.sequence, fit_result.albedo, fit_result.roughness, rig=rig)
+            except ModuleNotFoundError as missing:
+                if (missing.name or "").split(".")[0] != "pxr":
+                    raise
+                record.setdefault("not_made", {})[name] = "no usd-core (pip install usd-core)"
+                continue
             verdicts[name] = report.summary()
             if report.errors:
                 raise RuntimeError(f"{report.summary()}: {report.errors[:3]}")

@@ -21,6 +21,14 @@ def demo_markdown(record: dict) -> str:
     return "\n".join(line for section in sections for line in section(record)) + "\n"
 
 
+def _not_made_said(r: dict) -> list[str]:
+    """The outputs this machine could not make (their links below lead nowhere), or nothing."""
+    not_made = r.get("not_made") or {}
+    if not not_made:
+        return []
+    return ["**Not made on this machine:** " + "; ".join(f"`{name}`: {why}" for name, why in not_made.items()) + ".", ""]
+
+
 def _header(r: dict) -> list[str]:
 
     rig, subject, evaluation = r["capture"]["rig"], r["capture"]["subject"], r["eval"]
@@ -34,6 +42,7 @@ def _header(r: dict) -> list[str]:
         f"subject: {subject['vertices']} vertices, {subject['triangles']} triangles, {subject['frames']} frames "
         f"({', '.join(subject['clips'])}); ground truth: `{r['capture']['renderer']}`.",
         "",
+        *_not_made_said(r),
         "## Every stage against the truth (`gra-mi eval`)",
         "",
         protocol_said(evaluation) + " Details: [eval/eval.md](eval/eval.md).",

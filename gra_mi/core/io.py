@@ -335,38 +335,59 @@ def write_mp4(path: str | Path, frames: Sequence[np.ndarray], fps: float = 24.0,
     write_mp4_srgb8(path, (to_srgb8(frame, exposure)[..., :3] for frame in frames), fps)
 
 
+# MP4 previews not written because this machine cannot encode them: path → why (a run's report lists them).
+PREVIEWS_NOT_MADE: dict[str, str] = {}
+
+
+def _ffmpeg_missing(path: Path) -> bool:
+    """True where no ffmpeg can be found. An MP4 is a preview of frames that are always written as EXR and PNG, so
+    the run goes on without it, saying so once and recording the file in :data:`PREVIEWS_NOT_MADE`."""
+    try:
+        import imageio_ffmpeg
+
+        imageio_ffmpeg.get_ffmpeg_exe()
+    except (ImportError, RuntimeError) as missing:
+        if not PREVIEWS_NOT_MADE:
+            logger.warning("MP4 previews are not written: no ffmpeg (%s); install imageio-ffmpeg to have them", missing)
+        PREVIEWS_NOT_MADE[str(path)] = "no ffmpeg (pip install imageio-ffmpeg)"
+        return True
+    return False
+
+
 def write_mp4_srgb8(path: str | Path, frames, fps: float = 24.0) -> None:
     """Write 8-bit sRGB frames (H, W, 3), e.g. the PNG previews read back, as an H.264 MP4."""
-    import imageio.v2 as iio2
-
-    with atomic_path(path) as tmp:
-        writer = iio2.get_writer(str(tmp), format="FFMPEG", fps=fps, codec="libx264", macro_block_size=1)
-        try:
-            for rgb in frames:
-                h, w = rgb.shape[:2]
-                writer.append_data(np.pad(rgb[..., :3], ((0, h % 2), (0, w % 2), (0, 0)), mode="edge"))
-        finally:
-            writer.close()
+    with Mp4Stream(path, fps) as stream:
+        for rgb in frames:
+            stream.append_srgb8(rgb)
 
 
 class Mp4Stream:
-    """An MP4 written frame by frame (long videos never sit in memory); renamed into place on a clean close."""
+    """An MP4 written frame by frame (long videos never sit in memory); renamed into place on a clean close. Where
+    no ffmpeg can be found, nothing is written (:func:`_ffmpeg_missing`)."""
 
     def __init__(self, path: str | Path, fps: float = 24.0):
         import imageio.v2 as iio2
 
+        self._writer = None
+        if _ffmpeg_missing(Path(path)):
+            return
         self._atomic = atomic_path(path)
-        self._tmp = self._atomic.__enter__()
-        self._writer = iio2.get_writer(str(self._tmp), format="FFMPEG", fps=fps, codec="libx264", macro_block_size=1)
+        tmp = self._atomic.__enter__()
+        self._writer = iio2.get_writer(str(tmp), format="FFMPEG", fps=fps, codec="libx264", macro_block_size=1)
 
     def append(self, frame: np.ndarray, exposure: float = 1.0) -> None:
-        rgb = to_srgb8(frame, exposure)[..., :3]
+        self.append_srgb8(to_srgb8(frame, exposure)[..., :3])
+
+    def append_srgb8(self, rgb: np.ndarray) -> None:
         h, w = rgb.shape[:2]
-        self._writer.append_data(np.pad(rgb, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge"))
+        if self._writer is not None:
+            self._writer.append_data(np.pad(rgb[..., :3], ((0, h % 2), (0, w % 2), (0, 0)), mode="edge"))
 
     def __enter__(self) -> Mp4Stream:
         return self
 
     def __exit__(self, *exc) -> None:
+        if self._writer is None:
+            return
         self._writer.close()
         self._atomic.__exit__(*exc)

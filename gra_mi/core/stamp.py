@@ -21,11 +21,13 @@ def _git(*args: str) -> str | None:
 
 
 def run_stamp(**extra) -> dict:
-    """{commit (+ "-dirty" with uncommitted changes; None outside a git checkout), machine, date} and ``extra``
-    (the preset, the Mitsuba variant…)."""
+    """{commit (+ "-dirty" with uncommitted changes; outside a git checkout: ``GRA_MI_COMMIT`` as the copy's sender
+    said it, else None), machine, date} and ``extra`` (the preset, the Mitsuba variant…)."""
     commit = _git("rev-parse", "--short", "HEAD")
     if commit is not None and _git("status", "--porcelain", "--untracked-files=no"):
         commit += "-dirty"
+    elif commit is None and os.environ.get("GRA_MI_COMMIT"):
+        commit = f"{os.environ['GRA_MI_COMMIT']} (said, no .git)"
     cpu = platform.processor() or platform.machine()
     machine = f"{os.cpu_count()}-core {cpu} ({platform.system()})"
     return {"commit": commit, "machine": machine, "date": datetime.date.today().isoformat(), **extra}
