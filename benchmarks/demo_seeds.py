@@ -28,15 +28,23 @@ from gra_mi.apps.harness import BenchmarkRun, run_benchmark
 METRICS = (("psnr", "PSNR", 2), ("ssim", "SSIM", 3), ("flip", "ꟻLIP", 3))
 
 
+def run_transport(run: Path):
+    """The bounces of light the demo run was made with (its RelightNet's input; the same for every seed here)."""
+    from gra_mi.render.transport import LightTransport
+
+    return LightTransport(**json.loads((run / "demo.json").read_text()).get("transport", {}))
+
+
 def train_and_score(run: Path, out: Path, seed: int, steps: int, lighting_spp: int, lightings: int | None = None) -> dict:
     """One seed: RelightNet trained (on ``lightings`` of the capture's training lightings: None, all), then both
     evaluations; the numbers the page needs (kept in ``out/result.json``, which a rerun reads instead of training
-    again)."""
+    again). Every render has the run's bounces of light."""
     from gra_mi.eval.lighting import EnvmapAccuracyConfig, envmap_accuracy
-    from gra_mi.eval.protocol import EvalInputs, evaluate
+    from gra_mi.eval.protocol import EvalConfig, EvalInputs, evaluate
     from gra_mi.relightnet.train import TrainConfig, train_relightnet
 
-    config = TrainConfig(steps=steps, seed=seed, training_lightings=lightings)
+    transport = run_transport(run)
+    config = TrainConfig(steps=steps, seed=seed, training_lightings=lightings, transport=transport)
     model = demos_own(run, config) or out / "relightnet"
     if (out / "result.json").is_file():
         return json.loads((out / "result.json").read_text()) | dict(zip(("seconds", "resumed"), training_seconds(model), strict=True))
@@ -47,12 +55,13 @@ def train_and_score(run: Path, out: Path, seed: int, steps: int, lighting_spp: i
     # The demo's own protocol (its refined sequences set the held-out sequences' frames and scale; only the microfacet
     # and RelightNet rows are read here, the refined rows being the demo's own RelightNet's).
     inputs = replace(EvalInputs.from_run(run), relightnet=model)
-    report = evaluate(inputs, out / "eval")
+    report = evaluate(inputs, out / "eval", EvalConfig(transport=transport))
     splits = {
         name: {stage: {k: report["stages"][stage]["splits"][name][k] for k, _, _ in METRICS} for stage in ("microfacet", "RelightNet")}
         for name in report["protocol"]["splits"]
     }
-    rows = envmap_accuracy(capture, fit, out.parent / "lighting", relightnet_dir=model, config=EnvmapAccuracyConfig(spp=lighting_spp))
+    lighting_config = EnvmapAccuracyConfig(spp=lighting_spp, transport=transport)
+    rows = envmap_accuracy(capture, fit, out.parent / "lighting", relightnet_dir=model, config=lighting_config)
     lighting = {f"{r['map']}|{r['method']}": r["psnr"] for r in rows}
     result = {
         "seed": seed,
@@ -98,7 +107,7 @@ def flip_regions(run: Path, model: Path, band: int = 3) -> dict:
     from gra_mi.relightnet.model import RelightNet
 
     capture = Capture.load(run / "capture")
-    _, relighter = fitted_relighter(capture.folder, run / "fit", run / "cache" / "seeds")
+    _, relighter = fitted_relighter(capture.folder, run / "fit", run / "cache" / "seeds", run_transport(run))
     net = RelightNet.load(model, "cpu")
     out: dict = {}
     for cam in capture.eval_cameras:
@@ -241,7 +250,8 @@ def measure(run: BenchmarkRun) -> str:
     for out, seed, run_steps, lightings in jobs:
         runs.append(train_and_score(args.run, out, seed, run_steps, preset["lighting_spp"], lightings))
         print(json.dumps(runs[-1]), file=sys.stderr)
-    regions = flip_regions(args.run, demos_own(args.run, TrainConfig(steps=preset["relightnet_steps"])) or work / "seed0" / "relightnet")
+    own = demos_own(args.run, TrainConfig(steps=preset["relightnet_steps"], transport=run_transport(args.run)))
+    regions = flip_regions(args.run, own or work / "seed0" / "relightnet")
     return "\n".join(markdown(runs, args.run, run.stamp(preset["name"]), regions))
 
 

@@ -53,6 +53,7 @@ if [ "$CPU" = 1 ]; then
 else
     PYTHON=${PYTHON:-python3} VARIANT=cuda_ad_rgb RUN=$DEST/run
     export GRA_MI_ASSUME_CUDA=1  # Dr.Jit's own probe decides, not the /dev/nvidia* nodes a sandbox may hide
+    [ -z "$COMMIT" ] && ! git rev-parse HEAD >/dev/null 2>&1 && say "no --commit and no .git: the page will say 'commit unknown'"
     [ -z "$SITE" ] && [ -f .gpu/site.tar.xz ] && SITE=.gpu/site.tar.xz
 fi
 if [ -e "$RUN" ] && [ ! -e "$RUN/.gpu_check_run" ]; then  # --out / must not empty /run

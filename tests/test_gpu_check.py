@@ -41,18 +41,18 @@ def test_mp4_previews_without_ffmpeg_are_named_not_faked(monkeypatch, tmp_path):
     from gra_mi.core import io
 
     frames = [np.full((6, 8, 3), v, np.float32) for v in (0.1, 0.5, 0.9)]
-    io.write_mp4(tmp_path / "with.mp4", frames)
-    assert (tmp_path / "with.mp4").stat().st_size > 0
+    assert io.write_mp4(tmp_path / "with.mp4", frames) and (tmp_path / "with.mp4").stat().st_size > 0
 
     def no_ffmpeg():
         raise RuntimeError("No ffmpeg exe could be found")
 
     monkeypatch.setattr(imageio_ffmpeg, "get_ffmpeg_exe", no_ffmpeg)
     monkeypatch.setattr(io, "PREVIEWS_NOT_MADE", {})
-    io.write_mp4(tmp_path / "without.mp4", frames)
+    assert not io.write_mp4(tmp_path / "without.mp4", frames), "says it did not write it"
     with io.Mp4Stream(tmp_path / "stream.mp4") as stream:
         for frame in frames:
             stream.append(frame)
+    assert not stream.made
     assert sorted(p.name for p in tmp_path.iterdir()) == ["with.mp4"], "no empty or temporary file left behind"
     assert set(io.PREVIEWS_NOT_MADE) == {str(tmp_path / "without.mp4"), str(tmp_path / "stream.mp4")}
     assert all("imageio-ffmpeg" in why for why in io.PREVIEWS_NOT_MADE.values())
@@ -94,6 +94,10 @@ def test_the_page_puts_each_gpu_figure_beside_the_cpus_and_says_what_failed(tmp_
     assert "| viewer | failed: RuntimeError: boom | 5000.0 | — |" in text
     assert "GPU, not made (no usd-core (pip install usd-core)): 1 file(s), `avatar.usdz`." in text
     assert page.page(page.read_run(tmp_path / "absent"), {}).count("not run") >= 1, "a run that left nothing says so"
+    (gpu / "tests.xml").write_text('<testsuites><testsuite tests="3"')  # a run killed while writing
+    (gpu / "stages.json").write_text('{"stamp": ')
+    cut = page.page(page.read_run(gpu), page.read_run(cpu))
+    assert "GPU run, unreadable (cut short?): stages.json" in cut and "tests.xml" in cut and "No test report" in cut
 
 
 def test_the_carried_packages_are_what_the_image_lacks_at_this_environments_versions():

@@ -82,6 +82,20 @@ def test_held_float16_and_streamed_sums_agree(olat_captures):
     np.testing.assert_allclose(b, a, rtol=2e-3, atol=1e-3 * a.max())
 
 
+def test_the_sum_on_a_torch_device_is_numpys(olat_captures):
+    """The products a GPU runs (torch; here on its CPU device, the same code), float32 and float16 stacks alike."""
+    capture = olat_captures["path"]
+    stage, index, held = _field(capture, "cam05")
+    k, p = len(index.frames), held.pixels.size
+    half = _field(capture, "cam05", memory_gb=3 * k * p * 3 / 2**30)[2]
+    weights = np.random.default_rng(1).uniform(0, 2, (2, k, 3))
+    assert held.summed_on == "host (NumPy)", "no GPU here: NumPy's sum"
+    for field in (held, half):
+        on_host = field._sum_held(weights)
+        on_torch = field._sum_on_device(weights, field._device_stack("cpu"))
+        np.testing.assert_allclose(on_torch, on_host, rtol=1e-5, atol=1e-6 * on_host.max())
+
+
 def test_relight_field_writes_every_lighting_and_camera(olat_captures, tmp_path):
     capture = olat_captures["path"]
     out = tmp_path / "out"

@@ -314,8 +314,7 @@ class _Previews:
             for cam in cams:
                 pngs = [self.out / name / cam.name / f"frame_{f:04d}.png" for f in frames]
                 if all(p.is_file() for p in pngs):
-                    write_mp4_srgb8(self.out / name / f"{cam.name}.mp4", (iio.imread(p) for p in pngs), fps=fps)
-                    written += 1
+                    written += write_mp4_srgb8(self.out / name / f"{cam.name}.mp4", (iio.imread(p) for p in pngs), fps=fps)
         return written
 
 

@@ -5,8 +5,9 @@ of OLAT k and Iₖ its intensity in that frame (Debevec et al. 2000). Per colour
 drive weights (N lightings × K OLATs) with the OLAT stack (K × pixels), on the pixels any OLAT lights only.
 
 The stack is held in memory when it fits ``memory_gb`` (float32, else float16 with one scale per OLAT, so an HDR
-OLAT cannot overflow); otherwise the OLATs are read one at a time per batch of lightings (each OLAT read once per
-batch). Either way the result is the same sum; only the time differs.
+OLAT cannot overflow), and on the GPU too where torch uses one (the products run there); otherwise the OLATs are read
+one at a time per batch of lightings (each OLAT read once per batch). Either way the result is the same sum; only the
+time differs.
 """
 
 from __future__ import annotations
@@ -89,6 +90,7 @@ class ReflectanceField:
     stack: np.ndarray | None = None  # (3, K, P) held in memory, or None: streamed from disk
     scale: np.ndarray | None = None  # (K,) a float16 stack's per-OLAT scale
     stats: dict = field(default_factory=dict)
+    _on_device: tuple | None = field(default=None, repr=False, compare=False)  # (device, the stack there)
 
     @classmethod
     def load(cls, capture: Capture, camera: str, index: OlatIndex, memory_gb: float = 4.0, progress_bar: bool = True) -> ReflectanceField:
@@ -139,6 +141,9 @@ class ReflectanceField:
         return out.reshape(n, *self.shape, 4)
 
     def _sum_held(self, weights: np.ndarray) -> np.ndarray:
+        stack = self._device_stack()
+        if stack is not None:
+            return self._sum_on_device(weights, stack)
         n, p = weights.shape[0], self.pixels.size
         sums = np.empty((n, p, 3), np.float32)
         w = (weights * self.scale[None, :, None]).astype(np.float32)
@@ -150,6 +155,45 @@ class ReflectanceField:
                 block = self.stack[c, :, start : start + PIXEL_CHUNK].astype(np.float32)
                 sums[:, start : start + PIXEL_CHUNK, c] = w[..., c] @ block
         return sums
+
+    @property
+    def summed_on(self) -> str:
+        """Where :meth:`relight` has summed the held stack: the torch GPU device, or the host."""
+        return self._on_device[0] if self._on_device is not None and self._on_device[1] is not None else "host (NumPy)"
+
+    def _device_stack(self, device: str | None = None):
+        """The held stack on the GPU the command's torch uses (uploaded once), or None: no GPU, or too little of its
+        memory free (said once; the sum is then NumPy's on the host). ``device``: another torch device (a test's)."""
+        if device is None:
+            from gra_mi.core.runtime import torch_device
+
+            device = torch_device()
+            if not device.startswith("cuda"):
+                return None
+        if self._on_device is None or self._on_device[0] != device:
+            import torch
+
+            if device.startswith("cuda") and self.stack.nbytes > 0.8 * torch.cuda.mem_get_info(torch.device(device))[0]:
+                logger.warning(
+                    "%s: the OLAT stack (%.1f GB) stays on the host: too little GPU memory free", self.camera, self.stack.nbytes / 1e9
+                )
+                self._on_device = (device, None)
+            else:
+                self._on_device = (device, torch.from_numpy(self.stack).to(device))
+        return self._on_device[1]
+
+    def _sum_on_device(self, weights: np.ndarray, stack) -> np.ndarray:
+        """:meth:`_sum_held` on the stack's device: the same products, float16 widened a chunk at a time there."""
+        import torch
+
+        n, p = weights.shape[0], self.pixels.size
+        w = torch.from_numpy((weights * self.scale[None, :, None]).astype(np.float32)).to(stack.device)
+        sums = torch.empty((n, p, 3), dtype=torch.float32, device=stack.device)
+        chunk = p if stack.dtype == torch.float32 else PIXEL_CHUNK
+        for c in range(3):
+            for start in range(0, p, chunk):
+                sums[:, start : start + chunk, c] = w[..., c] @ stack[c, :, start : start + chunk].float()
+        return sums.cpu().numpy()
 
     def _sum_streamed(self, weights: np.ndarray) -> np.ndarray:
         sums = np.zeros((weights.shape[0], self.pixels.size, 3), np.float64)

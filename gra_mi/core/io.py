@@ -330,9 +330,10 @@ def write_png(path: str | Path, image: np.ndarray, exposure: float | None = 1.0)
         iio.imwrite(tmp, to_srgb8(image, exposure), extension=".png")
 
 
-def write_mp4(path: str | Path, frames: Sequence[np.ndarray], fps: float = 24.0, exposure: float = 1.0) -> None:
-    """Write linear frames as an H.264 MP4 preview (sizes padded to even numbers for the codec)."""
-    write_mp4_srgb8(path, (to_srgb8(frame, exposure)[..., :3] for frame in frames), fps)
+def write_mp4(path: str | Path, frames: Sequence[np.ndarray], fps: float = 24.0, exposure: float = 1.0) -> bool:
+    """Write linear frames as an H.264 MP4 preview (sizes padded to even numbers for the codec); False: not made
+    (no ffmpeg, :data:`PREVIEWS_NOT_MADE`)."""
+    return write_mp4_srgb8(path, (to_srgb8(frame, exposure)[..., :3] for frame in frames), fps)
 
 
 # MP4 previews not written because this machine cannot encode them: path → why (a run's report lists them).
@@ -354,11 +355,12 @@ def _ffmpeg_missing(path: Path) -> bool:
     return False
 
 
-def write_mp4_srgb8(path: str | Path, frames, fps: float = 24.0) -> None:
-    """Write 8-bit sRGB frames (H, W, 3), e.g. the PNG previews read back, as an H.264 MP4."""
+def write_mp4_srgb8(path: str | Path, frames, fps: float = 24.0) -> bool:
+    """Write 8-bit sRGB frames (H, W, 3), e.g. the PNG previews read back, as an H.264 MP4; False: not made."""
     with Mp4Stream(path, fps) as stream:
         for rgb in frames:
             stream.append_srgb8(rgb)
+    return stream.made
 
 
 class Mp4Stream:
@@ -382,6 +384,11 @@ class Mp4Stream:
         h, w = rgb.shape[:2]
         if self._writer is not None:
             self._writer.append_data(np.pad(rgb[..., :3], ((0, h % 2), (0, w % 2), (0, 0)), mode="edge"))
+
+    @property
+    def made(self) -> bool:
+        """False where no ffmpeg could be found (nothing is written)."""
+        return self._writer is not None
 
     def __enter__(self) -> Mp4Stream:
         return self

@@ -17,26 +17,37 @@ PAPER_TOTAL = "VAE encoding 140.2, video model 840.3, VAE decoding 145.6; total 
 
 
 def read_run(folder: Path | None) -> dict:
-    """What one check left in its folder; missing parts are empty."""
+    """What one check left in its folder; a part that is missing or unreadable (a run cut short) is empty, and
+    ``unreadable`` names it: the page is written whatever the run left."""
     if folder is None or not folder.is_dir():
         return {}
-    run = {"env": (folder / "env.txt").read_text().strip() if (folder / "env.txt").is_file() else ""}
-    parts = folder / "parts.tsv"
+    run = {"env": _read(folder / "env.txt", str, ""), "unreadable": []}
     run["parts"] = {}
-    for line in parts.read_text().splitlines() if parts.is_file() else []:
-        name, rc, seconds, limit = line.split("\t")
-        run["parts"][name] = {"rc": int(rc), "seconds": int(seconds), "limit": int(limit)}
+    for line in _read(folder / "parts.tsv", str, "").splitlines():
+        try:
+            name, rc, seconds, limit = line.split("\t")
+            run["parts"][name] = {"rc": int(rc), "seconds": int(seconds), "limit": int(limit)}
+        except ValueError:
+            run["unreadable"].append(f"parts.tsv line {line!r}")
     for name in ("demo", "stages"):
-        path = folder / f"{name}.json"
-        run[name] = json.loads(path.read_text()) if path.is_file() else {}
-    run["tests"] = read_junit(folder / "tests.xml")
+        run[name] = _read(folder / f"{name}.json", json.loads, {}, run["unreadable"])
+    run["tests"] = _read(folder / "tests.xml", read_junit, {}, run["unreadable"])
     return run
 
 
-def read_junit(path: Path) -> dict:
+def _read(path: Path, parse, default, unreadable: list | None = None):
     if not path.is_file():
-        return {}
-    root = ElementTree.parse(path).getroot()
+        return default
+    try:
+        return parse(path.read_text(errors="replace"))
+    except (ValueError, ElementTree.ParseError) as error:
+        if unreadable is not None:
+            unreadable.append(f"{path.name} ({error})")
+        return default
+
+
+def read_junit(text: str) -> dict:
+    root = ElementTree.fromstring(text)
     suites = [root] if root.tag == "testsuite" else list(root)
     counts = {key: sum(int(s.get(key, 0)) for s in suites) for key in ("tests", "failures", "errors", "skipped")}
     counts["seconds"] = sum(float(s.get("time", 0)) for s in suites)
@@ -150,6 +161,9 @@ def page(gpu: dict, cpu: dict) -> str:
         "```",
         "",
     ]
+    for who, run in (("GPU", gpu), ("CPU", cpu)):
+        if run.get("unreadable"):
+            lines += [f"{who} run, unreadable (cut short?): {'; '.join(run['unreadable'])}.", ""]
     lines += tests_section(gpu, cpu) + demo_section(gpu, cpu) + stages_section(gpu, cpu)
     return "\n".join(lines).rstrip() + "\n"
 
