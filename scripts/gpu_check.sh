@@ -11,7 +11,8 @@
 #      and, to rehearse the GPU machine's packages here: pack.py --python 3.11 --out /tmp/p311 (trace.txt copied
 #      there first), then bash scripts/gpu_check.sh --cpu --site /tmp/p311/site.tar.xz
 #   3. on the GPU machine:   bash scripts/gpu_check.sh --commit $(git rev-parse --short HEAD)
-#        $OUT/gpu.md (the page) and $OUT/run.tar.gz (test report, logs, the demo's record, stage timings). Through the
+#        $OUT/gpu.md (the page) and $OUT/run.tar.gz (test report, logs, the demo's record, stage timings), nothing
+#        else there (the device tool returns at most 8 files). Through the
 #        device tool: carry [".gpu"], timeout_s 600 (the parts' own limits add up to 510 s); then copy gpu.md to
 #        docs/results/ and commit it.
 #
@@ -51,7 +52,7 @@ if [ "$CPU" = 1 ]; then
         mkdir -p "$REPO/.gpu" && rm -f "$REPO/.gpu"/strace.*.log
     fi
 else
-    PYTHON=${PYTHON:-python3} VARIANT=cuda_ad_rgb RUN=$DEST/run
+    PYTHON=${PYTHON:-python3} VARIANT=cuda_ad_rgb RUN=${TMPDIR:-/tmp}/gpu_check_run  # $OUT gets 2 files only
     export GRA_MI_ASSUME_CUDA=1  # Dr.Jit's own probe decides, not the /dev/nvidia* nodes a sandbox may hide
     [ -z "$COMMIT" ] && ! git rev-parse HEAD >/dev/null 2>&1 && say "no --commit and no .git: the page will say 'commit unknown'"
     [ -z "$SITE" ] && [ -f .gpu/site.tar.xz ] && SITE=.gpu/site.tar.xz
@@ -110,6 +111,6 @@ if [ "$CPU" = 1 ]; then
     [ "$TRACING" = 1 ] && say "files opened: .gpu/trace.txt; next: .venv/bin/python scripts/gpu/pack.py" || say "CPU figures in $RUN"
     exit 0
 fi
-"$PYTHON" scripts/gpu/page.py --run "$RUN" --beside .gpu/cpu --write "$DEST/gpu.md"
+"$PYTHON" scripts/gpu/page.py --run "$RUN" --beside .gpu/cpu --commit "${COMMIT:-unknown}" --write "$DEST/gpu.md"
 tar -czf "$DEST/run.tar.gz" -C "$(dirname "$RUN")" "$(basename "$RUN")"
 say "wrote $DEST/gpu.md and $DEST/run.tar.gz"

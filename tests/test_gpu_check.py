@@ -62,6 +62,7 @@ def _run_folder(folder: Path, *, tests_rc: int, demo_rc: int, stage_ms: float, f
     folder.mkdir()
     (folder / "env.txt").write_text("gpu: NVIDIA H200, 580.159.04, 143771 MiB")
     (folder / "parts.tsv").write_text(f"tests\t{tests_rc}\t60\t240\ndemo\t{demo_rc}\t150\t150\nstages\t0\t30\t120\n")
+    (folder / "demo.log").write_text("INFO lots\n" * 40 + "Traceback: CUDA said no\n")
     bad = '<failure message="AssertionError: 0.2 &gt; 0.1&#10;more">trace</failure>' if failure else ""
     (folder / "tests.xml").write_text(
         f'<testsuites><testsuite tests="3" failures="{int(failure)}" errors="0" skipped="1" time="42.5">'
@@ -93,6 +94,7 @@ def test_the_page_puts_each_gpu_figure_beside_the_cpus_and_says_what_failed(tmp_
     assert "| microfacet per frame (the two above) | 50.0 | 500.0 | 10.0× | 404.6 |" in text, "beside the paper's H100 row"
     assert "| viewer | failed: RuntimeError: boom | 5000.0 | — |" in text
     assert "GPU, not made (no usd-core (pip install usd-core)): 1 file(s), `avatar.usdz`." in text
+    assert "### The end of `demo.log` (stopped at its 150 s limit)" in text and "Traceback: CUDA said no" in text
     assert page.page(page.read_run(tmp_path / "absent"), {}).count("not run") >= 1, "a run that left nothing says so"
     (gpu / "tests.xml").write_text('<testsuites><testsuite tests="3"')  # a run killed while writing
     (gpu / "stages.json").write_text('{"stamp": ')

@@ -10,9 +10,11 @@ from __future__ import annotations
 import argparse
 import json
 import xml.etree.ElementTree as ElementTree
+from datetime import date
 from pathlib import Path
 
 PAPER_H100_MS = {"microfacet": 404.6, "relightnet": 25.4}  # Supp. "Runtime": per frame at 1024×540
+LOG_LINES = 15  # of a failed part's log, on the page
 PAPER_TOTAL = "VAE encoding 140.2, video model 840.3, VAE decoding 145.6; total 1556.2 ms per frame"
 
 
@@ -21,7 +23,7 @@ def read_run(folder: Path | None) -> dict:
     ``unreadable`` names it: the page is written whatever the run left."""
     if folder is None or not folder.is_dir():
         return {}
-    run = {"env": _read(folder / "env.txt", str, ""), "unreadable": []}
+    run = {"env": _read(folder / "env.txt", str, ""), "unreadable": [], "logs": {}}
     run["parts"] = {}
     for line in _read(folder / "parts.tsv", str, "").splitlines():
         try:
@@ -29,6 +31,9 @@ def read_run(folder: Path | None) -> dict:
             run["parts"][name] = {"rc": int(rc), "seconds": int(seconds), "limit": int(limit)}
         except ValueError:
             run["unreadable"].append(f"parts.tsv line {line!r}")
+            continue
+        if run["parts"][name]["rc"] != 0:  # what it said last: the page carries the error, not only the archive
+            run["logs"][name] = _read(folder / f"{name}.log", str, "").rstrip().splitlines()[-LOG_LINES:]
     for name in ("demo", "stages"):
         run[name] = _read(folder / f"{name}.json", json.loads, {}, run["unreadable"])
     run["tests"] = _read(folder / "tests.xml", read_junit, {}, run["unreadable"])
@@ -125,6 +130,13 @@ def stages_section(gpu: dict, cpu: dict) -> list[str]:
     return lines + ["", f"The paper's other rows (no gra-mi stage is timed against them here): {PAPER_TOTAL}.", ""]
 
 
+def failed_logs(gpu: dict) -> list[str]:
+    lines = []
+    for name, tail in gpu.get("logs", {}).items():
+        lines += [f"### The end of `{name}.log` ({part_said(gpu, name)})", "", "```", *tail, "```", ""]
+    return (["## What the failed parts said", ""] + lines) if lines else []
+
+
 def part_said(run: dict, name: str) -> str:
     part = run.get("parts", {}).get(name)
     if part is None:
@@ -148,8 +160,8 @@ def ratio(cpu, gpu) -> str:
     return "—" if not cpu or not gpu else f"{cpu / gpu:.1f}×"
 
 
-def page(gpu: dict, cpu: dict) -> str:
-    stamp = (gpu.get("stages") or {}).get("stamp") or "no stamp (the stage benchmark did not run)"
+def page(gpu: dict, cpu: dict, commit: str = "unknown") -> str:
+    stamp = (gpu.get("stages") or {}).get("stamp") or f"commit {commit}, {date.today().isoformat()} (the stage benchmark did not run)"
     cpu_stamp = (cpu.get("stages") or {}).get("stamp") or "no CPU run beside it"
     lines = [
         "# Results: on a GPU",
@@ -164,7 +176,7 @@ def page(gpu: dict, cpu: dict) -> str:
     for who, run in (("GPU", gpu), ("CPU", cpu)):
         if run.get("unreadable"):
             lines += [f"{who} run, unreadable (cut short?): {'; '.join(run['unreadable'])}.", ""]
-    lines += tests_section(gpu, cpu) + demo_section(gpu, cpu) + stages_section(gpu, cpu)
+    lines += tests_section(gpu, cpu) + demo_section(gpu, cpu) + stages_section(gpu, cpu) + failed_logs(gpu)
     return "\n".join(lines).rstrip() + "\n"
 
 
@@ -172,9 +184,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--run", type=Path, required=True, help="The GPU check's run folder (scripts/gpu_check.sh).")
     parser.add_argument("--beside", type=Path, default=None, help="The CPU check's run folder (bash scripts/gpu_check.sh --cpu).")
+    parser.add_argument("--commit", default="unknown", help="The commit the GPU run was of (for a run whose stamp is missing).")
     parser.add_argument("--write", type=Path, default=None, help="Write the page here (else print it).")
     args = parser.parse_args()
-    text = page(read_run(args.run), read_run(args.beside))
+    text = page(read_run(args.run), read_run(args.beside), args.commit)
     if args.write is None:
         print(text)
     else:
