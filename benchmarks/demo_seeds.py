@@ -207,7 +207,8 @@ def markdown(runs: list[dict], run: Path, stamp: str, regions: dict) -> list[str
     return [
         "# Results: the demo's RelightNet over training seeds",
         "",
-        f"> `benchmarks/demo_seeds.py`, {stamp}; the demo run's capture and fit, RelightNet retrained with each seed ({len(seeds)} seeds).",
+        f"> `benchmarks/demo_seeds.py`, {stamp}; the demo run's capture and fit, RelightNet retrained with each seed ({len(seeds)} seeds); "
+        f"every render with {run_transport(run).label}.",
         "",
         f"Held-out cameras under the held-out lighting sequence (`gra-mi eval`), at {said['resolution'][0]}×{said['resolution'][1]}, "
         f"the subject {min(t[0] for t in tall)}–{max(t[1] for t in tall)} pixels tall. Mean ± spread (max − min) / 2 over the seeds; "
