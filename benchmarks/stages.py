@@ -189,16 +189,20 @@ def measure(run: BenchmarkRun) -> str:
     args, work = run.args, run.work
     require_positive({"repeats": args.repeats})
     ls = walk_scene(work / "walk")
-    rows = []
-    rows += guarded("one bounce", lambda: one_bounce(ls, args.repeats))
-    rows += guarded("two bounces", lambda: two_bounces(ls, args.repeats))
-    rows += guarded("material fit", lambda: fit_per_view(ls, args.repeats))
-    rows += guarded("RelightNet", lambda: relightnet(args.repeats))
-    rows += guarded("reflectance field", lambda: reflectance_field(args.repeats))
-    rows += guarded("viewer", lambda: viewer(work, args.repeats))
-    record = {"stamp": run.stamp(f"anny walk, UV {UV}², {IMAGE[0]}×{IMAGE[1]}"), "device": device_said(run.variant), "stages": rows}
-    if args.json is not None:
-        args.json.write_text(json.dumps(record, indent=1))
+    stages = {
+        "one bounce": lambda: one_bounce(ls, args.repeats),
+        "two bounces": lambda: two_bounces(ls, args.repeats),
+        "material fit": lambda: fit_per_view(ls, args.repeats),
+        "RelightNet": lambda: relightnet(args.repeats),
+        "reflectance field": lambda: reflectance_field(args.repeats),
+        "viewer": lambda: viewer(work, args.repeats),
+    }
+    record = {"stamp": run.stamp(f"anny walk, UV {UV}², {IMAGE[0]}×{IMAGE[1]}"), "device": device_said(run.variant), "stages": []}
+    for name, stage in stages.items():
+        record["stages"] += guarded(name, stage)
+        if args.json is not None:  # after each stage: a run stopped at its time limit keeps what it measured
+            args.json.write_text(json.dumps(record, indent=1))
+    rows = record["stages"]
     table = [(r["stage"], cell(r), r.get("note", "")) for r in rows]
     return table_page(f"Stage speed — {record['device']}", "stages.py", record["stamp"], table, columns=("stage", "ms", "note"))
 

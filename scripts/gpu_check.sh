@@ -57,8 +57,8 @@ else
     [ -z "$COMMIT" ] && ! git rev-parse HEAD >/dev/null 2>&1 && say "no --commit and no .git: the page will say 'commit unknown'"
     [ -z "$SITE" ] && [ -f .gpu/site.tar.xz ] && SITE=.gpu/site.tar.xz
 fi
-if [ -e "$RUN" ] && [ ! -e "$RUN/.gpu_check_run" ]; then  # --out / must not empty /run
-    say "$RUN exists and is not a run folder this script made: choose another --out"; exit 2
+if [ -e "$RUN" ] && [ ! -e "$RUN/.gpu_check_run" ]; then  # a folder this script did not make is never emptied
+    say "$RUN exists and is not a run folder this script made: move it away"; exit 2
 fi
 rm -rf "$RUN" && mkdir -p "$RUN" "$DEST" && touch "$RUN/.gpu_check_run" || exit 1
 if [ -n "$SITE" ]; then
