@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gra_mi.apps.harness import BenchmarkRun, run_benchmark, table_page, timed
+from gra_mi.apps.harness import BenchmarkRun, envmap_drives, run_benchmark, table_page, timed
 
 
 def relative_rmse(image: np.ndarray, reference: np.ndarray, mask: np.ndarray) -> float:
@@ -103,15 +103,12 @@ def relight_rows(ls, relighter, stage, frame: int, geom, repeats: int) -> tuple[
     from gra_mi.render.leds import LedLayout
     from gra_mi.render.rasterize import rasterize_to_camera
     from gra_mi.render.shading import shade_texels
-    from gra_mi.stage.envmap import envmap_to_leds
-    from gra_mi.stage.envmap_library import envmap_from_seed
     from gra_mi.stage.lightstage import olat_pattern
 
     rows = []
     width, height = stage.cameras[0].width, stage.cameras[0].height
     relighter.visibility(frame)
-    envs = [envmap_from_seed(s, 64)[0] for s in range(3)]
-    intensities = [envmap_to_leds(e, stage).radiant_intensity(stage) for e in envs]
+    intensities = envmap_drives(stage)
     cam = stage.cameras[0]
     counter = iter(range(10**6))
 

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gra_mi.apps.harness import BenchmarkRun, run_benchmark, table_page, timed
+from gra_mi.apps.harness import BenchmarkRun, envmap_drives, relightnet_calls, run_benchmark, table_page, timed
 
 UV = 512
 IMAGE = (1024, 540)
@@ -42,13 +42,6 @@ def walk_scene(folder: Path):
 
     stage = default_lightstage(width=IMAGE[0], height=IMAGE[1])
     return LightstageScene.load(rig_scene(folder, anny_sequence(["walk"], frames_per_clip=FRAMES), stage), spp=1)
-
-
-def envmap_drives(stage, count: int = 3) -> list[np.ndarray]:
-    from gra_mi.stage.envmap import envmap_to_leds
-    from gra_mi.stage.envmap_library import envmap_from_seed
-
-    return [envmap_to_leds(envmap_from_seed(s, 64)[0], stage).radiant_intensity(stage) for s in range(count)]
 
 
 def one_bounce(ls, repeats: int) -> list[dict]:
@@ -118,27 +111,10 @@ def relightnet(repeats: int) -> list[dict]:
     import torch
 
     from gra_mi.relightnet.model import RelightNet, RelightNetConfig
-    from gra_mi.render.bridge import IN_CHANNELS, sample_texture
 
     device = "cuda" if torch.cuda.is_available() else "cpu"
     model = RelightNet(RelightNetConfig(resolution=UV)).to(device).eval()
-    x, mask = torch.rand(1, IN_CHANNELS, UV, UV, device=device), torch.ones(1, 1, UV, UV, device=device)
-    env = torch.rand(1, 3, 16, 32, device=device)
-    grid = torch.rand(1, IMAGE[1], IMAGE[0], 2, device=device) * 2 - 1
-    target = torch.rand(1, 3, IMAGE[1], IMAGE[0], device=device)
-    optimizer = torch.optim.AdamW(model.parameters(), lr=1e-3)
-
-    def forward():
-        with torch.inference_mode():
-            model(x, env, mask)
-
-    def step():
-        model.train()
-        optimizer.zero_grad(set_to_none=True)
-        (sample_texture(model(x, env, mask), grid) - target).abs().mean().backward()
-        optimizer.step()
-        model.eval()
-
+    forward, step = relightnet_calls(model, UV, IMAGE, device)
     t_forward, _ = timed(forward, repeats, warmup=True)
     t_step, _ = timed(step, repeats, warmup=True)
     note = f"torch {device}, {sum(p.numel() for p in model.parameters()) / 1e6:.2f} M parameters"

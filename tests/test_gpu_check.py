@@ -169,3 +169,29 @@ def test_the_tiny_demo_without_ffmpeg_and_usd_core_completes_naming_what_it_did_
     assert (out / "avatar.glb").is_file(), "what needs neither is made"
     assert "**Not made on this machine:**" in (out / "report.md").read_text()
     assert "not made: avatar.usdz" in done.stderr
+
+
+def test_the_check_refuses_bad_options_and_never_empties_a_folder_it_did_not_make(tmp_path):
+    script = REPO / "scripts" / "gpu_check.sh"
+    run = lambda *args, **env: subprocess.run(
+        ["bash", str(script), *args], capture_output=True, text=True, env={**os.environ, **env}, timeout=60
+    )  # noqa: E731
+    bad = run("--bogus")
+    assert bad.returncode == 2 and "unknown option --bogus" in bad.stderr
+    theirs = tmp_path / "gpu_check_run"  # where a GPU run keeps its parts (under TMPDIR)
+    theirs.mkdir()
+    (theirs / "keep.txt").write_text("a user's file")
+    refused = run("--commit", "abc1234", TMPDIR=str(tmp_path))
+    assert refused.returncode == 2 and "not a run folder this script made" in refused.stderr
+    assert (theirs / "keep.txt").read_text() == "a user's file"
+
+
+def test_the_stage_benchmark_and_the_packer_refuse_what_they_cannot_use(tmp_path):
+    stages = subprocess.run(
+        [sys.executable, str(REPO / "benchmarks" / "stages.py"), "--repeats", "0"], capture_output=True, text=True, timeout=300
+    )
+    assert stages.returncode != 0 and "repeats: must be a finite number > 0, got 0" in stages.stderr
+    packer = subprocess.run(
+        [sys.executable, str(REPO / "scripts" / "gpu" / "pack.py"), "--out", str(tmp_path)], capture_output=True, text=True, timeout=60
+    )
+    assert packer.returncode != 0 and "trace.txt is missing" in packer.stderr and not (tmp_path / "site.tar.xz").exists()

@@ -90,6 +90,42 @@ def walking_scene(folder: Path, frames: int, num_cameras: int = 1) -> Path:
     return write_scene_file(folder / "scene.xml", folder / "rig", folder / "subject")
 
 
+def envmap_drives(stage, count: int = 3) -> list:
+    """LED radiant intensities (L, 3) of ``count`` seeded environment maps on ``stage``: the new lightings a cached
+    view is timed under (one per call, so nothing after the lighting is reused)."""
+    from gra_mi.stage.envmap import envmap_to_leds
+    from gra_mi.stage.envmap_library import envmap_from_seed
+
+    return [envmap_to_leds(envmap_from_seed(s, 64)[0], stage).radiant_intensity(stage) for s in range(count)]
+
+
+def relightnet_calls(model, resolution: int, image: tuple[int, int], device: str) -> tuple[Callable, Callable]:
+    """(forward, training step) of ``model`` on random inputs at ``resolution``² UV, the step's output rasterised into
+    ``image`` (W, H) and compared by L1, then AdamW: what the RelightNet timings measure."""
+    import torch
+
+    from gra_mi.render.bridge import IN_CHANNELS, sample_texture
+
+    x, mask = torch.rand(1, IN_CHANNELS, resolution, resolution, device=device), torch.ones(1, 1, resolution, resolution, device=device)
+    env = torch.rand(1, 3, 16, 32, device=device)
+    grid = torch.rand(1, image[1], image[0], 2, device=device) * 2 - 1
+    target = torch.rand(1, 3, image[1], image[0], device=device)
+    optimizer = torch.optim.AdamW(model.parameters(), lr=1e-3)
+
+    def forward():
+        with torch.inference_mode():
+            model(x, env, mask)
+
+    def step():
+        model.train()
+        optimizer.zero_grad(set_to_none=True)
+        (sample_texture(model(x, env, mask), grid) - target).abs().mean().backward()
+        optimizer.step()
+        model.eval()
+
+    return forward, step
+
+
 @dataclass
 class BenchmarkRun:
     args: argparse.Namespace
