@@ -173,9 +173,10 @@ def test_the_tiny_demo_without_ffmpeg_and_usd_core_completes_naming_what_it_did_
 
 def test_the_check_refuses_bad_options_and_never_empties_a_folder_it_did_not_make(tmp_path):
     script = REPO / "scripts" / "gpu_check.sh"
-    run = lambda *args, **env: subprocess.run(
-        ["bash", str(script), *args], capture_output=True, text=True, env={**os.environ, **env}, timeout=60
-    )  # noqa: E731
+
+    def run(*args, **env):
+        return subprocess.run(["bash", str(script), *args], capture_output=True, text=True, env={**os.environ, **env}, timeout=60)
+
     bad = run("--bogus")
     assert bad.returncode == 2 and "unknown option --bogus" in bad.stderr
     theirs = tmp_path / "gpu_check_run"  # where a GPU run keeps its parts (under TMPDIR)

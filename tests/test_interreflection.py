@@ -140,6 +140,32 @@ def test_operator_cache_on_disk_is_reused_and_bad_files_are_traced_again(tiny, t
     np.testing.assert_array_equal(relighters(tiny, 64, bounces=(2,), cache_dir=tmp_path)[2].render(2, 1, leds).image, image)
 
 
+def test_led_loop_in_the_sources_order_gives_each_ray_its_own_light(tiny):
+    """The bounce's LED loop runs over the rays sorted by the texel they hit (Relighter.light_toward_receivers, through
+    BounceOperator.by_source) and hands each ray its light back in the operator's order: the same as the loop run
+    lane by lane in that order, under a pattern of few LEDs (packed bits) and every LED on."""
+    import mitsuba as mi
+
+    from gra_mi.render.shading import TexelLedLoop, led_cell_roughness
+    from gra_mi.render.transport import BOUNCE_LEDS
+
+    rel = relighters(tiny, 64, bounces=(2,))[2]
+    op, geom = rel.bounce_operator(2), rel.geometry(2)
+    assert op.entries > 0 and np.any(np.diff(op.sources.astype(np.int64)) < 0)  # the operator's order is not the loop's
+    few = np.zeros((tiny.stage.num_leds, 3))
+    few[:: max(tiny.stage.num_leds // 5, 1)] = 0.7
+    for leds in (few, uniform_pattern(tiny.stage, 0.5)):
+        got = rel.light_toward_receivers(2, op, leds, [], [], False)
+        fewer = rel.leds(False).brightest(leds, BOUNCE_LEDS)  # as the bounce reduces the lighting
+        rough = rel.roughness if np.array_equal(fewer, leds) else led_cell_roughness(rel.roughness, BOUNCE_LEDS)
+        loop = TexelLedLoop.build(geom, rel.visibility(2, False), op.sources, rel.leds(False), fewer, op.toward_receivers())
+        want = loop.run(mi.Float(rough[op.sources].astype(np.float32)))
+        for a, b in zip(got, want, strict=True):
+            a, b = np.array(a), np.array(b)
+            assert b.max() > 0
+            np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6 * b.max())
+
+
 def test_smoothing_averages_noise_on_the_surface_and_nothing_across_it(tiny):
     """The received light's average over the surface (atlas.SurfaceFilter): a constant stays itself, independent
     noise shrinks (a 3 × 3 window: to under a third of its variance), no weight reaches a texel far in space or

@@ -169,6 +169,31 @@ def test_leds_that_are_on_packed_per_lane_sum_to_every_led_on(tiny):
         np.testing.assert_array_equal(np.array(once.visibility), np.array(per_lane.visibility))
 
 
+def test_led_loop_outputs_come_back_evaluated_together(tiny):
+    """Each output of a Dr.Jit loop evaluated on its own (a NumPy read, the fit's backward pass) runs the whole loop
+    again: TexelLedLoop.run evaluates them at once, held or not (``hold``), with or without the derivative, and the
+    un-held loop (a bounce's, run once) gives the held one's values."""
+    import drjit as dr
+    import mitsuba as mi
+
+    from gra_mi.render.relighter import Relighter
+    from gra_mi.render.shading import TexelLedLoop
+
+    relighter = Relighter(tiny, resolution=64)
+    lanes = np.random.default_rng(2).permutation(relighter.atlas.num_texels)[:300]
+    geom, vis, leds = relighter.geometry(2), relighter.visibility(2, False), relighter.leds(False)
+    intensity = uniform_pattern(tiny.stage, 0.5)
+    rough = mi.Float(relighter.roughness[lanes].astype(np.float32))
+    held, lazy = (TexelLedLoop.build(geom, vis, lanes, leds, intensity, tiny.stage.camera(0).position, hold=h) for h in (True, False))
+    for loop in (held, lazy):
+        for derivative in (False, True):
+            parts = loop.run(rough, roughness_derivative=derivative)
+            assert len(parts) == 2 + derivative
+            assert all(c.state == dr.VarState.Evaluated for part in parts for c in part)
+    for a, b in zip(held.run(rough, True), lazy.run(rough, True), strict=True):
+        np.testing.assert_allclose(np.array(a), np.array(b), rtol=1e-6, atol=1e-9)
+
+
 def test_uv_render_agrees_with_image_space_render(tiny, tmp_path):
     import mitsuba as mi
 

@@ -43,7 +43,7 @@ GOLDEN = 0.6180339887498949
 @dataclass
 class BounceOperator:
     """The sparse operator P of one frame's geometry: one entry per ray that hit the body (misses are not stored),
-    sorted by the texel whose ray it is."""
+    sorted by the texel whose ray it is (each texel's sum then adds its rays in one order: the same image every run)."""
 
     receivers: np.ndarray  # (E,) uint32: the texel whose ray it is
     sources: np.ndarray  # (E,) uint32: the texel the ray hit
@@ -115,14 +115,20 @@ class BounceOperator:
         """Per entry: the direction from the source texel back to the receiver (world)."""
         return -self.device()[2]
 
-    def distinct_sources(self) -> tuple[mi.UInt32, mi.UInt32]:
-        """(the distinct source texels, each entry's index among them) as Dr.Jit arrays: rays share sources (about five
-        a source on a body), so what depends on the source alone is computed once per texel (kept with the operator,
-        uploaded once per variant)."""
-        if getattr(self, "_distinct", (None,))[0] != mi.variant():
-            texels, index = np.unique(self.sources, return_inverse=True)
-            self._distinct = (mi.variant(), mi.UInt32(texels.astype(np.uint32)), mi.UInt32(index.astype(np.uint32)))
-        return self._distinct[1:]
+    def by_source(self) -> tuple[np.ndarray, mi.Vector3f, tuple[mi.UInt32, mi.UInt32], mi.UInt32]:
+        """The entries ordered by the texel their rays hit, for the LED loop over the sources: neighbouring lanes then
+        walk the same LEDs and read neighbouring memory (about 1.5× faster than in the operator's order). Returns (the
+        sources, the directions toward the receivers, (the distinct sources, each entry's index among them), where
+        each entry of the operator went), kept with the operator and uploaded once per variant."""
+        if getattr(self, "_by_source", (None,))[0] != mi.variant():
+            order = np.argsort(self.sources, kind="stable")
+            where = np.empty(len(order), np.uint32)
+            where[order] = np.arange(len(order), dtype=np.uint32)
+            texels, index = np.unique(self.sources[order], return_inverse=True)
+            toward = mi.Vector3f(*np.ascontiguousarray(-self.direction[order].T))
+            distinct = (mi.UInt32(texels.astype(np.uint32)), mi.UInt32(index.astype(np.uint32)))
+            self._by_source = (mi.variant(), self.sources[order], toward, distinct, mi.UInt32(where))
+        return self._by_source[1:]
 
     def sources_of(self, texels: np.ndarray) -> np.ndarray:
         """The texels whose light reaches ``texels`` in one bounce (sorted)."""
@@ -252,6 +258,9 @@ def light_along_rays(op: BounceOperator, geom: TexelGeometry, albedo: mi.Color3f
     _, s, d = op.device()
     source_albedo = dr.gather(mi.Color3f, albedo, s)
     light = source_albedo * first[0] + first[1]
+    # Held, not left lazy: the scatters and gathers that read it (gather_diffuse, the smoothing, a later bounce) would
+    # each compute it inside their own kernels.
+    dr.eval(light)
     if bounces > 2:
         # T(cosθy) toward the receiver, times the source's albedo: how a source's own indirect light leaves toward x.
         toward = source_albedo * brdf.diffuse_transmission(-dr.dot(d, dr.gather(mi.Vector3f, geom.normal, s)))
@@ -259,6 +268,7 @@ def light_along_rays(op: BounceOperator, geom: TexelGeometry, albedo: mi.Color3f
         for _ in range(bounces - 2):
             term = toward * dr.gather(mi.Color3f, op.gather_diffuse(geom, term), s)
             light += term
+            dr.eval(term, light)
     return light
 
 

@@ -215,10 +215,13 @@ class Relighter:
             fewer = leds.brightest(led_intensities, BOUNCE_LEDS)
             # Fewer LEDs stand for the lighting: a lobe narrower than their spacing would reflect points, not it.
             reduced = not np.array_equal(fewer, led_intensities)
-            rough = led_cell_roughness(self.roughness[sources], BOUNCE_LEDS) if reduced else self.roughness[sources]
+            rough = led_cell_roughness(self.roughness, BOUNCE_LEDS) if reduced else self.roughness
             vis = self.visibility(frame, far_field)
-            loop = TexelLedLoop.build(geom, vis, sources, leds, fewer, toward, distinct=op.distinct_sources())
-            diffuse, spec = loop.run(mi.Float(np.asarray(rough, np.float32)))
+            lanes, toward_lanes, distinct, where = op.by_source()
+            loop = TexelLedLoop.build(geom, vis, lanes, leds, fewer, toward_lanes, distinct=distinct, hold=False)
+            texels, index = distinct
+            diffuse, spec = loop.run(dr.gather(mi.Float, dr.gather(mi.Float, mi.Float(np.asarray(rough, np.float32)), texels), index))
+            diffuse, spec = dr.gather(mi.Color3f, diffuse, where), dr.gather(mi.Color3f, spec, where)  # back in the entries' order
         if lights:
             s = mi.UInt32(sources)
             at_sources = TexelGeometry(*(dr.gather(type(a), a, s) for a in (geom.position, geom.normal, geom.geo_normal)), "")

@@ -111,12 +111,14 @@ class TexelLedLoop:
         camera_position,
         indirect: tuple[np.ndarray, np.ndarray] | None = None,
         distinct: tuple[np.ndarray, np.ndarray] | None = None,
+        hold: bool = True,
     ) -> TexelLedLoop:
         """The loop of ``texels`` (repeats allowed) seen from ``camera_position`` (any viewer :func:`local_view`
         takes). ``indirect``: the light after the first bounce, held fixed, as ((M, 3) what each texel's diffuse layer
         takes in, as :func:`shade_texels` takes it; (M, 3) the specular light it sends toward this viewer).
         ``distinct``: ``np.unique(texels, return_inverse=True)`` as two ``mi.UInt32`` when texels repeat (the rays of a
-        bounce share their sources): the visibility is then packed once per texel, not per lane."""
+        bounce share their sources): the visibility is then packed once per texel, not per lane. ``hold``: the gathered
+        inputs are evaluated once, for a loop run many times (a fit); False for one run, which gathers them itself."""
         m = dr.width(geom.position)
         on, led_pos, led_int = led_loop_inputs(leds, led_intensities)
         t = mi.UInt32(np.asarray(texels, np.uint32))
@@ -128,7 +130,8 @@ class TexelLedLoop:
             diffuse_in, specular = (mi.Color3f(*np.asarray(x, np.float32).T) for x in indirect)
             extra = (indirect_toward(wi, dr.gather(mi.Color3f, diffuse_in, t)), dr.gather(mi.Color3f, specular, t))
         words, vis = lane_visibility(visibility, m, t, on, leds.num_leds, distinct)
-        dr.eval(position, frame, wi, vis, extra)
+        if hold:
+            dr.eval(position, frame, wi, vis, extra)
         return cls(int(len(texels)), words, vis, led_pos, led_int, position, frame, wi, leds.far_field, extra)
 
     def run(self, roughness: mi.Float, roughness_derivative: bool = False):
@@ -140,6 +143,8 @@ class TexelLedLoop:
                 self.count, self.words, self.visibility, self.led_pos, self.led_int, self.position, self.frame, self.wi,
                 roughness, self.far_field, roughness_derivative,
             )  # fmt: skip
+            # Together: each output of a loop evaluated on its own (a NumPy read, an AD pass) runs the whole loop again.
+            dr.eval(*parts)
         if self.indirect is None:
             return parts
         return (parts[0] + self.indirect[0], parts[1] + self.indirect[1], *parts[2:])
