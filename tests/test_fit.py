@@ -350,3 +350,32 @@ def test_maps_at_another_resolution_are_scored_against_the_resampled_truth(onebo
     record = json.loads((tmp_path / "fit" / "fit.json").read_text())
     assert record["resolution"] == 16 and record["metrics"]["albedo_rel_median"] < 0.5
     assert (tmp_path / "fit" / "maps_vs_truth.png").is_file()
+
+
+def test_the_roughness_grid_in_one_walk_equals_one_value_at_a_time(onebounce_capture):
+    """MaterialFitter.grid_parts walks each view's LEDs once for every candidate roughness (the closed form's grid);
+    each candidate's specular part must equal :meth:`parts` at that value everywhere, and the diffuse part parts' own.
+    Also with every LED off (an all-zero lighting), and for a view with no texel."""
+    from gra_mi.capture.dataset import Capture
+    from gra_mi.fit.materials import FitConfig, MaterialFitter, View
+
+    fitter = MaterialFitter(Capture.load(onebounce_capture), FitConfig())
+    views = fitter.gather_views(progress_bar=False)
+    grid = np.linspace(0.0, 1.0, 5)
+    m = fitter.atlas.num_texels
+    for view in views[:2]:
+        texels = fitter.observation(view)[0]
+        d, specs = fitter.grid_parts(view, grid, texels)
+        assert len(specs) == len(grid) and d.shape == (texels.size, 3)
+        for r, s in zip(grid, specs, strict=True):
+            d_one, s_one = fitter.parts(view, np.full(m, r, np.float32), texels)
+            np.testing.assert_allclose(d, d_one, rtol=1e-6, atol=1e-9)
+            np.testing.assert_allclose(s, s_one, rtol=1e-5, atol=1e-7 * max(s_one.max(), 1e-6))
+        assert np.ptp([s.sum() for s in specs]) > 0  # the candidates differ
+    fitter._loops.clear()
+    fitter._lighting = {k: np.zeros_like(v) for k, v in fitter._lighting.items()}
+    d, specs = fitter.grid_parts(views[0], grid, fitter.observation(views[0])[0])
+    assert not d.any() and not any(s.any() for s in specs)
+    empty = View(views[0].frame, views[0].pose, views[0].camera, 0)
+    d, specs = fitter.grid_parts(empty, grid, np.zeros(0, np.int64))
+    assert d.shape == (0, 3) and len(specs) == len(grid)

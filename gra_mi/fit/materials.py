@@ -293,11 +293,28 @@ class MaterialFitter:
         texels are shaded; their LED-loop inputs are gathered once per view (streamed: kept for the last view only)."""
         import mitsuba as mi
 
-        from gra_mi.render.shading import TexelLedLoop
-
         if view.count == 0:
             return np.zeros((0, 3)), np.zeros((0, 3))
         texels = self.observation(view)[0] if texels is None else texels
+        diffuse, spec = self._loop(view, texels).run(mi.Float(np.asarray(roughness, np.float32)[texels]))
+        return columns(diffuse), columns(spec)
+
+    def grid_parts(self, view: View, candidates: np.ndarray, texels: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
+        """(D, [S for each candidate roughness]) at the view's ``texels``: every texel at each candidate value, from one
+        walk over the LEDs (:meth:`parts` for one value at a time, its result for each)."""
+        import drjit as dr
+        import mitsuba as mi
+
+        if view.count == 0:
+            return np.zeros((0, 3)), [np.zeros((0, 3)) for _ in candidates]
+        # opaque: the candidates are kernel inputs, not literals (one kernel for every grid, float32 as parts' values)
+        diffuse, specs = self._loop(view, texels).run(tuple(dr.opaque(mi.Float, float(np.float32(r))) for r in candidates))
+        return columns(diffuse), [columns(s) for s in specs]
+
+    def _loop(self, view: View, texels: np.ndarray):
+        """The view's LED loop over ``texels``: its inputs gathered once (streamed: kept for the last view only)."""
+        from gra_mi.render.shading import TexelLedLoop
+
         key = (view.frame, view.camera)
         if key not in self._loops:
             if self.streamed:
@@ -306,8 +323,7 @@ class MaterialFitter:
                 self.relighter.geometry(view.pose), self.relighter.visibility(view.pose, False), texels, self.relighter.leds(False),
                 self._lighting[view.frame], self.stage.camera(view.camera).position, self.frozen_indirect(view.frame, view.pose, view.camera),
             )  # fmt: skip
-        diffuse, spec = self._loops[key].run(mi.Float(np.asarray(roughness, np.float32)[texels]))
-        return columns(diffuse), columns(spec)
+        return self._loops[key]
 
     # ----------------------------------------------------------------------------------------------------------
 
@@ -474,8 +490,8 @@ class MaterialFitter:
         for v in progress(views, description="roughness grid"):  # view by view: a streamed fit reads each once
             texels, o = self.observation(v)
             o = o.astype(np.float64)
-            for g, r in enumerate(grid):
-                d, s = self.parts(v, np.full(m, r, np.float32), texels)
+            d, specs = self.grid_parts(v, grid, texels)
+            for g, s in enumerate(specs):
                 if g == 0:
                     np.add.at(s_dd, texels, d * d)
                     np.add.at(s_do, texels, d * o)

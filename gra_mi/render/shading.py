@@ -134,10 +134,14 @@ class TexelLedLoop:
             dr.eval(position, frame, wi, vis, extra)
         return cls(int(len(texels)), words, vis, led_pos, led_int, position, frame, wi, leds.far_field, extra)
 
-    def run(self, roughness: mi.Float, roughness_derivative: bool = False):
-        """(diffuse per unit albedo, specular) per texel of the subset, and ∂ specular / ∂ roughness if asked."""
+    def run(self, roughness: mi.Float | tuple, roughness_derivative: bool = False):
+        """(diffuse per unit albedo, specular) per texel of the subset, and ∂ specular / ∂ roughness if asked.
+        ``roughness`` as a tuple (a fit's candidate values): the specular part as a tuple, one per value, from one walk
+        over the LEDs."""
+        grid = isinstance(roughness, tuple)
         if self.words == 0:  # every LED off
-            parts = (dr.zeros(mi.Color3f, self.count),) * (3 if roughness_derivative else 2)
+            zero = dr.zeros(mi.Color3f, self.count)
+            parts = (zero, (zero,) * len(roughness) if grid else zero) + ((zero,) if roughness_derivative else ())
         else:
             parts = _led_sum(
                 self.count, self.words, self.visibility, self.led_pos, self.led_int, self.position, self.frame, self.wi,
@@ -147,7 +151,8 @@ class TexelLedLoop:
             dr.eval(*parts)
         if self.indirect is None:
             return parts
-        return (parts[0] + self.indirect[0], parts[1] + self.indirect[1], *parts[2:])
+        spec = tuple(x + self.indirect[1] for x in parts[1]) if grid else parts[1] + self.indirect[1]
+        return (parts[0] + self.indirect[0], spec, *parts[2:])
 
 
 def led_cell_roughness(roughness: np.ndarray, num_leds: int) -> np.ndarray:
@@ -240,14 +245,19 @@ def _led_sum(m, words, visibility, led_pos, led_int, p, frame, wi, roughness, fa
 
     Each lane loops over its own visible LEDs only (about a fifth of them on a body), instead of all LEDs masked.
     Returns (diffuse per unit albedo, specular), and ∂ specular / ∂ roughness with ``roughness_derivative``.
+    ``roughness`` as a tuple (of scalars or per-lane values): the specular part for each, as a tuple, from one walk
+    over the LEDs (the diffuse part does not depend on it).
     """
     t = dr.arange(mi.UInt32, m)  # texel index
     # The texel count as a kernel input, not a literal: a fit's views and a culled frame each have their own count,
     # and a literal would compile (and keep in memory) one LED-loop kernel per count.
     stride = dr.opaque(mi.UInt32, m)
-    material = brdf.PreparedBRDF(mi.Color3f(1.0), roughness, wi)  # per-texel terms hoisted out of the loop
+    grid = isinstance(roughness, tuple)
+    # per-texel terms hoisted out of the loop, one material per roughness
+    materials = [brdf.PreparedBRDF(mi.Color3f(1.0), r, wi) for r in (roughness if grid else (roughness,))]
+    material = materials[0]
     diffuse = mi.Color3f(0.0)  # Σ diffuse part per unit albedo (the model is linear in albedo)
-    spec = mi.Color3f(0.0)  # Σ specular part
+    specs = [mi.Color3f(0.0) for _ in materials]  # Σ specular part, per roughness
     dspec = mi.Color3f(0.0)  # Σ ∂ specular / ∂ roughness (stays 0 unless asked for)
     n_words = mi.UInt32(words)
     # Texels the camera sees from below their horizon reflect nothing toward it (the BRDF is zero there): they skip the
@@ -279,5 +289,6 @@ def _led_sum(m, words, visibility, led_pos, led_int, p, frame, wi, roughness, fa
             else:
                 d_part, s_part = material.eval_parts(wo)
             diffuse += d_part * weight
-            spec += s_part * weight
+            specs = [specs[0] + s_part * weight] + [specs[k] + materials[k].eval_parts(wo)[1] * weight for k in range(1, len(specs))]
+    spec = tuple(specs) if grid else specs[0]
     return (diffuse, spec, dspec) if roughness_derivative else (diffuse, spec)
