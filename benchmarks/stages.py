@@ -6,7 +6,8 @@ The walking anny body in the default 331-LED rig at UV 512², one camera at the 
 - one bounce: a new frame (mesh update, texel geometry, visibility of every texel × LED), then the view of that
   cached frame under a new envmap (texel shading, rasterisation): the paper's "microfacet" row;
 - two bounces: the texel-to-texel operator traced for a new frame, and a cached view;
-- the material fit per view: the LED loop of the texels a camera sees built, then a step's shading of them;
+- the material fit per view: the LED loop of the texels a camera sees built, then a step's shading of them, and the
+  closed form's 11 roughness candidates in one walk over the LEDs beside one walk per candidate;
 - RelightNet's forward pass at 512² and one training step (rasterised into 1024×540);
 - the reflectance-field sum per lighting at HumanOLAT's half size (405×720, 331 OLATs, a random stack);
 - the viewer's server render of a lighting change (512×288).
@@ -25,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gra_mi.apps.harness import BenchmarkRun, envmap_drives, relightnet_calls, run_benchmark, table_page, timed
+from gra_mi.apps.harness import BenchmarkRun, envmap_drives, relightnet_calls, run_benchmark, side_by_side, table_page, timed
 
 UV = 512
 IMAGE = (1024, 540)
@@ -100,10 +101,17 @@ def fit_per_view(ls, repeats: int) -> list[dict]:
         lambda: step(TexelLedLoop.build(geom, visibility, texels, relighter.leds(), lighting, camera.position)), repeats, warmup=True
     )
     t_step, _ = timed(lambda: step(loop), repeats, warmup=True)
+    # The closed form's roughness grid (FitConfig's 11 candidates): one walk over the LEDs for all, or one per value.
+    grid = np.linspace(0.0, 1.0, 11)
+    together = tuple(dr.opaque(mi.Float, float(r)) for r in grid)
+    each = [mi.Float(np.full(texels.size, r, np.float32)) for r in grid]
+    grid_ms = side_by_side({"one walk": lambda: dr.eval(loop.run(together)), "each": lambda: [dr.eval(loop.run(r)) for r in each]}, repeats)
     note = f"{texels.size} texels seen by one camera"
     return [
         {"stage": "material fit, per view: first step (its LED loop built)", "ms": 1e3 * t_build, "note": note},
         {"stage": "material fit, per view: a step's shading (new roughness)", "ms": 1e3 * t_step, "note": note},
+        {"stage": "closed-form fit, per view: 11 roughness candidates in one walk", "ms": 1e3 * grid_ms["one walk"], "note": note},
+        {"stage": "closed-form fit, per view: the same, one walk per candidate", "ms": 1e3 * grid_ms["each"], "note": "side by side"},
     ]
 
 
