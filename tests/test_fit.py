@@ -376,6 +376,8 @@ def test_the_roughness_grid_in_one_walk_equals_one_value_at_a_time(onebounce_cap
     fitter._lighting = {k: np.zeros_like(v) for k, v in fitter._lighting.items()}
     d, specs = fitter.grid_parts(views[0], grid, fitter.observation(views[0])[0])
     assert not d.any() and not any(s.any() for s in specs)
+    with pytest.raises(ValueError, match="derivative"):
+        fitter._loop(views[1], fitter.observation(views[1])[0]).run(tuple(grid), roughness_derivative=True)
     empty = View(views[0].frame, views[0].pose, views[0].camera, 0)
     d, specs = fitter.grid_parts(empty, grid, np.zeros(0, np.int64))
     assert d.shape == (0, 3) and len(specs) == len(grid)

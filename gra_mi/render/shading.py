@@ -137,8 +137,10 @@ class TexelLedLoop:
     def run(self, roughness: mi.Float | tuple, roughness_derivative: bool = False):
         """(diffuse per unit albedo, specular) per texel of the subset, and ∂ specular / ∂ roughness if asked.
         ``roughness`` as a tuple (a fit's candidate values): the specular part as a tuple, one per value, from one walk
-        over the LEDs."""
+        over the LEDs (no derivative then)."""
         grid = isinstance(roughness, tuple)
+        if grid and roughness_derivative:
+            raise ValueError("the roughness derivative is for one roughness per texel, not a tuple of candidates")
         if self.words == 0:  # every LED off
             zero = dr.zeros(mi.Color3f, self.count)
             parts = (zero, (zero,) * len(roughness) if grid else zero) + ((zero,) if roughness_derivative else ())
