@@ -83,6 +83,7 @@ def fit_per_view(ls, repeats: int) -> list[dict]:
     import drjit as dr
     import mitsuba as mi
 
+    from gra_mi.fit.materials import FitConfig
     from gra_mi.render.relighter import Relighter
     from gra_mi.render.shading import TexelLedLoop
     from gra_mi.render.visibility import texels_seen_by
@@ -101,8 +102,8 @@ def fit_per_view(ls, repeats: int) -> list[dict]:
         lambda: step(TexelLedLoop.build(geom, visibility, texels, relighter.leds(), lighting, camera.position)), repeats, warmup=True
     )
     t_step, _ = timed(lambda: step(loop), repeats, warmup=True)
-    # The closed form's roughness grid (FitConfig's 11 candidates): one walk over the LEDs for all, or one per value.
-    grid = np.linspace(0.0, 1.0, 11)
+    # The closed form's roughness grid (FitConfig's candidates): one walk over the LEDs for all, or one per value.
+    grid = np.linspace(0.0, 1.0, FitConfig().roughness_candidates)
     together = tuple(dr.opaque(mi.Float, float(r)) for r in grid)
     each = [mi.Float(np.full(texels.size, r, np.float32)) for r in grid]
     grid_ms = side_by_side({"one walk": lambda: dr.eval(loop.run(together)), "each": lambda: [dr.eval(loop.run(r)) for r in each]}, repeats)
@@ -110,7 +111,11 @@ def fit_per_view(ls, repeats: int) -> list[dict]:
     return [
         {"stage": "material fit, per view: first step (its LED loop built)", "ms": 1e3 * t_build, "note": note},
         {"stage": "material fit, per view: a step's shading (new roughness)", "ms": 1e3 * t_step, "note": note},
-        {"stage": "closed-form fit, per view: 11 roughness candidates in one walk", "ms": 1e3 * grid_ms["one walk"], "note": note},
+        {
+            "stage": f"closed-form fit, per view: {grid.size} roughness candidates in one walk",
+            "ms": 1e3 * grid_ms["one walk"],
+            "note": note,
+        },
         {"stage": "closed-form fit, per view: the same, one walk per candidate", "ms": 1e3 * grid_ms["each"], "note": "side by side"},
     ]
 

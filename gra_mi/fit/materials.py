@@ -491,11 +491,10 @@ class MaterialFitter:
             texels, o = self.observation(v)
             o = o.astype(np.float64)
             d, specs = self.grid_parts(v, grid, texels)
+            np.add.at(s_dd, texels, d * d)
+            np.add.at(s_do, texels, d * o)
+            np.add.at(s_oo, texels, o * o)
             for g, s in enumerate(specs):
-                if g == 0:
-                    np.add.at(s_dd, texels, d * d)
-                    np.add.at(s_do, texels, d * o)
-                    np.add.at(s_oo, texels, o * o)
                 np.add.at(s_ds[g], texels, d * s)
                 np.add.at(s_ss[g], texels, s * s)
                 np.add.at(s_os[g], texels, o * s)
