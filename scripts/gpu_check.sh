@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The GPU check: what a GPU user runs, on a machine with an NVIDIA GPU, in one run of about eight minutes —
 # the CUDA variant of every variant-parametrised test, the tiny demo end to end (cuda_ad_rgb, torch on CUDA), and
-# benchmarks/stages.py — and the page docs/results/gpu.md with this machine's CPU figures beside.
+# benchmarks/stages.py, benchmarks/fit_step.py on the demo's capture — and the page docs/results/gpu.md with this machine's CPU figures beside.
 #
 #   1. here (CPU, ~3 min each):  bash scripts/gpu_check.sh --cpu;  bash scripts/gpu_check.sh --cpu --trace
 #        the same check on llvm_ad_rgb: .gpu/cpu/ (the CPU column); then again under strace, untimed:
@@ -100,6 +100,7 @@ XDIST=()
 part tests 240 "$PYTHON" -m pytest -q -p no:cacheprovider -m "not slow" -k "$VARIANT" "${XDIST[@]}" --junitxml="$RUN/tests.xml" -rfE tests
 part demo 150 "$PYTHON" -m gra_mi.cli demo --preset tiny --variant "$VARIANT" --out "$RUN/demo" --overwrite
 cp "$RUN/demo/demo.json" "$RUN/demo.json" 2>/dev/null
+part fit_step 45 "$PYTHON" benchmarks/fit_step.py --variant "$VARIANT" --capture "$RUN/demo/capture" --repeats 3 --write "$RUN/fit_step.md"
 part stages 120 "$PYTHON" benchmarks/stages.py --variant "$VARIANT" --json "$RUN/stages.json"
 rm -rf "$RUN/demo"
 

@@ -114,8 +114,8 @@ def test_pixel_footprints_predict_the_images(onebounce_capture):
     capture = Capture.load(onebounce_capture)
     fitter = MaterialFitter(capture, FitConfig())
     batches = optimize.build_batches(fitter, 0.0, progress_bar=False)
-    assert batches and all(b.pixels > 0 for b in batches)
-    for b in batches:
+    assert len(batches) and all(pixels > 0 for pixels in batches.pixels)
+    for b in batches.in_batches():
         ones = np.array(b.to_pixels(mi.Color3f(np.ones((3, b.count), np.float32))))
         np.testing.assert_allclose(ones, 1.0, atol=1e-5)
     true_albedo = fitter.atlas.gather(read_exr(onebounce_capture / "gt" / "albedo.exr")[..., :3])
@@ -381,3 +381,17 @@ def test_the_roughness_grid_in_one_walk_equals_one_value_at_a_time(onebounce_cap
     empty = View(views[0].frame, views[0].pose, views[0].camera, 0)
     d, specs = fitter.grid_parts(empty, grid, np.zeros(0, np.int64))
     assert d.shape == (0, 3) and len(specs) == len(grid)
+
+
+def test_unique_runs_is_numpys_unique():
+    # The footprints' duplicate entries are summed through unique_runs (a stable sort of sorted runs): the same keys
+    # and inverse as np.unique, so the weights add up in the same order, bit for bit.
+    from gra_mi.fit.optimize import unique_runs
+
+    rng = np.random.default_rng(5)
+    runs = np.concatenate([np.sort(rng.integers(0, 500, 300)) for _ in range(4)])
+    for values in (runs, rng.integers(0, 7, 50), np.array([3]), np.zeros(0, np.int64), np.full(9, 4)):
+        keys, inverse = unique_runs(values)
+        expected_keys, expected_inverse = np.unique(values, return_inverse=True)
+        np.testing.assert_array_equal(keys, expected_keys)
+        np.testing.assert_array_equal(inverse, expected_inverse)

@@ -80,6 +80,10 @@ def _run_folder(folder: Path, *, tests_rc: int, demo_rc: int, stage_ms: float, f
         "not_made": {"avatar.usdz": "no usd-core (pip install usd-core)"} if failure else {},
     }
     (folder / "demo.json").write_text(json.dumps(demo))
+    if not failure:  # the GPU run below never got to the fit step
+        (folder / "fit_step.md").write_text(
+            f"# A page\n\nsome words\n\n| views shaded | ms per step |\n|---|---|\n| joined | {stage_ms} |\n"
+        )
     return folder
 
 
@@ -95,6 +99,7 @@ def test_the_page_puts_each_gpu_figure_beside_the_cpus_and_says_what_failed(tmp_
     assert "| viewer | failed: RuntimeError: boom | 5000.0 | — |" in text
     assert "GPU, not made (no usd-core (pip install usd-core)): 1 file(s), `avatar.usdz`." in text
     assert "### The end of `demo.log` (stopped at its 150 s limit)" in text and "Traceback: CUDA said no" in text
+    assert "GPU: no table (not run)." in text and "CPU:\n\n| views shaded | ms per step |\n|---|---|\n| joined | 500.0 |" in text
     assert page.page(page.read_run(tmp_path / "absent"), {}).count("not run") >= 1, "a run that left nothing says so"
     (gpu / "tests.xml").write_text('<testsuites><testsuite tests="3"')  # a run killed while writing
     (gpu / "stages.json").write_text('{"stamp": ')

@@ -194,6 +194,39 @@ def test_led_loop_outputs_come_back_evaluated_together(tiny):
         np.testing.assert_allclose(np.array(a), np.array(b), rtol=1e-6, atol=1e-9)
 
 
+def test_joined_led_loops_give_each_loop_its_own_values(tiny):
+    """A fit's step joins its views' loops into one kernel (TexelLedLoop.concat): each lane must walk its own loop's
+    LEDs (its frame's visibility, its lighting: every LED, a pattern, one OLAT, none; its own light after the first
+    bounce) and get, bit for bit, what its own loop gives; joined loops join again."""
+    import mitsuba as mi
+
+    from gra_mi.render.relighter import Relighter
+    from gra_mi.render.shading import TexelLedLoop
+
+    relighter = Relighter(tiny, resolution=64)
+    rng = np.random.default_rng(3)
+    n, m = tiny.stage.num_leds, relighter.atlas.num_texels
+    intensity = rng.uniform(0.5, 2.0, (n, 3))
+    olat, pattern = np.zeros((n, 3)), intensity * (rng.uniform(size=n) < 0.5)[:, None]
+    olat[7] = 3.0
+    cases = [(0, 0, intensity, None), (2, 1, pattern, None), (1, 2, olat, (rng.uniform(size=(m, 3)), rng.uniform(size=(m, 3)))),
+             (2, 0, np.zeros((n, 3)), None), (0, 1, intensity * 0.5, None)]  # fmt: skip
+    loops, roughness = [], []
+    for frame, cam, lighting, indirect in cases:
+        lanes = rng.choice(m, int(rng.integers(50, 400)))
+        geom, vis = relighter.geometry(frame), relighter.visibility(frame, False)
+        loops.append(TexelLedLoop.build(geom, vis, lanes, relighter.leds(False), lighting, tiny.stage.camera(cam).position, indirect))
+        roughness.append(rng.uniform(0.05, 0.9, lanes.size).astype(np.float32))
+    own = [[np.array(x) for x in loop.run(mi.Float(r), roughness_derivative=True)] for loop, r in zip(loops, roughness, strict=True)]
+    joined = TexelLedLoop.concat([TexelLedLoop.concat(loops[:2]), TexelLedLoop.concat(loops[2:])])
+    together = [np.array(x) for x in joined.run(mi.Float(np.concatenate(roughness)), roughness_derivative=True)]
+    starts = np.cumsum([0] + [loop.count for loop in loops])
+    for k, parts in enumerate(own):
+        for part, whole in zip(parts, together, strict=True):
+            np.testing.assert_array_equal(whole[:, starts[k] : starts[k + 1]], part)
+    assert any(np.abs(part).max() > 0 for part in own[2]) and all(np.abs(part).max() == 0 for part in own[3][1:])
+
+
 def test_uv_render_agrees_with_image_space_render(tiny, tmp_path):
     import mitsuba as mi
 

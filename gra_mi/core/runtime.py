@@ -197,3 +197,26 @@ def opaque(kind, values):
     values = [float(v) for v in (values if hasattr(values, "__len__") else [values])]
     scalars = [dr.opaque(mi.Float, v) for v in values]
     return scalars[0] if kind is mi.Float else kind(*scalars)
+
+
+def concat(kind, arrays: list):
+    """One array of ``kind`` (``mi.Float``, ``mi.UInt32``, a vector or a struct of them: ``mi.Point3f``, ``mi.Frame3f``) holding ``arrays``
+    one after another, without leaving the device.
+
+    ``drjit.concat`` writes each piece at a literal offset: one kernel (an LLVM compile) per piece. Here the offset is
+    a kernel input, so joining hundreds of a fit's views compiles one kernel per type.
+    """
+    import drjit as dr
+    import mitsuba as mi
+
+    if len(arrays) == 1:
+        return arrays[0]
+    out = dr.empty(kind, sum(dr.width(a) for a in arrays))
+    start = 0
+    for a in arrays:
+        n = dr.width(a)
+        if n:
+            dr.scatter(out, a, dr.arange(mi.UInt32, n) + dr.opaque(mi.UInt32, start))
+        start += n
+    dr.eval(out)
+    return out

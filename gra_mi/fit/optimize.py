@@ -18,7 +18,9 @@
 - Dr.Jit's Adam (``drjit.opt.Adam``, its moments checkpointed so that a resumed run ends where an uninterrupted one
   does), with the learning rate decaying to a tenth; full batch (every view each step, all held in memory), or
   minibatches of views read from scratch files with their gradients accumulated (:mod:`gra_mi.fit.views`), whose
-  memory does not grow with the capture.
+  memory does not grow with the capture;
+- a step's views are joined (:meth:`ViewBatch.join`, :meth:`~gra_mi.render.shading.TexelLedLoop.concat`): one LED
+  loop, one footprint average and one backward pass for up to :data:`BATCH_ENTRIES` entries, not one per view.
 """
 
 from __future__ import annotations
@@ -36,7 +38,7 @@ from gra_mi.capture.dataset import load_fit_observation
 from gra_mi.core.errors import GraMiInputError
 from gra_mi.core.io import atomic_path, read_checkpoint_npz
 from gra_mi.core.progress import progress
-from gra_mi.core.runtime import columns, opaque
+from gra_mi.core.runtime import columns, concat, opaque
 from gra_mi.fit.views import batch_at, curve_sample
 from gra_mi.render.shading import TexelLedLoop
 
@@ -44,32 +46,74 @@ FILL_STRENGTH = 0.1  # harmonic fill: highlight texels (confidence 1) move littl
 HIGHLIGHT_CHANGE = 0.05  # an observation is a highlight if roughness ± 0.1 changes it by at least 5 %
 FOOTPRINT_SAMPLES = 4  # 4 × 4 sub-pixel rays per pixel: the capture's box pixel filter
 CURVE_VIEWS = 32  # a streamed fit measures its convergence curve on this many evenly spaced views
+# Footprint entries per joined batch of views: one LED-loop kernel shades them all (one per view was dominated by
+# launches and host work), and the memory of a step's AD graph stays bounded (a few hundred MB).
+BATCH_ENTRIES = 1 << 23
 
 
 @dataclass
 class ViewBatch:
-    """One training view: its fully covered pixels, the texels they see, and everything that stays fixed while the
-    maps change. A pixel's prediction is its footprint's average of texel radiance (``entry_*``: which texel, which
-    pixel, what weight), as the camera integrates it; comparing pixels with single texels instead blurs highlights
-    on curved parts (a pixel spans up to ~25° of normal on an arm at 256 × 135) into wrong roughness."""
+    """Training views shaded together: their fully covered pixels, the texels they see, and everything that stays
+    fixed while the maps change. A pixel's prediction is its footprint's average of texel radiance (``entry_*``:
+    which lane, which pixel, what weight), as the camera integrates it; comparing pixels with single texels instead
+    blurs highlights on curved parts (a pixel spans up to ~25° of normal on an arm at 256 × 135) into wrong
+    roughness. One view's batch is built from its footprints; a step's views are joined (:meth:`join`) so that one
+    LED-loop kernel shades them all: lanes, pixels and entries one view after another."""
 
-    name: str
-    count: int  # texels (lanes of the LED loop)
+    names: list[str]  # the views, in order
+    count: int  # lanes of the LED loop (each view's texels)
     texels: mi.UInt32  # (count,) valid-texel index of each lane
     pixels: int
     observed: mi.Color3f  # (pixels,)
-    weight: float  # 1 / mean observed radiance
+    pixel_weight: mi.Float  # (pixels,) its view's weight: 1 / the view's mean observed radiance
+    view_lanes: np.ndarray  # (views,) lanes of each view
+    view_pixels: np.ndarray  # (views,) pixels of each view
+    weights: np.ndarray  # (views,) each view's weight
     entry_lane: mi.UInt32
     entry_pixel: mi.UInt32
     entry_weight: mi.Float
     loop: TexelLedLoop
 
+    @classmethod
+    def join(cls, parts: list[ViewBatch]) -> ViewBatch:
+        """The views of ``parts`` as one batch (their lanes, pixels and entries one after another)."""
+        if len(parts) == 1:
+            return parts[0]
+        lane_start = np.cumsum([0] + [b.count for b in parts[:-1]])
+        pixel_start = np.cumsum([0] + [b.pixels for b in parts[:-1]])
+
+        def shifted(name: str, starts) -> mi.UInt32:
+            return concat(mi.UInt32, [getattr(b, name) + dr.opaque(mi.UInt32, int(s)) for b, s in zip(parts, starts, strict=True)])
+
+        def joined(name: str):
+            return concat(type(getattr(parts[0], name)), [getattr(b, name) for b in parts])
+
+        batch = cls(
+            [n for b in parts for n in b.names], int(sum(b.count for b in parts)), joined("texels"), int(sum(b.pixels for b in parts)),
+            joined("observed"), joined("pixel_weight"), *(np.concatenate([getattr(b, k) for b in parts]) for k in ("view_lanes", "view_pixels", "weights")),
+            shifted("entry_lane", lane_start), shifted("entry_pixel", pixel_start), joined("entry_weight"),
+            TexelLedLoop.concat([b.loop for b in parts]),
+        )  # fmt: skip
+        return batch
+
+    @property
+    def entries(self) -> int:
+        return dr.width(self.entry_lane)
+
+    def lane_weights(self) -> np.ndarray:
+        """(count,) each lane's view weight."""
+        return np.repeat(self.weights, self.view_lanes)
+
+    def per_view(self, pixel_values: np.ndarray) -> list[np.ndarray]:
+        """(pixels, ...) values split into each view's."""
+        return np.split(pixel_values, np.cumsum(self.view_pixels)[:-1])
+
     def shade(self, roughness: mi.Float) -> tuple[mi.Color3f, mi.Color3f, mi.Color3f]:
-        """(D per unit albedo, S, ∂S/∂r) at this view's texels for their roughness: one LED loop."""
+        """(D per unit albedo, S, ∂S/∂r) at the batch's lanes for their roughness: one LED loop."""
         return self.loop.run(roughness, roughness_derivative=True)
 
     def to_pixels(self, radiance: mi.Color3f) -> mi.Color3f:
-        """Texel radiance (count,) → the pixels' footprint averages (pixels,)."""
+        """Lane radiance (count,) → the pixels' footprint averages (pixels,)."""
         value = dr.gather(mi.Color3f, radiance, self.entry_lane) * self.entry_weight
         out = dr.zeros(mi.Color3f, self.pixels)
         dr.scatter_reduce(dr.ReduceOp.Add, out, value, self.entry_pixel)
@@ -114,10 +158,23 @@ def pixel_footprints(ls, camera, atlas, alpha: np.ndarray, samples: int = FOOTPR
         use = ok & (sample_pixel >= 0) & (w > 0)
         entries.append((sample_pixel[use], texel[use], (w / np.maximum(total, 1e-12))[use] / (samples * samples)))
     pix, tex, wgt = (np.concatenate([e[k] for e in entries]) for k in range(3))
-    key, inverse = np.unique(pix * atlas.num_texels + tex, return_inverse=True)
+    key, inverse = unique_runs(pix * atlas.num_texels + tex)
     summed = np.bincount(inverse, weights=wgt)
     flat_pixels = (ys * alpha.shape[1] + xs)[keep_pixels]
     return flat_pixels, (key // atlas.num_texels, key % atlas.num_texels, summed)
+
+
+def unique_runs(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(values, return_inverse=True)`` for values made of sorted runs (a footprint's entries: four corners,
+    each in pixel order): a stable sort merges the runs about three times faster than ``np.unique``'s quicksort."""
+    order = np.argsort(values, kind="stable")
+    ordered = values[order]
+    first = np.empty(ordered.size, bool)
+    first[:1] = True
+    np.not_equal(ordered[1:], ordered[:-1], out=first[1:])
+    inverse = np.empty(values.size, np.int64)
+    inverse[order] = np.cumsum(first) - 1
+    return ordered[first], inverse
 
 
 def view_footprints(fitter, frame_index: int, pose: int, cam_name: str, min_view_cos: float) -> dict[str, np.ndarray] | None:
@@ -156,16 +213,17 @@ class ViewKey:
 
 
 class TrainingViews:
-    """The Adam stage's training views, in the capture's frame-major order. Held: each :class:`ViewBatch` built once
-    and kept (full batch; fastest on a small capture). Streamed (``store`` on disk): each view's footprint arrays
-    written once, and its batch rebuilt from them (and the frame's cached visibility) whenever it is used, so memory
-    holds the views of one step, not all."""
+    """The Adam stage's training views, in the capture's frame-major order. Held: the views built once and kept,
+    joined into batches of about :data:`BATCH_ENTRIES` (full batch; fastest on a small capture). Streamed (``store``
+    on disk): each view's footprint arrays written once, and the views a step uses rebuilt from them (and their
+    frames' cached visibility) and joined, so memory holds the views of one step, not all."""
 
     def __init__(self, fitter, min_view_cos: float = 0.0, store=None, progress_bar: bool = True):
         self.fitter, self.store = fitter, store
         self.keys: list[ViewKey] = []
         self.pixels: list[int] = []
         self._held: list[ViewBatch] = []
+        pending: list[ViewBatch] = []
         jobs = [(f.frame, f.mesh_frame, cam) for f in fitter.train for cam in fitter.train_cameras]
         for frame, pose, cam in progress(jobs, description="pixel footprints") if progress_bar else jobs:
             arrays = view_footprints(fitter, frame, pose, cam, min_view_cos)
@@ -176,8 +234,13 @@ class TrainingViews:
             self.pixels.append(int(arrays["observed"].shape[0]))
             if self.streamed:
                 store.put(f"footprints:{key.name}", **arrays)
-            else:
-                self._held.append(self._build(key, arrays))
+                continue
+            pending.append(self._build(key, arrays))
+            if sum(b.entries for b in pending) >= BATCH_ENTRIES:
+                self._held.append(ViewBatch.join(pending))
+                pending = []
+        if pending:
+            self._held.append(ViewBatch.join(pending))
 
     @property
     def streamed(self) -> bool:
@@ -194,14 +257,26 @@ class TrainingViews:
     def __len__(self) -> int:
         return len(self.keys)
 
-    def __getitem__(self, k: int) -> ViewBatch:
+    def in_batches(self, views: np.ndarray | None = None):
+        """The :class:`ViewBatch` es that shade ``views`` (indices, default all), in order. Held views are shaded all
+        together; a subset (a minibatch) needs them streamed."""
+        views = np.arange(len(self)) if views is None else np.asarray(views, np.int64)
         if not self.streamed:
-            return self._held[k]
-        key = self.keys[k]
-        return self._build(key, self.store.get(f"footprints:{key.name}"))
+            if not np.array_equal(views, np.arange(len(self))):
+                raise ValueError("held training views are shaded all together (full batch); minibatches need them streamed")
+            return iter(self._held)
+        return self._streamed_batches(views)
 
-    def __iter__(self):
-        return (self[k] for k in range(len(self)))
+    def _streamed_batches(self, views: np.ndarray):
+        pending: list[ViewBatch] = []
+        for k in views:
+            key = self.keys[int(k)]
+            pending.append(self._build(key, self.store.get(f"footprints:{key.name}")))
+            if sum(b.entries for b in pending) >= BATCH_ENTRIES:
+                yield ViewBatch.join(pending)
+                pending = []
+        if pending:
+            yield ViewBatch.join(pending)
 
     def _build(self, key: ViewKey, a: dict[str, np.ndarray]) -> ViewBatch:
         f = self.fitter
@@ -209,9 +284,11 @@ class TrainingViews:
             f.relighter.geometry(key.pose), f.relighter.visibility(key.pose, False), a["lanes"], f.relighter.leds(False),
             f._lighting[key.frame], f.stage.camera(key.camera).position, f.frozen_indirect(key.frame, key.pose, key.camera),
         )  # fmt: skip
+        pixels, weight = int(a["observed"].shape[0]), float(a["weight"])
         return ViewBatch(
-            key.name, loop.count, mi.UInt32(a["lanes"]), int(a["observed"].shape[0]), mi.Color3f(*a["observed"].T),
-            float(a["weight"]), mi.UInt32(a["entry_lane"]), mi.UInt32(a["entry_pixel"]), mi.Float(a["entry_weight"]), loop,
+            [key.name], loop.count, mi.UInt32(a["lanes"]), pixels, mi.Color3f(*a["observed"].T), dr.full(mi.Float, weight, pixels),
+            np.array([loop.count]), np.array([pixels]), np.array([weight]),
+            mi.UInt32(a["entry_lane"]), mi.UInt32(a["entry_pixel"]), mi.Float(a["entry_weight"]), loop,
         )  # fmt: skip
 
 
@@ -232,10 +309,9 @@ def image_l1(batches: TrainingViews, albedo: np.ndarray, roughness: np.ndarray, 
     a, r = mi.Color3f(*np.asarray(albedo, np.float32).T), mi.Float(np.asarray(roughness, np.float32))
     views = np.arange(len(batches)) if views is None else views
     total = 0.0
-    for k in views:
-        b = batches[int(k)]
+    for b in batches.in_batches(views):
         residual = np.abs(columns(_predict(b, a, r) - b.observed))
-        total += float(residual.sum()) * b.weight
+        total += sum(float(part.sum()) * w for part, w in zip(b.per_view(residual), b.weights, strict=True))
     return total / (3.0 * max(sum(batches.pixels[int(k)] for k in views), 1))
 
 
@@ -247,7 +323,10 @@ def curve_views(batches: TrainingViews) -> np.ndarray:
 def view_l1(batches: TrainingViews, albedo: np.ndarray, roughness: np.ndarray) -> list[float]:
     """Mean absolute L1 over each view's pixels (radiance units)."""
     a, r = mi.Color3f(*np.asarray(albedo, np.float32).T), mi.Float(np.asarray(roughness, np.float32))
-    return [float(np.abs(columns(_predict(b, a, r) - b.observed)).mean()) for b in batches]
+    out = []
+    for b in batches.in_batches():
+        out += [float(part.mean()) for part in b.per_view(np.abs(columns(_predict(b, a, r) - b.observed)))]
+    return out
 
 
 @dataclass
@@ -265,7 +344,7 @@ def gather_evidence(batches: TrainingViews, albedo: np.ndarray, roughness: np.nd
     m = roughness.shape[0]
     views, highlights, information = np.zeros(m), np.zeros(m), np.zeros(m)
     a_all, r_all = mi.Color3f(*albedo.T.astype(np.float32)), mi.Float(roughness.astype(np.float32))
-    for b in batches:
+    for b in batches.in_batches():
         diffuse, spec, dspec = b.shade(dr.gather(mi.Float, r_all, b.texels))
         pred = dr.gather(mi.Color3f, a_all, b.texels) * diffuse + spec
         pred, dspec = columns(pred), columns(dspec)
@@ -273,7 +352,7 @@ def gather_evidence(batches: TrainingViews, albedo: np.ndarray, roughness: np.nd
         change = 0.1 * np.abs(dspec).mean(axis=1) / np.maximum(pred.mean(axis=1), 1e-8)
         np.add.at(views, texels, 1)
         np.add.at(highlights, texels, change >= HIGHLIGHT_CHANGE)
-        np.add.at(information, texels, np.sum(np.square(b.weight * dspec), axis=1))
+        np.add.at(information, texels, np.sum(np.square(b.lane_weights()[:, None] * dspec), axis=1))
     return Evidence(views, highlights, information)
 
 
@@ -342,6 +421,8 @@ class MapOptimizer:
     view's graph is alive at a time: the paper's gradient accumulation, with a step's views as its batch."""
 
     def __init__(self, batches: TrainingViews, graph, observed, has_highlight, settings: OptimizeSettings, held_roughness=None):
+        if 0 < settings.batch_views < len(batches) and not batches.streamed:
+            raise ValueError(f"minibatches of {settings.batch_views} views need the training views streamed (a store on disk)")
         self.batches, self.settings, self.observed, self.has_highlight = batches, settings, observed, has_highlight
         self.anchors = has_highlight if held_roughness is None else has_highlight | held_roughness
         self.n_obs = batches.n_obs
@@ -377,8 +458,7 @@ class MapOptimizer:
         share = len(self.batches) / max(len(views), 1) if with_grad else 1.0
         pixels = self.n_obs if with_grad else sum(self.batches.pixels[k] for k in views)
         total = 0.0
-        for k in views:
-            b = self.batches[int(k)]
+        for b in self.batches.in_batches(views):
             r_t = dr.gather(mi.Float, r, b.texels)
             diffuse, spec, dspec = b.shade(dr.detach(r_t))
             # S(r) to first order around the current roughness: the value S, the derivative ∂S/∂r (the LED loop's
@@ -386,8 +466,8 @@ class MapOptimizer:
             gate = dr.gather(mi.Float, self.gate_all, b.texels)
             radiance = dr.gather(mi.Color3f, a, b.texels) * diffuse + spec + dspec * (gate * (r_t - dr.detach(r_t)))
             residual = dr.abs(b.to_pixels(radiance) - b.observed)
-            # the view's weight as a kernel input: as a literal it would compile a new kernel for every view
-            term = dr.sum(residual.x + residual.y + residual.z) * opaque(mi.Float, b.weight * share / (3.0 * pixels))
+            # the scale as a kernel input: as a literal it would compile a new kernel for every batch
+            term = dr.sum((residual.x + residual.y + residual.z) * b.pixel_weight) * opaque(mi.Float, share / (3.0 * pixels))
             if with_grad:
                 dr.backward(term)
             total += float(dr.detach(term)[0])

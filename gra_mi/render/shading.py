@@ -11,7 +11,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from gra_mi.core.runtime import opaque
+from gra_mi.core.runtime import concat, opaque
 from gra_mi.render import brdf
 from gra_mi.render.atlas import TexelGeometry
 from gra_mi.render.leds import LedLayout
@@ -99,6 +99,7 @@ class TexelLedLoop:
     wi: mi.Vector3f
     far_field: bool = False
     indirect: tuple | None = None  # per lane: (diffuse per unit albedo, specular) of the light after the first bounce
+    led_base: mi.UInt32 | None = None  # per lane, where its LEDs start in led_pos / led_int (loops joined by concat)
 
     @classmethod
     def build(
@@ -134,6 +135,47 @@ class TexelLedLoop:
             dr.eval(position, frame, wi, vis, extra)
         return cls(int(len(texels)), words, vis, led_pos, led_int, position, frame, wi, leds.far_field, extra)
 
+    @classmethod
+    def concat(cls, loops: list[TexelLedLoop]) -> TexelLedLoop:
+        """One loop over the lanes of ``loops`` (a fit step's views: their own texels, cameras and lightings), each
+        lane walking its own loop's LEDs: one kernel where there were ``len(loops)``, whose launches and host work
+        dominated a step on small views. Lane i of loop k is lane (Σ counts before k) + i; each lane's values are
+        those its own loop computes."""
+        if len(loops) == 1:
+            return loops[0]
+        if len({loop.far_field for loop in loops}) > 1:
+            raise ValueError("loops of far-field and near-field LEDs cannot be joined")
+        counts = np.array([loop.count for loop in loops], np.int64)
+        total, words = int(counts.sum()), max(loop.words for loop in loops)
+        visibility = dr.zeros(mi.UInt32, words * total)
+        start = 0
+        for loop, count in zip(loops, counts, strict=True):  # word-major: word w of lane i at w * total + i
+            if loop.words:
+                j = dr.arange(mi.UInt32, loop.words * int(count))
+                w = j // dr.opaque(mi.UInt32, int(count))
+                lane = j - w * dr.opaque(mi.UInt32, int(count))
+                dr.scatter(visibility, loop.visibility, w * dr.opaque(mi.UInt32, total) + lane + dr.opaque(mi.UInt32, start))
+            start += int(count)
+        led_counts = [dr.width(loop.led_int) if loop.words else 0 for loop in loops]
+        led_starts = np.cumsum([0] + led_counts[:-1]).astype(np.uint32)
+        base = mi.UInt32(np.repeat(led_starts, counts))
+        if any(loop.led_base is not None for loop in loops):
+            base += concat(mi.UInt32, [dr.zeros(mi.UInt32, loop.count) if loop.led_base is None else loop.led_base for loop in loops])
+        dr.eval(visibility, base)
+        with_leds = [loop for loop in loops if loop.words] or loops[:1]
+        indirect = None
+        if any(loop.indirect is not None for loop in loops):
+            zero = [(dr.zeros(mi.Color3f, loop.count),) * 2 if loop.indirect is None else loop.indirect for loop in loops]
+            indirect = tuple(concat(mi.Color3f, [z[k] for z in zero]) for k in range(2))
+
+        def joined(name: str, among=loops):
+            return concat(type(getattr(loops[0], name)), [getattr(loop, name) for loop in among])
+
+        return cls(
+            total, words, visibility, joined("led_pos", with_leds), joined("led_int", with_leds), joined("position"),
+            joined("frame"), joined("wi"), loops[0].far_field, indirect, base,
+        )  # fmt: skip
+
     def run(self, roughness: mi.Float | tuple, roughness_derivative: bool = False):
         """(diffuse per unit albedo, specular) per texel of the subset, and ∂ specular / ∂ roughness if asked.
         ``roughness`` as a tuple (a fit's candidate values): the specular part as a tuple, one per value, from one walk
@@ -147,7 +189,7 @@ class TexelLedLoop:
         else:
             parts = _led_sum(
                 self.count, self.words, self.visibility, self.led_pos, self.led_int, self.position, self.frame, self.wi,
-                roughness, self.far_field, roughness_derivative,
+                roughness, self.far_field, roughness_derivative, self.led_base,
             )  # fmt: skip
             # Together: each output of a loop evaluated on its own (a NumPy read, an AD pass) runs the whole loop again.
             dr.eval(*parts)
@@ -241,14 +283,15 @@ def _packed_bits(visibility, m, lanes, on, count, size, n):
 
 
 @dr.syntax
-def _led_sum(m, words, visibility, led_pos, led_int, p, frame, wi, roughness, far_field, roughness_derivative=False):
+def _led_sum(m, words, visibility, led_pos, led_int, p, frame, wi, roughness, far_field, roughness_derivative=False, led_base=None):
     """Σ over the LEDs that are on *and* visible from each texel, walking the set bits of its visibility words
     (:func:`lane_visibility`: only the LEDs that are on have bits; ``led_pos`` and ``led_int`` are theirs).
 
     Each lane loops over its own visible LEDs only (about a fifth of them on a body), instead of all LEDs masked.
     Returns (diffuse per unit albedo, specular), and ∂ specular / ∂ roughness with ``roughness_derivative``.
     ``roughness`` as a tuple (of scalars or per-lane values): the specular part for each, as a tuple, from one walk
-    over the LEDs (the diffuse part does not depend on it).
+    over the LEDs (the diffuse part does not depend on it). ``led_base``: per lane, where its LEDs start in ``led_pos``
+    and ``led_int`` (:meth:`TexelLedLoop.concat`).
     """
     t = dr.arange(mi.UInt32, m)  # texel index
     # The texel count as a kernel input, not a literal: a fit's views and a culled frame each have their own count,
@@ -272,6 +315,8 @@ def _led_sum(m, words, visibility, led_pos, led_int, p, frame, wi, roughness, fa
             bits = dr.gather(mi.UInt32, visibility, w * stride + t, w < n_words)
         else:
             led = w * 32 + dr.tzcnt(bits)
+            if dr.hint(led_base is not None, mode="scalar"):
+                led += led_base
             bits = bits & (bits - 1)  # clear the lowest set bit
             lp = dr.gather(mi.Point3f, led_pos, led)
             intensity = dr.gather(mi.Color3f, led_int, led)

@@ -240,7 +240,9 @@ def validate_envmap(image: np.ndarray, source: str = "<envmap>", repair: bool = 
     issues = EnvmapIssues(nan=int(np.isnan(image).sum()), inf=int(np.isinf(image).sum()))
     if issues.total:
         if not repair:
-            raise GraMiInputError(source, f"contains {issues.describe()} (use the repair option to fix them)")
+            raise GraMiInputError(
+                source, f"contains {issues.describe()} (--repair-envmap, or repair=True in Python, replaces them with a warning)"
+            )
         finite = image[np.isfinite(image)]
         top = float(finite.max()) if finite.size else 0.0
         image = np.nan_to_num(image, nan=0.0, posinf=top, neginf=0.0)

@@ -1,5 +1,5 @@
 """docs/results/gpu.md from the GPU check's run folder and the CPU's (scripts/gpu_check.sh writes both): the CUDA
-tests, the tiny demo's stages and benchmarks/stages.py, each GPU figure beside the CPU's, and the paper's H100
+tests, the tiny demo's stages, benchmarks/stages.py and an Adam step (benchmarks/fit_step.py), each GPU figure beside the CPU's, and the paper's H100
 runtime table where it has the stage.
 
     python scripts/gpu/page.py --run RUN_DIR [--beside CPU_RUN_DIR] [--write docs/results/gpu.md]
@@ -37,6 +37,7 @@ def read_run(folder: Path | None) -> dict:
     for name in ("demo", "stages"):
         run[name] = _read(folder / f"{name}.json", json.loads, {}, run["unreadable"])
     run["tests"] = _read(folder / "tests.xml", read_junit, {}, run["unreadable"])
+    run["fit_step"] = _read(folder / "fit_step.md", str, "")
     return run
 
 
@@ -130,6 +131,16 @@ def stages_section(gpu: dict, cpu: dict) -> list[str]:
     return lines + ["", f"The paper's other rows (no gra-mi stage is timed against them here): {PAPER_TOTAL}.", ""]
 
 
+def fit_step_section(gpu: dict, cpu: dict) -> list[str]:
+    """benchmarks/fit_step.py's tables (an Adam step, views joined or one kernel per view) on the GPU and the CPU."""
+    lines = ["## An Adam step of the fit (`benchmarks/fit_step.py`, the tiny demo's capture)", ""]
+    for who, run in (("GPU", gpu), ("CPU", cpu)):
+        table = [line for line in run.get("fit_step", "").splitlines() if line.startswith("|")]
+        lines += [f"{who}:", "", *table] if table else [f"{who}: no table ({part_said(run, 'fit_step')})."]
+        lines.append("")
+    return lines
+
+
 def failed_logs(gpu: dict) -> list[str]:
     lines = []
     for name, tail in gpu.get("logs", {}).items():
@@ -176,7 +187,7 @@ def page(gpu: dict, cpu: dict, commit: str = "unknown") -> str:
     for who, run in (("GPU", gpu), ("CPU", cpu)):
         if run.get("unreadable"):
             lines += [f"{who} run, unreadable (cut short?): {'; '.join(run['unreadable'])}.", ""]
-    lines += tests_section(gpu, cpu) + demo_section(gpu, cpu) + stages_section(gpu, cpu) + failed_logs(gpu)
+    lines += tests_section(gpu, cpu) + demo_section(gpu, cpu) + stages_section(gpu, cpu) + fit_step_section(gpu, cpu) + failed_logs(gpu)
     return "\n".join(lines).rstrip() + "\n"
 
 
