@@ -2,9 +2,9 @@
 (``gra_mi.fit.optimize.BATCH_ENTRIES``) against one kernel per view, side by side in one run on one capture.
 
 A step shades every training view's texels at the current roughness (the LED loop with its derivative), averages
-them into pixel footprints, and differentiates the weighted L1 back to the maps. Per view, a small capture's views
-(13 k texels each) spent about a sixth of a step on the host (tracing, launching, a sync per view) and the GPU would
-wait on it; joined, a step is a few kernels. The page gives, per step: wall time, the kernels' own time (Dr.Jit's
+them into pixel footprints, and differentiates the weighted L1 back to the maps. One view at a time, a small
+capture's views (thousands of texels each) leave a step's host work (tracing, launching, a sync per view) beside
+kernels too short to hide it, and a GPU waits on the host; joined, a step is a few large kernels. The page gives, per step: wall time, the kernels' own time (Dr.Jit's
 kernel history), the host's share (the difference), how many kernels ran, and how far the two agree.
 
     .venv/bin/python benchmarks/fit_step.py [--capture DIR | --preset small] [--repeats 5] [--write docs/results/fit-step.md]

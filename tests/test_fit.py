@@ -395,3 +395,34 @@ def test_unique_runs_is_numpys_unique():
         expected_keys, expected_inverse = np.unique(values, return_inverse=True)
         np.testing.assert_array_equal(keys, expected_keys)
         np.testing.assert_array_equal(inverse, expected_inverse)
+
+
+def test_the_grid_sums_give_each_candidates_least_squares_error(variant):
+    # The closed form's grid adds sums on the device (gra_mi/fit/grid.py) and expands the squared error into them;
+    # here each candidate's clipped least-squares albedo and its error are computed from the residuals themselves, in
+    # float64, texel by texel. Views see overlapping texel subsets; one texel is seen by no view (error 0).
+    import mitsuba as mi
+
+    from gra_mi.fit.grid import GridSums
+
+    rng = np.random.default_rng(11)
+    m, k, views = 40, 3, 6
+    sums, rows = GridSums(m, k), [[] for _ in range(m)]
+    for _ in range(views):
+        texels = np.sort(rng.choice(m - 1, 25, replace=False))
+        d, o = rng.uniform(0.1, 2.0, (25, 3)).astype(np.float32), rng.uniform(0.0, 1.5, (25, 3)).astype(np.float32)
+        s = rng.uniform(0.0, 0.5, (k, 25, 3)).astype(np.float32)
+        sums.add(mi.UInt32(texels.astype(np.uint32)), mi.Color3f(*o.T), mi.Color3f(*d.T), tuple(mi.Color3f(*x.T) for x in s))
+        for i, t in enumerate(texels):
+            rows[t].append((d[i], o[i], s[:, i]))
+    error = sums.error()
+    expected = np.zeros((k, m))
+    for t, seen in enumerate(rows):
+        if not seen:
+            continue
+        d, o, s = (np.array([row[j] for row in seen], np.float64) for j in range(3))
+        for c in range(k):
+            albedo = np.clip(np.sum(d * (o - s[:, c]), axis=0) / np.sum(d * d, axis=0), 0.0, 1.0)
+            expected[c, t] = np.sum(np.square(albedo * d + s[:, c] - o))
+    assert not rows[m - 1] and np.all(error[:, m - 1] == 0)
+    np.testing.assert_allclose(error, expected, rtol=1e-9, atol=1e-12)

@@ -43,6 +43,7 @@ from gra_mi.core.metrics import subject_mask
 from gra_mi.core.progress import progress
 from gra_mi.core.provenance import claim_output
 from gra_mi.core.runtime import columns
+from gra_mi.fit.grid import GridSums, refine_on_grid
 from gra_mi.fit.levels import fit_levels
 from gra_mi.fit.maps import DEFAULT_ALBEDO, DEFAULT_ROUGHNESS, LevelStart
 from gra_mi.fit.optimize import Evidence
@@ -302,14 +303,18 @@ class MaterialFitter:
     def grid_parts(self, view: View, candidates: np.ndarray, texels: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
         """(D, [S for each candidate roughness]) at the view's ``texels``: every texel at each candidate value, from one
         walk over the LEDs (:meth:`parts` for one value at a time, its result for each)."""
+        if view.count == 0:
+            return np.zeros((0, 3)), [np.zeros((0, 3)) for _ in candidates]
+        diffuse, specs = self._grid_loop_parts(view, candidates, texels)
+        return columns(diffuse), [columns(s) for s in specs]
+
+    def _grid_loop_parts(self, view: View, candidates: np.ndarray, texels: np.ndarray):
+        """:meth:`grid_parts` as Dr.Jit arrays, left on the device."""
         import drjit as dr
         import mitsuba as mi
 
-        if view.count == 0:
-            return np.zeros((0, 3)), [np.zeros((0, 3)) for _ in candidates]
         # opaque: the candidates are kernel inputs, not literals (one kernel for every grid, float32 as parts' values)
-        diffuse, specs = self._loop(view, texels).run(tuple(dr.opaque(mi.Float, float(np.float32(r))) for r in candidates))
-        return columns(diffuse), [columns(s) for s in specs]
+        return self._loop(view, texels).run(tuple(dr.opaque(mi.Float, float(np.float32(r))) for r in candidates))
 
     def _loop(self, view: View, texels: np.ndarray):
         """The view's LED loop over ``texels``: its inputs gathered once (streamed: kept for the last view only)."""
@@ -474,7 +479,7 @@ class MaterialFitter:
         grid = np.linspace(0.0, 1.0, cfg.roughness_candidates)
         if "grid_error" not in state:
             save(grid_error=self._grid_error(views, grid))
-        roughness = _refine_on_grid(state["grid_error"], grid)
+        roughness = refine_on_grid(state["grid_error"], grid)
         roughness[cameras_seen == 0] = DEFAULT_ROUGHNESS
         curve.append((time.perf_counter() - start, float("nan"), "roughness grid"))
         albedo, per_view = self._albedo_irls(views, roughness, curve, start, save)
@@ -483,26 +488,16 @@ class MaterialFitter:
 
     def _grid_error(self, views, grid: np.ndarray) -> np.ndarray:
         """(candidates, M) squared error of each roughness candidate with its closed-form (least-squares) albedo."""
+        import mitsuba as mi
 
-        m = self.atlas.num_texels
-        s_dd, s_do, s_oo = np.zeros((m, 3)), np.zeros((m, 3)), np.zeros((m, 3))
-        s_ds, s_ss, s_os = (np.zeros((len(grid), m, 3)) for _ in range(3))
+        sums = GridSums(self.atlas.num_texels, len(grid))
         for v in progress(views, description="roughness grid"):  # view by view: a streamed fit reads each once
+            if v.count == 0:
+                continue
             texels, o = self.observation(v)
-            o = o.astype(np.float64)
-            d, specs = self.grid_parts(v, grid, texels)
-            np.add.at(s_dd, texels, d * d)
-            np.add.at(s_do, texels, d * o)
-            np.add.at(s_oo, texels, o * o)
-            for g, s in enumerate(specs):
-                np.add.at(s_ds[g], texels, d * s)
-                np.add.at(s_ss[g], texels, s * s)
-                np.add.at(s_os[g], texels, o * s)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            albedo_g = np.clip((s_do[None] - s_ds) / s_dd[None], 0.0, 1.0)
-        albedo_g = np.where(s_dd[None] > 0, albedo_g, DEFAULT_ALBEDO)
-        error = s_oo[None] - 2 * albedo_g * s_do[None] + albedo_g**2 * s_dd[None] + s_ss - 2 * s_os + 2 * albedo_g * s_ds
-        return error.sum(axis=2)
+            diffuse, specs = self._grid_loop_parts(v, grid, texels)
+            sums.add(mi.UInt32(texels.astype(np.uint32)), mi.Color3f(*o.T.astype(np.float32)), diffuse, specs)
+        return sums.error()
 
     def _albedo_irls(self, views, roughness: np.ndarray, curve: list, start: float, save) -> tuple[np.ndarray, dict[str, float]]:
         """Albedo at the chosen roughness: least squares, then L1 by reweighting (each observation weighted by 1 / its
@@ -542,18 +537,6 @@ class MaterialFitter:
             residual = np.abs(o - (albedo[texels] * d + s))
             out[v.name] = (float(residual.sum()), residual.size)
         return out
-
-
-def _refine_on_grid(error: np.ndarray, grid: np.ndarray) -> np.ndarray:
-    """Per texel, the minimum of the parabola through the best candidate and its neighbours (clamped to the grid)."""
-    m = error.shape[1]
-    best = np.argmin(error, axis=0)
-    lo, hi = np.clip(best - 1, 0, len(grid) - 1), np.clip(best + 1, 0, len(grid) - 1)
-    e0, e1, e2 = (error[idx, np.arange(m)] for idx in (lo, best, hi))
-    curvature = e0 - 2 * e1 + e2
-    with np.errstate(invalid="ignore", divide="ignore"):
-        shift = np.where((curvature > 1e-30) & (lo != best) & (hi != best), 0.5 * (e0 - e2) / curvature, 0.0)
-    return np.clip(grid[best] + np.clip(shift, -1, 1) * (grid[1] - grid[0]), 0.0, 1.0).astype(np.float32)
 
 
 def run_fit(capture_dir: str | Path, out: str | Path, config: FitConfig, overwrite: bool = False) -> tuple[FitResult, Path]:
