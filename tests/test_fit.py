@@ -426,3 +426,27 @@ def test_the_grid_sums_give_each_candidates_least_squares_error(variant):
             expected[c, t] = np.sum(np.square(albedo * d + s[:, c] - o))
     assert not rows[m - 1] and np.all(error[:, m - 1] == 0)
     np.testing.assert_allclose(error, expected, rtol=1e-9, atol=1e-12)
+
+
+def test_streamed_views_join_no_more_views_than_a_step_holds(onebounce_capture, tmp_path):
+    # Joined batches shade many views in one kernel; streamed, they hold no more views than the fit's step (the bound
+    # its memory is chosen by), in the views' order, and score each view as the held, fully joined batches do.
+    from gra_mi.capture.dataset import Capture
+    from gra_mi.fit import optimize
+    from gra_mi.fit.materials import FitConfig, MaterialFitter
+    from gra_mi.fit.views import ViewStore
+
+    capture = Capture.load(onebounce_capture)
+    held = optimize.build_batches(MaterialFitter(capture, FitConfig()), 0.0, progress_bar=False)
+    streamed = optimize.build_batches(MaterialFitter(capture, FitConfig(batch_views=3)), 0.0, False, ViewStore(tmp_path / "views"))
+    assert streamed.streamed and not held.streamed and len(held) == len(streamed) > 6
+    sizes = [len(b.names) for b in streamed.in_batches()]
+    assert max(sizes) == 3 and sum(sizes) == len(streamed)
+    assert [n for b in streamed.in_batches() for n in b.names] == streamed.names == held.names
+    m = held.fitter.atlas.num_texels
+    maps = np.random.default_rng(4).uniform(0.2, 0.8, (m, 4))
+    np.testing.assert_allclose(
+        optimize.view_l1(streamed, maps[:, :3], maps[:, 3]), optimize.view_l1(held, maps[:, :3], maps[:, 3]), rtol=1e-6
+    )
+    with pytest.raises(ValueError, match="minibatches need them streamed"):
+        next(held.in_batches(np.arange(2)))

@@ -268,11 +268,13 @@ class TrainingViews:
         return self._streamed_batches(views)
 
     def _streamed_batches(self, views: np.ndarray):
+        """Joined as a step's are: at most the fit's views per step (its memory's bound) and BATCH_ENTRIES at once."""
+        at_once = self.fitter.config.batch_views or len(self)
         pending: list[ViewBatch] = []
         for k in views:
             key = self.keys[int(k)]
             pending.append(self._build(key, self.store.get(f"footprints:{key.name}")))
-            if sum(b.entries for b in pending) >= BATCH_ENTRIES:
+            if len(pending) >= at_once or sum(b.entries for b in pending) >= BATCH_ENTRIES:
                 yield ViewBatch.join(pending)
                 pending = []
         if pending:
