@@ -177,6 +177,15 @@ def unique_runs(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return ordered[first], inverse
 
 
+def unique_below(values: np.ndarray, bound: int) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(values, return_inverse=True)`` for integers in [0, ``bound``) (texel indices): marked and ranked,
+    no sort."""
+    present = np.zeros(bound, bool)
+    present[values] = True
+    rank = np.cumsum(present) - 1
+    return np.flatnonzero(present), rank[values]
+
+
 def view_footprints(fitter, frame_index: int, pose: int, cam_name: str, min_view_cos: float) -> dict[str, np.ndarray] | None:
     """The arrays of a :class:`ViewBatch` for one camera and frame (None: no pixel to fit); pixels that see a texel
     more obliquely than ``min_view_cos`` are left out."""
@@ -195,7 +204,7 @@ def view_footprints(fitter, frame_index: int, pose: int, cam_name: str, min_view
     flat_pixels, pix, tex, wgt = flat_pixels[keep], rows[pix[use]], tex[use], wgt[use]
     if flat_pixels.size == 0:
         return None
-    lanes, entry_lane = np.unique(tex, return_inverse=True)
+    lanes, entry_lane = unique_below(tex, fitter.atlas.num_texels)
     observed = image[..., :3].reshape(-1, 3)[flat_pixels].astype(np.float32)
     return {
         "lanes": lanes.astype(np.uint32), "entry_lane": entry_lane.astype(np.uint32), "entry_pixel": pix.astype(np.uint32),
