@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The GPU check: what a GPU user runs, on a machine with an NVIDIA GPU, in one run of about eight minutes —
-# the CUDA variant of every variant-parametrised test, the tiny demo end to end (cuda_ad_rgb, torch on CUDA), and
-# benchmarks/stages.py, benchmarks/fit_step.py on the demo's capture — and the page docs/results/gpu.md with this machine's CPU figures beside.
+# the CUDA variant of every variant-parametrised test, the tiny demo end to end (cuda_ad_rgb, torch on CUDA),
+# benchmarks/fit_step.py on the demo's capture and benchmarks/stages.py — and the page docs/results/gpu.md with this
+# machine's CPU figures beside.
 #
 #   1. here (CPU, ~3 min each):  bash scripts/gpu_check.sh --cpu;  bash scripts/gpu_check.sh --cpu --trace
 #        the same check on llvm_ad_rgb: .gpu/cpu/ (the CPU column); then again under strace, untimed:
