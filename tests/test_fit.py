@@ -451,3 +451,30 @@ def test_streamed_views_join_no_more_views_than_a_step_holds(onebounce_capture, 
     )
     with pytest.raises(ValueError, match="minibatches need them streamed"):
         next(held.in_batches(np.arange(2)))
+
+
+def test_joining_views_compiles_no_kernel_per_view(onebounce_capture, monkeypatch):
+    # Each view has its own weight, sizes and offsets; as literals they would make a new kernel (an LLVM compile) for
+    # every view joined, so a capture of thousands of views would compile thousands of kernels.
+    import drjit as dr
+
+    from gra_mi.capture.dataset import Capture
+    from gra_mi.fit import optimize
+    from gra_mi.fit.materials import FitConfig, MaterialFitter
+
+    monkeypatch.setattr(optimize, "BATCH_ENTRIES", 0)  # each view its own batch
+    views = optimize.build_batches(MaterialFitter(Capture.load(onebounce_capture), FitConfig()), 0.0, progress_bar=False)
+    single = list(views.in_batches())
+    assert len(single) == len(views) >= 40
+
+    def kernels_to_join(count: int) -> set[str]:
+        dr.kernel_history()  # cleared
+        dr.set_flag(dr.JitFlag.KernelHistory, True)
+        try:
+            optimize.ViewBatch.join(single[:count])
+            return {k["hash"] for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT}
+        finally:
+            dr.set_flag(dr.JitFlag.KernelHistory, False)
+
+    # a handful of variants (Dr.Jit fuses the scatters of equal sizes differently), never one per view
+    assert 0 < len(kernels_to_join(len(single))) <= 24

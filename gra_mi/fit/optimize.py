@@ -297,7 +297,7 @@ class TrainingViews:
         )  # fmt: skip
         pixels, weight = int(a["observed"].shape[0]), float(a["weight"])
         return ViewBatch(
-            [key.name], loop.count, mi.UInt32(a["lanes"]), pixels, mi.Color3f(*a["observed"].T), dr.full(mi.Float, weight, pixels),
+            [key.name], loop.count, mi.UInt32(a["lanes"]), pixels, mi.Color3f(*a["observed"].T), dr.opaque(mi.Float, weight, pixels),
             np.array([loop.count]), np.array([pixels]), np.array([weight]),
             mi.UInt32(a["entry_lane"]), mi.UInt32(a["entry_pixel"]), mi.Float(a["entry_weight"]), loop,
         )  # fmt: skip
