@@ -200,8 +200,8 @@ def opaque(kind, values):
 
 
 def concat(kind, arrays: list):
-    """One array of ``kind`` (``mi.Float``, ``mi.UInt32``, a vector or a struct of them: ``mi.Point3f``, ``mi.Frame3f``) holding ``arrays``
-    one after another, without leaving the device.
+    """One array of ``kind`` (``mi.Float``, ``mi.UInt32``, a vector or a struct of them: ``mi.Point3f``,
+    ``mi.Frame3f``) holding ``arrays`` one after another, without leaving the device.
 
     ``drjit.concat`` writes each piece at a literal offset: one kernel (an LLVM compile) per piece. Here the offset is
     a kernel input, so joining hundreds of a fit's views compiles one kernel per type.
