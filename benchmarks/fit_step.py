@@ -4,8 +4,9 @@
 A step shades every training view's texels at the current roughness (the LED loop with its derivative), averages
 them into pixel footprints, and differentiates the weighted L1 back to the maps. One view at a time, a small
 capture's views (thousands of texels each) leave a step's host work (tracing, launching, a sync per view) beside
-kernels too short to hide it, and a GPU waits on the host; joined, a step is a few large kernels. The page gives, per step: wall time, the kernels' own time (Dr.Jit's
-kernel history), the host's share (the difference), how many kernels ran, and how far the two agree.
+kernels too short to hide it, and a GPU waits on the host; joined, a step is a few large kernels. The page gives,
+per step: wall time, the kernels' own time (Dr.Jit's kernel history), the host's share (the difference), how many
+kernels and memory operations ran, and how far the two agree.
 
     .venv/bin/python benchmarks/fit_step.py [--capture DIR | --preset small] [--repeats 5] [--write docs/results/fit-step.md]
 """

@@ -192,7 +192,7 @@ def test_the_check_refuses_bad_options_and_never_empties_a_folder_it_did_not_mak
     assert (theirs / "keep.txt").read_text() == "a user's file"
 
 
-def test_the_stage_benchmark_and_the_packer_refuse_what_they_cannot_use(tmp_path):
+def test_the_benchmarks_and_the_packer_refuse_what_they_cannot_use(tmp_path):
     stages = subprocess.run(
         [sys.executable, str(REPO / "benchmarks" / "stages.py"), "--repeats", "0"], capture_output=True, text=True, timeout=300
     )
@@ -201,3 +201,9 @@ def test_the_stage_benchmark_and_the_packer_refuse_what_they_cannot_use(tmp_path
         [sys.executable, str(REPO / "scripts" / "gpu" / "pack.py"), "--out", str(tmp_path)], capture_output=True, text=True, timeout=60
     )
     assert packer.returncode != 0 and "trace.txt is missing" in packer.stderr and not (tmp_path / "site.tar.xz").exists()
+    step = [sys.executable, str(REPO / "benchmarks" / "fit_step.py")]
+    zero = subprocess.run([*step, "--repeats", "0"], capture_output=True, text=True, timeout=300)
+    assert zero.returncode != 0 and "repeats: must be a finite number > 0, got 0" in zero.stderr
+    (tmp_path / "not_a_capture").mkdir()
+    folder = subprocess.run([*step, "--capture", str(tmp_path / "not_a_capture")], capture_output=True, text=True, timeout=300)
+    assert folder.returncode != 0 and "capture.json: file not found" in folder.stderr

@@ -300,16 +300,10 @@ class MaterialFitter:
         diffuse, spec = self._loop(view, texels).run(mi.Float(np.asarray(roughness, np.float32)[texels]))
         return columns(diffuse), columns(spec)
 
-    def grid_parts(self, view: View, candidates: np.ndarray, texels: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
-        """(D, [S for each candidate roughness]) at the view's ``texels``: every texel at each candidate value, from one
-        walk over the LEDs (:meth:`parts` for one value at a time, its result for each)."""
-        if view.count == 0:
-            return np.zeros((0, 3)), [np.zeros((0, 3)) for _ in candidates]
-        diffuse, specs = self._grid_loop_parts(view, candidates, texels)
-        return columns(diffuse), [columns(s) for s in specs]
-
-    def _grid_loop_parts(self, view: View, candidates: np.ndarray, texels: np.ndarray):
-        """:meth:`grid_parts` as Dr.Jit arrays, left on the device."""
+    def grid_parts(self, view: View, candidates: np.ndarray, texels: np.ndarray):
+        """(D, (S for each candidate roughness)) at the view's ``texels`` (a view with texels), as Dr.Jit arrays left on
+        the device: every texel at each candidate value, from one walk over the LEDs (:meth:`parts` for one value at a
+        time, its result for each)."""
         import drjit as dr
         import mitsuba as mi
 
@@ -495,7 +489,7 @@ class MaterialFitter:
             if v.count == 0:
                 continue
             texels, o = self.observation(v)
-            diffuse, specs = self._grid_loop_parts(v, grid, texels)
+            diffuse, specs = self.grid_parts(v, grid, texels)
             sums.add(mi.UInt32(texels.astype(np.uint32)), mi.Color3f(*o.T.astype(np.float32)), diffuse, specs)
         return sums.error()
 

@@ -1,6 +1,6 @@
 """docs/results/gpu.md from the GPU check's run folder and the CPU's (scripts/gpu_check.sh writes both): the CUDA
-tests, the tiny demo's stages, benchmarks/stages.py and an Adam step (benchmarks/fit_step.py), each GPU figure beside the CPU's, and the paper's H100
-runtime table where it has the stage.
+tests, the tiny demo's stages, benchmarks/stages.py and an Adam step (benchmarks/fit_step.py), each GPU figure
+beside the CPU's, and the paper's H100 runtime table where it has the stage.
 
     python scripts/gpu/page.py --run RUN_DIR [--beside CPU_RUN_DIR] [--write docs/results/gpu.md]
 """
