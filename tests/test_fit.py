@@ -385,21 +385,6 @@ def test_the_roughness_grid_in_one_walk_equals_one_value_at_a_time(onebounce_cap
     np.testing.assert_array_equal(fitter._grid_error([empty, views[1]], grid), fitter._grid_error([views[1]], grid))
 
 
-def test_unique_runs_and_unique_below_are_numpys_unique():
-    # The footprints' duplicate entries are summed through unique_runs (a stable sort of sorted runs), their lanes found
-    # by unique_below (texel indices marked and ranked): the same keys and inverse as np.unique, so the weights add up
-    # in the same order, bit for bit.
-    from gra_mi.fit.optimize import unique_below, unique_runs
-
-    rng = np.random.default_rng(5)
-    runs = np.concatenate([np.sort(rng.integers(0, 500, 300)) for _ in range(4)])
-    for values in (runs, rng.integers(0, 7, 50), np.array([3]), np.zeros(0, np.int64), np.full(9, 4), np.array([499, 0])):
-        expected_keys, expected_inverse = np.unique(values, return_inverse=True)
-        for keys, inverse in (unique_runs(values), unique_below(values, 500)):
-            np.testing.assert_array_equal(keys, expected_keys)
-            np.testing.assert_array_equal(inverse, expected_inverse)
-
-
 def test_the_grid_sums_give_each_candidates_least_squares_error(variant):
     # The closed form's grid adds sums on the device (gra_mi/fit/grid.py) and expands the squared error into them;
     # here each candidate's clipped least-squares albedo and its error are computed from the residuals themselves, in

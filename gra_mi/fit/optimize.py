@@ -3,7 +3,7 @@
     loss = Σ_views w_v Σ_pixels |Σ_t∈footprint ω_pt (a_t ⊙ D_t + S_t(r_t)) − O_p| / (3 N)  +  λ_a E(a)  +  λ_r E(r)
 
 - the data term is the paper's L1 between the one-bounce render and every fully covered training pixel, predicted
-  as the average of the texels its footprint covers (:func:`pixel_footprints`), each view weighted by 1 / its mean
+  as the average of the texels its footprint covers (:func:`~gra_mi.fit.footprints.pixel_footprints`), each view weighted by 1 / its mean
   observed radiance so that a dim envmap frame counts as much as a bright uniformly lit one;
 - E is the mean squared difference across the edges of the :class:`~gra_mi.fit.prior.SurfaceGraph` (smoothness on
   the body, across seams, not across chart boundaries); roughness gets the stronger weight, as its evidence is
@@ -34,17 +34,16 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from gra_mi.capture.dataset import load_fit_observation
 from gra_mi.core.errors import GraMiInputError
 from gra_mi.core.io import atomic_path, read_checkpoint_npz
 from gra_mi.core.progress import progress
 from gra_mi.core.runtime import columns, concat, opaque
+from gra_mi.fit.footprints import view_footprints
 from gra_mi.fit.views import batch_at, curve_sample
 from gra_mi.render.shading import TexelLedLoop
 
 FILL_STRENGTH = 0.1  # harmonic fill: highlight texels (confidence 1) move little, the others interpolate them
 HIGHLIGHT_CHANGE = 0.05  # an observation is a highlight if roughness ± 0.1 changes it by at least 5 %
-FOOTPRINT_SAMPLES = 4  # 4 × 4 sub-pixel rays per pixel: the capture's box pixel filter
 CURVE_VIEWS = 32  # a streamed fit measures its convergence curve on this many evenly spaced views
 # Footprint entries per joined batch of views: one LED-loop kernel shades them all (one per view was dominated by
 # launches and host work), and the memory of a step's AD graph stays bounded (a few hundred MB).
@@ -118,99 +117,6 @@ class ViewBatch:
         out = dr.zeros(mi.Color3f, self.pixels)
         dr.scatter_reduce(dr.ReduceOp.Add, out, value, self.entry_pixel)
         return out
-
-
-def pixel_footprints(ls, camera, atlas, alpha: np.ndarray, samples: int = FOOTPRINT_SAMPLES):
-    """For each pixel fully covered in the capture (alpha = 1) and by all of its ``samples``² sub-pixel rays: the
-    texels its rays land on, with bilinear weights. Returns (pixel flat indices, entries (pixel row, texel, weight))."""
-    r = atlas.resolution
-    lookup = np.full(r * r, -1, np.int64)
-    lookup[atlas.texel_index] = np.arange(atlas.num_texels)
-    ys, xs = np.nonzero(alpha >= 0.999)
-    offsets = (np.arange(samples) + 0.5) / samples
-    ox, oy = (g.ravel() for g in np.meshgrid(offsets, offsets, indexing="xy"))
-    px = (xs[:, None] + ox[None, :] - camera.cx) / camera.fx
-    py = (ys[:, None] + oy[None, :] - camera.cy) / camera.fy
-    d = np.stack([px, py, np.ones_like(px)], axis=-1).reshape(-1, 3) @ camera.rotation.T
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    origin = np.tile(camera.position.astype(np.float32), (d.shape[0], 1))
-    ray = mi.Ray3f(mi.Point3f(*origin.T), mi.Vector3f(*d.T.astype(np.float32)))
-    si = ls.scene.ray_intersect(ray, ray_flags=mi.RayFlags.UV, coherent=True)
-    hit = np.array(si.is_valid())
-    uv = columns(si.uv)
-    x, y = uv[:, 0] * r - 0.5, uv[:, 1] * r - 0.5
-    x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
-    fx, fy = x - x0, y - y0
-    corners = []
-    for dx, dy, w in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
-        cx, cy = np.clip(x0 + dx, 0, r - 1), np.clip(y0 + dy, 0, r - 1)
-        texel = lookup[cy * r + cx]
-        corners.append((texel, np.where(texel >= 0, w, 0.0)))
-    total = sum(w for _, w in corners)
-    ok = hit & (total > 1e-6)  # a sample outside the atlas (between charts) cannot be predicted
-    pixel_ok = ok.reshape(-1, samples * samples).all(axis=1)
-    keep_pixels = np.flatnonzero(pixel_ok)
-    rows = np.full(pixel_ok.size, -1)
-    rows[keep_pixels] = np.arange(keep_pixels.size)
-    sample_pixel = np.repeat(rows, samples * samples)
-    entries = []
-    for texel, w in corners:
-        use = ok & (sample_pixel >= 0) & (w > 0)
-        entries.append((sample_pixel[use], texel[use], (w / np.maximum(total, 1e-12))[use] / (samples * samples)))
-    pix, tex, wgt = (np.concatenate([e[k] for e in entries]) for k in range(3))
-    key, inverse = unique_runs(pix * atlas.num_texels + tex)
-    summed = np.bincount(inverse, weights=wgt)
-    flat_pixels = (ys * alpha.shape[1] + xs)[keep_pixels]
-    return flat_pixels, (key // atlas.num_texels, key % atlas.num_texels, summed)
-
-
-def unique_runs(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``np.unique(values, return_inverse=True)`` for values made of sorted runs (a footprint's entries: four corners,
-    each in pixel order): a stable sort merges the runs about three times faster than ``np.unique``'s quicksort."""
-    order = np.argsort(values, kind="stable")
-    ordered = values[order]
-    first = np.empty(ordered.size, bool)
-    first[:1] = True
-    np.not_equal(ordered[1:], ordered[:-1], out=first[1:])
-    inverse = np.empty(values.size, np.int64)
-    inverse[order] = np.cumsum(first) - 1
-    return ordered[first], inverse
-
-
-def unique_below(values: np.ndarray, bound: int) -> tuple[np.ndarray, np.ndarray]:
-    """``np.unique(values, return_inverse=True)`` for integers in [0, ``bound``) (texel indices): marked and ranked,
-    no sort."""
-    present = np.zeros(bound, bool)
-    present[values] = True
-    rank = np.cumsum(present) - 1
-    return np.flatnonzero(present), rank[values]
-
-
-def view_footprints(fitter, frame_index: int, pose: int, cam_name: str, min_view_cos: float) -> dict[str, np.ndarray] | None:
-    """The arrays of a :class:`ViewBatch` for one camera and frame (None: no pixel to fit); pixels that see a texel
-    more obliquely than ``min_view_cos`` are left out."""
-    cam = fitter.stage.camera(cam_name)
-    image = load_fit_observation(fitter.capture, cam_name, frame_index)
-    fitter.ls.set_frame(pose)
-    flat_pixels, (pix, tex, wgt) = pixel_footprints(fitter.ls, cam, fitter.atlas, image[..., 3])
-    geom = fitter.relighter.geometry(pose)
-    to_cam = cam.position[None, :] - np.array(geom.position).T[tex]
-    cos_view = np.sum(np.array(geom.normal).T[tex] * to_cam, axis=1) / np.linalg.norm(to_cam, axis=1)
-    grazing = np.zeros(flat_pixels.size, bool)
-    grazing[pix[cos_view < min_view_cos]] = True
-    keep = ~grazing
-    rows = np.cumsum(keep) - 1
-    use = keep[pix]
-    flat_pixels, pix, tex, wgt = flat_pixels[keep], rows[pix[use]], tex[use], wgt[use]
-    if flat_pixels.size == 0:
-        return None
-    lanes, entry_lane = unique_below(tex, fitter.atlas.num_texels)
-    observed = image[..., :3].reshape(-1, 3)[flat_pixels].astype(np.float32)
-    return {
-        "lanes": lanes.astype(np.uint32), "entry_lane": entry_lane.astype(np.uint32), "entry_pixel": pix.astype(np.uint32),
-        "entry_weight": wgt.astype(np.float32), "observed": observed,
-        "weight": np.array(1.0 / max(float(observed.astype(np.float64).mean()), 1e-6)),
-    }  # fmt: skip
 
 
 @dataclass(frozen=True)

@@ -47,7 +47,8 @@ class UVAtlas:
     faces: np.ndarray  # (M, 3) vertex indices of its triangle
     barycentrics: np.ndarray  # (M, 3)
     device_arrays: dict = field(default_factory=dict, repr=False, compare=False)
-    """Mitsuba variant → (face columns, barycentric columns) as Dr.Jit arrays, filled by :meth:`on_device`."""
+    """Mitsuba variant → (face columns, barycentric columns) as Dr.Jit arrays, filled by :meth:`on_device`; (variant,
+    "grid") → :meth:`texel_grid` on the device."""
     _nearest: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     @property
@@ -107,6 +108,19 @@ class UVAtlas:
         """(R, R, C) texture → (M, C) values at the valid texels."""
         return texture.reshape(self.resolution * self.resolution, -1)[self.texel_index]
 
+    def texel_grid(self) -> np.ndarray:
+        """(R·R,) the valid-texel index at each texel of the texture, -1 outside the atlas."""
+        grid = np.full(self.resolution * self.resolution, -1, np.int64)
+        grid[self.texel_index] = np.arange(self.num_texels)
+        return grid
+
+    def texel_grid_on_device(self) -> mi.Int32:
+        """:meth:`texel_grid` as a Dr.Jit array, uploaded once per variant."""
+        key = (mi.variant(), "grid")
+        if key not in self.device_arrays:
+            self.device_arrays[key] = mi.Int32(self.texel_grid().astype(np.int32))
+        return self.device_arrays[key]
+
     def dilated(self, texels: np.ndarray, radius: int) -> np.ndarray:
         """``texels`` and every valid texel within ``radius`` texels of one in the atlas (a (2·radius + 1)² window),
         sorted."""
@@ -125,8 +139,7 @@ class UVAtlas:
         if self._nearest is None:
             from scipy.ndimage import distance_transform_edt
 
-            lookup = np.full(self.resolution * self.resolution, -1, np.int64)
-            lookup[self.texel_index] = np.arange(self.num_texels)
+            lookup = self.texel_grid()
             if self.num_texels and self.num_texels < lookup.size:
                 _, (rows, cols) = distance_transform_edt(~self.mask, return_indices=True)
                 lookup = lookup[(rows * self.resolution + cols).ravel()]
@@ -199,8 +212,7 @@ class SurfaceFilter:
         r, m = atlas.resolution, atlas.num_texels
         rows = np.arange(m) if domain is None else np.unique(np.asarray(domain, np.int64))
         p, n = np.array(geom.position, np.float64).T, np.array(geom.normal, np.float64).T
-        grid = np.full(r * r, -1, np.int64)
-        grid[atlas.texel_index] = np.arange(m)
+        grid = atlas.texel_grid()
         valid = np.ones(m, bool) if domain is None else np.isin(np.arange(m), rows)
         row, col = np.divmod(atlas.texel_index[rows], r)
 
