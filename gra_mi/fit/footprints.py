@@ -14,7 +14,6 @@ import mitsuba as mi
 import numpy as np
 
 from gra_mi.capture.dataset import load_fit_observation
-from gra_mi.core.runtime import opaque
 
 FOOTPRINT_SAMPLES = 4  # 4 × 4 sub-pixel rays per pixel: the capture's box pixel filter
 COVERED = 0.999  # a pixel is fitted only where the capture's alpha says the subject covers all of it
@@ -62,13 +61,9 @@ def _sample_corners(ls, camera, atlas, xs, ys, samples: int, geometry, min_view_
         return np.zeros((0, len(CORNERS)), np.int32), np.zeros((0, len(CORNERS)), np.float32), np.zeros(0, bool)
     lane = dr.arange(mi.UInt32, count)
     pixel, sub = lane // (samples * samples), lane % (samples * samples)
-    fx, fy, cx, cy = (opaque(mi.Float, v) for v in (camera.fx, camera.fy, camera.cx, camera.cy))
     x = mi.Float(dr.gather(mi.UInt32, mi.UInt32(xs.astype(np.uint32)), pixel)) + (mi.Float(sub % samples) + 0.5) / samples
     y = mi.Float(dr.gather(mi.UInt32, mi.UInt32(ys.astype(np.uint32)), pixel)) + (mi.Float(sub // samples) + 0.5) / samples
-    d_cam = mi.Vector3f((x - cx) / fx, (y - cy) / fy, 1.0)
-    rotation = [opaque(mi.Vector3f, row) for row in camera.rotation]
-    origin = opaque(mi.Point3f, camera.position)
-    ray = mi.Ray3f(origin, dr.normalize(mi.Vector3f(*(dr.dot(row, d_cam) for row in rotation))))
+    ray = camera.rays_through(x, y)
     si = ls.scene.ray_intersect(ray, ray_flags=mi.RayFlags.UV, coherent=True)
     r = atlas.resolution
     u, v = si.uv.x * r - 0.5, si.uv.y * r - 0.5
@@ -87,7 +82,7 @@ def _sample_corners(ls, camera, atlas, xs, ys, samples: int, geometry, min_view_
     if geometry is not None:
         for t, w in zip(texels, weights, strict=True):
             index = mi.UInt32(dr.maximum(t, 0))
-            to_camera = dr.normalize(origin - dr.gather(mi.Point3f, geometry.position, index))
+            to_camera = dr.normalize(ray.o - dr.gather(mi.Point3f, geometry.position, index))
             usable &= (w <= 0) | (dr.dot(dr.gather(mi.Vector3f, geometry.normal, index), to_camera) >= min_view_cos)
     share = dr.rcp(dr.maximum(total, 1e-12) * (samples * samples))
     texels = [dr.select(w > 0, t, -1) for t, w in zip(texels, weights, strict=True)]

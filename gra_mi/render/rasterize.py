@@ -65,8 +65,4 @@ def mesh_shape(vertices: np.ndarray, faces: np.ndarray, name: str = "mesh", bsdf
 def silhouette(vertices: np.ndarray, faces: np.ndarray, camera) -> np.ndarray:
     """(H, W) bool: the pixels of ``camera`` whose centre ray hits the mesh (its reprojection, for a mask check)."""
     scene = mi.load_dict({"type": "scene", "mesh": mesh_shape(vertices, faces, "silhouette")})
-    origin, directions = camera.pixel_rays()
-    flat = directions.reshape(-1, 3)
-    origins = np.broadcast_to(origin, flat.shape)
-    ray = mi.Ray3f(mi.Point3f(*origins.T.astype(np.float32)), mi.Vector3f(*flat.T.astype(np.float32)))
-    return np.array(scene.ray_test(ray, coherent=True)).reshape(camera.height, camera.width)
+    return np.array(scene.ray_test(camera.device_rays(), coherent=True)).reshape(camera.height, camera.width)

@@ -63,6 +63,35 @@ class Camera:
         d_world /= np.linalg.norm(d_world, axis=-1, keepdims=True)
         return self.position, d_world
 
+    def device_rays(self, offset: tuple[float, float] = (0.5, 0.5)):
+        """``mi.Ray3f`` through the point ``offset`` (in pixels, (0.5, 0.5) the centre) of each pixel, row-major, built
+        on the Dr.Jit device (needs a variant set)."""
+        import drjit as dr
+        import mitsuba as mi
+
+        from gra_mi.core.runtime import opaque
+
+        index = dr.arange(mi.UInt32, self.width * self.height)
+        row = index // self.width  # the image size stays a literal: it changes only when a window is resized
+        ox, oy = (opaque(mi.Float, v) for v in offset)  # (a literal would compile a kernel per sub-pixel offset)
+        return self.rays_through(mi.Float(index - row * self.width) + ox, mi.Float(row) + oy)
+
+    def rays_through(self, x, y):
+        """``mi.Ray3f`` through the image points (``x``, ``y``) (Dr.Jit arrays, in pixels from the top-left corner).
+        The camera's numbers are kernel inputs, not literals: a moving camera reuses one kernel
+        (:func:`~gra_mi.core.runtime.opaque`). (Rays made from NumPy arrays would not do: Mitsuba's tracing kernel's
+        code depends on their buffers' alignment, an LLVM compile for about every camera.)"""
+        import drjit as dr
+        import mitsuba as mi
+
+        from gra_mi.core.runtime import opaque
+
+        x = (x - opaque(mi.Float, self.cx)) / opaque(mi.Float, self.fx)
+        y = (y - opaque(mi.Float, self.cy)) / opaque(mi.Float, self.fy)
+        r = self.rotation.T
+        d = dr.normalize(x * opaque(mi.Vector3f, r[0]) + y * opaque(mi.Vector3f, r[1]) + opaque(mi.Vector3f, r[2]))
+        return mi.Ray3f(opaque(mi.Point3f, self.position), d)
+
     def resized(self, scale: float) -> Camera:
         """The same camera with its image area-downscaled by ``scale`` (sizes floored, as torch's ``area`` resampling)."""
         from dataclasses import replace

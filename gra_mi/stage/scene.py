@@ -21,7 +21,6 @@ import numpy as np
 from gra_mi.core.config import option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_seed
 from gra_mi.core.io import atomic_write_text, write_exr, write_png
-from gra_mi.core.runtime import opaque
 from gra_mi.stage import scene_keys as keys
 from gra_mi.stage.envmap import LedLighting, envmap_to_leds, stage_background_plate
 from gra_mi.stage.lightstage import Camera, Lightstage, load_calibration, save_calibration, validate_pattern
@@ -320,28 +319,16 @@ class LightstageScene:
         return lighting
 
     def camera_rays(self, camera: Camera, offset: tuple[float, float] = (0.5, 0.5)):
-        """The rays through the point ``offset`` (in pixels, (0.5, 0.5) the centre) of each pixel of ``camera``,
-        row-major. Centre rays are built once per camera and kept on the device: only the mesh changes from frame to
-        frame, and on a GPU the host-side ray set-up cost more than the tracing. Other offsets (anti-aliasing
-        sub-samples) and cameras that are not the rig's (a viewer's, which moves) are built on the device, not kept."""
+        """:meth:`Camera.device_rays`, a rig camera's centre rays kept: only the mesh changes from frame to frame, and
+        on a GPU the ray set-up cost more than the tracing. Other offsets (anti-aliasing sub-samples) and cameras that
+        are not the rig's (a viewer's, which moves) are built each time."""
         import drjit as dr
-        import mitsuba as mi
 
-        rig_camera = any(camera is c for c in self.stage.cameras)  # a viewer's free camera moves: never kept
-        if tuple(offset) != (0.5, 0.5) or not rig_camera:
-            index = dr.arange(mi.UInt32, camera.width * camera.height)
-            # The camera's numbers as kernel inputs, not literals: a moving camera reuses one kernel (core.runtime.opaque).
-            row = index // camera.width  # the image size stays a literal: it changes only when a window is resized
-            x = (mi.Float(index - row * camera.width) + opaque(mi.Float, offset[0] - camera.cx)) / opaque(mi.Float, camera.fx)
-            y = (mi.Float(row) + opaque(mi.Float, offset[1] - camera.cy)) / opaque(mi.Float, camera.fy)
-            r = camera.rotation.T
-            d = dr.normalize(x * opaque(mi.Vector3f, r[0]) + y * opaque(mi.Vector3f, r[1]) + opaque(mi.Vector3f, r[2]))
-            return mi.Ray3f(opaque(mi.Point3f, camera.position), d)
-        ray = self._camera_rays.get(camera.name)
-        if ray is None:
-            origin, directions = camera.pixel_rays()
-            d = directions.reshape(-1, 3).astype(np.float32)
-            ray = mi.Ray3f(mi.Point3f(*np.tile(origin.astype(np.float32), (d.shape[0], 1)).T), mi.Vector3f(*d.T))
+        keep = tuple(offset) == (0.5, 0.5) and any(camera is c for c in self.stage.cameras)  # a free camera moves
+        if keep and camera.name in self._camera_rays:
+            return self._camera_rays[camera.name]
+        ray = camera.device_rays(offset)
+        if keep:
             dr.eval(ray)
             self._camera_rays[camera.name] = ray
         return ray
