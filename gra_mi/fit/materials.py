@@ -195,20 +195,21 @@ class FitResult:
     albedo_gain: np.ndarray | None = None  # (3,) the brightness calibration's gain, already applied to ``albedo``
 
 
-def _camera_visible(scene, camera, positions: np.ndarray, normals: np.ndarray) -> np.ndarray:
-    """Texels facing the camera with nothing in between."""
+def _camera_visible(scene, camera, geom) -> np.ndarray:
+    """(M,) texels facing the camera with nothing in between. On the device, the camera's position a kernel input:
+    rays made from NumPy arrays gave Mitsuba's tracing kernel code that depends on the buffers' alignment (an LLVM
+    compile for about every view)."""
+    import drjit as dr
     import mitsuba as mi
 
-    to_cam = camera.position - positions
-    dist = np.linalg.norm(to_cam, axis=1)
-    d = to_cam / dist[:, None]
-    facing = np.sum(normals * d, axis=1) > 0
-    origin = positions + normals * 1e-4
-    ray = mi.Ray3f(
-        mi.Point3f(*origin.T.astype(np.float32)), mi.Vector3f(*d.T.astype(np.float32)), mi.Float((dist * (1 - 1e-4)).astype(np.float32))
-    )
-    blocked = np.array(scene.ray_test(ray, coherent=False, active=mi.Bool(facing)))
-    return facing & ~blocked
+    from gra_mi.core.runtime import opaque
+
+    to_cam = opaque(mi.Point3f, camera.position) - geom.position
+    dist = dr.norm(to_cam)
+    d = to_cam / dist
+    facing = dr.dot(geom.geo_normal, d) > 0
+    ray = mi.Ray3f(geom.position + geom.geo_normal * 1e-4, d, dist * (1 - 1e-4))
+    return np.asarray(facing & ~scene.ray_test(ray, coherent=False, active=facing))
 
 
 def sample_image(image: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -265,8 +266,7 @@ class MaterialFitter:
             geom = self.relighter.geometry(pose)
             self.ls.set_frame(pose)
             p = np.array(geom.position).T.astype(np.float64)
-            n = np.array(geom.geo_normal).T.astype(np.float64)
-            seen = _camera_visible(self.ls.scene, cam, p, n)
+            seen = _camera_visible(self.ls.scene, cam, geom)
             xyz = cam.project(p[seen])
             image = load_fit_observation(self.capture, cam_name, frame)
             value, covered = sample_image(image, xyz[:, :2])
