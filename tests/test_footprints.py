@@ -135,6 +135,8 @@ def test_footprints_of_nothing(plane):
 
     flat_pixels, (rows, texels, weights) = pixel_footprints(plane.ls, plane.camera, plane.atlas, np.zeros((31, 41)), SAMPLES)
     assert flat_pixels.size == rows.size == texels.size == weights.size == 0
+    with pytest.raises(ValueError, match="samples"):
+        pixel_footprints(plane.ls, plane.camera, plane.atlas, np.ones((31, 41)), 0)
 
 
 def test_footprints_compile_once_for_every_view(plane):

@@ -25,6 +25,8 @@ def pixel_footprints(ls, camera, atlas, alpha: np.ndarray, samples: int = FOOTPR
     texels its rays land on, with bilinear weights. With the frame's texel ``geometry``, pixels whose footprint holds
     a texel seen more obliquely than ``min_view_cos`` are left out too. Returns (pixel flat indices, entries (pixel
     row, texel, weight)), entries in pixel order, each pixel's texels ascending, each pixel's weights summing to 1."""
+    if samples < 1:
+        raise ValueError(f"samples must be >= 1, got {samples}")
     ys, xs = np.nonzero(alpha >= COVERED)
     texel, weight, usable = _sample_corners(ls, camera, atlas, xs, ys, samples, geometry, min_view_cos)
     keep = np.flatnonzero(usable.reshape(xs.size, samples * samples).all(axis=1))
