@@ -108,6 +108,7 @@ def relight_rows(ls, relighter, stage, frame: int, geom, repeats: int) -> tuple[
     rows = []
     width, height = stage.cameras[0].width, stage.cameras[0].height
     relighter.visibility(frame)
+    ls.set_frame(frame)  # the mesh the camera rays are traced against
     intensities = envmap_drives(stage)
     cam = stage.cameras[0]
     counter = iter(range(10**6))

@@ -120,6 +120,21 @@ def test_cache_reuses_visibility_across_lighting_and_cameras(tiny, tmp_path):
     assert third.cache.misses == 1
 
 
+def test_cached_visibility_leaves_the_mesh_where_it_is(tiny, tmp_path):
+    """The mesh moves (a BVH rebuild) only when a frame's bits must be traced, and they are traced at that frame."""
+    from gra_mi.render.relighter import Relighter
+    from gra_mi.render.visibility import compute_visibility
+
+    relighter = Relighter(tiny, resolution=64, cache_dir=tmp_path / "vis")
+    traced = np.array(relighter.visibility(3))
+    assert tiny.frame == 3 and relighter.cache.misses == 1
+    tiny.set_frame(0)
+    np.testing.assert_array_equal(np.array(relighter.visibility(3)), traced)
+    assert tiny.frame == 0 and relighter.cache.misses == 1
+    tiny.set_frame(3)
+    np.testing.assert_array_equal(np.array(compute_visibility(tiny.scene, relighter.geometry(3), relighter.leds())), traced)
+
+
 def test_shading_is_linear_in_led_intensities_and_off_leds_cost_nothing(tiny):
     from gra_mi.render.relighter import Relighter
 

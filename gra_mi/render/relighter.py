@@ -122,10 +122,15 @@ class Relighter:
         return self._geometry[frame]
 
     def visibility(self, frame: int, far_field: bool | None = None):
-        """The frame's per-LED visibility: of every texel, or (after :meth:`only_for`) of those the job's cameras see."""
-        self.ls.set_frame(frame)  # the scene's mesh must be this frame's to trace against
-        geom = self.geometry(frame)
-        return self.cache.get(self.ls.scene, geom, self.leds(far_field), self.job_texels(frame))
+        """The frame's per-LED visibility: of every texel, or (after :meth:`only_for`) of those the job's cameras see.
+        The scene's mesh is moved to the frame only when the bits must be traced: moving it rebuilds the BVH (25-50 ms
+        on a body), for nothing when they are cached (a streamed fit's steps visit their views' frames in any order)."""
+
+        def scene_at_frame():
+            self.ls.set_frame(frame)
+            return self.ls.scene
+
+        return self.cache.get(scene_at_frame, self.geometry(frame), self.leds(far_field), self.job_texels(frame))
 
     def job_texels(self, frame: int) -> np.ndarray | None:
         """The texels whose light the job's cameras need (None: all): those they see and, with more than one

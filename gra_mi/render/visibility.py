@@ -98,8 +98,9 @@ class VisibilityCache:
         self.hits = 0
         self.misses = 0
 
-    def get(self, scene: mi.Scene, geom: TexelGeometry, leds: LedLayout, texels: np.ndarray | None = None) -> mi.UInt32:
-        """The bits for ``texels`` (None: all): a cached entry covering them, else traced (and kept)."""
+    def get(self, scene, geom: TexelGeometry, leds: LedLayout, texels: np.ndarray | None = None) -> mi.UInt32:
+        """The bits for ``texels`` (None: all): a cached entry covering them, else traced (and kept). ``scene``: the
+        ``mi.Scene`` at ``geom``'s frame, or a function that returns it, called only if the bits must be traced."""
         base = f"{geom.digest}_{leds.digest}"
         for key, (bits, covered) in self._memory.items():
             if key.startswith(base) and (covered is None or (texels is not None and np.isin(texels, covered).all())):
@@ -117,7 +118,7 @@ class VisibilityCache:
             bits = mi.UInt32(cached)
             self.hits += 1
         else:
-            bits = compute_visibility(scene, geom, leds, texels)
+            bits = compute_visibility(scene if isinstance(scene, mi.Scene) else scene(), geom, leds, texels)
             self.misses += 1
             if path is not None:
                 with atomic_path(path) as tmp:
