@@ -49,17 +49,25 @@ def capture_job(scale: int, out: Path) -> None:
     generate_capture(out, CaptureConfig(preset=scaled_preset(scale), renderer="onebounce", measure_noise=False))
 
 
+# Started by a small launcher: Linux counts the memory a child had at exec (its forked copy of the parent) in its
+# peak, so a command started straight from this process would report this process's memory if it were larger.
+LAUNCHER = """import json, os, subprocess, sys, time
+start = time.perf_counter()
+process = subprocess.Popen(sys.argv[1:], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+err = process.stderr.read()
+_, status, usage = os.wait4(process.pid, 0)
+print(json.dumps({"seconds": time.perf_counter() - start, "peak_mb": usage.ru_maxrss / 1024.0, "code": os.waitstatus_to_exitcode(status), "err": err[-2000:]}))
+"""
+
+
 def measured(command: list[str]) -> dict:
-    """Run ``command``; its wall time and peak resident memory (its own, from wait4)."""
+    """Run ``command``; its wall time and peak resident memory (its own, from wait4 in a small launcher)."""
     env = {**os.environ, "GRA_MI_QUIET": "1"}
-    start = time.perf_counter()
-    process = subprocess.Popen(command, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    _, status, usage = os.wait4(process.pid, 0)
-    seconds = time.perf_counter() - start
-    err = process.stderr.read()
-    if os.waitstatus_to_exitcode(status) != 0:
-        raise RuntimeError(f"{' '.join(command)} failed: {err[-2000:]}")
-    return {"seconds": seconds, "peak_mb": usage.ru_maxrss / 1024.0}
+    done = subprocess.run([sys.executable, "-c", LAUNCHER, *command], env=env, capture_output=True, text=True, check=True)
+    result = json.loads(done.stdout)
+    if result["code"] != 0:
+        raise RuntimeError(f"{' '.join(command)} failed: {result['err']}")
+    return {"seconds": result["seconds"], "peak_mb": result["peak_mb"]}
 
 
 def gra_mi(*args: str) -> list[str]:

@@ -24,6 +24,7 @@ from gra_mi.core.errors import GraMiParameterError, require_positive
 from gra_mi.render.runtime import ensure_mitsuba
 from gra_mi.stage.envmap import background_plate
 from gra_mi.stage.scene import camera_sensor_dict
+from gra_mi.subject.sequence import extent
 
 
 @dataclass
@@ -69,9 +70,8 @@ def platform_layer(sequence, frame: int, camera, envmap: np.ndarray, config: Pla
     config.validate()
     if not 0 <= frame < sequence.num_frames:
         raise GraMiParameterError("frame", f"frame {frame} out of range [0, {sequence.num_frames})")
-    everything = sequence.vertices.reshape(-1, 3)
-    top = float(everything[:, 1].min())
-    cx, cz = (float(v) for v in everything[:, [0, 2]].mean(axis=0))
+    low, _, mean = extent(sequence.vertices)
+    top, cx, cz = float(low[1]), float(mean[0]), float(mean[2])
     grey = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [config.reflectance] * 3}}
     transform = mi.ScalarTransform4f
     scene = mi.load_dict(

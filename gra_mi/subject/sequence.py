@@ -8,12 +8,18 @@ This is the paper's ``M_t`` (a person-specific tracked template mesh). On disk a
 
 UVs follow docs/conventions.md: (u, v) ∈ [0,1]², as Mitsuba stores them; vertices are split along UV seams.
 :func:`validate_sequence` rejects NaN vertices, changing vertex counts, out-of-range UVs and bad faces.
+
+The per-frame arrays are stored uncompressed, so :func:`load_sequence` maps them from the file (``np.memmap``, read
+only) instead of reading them: a frame is read from disk when it is used, and a sequence of tens of thousands of
+frames costs no more memory than one of ten. Archives whose arrays are compressed (written before, or by another
+tool's ``np.savez_compressed``) are read whole, as they must be.
 """
 
 from __future__ import annotations
 
 import math
 import zipfile
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -23,6 +29,8 @@ from gra_mi.core.errors import GraMiInputError
 from gra_mi.core.io import atomic_path
 from gra_mi.subject.geometry import split_uv_seams, vertex_normals  # noqa: F401  (part of this module's interface)
 from gra_mi.subject.interchange import is_interchange_file, read_interchange
+
+CHUNK_BYTES = 8 << 20  # a long sequence is validated (and read, where it is mapped) about this much at a time
 
 
 @dataclass
@@ -55,22 +63,13 @@ def validate_sequence(seq: MeshSequence, source: str = "<sequence>") -> None:
             raise GraMiInputError(
                 source, f"expected {'integers' if name == 'faces' else 'numbers'}, got dtype {np.asarray(array).dtype}", field=name
             )
-    v = np.asarray(seq.vertices)
+    v = seq.vertices
     if v.ndim != 3 or v.shape[2] != 3 or v.shape[0] < 1:
         raise GraMiInputError(source, f"expected (frames, vertices, 3), got {v.shape}", field="vertices")
-    bad = ~np.isfinite(v).all(axis=(1, 2))
-    if bad.any():
-        raise GraMiInputError(source, f"non-finite (NaN/Inf) vertex positions in frame {int(np.argmax(bad))}", field="vertices")
     if seq.normals.shape != v.shape:
         raise GraMiInputError(source, f"normals {seq.normals.shape} do not match vertices {v.shape}", field="normals")
-    if not np.isfinite(seq.normals).all():
-        raise GraMiInputError(source, "non-finite normals", field="normals")
-    flat = np.linalg.norm(seq.normals, axis=-1) < 1e-6
-    if flat.any():  # a zero normal shades black and turns no LED's light towards the surface
-        frame = int(np.argmax(flat.any(axis=1)))
-        raise GraMiInputError(
-            source, f"{int(flat.sum())} zero-length vertex normals (first in frame {frame}); recompute them from the faces", field="normals"
-        )
+    for (start, vertices), (_, normals) in zip(frame_chunks(v), frame_chunks(seq.normals), strict=True):
+        _check_frames(vertices, normals, start, source)
     if seq.uvs.shape != (v.shape[1], 2):
         raise GraMiInputError(source, f"expected ({v.shape[1]}, 2) UVs, got {seq.uvs.shape}", field="uvs")
     if not np.isfinite(seq.uvs).all() or seq.uvs.min() < 0 or seq.uvs.max() > 1:
@@ -84,6 +83,53 @@ def validate_sequence(seq: MeshSequence, source: str = "<sequence>") -> None:
         raise GraMiInputError(source, "one label per frame expected", field="frame_labels")
     if seq.vertex_colors is not None and seq.vertex_colors.shape != (v.shape[1], 3):
         raise GraMiInputError(source, f"expected ({v.shape[1]}, 3) colours", field="vertex_colors")
+
+
+def _check_frames(vertices: np.ndarray, normals: np.ndarray, start: int, source: str) -> None:
+    """Frames ``start``… of a sequence: finite positions, finite non-zero normals."""
+    bad = ~np.isfinite(vertices).all(axis=(1, 2))
+    if bad.any():
+        raise GraMiInputError(source, f"non-finite (NaN/Inf) vertex positions in frame {start + int(np.argmax(bad))}", field="vertices")
+    if not np.isfinite(normals).all():
+        raise GraMiInputError(
+            source, f"non-finite normals in frame {start + int(np.argmax(~np.isfinite(normals).all(axis=(1, 2))))}", field="normals"
+        )
+    flat = np.linalg.norm(normals, axis=-1) < 1e-6
+    if flat.any():  # a zero normal shades black and turns no LED's light towards the surface
+        frame = start + int(np.argmax(flat.any(axis=1)))
+        raise GraMiInputError(
+            source, f"{int(flat.sum())} zero-length vertex normals (first in frame {frame}); recompute them from the faces", field="normals"
+        )
+
+
+def frame_chunks(array: np.ndarray) -> Iterator[tuple[int, np.ndarray]]:
+    """(first frame, frames) of a (T, ...) array, about :data:`CHUNK_BYTES` at a time. A mapped array's chunks are
+    read from its file, not through the map: pages touched through a map stay in the process's resident memory until
+    the system needs them back, so one pass over a long sequence would look like holding it whole."""
+    frame = int(np.prod(array.shape[1:]))
+    step = max(1, CHUNK_BYTES // max(frame * array.itemsize, 1))
+    if not isinstance(array, np.memmap):
+        yield from ((k, array[k : k + step]) for k in range(0, len(array), step))
+        return
+    with open(array.filename, "rb") as fh:
+        for k in range(0, len(array), step):
+            count = min(step, len(array) - k)
+            fh.seek(array.offset + k * frame * array.itemsize)
+            chunk = np.fromfile(fh, array.dtype, count * frame)
+            if chunk.size != count * frame:
+                raise GraMiInputError(array.filename, f"the file ends inside frame {k + chunk.size // frame} (truncated?)")
+            yield k, chunk.reshape((count, *array.shape[1:]))
+
+
+def extent(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(lowest corner, highest corner, mean) of every position of a (T, V, 3) sequence, in float64, read a chunk of
+    frames at a time (a mapped sequence is never read whole)."""
+    low, high, total = np.full(3, np.inf), np.full(3, -np.inf), np.zeros(3)
+    for _, chunk in frame_chunks(vertices):
+        low = np.minimum(low, chunk.min(axis=(0, 1)))
+        high = np.maximum(high, chunk.max(axis=(0, 1)))
+        total += chunk.sum(axis=(0, 1), dtype=np.float64)
+    return low, high, total / (vertices.shape[0] * vertices.shape[1])
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -122,20 +168,50 @@ def save_sequence(seq: MeshSequence, folder: str | Path, write_plys: bool = True
     if write_plys:
         for t in range(seq.num_frames):
             write_ply(folder / "frames" / ply_name(t), seq.vertices[t], seq.normals[t], seq.uvs, seq.faces, seq.vertex_colors)
-    extra = {} if seq.vertex_colors is None else {"vertex_colors": seq.vertex_colors.astype(np.float32)}
+    extra = {} if seq.vertex_colors is None else {"vertex_colors": np.asarray(seq.vertex_colors, np.float32)}
     with atomic_path(folder / "sequence.npz") as tmp:
         with open(tmp, "wb") as fh:
-            np.savez_compressed(
+            # Stored, not compressed, so that load_sequence can map the frames (they compress by ~15 % only); NumPy
+            # copies a mapped source a chunk at a time, and asarray makes no copy of float32.
+            np.savez(
                 fh,
-                faces=seq.faces.astype(np.int32),
-                uvs=seq.uvs.astype(np.float32),
-                vertices=seq.vertices.astype(np.float32),
-                normals=seq.normals.astype(np.float32),
+                faces=np.asarray(seq.faces, np.int32),
+                uvs=np.asarray(seq.uvs, np.float32),
+                vertices=np.asarray(seq.vertices, np.float32),
+                normals=np.asarray(seq.normals, np.float32),
                 fps=np.float32(seq.fps),
                 frame_labels=np.array(seq.frame_labels or [""] * seq.num_frames),
                 **extra,
             )
     return folder
+
+
+def _mapped_member(path: Path, archive: zipfile.ZipFile, name: str) -> np.ndarray | None:
+    """The array ``name`` of an .npz mapped read-only from the file, or None where it cannot be (compressed, not
+    little-endian float32 in C order): a stored zip member is the .npy file's bytes as they are."""
+    info = archive.getinfo(f"{name}.npy")
+    if info.compress_type != zipfile.ZIP_STORED or info.flag_bits & 0x1:  # compressed or encrypted
+        return None
+    with open(path, "rb") as fh:
+        fh.seek(info.header_offset)
+        local = fh.read(30)  # the local file header: its name and extra field lengths are at bytes 26–29
+        if len(local) < 30 or local[:4] != b"PK\x03\x04":
+            raise GraMiInputError(path, f"the zip entry {info.filename} has no local header", field=name)
+        fh.seek(info.header_offset + 30 + int.from_bytes(local[26:28], "little") + int.from_bytes(local[28:30], "little"))
+        version = np.lib.format.read_magic(fh)
+        reader = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+        shape, fortran_order, dtype = reader(fh)
+        offset = fh.tell()
+    if fortran_order or dtype != np.dtype("<f4"):
+        return None
+    return np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=shape)
+
+
+def _frame_arrays(path: Path, data) -> dict[str, np.ndarray]:
+    """vertices and normals of an opened .npz: mapped where stored, else read."""
+    with zipfile.ZipFile(path) as archive:
+        mapped = {key: _mapped_member(path, archive, key) for key in ("vertices", "normals")}
+    return {key: data[key] if value is None else value for key, value in mapped.items()}
 
 
 def load_sequence(folder: str | Path) -> MeshSequence:
@@ -159,8 +235,7 @@ def load_sequence(folder: str | Path) -> MeshSequence:
         seq = MeshSequence(
             faces=data["faces"],
             uvs=data["uvs"],
-            vertices=data["vertices"],
-            normals=data["normals"],
+            **_frame_arrays(path, data),
             fps=float(data["fps"]) if "fps" in data else 24.0,
             frame_labels=[str(x) for x in data["frame_labels"]] if "frame_labels" in data else [],
             vertex_colors=data["vertex_colors"] if "vertex_colors" in data else None,
