@@ -65,6 +65,16 @@ def relight(scene: Path, frames: int, envmap: Path, out: Path) -> dict:
     return measured(gra_mi("relight", str(scene), "--frames", picked, "--envmap", str(envmap), "--out", str(out), "--uv-resolution", "256"))
 
 
+def render_difference(reference: Path, relit: Path) -> float:
+    """The largest difference of any pixel between two relights' EXRs (every file of ``reference`` must be there)."""
+    from gra_mi.core.io import read_exr
+
+    names = sorted(p.relative_to(reference) for p in reference.rglob("*.exr"))
+    if not names:
+        raise RuntimeError(f"no EXR in {reference}")
+    return max(float(np.abs(read_exr(reference / n) - read_exr(relit / n)).max()) for n in names)
+
+
 def measure(run: BenchmarkRun) -> str:
     from gra_mi.core.io import write_exr
     from gra_mi.stage.envmap_library import reference_map
@@ -85,15 +95,28 @@ def measure(run: BenchmarkRun) -> str:
             written = time.perf_counter() - start
             result = relight(scene, frames, envmap, folder / "relit")
             size = (folder / "subject" / "sequence.npz").stat().st_size / 2**20
-            rows.append((f"{frames:,}", layout, f"{size:,.0f}", f"{written:.1f}", f"{result['seconds']:.1f}", f"{result['peak_mb']:,.0f}"))
+            differs = render_difference(run.work / f"compressed_{frames}" / "relit", folder / "relit")
+            rows.append(
+                (
+                    f"{frames:,}",
+                    layout,
+                    f"{size:,.0f}",
+                    f"{written:.1f}",
+                    f"{result['seconds']:.1f}",
+                    f"{result['peak_mb']:,.0f}",
+                    f"{differs:g}",
+                )
+            )
             print(rows[-1], file=sys.stderr, flush=True)
     notes = [
         f"The anny body walking ({walk.num_vertices:,} vertices, {walk.num_frames} frames) repeated to each length; "
         "`gra-mi relight SCENE --frames first,middle,last --envmap sun.exr --uv-resolution 256`, one camera of `small`'s rig "
         "(331 LEDs, 256×135). *write s*: writing the sequence (this script, in its process); *relight s* and *peak MB*: "
-        "the relight's own process, from its start to its end (loading, three visibility traces, the renders).",
+        "the relight's own process, from its start to its end (loading, three visibility traces, the renders); "
+        "*renders vs compressed*: the largest difference of any pixel of the three EXRs from the compressed run's "
+        "(0: the same images).",
     ]
-    columns = ("frames", "per-frame arrays", "sequence.npz MB", "write s", "relight s", "peak MB")
+    columns = ("frames", "per-frame arrays", "sequence.npz MB", "write s", "relight s", "peak MB", "renders vs compressed")
     return table_page("A long tracked mesh sequence: mapped, not read", "sequence_memory.py", run.stamp("anny walk"), rows, notes, columns)
 
 

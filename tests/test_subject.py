@@ -75,6 +75,147 @@ def test_bad_sequences_are_rejected(tmp_path):
         load_sequence(tmp_path / "nothing")
 
 
+def long_tiny_subject(frames: int) -> MeshSequence:
+    """The tiny subject's 8-frame loop repeated to ``frames`` frames."""
+    from dataclasses import replace
+
+    seq, repeat = tiny_subject(8), -(-frames // 8)
+    tile = lambda a: np.tile(a, (repeat, 1, 1))[:frames]  # noqa: E731
+    return replace(seq, vertices=tile(seq.vertices), normals=tile(seq.normals), frame_labels=(seq.frame_labels * repeat)[:frames])
+
+
+def write_archive(path, seq: MeshSequence, writer=np.savez, **arrays) -> None:
+    """A sequence.npz written by NumPy itself, as another tool would write it (``arrays`` replace the sequence's)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fields = {"faces": seq.faces, "uvs": seq.uvs, "vertices": seq.vertices, "normals": seq.normals} | arrays
+    writer(path, **fields)
+
+
+def test_a_saved_sequence_is_mapped_not_read(tmp_path, monkeypatch):
+    import tracemalloc
+
+    import gra_mi.subject.sequence as sequence
+
+    monkeypatch.setattr(sequence, "CHUNK_BYTES", 1 << 16)  # validation reads 64 kB at a time: many chunks
+    seq = long_tiny_subject(1500)
+    save_sequence(seq, tmp_path / "s", write_plys=False)
+    tracemalloc.start()
+    try:
+        back = load_sequence(tmp_path / "s")
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert isinstance(back.vertices, np.memmap) and isinstance(back.normals, np.memmap)
+    # aligned as NumPy's own allocations: Embree refuses vertex data that is not (it warned, and traced nothing)
+    assert back.vertices.ctypes.data % 64 == 0 and back.normals.ctypes.data % 64 == 0
+    whole = seq.vertices.nbytes + seq.normals.nbytes  # what reading the frames would allocate
+    assert peak < 0.1 * whole, f"loading allocated {peak} bytes for {whole} bytes of frames"
+    np.testing.assert_array_equal(back.vertices, seq.vertices)
+    np.testing.assert_array_equal(back.normals, seq.normals)
+    with pytest.raises(ValueError, match="read-only"):  # a caller cannot write into the user's file through the map
+        back.vertices[0, 0, 0] = 1.0
+    with np.load(tmp_path / "s" / "sequence.npz") as plain:  # still an archive NumPy itself reads
+        np.testing.assert_array_equal(plain["vertices"], seq.vertices)
+    save_sequence(back, tmp_path / "s", write_plys=False)  # over the file it is mapped from: replaced, not overwritten
+    np.testing.assert_array_equal(load_sequence(tmp_path / "s").normals, seq.normals)
+
+
+def test_a_mapped_frame_traces_as_the_frame_in_memory(tmp_path, variant):
+    """A mapped frame moved into a Mitsuba mesh (as LightstageScene.set_frame does) is hit where the same frame read
+    into memory is: unaligned mapped data once reached Embree, which refused it, and every ray missed."""
+    import drjit as dr
+    import mitsuba as mi
+
+    seq = tiny_subject(6)
+    save_sequence(seq, tmp_path / "s")
+    mapped = load_sequence(tmp_path / "s")
+    scene = mi.load_dict({"type": "scene", "body": {"type": "ply", "filename": str(tmp_path / "s" / "frames" / "frame_0000.ply")}})
+    params = mi.traverse(scene)
+    origins = np.stack(np.meshgrid(np.linspace(-0.4, 0.4, 24), np.linspace(0.3, 1.9, 48), [2.0]), -1).reshape(-1, 3)
+    rays = mi.Ray3f(mi.Point3f(*origins.T.astype(np.float32)), mi.Vector3f(0, 0, -1))
+    for frame in (3, 5):
+        hits = []
+        for source in (seq.vertices[frame].copy(), mapped.vertices[frame]):
+            params["body.vertex_positions"] = mi.Float(source.ravel())
+            params.update()
+            hits.append(np.array(scene.ray_intersect(rays).t))
+        dr.sync_thread()
+        assert np.isfinite(hits[0]).sum() > 100
+        np.testing.assert_array_equal(hits[1], hits[0])
+
+
+def test_extent_of_a_mapped_sequence_matches_the_whole_array(tmp_path, monkeypatch):
+    import gra_mi.subject.sequence as sequence
+
+    monkeypatch.setattr(sequence, "CHUNK_BYTES", 1 << 14)
+    seq = long_tiny_subject(300)
+    save_sequence(seq, tmp_path / "s", write_plys=False)
+    low, high, mean = sequence.extent(load_sequence(tmp_path / "s").vertices)
+    whole = seq.vertices.astype(np.float64).reshape(-1, 3)
+    np.testing.assert_array_equal(low, whole.min(axis=0))
+    np.testing.assert_array_equal(high, whole.max(axis=0))
+    np.testing.assert_allclose(mean, whole.mean(axis=0), rtol=1e-12)
+
+
+def test_archives_from_other_writers_load_whole(tmp_path):
+    seq = tiny_subject(5)
+    cases = {
+        "compressed": {"writer": np.savez_compressed},  # gra-mi's own files before the frames were mapped
+        "float64": {"vertices": seq.vertices.astype(np.float64)},
+        "fortran": {"vertices": np.asfortranarray(seq.vertices)},
+    }
+    for name, case in cases.items():
+        write_archive(tmp_path / name / "sequence.npz", seq, **case)
+        back = load_sequence(tmp_path / name)
+        assert not isinstance(back.vertices, np.memmap), name
+        np.testing.assert_array_equal(back.vertices, seq.vertices)
+        np.testing.assert_array_equal(back.normals, seq.normals)
+    for frames in range(1, 9):  # np.savez's stored entries start wherever the zip puts them: mapped only if aligned
+        write_archive(tmp_path / f"plain{frames}" / "sequence.npz", tiny_subject(frames))
+        back = load_sequence(tmp_path / f"plain{frames}")
+        assert not isinstance(back.vertices, np.memmap) or back.vertices.ctypes.data % 64 == 0
+        np.testing.assert_array_equal(back.vertices, tiny_subject(frames).vertices)
+
+
+def test_a_late_bad_frame_of_a_mapped_sequence_is_named(tmp_path, monkeypatch):
+    import gra_mi.subject.sequence as sequence
+
+    monkeypatch.setattr(sequence, "CHUNK_BYTES", 1 << 16)
+    seq = long_tiny_subject(900)
+    vertices, normals = seq.vertices.copy(), seq.normals.copy()
+    vertices[877, 12, 2] = np.inf
+    normals[641, 3] = 0.0
+    write_archive(tmp_path / "nan" / "sequence.npz", seq, vertices=vertices)
+    with pytest.raises(GraMiInputError, match="frame 877"):
+        load_sequence(tmp_path / "nan")
+    write_archive(tmp_path / "flat" / "sequence.npz", seq, normals=normals)
+    with pytest.raises(GraMiInputError, match="first in frame 641"):
+        load_sequence(tmp_path / "flat")
+
+
+def test_a_mapped_archive_that_lies_about_its_size_is_refused(tmp_path):
+    import io
+    import zipfile
+
+    seq = tiny_subject(4)
+    path = tmp_path / "lies" / "sequence.npz"
+    write_archive(path, seq)
+    header = io.BytesIO()  # the vertices entry's .npy header claims 40 frames; its data holds 4
+    np.lib.format.write_array_header_1_0(header, {"descr": "<f4", "fortran_order": False, "shape": (40, seq.num_vertices, 3)})
+    with zipfile.ZipFile(path, "w") as archive:
+        for key in ("faces", "uvs", "normals"):
+            buffer = io.BytesIO()
+            np.save(buffer, getattr(seq, key))
+            archive.writestr(f"{key}.npy", buffer.getvalue())
+        archive.writestr("vertices.npy", header.getvalue() + seq.vertices.tobytes())
+    with pytest.raises(GraMiInputError, match="holds"):
+        load_sequence(path.parent)
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    with pytest.raises(GraMiInputError, match="sequence.npz"):
+        load_sequence(path.parent)
+
+
 def test_anny_body_sequence(tmp_path, llvm_variant):
     # Builds the real anny body (about 1.5 minutes the first time on a fresh machine, then cached).
     from gra_mi.subject.anny_body import MOTION_CLIPS, anny_sequence

@@ -18,6 +18,7 @@ tool's ``np.savez_compressed``) are read whole, as they must be.
 from __future__ import annotations
 
 import math
+import struct
 import zipfile
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -30,6 +31,7 @@ from gra_mi.core.io import atomic_path
 from gra_mi.subject.geometry import split_uv_seams, vertex_normals  # noqa: F401  (part of this module's interface)
 from gra_mi.subject.interchange import is_interchange_file, read_interchange
 
+ALIGN = 64  # bytes: where a mapped array's data starts in its file (NumPy's own allocations are aligned so)
 CHUNK_BYTES = 8 << 20  # a long sequence is validated (and read, where it is mapped) about this much at a time
 
 
@@ -170,25 +172,40 @@ def save_sequence(seq: MeshSequence, folder: str | Path, write_plys: bool = True
             write_ply(folder / "frames" / ply_name(t), seq.vertices[t], seq.normals[t], seq.uvs, seq.faces, seq.vertex_colors)
     extra = {} if seq.vertex_colors is None else {"vertex_colors": np.asarray(seq.vertex_colors, np.float32)}
     with atomic_path(folder / "sequence.npz") as tmp:
-        with open(tmp, "wb") as fh:
-            # Stored, not compressed, so that load_sequence can map the frames (they compress by ~15 % only); NumPy
-            # copies a mapped source a chunk at a time, and asarray makes no copy of float32.
-            np.savez(
-                fh,
-                faces=np.asarray(seq.faces, np.int32),
-                uvs=np.asarray(seq.uvs, np.float32),
-                vertices=np.asarray(seq.vertices, np.float32),
-                normals=np.asarray(seq.normals, np.float32),
-                fps=np.float32(seq.fps),
-                frame_labels=np.array(seq.frame_labels or [""] * seq.num_frames),
-                **extra,
-            )
+        # Stored, not compressed, so that load_sequence can map the frames (they compress by ~15 % only); NumPy
+        # copies a mapped source a chunk at a time, and asarray makes no copy of float32.
+        _write_aligned_npz(
+            tmp,
+            faces=np.asarray(seq.faces, np.int32),
+            uvs=np.asarray(seq.uvs, np.float32),
+            vertices=np.asarray(seq.vertices, np.float32),
+            normals=np.asarray(seq.normals, np.float32),
+            fps=np.float32(seq.fps),
+            frame_labels=np.array(seq.frame_labels or [""] * seq.num_frames),
+            **extra,
+        )
     return folder
+
+
+def _write_aligned_npz(path: Path, **arrays: np.ndarray) -> None:
+    """``np.savez``'s archive (entries stored, as ZIP64), each array's data starting on a 64-byte boundary of the file,
+    as NumPy aligns its own allocations: a mapped frame goes straight to Embree, which refuses vertex data that is not
+    4-byte aligned. An entry's local header gets a padding record in its extra field (0xD935, as Android's zipalign
+    writes); NumPy pads each .npy header to a multiple of 64 bytes itself."""
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_STORED, allowZip64=True) as archive:
+        for name, array in arrays.items():
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            # the entry's data follows 30 bytes, its name, the padding record and the 20-byte ZIP64 record zipfile adds
+            pad = -(archive.fp.tell() + 30 + len(info.filename) + 4 + 20) % ALIGN
+            info.extra = struct.pack("<HH", 0xD935, pad) + bytes(pad)
+            with archive.open(info, "w", force_zip64=True) as out:
+                np.lib.format.write_array(out, np.asanyarray(array), allow_pickle=False)
 
 
 def _mapped_member(path: Path, archive: zipfile.ZipFile, name: str) -> np.ndarray | None:
     """The array ``name`` of an .npz mapped read-only from the file, or None where it cannot be (compressed, not
-    little-endian float32 in C order): a stored zip member is the .npy file's bytes as they are."""
+    little-endian float32 in C order, not aligned as :func:`_write_aligned_npz` aligns it): a stored zip member is the
+    .npy file's bytes as they are."""
     info = archive.getinfo(f"{name}.npy")
     if info.compress_type != zipfile.ZIP_STORED or info.flag_bits & 0x1:  # compressed or encrypted
         return None
@@ -197,12 +214,20 @@ def _mapped_member(path: Path, archive: zipfile.ZipFile, name: str) -> np.ndarra
         local = fh.read(30)  # the local file header: its name and extra field lengths are at bytes 26–29
         if len(local) < 30 or local[:4] != b"PK\x03\x04":
             raise GraMiInputError(path, f"the zip entry {info.filename} has no local header", field=name)
-        fh.seek(info.header_offset + 30 + int.from_bytes(local[26:28], "little") + int.from_bytes(local[28:30], "little"))
+        start = info.header_offset + 30 + int.from_bytes(local[26:28], "little") + int.from_bytes(local[28:30], "little")
+        fh.seek(start)
         version = np.lib.format.read_magic(fh)
         reader = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
         shape, fortran_order, dtype = reader(fh)
         offset = fh.tell()
     if fortran_order or dtype != np.dtype("<f4"):
+        return None
+    held = start + info.file_size - offset  # a map is not bounded by the member: its header must match its size
+    if held != int(np.prod(shape)) * dtype.itemsize:
+        raise GraMiInputError(
+            path, f"the array's header says {shape} float32 ({int(np.prod(shape)) * 4} bytes) but its entry holds {held}", field=name
+        )
+    if offset % ALIGN:  # mapped unaligned, a frame would reach Embree unaligned: read whole instead
         return None
     return np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=shape)
 
