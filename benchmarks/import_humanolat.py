@@ -11,17 +11,16 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import subprocess
 import sys
 import time
 from pathlib import Path
 
-from gra_mi.apps.harness import BenchmarkRun, run_benchmark
+from gra_mi.apps.harness import BenchmarkRun, run_benchmark, run_measured
 
 FULL_IMAGES = 40 * 343  # cameras × images of a pose (the issue's count; about 13,700)
 
 IMPORT = """
-import json, resource, sys, time
+import json, sys, time
 from gra_mi.render.runtime import start_runtime
 start_runtime("llvm_ad_rgb")
 from gra_mi.capture.humanolat import import_humanolat
@@ -30,7 +29,7 @@ start = time.perf_counter()
 capture = import_humanolat(sys.argv[1], sys.argv[2], ImportConfig(scale=float(sys.argv[3]), uv_resolution=64))
 seconds = time.perf_counter() - start
 images = len(capture.frames) * (len(capture.train_cameras) + len(capture.eval_cameras))
-print(json.dumps({"seconds": seconds, "images": images, "peak_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+print(json.dumps({"seconds": seconds, "images": images}))
 """
 
 
@@ -59,10 +58,8 @@ def measure(run: BenchmarkRun) -> str:
     ]
     for scale in (1.0, 0.25):
         out = run.work / f"imported_{scale}"
-        done = subprocess.run([sys.executable, "-c", IMPORT, str(subject), str(out), str(scale)], capture_output=True, text=True)
-        if done.returncode:
-            sys.exit(done.stderr)
-        m = json.loads(done.stdout.strip().splitlines()[-1])
+        done = run_measured([sys.executable, "-c", IMPORT, str(subject), str(out), str(scale)])
+        m = json.loads(done["stdout"].strip().splitlines()[-1]) | {"peak_mib": done["peak_mb"]}
         per = m["seconds"] / m["images"]
         lines.append(f"| {scale:g} | {m['images']} | {per:.3f} | {per * FULL_IMAGES / 3600:.1f} h | {m['peak_mib']:.0f} MiB |")
     return "\n".join(lines)

@@ -21,7 +21,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from gra_mi.apps.harness import BenchmarkRun, run_benchmark
+from gra_mi.apps.harness import BenchmarkRun, gra_mi_command, run_benchmark, run_measured
 
 BATCH_VIEWS = 8
 FULL_BATCH_UP_TO = 4  # scales at which the full-batch fit is run too (at 16× it alone would take longer than the rest)
@@ -49,29 +49,10 @@ def capture_job(scale: int, out: Path) -> None:
     generate_capture(out, CaptureConfig(preset=scaled_preset(scale), renderer="onebounce", measure_noise=False))
 
 
-# Started by a small launcher: Linux counts the memory a child had at exec (its forked copy of the parent) in its
-# peak, so a command started straight from this process would report this process's memory if it were larger.
-LAUNCHER = """import json, os, subprocess, sys, time
-start = time.perf_counter()
-process = subprocess.Popen(sys.argv[1:], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-err = process.stderr.read()
-_, status, usage = os.wait4(process.pid, 0)
-print(json.dumps({"seconds": time.perf_counter() - start, "peak_mb": usage.ru_maxrss / 1024.0, "code": os.waitstatus_to_exitcode(status), "err": err[-2000:]}))
-"""
-
-
 def measured(command: list[str]) -> dict:
-    """Run ``command``; its wall time and peak resident memory (its own, from wait4 in a small launcher)."""
-    env = {**os.environ, "GRA_MI_QUIET": "1"}
-    done = subprocess.run([sys.executable, "-c", LAUNCHER, *command], env=env, capture_output=True, text=True, check=True)
-    result = json.loads(done.stdout)
-    if result["code"] != 0:
-        raise RuntimeError(f"{' '.join(command)} failed: {result['err']}")
+    """Run ``command`` quietly; its wall time and peak resident memory."""
+    result = run_measured(command, env={**os.environ, "GRA_MI_QUIET": "1"})
     return {"seconds": result["seconds"], "peak_mb": result["peak_mb"]}
-
-
-def gra_mi(*args: str) -> list[str]:
-    return [sys.executable, "-m", "gra_mi.cli", *args]
 
 
 def run_scale(scale: int, work: Path, envmap: Path, stages: set[str]) -> list[dict]:
@@ -84,16 +65,16 @@ def run_scale(scale: int, work: Path, envmap: Path, stages: set[str]) -> list[di
     fit_args = ["fit", str(cap), "--iterations", "60", "--overwrite"]
     if "fit" in stages:
         rows.append({"stage": f"fit, --batch-views {BATCH_VIEWS}", "scale": scale, "units": views, "unit": "view"})
-        rows[-1] |= measured(gra_mi(*fit_args, "--batch-views", str(BATCH_VIEWS), "--out", str(fit)))
+        rows[-1] |= measured(gra_mi_command(*fit_args, "--batch-views", str(BATCH_VIEWS), "--out", str(fit)))
     if "full-batch" in stages and scale <= FULL_BATCH_UP_TO:
         rows.append({"stage": "fit, full batch", "scale": scale, "units": views, "unit": "view"})
-        rows[-1] |= measured(gra_mi(*fit_args, "--out", str(work / f"fit_full_x{scale}")))
+        rows[-1] |= measured(gra_mi_command(*fit_args, "--out", str(work / f"fit_full_x{scale}")))
     if "relight" not in stages:
         return rows
     relight = ["relight", str(cap / "scene.xml"), "--frames", "all", "--cameras", "cam06", "--envmap", str(envmap)]
     relight += ["--albedo", str(fit / "albedo.exr"), "--roughness", str(fit / "roughness.exr"), "--vis-cache", str(fit / "cache")]
     rows.append({"stage": "relight", "scale": scale, "units": frames + 2, "unit": "frame"})
-    rows[-1] |= measured(gra_mi(*relight, "--out", str(work / f"relight_x{scale}")))
+    rows[-1] |= measured(gra_mi_command(*relight, "--out", str(work / f"relight_x{scale}")))
     if scale == 4:
         rows.append(shards_compared(relight, work, frames + 2))
     return rows
@@ -102,11 +83,11 @@ def run_scale(scale: int, work: Path, envmap: Path, stages: set[str]) -> list[di
 def shards_compared(relight: list[str], work: Path, frames: int) -> dict:
     """The relight again as 1 process, then as 2 shards started together (both after the run above: the same warm
     kernel and visibility caches)."""
-    one = measured(gra_mi(*relight, "--out", str(work / "relight_one")))
+    one = measured(gra_mi_command(*relight, "--out", str(work / "relight_one")))
     env = {**os.environ, "GRA_MI_QUIET": "1"}
     start = time.perf_counter()
     procs = [
-        subprocess.Popen(gra_mi(*relight, "--out", str(work / "relight_shards"), "--shard", f"{i}/2"), env=env,
+        subprocess.Popen(gra_mi_command(*relight, "--out", str(work / "relight_shards"), "--shard", f"{i}/2"), env=env,
                          stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         for i in range(2)
     ]  # fmt: skip

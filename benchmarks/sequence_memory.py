@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gra_mi.apps.harness import BenchmarkRun, run_benchmark, table_page
+from gra_mi.apps.harness import BenchmarkRun, gra_mi_command, run_benchmark, run_measured, table_page
 from gra_mi.core.errors import GraMiParameterError
 
 
@@ -59,10 +59,10 @@ def long_scene(folder: Path, walk, frames: int, layout: str) -> Path:
 
 
 def relight(scene: Path, frames: int, envmap: Path, out: Path) -> dict:
-    from benchmarks.scale import gra_mi, measured
-
     picked = ",".join(str(t) for t in sorted({0, frames // 2, frames - 1}))
-    return measured(gra_mi("relight", str(scene), "--frames", picked, "--envmap", str(envmap), "--out", str(out), "--uv-resolution", "256"))
+    return run_measured(
+        gra_mi_command("relight", str(scene), "--frames", picked, "--envmap", str(envmap), "--out", str(out), "--uv-resolution", "256")
+    )
 
 
 def render_difference(reference: Path, relit: Path) -> float:

@@ -79,3 +79,18 @@ def test_a_table_page_is_markdown_a_reader_sees_as_a_table():
     assert lines[0] == "# Speed" and "`benchmarks/x.py` (commit abc)" in lines[2]
     assert lines[4] == "one note" and lines[5] == "" and lines[6] == "another"
     assert lines[-3:] == ["|---|---|---|", "| a | 1 ms |  |", "| b | 2 | goal |"]
+
+
+def test_a_measured_command_reports_its_own_peak_memory_not_its_parents():
+    import numpy as np
+
+    from gra_mi.apps.harness import run_measured
+
+    held = np.ones(300 << 20, np.uint8)  # this process: 300 MB more than the commands it starts
+    small = run_measured([sys.executable, "-c", "print('hi')"])
+    large = run_measured([sys.executable, "-c", "import numpy as np; a = np.ones(200 << 20, np.uint8); print(int(a.sum()))"])
+    assert held.sum() == 300 << 20
+    assert small["stdout"] == "hi\n" and small["peak_mb"] < 100, small
+    assert large["stdout"].strip() == str(200 << 20) and 200 <= large["peak_mb"] < 300, large
+    with pytest.raises(RuntimeError, match="boom"):
+        run_measured([sys.executable, "-c", "import sys; sys.exit('boom')"])

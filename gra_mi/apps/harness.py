@@ -51,6 +51,39 @@ def timed(fn: Callable[[], object], repeats: int = 1, warmup: bool = False) -> t
     return statistics.median(times), value
 
 
+# A command is started by this small launcher, which reports what wait4 says of it: Linux counts the memory a process
+# had at exec (its forked copy of its parent) in its peak, so a command started straight from a benchmark's process
+# would report the benchmark's memory wherever that was larger than its own.
+_LAUNCHER = """import json, os, subprocess, sys, tempfile, time
+with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
+    start = time.perf_counter()
+    process = subprocess.Popen(sys.argv[1:], stdout=out, stderr=err)
+    _, status, usage = os.wait4(process.pid, 0)
+    seconds = time.perf_counter() - start
+    out.seek(0), err.seek(0)
+    print(json.dumps({"seconds": seconds, "peak_mb": usage.ru_maxrss / 1024.0, "code": os.waitstatus_to_exitcode(status),
+                      "stdout": out.read(), "stderr": err.read()[-4000:]}))
+"""
+
+
+def run_measured(command: list[str], env: dict | None = None) -> dict:
+    """Run ``command`` in its own process: {"seconds": its wall time, "peak_mb": its own peak resident memory,
+    "stdout": what it printed}. A command that fails raises RuntimeError with the end of its stderr."""
+    import json
+    import subprocess
+
+    done = subprocess.run([sys.executable, "-c", _LAUNCHER, *command], env=env, capture_output=True, text=True, check=True)
+    result = json.loads(done.stdout)
+    if result["code"] != 0:
+        raise RuntimeError(f"{' '.join(command)} failed ({result['code']}): {result['stderr']}")
+    return result
+
+
+def gra_mi_command(*args: str) -> list[str]:
+    """A `gra-mi` command line run by this Python (its environment, whatever is on PATH)."""
+    return [sys.executable, "-m", "gra_mi.cli", *args]
+
+
 def side_by_side(calls: dict[str, Callable[[], object]], repeats: int, warmup: bool = True) -> dict[str, float]:
     """Median seconds of each call, the calls alternated ``repeats`` times (after one untimed call each)."""
     if warmup:
