@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from gra_mi.core.errors import GraMiInputError
@@ -120,3 +121,88 @@ def test_each_local_rank_takes_its_own_gpu():
     assert bind_local_gpu({}, gpus=4) is None
     with pytest.raises(GraMiInputError, match="LOCAL_RANK"):
         bind_local_gpu({"LOCAL_RANK": "x"}, gpus=2)
+
+
+def test_an_interrupted_relight_resumes_to_what_one_run_writes(tmp_path, monkeypatch, llvm_variant, capsys):
+    """`gra-mi relight` into its own folder again resumes: the views on disk are not rendered again, and the folder
+    ends as an uninterrupted run's, byte for byte (previews exposed from the first frame whichever run renders it)."""
+    from gra_mi.apps import relight
+    from gra_mi.cli import main
+
+    args = [
+        "relight",
+        str(TINY),
+        "--olat",
+        "3",
+        "--envmap",
+        str(write_sun(tmp_path)),
+        "--frames",
+        "0:4",
+        "--cameras",
+        "0,2",
+        "--uv-resolution",
+        "32",
+    ]
+    assert main([*args, "--out", str(tmp_path / "one")]) == 0
+    add, calls = relight._Previews.add, []
+
+    def interrupted(self, *a, **k):  # the run stops (Ctrl-C) after 5 of its 16 views
+        if len(calls) == 5:
+            raise KeyboardInterrupt
+        calls.append(a)
+        add(self, *a, **k)
+
+    monkeypatch.setattr(relight._Previews, "add", interrupted)
+    assert main([*args, "--out", str(tmp_path / "two")]) == 130
+    assert "rerun to resume" in capsys.readouterr().err
+    monkeypatch.setattr(relight._Previews, "add", add)
+    assert main([*args, "--out", str(tmp_path / "two")]) == 0
+    said = capsys.readouterr().out
+    assert "wrote 11 renders" in said and "5 found written" in said, said
+    assert different_outputs(tmp_path / "one", tmp_path / "two", ignore=lambda p: p.suffix == ".mp4") == []
+    assert main([*args, "--out", str(tmp_path / "two"), "--cameras", "0,1,2"]) == 0, "another camera: the same run, extended"
+    assert (tmp_path / "two" / "olat003" / "cam01" / "frame_0003.png").is_file()
+
+
+def test_a_relight_resumed_with_other_inputs_or_options_is_refused(tmp_path, llvm_variant, capsys):
+    from gra_mi.cli import main
+    from gra_mi.core.io import write_exr
+
+    albedo = tmp_path / "albedo.exr"
+    write_exr(albedo, np.full((32, 32, 3), 0.5, np.float32))
+    args = [
+        "relight",
+        str(TINY),
+        "--olat",
+        "3",
+        "--frames",
+        "0:2",
+        "--albedo",
+        str(albedo),
+        "--uv-resolution",
+        "32",
+        "--out",
+        str(tmp_path / "out"),
+    ]
+    assert main(args) == 0
+    write_exr(albedo, np.full((32, 32, 3), 0.6, np.float32))  # edited before the rerun
+    capsys.readouterr()
+    assert main(args) == 2
+    assert "input albedo" in capsys.readouterr().err
+    for changed in (["--olat", "4"], ["--frames", "0:3"], ["--exposure", "2"]):
+        assert main([*args[:2], *changed, *args[2:]] if changed[0] == "--exposure" else _replaced(args, changed)) == 2
+        assert "made by another run" in capsys.readouterr().err
+    assert main([*args, "--overwrite"]) == 0, "--overwrite starts over"
+
+
+def _replaced(args: list[str], option: list[str]) -> list[str]:
+    k = args.index(option[0])
+    return [*args[:k], *option, *args[k + 2 :]]
+
+
+def write_sun(folder: Path) -> Path:
+    from gra_mi.core.io import write_exr
+    from gra_mi.stage.envmap_library import reference_map
+
+    write_exr(folder / "sun.exr", reference_map("sun", 16))
+    return folder / "sun.exr"

@@ -105,6 +105,7 @@ class RelightSummary:
     out: Path
     visibility_traced: int  # frames whose visibility was traced
     visibility_reused: int
+    done_before: int = 0  # views a resumed run found written
 
 
 def collect_lights(
@@ -174,14 +175,17 @@ def relight_batch(
     maps: SubjectMaps | None = None,
     platform=None,
     shard: Shard | None = None,
+    resume: bool = False,
 ) -> RelightSummary:
     """Render every (frame, light, camera) of ``scene`` (a path or a loaded scene) (+ ``envmap_fidelity.json`` if asked)
     into ``out/LIGHT/CAMERA/frame_NNNN.{exr,png}`` (+ ``CAMERA.mp4``).
 
     ``frames``/``cameras`` None: all frames, camera 0. ``platform``: the :class:`gra_mi.render.composite.PlatformConfig`
     of ``config.composite``. ``shard``: render only its frames; the files are those one process writes (previews
-    exposed from the selection's first frame, videos written by the shard that finds every frame done). Everything
-    is checked before the first file is written.
+    exposed from the selection's first frame, videos written by the shard that finds every frame done). ``resume``: a
+    view whose preview (its last file) is on disk is not rendered again; the caller has checked that the folder holds
+    this same run (``gra-mi relight`` claims it: :func:`gra_mi.core.provenance.claim_output`). Everything is checked
+    before the first file is written.
     """
     from gra_mi.relightnet.infer import render_view
 
@@ -212,12 +216,13 @@ def relight_batch(
         return render_view(relighter, model, frame, cam.name, light.intensities, near, light.far_field(config.lighting_model)), near
 
     previews = _Previews(out, config, ls, keep=len(lights) * len(cams), platform=platform)
-    mine = shard.take(frames)
-    if mine and mine[0] != frames[0]:
-        for name in lights:
-            for cam in cams:
+    every = [(f, name, cam) for f in shard.take(frames) for name in lights for cam in cams]  # frame-major: one trace per frame
+    jobs = [job for job in every if not (resume and previews.done(*job))]
+    for name in lights:
+        for cam in cams:
+            first = next((f for f, n, c in jobs if n == name and c is cam), frames[0])
+            if first != frames[0]:  # a shard or a resume that does not render the selection's first frame
                 previews.exposure_from(name, cam, view_of(frames[0], name, cam)[0])
-    jobs = [(f, name, cam) for f in mine for name in lights for cam in cams]  # frame-major: one trace per frame
     for frame, name, cam in progress(jobs, description="relight" if shard.whole else f"relight (shard {shard})"):
         view, near = view_of(frame, name, cam)
         if cam is cams[0]:  # said and written once per frame and lighting, not per camera
@@ -226,12 +231,12 @@ def relight_batch(
                 logger.warning("%s: %s", name, warning)
             if near:
                 _write_conditioning(out / name, frame, ls.stage, ls.scene, near)
-        previews.add(frame, name, cam, lights[name], view)
         if config.save_uv:
             _write_uv(out / name / cam.name, frame, relighter, view)
+        previews.add(frame, name, cam, lights[name], view)  # the PNG last: a view is done when its PNG is there
     if len(frames) > 1:
         previews.write_videos(frames, lights, cams, ls.sequence.fps)
-    return RelightSummary(len(jobs), out, relighter.cache.misses, relighter.cache.hits)
+    return RelightSummary(len(jobs), out, relighter.cache.misses, relighter.cache.hits, len(every) - len(jobs))
 
 
 def _stage_model(ls, config: RelightConfig, maps: SubjectMaps):
@@ -297,6 +302,10 @@ class _Previews:
             shown = composite_over(view.image, background_plate(light.envmap, cam) * light.plate_scale)
         self.exposure_from(name, cam, view)
         write_png(folder / f"frame_{frame:04d}.png", shown, exposure=self.exposures[(name, cam.name)])
+
+    def done(self, frame: int, name: str, cam) -> bool:
+        """Whether a view's files are written: its PNG is, the last of them (each file is written whole or not at all)."""
+        return (self.out / name / cam.name / f"frame_{frame:04d}.png").is_file()
 
     def exposure_from(self, name: str, cam, view) -> None:
         """Set a light and camera's preview exposure from a view of the selection's first frame (a shard that does

@@ -125,7 +125,7 @@ def run_export(c: ExportCommand) -> int:
 
 
 @dataclass(kw_only=True)
-class RelightCommand(CommandConfig):
+class RelightCommand(Restartable):
     scene: Path = field(metadata=option(positional=True))
     """Lightstage scene XML (e.g. scenes/tiny_lightstage.xml)."""
     frames: str = "all"
@@ -160,7 +160,7 @@ class RelightCommand(CommandConfig):
     platform: PlatformConfig = field(default_factory=PlatformConfig, metadata=option(renames=PLATFORM_FLAGS))
     shards: ShardOptions = field(default_factory=ShardOptions)
     out: Path = Path("outputs/relight")
-    """Output folder."""
+    """Output folder. Rerunning the same relight into it resumes: views already written are not rendered again."""
 
     def validate(self) -> None:
         if not (self.envmap or self.olat or self.pattern or self.point_light or self.lights):
@@ -188,13 +188,32 @@ def run_relight(c: RelightCommand) -> None:
     frames = select(c.frames, ls.sequence.num_frames, "frames", integers=True)
     cameras = select(c.cameras, len(ls.stage.cameras), "cameras")
     shard = c.shards.resolved()
+    claim_relight(c, shard)
     summary = relight_batch(
-        ls, c.out, lights, frames=frames, cameras=cameras, config=c.relight, maps=maps, platform=c.platform, shard=shard
+        ls, c.out, lights, frames=frames, cameras=cameras, config=c.relight, maps=maps, platform=c.platform, shard=shard, resume=True
     )
+    resumed = f"; {summary.done_before} found written by the run it resumed" if summary.done_before else ""
     print(
-        f"wrote {summary.renders} renders to {summary.out} (visibility traced {summary.visibility_traced} time(s), once per "
-        f"frame and lighting model; reused {summary.visibility_reused} times)"
+        f"wrote {summary.renders} renders to {summary.out}{resumed} (visibility traced {summary.visibility_traced} time(s), "
+        f"once per frame and lighting model; reused {summary.visibility_reused} times)"
     )
+
+
+def claim_relight(c: RelightCommand, shard) -> None:
+    """Record what makes ``c.out`` (core/provenance.py): its inputs' content and the options that change a view. The
+    same relight again resumes, with more cameras too (each camera's previews have their own exposure); another
+    (other maps, lights, frames or options) is refused unless ``--overwrite``."""
+    from dataclasses import asdict
+
+    from gra_mi.core.guard import scene_references
+    from gra_mi.core.provenance import claim_output
+
+    inputs = {"scene": c.scene, **{f"scene's {ref.name}": ref for ref in scene_references(c.scene)}}
+    inputs |= {"albedo": c.albedo, "roughness": c.roughness, "relightnet": c.relightnet}
+    inputs |= {"envmaps": list(c.envmap), "patterns": list(c.pattern), "lights": list(c.lights)}
+    paths = {"scene", "envmap", "pattern", "lights", "relightnet", "albedo", "roughness", "vis_cache", "out", "shards", "overwrite"}
+    config = {key: value for key, value in asdict(c).items() if key not in paths}
+    claim_output(c.out, "relight", inputs, config, overwrite=c.overwrite, free=("cameras",), shard=shard)
 
 
 @dataclass(kw_only=True)
