@@ -85,6 +85,30 @@ def test_fast_srgb_is_within_one_level_of_the_exact_curve():
     assert np.abs(srgb8_fast(linear).astype(int) - to_srgb8(linear, 1.0)).max() <= 1
 
 
+def test_a_long_sequence_s_visibility_is_held_within_the_memory_budget(llvm_variant, tmp_path, monkeypatch):
+    """The page traces frames in the background: in memory only as many as the budget holds (the least recently
+    used dropped); with a disk cache every frame, read back from disk when shown again."""
+    from gra_mi.apps import viewer
+    from gra_mi.apps.viewer import with_lighting
+
+    frame_bytes = 4 * tiny_session().relighter.atlas.num_texels * -(-tiny_session().ls.stage.num_leds // 32)
+    monkeypatch.setattr(viewer, "VISIBILITY_BYTES", 5 * frame_bytes)
+    session = tiny_session()
+    frames = session.num_frames
+    assert frames > 5 and session.frames_to_precompute() == [0, 1, 2, 3, 4]
+    assert any("--vis-cache" in note for note in session.notices)
+    session.precompute(list(range(frames)), far_field=True)
+    assert len(session.relighter.cache._memory) == 5, "the budget, not every frame"
+    cached = tiny_session(vis_cache=tmp_path / "vis")
+    assert cached.frames_to_precompute() == list(range(frames)) and not any("--vis-cache" in n for n in cached.notices)
+    cached.precompute(cached.frames_to_precompute(), far_field=True)
+    traced = cached.relighter.cache.misses  # frames of the same pose share their bits
+    assert len(cached.relighter.cache._memory) == 5 < traced
+    with_lighting(cached, frame=0)
+    cached.render(front_camera(cached))  # frame 0 was dropped from memory: read back from disk, not traced
+    assert cached.relighter.cache.misses == traced
+
+
 def test_session_refuses_what_it_does_not_have_and_keeps_its_lighting(llvm_variant, tmp_path):
     from gra_mi.apps.viewer import with_lighting
 

@@ -30,6 +30,10 @@ MODES = ("envmap", "olat", "point light")
 STAGES = ("microfacet", "relightnet", "albedo", "roughness", "confidence")
 BACKGROUND = np.array([0.02, 0.02, 0.025], np.float32)  # linear; the page's dark grey behind the subject
 VIEW_SAMPLES = 2  # 2×2 sub-samples per pixel: anti-aliased edges at 4/9 of the rasteriser's cost for files
+# Visibility held in memory: about 7 MB a frame at 512² × 331 LEDs, so a long sequence's frames, all traced in the
+# background, would fill any machine. Beyond this the least recently shown frames are dropped (read back from
+# --vis-cache where given, traced again where not).
+VISIBILITY_BYTES = 2 << 30
 
 
 @dataclass
@@ -89,6 +93,13 @@ class ViewerSession:
         self.ls = LightstageScene.load(sources.scene)
         albedo, roughness, self.confidence = self._maps()
         self.relighter = Relighter(self.ls, sources.uv_resolution, albedo, roughness, cache_dir=sources.vis_cache, transport=transport)
+        frame_bytes = 4 * self.relighter.atlas.num_texels * -(-self.ls.stage.num_leds // 32)  # a frame's bits, every LED on
+        self.relighter.cache.keep = max(4, VISIBILITY_BYTES // frame_bytes)
+        if sources.vis_cache is None and self.ls.sequence.num_frames > self.relighter.cache.keep:
+            self.notices.append(
+                f"the first {self.relighter.cache.keep} of {self.ls.sequence.num_frames} frames' visibility is traced in the background "
+                "(what memory holds); later frames are traced when shown. Give --vis-cache to trace and keep them all on disk"
+            )
         self.model = self._relightnet(device)
         self.envmap_options = envmap_options or EnvmapOptions()
         self.envmap_sources = self._envmap_sources()
@@ -256,6 +267,12 @@ class ViewerSession:
             base = self._base_exposure[key]
         scale = base * 2.0**light.exposure
         return srgb8_fast(rgb * scale + (1 - alpha) * BACKGROUND)
+
+    def frames_to_precompute(self) -> list[int]:
+        """The frames whose visibility the page traces in the background: every frame where a disk cache keeps them,
+        else as many as memory holds (:data:`VISIBILITY_BYTES`; the others are traced when shown)."""
+        frames = list(range(self.num_frames))
+        return frames if self.sources.vis_cache is not None else frames[: self.relighter.cache.keep]
 
     def precompute(self, frames: list[int], far_field: bool, progress=None, stop: threading.Event | None = None) -> None:
         """Trace each frame's visibility into the cache (one frame per lock, so the page stays responsive)."""

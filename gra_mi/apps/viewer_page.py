@@ -212,8 +212,9 @@ class ViewerPage:
             time.sleep(max(0.0, period - (time.perf_counter() - start)))
 
     def _precompute(self) -> None:
-        """Every frame's visibility, traced in the background with its progress on the page."""
-        frames = list(range(self.session.num_frames))
+        """The frames' visibility (:meth:`ViewerSession.frames_to_precompute`), traced in the background with its
+        progress on the page."""
+        frames = self.session.frames_to_precompute()
 
         def progress(done: int, total: int) -> None:
             self.progress.value = 100.0 * done / total
