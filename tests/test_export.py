@@ -185,6 +185,23 @@ def test_export_refuses_lights_in_a_glb_and_unknown_formats(tmp_path, avatar):
         export_avatar(tmp_path / "a.fbx", *avatar)
 
 
+def test_a_glb_too_long_for_the_format_is_refused_before_anything_is_written(tmp_path, avatar):
+    from dataclasses import replace
+
+    from gra_mi.core.errors import GraMiParameterError
+
+    seq, albedo, roughness = avatar
+    frames = 1 + (1 << 32) // (seq.num_vertices * 24)  # one frame past 4 GiB of morph targets, never allocated
+    long = replace(seq, vertices=np.broadcast_to(seq.vertices[:1], (frames, *seq.vertices.shape[1:])))
+    with pytest.raises(GraMiParameterError, match=r"--frames \d+ or fewer"):
+        export_avatar(tmp_path / "long.glb", long, albedo, roughness)
+    assert not (tmp_path / "long.glb").exists()
+    fits = int((1 << 32) - (64 << 20)) // (seq.num_vertices * 24)
+    from gra_mi.apps.gltf import check_glb_size
+
+    check_glb_size(long, fits)  # what the message offers fits
+
+
 # --------------------------------------------------------------------------------------------------------------
 # Blender re-renders the export as Mitsuba renders gra-mi's model
 # --------------------------------------------------------------------------------------------------------------

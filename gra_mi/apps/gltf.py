@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gra_mi.core.errors import GraMiParameterError
 from gra_mi.core.io import atomic_path, to_srgb8
 from gra_mi.subject.sequence import MeshSequence
 
@@ -57,6 +58,21 @@ def _png(image: np.ndarray) -> bytes:
     return out.getvalue()
 
 
+GLB_LIMIT = 1 << 32  # bytes: a .glb's header stores its length in 32 bits
+
+
+def check_glb_size(seq: MeshSequence, count: int) -> None:
+    """Refuse, before anything is read or written, morph targets that cannot fit a .glb (positions and normals, float32,
+    per frame after the first; the mesh and textures take less than the margin left)."""
+    per_frame = seq.num_vertices * 2 * 3 * 4
+    if count * per_frame > GLB_LIMIT - (64 << 20):
+        fits = max(1, (GLB_LIMIT - (64 << 20)) // per_frame)
+        raise GraMiParameterError(
+            "frames", f"{count} frames of this {seq.num_vertices}-vertex mesh need {count * per_frame / 2**30:.1f} GiB of morph targets, "
+            f"more than a .glb can hold (4 GiB): give --frames {fits} or fewer, or export .usdc",
+        )  # fmt: skip
+
+
 def export_glb(path: str | Path, seq: MeshSequence, albedo: np.ndarray, roughness: np.ndarray, frames: int | None = None) -> Path:
     """Write ``path`` (.glb). ``frames`` limits the morph targets (default: all frames)."""
     buf = _Buffer()
@@ -70,6 +86,7 @@ def export_glb(path: str | Path, seq: MeshSequence, albedo: np.ndarray, roughnes
     }
     indices = buf.accessor(seq.faces.astype(np.uint32).reshape(-1, 1), "SCALAR", UINT, ELEMENT_ARRAY_BUFFER)
     count = seq.num_frames if frames is None else max(1, min(frames, seq.num_frames))
+    check_glb_size(seq, count)
     targets = []
     for t in range(1, count):
         targets.append(
