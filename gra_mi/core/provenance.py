@@ -273,6 +273,8 @@ def _differences(old: dict, new: dict, free: tuple[str, ...]) -> list[str]:
     for key in sorted(set(old_config) | set(new_config)):
         if key.rsplit(".", 1)[-1] not in free and old_config.get(key) != new_config.get(key):
             said.append(f"{key}: {old_config.get(key)!r} then, {new_config.get(key)!r} now")
+            if key == "shards" and isinstance(old_config[key], int):  # the one difference a user resolves by a flag
+                said[-1] += f" (it was started with {old_config[key]} shards: run each with --shard I/{old_config[key]})"
     return said
 
 
