@@ -55,6 +55,23 @@ def test_set_frame_matches_loading_that_frame(variant, monkeypatch):
     np.testing.assert_allclose(render(a, 1, spp=4, seed=3), render(b, 1, spp=4, seed=3), atol=1e-5)
 
 
+def test_a_moved_mesh_holds_its_own_copy_of_the_frame(variant):
+    """Dr.Jit's CPU arrays alias a contiguous NumPy buffer: the mesh must not hold the sequence's memory (a saved
+    sequence is its file, mapped read only)."""
+    from gra_mi.subject.sequence import MeshSequence
+
+    ls = LightstageScene.load(TINY, frame=0)
+    assert isinstance(ls.sequence, MeshSequence)
+    ls.set_frame(3)
+    before = np.array(ls.params[keys.SUBJECT_POSITIONS])
+    if isinstance(ls.sequence.vertices, np.memmap):  # writable stand-in for the check below
+        ls.sequence.vertices = np.array(ls.sequence.vertices)
+        ls.frame = 0
+        ls.set_frame(3)
+    ls.sequence.vertices[3] += 1.0
+    np.testing.assert_array_equal(np.array(ls.params[keys.SUBJECT_POSITIONS]), before)
+
+
 def test_lighting_is_linear_in_led_intensities(variant):
     ls = LightstageScene.load(TINY, frame=2)
     images = []

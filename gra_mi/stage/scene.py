@@ -291,8 +291,10 @@ class LightstageScene:
             return False
         import mitsuba as mi
 
-        self.params[keys.SUBJECT_POSITIONS] = mi.Float(self.sequence.vertices[frame].ravel())
-        self.params[keys.SUBJECT_NORMALS] = mi.Float(self.sequence.normals[frame].ravel())
+        # Copies: Dr.Jit's CPU arrays alias a contiguous NumPy buffer, and the mesh would then hold the sequence's own
+        # memory (for a saved sequence, its file mapped read-only) for as long as it keeps the frame.
+        self.params[keys.SUBJECT_POSITIONS] = mi.Float(np.array(self.sequence.vertices[frame], np.float32).ravel())
+        self.params[keys.SUBJECT_NORMALS] = mi.Float(np.array(self.sequence.normals[frame], np.float32).ravel())
         self.params.update()
         self.frame = frame
         return True
