@@ -221,7 +221,7 @@ def relight_batch(
     for name in lights:
         for cam in cams:
             first = next((f for f, n, c in jobs if n == name and c is cam), frames[0])
-            if first != frames[0]:  # a shard or a resume that does not render the selection's first frame
+            if first != frames[0] and config.exposure is None:  # a shard or a resume that does not render the first frame
                 previews.exposure_from(name, cam, view_of(frames[0], name, cam)[0])
     for frame, name, cam in progress(jobs, description="relight" if shard.whole else f"relight (shard {shard})"):
         view, near = view_of(frame, name, cam)
