@@ -144,6 +144,25 @@ def test_a_mapped_frame_traces_as_the_frame_in_memory(tmp_path, variant):
         np.testing.assert_array_equal(hits[1], hits[0])
 
 
+def test_an_edit_in_the_middle_of_a_long_sequence_changes_its_provenance_id(tmp_path):
+    """A provenance id hashes a large file's size and ends only. An edit anywhere in the frames still reaches the end of
+    the archive: the zip's central directory, its last bytes, holds every entry's CRC-32."""
+    from dataclasses import replace
+
+    from gra_mi.core.provenance import content_id
+
+    seq = long_tiny_subject(1500)
+    vertices = seq.vertices.copy()
+    vertices[700, 10] += 0.01  # a re-tracked vertex in the middle of a 5 MB array: the same size, the same ends
+    save_sequence(seq, tmp_path / "a", write_plys=False)
+    save_sequence(replace(seq, vertices=vertices), tmp_path / "b", write_plys=False)
+    a, b = ((tmp_path / k / "sequence.npz").read_bytes() for k in "ab")
+    assert len(a) == len(b) and a[1 << 16 : -(1 << 16)] != b[1 << 16 : -(1 << 16)]
+    assert content_id(tmp_path / "a") != content_id(tmp_path / "b")
+    save_sequence(load_sequence(tmp_path / "a"), tmp_path / "c", write_plys=False)  # the same frames, mapped: the same id
+    assert content_id(tmp_path / "c") == content_id(tmp_path / "a")
+
+
 def test_extent_of_a_mapped_sequence_matches_the_whole_array(tmp_path, monkeypatch):
     import gra_mi.subject.sequence as sequence
 
