@@ -4,6 +4,7 @@ Blender (Cycles) renders as Mitsuba renders gra-mi's model (docs/export.md)."""
 from __future__ import annotations
 
 import math
+import re
 import struct
 
 import numpy as np
@@ -193,13 +194,15 @@ def test_a_glb_too_long_for_the_format_is_refused_before_anything_is_written(tmp
     seq, albedo, roughness = avatar
     frames = 1 + (1 << 32) // (seq.num_vertices * 24)  # one frame past 4 GiB of morph targets, never allocated
     long = replace(seq, vertices=np.broadcast_to(seq.vertices[:1], (frames, *seq.vertices.shape[1:])))
-    with pytest.raises(GraMiParameterError, match=r"--frames \d+ or fewer"):
+    with pytest.raises(GraMiParameterError, match=r"--frames \d+ or fewer") as refused:
         export_avatar(tmp_path / "long.glb", long, albedo, roughness)
     assert not (tmp_path / "long.glb").exists()
-    fits = int((1 << 32) - (64 << 20)) // (seq.num_vertices * 24)
     from gra_mi.apps.gltf import check_glb_size
 
-    check_glb_size(long, fits)  # what the message offers fits
+    offered = int(re.search(r"--frames (\d+)", str(refused.value)).group(1))
+    check_glb_size(long, offered)  # what the message offers fits, and a frame more would not
+    with pytest.raises(GraMiParameterError):
+        check_glb_size(long, offered + 1)
 
 
 # --------------------------------------------------------------------------------------------------------------

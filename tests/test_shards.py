@@ -189,15 +189,10 @@ def test_a_relight_resumed_with_other_inputs_or_options_is_refused(tmp_path, llv
     capsys.readouterr()
     assert main(args) == 2
     assert "input albedo" in capsys.readouterr().err
-    for changed in (["--olat", "4"], ["--frames", "0:3"], ["--exposure", "2"]):
-        assert main([*args[:2], *changed, *args[2:]] if changed[0] == "--exposure" else _replaced(args, changed)) == 2
+    for changed in (["--olat", "4"], ["--frames", "0:3"], ["--exposure", "2"]):  # another OLAT, frames, exposure
+        assert main([*args, *changed]) == 2
         assert "made by another run" in capsys.readouterr().err
     assert main([*args, "--overwrite"]) == 0, "--overwrite starts over"
-
-
-def _replaced(args: list[str], option: list[str]) -> list[str]:
-    k = args.index(option[0])
-    return [*args[:k], *option, *args[k + 2 :]]
 
 
 def write_sun(folder: Path) -> Path:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import zipfile
+
 import numpy as np
 import pytest
 
@@ -114,6 +116,8 @@ def test_a_saved_sequence_is_mapped_not_read(tmp_path, monkeypatch):
     np.testing.assert_array_equal(back.normals, seq.normals)
     with pytest.raises(ValueError, match="read-only"):  # a caller cannot write into the user's file through the map
         back.vertices[0, 0, 0] = 1.0
+    with zipfile.ZipFile(tmp_path / "s" / "sequence.npz") as archive:  # a valid zip: every entry's CRC-32 checks
+        assert archive.testzip() is None
     with np.load(tmp_path / "s" / "sequence.npz") as plain:  # still an archive NumPy itself reads
         np.testing.assert_array_equal(plain["vertices"], seq.vertices)
     save_sequence(back, tmp_path / "s", write_plys=False)  # over the file it is mapped from: replaced, not overwritten

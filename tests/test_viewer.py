@@ -91,7 +91,8 @@ def test_a_long_sequence_s_visibility_is_held_within_the_memory_budget(llvm_vari
     from gra_mi.apps import viewer
     from gra_mi.apps.viewer import with_lighting
 
-    frame_bytes = 4 * tiny_session().relighter.atlas.num_texels * -(-tiny_session().ls.stage.num_leds // 32)
+    probe = tiny_session()
+    frame_bytes = 4 * probe.relighter.atlas.num_texels * -(-probe.ls.stage.num_leds // 32)
     monkeypatch.setattr(viewer, "VISIBILITY_BYTES", 5 * frame_bytes)
     session = tiny_session()
     frames = session.num_frames
