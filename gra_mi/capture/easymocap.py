@@ -5,7 +5,7 @@ through the import every source shares (:func:`gra_mi.capture.importer.import_ca
 ```
 DIR/intri.yml, DIR/extri.yml    OpenCV FileStorage YAML: names; K_<cam>, dist_<cam>; Rot_<cam> (or R_<cam>, Rodrigues)
                                 and T_<cam>: world-to-camera, x_cam = Rot · x_world + T
-DIR/images/<cam>/<frame, 6 digits>.{jpg,png,avif,exr}   undistorted (distortion is refused), masked or with alpha
+DIR/images/<cam>/<frame, 6 digits>.{jpg,png,avif,exr}   as the cameras took them (dist_<cam> is undone), masked or with alpha
 DIR/mask/<cam>/<frame, 6 digits>.png                      optional masks
 ```
 
@@ -32,6 +32,7 @@ from pydantic import BeforeValidator, Field, field_validator, model_validator
 
 from gra_mi.capture.dataset import FrameLighting
 from gra_mi.capture.importer import import_capture
+from gra_mi.capture.lens import LensDistortion
 from gra_mi.capture.source import ImportConfig, Source
 from gra_mi.capture.source_files import CalibCamera, add_numbered, image_size, read_points
 from gra_mi.capture.transforms import UNITS, TransformsOptions, read_meshes
@@ -88,7 +89,8 @@ def _rodrigues(r: np.ndarray) -> np.ndarray:
 
 
 class OpenCVIntrinsics(Record):
-    """One camera of intri.yml: ``K_<cam>`` (a pinhole K) and ``dist_<cam>`` (must be zero: undistort first)."""
+    """One camera of intri.yml: ``K_<cam>`` (a pinhole K) and ``dist_<cam>`` (OpenCV's k1, k2, p1, p2, k3: undone at
+    import)."""
 
     K: matrix(3, 3)
     dist: Annotated[np.ndarray, BeforeValidator(lambda v: np.asarray(v, float).ravel())] | None = None
@@ -127,16 +129,13 @@ def _camera(intri: dict, extri: dict, name: str, images: dict[int, Path], folder
     k = parse(OpenCVIntrinsics, _per_camera(intri, name, ("K", "dist")), folder / "intri.yml", key_suffix=f"_{name}")
     pose = parse(OpenCVExtrinsics, _per_camera(extri, name, ("Rot", "R", "T")), folder / "extri.yml", key_suffix=f"_{name}")
     dist = k.dist if k.dist is not None else np.zeros(5)
-    if not np.isfinite(dist).all() or np.abs(dist).max(initial=0) > 0:
-        raise GraMiInputError(
-            folder / "intri.yml", f"camera {name}: distortion {dist.tolist()}: undistort the images first", field=f"dist_{name}"
-        )
+    lens = LensDistortion.opencv(dist, folder / "intri.yml", f"dist_{name}")  # undone at import
     rot = pose.Rot if pose.Rot is not None else _rodrigues(pose.R)
     c2w = np.concatenate([rot.T, -rot.T @ pose.T.reshape(3, 1)], axis=1)
     width, height = image_size(next(iter(images.values())))
     intrinsic = k.K / width
     intrinsic[2] = [0, 0, 1]
-    return CalibCamera(intrinsic, c2w, dist.tolist()), (width, height)
+    return CalibCamera(intrinsic, c2w, dist.tolist(), lens=lens), (width, height)
 
 
 def _images(folder: Path, name: str, kind: str = "images", required: bool = True) -> dict[int, Path]:

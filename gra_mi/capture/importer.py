@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from gra_mi.capture.dataset import Capture
+from gra_mi.capture.lens import held_fraction
 from gra_mi.capture.placement import (
     CameraPlan,
     WorldFrame,
@@ -39,7 +40,7 @@ from gra_mi.capture.source_files import image_size, read_image, resample_columns
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.guard import staging_folder
 from gra_mi.core.io import atomic_write_text, read_exr, write_exr, write_png
-from gra_mi.core.limits import require_memory
+from gra_mi.core.limits import require_memory, require_memory_for
 from gra_mi.core.progress import progress
 from gra_mi.core.provenance import PROVENANCE, claim_output, release_folder, run_differences, run_record
 from gra_mi.core.shard import Shard
@@ -50,6 +51,7 @@ from gra_mi.subject.sequence import MeshSequence, save_sequence
 
 logger = logging.getLogger(__name__)
 IMAGE_BYTES_PER_PIXEL = 4 * 4 * 8  # RGBA float32: the decoded source, its resampling and mask, the written EXR
+LENS_BYTES_PER_PIXEL = 256  # of a source image, undistorted: its maps (kept for two cameras), samples and weights
 
 
 def check_images_present(source: Source, plans: list[CameraPlan]) -> None:
@@ -85,6 +87,10 @@ def import_capture(
     plans = _camera_plans(source, frame, config)
     largest = max(p.camera.width * p.camera.height for p in plans)
     require_memory("scale", largest * IMAGE_BYTES_PER_PIXEL, f"images of {largest:,} pixels at --scale {config.scale:g}")
+    if distorted := [p.source_size[0] * p.source_size[1] for p in plans if p.lens is not None]:
+        require_memory_for(
+            source.calib_path, "distortion", max(distorted) * LENS_BYTES_PER_PIXEL, f"undistorting images of {max(distorted):,} pixels"
+        )
     eval_cameras = config.eval_cameras or _held_out(plans)
     train_cameras = [p.camera.name for p in plans if p.camera.name not in eval_cameras]
     if not train_cameras:
@@ -289,7 +295,15 @@ def _import_camera(source: Source, plan: CameraPlan, capture: Capture, frames: l
 def _camera_summary(source: Source, plan: CameraPlan, saturated: list[float]) -> dict:
     """What the report says of a camera's images: saturation, the square-pixel resampling's error."""
     first = read_image(source.images[plan.index][source.frames[0][0]])[0]
-    return {"saturated_fraction": max(saturated), "resampling_error": _resampling_error(first, plan), "anisotropy": plan.anisotropy}
+    lens = None
+    if plan.lens is not None:
+        lens = {"model": plan.lens.describe(), "held": held_fraction(plan.source_k, plan.lens, *plan.source_size)}
+    return {
+        "saturated_fraction": max(saturated),
+        "resampling_error": _resampling_error(first, plan),
+        "anisotropy": plan.anisotropy,
+        "lens": lens,
+    }
 
 
 def _resampling_error(image: np.ndarray, plan: CameraPlan) -> float | None:
@@ -363,12 +377,17 @@ def import_markdown(r: dict, source_format: str) -> str:
         f"within {1000 * f['led_sphere_rms_m']:.1f} mm RMS of it. The transform into gra-mi's frame (Y up, metres) is in "
         "capture.json (`source.transform`).",
         "",
-        "| camera | mesh over mask (IoU) | saturated (subject, most of any image; left out of the fit) | fx / fy | square-pixel resampling error |",
-        "|---|---|---|---|---|",
+        "| camera | mesh over mask (IoU) | saturated (subject, most of any image; left out of the fit) | fx / fy | square-pixel resampling error | lens distortion undone |",
+        "|---|---|---|---|---|---|",
     ]
     for c in r["cameras"]:
         error = "—" if c["resampling_error"] is None else f"{100 * c['resampling_error']:.2f} %"
-        lines.append(f"| {c['camera']} | {c['mask_iou']:.3f} | {100 * c['saturated_fraction']:.2f} % | {c['anisotropy']:.4f} | {error} |")
+        lens = (
+            "—" if c.get("lens") is None else f"{c['lens']['model']}; the source holds {100 * c['lens']['held']:.1f} % of the pinhole image"
+        )
+        lines.append(
+            f"| {c['camera']} | {c['mask_iou']:.3f} | {100 * c['saturated_fraction']:.2f} % | {c['anisotropy']:.4f} | {error} | {lens} |"
+        )
     if r["linearity"] is not None:
         lin = r["linearity"]
         lines += [

@@ -9,6 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from gra_mi.capture.lens import LensDistortion, pinhole_positions, undistort_image
 from gra_mi.capture.source import UP_AXES, Source
 from gra_mi.capture.source_files import resample_columns
 from gra_mi.core.errors import GraMiInputError
@@ -92,11 +93,14 @@ class CameraPlan:
     source_size: tuple[int, int]
     square_width: int  # columns after making the pixels square (before the scale)
     anisotropy: float  # fx / fy of the source
+    source_k: np.ndarray  # K of the source's images, in their pixels
+    lens: LensDistortion | None = None  # undone first (the pinhole camera with source_k), then the resampling
 
 
 def plan_camera(source: Source, index: int, frame: WorldFrame, scale: float) -> CameraPlan:
-    """Non-square pixels (fx ≠ fy) are resampled along x to fx = fy; then both axes by ``scale``. Whatever rounding
-    the sizes leave (a fraction of a pixel over the width) is split evenly between fx and fy."""
+    """A distorted camera is first its pinhole with the same K (:mod:`~gra_mi.capture.lens`). Non-square pixels
+    (fx ≠ fy) are resampled along x to fx = fy; then both axes by ``scale``. Whatever rounding the sizes leave (a
+    fraction of a pixel over the width) is split evenly between fx and fy."""
     width, height = source.sizes[index]
     k = source.calib[index].k_matrix(width)
     fx, fy, cx, cy = k[0, 0], k[1, 1], k[0, 2], k[1, 2]
@@ -108,11 +112,14 @@ def plan_camera(source: Source, index: int, frame: WorldFrame, scale: float) -> 
     c2w[:3, :3] = frame.rotation @ source.calib[index].extrinsic[:3, :3]
     c2w[:3, 3] = frame.apply(source.calib[index].extrinsic[:3, 3][None] * source.units)[0]
     camera = Camera(source.names[index], out_w, out_h, f, f, cx * sx, cy * sy, c2w)
-    return CameraPlan(index, camera, (width, height), square_width, fx / fy)
+    return CameraPlan(index, camera, (width, height), square_width, fx / fy, k, source.calib[index].lens)
 
 
 def resample_image(image: np.ndarray, plan: CameraPlan) -> np.ndarray:
-    """A source image onto the planned camera's pixel grid (area-weighted along each axis)."""
+    """A source image onto the planned camera's pixel grid: its lens distortion undone (bilinear, at the source's
+    resolution), then area-weighted along each axis."""
+    if plan.lens is not None:
+        image = undistort_image(image, plan.source_k, plan.lens)
     w, h = plan.camera.width, plan.camera.height
     if image.shape[1] != w:
         image = resample_columns(image, w)
@@ -175,8 +182,16 @@ def generate_atlas(positions: np.ndarray, faces: np.ndarray, resolution: int) ->
 
 
 def mask_at_source(mask: np.ndarray, plan: CameraPlan) -> np.ndarray:
-    """The planned-grid mask back on the source grid (nearest), to count saturated subject pixels there."""
+    """The planned-grid mask back on the source grid (nearest; through the lens where it has one), to count
+    saturated subject pixels there."""
     w, h = plan.source_size
-    rows = np.minimum((np.arange(h) + 0.5) * mask.shape[0] / h, mask.shape[0] - 1).astype(int)
-    cols = np.minimum((np.arange(w) + 0.5) * mask.shape[1] / w, mask.shape[1] - 1).astype(int)
-    return mask[np.ix_(rows, cols)]
+    sy, sx = mask.shape[0] / h, mask.shape[1] / w
+    if plan.lens is None:
+        rows = np.minimum((np.arange(h) + 0.5) * sy, mask.shape[0] - 1).astype(int)
+        cols = np.minimum((np.arange(w) + 0.5) * sx, mask.shape[1] - 1).astype(int)
+        return mask[np.ix_(rows, cols)]
+    x, y = pinhole_positions(plan.source_k, plan.lens, w, h)  # each source pixel in the pinhole image
+    x, y = np.nan_to_num((x + 0.5) * sx, nan=-1.0), np.nan_to_num((y + 0.5) * sy, nan=-1.0)
+    held = (x >= 0) & (x < mask.shape[1]) & (y >= 0) & (y < mask.shape[0])
+    picked = mask[np.clip(y, 0, mask.shape[0] - 1).astype(int), np.clip(x, 0, mask.shape[1] - 1).astype(int)]
+    return np.where(held, picked, 0).astype(mask.dtype)

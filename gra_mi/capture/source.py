@@ -106,8 +106,25 @@ class Source:
                     self.calib_path, f"cameras {seen[key]} and {name} have one pose and intrinsics: a camera listed twice", field="cameras"
                 )
             seen[key] = name
+            self._check_lens(name, cam, self.sizes[i])
         if not (np.isfinite(self.units) and self.units > 0):
             raise GraMiInputError(self.calib_path, f"units must be a positive length in metres, got {self.units}")
+
+    def _check_lens(self, name: str, cam, size: tuple[int, int]) -> None:
+        """A lens model must map the pinhole view onto every pixel of its image: one that folds back short of the
+        image's corners is a calibration that does not hold there (its images cannot be undistorted)."""
+        if cam.lens is None:
+            return
+        k = cam.k_matrix(size[0])
+        corners = np.array([[0, 0], [size[0], 0], [0, size[1]], [size[0], size[1]]], float)
+        farthest = float(np.hypot((corners[:, 0] - k[0, 2]) / k[0, 0], (corners[:, 1] - k[1, 2]) / k[1, 1]).max())
+        if cam.lens.reach() < farthest:
+            raise GraMiInputError(
+                cam.lens.origin[0],
+                f"camera {name}: the lens distortion {cam.lens.describe()} folds back at {cam.lens.reach():.3f} (normalized), "
+                f"inside its image (corners at {farthest:.3f}): pixels past it have no pinhole point; check the calibration",
+                field=cam.lens.origin[1],
+            )
 
     def _check_leds(self) -> None:
         from scipy.spatial import cKDTree

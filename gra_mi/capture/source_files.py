@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gra_mi.capture.lens import LensDistortion
 from gra_mi.core.color import srgb_decode, srgb_encode
 from gra_mi.core.errors import GraMiInputError
 from gra_mi.core.io import atomic_path, atomic_write_text, read_exr
@@ -18,13 +19,16 @@ from gra_mi.core.io import atomic_path, atomic_write_text, read_exr
 @dataclass
 class CalibCamera:
     """One camera of an MPII ``.calib``: ``intrinsic`` is K divided by the image width (cy too), ``extrinsic`` the
-    OpenCV camera-to-world 3 × 4 in the file's units (millimetres for HumanOLAT)."""
+    OpenCV camera-to-world 3 × 4 in the file's units (millimetres for HumanOLAT). ``distortion``: the coefficients
+    the file states (HumanOLAT's images are undistorted already: kept, not applied); ``lens``: a distortion the
+    images still have, undone by the import."""
 
     intrinsic: np.ndarray  # (3, 3)
     extrinsic: np.ndarray  # (3, 4)
     distortion: list[float]
     focal_length: float = 0.0
     pixel_aspect: float = 1.0
+    lens: LensDistortion | None = None
 
     def k_matrix(self, width: int) -> np.ndarray:
         return self.intrinsic * np.array([[width, width, width], [width, width, width], [1, 1, 1]], float)

@@ -10,7 +10,9 @@ lighting). Per frame: ``file_path`` (relative to the JSON, with or without its e
 (``light_idx`` with its position ``pl_pos`` and ``pl_intensity``), or an environment map (``envmap``, a path). Frames
 of the same lighting (and ``mesh_frame``, for a mesh sequence) are one capture frame seen by every camera; a camera is
 a ``cam_idx``, or else one pose and intrinsics. Masks: nerfstudio's ``mask_path`` (a static pose: one per camera), else
-the images' alpha, else the pixels the subject covers. Distortion (``k1`` … ``p2``) is refused: undistort first.
+the images' alpha, else the pixels the subject covers. Lens distortion (``camera_model`` ``OPENCV`` with ``k1`` …
+``k4``, ``p1``, ``p2`` as nerfstudio reads them, or ``OPENCV_FISHEYE`` with ``k1`` … ``k4``) is undone at import
+(:mod:`~gra_mi.capture.lens`).
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from pydantic import Field, field_validator
 
 from gra_mi.capture.dataset import FrameLighting
 from gra_mi.capture.importer import import_capture
+from gra_mi.capture.lens import LensDistortion
 from gra_mi.capture.source import ImportConfig, Source
 from gra_mi.capture.source_files import CalibCamera, ObjMesh, image_size, one_uv_tile, read_obj, read_points
 from gra_mi.core.config import option
@@ -34,6 +37,7 @@ from gra_mi.core.schema import Count, Finite, Positive, PositiveCount, Record, m
 
 SUFFIXES = ("", ".png", ".jpg", ".jpeg", ".avif", ".exr")
 DISTORTION = ("k1", "k2", "k3", "k4", "p1", "p2")
+CAMERA_MODELS = {"OPENCV": "radial-tangential", "OPENCV_FISHEYE": "fisheye", "PINHOLE": None, "SIMPLE_PINHOLE": None}
 UNITS = {"m": 1.0, "mm": 0.001}
 
 
@@ -95,12 +99,14 @@ def read_transforms(folder: Path, options: TransformsOptions) -> Source:
             where = f"frames[{i}]"
             entry = parse(TransformsFrame, raw, path, where)
             image = _image_path(path, entry.file_path, where)
-            camera, intrinsic, c2w, size = _camera(path, shared, entry, where, image)
+            camera, intrinsic, c2w, size, lens = _camera(path, shared, entry, where, image)
             if not isinstance(camera, str):  # named by its first appearance
                 camera = unnamed.setdefault(camera, f"cam{len(unnamed):02d}")
             if camera in calib and not np.allclose(calib[camera].extrinsic, c2w, atol=1e-6):
                 raise GraMiInputError(path, f"camera {camera} appears with two different poses", field=f"{where}.transform_matrix")
-            calib.setdefault(camera, CalibCamera(intrinsic, c2w, []))
+            if camera in calib and calib[camera].lens != lens:
+                raise GraMiInputError(path, f"camera {camera} appears with two different lens distortions", field=where)
+            calib.setdefault(camera, CalibCamera(intrinsic, c2w, [], lens=lens))
             sizes.setdefault(camera, size)
             frames.append(_Frame(image, camera, _lighting(path, entry, where, leds), entry.mesh_frame, split))
             if entry.mask_path is not None and camera not in masks:  # nerfstudio's per-frame mask; a static pose needs one per camera
@@ -164,6 +170,7 @@ class TransformsCamera(Record):
     cx: Finite | None = None
     cy: Finite | None = None
     camera_angle_x: Annotated[float, Field(gt=0, lt=math.pi, allow_inf_nan=False)] | None = None
+    camera_model: str | None = None
     k1: Finite | None = None
     k2: Finite | None = None
     k3: Finite | None = None
@@ -202,13 +209,9 @@ class TransformsFrame(TransformsCamera):
 
 
 def _camera(path: Path, shared: TransformsCamera, entry: TransformsFrame, where: str, image: Path):
-    """(camera name, K / width, camera-to-world 3 × 4 with OpenCV axes, (width, height))."""
+    """(camera name, K / width, camera-to-world 3 × 4 with OpenCV axes, (width, height), lens distortion or None)."""
     value = lambda key: getattr(entry, key) if getattr(entry, key) is not None else getattr(shared, key)  # noqa: E731
-    for key in DISTORTION:
-        if value(key):
-            raise GraMiInputError(
-                path, f"distortion {key}={value(key)}: undistort the images first (e.g. COLMAP's image_undistorter)", field=f"{where}.{key}"
-            )
+    lens = _lens(path, value, where)
     width, height = value("w"), value("h")
     if width is None or height is None:
         width, height = image_size(image)
@@ -230,9 +233,22 @@ def _camera(path: Path, shared: TransformsCamera, entry: TransformsFrame, where:
     name = (
         f"Cam{entry.cam_idx + 1:02d}"
         if entry.cam_idx is not None
-        else tuple(np.round(m[:3].ravel(), 4)) + tuple(np.round((fx, fy, cx, cy), 2))
+        else tuple(np.round(m[:3].ravel(), 4)) + tuple(np.round((fx, fy, cx, cy), 2)) + (lens,)
     )
-    return name, intrinsic, m[:3], (int(width), int(height))
+    return name, intrinsic, m[:3], (int(width), int(height)), lens
+
+
+def _lens(path: Path, value, where: str) -> LensDistortion | None:
+    """The frame's lens distortion as nerfstudio reads it: ``camera_model`` (default OPENCV) and its terms."""
+    model = value("camera_model") or "OPENCV"
+    if model not in CAMERA_MODELS:
+        raise GraMiInputError(path, f"camera_model {model!r} is not one gra-mi reads: expected one of {sorted(CAMERA_MODELS)}", field=where)
+    terms = {key: value(key) for key in DISTORTION}
+    if CAMERA_MODELS[model] is None:
+        if any(terms.values()):
+            raise GraMiInputError(path, f"camera_model {model} has no distortion, but the frame gives {terms}", field=where)
+        return None
+    return LensDistortion.of(CAMERA_MODELS[model], path, where, **terms)
 
 
 def _lighting(path: Path, entry: TransformsFrame, where: str, leds: dict) -> tuple:

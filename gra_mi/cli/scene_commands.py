@@ -227,7 +227,9 @@ class ImportCommand(Restartable):
     source: str = field(metadata=option(positional=True, choices=("humanolat", "transforms", "easymocap")))
     """The source's layout. humanolat: a subject folder of the HumanOLAT dataset (TMT22/HumanOLAT), one pose.
     transforms: a folder with a NeRF / nerfstudio transforms.json (or transforms_train/_test.json) and --mesh.
-    easymocap: a calibrated rig (intri.yml, extri.yml, images/<cam>/) with --mesh, --leds and --lighting."""
+    easymocap: a calibrated rig (intri.yml, extri.yml, images/<cam>/) with --mesh, --leds and --lighting.
+    A lens distortion the calibration states (transforms: camera_model with k1…k4, p1, p2; easymocap: dist_<cam>) is
+    undone: every image becomes the pinhole camera's with the same K."""
     folder: Path = field(metadata=option(positional=True))
     """The source folder (humanolat: SUBJECT_<id>, holding shared/ and POSE_<nn>/; transforms: the JSON's folder)."""
     out: Path

@@ -1,0 +1,185 @@
+"""Lens distortion of a source's images, undone at import: every image (and mask) is resampled onto the pinhole
+camera with the same K, as OpenCV's ``cv2.undistort`` does, so that every later stage sees pinhole images.
+
+Two models, in the coefficients' meaning their sources give them, on normalized camera coordinates (x, y) = ((u −
+cx) / fx, (v − cy) / fy) with gra-mi's pixel centres at (column + ½, row + ½):
+
+- ``radial-tangential`` (OpenCV's and COLMAP's OPENCV model, nerfstudio's ``OPENCV``): r² = x² + y²,
+  d = 1 + k1 r² + k2 r⁴ + k3 r⁶ + k4 r⁸, x_d = x d + 2 p1 x y + p2 (r² + 2 x²), y_d = y d + p1 (r² + 2 y²) + 2 p2 x y.
+  (k4 is nerfstudio's r⁸ term; OpenCV's own k4…k6 divide instead, so an OpenCV list of more than five coefficients
+  must leave them zero.)
+- ``fisheye`` (OpenCV's ``cv2.fisheye``, nerfstudio's ``OPENCV_FISHEYE``): θ = atan r,
+  θ_d = θ (1 + k1 θ² + k2 θ⁴ + k3 θ⁶ + k4 θ⁸), (x_d, y_d) = (θ_d / r) (x, y).
+
+Past the radius where the radial map stops growing, a distortion folds back on itself: such pixels (and those that
+land outside the source image) are left out, black with zero alpha, never filled from the wrong place.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from functools import lru_cache
+
+import numpy as np
+
+from gra_mi.core.errors import GraMiInputError
+
+MODELS = ("radial-tangential", "fisheye")
+OPENCV_ORDER = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")  # cv2's distCoeffs; k4…k6 divide (not supported)
+
+
+@dataclass(frozen=True)
+class LensDistortion:
+    model: str  # one of MODELS
+    k: tuple[float, float, float, float]  # radial terms: of r², r⁴, r⁶, r⁸ (or θ², … for the fisheye)
+    p: tuple[float, float] = (0.0, 0.0)  # tangential (radial-tangential only)
+    origin: tuple[str, str] = field(default=("", ""), compare=False)  # (file, field) it was read from: what errors name
+
+    @classmethod
+    def of(cls, model: str, source, where: str, **terms: float | None) -> LensDistortion | None:
+        """The distortion named by ``terms`` (k1 … k4, p1, p2; None or absent: 0), or None where every term is 0.
+        ``source``/``where``: the file and field it is read from, what an error names."""
+        values = {key: float(terms.get(key) or 0.0) for key in ("k1", "k2", "k3", "k4", "p1", "p2")}
+        if not all(math.isfinite(v) for v in values.values()):
+            raise GraMiInputError(source, f"distortion terms must be finite numbers, got {values}", field=where)
+        if model == "fisheye" and (values["p1"] or values["p2"]):
+            raise GraMiInputError(source, "the fisheye model has no tangential terms (p1, p2)", field=where)
+        if not any(values.values()):
+            return None
+        lens = cls(model, (values["k1"], values["k2"], values["k3"], values["k4"]), (values["p1"], values["p2"]), (str(source), where))
+        if lens.fold_radius() < 1e-3:
+            raise GraMiInputError(source, f"the distortion {values} folds at the image centre: not a lens", field=where)
+        return lens
+
+    @classmethod
+    def opencv(cls, coefficients, source, where: str) -> LensDistortion | None:
+        """From OpenCV's ``distCoeffs`` order (k1, k2, p1, p2[, k3[, k4, k5, k6]]); the rational terms k4…k6 and the
+        thin-prism ones after them are refused unless zero."""
+        values = [float(c) for c in np.asarray(coefficients, float).ravel()]
+        if not all(math.isfinite(v) for v in values):
+            raise GraMiInputError(source, f"distortion coefficients must be finite numbers, got {values}", field=where)
+        if len(values) not in (0, 4, 5, 8, 12, 14):
+            raise GraMiInputError(source, f"expected 4, 5, 8, 12 or 14 OpenCV distortion coefficients, got {len(values)}", field=where)
+        if any(values[5:]):
+            raise GraMiInputError(
+                source,
+                f"OpenCV's rational or thin-prism terms ({values[5:]}) are not supported: only k1, k2, p1, p2, k3",
+                field=where,
+            )
+        return cls.of("radial-tangential", source, where, **dict(zip(OPENCV_ORDER[:5], values, strict=False)))
+
+    def _radial(self, r2: np.ndarray) -> np.ndarray:
+        """The radial factor: of r² (radial-tangential), or θ_d / r (fisheye)."""
+        k1, k2, k3, k4 = self.k
+        if self.model == "radial-tangential":
+            return 1 + r2 * (k1 + r2 * (k2 + r2 * (k3 + r2 * k4)))
+        r = np.sqrt(r2)
+        theta = np.arctan(r)
+        t2 = theta * theta
+        theta_d = theta * (1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
+        return np.where(r > 1e-12, theta_d / np.maximum(r, 1e-12), 1.0)
+
+    def distort(self, xy: np.ndarray) -> np.ndarray:
+        """Normalized pinhole coordinates (…, 2) → where the lens images them (…, 2), float64."""
+        x, y = np.asarray(xy, float)[..., 0], np.asarray(xy, float)[..., 1]
+        r2 = x * x + y * y
+        d = self._radial(r2)
+        p1, p2 = self.p
+        return np.stack([x * d + 2 * p1 * x * y + p2 * (r2 + 2 * x * x), y * d + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y], axis=-1)
+
+    def undistort(self, xy_d: np.ndarray, iterations: int = 40) -> np.ndarray:
+        """The inverse of :meth:`distort` (Newton's method with a numerical Jacobian, each point until it is within
+        1e-13), for points inside the fold radius; points it cannot bring back within 1e-9 are NaN."""
+        target = np.asarray(xy_d, float).reshape(-1, 2)
+        xy = target.copy()
+        # beyond the farthest the lens maps to (with room for tangential terms) there is no pinhole point
+        active = np.flatnonzero(np.hypot(target[:, 0], target[:, 1]) <= 1.05 * self.reach())
+        for _ in range(iterations):
+            f = self.distort(xy[active]) - target[active]
+            moving = ~(np.abs(f).max(axis=-1) <= 1e-13)  # NaN keeps moving until the last check drops it
+            active, f = active[moving], f[moving]
+            if active.size == 0:
+                break
+            xy[active] -= self._newton_step(xy[active], f)
+        bad = ~(np.abs(self.distort(xy) - target).max(axis=-1) <= 1e-9) | (np.hypot(xy[:, 0], xy[:, 1]) > self.fold_radius())
+        xy[bad] = np.nan
+        return xy.reshape(np.shape(xy_d))
+
+    def _newton_step(self, xy: np.ndarray, f: np.ndarray) -> np.ndarray:
+        h = 1e-7
+        jx = (self.distort(xy + [h, 0]) - self.distort(xy - [h, 0])) / (2 * h)
+        jy = (self.distort(xy + [0, h]) - self.distort(xy - [0, h])) / (2 * h)
+        det = jx[:, 0] * jy[:, 1] - jy[:, 0] * jx[:, 1]
+        det = np.where(np.abs(det) < 1e-12, 1e-12, det)
+        return np.stack([(jy[:, 1] * f[:, 0] - jy[:, 0] * f[:, 1]) / det, (jx[:, 0] * f[:, 1] - jx[:, 1] * f[:, 0]) / det], axis=-1)
+
+    def fold_radius(self) -> float:
+        """The pinhole radius r where r·radial(r²) stops growing (inf: never, within r ≤ 20, i.e. 87° off axis)."""
+        r = np.linspace(0.0, 20.0, 200_001)
+        mapped = r * self._radial(r * r)
+        stops = np.flatnonzero(np.diff(mapped) <= 0)
+        return math.inf if stops.size == 0 else float(r[stops[0]])
+
+    def reach(self) -> float:
+        """The farthest (normalized, radial) a point can be imaged before the distortion folds back (inf: no fold)."""
+        fold = self.fold_radius()
+        return math.inf if math.isinf(fold) else fold * float(self._radial(np.array(fold * fold)))
+
+    def describe(self) -> str:
+        terms = [f"k{i + 1}={v:g}" for i, v in enumerate(self.k) if v] + [f"p{i + 1}={v:g}" for i, v in enumerate(self.p) if v]
+        return f"{self.model} ({', '.join(terms)})"
+
+
+def undistort_image(image: np.ndarray, k_matrix: np.ndarray, lens: LensDistortion) -> np.ndarray:
+    """``image`` (H, W, C) as the pinhole camera with the same K sees it: each pixel bilinearly sampled where the lens
+    put it; pixels the source does not hold (outside it, or past the fold) are 0. A mask (bool) comes back as float32
+    coverage, as the other resamplings give it."""
+    image = image if image.dtype.kind == "f" else image.astype(np.float32)
+    rows, cols, inside = _source_positions(lens, _k_key(k_matrix), image.shape[1], image.shape[0])
+    r0, c0 = np.floor(rows).astype(np.int64), np.floor(cols).astype(np.int64)
+    fr, fc = (rows - r0)[..., None], (cols - c0)[..., None]
+    h, w = image.shape[:2]  # neighbours clamped at the edges (a sample within half a pixel of the border)
+    r0, r1 = np.clip(r0, 0, h - 1), np.clip(r0 + 1, 0, h - 1)
+    c0, c1 = np.clip(c0, 0, w - 1), np.clip(c0 + 1, 0, w - 1)
+    top = image[r0, c0] * (1 - fc) + image[r0, c1] * fc
+    bottom = image[r1, c0] * (1 - fc) + image[r1, c1] * fc
+    return np.where(inside[..., None], top * (1 - fr) + bottom * fr, 0).astype(image.dtype)
+
+
+def pinhole_positions(k_matrix: np.ndarray, lens: LensDistortion, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """Where the pinhole image (same K) holds each pixel of the distorted ``width`` × ``height`` image: (columns,
+    rows) in pixels, NaN where the lens cannot have put a pinhole point there."""
+    return _pinhole_positions(lens, _k_key(k_matrix), width, height)
+
+
+def held_fraction(k_matrix: np.ndarray, lens: LensDistortion, width: int, height: int) -> float:
+    """The share of the pinhole image's pixels the distorted image holds (the rest are left black, alpha 0)."""
+    return float(_source_positions(lens, _k_key(k_matrix), width, height)[2].mean())
+
+
+def _k_key(k: np.ndarray) -> tuple[float, float, float, float]:
+    return float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2])
+
+
+@lru_cache(maxsize=2)  # one camera's images are imported in turn: its map is computed once, not per image
+def _source_positions(lens: LensDistortion, k: tuple, width: int, height: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For each pinhole pixel: the (row, column) of the distorted image it samples, and whether the source holds it."""
+    fx, fy, cx, cy = k
+    x = (np.arange(width) + 0.5 - cx) / fx
+    y = (np.arange(height) + 0.5 - cy) / fy
+    xy = np.stack(np.broadcast_arrays(x[None, :], y[:, None]), axis=-1)
+    d = lens.distort(xy)
+    cols, rows = d[..., 0] * fx + cx - 0.5, d[..., 1] * fy + cy - 0.5
+    inside = (np.hypot(xy[..., 0], xy[..., 1]) < lens.fold_radius()) & (cols >= -0.5) & (cols <= width - 0.5)
+    inside &= (rows >= -0.5) & (rows <= height - 0.5)
+    return rows.astype(np.float32), cols.astype(np.float32), inside
+
+
+@lru_cache(maxsize=2)
+def _pinhole_positions(lens: LensDistortion, k: tuple, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    fx, fy, cx, cy = k
+    x_d = (np.arange(width) + 0.5 - cx) / fx
+    y_d = (np.arange(height) + 0.5 - cy) / fy
+    xy = lens.undistort(np.stack(np.broadcast_arrays(x_d[None, :], y_d[:, None]), axis=-1))
+    return (xy[..., 0] * fx + cx - 0.5).astype(np.float32), (xy[..., 1] * fy + cy - 0.5).astype(np.float32)

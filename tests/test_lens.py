@@ -1,0 +1,121 @@
+"""Lens distortion (gra_mi/capture/lens.py) against OpenCV's own models: points, their inverse, whole images, and
+what no model can give (the pixels past a fold)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from gra_mi.capture.lens import LensDistortion, held_fraction, pinhole_positions, undistort_image
+from gra_mi.core.errors import GraMiInputError
+
+OPENCV = np.array([-0.21, 0.07, 0.001, -0.0015, -0.01])  # k1 k2 p1 p2 k3, a wide-angle lens's size
+FISHEYE = np.array([0.05, -0.01, 0.002, -0.0003])
+K = np.array([[150.0, 0, 81.3], [0, 146.0, 58.7], [0, 0, 1]])  # gra-mi's pixel centres at +0.5
+
+
+def _opencv_k(k: np.ndarray) -> np.ndarray:
+    """The same camera in OpenCV's convention (pixel centres on integers)."""
+    shifted = k.copy()
+    shifted[:2, 2] -= 0.5
+    return shifted
+
+
+@pytest.fixture
+def points():
+    return np.random.default_rng(0).uniform(-0.6, 0.6, (2000, 2))
+
+
+def test_radial_tangential_points_match_opencv(points):
+    lens = LensDistortion.opencv(OPENCV, "intri.yml", "dist_01")
+    ours = lens.distort(points)
+    theirs, _ = cv2.projectPoints(np.concatenate([points, np.ones((len(points), 1))], 1), np.zeros(3), np.zeros(3), np.eye(3), OPENCV)
+    np.testing.assert_allclose(ours, theirs[:, 0], atol=1e-12)
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-15)
+    back = cv2.undistortPoints(ours[:, None], np.eye(3), OPENCV, None, None, criteria=criteria)[:, 0]
+    np.testing.assert_allclose(lens.undistort(ours), back, atol=1e-9)
+    np.testing.assert_allclose(lens.undistort(ours), points, atol=1e-10)
+
+
+def test_fisheye_points_match_opencv(points):
+    lens = LensDistortion.of("fisheye", "transforms.json", "frames[0]", **dict(zip(("k1", "k2", "k3", "k4"), FISHEYE, strict=True)))
+    ours = lens.distort(points)
+    np.testing.assert_allclose(ours, cv2.fisheye.distortPoints(points[:, None], np.eye(3), FISHEYE)[:, 0], atol=1e-12)
+    back = cv2.fisheye.undistortPoints(ours[:, None], np.eye(3), FISHEYE)[:, 0]
+    np.testing.assert_allclose(lens.undistort(ours), back, atol=1e-6)  # OpenCV's fisheye inverse stops at 1e-8 in θ
+    np.testing.assert_allclose(lens.undistort(ours), points, atol=1e-10)
+
+
+def test_nerfstudios_k4_is_the_r8_term():
+    """nerfstudio's OPENCV k4 multiplies r⁸ (its radial_and_tangential_undistort), not OpenCV's rational divisor."""
+    lens = LensDistortion.of("radial-tangential", "transforms.json", "frames[0]", k4=0.02)
+    x, y = 0.3, -0.4
+    r2 = x * x + y * y
+    np.testing.assert_allclose(lens.distort(np.array([x, y])), np.array([x, y]) * (1 + 0.02 * r2**4), rtol=1e-15)
+
+
+def test_an_image_undistorts_as_opencv_undistorts_it():
+    rng = np.random.default_rng(1)
+    image = cv2.GaussianBlur(rng.random((120, 160, 3)).astype(np.float32), (0, 0), 3)
+    lens = LensDistortion.opencv(OPENCV, "intri.yml", "dist_01")
+    ours = undistort_image(image, K, lens)
+    theirs = cv2.undistort(image, _opencv_k(K), OPENCV)  # bilinear, with 5-bit interpolation weights
+    np.testing.assert_allclose(ours[2:-2, 2:-2], theirs[2:-2, 2:-2], atol=2e-3)
+    # and a source pixel's place in the pinhole image, OpenCV's undistortPoints of its centre
+    x, y = pinhole_positions(K, lens, 160, 120)
+    ref = cv2.undistortPoints(np.array([[[17.0, 9.0]]]), _opencv_k(K), OPENCV, P=_opencv_k(K))[0, 0]
+    np.testing.assert_allclose([x[9, 17], y[9, 17]], ref, atol=1e-3)
+
+
+def test_pixels_past_the_fold_are_left_black_not_mirrored():
+    """A strong barrel folds back (r·d(r) stops growing): cv2.undistort fills the pinhole pixels past it with the
+    image folded back on itself; here they hold nothing, and the share the source holds is said."""
+    lens = LensDistortion.opencv([-0.45, 0.0, 0, 0, 0], "intri.yml", "dist_01")
+    assert lens.fold_radius() == pytest.approx(1 / np.sqrt(3 * 0.45), rel=1e-4)
+    image = np.ones((120, 160, 1), np.float32)
+    wide = np.array([[60.0, 0, 80], [0, 60.0, 60], [0, 0, 1]])  # corners at r = 1.67, past the fold at 0.86
+    ours = undistort_image(image, wide, lens)[..., 0]
+    x = (np.arange(160) + 0.5 - 80) / 60
+    y = (np.arange(120) + 0.5 - 60) / 60
+    past = np.hypot(x[None, :], y[:, None]) > lens.fold_radius()
+    assert past.any() and (ours[past] == 0).all() and (ours[~past & (np.hypot(x[None, :], y[:, None]) < 0.8)] == 1).all()
+    folded = cv2.undistort(image, _opencv_k(wide), np.array([-0.45, 0, 0, 0, 0]))
+    assert (folded[past] > 0).mean() > 0.5  # what OpenCV leaves there: the image, folded back
+    assert held_fraction(wide, lens, 160, 120) == pytest.approx(1 - past.mean(), abs=0.02)
+    xs, _ = pinhole_positions(wide, lens, 160, 120)
+    assert np.isnan(xs).any()  # source pixels past the lens's reach have no pinhole point
+
+
+@pytest.mark.parametrize(
+    "make, needles",
+    [
+        (lambda: LensDistortion.opencv([0.1, float("nan"), 0, 0, 0], "intri.yml", "dist_01"), ["finite"]),
+        (lambda: LensDistortion.opencv([0.1, 0, 0], "intri.yml", "dist_01"), ["4, 5, 8"]),
+        (lambda: LensDistortion.opencv([0.1, 0, 0, 0, 0, 0.3, 0, 0], "intri.yml", "dist_01"), ["rational"]),
+        (lambda: LensDistortion.of("fisheye", "t.json", "frames[2]", k1=0.1, p1=0.01), ["fisheye", "tangential"]),
+        (lambda: LensDistortion.of("radial-tangential", "t.json", "frames[2]", k1=-1e6), ["folds at the image centre"]),
+    ],
+)
+def test_bad_lenses_are_named(make, needles):
+    with pytest.raises(GraMiInputError) as info:
+        make()
+    for needle in needles:
+        assert needle in str(info.value)
+    assert "dist_01" in str(info.value) or "frames[2]" in str(info.value)
+
+
+def test_no_distortion_is_no_lens():
+    assert LensDistortion.opencv(np.zeros(5), "intri.yml", "dist_01") is None
+    assert LensDistortion.opencv([], "intri.yml", "dist_01") is None
+    assert LensDistortion.of("fisheye", "t.json", "frames[0]", k1=None, k2=0.0) is None
+
+
+def test_a_mask_undistorts_to_coverage_not_to_a_dilated_mask():
+    mask = np.zeros((120, 160, 1), bool)
+    mask[40:80, 50:110] = True
+    lens = LensDistortion.opencv(OPENCV, "intri.yml", "dist_01")
+    out = undistort_image(mask, K, lens)
+    assert out.dtype == np.float32 and ((out > 0) & (out < 1)).any()  # soft edges, not a dilated binary mask
+    theirs = cv2.undistort(mask.astype(np.float32), _opencv_k(K), OPENCV)
+    np.testing.assert_allclose(out[..., 0], theirs, atol=0.05)
