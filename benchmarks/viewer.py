@@ -47,12 +47,14 @@ def server_rows(scene: Path, repeats: int = 5) -> list[dict]:
     camera = viewer_camera(position, wxyz, fov, 512, 288)
     session.render(camera)  # the frame's visibility and the kernels: once
     rows = []
-    for name, change in [*CHANGES.items(), ("orbit (new viewpoint)", None), ("new frame (visibility traced)", "frame")]:
+    frames = {"frame": {"mode": "envmap", "frame": 1}, "olat frame": {"mode": "olat", "olat": 17, "frame": 2}}
+    rows_to_measure = [*CHANGES.items(), ("orbit (new viewpoint)", None), ("new frame (visibility traced)", "frame")]
+    for name, change in [*rows_to_measure, ("new frame under an OLAT (its LED traced)", "olat frame")]:
         totals, parts = [], []
-        for k in range(repeats if change != "frame" else 1):
+        for k in range(repeats if change not in frames else 1):
             start = time.perf_counter()
-            if change == "frame":
-                with_lighting(session, mode="envmap", frame=1)
+            if change in frames:
+                with_lighting(session, **frames[change])
             elif change is not None:
                 with_lighting(session, **change(k))
             view_camera = camera if change is not None else viewer_camera(position + np.array([0.1 * (k + 1), 0, 0]), wxyz, fov, 512, 288)
@@ -145,7 +147,7 @@ def markdown(server: list[dict], browser, stamp: str) -> str:
 
 
 def measure(run: BenchmarkRun) -> str:
-    scene = walking_scene(run.work, 2)
+    scene = walking_scene(run.work, 3)
     return markdown(server_rows(scene), browser_rows(scene), run.stamp("anny, UV 512"))
 
 

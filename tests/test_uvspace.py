@@ -120,6 +120,36 @@ def test_cache_reuses_visibility_across_lighting_and_cameras(tiny, tmp_path):
     assert third.cache.misses == 1
 
 
+def test_an_olat_traces_its_one_led_and_later_lightings_add_only_theirs(tiny, tmp_path, monkeypatch):
+    """No work for LEDs that are off: an OLAT's render traces one LED's rays (the image as with every LED traced);
+    another OLAT traces one more; a lighting of every LED then traces the rest, and the merged bits are a full
+    trace's, bit for bit, which alone goes to disk."""
+    from gra_mi.render import visibility
+    from gra_mi.render.relighter import Relighter
+
+    traced = []
+    original = visibility.compute_visibility
+
+    def counting(scene, geom, leds, texels=None, lit=None):
+        traced.append(leds.num_leds if lit is None else len(lit))
+        return original(scene, geom, leds, texels, lit)
+
+    monkeypatch.setattr(visibility, "compute_visibility", counting)
+    full, lean = Relighter(tiny, resolution=64), Relighter(tiny, resolution=64, cache_dir=tmp_path / "vis")
+    full.visibility(3, False)
+    for led in (7, 40):
+        np.testing.assert_array_equal(
+            lean.render(3, 0, olat_pattern(tiny.stage, led)).image, full.render(3, 0, olat_pattern(tiny.stage, led)).image
+        )
+    assert traced == [tiny.stage.num_leds, 1, 1] and not list((tmp_path / "vis").glob("vis_*"))
+    lean.render(3, 0, olat_pattern(tiny.stage, 7) + olat_pattern(tiny.stage, 40))  # covered: nothing traced
+    uniform = uniform_pattern(tiny.stage, 0.5)
+    np.testing.assert_array_equal(lean.render(3, 0, uniform).image, full.render(3, 0, uniform).image)
+    assert traced == [tiny.stage.num_leds, 1, 1, tiny.stage.num_leds - 2]
+    np.testing.assert_array_equal(np.array(lean.visibility(3, False)), np.array(full.visibility(3, False)))
+    assert len(list((tmp_path / "vis").glob("vis_*.npy"))) == 1
+
+
 def test_cached_visibility_leaves_the_mesh_where_it_is(tiny, tmp_path):
     """The mesh moves (a BVH rebuild) only when a frame's bits must be traced, and they are traced at that frame."""
     from gra_mi.render.relighter import Relighter

@@ -121,8 +121,9 @@ class Relighter:
             self._geometry = {frame: TexelGeometry.from_frame(self.atlas, seq.vertices[frame], seq.normals[frame])}
         return self._geometry[frame]
 
-    def visibility(self, frame: int, far_field: bool | None = None):
-        """The frame's per-LED visibility: of every texel, or (after :meth:`only_for`) of those the job's cameras see.
+    def visibility(self, frame: int, far_field: bool | None = None, led_intensities: np.ndarray | None = None):
+        """The frame's per-LED visibility: of every texel, or (after :meth:`only_for`) of those the job's cameras see;
+        of every LED, or of those ``led_intensities`` lights (an OLAT traces one LED, not the rig).
         The scene's mesh is moved to the frame only when the bits must be traced: moving it rebuilds the BVH (25-50 ms
         on a body), for nothing when they are cached (a streamed fit's steps visit their views' frames in any order)."""
 
@@ -130,7 +131,8 @@ class Relighter:
             self.ls.set_frame(frame)
             return self.ls.scene
 
-        return self.cache.get(scene_at_frame, self.geometry(frame), self.leds(far_field), self.job_texels(frame))
+        lit = None if led_intensities is None else np.flatnonzero(np.reshape(led_intensities, (self.ls.stage.num_leds, -1)).max(axis=1) > 0)
+        return self.cache.get(scene_at_frame, self.geometry(frame), self.leds(far_field), self.job_texels(frame), lit)
 
     def job_texels(self, frame: int) -> np.ndarray | None:
         """The texels whose light the job's cameras need (None: all): those they see and, with more than one
@@ -221,7 +223,7 @@ class Relighter:
             # Fewer LEDs stand for the lighting: a lobe narrower than their spacing would reflect points, not it.
             reduced = not np.array_equal(fewer, led_intensities)
             rough = led_cell_roughness(self.roughness, BOUNCE_LEDS) if reduced else self.roughness
-            vis = self.visibility(frame, far_field)
+            vis = self.visibility(frame, far_field, fewer)
             lanes, toward_lanes, distinct, where = op.by_source()
             loop = TexelLedLoop.build(geom, vis, lanes, leds, fewer, toward_lanes, distinct=distinct, hold=False)
             texels, index = distinct
@@ -271,7 +273,7 @@ class Relighter:
         cam = self.ls.stage.camera(camera)
         far_field = self.far_field if far_field is None else far_field
         # No LED on (e.g. a point light alone): nothing to trace for them.
-        vis = self.visibility(frame, far_field) if np.max(led_intensities) > 0 else None
+        vis = self.visibility(frame, far_field, led_intensities) if np.max(led_intensities) > 0 else None
         geom = self.geometry(frame)
         stage = self.ls.stage
         # Far field: the LEDs sample an environment, so each lobe is widened to the LEDs' spacing (no sparkles).

@@ -21,13 +21,16 @@ from gra_mi.render.leds import LedLayout
 RAY_EPSILON = 1e-4
 
 
-def compute_visibility(scene: mi.Scene, geom: TexelGeometry, leds: LedLayout, texels: np.ndarray | None = None) -> mi.UInt32:
+def compute_visibility(
+    scene: mi.Scene, geom: TexelGeometry, leds: LedLayout, texels: np.ndarray | None = None, lit: np.ndarray | None = None
+) -> mi.UInt32:
     """Bit-packed visibility, word-major: bit (k % 32) of word ``(k // 32) * M + t`` is LED k at texel t.
 
-    Rays are traced LED-major (all texels for one LED, then the next) in groups of 32 LEDs per kernel, which keeps
-    them coherent; pairs below the texel's horizon (shading or geometric) trace nothing. Far field, each ray goes
+    Rays are traced LED-major (all texels for one LED, then the next) in groups of up to 32 LEDs per kernel, which
+    keeps them coherent; pairs below the texel's horizon (shading or geometric) trace nothing. Far field, each ray goes
     towards the LED's direction from the stage centre, unbounded. ``texels``: trace only these (sorted indices);
-    the others' bits stay 0 (:func:`texels_seen_by`: a job's cameras cannot see them).
+    the others' bits stay 0 (:func:`texels_seen_by`: a job's cameras cannot see them). ``lit``: trace only these LEDs
+    (an OLAT's one; None: every LED); the others' bits stay 0, which shades the same while they are off.
     """
     m = dr.width(geom.position)
     num_leds, far_field = leds.num_leds, leds.far_field
@@ -37,15 +40,19 @@ def compute_visibility(scene: mi.Scene, geom: TexelGeometry, leds: LedLayout, te
     target_arr = mi.Point3f(*targets.T.astype(np.float32))
     subset = None if texels is None else mi.UInt32(np.asarray(texels, np.uint32))
     count = m if texels is None else len(texels)
+    lit = np.arange(num_leds) if lit is None else np.asarray(lit, np.int64)
     if count == 0:
         return bits
     lanes = dr.opaque(mi.UInt32, count)  # a kernel input: a culled frame's count would otherwise compile new kernels
     for w in range(words):
-        group = min(32, num_leds - 32 * w)
-        i = dr.arange(mi.UInt32, group * count)
-        j = i // lanes  # LED within the group (count > 0: no division by zero in the masked tail)
-        t = i - j * lanes if subset is None else dr.gather(mi.UInt32, subset, i - j * lanes)
-        k = j + 32 * w
+        group = lit[(lit >= 32 * w) & (lit < 32 * w + 32)]  # this word's LEDs to trace
+        if group.size == 0:
+            continue
+        i = dr.arange(mi.UInt32, group.size * count)
+        g = i // lanes  # which of the group's LEDs (count > 0: no division by zero in the masked tail)
+        t = i - g * lanes if subset is None else dr.gather(mi.UInt32, subset, i - g * lanes)
+        k = dr.gather(mi.UInt32, mi.UInt32(group.astype(np.uint32)), g)
+        j = k - 32 * w  # its bit in the word
         target = dr.gather(mi.Point3f, target_arr, k)
         p = dr.gather(mi.Point3f, geom.position, t)
         n = dr.gather(mi.Vector3f, geom.normal, t)
@@ -87,47 +94,66 @@ def texels_seen_by(geom: TexelGeometry, cameras, margin: float = 8.0) -> np.ndar
 
 class VisibilityCache:
     """Visibility bits per (frame geometry, :class:`LedLayout`): in memory, and on disk under ``folder`` if given.
-    An entry traced for a subset of texels (the cameras of a job) serves any later request for a subset of it.
+    An entry traced for a subset of texels (the cameras of a job) serves any later request for a subset of it; one
+    traced for the LEDs that were lit (an OLAT's one) is extended by the LEDs a later lighting adds, only those traced.
     ``keep``: hold at most this many entries in memory, the least recently used dropped (read again from disk when
-    asked for): a fit streaming thousands of frames holds a few, not all."""
+    asked for): a fit streaming thousands of frames holds a few, not all. Only entries of every LED go to disk."""
 
     def __init__(self, folder: str | Path | None = None, keep: int | None = None):
         self.folder = None if folder is None else Path(folder)
         self.keep = keep
-        self._memory: dict[str, tuple[mi.UInt32, np.ndarray | None]] = {}  # key → (bits, the texels traced; None: all)
+        # key → (bits, the texels traced (None: all), the LEDs traced (None: all))
+        self._memory: dict[str, tuple[mi.UInt32, np.ndarray | None, np.ndarray | None]] = {}
         self.hits = 0
         self.misses = 0
 
-    def get(self, scene, geom: TexelGeometry, leds: LedLayout, texels: np.ndarray | None = None) -> mi.UInt32:
-        """The bits for ``texels`` (None: all): a cached entry covering them, else traced (and kept). ``scene``: the
-        ``mi.Scene`` at ``geom``'s frame, or a function that returns it, called only if the bits must be traced."""
+    def get(
+        self, scene, geom: TexelGeometry, leds: LedLayout, texels: np.ndarray | None = None, lit: np.ndarray | None = None
+    ) -> mi.UInt32:
+        """The bits for ``texels`` (None: all) and the LEDs ``lit`` (None: all): a cached entry covering them, else
+        traced (and kept). ``scene``: the ``mi.Scene`` at ``geom``'s frame, or a function that returns it, called only
+        if bits must be traced."""
         base = f"{geom.digest}_{leds.digest}"
-        for key, (bits, covered) in self._memory.items():
-            if key.startswith(base) and (covered is None or (texels is not None and np.isin(texels, covered).all())):
+        lit = None if lit is None or len(lit) == leds.num_leds else np.unique(np.asarray(lit, np.int64))
+        for key, (bits, covered, traced) in self._memory.items():
+            if key.startswith(base) and _covers(covered, texels) and _covers(traced, lit):
                 self.hits += 1
                 self._memory[key] = self._memory.pop(key)  # most recently used last
                 return bits
         key = base if texels is None else f"{base}_{hashlib.sha1(np.asarray(texels, np.int64).tobytes()).hexdigest()[:12]}"
-        path = None if self.folder is None else self.folder / f"vis_{key}.npy"
         cached = self._read(base) if texels is not None else None  # a full trace on disk serves any subset
         if cached is not None:
             key, texels = base, None
         else:
             cached = self._read(key)
         if cached is not None:
-            bits = mi.UInt32(cached)
+            bits, traced = mi.UInt32(cached), None
             self.hits += 1
         else:
-            bits = compute_visibility(scene if isinstance(scene, mi.Scene) else scene(), geom, leds, texels)
-            self.misses += 1
-            if path is not None:
-                with atomic_path(path) as tmp:
-                    with open(tmp, "wb") as fh:
-                        np.save(fh, np.array(bits, dtype=np.uint32))
-        self._memory[key] = (bits, None if texels is None else np.asarray(texels))
+            bits, traced = self._trace(scene, geom, leds, key, texels, lit)
+        self._memory.pop(key, None)
+        self._memory[key] = (bits, None if texels is None else np.asarray(texels), traced)
         while self.keep is not None and len(self._memory) > max(self.keep, 1):
             del self._memory[next(iter(self._memory))]
         return bits
+
+    def _trace(self, scene, geom, leds, key: str, texels, lit) -> tuple[mi.UInt32, np.ndarray | None]:
+        """Trace what the entry ``key`` lacks of ``lit``'s LEDs (all of them, if there is no entry), merged into it."""
+        bits, traced = self._memory.get(key, (None, None, np.zeros(0, np.int64)))[::2]
+        wanted = np.arange(leds.num_leds) if lit is None else lit
+        missing = np.setdiff1d(wanted, traced)
+        new = compute_visibility(scene if isinstance(scene, mi.Scene) else scene(), geom, leds, texels, missing)
+        self.misses += 1
+        bits = new if bits is None else bits | new
+        dr.eval(bits)
+        traced = np.union1d(traced, missing)
+        if len(traced) < leds.num_leds:
+            return bits, traced
+        if self.folder is not None:  # every LED: kept on disk too
+            with atomic_path(self.folder / f"vis_{key}.npy") as tmp:
+                with open(tmp, "wb") as fh:
+                    np.save(fh, np.array(bits, dtype=np.uint32))
+        return bits, None
 
     def _read(self, key: str) -> np.ndarray | None:
         path = None if self.folder is None else self.folder / f"vis_{key}.npy"
@@ -137,3 +163,8 @@ class VisibilityCache:
             return np.load(path, allow_pickle=False)
         except (ValueError, OSError, EOFError):  # a cache file cut short: trace again and rewrite it
             return None
+
+
+def _covers(covered: np.ndarray | None, wanted: np.ndarray | None) -> bool:
+    """Whether an entry's texels (or LEDs) ``covered`` (None: all) include ``wanted`` (None: all)."""
+    return covered is None or (wanted is not None and bool(np.isin(wanted, covered).all()))
