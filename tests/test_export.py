@@ -3,6 +3,7 @@ Blender (Cycles) renders as Mitsuba renders gra-mi's model (docs/export.md)."""
 
 from __future__ import annotations
 
+import json
 import math
 import re
 import struct
@@ -13,7 +14,7 @@ import pytest
 from gra_mi.apps.export import export_avatar, gltf_validator, validate_glb, validate_usd
 from gra_mi.apps.gltf import export_glb
 from gra_mi.apps.usd import LED_RADIUS_M, UsdLighting, export_usd
-from gra_mi.core.errors import GraMiInputError
+from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.eval.blender import compare_with_blender, find_blender, reexport_in_blender, render_in_mitsuba, subject_window
 from gra_mi.stage.envmap import shift_longitude
 from gra_mi.stage.envmap_library import reference_map
@@ -63,7 +64,9 @@ def test_usd_holds_what_a_pipeline_expects(tmp_path, avatar):
     seq, albedo, roughness = avatar
     stage_rig = default_lightstage()
     pattern = olat_pattern(stage_rig, 7) * 0.5
-    path = export_usd(tmp_path / "a.usda", seq, albedo, roughness, 4, stage_rig.cameras[:2], UsdLighting(None, stage_rig, pattern))
+    path = export_usd(
+        tmp_path / "a.usda", seq, albedo, roughness, [0, 1, 2, 3], stage_rig.cameras[:2], UsdLighting(None, stage_rig, pattern)
+    )
     stage = Usd.Stage.Open(str(path))
     assert UsdGeom.GetStageUpAxis(stage) == "Y" and UsdGeom.GetStageMetersPerUnit(stage) == 1.0
     assert stage.GetTimeCodesPerSecond() == seq.fps and (stage.GetStartTimeCode(), stage.GetEndTimeCode()) == (0, 3)
@@ -126,6 +129,36 @@ def test_an_export_reads_back_to_the_same_mesh(tmp_path, avatar, name):
     np.testing.assert_allclose(back.vertices, seq.vertices, atol=1e-6)
     np.testing.assert_allclose(back.uvs, seq.uvs, atol=1e-6)
     assert np.array_equal(back.faces, seq.faces) and back.fps == pytest.approx(seq.fps, rel=1e-5)
+
+
+@pytest.mark.parametrize("name", ["a.usda", "a.glb"])
+def test_a_frame_selection_exports_those_frames_from_time_0_and_names_them(tmp_path, avatar, name):
+    """--frames takes relight's selections: the frames come out in the order given, from time 0, each time naming
+    the sequence's frame it shows (USD: gra_mi:sourceFrame; glTF: the node's extras)."""
+    seq = avatar[0]
+    chosen = [3, 1, 2] if seq.num_frames > 3 else [seq.num_frames - 1, 0]
+    export_avatar(tmp_path / name, *avatar, frames=chosen)
+    back = load_sequence(tmp_path / name)
+    np.testing.assert_allclose(back.vertices, seq.vertices[chosen], atol=1e-6)
+    if name.endswith(".glb"):
+        document = json.loads(_glb_json(tmp_path / name))
+        assert document["nodes"][0]["extras"]["gra_mi"]["source_frames"] == chosen
+    else:
+        from pxr import Usd
+
+        stage = Usd.Stage.Open(str(tmp_path / name))
+        attribute = stage.GetPrimAtPath("/Avatar/Body").GetAttribute("gra_mi:sourceFrame")
+        assert [attribute.Get(float(t)) for t in range(len(chosen))] == chosen
+    for bad in ([], [seq.num_frames], [-1]):
+        with pytest.raises(GraMiParameterError, match="frame"):
+            export_avatar(tmp_path / f"bad{name}", *avatar, frames=bad)
+    assert not (tmp_path / f"bad{name}").exists()
+
+
+def _glb_json(path) -> str:
+    data = path.read_bytes()
+    length = struct.unpack_from("<I", data, 12)[0]
+    return data[20 : 20 + length].decode()
 
 
 def test_a_dcc_tools_usd_reads_back_z_up_centimetres_and_uv_corners(tmp_path, avatar):
@@ -194,12 +227,12 @@ def test_a_glb_too_long_for_the_format_is_refused_before_anything_is_written(tmp
     seq, albedo, roughness = avatar
     frames = 1 + (1 << 32) // (seq.num_vertices * 24)  # one frame past 4 GiB of morph targets, never allocated
     long = replace(seq, vertices=np.broadcast_to(seq.vertices[:1], (frames, *seq.vertices.shape[1:])))
-    with pytest.raises(GraMiParameterError, match=r"--frames \d+ or fewer") as refused:
+    with pytest.raises(GraMiParameterError, match=r"at most \d+ frames \(--frames 0:\d+\)") as refused:
         export_avatar(tmp_path / "long.glb", long, albedo, roughness)
     assert not (tmp_path / "long.glb").exists()
     from gra_mi.apps.gltf import check_glb_size
 
-    offered = int(re.search(r"--frames (\d+)", str(refused.value)).group(1))
+    offered = int(re.search(r"--frames 0:(\d+)", str(refused.value)).group(1))
     check_glb_size(long, offered)  # what the message offers fits, and a frame more would not
     with pytest.raises(GraMiParameterError):
         check_glb_size(long, offered + 1)
@@ -280,6 +313,10 @@ def test_export_command_round_trip_and_hostile_outputs(tmp_path, avatar, capsys)
         (["--out", str(tmp_path / "c.usdz"), "--subject", str(tmp_path / "subject"), "--rig", str(tmp_path / "rig"),
           "--pattern", str(tmp_path / "three_leds.json")], "three_leds.json"),
         (["--out", str(tmp_path / "c.usdz"), "--subject", str(tmp_path / "subject"), "--envmap", str(tmp_path / "nan.exr")], "nan.exr"),
+        (["--out", str(tmp_path / "c.usdz"), "--subject", str(tmp_path / "subject"), "--frames", "2"], "':2' exports the first 2"),
+        (["--out", str(tmp_path / "c.usdz"), "--subject", str(tmp_path / "subject"), "--frames", "0:99"], "frame 6 is not"),
+        (["--out", str(tmp_path / "c.usdz"), "--subject", str(tmp_path / "subject"), "--frames", "5:2"], "selects nothing"),
+        (["--out", str(tmp_path / "c.usdz"), "--subject", str(tmp_path / "subject"), "--frames", "1,x"], "--frames"),
     ]  # fmt: skip
     for args, said in refused:
         assert main(["export", *args, *maps]) == 2

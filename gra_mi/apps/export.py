@@ -21,7 +21,7 @@ import numpy as np
 
 from gra_mi.apps.gltf import export_glb
 from gra_mi.apps.usd import UsdLighting, export_usd
-from gra_mi.core.errors import GraMiInputError
+from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.stage.lightstage import Lightstage
 from gra_mi.subject.interchange import GLTF_SUFFIXES, USD_SUFFIXES
 from gra_mi.subject.sequence import MeshSequence
@@ -91,11 +91,16 @@ def validate_glb(path: Path) -> ExportReport:
 
 
 def export_avatar(
-    out: Path, seq: MeshSequence, albedo: np.ndarray, roughness: np.ndarray, frames: int | None = None,
+    out: Path, seq: MeshSequence, albedo: np.ndarray, roughness: np.ndarray, frames: list[int] | None = None,
     rig: Lightstage | None = None, envmap: np.ndarray | None = None, led_intensities: np.ndarray | None = None,
 ) -> ExportReport:  # fmt: skip
-    """Write ``out`` in the format its suffix names and validate it. Cameras and lights travel in USD only (glTF's
-    punctual lights cannot hold an environment map); asking for them in a .glb is an error, not a silent drop."""
+    """Write ``out`` in the format its suffix names and validate it. ``frames``: the sequence's frames to export, in
+    order (default: all). Cameras and lights travel in USD only (glTF's punctual lights cannot hold an environment
+    map); asking for them in a .glb is an error, not a silent drop."""
+    if frames is not None and not frames:
+        raise GraMiParameterError("frames", "selects no frame")
+    if frames is not None and (bad := [f for f in frames if not 0 <= f < seq.num_frames]):
+        raise GraMiParameterError("frames", f"frame {bad[0]} is not in the subject's {seq.num_frames} frames (0 … {seq.num_frames - 1})")
     suffix = out.suffix.lower()
     if suffix in GLTF_SUFFIXES:
         if rig is not None or envmap is not None or led_intensities is not None:

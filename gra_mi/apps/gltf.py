@@ -61,7 +61,7 @@ def _png(image: np.ndarray) -> bytes:
 GLB_LIMIT = 1 << 32  # bytes: a .glb's header stores its length in 32 bits
 
 
-def check_glb_size(seq: MeshSequence, count: int) -> None:
+def check_glb_size(seq: MeshSequence, count: int, first: int = 0) -> None:
     """Refuse, before anything is read or written, morph targets that cannot fit a .glb (positions and normals, float32,
     per frame after the first; the mesh and textures take less than the margin left)."""
     per_frame = seq.num_vertices * 2 * 3 * 4
@@ -69,15 +69,18 @@ def check_glb_size(seq: MeshSequence, count: int) -> None:
         fits = max(1, (GLB_LIMIT - (64 << 20)) // per_frame)
         raise GraMiParameterError(
             "frames", f"{count} frames of this {seq.num_vertices}-vertex mesh need {count * per_frame / 2**30:.1f} GiB of morph targets, "
-            f"more than a .glb can hold (4 GiB): give --frames {fits} or fewer, or export .usdc",
+            f"more than a .glb can hold (4 GiB): give at most {fits} frames (--frames {first}:{first + fits}), or export .usdc",
         )  # fmt: skip
 
 
-def export_glb(path: str | Path, seq: MeshSequence, albedo: np.ndarray, roughness: np.ndarray, frames: int | None = None) -> Path:
-    """Write ``path`` (.glb). ``frames`` limits the morph targets (default: all frames)."""
+def export_glb(path: str | Path, seq: MeshSequence, albedo: np.ndarray, roughness: np.ndarray, frames: list[int] | None = None) -> Path:
+    """Write ``path`` (.glb). ``frames``: the sequence's frames to animate, in order (default: all); the first is the
+    mesh, the others its morph targets, and the animation's time 0 is the first (``extras.gra_mi.source_frames``)."""
+    frames = list(range(seq.num_frames)) if frames is None else list(frames)
+    check_glb_size(seq, len(frames), frames[0])
     buf = _Buffer()
-    base_p = seq.vertices[0].astype(np.float32)
-    base_n = seq.normals[0].astype(np.float32)
+    base_p = seq.vertices[frames[0]].astype(np.float32)
+    base_n = seq.normals[frames[0]].astype(np.float32)
     # glTF's UV origin is the top-left of the image; gra-mi's row 0 is v = 0, which glTF also reads as the top row.
     attributes = {
         "POSITION": buf.accessor(base_p, "VEC3", FLOAT, ARRAY_BUFFER, minmax=True),
@@ -85,14 +88,13 @@ def export_glb(path: str | Path, seq: MeshSequence, albedo: np.ndarray, roughnes
         "TEXCOORD_0": buf.accessor(seq.uvs.astype(np.float32), "VEC2", FLOAT, ARRAY_BUFFER),
     }
     indices = buf.accessor(seq.faces.astype(np.uint32).reshape(-1, 1), "SCALAR", UINT, ELEMENT_ARRAY_BUFFER)
-    count = seq.num_frames if frames is None else max(1, min(frames, seq.num_frames))
-    check_glb_size(seq, count)
+    count = len(frames)
     targets = []
-    for t in range(1, count):
+    for t in frames[1:]:
         targets.append(
             {
-                "POSITION": buf.accessor((seq.vertices[t] - seq.vertices[0]).astype(np.float32), "VEC3", FLOAT, ARRAY_BUFFER, minmax=True),
-                "NORMAL": buf.accessor((seq.normals[t] - seq.normals[0]).astype(np.float32), "VEC3", FLOAT, ARRAY_BUFFER),
+                "POSITION": buf.accessor((seq.vertices[t] - base_p).astype(np.float32), "VEC3", FLOAT, ARRAY_BUFFER, minmax=True),
+                "NORMAL": buf.accessor((seq.normals[t] - base_n).astype(np.float32), "VEC3", FLOAT, ARRAY_BUFFER),
             }
         )
     rough = np.clip(roughness[..., 0], 0, 1)
@@ -139,6 +141,7 @@ def export_glb(path: str | Path, seq: MeshSequence, albedo: np.ndarray, roughnes
         gltf["animations"] = [
             {"name": "performance", "samplers": [sampler], "channels": [{"sampler": 0, "target": {"node": 0, "path": "weights"}}]}
         ]
+    gltf["nodes"][0]["extras"] = {"gra_mi": {"source_frames": frames}}  # the sequence's frame at each step
     while len(buf.data) % 4:
         buf.data += b"\0"
     gltf["buffers"] = [{"byteLength": len(buf.data)}]

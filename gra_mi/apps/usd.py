@@ -106,7 +106,7 @@ def _material(stage, root: str, textures: Path, albedo: np.ndarray, roughness: n
     return material
 
 
-def _mesh(stage, path: str, seq: MeshSequence, frames: int):
+def _mesh(stage, path: str, seq: MeshSequence, frames: list[int]):
     from pxr import Sdf, UsdGeom, Vt
 
     mesh = UsdGeom.Mesh.Define(stage, path)
@@ -119,11 +119,13 @@ def _mesh(stage, path: str, seq: MeshSequence, frames: int):
     primvar.Set(Vt.Vec2fArray.FromNumpy(st))
     points, normals, extent = mesh.CreatePointsAttr(), mesh.CreateNormalsAttr(), mesh.CreateExtentAttr()
     mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
-    for t in range(frames):
+    source = mesh.GetPrim().CreateAttribute("gra_mi:sourceFrame", Sdf.ValueTypeNames.Int, custom=True)  # time → the sequence's frame
+    for time, t in enumerate(frames):
         p = seq.vertices[t].astype(np.float32)
-        points.Set(Vt.Vec3fArray.FromNumpy(p), float(t))
-        normals.Set(Vt.Vec3fArray.FromNumpy(seq.normals[t].astype(np.float32)), float(t))
-        extent.Set(Vt.Vec3fArray.FromNumpy(np.stack([p.min(axis=0), p.max(axis=0)])), float(t))
+        points.Set(Vt.Vec3fArray.FromNumpy(p), float(time))
+        normals.Set(Vt.Vec3fArray.FromNumpy(seq.normals[t].astype(np.float32)), float(time))
+        extent.Set(Vt.Vec3fArray.FromNumpy(np.stack([p.min(axis=0), p.max(axis=0)])), float(time))
+        source.Set(int(t), float(time))
     return mesh
 
 
@@ -183,7 +185,7 @@ def _write_stage(layer_path: Path, textures: Path, seq, albedo, roughness, frame
     stage.SetTimeCodesPerSecond(seq.fps)
     stage.SetFramesPerSecond(seq.fps)
     stage.SetStartTimeCode(0.0)
-    stage.SetEndTimeCode(float(frames - 1))
+    stage.SetEndTimeCode(float(len(frames) - 1))
     avatar = UsdGeom.Xform.Define(stage, "/Avatar")
     stage.SetDefaultPrim(avatar.GetPrim())
     Usd.ModelAPI(avatar).SetKind(Kind.Tokens.component)
@@ -204,21 +206,22 @@ def textures_beside(path: Path) -> Path:
 
 
 def export_usd(
-    path: str | Path, seq: MeshSequence, albedo: np.ndarray, roughness: np.ndarray, frames: int | None = None,
+    path: str | Path, seq: MeshSequence, albedo: np.ndarray, roughness: np.ndarray, frames: list[int] | None = None,
     cameras: list[Camera] | None = None, lighting: UsdLighting | None = None,
 ) -> Path:  # fmt: skip
     """Write ``path`` (.usda / .usdc / .usd: the layer plus a ``<stem>_textures/`` folder beside it; .usdz: one package).
-    ``frames`` limits the time samples (default: all frames)."""
+    ``frames``: the sequence's frames, in order, as time codes 0, 1, … (default: all); the mesh's ``gra_mi:sourceFrame``
+    says which frame each time code shows."""
     path = Path(path)
     if path.suffix.lower() not in USD_SUFFIXES:
         raise GraMiInputError(path, f"not a USD file name: expected one of {', '.join(USD_SUFFIXES)}")
-    count = seq.num_frames if frames is None else max(1, min(frames, seq.num_frames))
+    frames = list(range(seq.num_frames)) if frames is None else list(frames)
     with scratch_directory("gra-mi-usd-") as work:
         packaged = path.suffix.lower() == ".usdz"
         textures = work / ("textures" if packaged else f"{path.stem}_textures")  # unpackaged: one folder per file
         textures.mkdir()
         layer = work / ("avatar.usdc" if packaged else f"avatar{path.suffix.lower()}")
-        _write_stage(layer, textures, seq, albedo, roughness, count, cameras, lighting)
+        _write_stage(layer, textures, seq, albedo, roughness, frames, cameras, lighting)
         with atomic_path(path) as out:
             if packaged:  # the layer first, then its textures under their own names (USD's zip writer aligns them)
                 from pxr import Sdf

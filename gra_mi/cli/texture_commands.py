@@ -12,7 +12,7 @@ from gra_mi.apps.texture_edit import edit_albedo_file, parse_color
 from gra_mi.capture.dataset import Capture
 from gra_mi.cli.options import CommandConfig, Restartable
 from gra_mi.core.config import option
-from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive
+from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.shard import ShardOptions
 from gra_mi.eval.lighting import EnvmapAccuracyConfig, envmap_accuracy
 from gra_mi.fit.materials import FitConfig
@@ -77,8 +77,10 @@ class ExportCommand(CommandConfig):
     """Albedo UV texture (EXR), e.g. from `gra-mi fit`."""
     roughness: Path
     """Roughness UV texture (EXR), e.g. from `gra-mi fit`."""
-    frames: int | None = None
-    """Frames to include (default: all)."""
+    frames: str = "all"
+    """Frames to export, as `relight --frames` takes them: 'all', 'A:B' (B excluded; ':N' the first N) or a comma
+    list; they become the animation's time 0, 1, … (USD's gra_mi:sourceFrame and glTF's extras name the sequence's
+    frame at each). Only these frames are read from a mapped sequence; the export holds them in memory."""
     rig: Path | None = None
     """USD only: a rig calibration (calibration.json, or a capture or rig folder holding one) whose cameras are
     written as USD cameras, and whose LEDs --pattern lights."""
@@ -90,8 +92,9 @@ class ExportCommand(CommandConfig):
     envmaps: EnvmapOptions = field(default_factory=EnvmapOptions)
 
     def validate(self) -> None:
-        if self.frames is not None:
-            require_positive({"frames": self.frames})
+        if self.frames.strip().isdigit():  # an export's --frames N once meant the first N frames: say so, never guess
+            n = int(self.frames)
+            raise GraMiParameterError("frames", f"'{n}' is ambiguous: ':{n}' exports the first {n} frames, '{n}:{n + 1}' frame {n} alone")
         if self.pattern is not None and self.rig is None:
             raise GraMiParameterError("pattern", "needs --rig (the LEDs the pattern drives)")
 
@@ -117,7 +120,9 @@ def run_export(c: ExportCommand) -> int:
     rig = _rig_calibration(c.rig) if c.rig is not None else None
     envmap = c.envmaps.load(c.envmap) if c.envmap is not None else None
     leds = load_pattern(rig, c.pattern) * rig.gains if c.pattern is not None else None  # emitted = drive × gain (W/sr)
-    report = export_avatar(c.out, load_sequence(c.subject), albedo, roughness, c.frames, rig, envmap, leds)
+    seq = load_sequence(c.subject)
+    frames = select(c.frames, seq.num_frames, "frames", integers=True)
+    report = export_avatar(c.out, seq, albedo, roughness, frames, rig, envmap, leds)
     print(f"wrote {report.summary()}")
     for line in report.errors + report.warnings:
         print(f"  {line}")
