@@ -146,6 +146,53 @@ def test_a_fit_of_the_imported_capture_matches_the_native_one(olat_capture, impo
     assert relight["psnr"] > 20, relight  # held-out OLATs and the white frame, relit from held-out cameras
 
 
+def test_a_capture_with_a_missing_image_imports_with_the_gap_recorded_and_fits(olat_capture, tmp_path):
+    """A real capture's gap (one OLAT of one camera lost): --missing-images skip imports the rest, capture.json and
+    the report name the gap; the fit and RelightNet leave that view out (reading it would stop them), a stage that
+    needs it refuses before any work, naming camera and frame."""
+    from gra_mi.capture.dataset import Capture, load_observation
+    from gra_mi.core.errors import GraMiInputError
+    from gra_mi.fit.materials import FitConfig, run_fit
+    from gra_mi.relightnet.train import view_jobs
+
+    root, _, _ = olat_capture
+    subject = _broken(olat_capture, tmp_path, _drop_olat)
+    out = _imported(tmp_path, subject, "gap", "--missing-images", "skip")
+    capture = Capture.load(out)
+    gaps = [f for f in capture.frames if f.missing]
+    assert len(gaps) == 1 and gaps[0].missing == ["Cam02"]
+    assert gaps[0].split == "train" and "Cam02" in capture.train_cameras  # a view the fit would otherwise read
+    report = json.loads((out / "import_report.json").read_text())
+    assert {c["camera"]: c["missing_frames"] for c in report["cameras"]}["Cam02"] == [gaps[0].frame]
+    assert "Missing images, skipped" in (out / "import_report.md").read_text()
+    assert not any(c == "Cam02" and e.frame == gaps[0].frame for e, c, _ in view_jobs(capture))
+    with pytest.raises(GraMiInputError, match=f"camera Cam02 has no image of frame {gaps[0].frame}"):
+        load_observation(capture, "Cam02", gaps[0].frame)
+    with pytest.raises(GraMiInputError, match="the evaluation needs every one"):
+        capture.require_images(["Cam02"], gaps, "the evaluation")
+    result, _ = run_fit(out, tmp_path / "fit", FitConfig(solver="closed-form", roughness_candidates=3))
+    assert np.isfinite(result.albedo).all() and (result.albedo.max(-1) > 0).mean() > 0.2
+
+
+@pytest.mark.parametrize(
+    "missing, needles",
+    [(["CamXX"], ["frames[3].missing", "CamXX"]), ("Cam02", ["frames[3].missing", "list of camera names"]), (None, ["every camera"])],
+)
+def test_a_capture_json_with_bad_gaps_is_refused(imported, tmp_path, missing, needles):
+    from gra_mi.capture.dataset import Capture
+    from gra_mi.core.errors import GraMiInputError
+
+    copy = tmp_path / "cap"
+    shutil.copytree(imported, copy)
+    data = json.loads((copy / "capture.json").read_text())
+    data["frames"][3]["missing"] = data["train_cameras"] + data["eval_cameras"] if missing is None else missing
+    (copy / "capture.json").write_text(json.dumps(data))
+    with pytest.raises(GraMiInputError) as refused:
+        Capture.load(copy)
+    for needle in needles:
+        assert needle in str(refused.value)
+
+
 def test_an_interrupted_import_resumes_to_the_same_capture(olat_capture, imported):
     root, _, subject = olat_capture
     again = root / "again"
@@ -247,7 +294,7 @@ def _world_to_camera(s: Path) -> None:
     ("damage", "needles"),
     [
         (_drop_camera_folder, ["cameras.calib", "8 cameras", "7 image folders"]),
-        (_drop_olat, ["Cam02", "000017", "OLAT"]),
+        (_drop_olat, ["Cam02", "000017", "OLAT", "--missing-images skip"]),
         (_short_spiral, ["LSX3_light_z_spiral.txt", "24 LEDs"]),
         (_corrupt_avif, [".000000.avif", "not a readable image"]),
         (_faceless_mesh, ["model.obj", "no faces"]),

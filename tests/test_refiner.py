@@ -1025,16 +1025,15 @@ def test_residual_flow_space_round_trips_and_keeps_the_given_frames(model):
 
 def test_training_sequences_from_fewer_cameras():
     """`train_cameras N`: training sequences from N evenly spaced training cameras; the selection sequence (first
-    training camera) and the test sequences (held-out cameras) as before; more than the capture has is refused."""
-    from types import SimpleNamespace
-
-    from gra_mi.capture.dataset import FrameLighting
-    from gra_mi.core.errors import GraMiParameterError
+    training camera) and the test sequences (held-out cameras) as before; more than the capture has is refused, and
+    so is a camera with a gap in a sequence (an import's --missing-images skip), before any work."""
+    from gra_mi.capture.dataset import Capture, FrameLighting
+    from gra_mi.core.errors import GraMiInputError, GraMiParameterError
     from gra_mi.refiner.data import CaptureSequencesConfig, _sequence_jobs
 
     frames = [FrameLighting(0, "train", 0, "uniform", None), FrameLighting(1, "train", 0, "envmap", "e.exr")]
     frames += [FrameLighting(2, "test", 0, "envmap", "t.exr")]
-    capture = SimpleNamespace(frames=frames, train_cameras=[f"cam0{i}" for i in range(6)], eval_cameras=["cam06", "cam07"], folder=None)
+    capture = Capture(Path("cap"), "x", "path", 8, [f"cam0{i}" for i in range(6)], ["cam06", "cam07"], frames)
     _, jobs = _sequence_jobs(capture, CaptureSequencesConfig(train_cameras=3))
     assert [(split, cam) for split, cam, _, _ in jobs] == [
         ("train", "cam00"), ("train", "cam02"), ("train", "cam05"), ("selection", "cam00"), ("test", "cam06"), ("test", "cam07"),
@@ -1042,3 +1041,6 @@ def test_training_sequences_from_fewer_cameras():
     assert len(_sequence_jobs(capture, CaptureSequencesConfig())[1]) == 6 + 1 + 2
     with pytest.raises(GraMiParameterError, match="train_cameras"):
         _sequence_jobs(capture, CaptureSequencesConfig(train_cameras=7))
+    frames[2].missing = ["cam07"]
+    with pytest.raises(GraMiInputError, match="camera cam07 has no image of frame 2"):
+        _sequence_jobs(capture, CaptureSequencesConfig())

@@ -29,6 +29,7 @@ class FrameLighting:
     envmap: str | None  # path relative to the capture folder
     pattern: str | None = None  # kind "pattern": LED drive values (JSON or .npy, docs/data-format.md), relative path
     pose: int | None = None  # the subject's mesh frame; None: ``frame`` (a static pose lit many ways shares one)
+    missing: list[str] = field(default_factory=list)  # cameras with no image of this frame (a real capture's gaps)
 
     @property
     def mesh_frame(self) -> int:
@@ -56,8 +57,27 @@ class Capture:
         when none was."""
         return self.image_path(camera, frame).with_suffix(".saturated.png")
 
+    def has_image(self, camera: str, entry: FrameLighting) -> bool:
+        """Whether ``camera`` has an image of the frame (an import records the gaps of a real capture)."""
+        return camera not in entry.missing
+
+    def require_images(self, cameras: list[str], entries: list[FrameLighting], needed_by: str) -> None:
+        """Refuse, before any work, a stage that needs every image of ``cameras`` × ``entries`` where one is missing."""
+        for entry in entries:
+            gap = next((c for c in cameras if not self.has_image(c, entry)), None)
+            if gap is not None:
+                raise GraMiInputError(
+                    self.folder / "capture.json",
+                    f"camera {gap} has no image of frame {entry.frame} (the import recorded it missing), and {needed_by} needs "
+                    "every one: hold that camera out of it (or re-import it with its images)",
+                    field="frames",
+                )
+
     def save(self) -> None:
         data = {"format": CAPTURE_FORMAT, **asdict(self)}
+        for entry in data["frames"]:  # a complete capture's files stay as they were
+            if not entry["missing"]:
+                del entry["missing"]
         data["folder"] = None
         atomic_write_text(self.folder / "capture.json", json.dumps(data, indent=1) + "\n")
 
@@ -107,7 +127,17 @@ class Capture:
             data.get("source", {}) or {},
         )
         capture._check_cameras(path)
+        capture._check_missing(path)
         return capture
+
+    def _check_missing(self, path: Path) -> None:
+        cameras = self.train_cameras + self.eval_cameras
+        for i, entry in enumerate(self.frames):
+            unknown = [c for c in entry.missing if c not in cameras]
+            if unknown:
+                raise GraMiInputError(path, f"names camera(s) {unknown} that the capture does not have", field=f"frames[{i}].missing")
+            if entry.missing and set(cameras) <= set(entry.missing):
+                raise GraMiInputError(path, "every camera's image of this frame is missing: drop the frame", field=f"frames[{i}].missing")
 
     def _check_cameras(self, path: Path) -> None:
         """Every camera named in capture.json exists in the capture's rig (when it has one)."""
@@ -125,7 +155,7 @@ class Capture:
         """Read and check every image once before work starts (a bad one found hours into a fit, or after caches
         were written, would leave partial output). About 2 ms an image at the small preset's size."""
 
-        views = [(cam, f.frame) for cam in self.train_cameras + self.eval_cameras for f in self.frames]
+        views = [(cam, f.frame) for cam in self.train_cameras + self.eval_cameras for f in self.frames if self.has_image(cam, f)]
         for cam, frame in progress(views, "checking the capture's images"):
             load_observation(self, cam, frame)
 
@@ -154,6 +184,8 @@ def _frame_entry(path: Path, i: int, f) -> FrameLighting:
         entry = FrameLighting(**f)
     except TypeError as exc:
         raise GraMiInputError(path, f"bad entry: {exc}", field=where) from None
+    if not isinstance(entry.missing, list) or not all(isinstance(c, str) for c in entry.missing):
+        raise GraMiInputError(path, f"expected a list of camera names, got {entry.missing!r}", field=f"{where}.missing")
     for name in ("frame", "sequence", "pose"):
         value = getattr(entry, name)
         if name == "pose" and value is None:
@@ -189,6 +221,9 @@ def load_observation(capture: Capture, camera: str, frame: int) -> np.ndarray:
     [0, 1], the size the camera's calibration says (images at another resolution would be sampled with the wrong
     intrinsics)."""
     path = capture.image_path(camera, frame)
+    recorded = next((f for f in capture.frames if f.frame == frame), None) if not path.is_file() else None
+    if recorded is not None and not capture.has_image(camera, recorded):  # a stage that should have left it out
+        capture.require_images([camera], [recorded], "this step")
     image = read_exr(path)
     if image.shape[2] != 4:
         raise GraMiInputError(path, f"expected RGBA (alpha = mask), got {image.shape[2]} channels")

@@ -17,7 +17,7 @@ import json
 import logging
 import os
 import shutil
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -54,15 +54,27 @@ IMAGE_BYTES_PER_PIXEL = 4 * 4 * 8  # RGBA float32: the decoded source, its resam
 LENS_BYTES_PER_PIXEL = 256  # of a source image, undistorted: its maps (kept for two cameras), samples and weights
 
 
-def check_images_present(source: Source, plans: list[CameraPlan]) -> None:
+def check_images_present(source: Source, plans: list[CameraPlan], skip: bool) -> dict[int, list[str]]:
+    """Every camera's image of every frame, of the camera's size; with ``skip``, the gaps (frame key → cameras)."""
+    missing: dict[int, list[str]] = {}
     for plan in plans:
         for key, _, drive in source.frames:
             path = source.images[plan.index].get(key)
+            if path is None and skip:
+                missing.setdefault(key, []).append(plan.camera.name)
+                continue
             if path is None:
                 what = {"white": "the white frame"}.get(drive, f"the OLAT of LED {drive + 1}" if isinstance(drive, int) else "its lighting")
-                raise GraMiInputError(source.folder, f"camera {plan.camera.name} has no image of frame {key:06d} ({what})")
+                raise GraMiInputError(
+                    source.folder,
+                    f"camera {plan.camera.name} has no image of frame {key:06d} ({what}); --missing-images skip imports the rest",
+                )
             if image_size(path) != plan.source_size:
                 raise GraMiInputError(path, f"is {image_size(path)}, other images of {plan.camera.name} are {plan.source_size}")
+    complete = [key for key, _, _ in source.frames if key not in missing]
+    if missing and not complete:  # the mesh is checked against every camera's mask on one frame
+        raise GraMiInputError(source.folder, "no frame has an image from every camera: the reprojection check needs one")
+    return missing
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -95,10 +107,11 @@ def import_capture(
     train_cameras = [p.camera.name for p in plans if p.camera.name not in eval_cameras]
     if not train_cameras:
         raise GraMiParameterError("eval_cameras", "holds every imported camera: at least one camera must be left to fit on")
-    check_images_present(source, plans)
+    missing = check_images_present(source, plans, config.missing_images == "skip")
     check_envmaps(source)
     sequence, atlas_said = build_sequence(source, frame, config.uv_resolution)
-    key, pose = source.frames[0][0], source.frames[0][1].mesh_frame  # the frame every camera's mask is checked on
+    # the frame every camera's mask is checked on: the first that every camera has
+    key, pose = next((k, f.mesh_frame) for k, f, _ in source.frames if k not in missing)
     masks = [frame_mask(source, plan, key) for plan in plans]
     checks = reprojection_checks(source, frame, sequence, plans, masks, config.min_iou, pose)
     said = asdict(config) | (asdict(options) if options is not None else {})
@@ -113,7 +126,8 @@ def import_capture(
     _write_stage_files(staging, stage, sequence, source.frames)
     record = {"format": source.format, "folder": str(source.folder), "transform": frame.matrix(), **record}
     record |= {"gains": "assumed equal (the source has none)", "left_out_leds": source.left_out, "uv_atlas": atlas_said, "images": {}}
-    frames = [f for _, f, _ in source.frames]
+    record["checked_frame"] = next(f.frame for k, f, _ in source.frames if k == key)  # the masks' overlays show it
+    frames = [replace(f, missing=missing.get(k, [])) for k, f, _ in source.frames]
     capture = Capture(staging, source.format, "captured", config.uv_resolution, train_cameras, eval_cameras, frames, source=record)
     mine = shard.take(source.frames)
     saturated = {plan.camera.name: _import_camera(source, plan, capture, mine) for plan in plans}
@@ -122,7 +136,8 @@ def import_capture(
         if saturated is None:
             return None  # other shards' images are still being written: the last shard checks and publishes
     for plan in plans:
-        record["images"][plan.camera.name] = _camera_summary(source, plan, saturated[plan.camera.name])
+        gaps = {"missing_frames": [f.frame for f in frames if plan.camera.name in f.missing]}
+        record["images"][plan.camera.name] = _camera_summary(source, plan, saturated[plan.camera.name]) | gaps
     capture.save()
     _write_report(staging, source, frame, plans, checks, record)
     shutil.rmtree(staging / "parts", ignore_errors=True)
@@ -171,7 +186,7 @@ def _already_published(out: Path, record: dict, overwrite: bool) -> Capture | No
         )
     capture = Capture.load(out)
     cameras = capture.train_cameras + capture.eval_cameras
-    if all(capture.image_path(c, f.frame).is_file() for c in cameras for f in capture.frames):
+    if all(capture.image_path(c, f.frame).is_file() for c in cameras for f in capture.frames if capture.has_image(c, f)):
         logger.info("%s: this import is already complete", out)
         return capture
     logger.info("%s: images are missing; the import resumes", out)
@@ -275,7 +290,9 @@ def _import_camera(source: Source, plan: CameraPlan, capture: Capture, frames: l
     saturated, name = [], plan.camera.name
     for key, entry, _ in progress(frames, description=f"import {name}"):
         path = capture.image_path(name, entry.frame)
-        image_path = source.images[plan.index][key]
+        image_path = source.images[plan.index].get(key)
+        if image_path is None:  # a gap --missing-images skip let through (recorded in capture.json)
+            continue
         rgb, clipped, alpha = read_image(image_path)
         mask = frame_mask(source, plan, key, (rgb, alpha))  # the image decoded once
         saturated.append(float((clipped & (mask_at_source(mask, plan) > 0.5)).mean()) if clipped.any() else 0.0)
@@ -294,7 +311,7 @@ def _import_camera(source: Source, plan: CameraPlan, capture: Capture, frames: l
 
 def _camera_summary(source: Source, plan: CameraPlan, saturated: list[float]) -> dict:
     """What the report says of a camera's images: saturation, the square-pixel resampling's error."""
-    first = read_image(source.images[plan.index][source.frames[0][0]])[0]
+    first = read_image(next(iter(source.images[plan.index].values())))[0]
     lens = None
     if plan.lens is not None:
         lens = {"model": plan.lens.describe(), "held": held_fraction(plan.source_k, plan.lens, *plan.source_size)}
@@ -321,14 +338,24 @@ def _resampling_error(image: np.ndarray, plan: CameraPlan) -> float | None:
 # --------------------------------------------------------------------------------------------------------------
 
 
+def _linearity_of_a_complete_camera(out: Path, source: Source, plans: list[CameraPlan], first: int) -> dict | None:
+    """:func:`linearity` of the first camera with its white frame and every OLAT (a gap would bias the sum)."""
+    if source.olat_keys is None or source.white is None:
+        return None
+    wanted = [source.white, *source.olat_keys]
+    plan = next((p for p in plans if all(k in source.images[p.index] for k in wanted)), None)
+    if plan is None:
+        return None
+    return linearity(source, plan, read_exr(out / "images" / plan.camera.name / f"frame_{first:04d}.exr")[..., 3])
+
+
 def linearity(source: Source, plan: CameraPlan, mask: np.ndarray) -> dict:
     """The white frame against the sum of every OLAT (door LEDs included) of one camera, over the subject: 1 for a
     linear sensor, a subject that held still and equal LED gains."""
     inside = mask_at_source(mask, plan) > 0.5
     total = np.zeros(int(inside.sum()) * 3)
     for number in progress(source.olat_keys, description=f"linearity {plan.camera.name}"):
-        if number in source.images[plan.index]:
-            total += read_image(source.images[plan.index][number])[0][inside].ravel()
+        total += read_image(source.images[plan.index][number])[0][inside].ravel()
     white = read_image(source.images[plan.index][source.white])[0][inside].ravel()
     ratio = float(total.sum() / max(white.sum(), 1e-12))
     return {"camera": plan.camera.name, "olats_over_white": ratio, "olats": len(source.olat_keys)}
@@ -337,7 +364,7 @@ def linearity(source: Source, plan: CameraPlan, mask: np.ndarray) -> dict:
 def _write_report(out: Path, source: Source, frame: WorldFrame, plans: list[CameraPlan], checks: list[dict], record: dict) -> None:
     """import_report.json and .md, and an overlay per camera (mask green, reprojected mesh magenta, both white)."""
     check_of = {c["camera"]: c for c in checks}
-    first = source.frames[0][1].frame  # every frame of a static pose shares the mask
+    first = record["checked_frame"]  # the frame the reprojection check compared the masks on
     for plan in plans:
         mask = read_exr(out / "images" / plan.camera.name / f"frame_{first:04d}.exr")[..., 3] > 0.5
         seen = check_of[plan.camera.name]["silhouette"]
@@ -354,9 +381,7 @@ def _write_report(out: Path, source: Source, frame: WorldFrame, plans: list[Came
             "led_sphere_rms_m": round(frame.led_fit_rms, 5),
         },
         "leds": {"count": len(source.leds), "left_out": record["left_out_leds"], "gains": record["gains"]},
-        "linearity": linearity(source, plans[0], read_exr(out / "images" / plans[0].camera.name / f"frame_{first:04d}.exr")[..., 3])
-        if source.olat_keys is not None and source.white is not None
-        else None,
+        "linearity": _linearity_of_a_complete_camera(out, source, plans, first),
         "frames": {"imported": sum(1 for _ in (out / "images" / plans[0].camera.name).glob("frame_*.exr"))},
         "uv_atlas": record["uv_atlas"],
     }
@@ -388,6 +413,13 @@ def import_markdown(r: dict, source_format: str) -> str:
         lines.append(
             f"| {c['camera']} | {c['mask_iou']:.3f} | {100 * c['saturated_fraction']:.2f} % | {c['anisotropy']:.4f} | {error} | {lens} |"
         )
+    gaps = [
+        f"{c['camera']} ({len(c['missing_frames'])}: {', '.join(map(str, c['missing_frames'][:8]))}{' …' if len(c['missing_frames']) > 8 else ''})"
+        for c in r["cameras"]
+        if c.get("missing_frames")
+    ]
+    if gaps:
+        lines += ["", f"Missing images, skipped (--missing-images skip; the frames in capture.json say which): {'; '.join(gaps)}."]
     if r["linearity"] is not None:
         lin = r["linearity"]
         lines += [

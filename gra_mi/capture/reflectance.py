@@ -97,6 +97,8 @@ class ReflectanceField:
         """The OLATs of one camera over the first OLAT's subject pixels (its mask and anything it lights, grown by
         ``SUBJECT_MARGIN``), held when they fit ``memory_gb``. Light another OLAT puts outside those pixels is counted
         (``stats``), not kept."""
+        entries = {f.frame: f for f in capture.frames}
+        capture.require_images([camera], [entries[int(f)] for f in index.frames], "a reflectance field (the sum of its OLATs)")
         first = load_observation(capture, camera, int(index.frames[0]))
         alpha = first[..., 3]
         subject = (alpha > 0) | (first[..., :3].max(axis=-1) > 0)

@@ -66,6 +66,8 @@ def _covered(source: Source, camera: int) -> np.ndarray:
     """Pixels lit in any image of a camera, on its source grid."""
     covered = None
     for key, _, _ in progress(source.frames, description=f"mask of {source.names[camera]}"):
+        if key not in source.images[camera]:
+            continue  # a gap --missing-images skip lets through
         lit = read_image(source.images[camera][key])[0].max(axis=-1) > 0
         covered = lit if covered is None else covered | lit
     return covered.astype(np.float32)
@@ -176,7 +178,7 @@ def reprojection_checks(
 
 def _check_mask(source: Source, plan: CameraPlan, mask: np.ndarray) -> None:
     """A mask that is empty, full or too small to compare is named as the culprit, not the calibration."""
-    where = source.masks[plan.index] or source.images[plan.index][source.frames[0][0]]
+    where = source.masks[plan.index] or next(iter(source.images[plan.index].values()))
     if min(mask.shape) < MIN_CHECK_PIXELS:
         raise GraMiParameterError(
             "scale", f"leaves camera {plan.camera.name}'s images at {mask.shape[1]} × {mask.shape[0]} pixels, too small to import or check"

@@ -38,6 +38,10 @@ class ImportConfig:
     """UV resolution of the maps fitted to the capture."""
     min_iou: float = 0.5
     """Stop when the mesh reprojected over a camera's mask overlaps it less than this (intersection over union)."""
+    missing_images: str = field(default="refuse", metadata=option(choices=("refuse", "skip")))
+    """A camera without an image of a frame: refuse (name it and stop), or skip (import the rest; capture.json and the
+    report list the gaps, the fit and RelightNet leave them out, the evaluation and the refiner refuse a camera with a
+    gap in what they need)."""
 
     def validate(self) -> None:
         require_positive({"scale": self.scale, "led_intensity": self.led_intensity, "uv_resolution": self.uv_resolution})

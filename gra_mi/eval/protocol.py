@@ -197,6 +197,7 @@ def _splits(capture, dataset, refined: dict[str, Path]) -> list[Split]:
     if not test or not capture.eval_cameras:
         what = "test frames" if not test else "held-out cameras (eval_cameras)"
         raise GraMiInputError(capture.folder / "capture.json", f"no {what}: nothing is held out to evaluate on")
+    capture.require_images(capture.eval_cameras, [f for f in capture.frames if f.split == "test"], "the evaluation")
     # The capture's held-out lighting sequences; the refiner's data plays them one after another per camera.
     sequences: dict[int, list[int]] = {}
     for f in capture.frames:

@@ -260,7 +260,7 @@ class MaterialFitter:
         """Observations of every training camera in every training frame."""
 
         views = []
-        jobs = [(f.frame, f.mesh_frame, cam) for f in self.train for cam in self.train_cameras]
+        jobs = [(f.frame, f.mesh_frame, cam) for f in self.train for cam in self.train_cameras if self.capture.has_image(cam, f)]
         for frame, pose, cam_name in progress(jobs, description="observations") if progress_bar else jobs:
             cam = self.stage.camera(cam_name)
             geom = self.relighter.geometry(pose)
@@ -370,7 +370,7 @@ class MaterialFitter:
         relighter = self.relighter.with_maps(result.albedo, result.roughness)  # the visibility the fit traced
         sums = np.zeros((3, 3))  # rows: captured, diffuse, specular
         for entry in self.train:
-            for cam in self.train_cameras:
+            for cam in (c for c in self.train_cameras if self.capture.has_image(c, entry)):
                 shading, _ = relighter.shade(entry.mesh_frame, cam, self._lighting[entry.frame])
                 truth = load_fit_observation(self.capture, cam, entry.frame)
                 mask = subject_mask(truth)

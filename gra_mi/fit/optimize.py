@@ -139,7 +139,7 @@ class TrainingViews:
         self.pixels: list[int] = []
         self._held: list[ViewBatch] = []
         pending: list[ViewBatch] = []
-        jobs = [(f.frame, f.mesh_frame, cam) for f in fitter.train for cam in fitter.train_cameras]
+        jobs = [(f.frame, f.mesh_frame, cam) for f in fitter.train for cam in fitter.train_cameras if fitter.capture.has_image(cam, f)]
         for frame, pose, cam in progress(jobs, description="pixel footprints") if progress_bar else jobs:
             arrays = view_footprints(fitter, frame, pose, cam, min_view_cos)
             if arrays is None:

@@ -95,7 +95,7 @@ def relight_scores(fitter, result, cache_dir: Path | None) -> dict[str, dict]:
     cameras = [(c, "held-out cameras") for c in capture.eval_cameras] + [(capture.train_cameras[0], "training cameras")]
     for entry in progress(test, description="relight held-out lighting"):
         intensities = capture.lighting(fitter.stage, entry)
-        for cam, split in cameras:
+        for cam, split in ((c, s) for c, s in cameras if capture.has_image(c, entry)):
             image = relighter.render(entry.mesh_frame, cam, intensities).image
             truth = load_observation(capture, cam, entry.frame)
             scored = compare(image, truth)

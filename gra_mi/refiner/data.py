@@ -250,6 +250,8 @@ def _sequence_jobs(capture, config: CaptureSequencesConfig):
     # that training never sees and the evaluation never scores, on which training chooses the refiner's mix.
     jobs += [("selection", cam, held_out, config.test_length) for cam in capture.train_cameras[:1] if held_out]
     jobs += [("test", cam, held_out, config.test_length) for cam in capture.eval_cameras]
+    for _, cam, entries, _ in jobs:  # a sequence with a gap would not be a video
+        capture.require_images([cam], [*entries, uniform], "the refiner's sequences")
     return uniform, jobs
 
 

@@ -143,7 +143,7 @@ def view_jobs(capture, splits=("train", *HELD_OUT)) -> list[tuple]:
         else:
             split = "novel lighting (OLAT)" if entry.kind == "pattern" else "novel lighting (envmap)"
             jobs += [(entry, c, split) for c in capture.train_cameras[:1] + capture.eval_cameras]
-    return [j for j in jobs if j[2] in splits]
+    return [j for j in jobs if j[2] in splits and capture.has_image(j[1], j[0])]
 
 
 @dataclass
