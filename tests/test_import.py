@@ -667,6 +667,8 @@ def test_broken_easymocap_rigs_stop_with_one_line(path_traced_fit, tmp_path, cap
         (good, _with_matrix(intri, "dist_01", np.array([[0, 0, 0, 0, 0, 0.1, 0, 0]])), ["intri.yml", "dist_01", "rational"]),
         (good, _with_matrix(intri, "dist_01", np.array([[0.1, 0, 0]])), ["intri.yml", "dist_01", "4, 5, 8"]),
         (good, _with_matrix(intri, "dist_01", np.array([[-3.0, 0, 0, 0, 0]])), ["intri.yml", "dist_01", "folds back"]),
+        (good, _with_matrix(intri, "dist_01", np.array([[1e30, 0, 0, 0, 0]])), ["intri.yml", "dist_01", "outside the image"]),
+        (good, _with_matrix(intri, "dist_01", np.array([[0, 0, 5.0, 0, 0]])), ["intri.yml", "dist_01", "outside the image"]),
         (good, intri.replace("K_02:", "Kx_02:"), ["intri.yml", "K_02"]),
         ({"frames": [{"frame": 0, "uniform": 0.5}, {"frame": 0, "led": 1}]}, intri, ["lighting.json", "frames[1].frame", "listed twice"]),
         ({"frames": [{"frame": 0, "uniform": float("nan")}]}, intri, ["lighting.json", "frames[0].uniform"]),

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gra_mi.capture.lens import held_fraction
 from gra_mi.core.config import comma_list, option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive
 from gra_mi.core.guard import path_component
@@ -16,6 +17,7 @@ from gra_mi.core.limits import require_memory
 from gra_mi.core.schema import rigid_rotation
 
 TEXEL_BYTES = 64  # per texel of an imported capture's atlas: positions, normals, masks, the maps (a lower bound)
+MIN_HELD = 0.5  # of a camera's pinhole view that its distorted image must hold (an ordinary lens loses its corners at most)
 UP_AXES = {"+x": (1, 0, 0), "-x": (-1, 0, 0), "+y": (0, 1, 0), "-y": (0, -1, 0), "+z": (0, 0, 1), "-z": (0, 0, -1)}
 
 
@@ -127,6 +129,14 @@ class Source:
                 cam.lens.origin[0],
                 f"camera {name}: the lens distortion {cam.lens.describe()} folds back at {cam.lens.reach():.3f} (normalized), "
                 f"inside its image (corners at {farthest:.3f}): pixels past it have no pinhole point; check the calibration",
+                field=cam.lens.origin[1],
+            )
+        held = held_fraction(k, cam.lens, *size)
+        if held < MIN_HELD:  # a lens that sends most of the view outside its own image is a calibration's mistake
+            raise GraMiInputError(
+                cam.lens.origin[0],
+                f"camera {name}: the lens distortion {cam.lens.describe()} puts {100 * (1 - held):.0f} % of the pinhole view "
+                "outside the image; check the calibration (the coefficients' model and scale)",
                 field=cam.lens.origin[1],
             )
 
