@@ -216,6 +216,48 @@ def test_a_late_bad_frame_of_a_mapped_sequence_is_named(tmp_path, monkeypatch):
         load_sequence(tmp_path / "flat")
 
 
+def test_a_clip_checks_its_own_frames_only(tmp_path, monkeypatch):
+    """A command that uses a few frames of a long sequence (relight, export) loads it without reading every frame and
+    checks those it uses: a bad frame elsewhere does not stop it, a bad frame it uses is named with its file; most of
+    the frames are checked in the chunked pass. Through the CLI: an export of a clip beside the bad frame runs, one
+    that takes it in is refused."""
+    import gra_mi.subject.sequence as sequence
+    from gra_mi.subject.sequence import check_frames
+
+    reads = []
+    original = sequence.frame_chunks
+    monkeypatch.setattr(sequence, "frame_chunks", lambda array: (reads.append(1), original(array))[1])
+    seq = long_tiny_subject(900)
+    vertices = seq.vertices.copy()
+    vertices[877, 12, 2] = np.nan
+    write_archive(tmp_path / "nan" / "sequence.npz", seq, vertices=vertices)
+    reads.clear()
+    clip = load_sequence(tmp_path / "nan", every_frame=False)
+    assert not reads
+    check_frames(clip, [0, 5, 876])
+    with pytest.raises(GraMiInputError, match=r"nan/sequence.npz.*frame 877"):
+        check_frames(clip, [3, 877])
+    with pytest.raises(GraMiInputError, match="frame 877"):
+        check_frames(clip, list(range(0, 900, 2)) + [877])
+    assert reads  # most of the frames: one chunked pass
+    from gra_mi.cli.main import main
+    from gra_mi.core.io import write_exr
+
+    write_exr(tmp_path / "albedo.exr", np.full((16, 16, 3), 0.5, np.float32))
+    write_exr(tmp_path / "rough.exr", np.full((16, 16, 1), 0.5, np.float32))
+    args = [
+        "export",
+        "--subject",
+        str(tmp_path / "nan"),
+        "--albedo",
+        str(tmp_path / "albedo.exr"),
+        "--roughness",
+        str(tmp_path / "rough.exr"),
+    ]
+    assert main([*args, "--out", str(tmp_path / "clip.glb"), "--frames", "860:870"]) == 0
+    assert main([*args, "--out", str(tmp_path / "bad.glb"), "--frames", "870:880"]) == 2 and not (tmp_path / "bad.glb").exists()
+
+
 def test_a_mapped_archive_that_lies_about_its_size_is_refused(tmp_path):
     import io
     import zipfile

@@ -20,7 +20,7 @@ from gra_mi.render.composite import PLATFORM_FLAGS, PlatformConfig
 from gra_mi.stage.envmap import EnvmapOptions
 from gra_mi.stage.lightstage import load_calibration, load_pattern
 from gra_mi.stage.scene import LightstageScene
-from gra_mi.subject.sequence import load_sequence
+from gra_mi.subject.sequence import check_frames, load_sequence
 
 
 @dataclass(kw_only=True)
@@ -120,8 +120,9 @@ def run_export(c: ExportCommand) -> int:
     rig = _rig_calibration(c.rig) if c.rig is not None else None
     envmap = c.envmaps.load(c.envmap) if c.envmap is not None else None
     leds = load_pattern(rig, c.pattern) * rig.gains if c.pattern is not None else None  # emitted = drive × gain (W/sr)
-    seq = load_sequence(c.subject)
+    seq = load_sequence(c.subject, every_frame=False)  # the frames exported are checked, not every frame
     frames = select(c.frames, seq.num_frames, "frames", integers=True)
+    check_frames(seq, [f for f in frames if 0 <= f < seq.num_frames])
     report = export_avatar(c.out, seq, albedo, roughness, frames, rig, envmap, leds)
     print(f"wrote {report.summary()}")
     for line in report.errors + report.warnings:
@@ -187,10 +188,11 @@ def run_relight(c: RelightCommand) -> None:
         relightnet=c.relightnet,
         vis_cache=c.vis_cache,
     )
-    ls = LightstageScene.load(c.scene)
+    ls = LightstageScene.load(c.scene, every_frame=False)  # the frames relit are checked, not every frame of the subject
     patterns = [(p, load_pattern(ls.stage, p)) for p in c.pattern]
     lights = collect_lights(ls.stage, envmaps, c.olat, patterns, point_light, paths)
     frames = select(c.frames, ls.sequence.num_frames, "frames", integers=True)
+    check_frames(ls.sequence, [f for f in frames if 0 <= f < ls.sequence.num_frames])
     cameras = select(c.cameras, len(ls.stage.cameras), "cameras")
     shard = c.shards.resolved()
     claim_relight(c, shard)

@@ -226,8 +226,11 @@ class LightstageScene:
     _camera_rays: dict = field(default_factory=dict, repr=False)  # camera name → mi.Ray3f through its pixel centres
 
     @classmethod
-    def load(cls, path: str | Path, frame: int = 0, spp: int | None = None, subject: str | None = None) -> LightstageScene:
-        """Load a scene file (Mitsuba variant must be chosen first: :func:`gra_mi.variant.choose_variant`)."""
+    def load(
+        cls, path: str | Path, frame: int = 0, spp: int | None = None, subject: str | None = None, every_frame: bool = True
+    ) -> LightstageScene:
+        """Load a scene file (Mitsuba variant must be chosen first: :func:`gra_mi.variant.choose_variant`).
+        ``every_frame`` False: the subject's frames are checked by the command, those it uses (:func:`check_frames`)."""
         import mitsuba as mi
 
         path = Path(path)
@@ -239,7 +242,7 @@ class LightstageScene:
             raise GraMiInputError(path, lightstage_parts_missing(missing))
         subject_dir = subject or defaults[keys.PARAM_SUBJECT]
         subject_path = Path(subject_dir) if Path(subject_dir).is_absolute() else path.parent / subject_dir
-        sequence = load_sequence(subject_path)
+        sequence = load_sequence(subject_path, every_frame)
         if not 0 <= frame < sequence.num_frames:
             raise GraMiParameterError("frame", f"frame {frame} out of range [0, {sequence.num_frames}) for {subject_path}")
         stage = load_calibration(path.parent / defaults[keys.PARAM_CALIBRATION])

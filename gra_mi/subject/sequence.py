@@ -44,6 +44,7 @@ class MeshSequence:
     fps: float = 24.0
     frame_labels: list[str] = field(default_factory=list)  # e.g. the motion clip of each frame
     vertex_colors: np.ndarray | None = None  # (V, 3) float32 base albedo for stock-BSDF previews
+    origin: str = field(default="<sequence>", compare=False, repr=False)  # the file it was read from: what errors name
 
     @property
     def num_frames(self) -> int:
@@ -54,8 +55,10 @@ class MeshSequence:
         return int(self.vertices.shape[1])
 
 
-def validate_sequence(seq: MeshSequence, source: str = "<sequence>") -> None:
-    """Raise :class:`GraMiInputError` unless the sequence is a well-formed tracked mesh."""
+def validate_sequence(seq: MeshSequence, source: str = "<sequence>", every_frame: bool = True) -> None:
+    """Raise :class:`GraMiInputError` unless the sequence is a well-formed tracked mesh. ``every_frame``: also read
+    every frame's positions and normals (a chunk at a time); without, a command checks the frames it uses
+    (:func:`check_frames`)."""
     arrays = {"vertices": seq.vertices, "normals": seq.normals, "uvs": seq.uvs, "faces": seq.faces}
     if seq.vertex_colors is not None:
         arrays["vertex_colors"] = seq.vertex_colors
@@ -70,8 +73,9 @@ def validate_sequence(seq: MeshSequence, source: str = "<sequence>") -> None:
         raise GraMiInputError(source, f"expected (frames, vertices, 3), got {v.shape}", field="vertices")
     if seq.normals.shape != v.shape:
         raise GraMiInputError(source, f"normals {seq.normals.shape} do not match vertices {v.shape}", field="normals")
-    for (start, vertices), (_, normals) in zip(frame_chunks(v), frame_chunks(seq.normals), strict=True):
-        _check_frames(vertices, normals, start, source)
+    if every_frame:
+        for (start, vertices), (_, normals) in zip(frame_chunks(v), frame_chunks(seq.normals), strict=True):
+            _check_frames(vertices, normals, start, source)
     if seq.uvs.shape != (v.shape[1], 2):
         raise GraMiInputError(source, f"expected ({v.shape[1]}, 2) UVs, got {seq.uvs.shape}", field="uvs")
     if not np.isfinite(seq.uvs).all() or seq.uvs.min() < 0 or seq.uvs.max() > 1:
@@ -85,6 +89,16 @@ def validate_sequence(seq: MeshSequence, source: str = "<sequence>") -> None:
         raise GraMiInputError(source, "one label per frame expected", field="frame_labels")
     if seq.vertex_colors is not None and seq.vertex_colors.shape != (v.shape[1], 3):
         raise GraMiInputError(source, f"expected ({v.shape[1]}, 3) colours", field="vertex_colors")
+
+
+def check_frames(seq: MeshSequence, frames: list[int]) -> None:
+    """The positions and normals of the ``frames`` a command uses (a sequence loaded without ``every_frame``): a
+    clip of a long sequence reads its own frames only."""
+    if len(set(frames)) * 8 > seq.num_frames:  # most of them: the chunked pass over every frame reads faster
+        validate_sequence(seq, seq.origin)
+        return
+    for t in sorted(set(frames)):
+        _check_frames(np.asarray(seq.vertices[t : t + 1]), np.asarray(seq.normals[t : t + 1]), t, seq.origin)
 
 
 def _check_frames(vertices: np.ndarray, normals: np.ndarray, start: int, source: str) -> None:
@@ -239,12 +253,13 @@ def _frame_arrays(path: Path, data) -> dict[str, np.ndarray]:
     return {key: data[key] if value is None else value for key, value in mapped.items()}
 
 
-def load_sequence(folder: str | Path) -> MeshSequence:
-    """Load and validate a sequence folder (or a ``sequence.npz`` path, or an avatar exported as USD / .glb)."""
+def load_sequence(folder: str | Path, every_frame: bool = True) -> MeshSequence:
+    """Load and validate a sequence folder (or a ``sequence.npz`` path, or an avatar exported as USD / .glb).
+    ``every_frame`` False: check the frames' positions and normals later, those a command uses (:func:`check_frames`)."""
     path = Path(folder)
     if is_interchange_file(path):
-        seq = MeshSequence(**read_interchange(path))
-        validate_sequence(seq, str(path))
+        seq = MeshSequence(**read_interchange(path), origin=str(path))
+        validate_sequence(seq, str(path), every_frame)
         return seq
     if path.is_dir():
         path = path / "sequence.npz"
@@ -264,12 +279,13 @@ def load_sequence(folder: str | Path) -> MeshSequence:
             fps=float(data["fps"]) if "fps" in data else 24.0,
             frame_labels=[str(x) for x in data["frame_labels"]] if "frame_labels" in data else [],
             vertex_colors=data["vertex_colors"] if "vertex_colors" in data else None,
+            origin=str(path),
         )
     except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as exc:  # truncated or not an .npz at all
         if isinstance(exc, GraMiInputError):
             raise
         raise GraMiInputError(path, f"not a readable sequence archive ({exc})") from None
-    validate_sequence(seq, str(path))
+    validate_sequence(seq, str(path), every_frame)
     return seq
 
 
