@@ -71,6 +71,9 @@ def check_images_present(source: Source, plans: list[CameraPlan], skip: bool) ->
                 )
             if image_size(path) != plan.source_size:
                 raise GraMiInputError(path, f"is {image_size(path)}, other images of {plan.camera.name} are {plan.source_size}")
+    for plan in plans:
+        if all(plan.camera.name in missing.get(key, []) for key, _, _ in source.frames):
+            raise GraMiInputError(source.folder, f"camera {plan.camera.name} has no image of any frame: leave it out (--cameras)")
     complete = [key for key, _, _ in source.frames if key not in missing]
     if missing and not complete:  # the mesh is checked against every camera's mask on one frame
         raise GraMiInputError(source.folder, "no frame has an image from every camera: the reprojection check needs one")
