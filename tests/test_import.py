@@ -1036,3 +1036,27 @@ def test_images_through_a_lens_are_undistorted_at_import(path_traced_fit, tmp_pa
     # what two bilinear resamplings (the lens's and its undoing) cost over the pinhole rig's 8-bit error
     assert max(lens_errors) < max(plain_errors) + 0.015, (lens_errors, plain_errors)
     assert ignored_errors[0] > 3 * lens_errors[0] and ignored["cameras"][0]["mask_iou"] < lens["cameras"][0]["mask_iou"] - 0.02
+
+
+def test_gaps_are_named_and_a_camera_with_no_image_at_all_is_refused(tmp_path):
+    """check_images_present: a gap refused (naming the option that takes it), or recorded with skip; a camera that
+    has no image of any frame is refused even then (leave it out with --cameras)."""
+    from types import SimpleNamespace
+
+    from PIL import Image
+
+    from gra_mi.capture.importer import check_images_present
+    from gra_mi.core.errors import GraMiInputError
+
+    Image.new("RGB", (8, 6)).save(tmp_path / "a.png")
+    plans = [SimpleNamespace(index=i, camera=SimpleNamespace(name=f"cam{i}"), source_size=(8, 6)) for i in range(2)]
+    frames = [(k, None, "white") for k in range(3)]
+    source = SimpleNamespace(
+        folder=tmp_path, frames=frames, images=[{0: tmp_path / "a.png", 1: tmp_path / "a.png"}, {0: tmp_path / "a.png"}]
+    )
+    with pytest.raises(GraMiInputError, match="cam0 has no image of frame 000002.*--missing-images skip"):
+        check_images_present(source, plans, skip=False)
+    assert check_images_present(source, plans, skip=True) == {1: ["cam1"], 2: ["cam0", "cam1"]}
+    source.images[1] = {}
+    with pytest.raises(GraMiInputError, match="cam1 has no image of any frame"):
+        check_images_present(source, plans, skip=True)
