@@ -79,7 +79,7 @@ def test_pixels_past_the_fold_are_left_black_not_mirrored():
     x = (np.arange(160) + 0.5 - 80) / 60
     y = (np.arange(120) + 0.5 - 60) / 60
     past = np.hypot(x[None, :], y[:, None]) > lens.fold_radius()
-    assert past.any() and (ours[past] == 0).all() and (ours[~past & (np.hypot(x[None, :], y[:, None]) < 0.8)] == 1).all()
+    assert past.any() and (ours[past] == 0).all() and np.allclose(ours[~past & (np.hypot(x[None, :], y[:, None]) < 0.8)], 1, atol=1e-6)
     folded = cv2.undistort(image, _opencv_k(wide), np.array([-0.45, 0, 0, 0, 0]))
     assert (folded[past] > 0).mean() > 0.5  # what OpenCV leaves there: the image, folded back
     assert held_fraction(wide, lens, 160, 120) == pytest.approx(1 - past.mean(), abs=0.02)

@@ -136,15 +136,18 @@ def undistort_image(image: np.ndarray, k_matrix: np.ndarray, lens: LensDistortio
     put it; pixels the source does not hold (outside it, or past the fold) are 0. A mask (bool) comes back as float32
     coverage, as the other resamplings give it."""
     image = image if image.dtype.kind == "f" else image.astype(np.float32)
-    rows, cols, inside = _source_positions(lens, _k_key(k_matrix), image.shape[1], image.shape[0])
-    r0, c0 = np.floor(rows).astype(np.int64), np.floor(cols).astype(np.int64)
-    fr, fc = (rows - r0)[..., None], (cols - c0)[..., None]
-    h, w = image.shape[:2]  # neighbours clamped at the edges (a sample within half a pixel of the border)
-    r0, r1 = np.clip(r0, 0, h - 1), np.clip(r0 + 1, 0, h - 1)
-    c0, c1 = np.clip(c0, 0, w - 1), np.clip(c0 + 1, 0, w - 1)
-    top = image[r0, c0] * (1 - fc) + image[r0, c1] * fc
-    bottom = image[r1, c0] * (1 - fc) + image[r1, c1] * fc
-    return np.where(inside[..., None], top * (1 - fr) + bottom * fr, 0).astype(image.dtype)
+    h, w, c = image.shape
+    corner, fr, fc, inside = _remap_table(lens, _k_key(k_matrix), w, h)
+    # one row and column repeated past the edges: a corner's right and lower neighbours are always one step away
+    padded = np.pad(image, ((0, 1), (0, 1), (0, 0)), mode="edge").reshape(-1, c)
+    out = np.take(padded, corner, axis=0)
+    out *= (1 - fr) * (1 - fc)
+    for step, weight in ((1, (1 - fr) * fc), (w + 1, fr * (1 - fc)), (w + 2, fr * fc)):
+        term = np.take(padded, corner + step, axis=0)
+        term *= weight
+        out += term
+    out[~inside] = 0
+    return out.reshape(h, w, c).astype(image.dtype, copy=False)
 
 
 def pinhole_positions(k_matrix: np.ndarray, lens: LensDistortion, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
@@ -162,7 +165,20 @@ def _k_key(k: np.ndarray) -> tuple[float, float, float, float]:
     return float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2])
 
 
-@lru_cache(maxsize=2)  # one camera's images are imported in turn: its map is computed once, not per image
+@lru_cache(maxsize=2)  # one camera's images are imported in turn: its table is computed once, not per image
+def _remap_table(lens: LensDistortion, k: tuple, width: int, height: int) -> tuple[np.ndarray, ...]:
+    """Per pinhole pixel: the flat index of its bilinear corner in the edge-padded (H + 1) × (W + 1) source, the row
+    and column fractions (N, 1) and whether the source holds it. Samples within half a pixel of the border take the
+    edge's value."""
+    rows, cols, inside = _source_positions(lens, k, width, height)
+    r0, c0 = np.floor(rows), np.floor(cols)
+    fr = np.where(r0 < 0, 0, rows - r0).astype(np.float32).reshape(-1, 1)
+    fc = np.where(c0 < 0, 0, cols - c0).astype(np.float32).reshape(-1, 1)
+    r0, c0 = np.clip(r0, 0, height - 1).astype(np.int64), np.clip(c0, 0, width - 1).astype(np.int64)
+    return (r0 * (width + 1) + c0).ravel(), fr, fc, inside.ravel()
+
+
+@lru_cache(maxsize=2)
 def _source_positions(lens: LensDistortion, k: tuple, width: int, height: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """For each pinhole pixel: the (row, column) of the distorted image it samples, and whether the source holds it."""
     fx, fy, cx, cy = k
