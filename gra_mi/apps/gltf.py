@@ -73,6 +73,19 @@ def check_glb_size(seq: MeshSequence, count: int, first: int = 0) -> None:
         )  # fmt: skip
 
 
+def _stepping_through(buf: _Buffer, count: int, fps: float) -> dict:
+    """The animation that shows frame t (morph target t − 1 at full weight, the mesh itself at t = 0) at t / fps."""
+    times = (np.arange(count, dtype=np.float32) / fps).reshape(-1, 1)
+    weights = np.zeros((count, count - 1), np.float32)
+    weights[np.arange(1, count), np.arange(count - 1)] = 1.0
+    sampler = {
+        "input": buf.accessor(times, "SCALAR", FLOAT, None, minmax=True),
+        "output": buf.accessor(weights.reshape(-1, 1), "SCALAR", FLOAT, None),
+        "interpolation": "STEP",
+    }
+    return {"name": "performance", "samplers": [sampler], "channels": [{"sampler": 0, "target": {"node": 0, "path": "weights"}}]}
+
+
 def export_glb(path: str | Path, seq: MeshSequence, albedo: np.ndarray, roughness: np.ndarray, frames: list[int] | None = None) -> Path:
     """Write ``path`` (.glb). ``frames``: the sequence's frames to animate, in order (default: all); the first is the
     mesh, the others its morph targets, and the animation's time 0 is the first (``extras.gra_mi.source_frames``)."""
@@ -88,15 +101,13 @@ def export_glb(path: str | Path, seq: MeshSequence, albedo: np.ndarray, roughnes
         "TEXCOORD_0": buf.accessor(seq.uvs.astype(np.float32), "VEC2", FLOAT, ARRAY_BUFFER),
     }
     indices = buf.accessor(seq.faces.astype(np.uint32).reshape(-1, 1), "SCALAR", UINT, ELEMENT_ARRAY_BUFFER)
-    count = len(frames)
-    targets = []
-    for t in frames[1:]:
-        targets.append(
-            {
-                "POSITION": buf.accessor((seq.vertices[t] - base_p).astype(np.float32), "VEC3", FLOAT, ARRAY_BUFFER, minmax=True),
-                "NORMAL": buf.accessor((seq.normals[t] - base_n).astype(np.float32), "VEC3", FLOAT, ARRAY_BUFFER),
-            }
-        )
+    targets = [
+        {
+            "POSITION": buf.accessor((seq.vertices[t] - base_p).astype(np.float32), "VEC3", FLOAT, ARRAY_BUFFER, minmax=True),
+            "NORMAL": buf.accessor((seq.normals[t] - base_n).astype(np.float32), "VEC3", FLOAT, ARRAY_BUFFER),
+        }
+        for t in frames[1:]
+    ]
     rough = np.clip(roughness[..., 0], 0, 1)
     mr = np.stack([np.zeros_like(rough), rough, np.zeros_like(rough)], axis=-1)  # R unused, G roughness, B metallic
     images = [
@@ -130,17 +141,7 @@ def export_glb(path: str | Path, seq: MeshSequence, albedo: np.ndarray, roughnes
     if targets:
         primitive["targets"] = targets
         mesh["weights"] = [0.0] * len(targets)
-        times = (np.arange(count, dtype=np.float32) / seq.fps).reshape(-1, 1)
-        weights = np.zeros((count, len(targets)), np.float32)
-        weights[np.arange(1, count), np.arange(len(targets))] = 1.0  # frame t shows target t − 1 fully
-        sampler = {
-            "input": buf.accessor(times, "SCALAR", FLOAT, None, minmax=True),
-            "output": buf.accessor(weights.reshape(-1, 1), "SCALAR", FLOAT, None),
-            "interpolation": "STEP",
-        }
-        gltf["animations"] = [
-            {"name": "performance", "samplers": [sampler], "channels": [{"sampler": 0, "target": {"node": 0, "path": "weights"}}]}
-        ]
+        gltf["animations"] = [_stepping_through(buf, len(frames), seq.fps)]
     gltf["nodes"][0]["extras"] = {"gra_mi": {"source_frames": frames}}  # the sequence's frame at each step
     while len(buf.data) % 4:
         buf.data += b"\0"
