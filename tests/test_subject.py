@@ -240,6 +240,12 @@ def test_a_clip_checks_its_own_frames_only(tmp_path, monkeypatch):
     with pytest.raises(GraMiInputError, match="frame 877"):
         check_frames(clip, list(range(0, 900, 2)) + [877])
     assert reads  # most of the frames: one chunked pass
+    with pytest.raises(GraMiInputError, match=r"nan/sequence.npz.*frame 877"):  # the platform's extent reads every frame
+        sequence.extent(clip.vertices, clip.origin)
+    from gra_mi.cli.texture_commands import relit_frames
+
+    assert relit_frames([878, 5000], 900, "microfacet") == [878]
+    assert relit_frames([878, 1], 900, "relightnet") == [0, 1, 876, 877, 878]  # RelightNet reads the frames before
     from gra_mi.cli.main import main
     from gra_mi.core.io import write_exr
 

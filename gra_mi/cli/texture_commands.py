@@ -174,6 +174,15 @@ class RelightCommand(Restartable):
         super().validate()
 
 
+def relit_frames(frames: list[int], count: int, stage: str) -> list[int]:
+    """The subject's frames a relight reads: those it relights and, for RelightNet, the frames before each (its
+    normals of the last few frames)."""
+    from gra_mi.render.bridge import NUM_NORMAL_FRAMES
+
+    back = NUM_NORMAL_FRAMES if stage == "relightnet" else 1
+    return sorted({max(f - k, 0) for f in frames if 0 <= f < count for k in range(back)})
+
+
 def run_relight(c: RelightCommand) -> None:
     from gra_mi.render.light_path import LightPath
     from gra_mi.render.point_light import parse_point_light
@@ -192,7 +201,7 @@ def run_relight(c: RelightCommand) -> None:
     patterns = [(p, load_pattern(ls.stage, p)) for p in c.pattern]
     lights = collect_lights(ls.stage, envmaps, c.olat, patterns, point_light, paths)
     frames = select(c.frames, ls.sequence.num_frames, "frames", integers=True)
-    check_frames(ls.sequence, [f for f in frames if 0 <= f < ls.sequence.num_frames])
+    check_frames(ls.sequence, relit_frames(frames, ls.sequence.num_frames, c.relight.stage))
     cameras = select(c.cameras, len(ls.stage.cameras), "cameras")
     shard = c.shards.resolved()
     claim_relight(c, shard)

@@ -70,7 +70,7 @@ def platform_layer(sequence, frame: int, camera, envmap: np.ndarray, config: Pla
     config.validate()
     if not 0 <= frame < sequence.num_frames:
         raise GraMiParameterError("frame", f"frame {frame} out of range [0, {sequence.num_frames})")
-    low, _, mean = extent(sequence.vertices)
+    low, _, mean = extent(sequence.vertices, sequence.origin)
     top, cx, cz = float(low[1]), float(mean[0]), float(mean[2])
     grey = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [config.reflectance] * 3}}
     transform = mi.ScalarTransform4f

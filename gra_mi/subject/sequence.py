@@ -137,11 +137,14 @@ def frame_chunks(array: np.ndarray) -> Iterator[tuple[int, np.ndarray]]:
             yield k, chunk.reshape((count, *array.shape[1:]))
 
 
-def extent(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def extent(vertices: np.ndarray, source: str = "<sequence>") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(lowest corner, highest corner, mean) of every position of a (T, V, 3) sequence, in float64, read a chunk of
-    frames at a time (a mapped sequence is never read whole)."""
+    frames at a time (a mapped sequence is never read whole); a non-finite position is named (``source``: its file)."""
     low, high, total = np.full(3, np.inf), np.full(3, -np.inf), np.zeros(3)
-    for _, chunk in frame_chunks(vertices):
+    for start, chunk in frame_chunks(vertices):
+        bad = ~np.isfinite(chunk).all(axis=(1, 2))
+        if bad.any():
+            raise GraMiInputError(source, f"non-finite (NaN/Inf) vertex positions in frame {start + int(np.argmax(bad))}", field="vertices")
         low = np.minimum(low, chunk.min(axis=(0, 1)))
         high = np.maximum(high, chunk.max(axis=(0, 1)))
         total += chunk.sum(axis=(0, 1), dtype=np.float64)
