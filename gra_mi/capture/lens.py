@@ -40,6 +40,8 @@ class LensDistortion:
     def of(cls, model: str, source, where: str, **terms: float | None) -> LensDistortion | None:
         """The distortion named by ``terms`` (k1 … k4, p1, p2; None or absent: 0), or None where every term is 0.
         ``source``/``where``: the file and field it is read from, what an error names."""
+        if model not in MODELS:
+            raise ValueError(f"lens model {model!r}: expected one of {MODELS}")  # a reader's mistake, not the user's
         values = {key: float(terms.get(key) or 0.0) for key in ("k1", "k2", "k3", "k4", "p1", "p2")}
         if not all(math.isfinite(v) for v in values.values()):
             raise GraMiInputError(source, f"distortion terms must be finite numbers, got {values}", field=where)
