@@ -2,7 +2,9 @@
 
 A static pose (tiny subject, 24 LEDs) rendered by 2 cameras at 810×1440 and written in HumanOLAT's layout (8-bit
 AVIF) is imported in a fresh process at scale 1 and 0.25; the time per image and the peak memory are measured and the
-time extrapolated to a full pose (40 cameras × 343 images).
+time extrapolated to a full pose (40 cameras × 343 images). Beside them, what undoing a lens distortion adds to an
+image of that size (a source whose calibration has one: transforms.json, EasyMocap): its table, once per camera,
+the inverse map for the saturation count, once per camera that clipped, and then each image.
 
     .venv/bin/python benchmarks/import_humanolat.py [--work DIR] [--write docs/results/import.md]
 """
@@ -62,7 +64,44 @@ def measure(run: BenchmarkRun) -> str:
         m = json.loads(done["stdout"].strip().splitlines()[-1]) | {"peak_mib": done["peak_mb"]}
         per = m["seconds"] / m["images"]
         lines.append(f"| {scale:g} | {m['images']} | {per:.3f} | {per * FULL_IMAGES / 3600:.1f} h | {m['peak_mib']:.0f} MiB |")
-    return "\n".join(lines)
+    return "\n".join(lines + ["", *lens_cost(subject)])
+
+
+LENS = [-0.2, 0.05, 0.002, -0.003, 0.0]  # OpenCV's k1 k2 p1 p2 k3: a wide-angle lens
+
+
+def lens_cost(subject: Path) -> list[str]:
+    """Seconds to undo a lens on one image of the stand-in's size, in this process: the first image of a camera
+    (its table built), the next ones (median of 5), and the inverse map for the saturation count."""
+    import statistics
+
+    from gra_mi.capture.humanolat import read_calib
+    from gra_mi.capture.lens import LensDistortion, pinhole_positions, undistort_image
+    from gra_mi.capture.source_files import read_image
+
+    image = read_image(next((subject / "POSE_00" / "images_processed" / "Cam01").glob("*.avif")))[0]
+    k = read_calib(subject / "shared" / "cameras.calib")[0].k_matrix(image.shape[1])
+    lens = LensDistortion.opencv(LENS, "benchmark", "lens")
+    start = time.perf_counter()
+    undistort_image(image, k, lens)
+    first = time.perf_counter() - start
+    times = []
+    for _ in range(5):
+        start = time.perf_counter()
+        undistort_image(image, k, lens)
+        times.append(time.perf_counter() - start)
+    start = time.perf_counter()
+    pinhole_positions(k, lens, image.shape[1], image.shape[0])
+    inverse = time.perf_counter() - start
+    return [
+        f"Undoing a lens (OpenCV's k1, k2, p1, p2, k3 = {LENS}) on a {image.shape[1]}×{image.shape[0]} image, in one process:",
+        "",
+        "| | s |",
+        "|---|---|",
+        f"| a camera's first image (its table built) | {first:.3f} |",
+        f"| each next image (median of 5) | {statistics.median(times):.3f} |",
+        f"| the inverse map for the saturation count (once per camera that clipped) | {inverse:.3f} |",
+    ]
 
 
 if __name__ == "__main__":
