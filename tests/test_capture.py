@@ -4,6 +4,8 @@ rendering."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -197,3 +199,22 @@ def test_the_one_bounce_truth_takes_the_samples_per_pixel_it_is_given():
     assert CaptureConfig(preset="olat_quick", renderer="onebounce", spp=4).record()["spp"] == 4
     path = CaptureConfig(preset="olat_quick", spp=4).record()
     assert path["spp"] == 4 and path == CaptureConfig(preset="olat_quick").record()  # the preset's own count: one identity
+
+
+def test_a_capture_showing_a_pose_past_its_subject_is_named(path_traced_fit, tmp_path):
+    """A capture.json whose frame shows a mesh frame the subject does not have stops the fit before any work, naming
+    the field, not with an IndexError hours in; the poses it shows are the frames checked."""
+    import shutil
+
+    from gra_mi.core.errors import GraMiInputError
+
+    copy = tmp_path / "cap"
+    shutil.copytree(path_traced_fit / "cap", copy)
+    data = json.loads((copy / "capture.json").read_text())
+    data["frames"][2]["pose"] = 9999
+    (copy / "capture.json").write_text(json.dumps(data))
+    with pytest.raises(GraMiInputError, match=r"frames\[2\]\.pose.*mesh frame 9999"):
+        Capture.load(copy).load_scene()
+    data["frames"][2]["pose"] = None
+    (copy / "capture.json").write_text(json.dumps(data))
+    assert Capture.load(copy).load_scene().sequence.num_frames > 0

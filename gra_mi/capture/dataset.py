@@ -159,6 +159,23 @@ class Capture:
         for cam, frame in progress(views, "checking the capture's images"):
             load_observation(self, cam, frame)
 
+    def load_scene(self):
+        """The capture's scene (``scene.xml``), the subject's frames checked those the capture shows: every frame's
+        pose must be one of the sequence's (named if not), and only those poses' positions and normals are read."""
+        from gra_mi.stage.scene import LightstageScene
+        from gra_mi.subject.sequence import check_frames
+
+        ls = LightstageScene.load(self.folder / "scene.xml", every_frame=False)
+        count = ls.sequence.num_frames
+        for i, entry in enumerate(self.frames):
+            if entry.mesh_frame >= count:
+                field = f"frames[{i}].{'pose' if entry.pose is not None else 'frame'}"
+                raise GraMiInputError(
+                    self.folder / "capture.json", f"shows mesh frame {entry.mesh_frame}, but the subject has {count} frames", field=field
+                )
+        check_frames(ls.sequence, sorted({f.mesh_frame for f in self.frames}))
+        return ls
+
     def camera_size(self, camera: str) -> tuple[int, int] | None:
         """(width, height) of a camera from the capture's rig, None where the capture has no rig folder."""
         return getattr(self, "_sizes", {}).get(camera)

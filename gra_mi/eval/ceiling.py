@@ -13,11 +13,10 @@ HELD_OUT_GROUPS = {"pattern": "held-out OLATs", "envmap": "held-out envmaps"}
 def true_maps_relighter(capture, transport=None):
     """gra-mi's relighter of ``capture``'s scene with its true maps (its gt/ folder) and ``transport``'s bounces."""
     from gra_mi.render.relighter import Relighter, load_texture
-    from gra_mi.stage.scene import LightstageScene
 
     gt = capture.folder / "gt"
     return Relighter(
-        LightstageScene.load(capture.folder / "scene.xml"), albedo=load_texture(gt / "albedo.exr", 3, "albedo"),
+        capture.load_scene(), albedo=load_texture(gt / "albedo.exr", 3, "albedo"),
         roughness=load_texture(gt / "roughness.exr", 1, "roughness"), transport=transport,
     )  # fmt: skip
 

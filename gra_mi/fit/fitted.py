@@ -9,7 +9,6 @@ from gra_mi.capture.dataset import Capture
 from gra_mi.core.errors import GraMiInputError
 from gra_mi.render.relighter import Relighter, load_texture
 from gra_mi.render.transport import LightTransport
-from gra_mi.stage.scene import LightstageScene
 
 
 def fitted_relighter(
@@ -28,5 +27,5 @@ def fitted_relighter(
             f"{roughness.shape[0]}² but albedo.exr is {albedo.shape[0]}²: the maps of one fit share a resolution (refit, or resample both)",
             field="resolution",
         )
-    ls = LightstageScene.load(capture.folder / "scene.xml")
+    ls = capture.load_scene()
     return capture, Relighter(ls, albedo=albedo, roughness=roughness, cache_dir=cache_dir, transport=transport)

@@ -52,7 +52,6 @@ from gra_mi.fit.report import write_fit_outputs
 from gra_mi.fit.views import ViewStore
 from gra_mi.render.runtime import ensure_mitsuba
 from gra_mi.render.transport import LightTransport
-from gra_mi.stage.scene import LightstageScene
 
 logger = logging.getLogger(__name__)
 
@@ -233,7 +232,7 @@ class MaterialFitter:
         ensure_mitsuba()
         self.capture = capture
         self.config = config
-        self.ls = LightstageScene.load(capture.folder / "scene.xml")
+        self.ls = capture.load_scene()
         self.stage = self.ls.stage
         resolution = config.resolution or capture.uv_resolution
         # streamed: 4 frames' visibility held in memory, the rest read from the cache folder

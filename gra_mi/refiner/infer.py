@@ -40,7 +40,6 @@ from gra_mi.refiner.flow import euler_sample
 from gra_mi.refiner.model import VideoRefiner
 from gra_mi.render.composite import PlatformCompositor, PlatformConfig
 from gra_mi.stage.envmap import envmap_to_leds, load_envmap
-from gra_mi.stage.scene import LightstageScene
 
 logger = logging.getLogger(__name__)
 
@@ -207,7 +206,7 @@ def _capture_compositor(dataset: RefinerDataset, sequence: str, platform: Platfo
                 f"--composite: sequence '{sequence}' has no '{key}' (composites need data made from a capture by `gra-mi refiner-data`)",
             )
     capture = Capture.load(dataset.meta.get("source", ""))
-    ls = LightstageScene.load(capture.folder / "scene.xml")
+    ls = capture.load_scene()
     scale = float(dataset.meta.get("scale", dataset.crop[1] / ls.stage.camera(entry["camera"]).width))
     camera = ls.stage.camera(entry["camera"]).resized(scale)
     entries = {f.frame: f for f in capture.frames}
