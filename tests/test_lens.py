@@ -119,3 +119,13 @@ def test_a_mask_undistorts_to_coverage_not_to_a_dilated_mask():
     assert out.dtype == np.float32 and ((out > 0) & (out < 1)).any()  # soft edges, not a dilated binary mask
     theirs = cv2.undistort(mask.astype(np.float32), _opencv_k(K), OPENCV)
     np.testing.assert_allclose(out[..., 0], theirs, atol=0.05)
+
+
+def test_the_held_share_of_a_large_image_is_estimated_from_a_grid():
+    """held_fraction samples about 256 pixels along the longer side: within half a per cent of the full map's share."""
+    from gra_mi.capture.lens import _k_key, _source_positions
+
+    lens = LensDistortion.opencv([-0.45, 0.0, 0, 0, 0], "intri.yml", "dist_01")
+    k = np.array([[600.0, 0, 800], [0, 600.0, 600], [0, 0, 1]])  # a wide view: the fold cuts the corners
+    full = float(_source_positions(lens, _k_key(k), 1600, 1200)[2].mean())
+    assert 0.3 < full < 0.99 and held_fraction(k, lens, 1600, 1200) == pytest.approx(full, abs=0.005)

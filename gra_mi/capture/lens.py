@@ -158,9 +158,12 @@ def pinhole_positions(k_matrix: np.ndarray, lens: LensDistortion, width: int, he
     return _pinhole_positions(lens, _k_key(k_matrix), width, height)
 
 
-def held_fraction(k_matrix: np.ndarray, lens: LensDistortion, width: int, height: int) -> float:
-    """The share of the pinhole image's pixels the distorted image holds (the rest are left black, alpha 0)."""
-    return float(_source_positions(lens, _k_key(k_matrix), width, height)[2].mean())
+def held_fraction(k_matrix: np.ndarray, lens: LensDistortion, width: int, height: int, samples: int = 256) -> float:
+    """The share of the pinhole image's pixels the distorted image holds (the rest are left black, alpha 0), from
+    about ``samples`` pixels along the longer side: a share needs no full map (nor a place in the maps' cache)."""
+    step = max(1, max(width, height) // samples)
+    columns, rows = np.arange(0, width, step), np.arange(0, height, step)
+    return float(_positions(lens, _k_key(k_matrix), columns, rows, width, height)[2].mean())
 
 
 def _k_key(k: np.ndarray) -> tuple[float, float, float, float]:
@@ -183,9 +186,14 @@ def _remap_table(lens: LensDistortion, k: tuple, width: int, height: int) -> tup
 @lru_cache(maxsize=2)
 def _source_positions(lens: LensDistortion, k: tuple, width: int, height: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """For each pinhole pixel: the (row, column) of the distorted image it samples, and whether the source holds it."""
+    return _positions(lens, k, np.arange(width), np.arange(height), width, height)
+
+
+def _positions(lens: LensDistortion, k: tuple, columns: np.ndarray, rows: np.ndarray, width: int, height: int) -> tuple[np.ndarray, ...]:
+    """:func:`_source_positions` of the pinhole pixels ``rows`` × ``columns`` of a ``width`` × ``height`` image."""
     fx, fy, cx, cy = k
-    x = (np.arange(width) + 0.5 - cx) / fx
-    y = (np.arange(height) + 0.5 - cy) / fy
+    x = (columns + 0.5 - cx) / fx
+    y = (rows + 0.5 - cy) / fy
     xy = np.stack(np.broadcast_arrays(x[None, :], y[:, None]), axis=-1)
     d = lens.distort(xy)
     cols, rows = d[..., 0] * fx + cx - 0.5, d[..., 1] * fy + cy - 0.5
