@@ -575,7 +575,8 @@ def through_lens(image: np.ndarray, k: np.ndarray, dist: np.ndarray) -> np.ndarr
 def write_easymocap(native, folder: Path, frames: list, dist: np.ndarray | None = None) -> None:
     """intri.yml / extri.yml as EasyMocap writes them (world-to-camera Rot and T, R as a Rodrigues vector; Rot only for
     odd cameras, so the others go through R), 8-bit sRGB PNG images without alpha, and per-frame mask PNGs.
-    ``dist``: OpenCV's k1, k2, p1, p2, k3 of every camera, its images taken through that lens (:func:`through_lens`)."""
+    ``dist``: OpenCV's distCoeffs (k1, k2, p1, p2, k3[, k4 … k6[, s1 … s4]]) of every camera, its images taken through
+    that lens (:func:`through_lens`)."""
     from PIL import Image
     from scipy.spatial.transform import Rotation
 
@@ -589,7 +590,7 @@ def write_easymocap(native, folder: Path, frames: list, dist: np.ndarray | None 
     for name, cam in zip(names, stage.cameras, strict=True):
         k = np.array([[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1]])
         intri += _opencv_matrix(f"K_{name}", k)
-        intri += _opencv_matrix(f"dist_{name}", np.zeros((1, 5)) if dist is None else np.reshape(dist, (1, 5)))
+        intri += _opencv_matrix(f"dist_{name}", np.zeros((1, 5)) if dist is None else np.reshape(dist, (1, -1)))
         rot = cam.rotation.T  # world-to-camera
         extri += _opencv_matrix(f"R_{name}", Rotation.from_matrix(rot).as_rotvec()[:, None])
         if int(name) % 2:
@@ -664,7 +665,11 @@ def test_broken_easymocap_rigs_stop_with_one_line(path_traced_fit, tmp_path, cap
         ({"frames": [{"split": "train", "uniform": 0.5}]}, intri, ["lighting.json", "frames[0].frame"]),
         ({"frames": [{"frame": 0, "sun": 1}]}, intri, ["lighting.json", "frames[0]", "uniform, led"]),
         ({"frames": [{"frame": 0, "led": 10_000}]}, intri, ["lighting.json", "frames[0].led", "out of range"]),
-        (good, _with_matrix(intri, "dist_01", np.array([[0, 0, 0, 0, 0, 0.1, 0, 0]])), ["intri.yml", "dist_01", "rational"]),
+        (
+            good,
+            _with_matrix(intri, "dist_01", np.array([[0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0.01, 0]])),
+            ["intri.yml", "dist_01", "tilted"],
+        ),
         (good, _with_matrix(intri, "dist_01", np.array([[0.1, 0, 0]])), ["intri.yml", "dist_01", "4, 5, 8"]),
         (good, _with_matrix(intri, "dist_01", np.array([[-3.0, 0, 0, 0, 0]])), ["intri.yml", "dist_01", "folds back"]),
         (good, _with_matrix(intri, "dist_01", np.array([[1e30, 0, 0, 0, 0]])), ["intri.yml", "dist_01", "outside the image"]),
@@ -996,8 +1001,8 @@ def test_door_leds_leave_the_rig_with_their_olats_and_the_white_frame(olat_captu
 
 
 def test_images_through_a_lens_are_undistorted_at_import(path_traced_fit, tmp_path):
-    """An EasyMocap rig whose cameras have a wide-angle lens (OpenCV's k1, k2, p1, p2; the images taken through it by
-    OpenCV's own model): imported, its images match the pinhole truth as closely as a rig without distortion does,
+    """An EasyMocap rig whose cameras have a wide-angle lens (OpenCV's full model: k1, k2, p1, p2, the rational k4, k5
+    and thin-prism terms; the images taken through it by OpenCV's own model): imported, its images match the pinhole truth as closely as a rig without distortion does,
     the mesh lies on the masks; and with the same images but the lens left out of intri.yml they do not."""
     from gra_mi.capture.dataset import Capture, load_observation
     from gra_mi.capture.source_files import write_obj, write_points
@@ -1010,7 +1015,7 @@ def test_images_through_a_lens_are_undistorted_at_import(path_traced_fit, tmp_pa
     write_obj(tmp_path / "mesh", seq.vertices[0], seq.uvs, seq.faces, None)
     write_points(tmp_path / "leds.pc", stage.led_positions)
     (tmp_path / "lighting.json").write_text(json.dumps({"frames": [{"frame": 0, "split": "train", "uniform": 0.5}]}))
-    dist = np.array([-0.2, 0.05, 0.002, -0.003, 0.0])
+    dist = np.array([-0.12, 0.05, 0.002, -0.003, 0.0, 0.08, 0.01, 0.0, 0.001, 0.0, -0.001, 0.0])
 
     def imported(name: str, lens: np.ndarray | None, said: np.ndarray | None) -> tuple[dict, list[float]]:
         write_easymocap(native, tmp_path / name, native.frames[:1], lens)

@@ -12,6 +12,9 @@ from gra_mi.core.errors import GraMiInputError
 
 OPENCV = np.array([-0.21, 0.07, 0.001, -0.0015, -0.01])  # k1 k2 p1 p2 k3, a wide-angle lens's size
 FISHEYE = np.array([0.05, -0.01, 0.002, -0.0003])
+# OpenCV's full model (CALIB_RATIONAL_MODEL | CALIB_THIN_PRISM_MODEL): k1 k2 p1 p2 k3, k4 k5 k6 dividing, s1…s4;
+# rational calibrations come out with numerator and divisor of similar size, as here
+FULL = np.array([0.62, -0.21, 0.001, -0.0015, 0.03, 0.85, -0.12, 0.05, 0.002, -0.001, -0.0015, 0.0008])
 K = np.array([[150.0, 0, 81.3], [0, 146.0, 58.7], [0, 0, 1]])  # gra-mi's pixel centres at +0.5
 
 
@@ -27,15 +30,27 @@ def points():
     return np.random.default_rng(0).uniform(-0.6, 0.6, (2000, 2))
 
 
-def test_radial_tangential_points_match_opencv(points):
-    lens = LensDistortion.opencv(OPENCV, "intri.yml", "dist_01")
+@pytest.mark.parametrize(
+    "coefficients",
+    [OPENCV, FULL[:8], FULL, np.concatenate([FULL, np.zeros(2)])],
+    ids=["k1-k3 p1 p2", "rational", "rational + thin prism", "14 with the tilt zero"],
+)
+def test_radial_tangential_points_match_opencv(points, coefficients):
+    lens = LensDistortion.opencv(coefficients, "intri.yml", "dist_01")
     ours = lens.distort(points)
-    theirs, _ = cv2.projectPoints(np.concatenate([points, np.ones((len(points), 1))], 1), np.zeros(3), np.zeros(3), np.eye(3), OPENCV)
+    theirs, _ = cv2.projectPoints(np.concatenate([points, np.ones((len(points), 1))], 1), np.zeros(3), np.zeros(3), np.eye(3), coefficients)
     np.testing.assert_allclose(ours, theirs[:, 0], atol=1e-12)
-    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-15)
-    back = cv2.undistortPoints(ours[:, None], np.eye(3), OPENCV, None, None, criteria=criteria)[:, 0]
-    np.testing.assert_allclose(lens.undistort(ours), back, atol=1e-9)
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 500, 1e-15)
+    back = cv2.undistortPoints(ours[:, None], np.eye(3), coefficients, None, None, criteria=criteria)[:, 0]
+    np.testing.assert_allclose(lens.undistort(ours), back, atol=1e-8)
     np.testing.assert_allclose(lens.undistort(ours), points, atol=1e-10)
+
+
+def test_a_rational_divisors_pole_is_a_fold():
+    """1 / (1 + q1 r²) with q1 < 0 sends r towards infinity at r = 1/√−q1: nothing past it is imaged."""
+    lens = LensDistortion.opencv([0, 0, 0, 0, 0, -0.5, 0, 0], "intri.yml", "dist_01")
+    assert lens.fold_radius() == pytest.approx(np.sqrt(2), rel=1e-4)
+    assert "q1=-0.5" in lens.describe()
 
 
 def test_fisheye_points_match_opencv(points):
@@ -68,6 +83,14 @@ def test_an_image_undistorts_as_opencv_undistorts_it():
     np.testing.assert_allclose([x[9, 17], y[9, 17]], ref, atol=1e-3)
 
 
+def test_an_image_undistorts_as_opencv_undistorts_it_with_the_full_model():
+    rng = np.random.default_rng(2)
+    image = cv2.GaussianBlur(rng.random((120, 160, 3)).astype(np.float32), (0, 0), 3)
+    ours = undistort_image(image, K, LensDistortion.opencv(FULL, "intri.yml", "dist_01"))
+    theirs = cv2.undistort(image, _opencv_k(K), FULL)
+    np.testing.assert_allclose(ours[2:-2, 2:-2], theirs[2:-2, 2:-2], atol=2e-3)
+
+
 def test_pixels_past_the_fold_are_left_black_not_mirrored():
     """A strong barrel folds back (r·d(r) stops growing): cv2.undistort fills the pinhole pixels past it with the
     image folded back on itself; here they hold nothing, and the share the source holds is said."""
@@ -92,8 +115,10 @@ def test_pixels_past_the_fold_are_left_black_not_mirrored():
     [
         (lambda: LensDistortion.opencv([0.1, float("nan"), 0, 0, 0], "intri.yml", "dist_01"), ["finite"]),
         (lambda: LensDistortion.opencv([0.1, 0, 0], "intri.yml", "dist_01"), ["4, 5, 8"]),
-        (lambda: LensDistortion.opencv([0.1, 0, 0, 0, 0, 0.3, 0, 0], "intri.yml", "dist_01"), ["rational"]),
-        (lambda: LensDistortion.of("fisheye", "t.json", "frames[2]", k1=0.1, p1=0.01), ["fisheye", "tangential"]),
+        (lambda: LensDistortion.opencv([0.1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0.01, 0], "intri.yml", "dist_01"), ["tilted"]),
+        (lambda: LensDistortion.opencv(["0.1", "a", 0, 0], "intri.yml", "dist_01"), ["numbers"]),
+        (lambda: LensDistortion.of("fisheye", "t.json", "frames[2]", k1=0.1, p1=0.01), ["fisheye", "only radial"]),
+        (lambda: LensDistortion.of("fisheye", "t.json", "frames[2]", k1=0.1, q1=0.01), ["fisheye", "only radial"]),
         (lambda: LensDistortion.of("radial-tangential", "t.json", "frames[2]", k1=-1e6), ["folds at the image centre"]),
     ],
 )

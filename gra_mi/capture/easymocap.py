@@ -89,8 +89,8 @@ def _rodrigues(r: np.ndarray) -> np.ndarray:
 
 
 class OpenCVIntrinsics(Record):
-    """One camera of intri.yml: ``K_<cam>`` (a pinhole K) and ``dist_<cam>`` (OpenCV's k1, k2, p1, p2, k3: undone at
-    import)."""
+    """One camera of intri.yml: ``K_<cam>`` (a pinhole K) and ``dist_<cam>`` (OpenCV's distCoeffs, up to its rational
+    and thin-prism terms: undone at import)."""
 
     K: matrix(3, 3)
     dist: Annotated[np.ndarray, BeforeValidator(lambda v: np.asarray(v, float).ravel())] | None = None

@@ -4,10 +4,11 @@ camera with the same K, as OpenCV's ``cv2.undistort`` does, so that every later 
 Two models, in the coefficients' meaning their sources give them, on normalized camera coordinates (x, y) = ((u −
 cx) / fx, (v − cy) / fy) with gra-mi's pixel centres at (column + ½, row + ½):
 
-- ``radial-tangential`` (OpenCV's and COLMAP's OPENCV model, nerfstudio's ``OPENCV``): r² = x² + y²,
-  d = 1 + k1 r² + k2 r⁴ + k3 r⁶ + k4 r⁸, x_d = x d + 2 p1 x y + p2 (r² + 2 x²), y_d = y d + p1 (r² + 2 y²) + 2 p2 x y.
-  (k4 is nerfstudio's r⁸ term; OpenCV's own k4…k6 divide instead, so an OpenCV list of more than five coefficients
-  must leave them zero.)
+- ``radial-tangential`` (OpenCV's full model, COLMAP's OPENCV and FULL_OPENCV, nerfstudio's ``OPENCV``): r² = x² + y²,
+  d = (1 + k1 r² + k2 r⁴ + k3 r⁶ + k4 r⁸) / (1 + q1 r² + q2 r⁴ + q3 r⁶),
+  x_d = x d + 2 p1 x y + p2 (r² + 2 x²) + s1 r² + s2 r⁴, y_d = y d + p1 (r² + 2 y²) + 2 p2 x y + s3 r² + s4 r⁴.
+  k4 is nerfstudio's r⁸ term; the divisor's q1…q3 are what OpenCV calls k4…k6 (its rational model) and s1…s4 its
+  thin-prism terms. OpenCV's tilted-sensor terms (τx, τy, the 13th and 14th) are refused unless zero.
 - ``fisheye`` (OpenCV's ``cv2.fisheye``, nerfstudio's ``OPENCV_FISHEYE``): θ = atan r,
   θ_d = θ (1 + k1 θ² + k2 θ⁴ + k3 θ⁶ + k4 θ⁸), (x_d, y_d) = (θ_d / r) (x, y).
 
@@ -26,7 +27,7 @@ import numpy as np
 from gra_mi.core.errors import GraMiInputError
 
 MODELS = ("radial-tangential", "fisheye")
-OPENCV_ORDER = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")  # cv2's distCoeffs; k4…k6 divide (not supported)
+OPENCV_COUNTS = (0, 4, 5, 8, 12, 14)  # the lengths cv2's distCoeffs may have: k1 k2 p1 p2 [k3 [k4 k5 k6 [s1…s4 [τx τy]]]]
 
 
 @dataclass(frozen=True)
@@ -34,48 +35,61 @@ class LensDistortion:
     model: str  # one of MODELS
     k: tuple[float, float, float, float]  # radial terms: of r², r⁴, r⁶, r⁸ (or θ², … for the fisheye)
     p: tuple[float, float] = (0.0, 0.0)  # tangential (radial-tangential only)
+    q: tuple[float, float, float] = (0.0, 0.0, 0.0)  # the radial divisor's r², r⁴, r⁶ (OpenCV's rational k4…k6)
+    s: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)  # thin prism: x += s1 r² + s2 r⁴, y += s3 r² + s4 r⁴
     origin: tuple[str, str] = field(default=("", ""), compare=False)  # (file, field) it was read from: what errors name
 
     @classmethod
     def of(cls, model: str, source, where: str, **terms: float | None) -> LensDistortion | None:
-        """The distortion named by ``terms`` (k1 … k4, p1, p2; None or absent: 0), or None where every term is 0.
-        ``source``/``where``: the file and field it is read from, what an error names."""
+        """The distortion named by ``terms`` (k1 … k4, p1, p2, q1 … q3, s1 … s4; None or absent: 0), or None where
+        every term is 0. ``source``/``where``: the file and field it is read from, what an error names."""
         if model not in MODELS:
             raise ValueError(f"lens model {model!r}: expected one of {MODELS}")  # a reader's mistake, not the user's
-        values = {key: float(terms.get(key) or 0.0) for key in ("k1", "k2", "k3", "k4", "p1", "p2")}
+        names = ("k1", "k2", "k3", "k4", "p1", "p2", "q1", "q2", "q3", "s1", "s2", "s3", "s4")
+        if set(terms) - set(names):
+            raise ValueError(f"unknown lens terms {sorted(set(terms) - set(names))}")  # a reader's mistake too
+        values = {key: float(terms.get(key) or 0.0) for key in names}
         if not all(math.isfinite(v) for v in values.values()):
-            raise GraMiInputError(source, f"distortion terms must be finite numbers, got {values}", field=where)
-        if model == "fisheye" and (values["p1"] or values["p2"]):
-            raise GraMiInputError(source, "the fisheye model has no tangential terms (p1, p2)", field=where)
+            raise GraMiInputError(source, f"distortion terms must be finite numbers, got {_nonzero(values)}", field=where)
+        if model == "fisheye" and any(values[key] for key in names[4:]):
+            raise GraMiInputError(
+                source,
+                "the fisheye model has only radial terms (k1 … k4): no tangential (p1, p2), rational or thin-prism ones",
+                field=where,
+            )
         if not any(values.values()):
             return None
-        lens = cls(model, (values["k1"], values["k2"], values["k3"], values["k4"]), (values["p1"], values["p2"]), (str(source), where))
+        k, p, q, s = ([values[key] for key in group] for group in (names[:4], names[4:6], names[6:9], names[9:]))
+        lens = cls(model, tuple(k), tuple(p), tuple(q), tuple(s), (str(source), where))
         if lens.fold_radius() < 1e-3:
             raise GraMiInputError(source, f"the distortion {values} folds at the image centre: not a lens", field=where)
         return lens
 
     @classmethod
     def opencv(cls, coefficients, source, where: str) -> LensDistortion | None:
-        """From OpenCV's ``distCoeffs`` order (k1, k2, p1, p2[, k3[, k4, k5, k6]]); the rational terms k4…k6 and the
-        thin-prism ones after them are refused unless zero."""
-        values = [float(c) for c in np.asarray(coefficients, float).ravel()]
+        """From OpenCV's ``distCoeffs`` order (k1, k2, p1, p2[, k3[, k4, k5, k6[, s1, s2, s3, s4[, τx, τy]]]]): its
+        rational k4…k6 are the divisor's q1…q3 here; the tilted-sensor τx, τy are refused unless zero."""
+        try:
+            values = [float(c) for c in np.asarray(coefficients, float).ravel()]
+        except (TypeError, ValueError):
+            raise GraMiInputError(source, f"distortion coefficients must be numbers, got {coefficients!r}", field=where) from None
         if not all(math.isfinite(v) for v in values):
             raise GraMiInputError(source, f"distortion coefficients must be finite numbers, got {values}", field=where)
-        if len(values) not in (0, 4, 5, 8, 12, 14):
+        if len(values) not in OPENCV_COUNTS:
             raise GraMiInputError(source, f"expected 4, 5, 8, 12 or 14 OpenCV distortion coefficients, got {len(values)}", field=where)
-        if any(values[5:]):
+        if any(values[12:]):
             raise GraMiInputError(
-                source,
-                f"OpenCV's rational or thin-prism terms ({values[5:]}) are not supported: only k1, k2, p1, p2, k3",
-                field=where,
+                source, f"OpenCV's tilted-sensor terms (τx, τy = {values[12:]}) are not supported: undistort first", field=where
             )
-        return cls.of("radial-tangential", source, where, **dict(zip(OPENCV_ORDER[:5], values, strict=False)))
+        names = ("k1", "k2", "p1", "p2", "k3", "q1", "q2", "q3", "s1", "s2", "s3", "s4")
+        return cls.of("radial-tangential", source, where, **dict(zip(names, values, strict=False)))
 
     def _radial(self, r2: np.ndarray) -> np.ndarray:
         """The radial factor: of r² (radial-tangential), or θ_d / r (fisheye)."""
         k1, k2, k3, k4 = self.k
         if self.model == "radial-tangential":
-            return 1 + r2 * (k1 + r2 * (k2 + r2 * (k3 + r2 * k4)))
+            q1, q2, q3 = self.q
+            return (1 + r2 * (k1 + r2 * (k2 + r2 * (k3 + r2 * k4)))) / (1 + r2 * (q1 + r2 * (q2 + r2 * q3)))
         r = np.sqrt(r2)
         theta = np.arctan(r)
         t2 = theta * theta
@@ -88,7 +102,10 @@ class LensDistortion:
         r2 = x * x + y * y
         d = self._radial(r2)
         p1, p2 = self.p
-        return np.stack([x * d + 2 * p1 * x * y + p2 * (r2 + 2 * x * x), y * d + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y], axis=-1)
+        s1, s2, s3, s4 = self.s
+        x_d = x * d + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) + r2 * (s1 + r2 * s2)
+        y_d = y * d + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y + r2 * (s3 + r2 * s4)
+        return np.stack([x_d, y_d], axis=-1)
 
     def undistort(self, xy_d: np.ndarray, iterations: int = 40) -> np.ndarray:
         """The inverse of :meth:`distort` (Newton's method with a numerical Jacobian, each point until it is within
@@ -117,10 +134,12 @@ class LensDistortion:
         return np.stack([(jy[:, 1] * f[:, 0] - jy[:, 0] * f[:, 1]) / det, (jx[:, 0] * f[:, 1] - jx[:, 1] * f[:, 0]) / det], axis=-1)
 
     def fold_radius(self) -> float:
-        """The pinhole radius r where r·radial(r²) stops growing (inf: never, within r ≤ 20, i.e. 87° off axis)."""
+        """The pinhole radius r where r·radial(r²) stops growing or meets a pole of the rational divisor (inf: never,
+        within r ≤ 20, i.e. 87° off axis)."""
         r = np.linspace(0.0, 20.0, 200_001)
-        mapped = r * self._radial(r * r)
-        stops = np.flatnonzero(np.diff(mapped) <= 0)
+        with np.errstate(divide="ignore", invalid="ignore"):  # a rational divisor may reach zero: a pole is a fold
+            mapped = r * self._radial(r * r)
+            stops = np.flatnonzero(~(np.diff(mapped) > 0))
         return math.inf if stops.size == 0 else float(r[stops[0]])
 
     def reach(self) -> float:
@@ -129,8 +148,12 @@ class LensDistortion:
         return math.inf if math.isinf(fold) else fold * float(self._radial(np.array(fold * fold)))
 
     def describe(self) -> str:
-        terms = [f"k{i + 1}={v:g}" for i, v in enumerate(self.k) if v] + [f"p{i + 1}={v:g}" for i, v in enumerate(self.p) if v]
-        return f"{self.model} ({', '.join(terms)})"
+        groups = (("k", self.k), ("p", self.p), ("q", self.q), ("s", self.s))
+        return f"{self.model} ({', '.join(f'{name}{i + 1}={v:g}' for name, values in groups for i, v in enumerate(values) if v)})"
+
+
+def _nonzero(values: dict[str, float]) -> dict[str, float]:
+    return {key: v for key, v in values.items() if v != 0}
 
 
 def undistort_image(image: np.ndarray, k_matrix: np.ndarray, lens: LensDistortion) -> np.ndarray:
