@@ -124,6 +124,50 @@ def test_a_saved_sequence_is_mapped_not_read(tmp_path, monkeypatch):
     np.testing.assert_array_equal(load_sequence(tmp_path / "s").normals, seq.normals)
 
 
+def test_a_sequence_is_written_one_frame_at_a_time(tmp_path):
+    """write_sequence takes frames from a generator: writing 1,500 frames allocates about one (the vertices go into the
+    archive as they come, the normals through a file), and the result is what save_sequence writes of the whole."""
+    import tracemalloc
+
+    from gra_mi.subject.sequence import SequenceLayout, write_sequence
+
+    seq = long_tiny_subject(1500)
+    layout = SequenceLayout(seq.faces, seq.uvs, seq.num_frames, seq.fps, seq.frame_labels)
+    frames = ((seq.vertices[t].copy(), None) for t in range(seq.num_frames))  # normals computed per frame
+    tracemalloc.start()
+    try:
+        write_sequence(tmp_path / "streamed", layout, frames, write_plys=False)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    whole = seq.vertices.nbytes + seq.normals.nbytes
+    assert peak < 0.1 * whole, f"writing allocated {peak} bytes for {whole} bytes of frames"
+    back = load_sequence(tmp_path / "streamed")
+    assert isinstance(back.vertices, np.memmap) and back.vertices.ctypes.data % 64 == 0 and back.normals.ctypes.data % 64 == 0
+    np.testing.assert_array_equal(back.vertices, seq.vertices)
+    np.testing.assert_allclose(back.normals, seq.normals, atol=1e-6)
+    assert back.frame_labels == seq.frame_labels and [p.name for p in (tmp_path / "streamed").iterdir()] == ["sequence.npz"]
+
+
+@pytest.mark.parametrize(
+    "frames, needle",
+    [
+        (lambda v: [(v[0], None)], "1 frames given for a sequence of 3"),
+        (lambda v: [(v[0], None)] * 4, "more frames given"),
+        (lambda v: [(v[0], None), (v[1, :-1], None), (v[2], None)], "frame 1: expected"),
+        (lambda v: [(v[0], None), (v[1], None), (np.where(v[2] > 0, np.nan, v[2]), None)], "frame 2"),
+    ],
+)
+def test_a_streamed_sequence_names_its_bad_frame_and_leaves_nothing(tmp_path, frames, needle):
+    from gra_mi.subject.sequence import SequenceLayout, write_sequence
+
+    seq = tiny_subject(3)
+    layout = SequenceLayout(seq.faces, seq.uvs, 3)
+    with pytest.raises(GraMiInputError, match=needle):
+        write_sequence(tmp_path / "s", layout, frames(seq.vertices), write_plys=False, source="meshes/")
+    assert not (tmp_path / "s" / "sequence.npz").exists() and not any(p.name.startswith(".") for p in (tmp_path / "s").iterdir())
+
+
 def test_a_mapped_frame_traces_as_the_frame_in_memory(tmp_path, variant):
     """A mapped frame moved into a Mitsuba mesh (as LightstageScene.set_frame does) is hit where the same frame read
     into memory is: unaligned mapped data once reached Embree, which refused it, and every ray missed."""

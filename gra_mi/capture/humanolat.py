@@ -31,12 +31,12 @@ from pydantic import field_validator
 
 from gra_mi.capture.dataset import Capture, FrameLighting, load_observation
 from gra_mi.capture.importer import import_capture
+from gra_mi.capture.mesh_frames import MeshFrames
 from gra_mi.capture.source import ImportConfig, Source
 from gra_mi.capture.source_files import (
     CalibCamera,
     add_numbered,
     image_size,
-    read_obj,
     read_points,
     resample_columns,
     write_mask,
@@ -351,7 +351,7 @@ def read_humanolat(subject_dir: Path, config: HumanolatOptions) -> Source:
     masks = [pose / "segmentations" / "masks" / "000" / f"{name}.png" for name in names]
     source = Source(
         subject_dir, "humanolat", subject_dir / CALIB, names, calib, sizes, images, 0.001, leds,
-        [read_obj(pose / "model" / "model.obj")], [m if m.is_file() else None for m in masks], white=WHITE, order=order, olat_keys=olat_numbers(len(order))[0],
+        MeshFrames([pose / "model" / "model.obj"]), [m if m.is_file() else None for m in masks], white=WHITE, order=order, olat_keys=olat_numbers(len(order))[0],
         leds_path=subject_dir / LEDS, mesh_files=[pose / "model" / "model.obj"],
     )  # fmt: skip
     source.frames, source.left_out = humanolat_frames(source, config)

@@ -26,11 +26,12 @@ from gra_mi.capture.dataset import Capture
 from gra_mi.capture.lens import held_fraction
 from gra_mi.capture.placement import (
     CameraPlan,
+    SubjectPlan,
     WorldFrame,
-    build_sequence,
     build_stage,
     mask_at_source,
     plan_camera,
+    plan_subject,
     resample_image,
     world_frame,
 )
@@ -47,7 +48,6 @@ from gra_mi.core.shard import Shard
 from gra_mi.render.runtime import ensure_mitsuba
 from gra_mi.stage.lightstage import Lightstage, load_pattern, olat_pattern, uniform_pattern
 from gra_mi.stage.scene import subject_scene_xml, write_rig
-from gra_mi.subject.sequence import MeshSequence, save_sequence
 
 logger = logging.getLogger(__name__)
 IMAGE_BYTES_PER_PIXEL = 4 * 4 * 8  # RGBA float32: the decoded source, its resampling and mask, the written EXR
@@ -112,11 +112,11 @@ def import_capture(
         raise GraMiParameterError("eval_cameras", "holds every imported camera: at least one camera must be left to fit on")
     missing = check_images_present(source, plans, config.missing_images == "skip")
     check_envmaps(source)
-    sequence, atlas_said = build_sequence(source, frame, config.uv_resolution)
+    subject = plan_subject(source, config.uv_resolution)
     # the frame every camera's mask is checked on: the first that every camera has
     key, pose = next((k, f.mesh_frame) for k, f, _ in source.frames if k not in missing)
     masks = [frame_mask(source, plan, key) for plan in plans]
-    checks = reprojection_checks(source, frame, sequence, plans, masks, config.min_iou, pose)
+    checks = reprojection_checks(source, frame, subject.posed(source, frame, pose), plans, masks, config.min_iou, 0)
     said = asdict(config) | (asdict(options) if options is not None else {})
     shard, command = shard or Shard(), f"import {source.format}"
     inputs = {"source": source.folder, "files outside the source": files_read_outside(source)}
@@ -126,9 +126,9 @@ def import_capture(
     # a changed source restarts the staging (its images would mix two exports); --overwrite empties it too
     claim_output(staging, command, inputs, said, overwrite=overwrite, shard=shard, restart=shard.whole)
     stage = build_stage(source, frame, plans, config.led_intensity)
-    _write_stage_files(staging, stage, sequence, source.frames)
+    _write_stage_files(staging, stage, source, frame, subject)
     record = {"format": source.format, "folder": str(source.folder), "transform": frame.matrix(), **record}
-    record |= {"gains": "assumed equal (the source has none)", "left_out_leds": source.left_out, "uv_atlas": atlas_said, "images": {}}
+    record |= {"gains": "assumed equal (the source has none)", "left_out_leds": source.left_out, "uv_atlas": subject.atlas, "images": {}}
     record["checked_frame"] = next(f.frame for k, f, _ in source.frames if k == key)  # the masks' overlays show it
     frames = [replace(f, missing=missing.get(k, [])) for k, f, _ in source.frames]
     capture = Capture(staging, source.format, "captured", config.uv_resolution, train_cameras, eval_cameras, frames, source=record)
@@ -259,13 +259,12 @@ def _camera_plans(source: Source, frame: WorldFrame, config: ImportConfig) -> li
     return [plan_camera(source, names.index(c), frame, config.scale) for c in chosen]
 
 
-def _write_stage_files(out: Path, stage: Lightstage, sequence: MeshSequence, frames: list) -> None:
-
+def _write_stage_files(out: Path, stage: Lightstage, source: Source, frame: WorldFrame, subject: SubjectPlan) -> None:
     write_rig(stage, out / "rig")
     if not (out / "subject" / "sequence.npz").is_file():
-        save_sequence(sequence, out / "subject")
+        subject.write(source, frame, out / "subject")
     atomic_write_text(out / "scene.xml", subject_scene_xml("rig", "subject"))
-    for _, entry, drive in frames:
+    for _, entry, drive in source.frames:
         if entry.kind == "envmap":  # the source's map, copied in so the capture stands on its own
             target = out / entry.envmap
             if not target.is_file():

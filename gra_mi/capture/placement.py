@@ -6,15 +6,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from gra_mi.capture.lens import LensDistortion, pinhole_positions, undistort_image
 from gra_mi.capture.source import UP_AXES, Source
 from gra_mi.capture.source_files import resample_columns
-from gra_mi.core.errors import GraMiInputError
+from gra_mi.core.progress import progress
 from gra_mi.stage.lightstage import Camera, Lightstage
-from gra_mi.subject.sequence import MeshSequence, split_uv_seams, vertex_normals
+from gra_mi.subject.sequence import MeshSequence, SequenceLayout, split_uv_seams, vertex_normals, write_sequence
 
 
 @dataclass
@@ -75,11 +76,7 @@ def world_frame(source: Source, up: str) -> WorldFrame:
     off_axis = math.degrees(math.acos(min(1.0, float(np.abs(direction).max()))))
     rotation = _rotation_to_y(direction)
     centre, radius, rms = fit_sphere(source.leds)
-    mesh_m = source.mesh_metres(np.concatenate([m.positions for m in source.meshes]))
-    # the floor under the subject the cameras see: vertices inside the LED sphere (a stray vertex 100 m away is not)
-    inside = np.linalg.norm(mesh_m - centre, axis=1) < radius
-    heights = ((mesh_m[inside] if inside.any() else mesh_m) - centre) @ rotation.T
-    floor = float(heights[:, 1].min())
+    floor = _floor(source, centre, radius, rotation)
     translation = -rotation @ centre - np.array([0.0, floor, 0.0])
     return WorldFrame(rotation, translation, direction, up == "auto", off_axis, radius, rms)
 
@@ -143,24 +140,55 @@ def build_stage(source: Source, frame: WorldFrame, plans: list[CameraPlan], led_
     )
 
 
-def build_sequence(source: Source, frame: WorldFrame, uv_resolution: int) -> tuple[MeshSequence, str]:
-    """The poses as a sequence in the first mesh's own UV atlas, or one generated for it (a vertex per position and
-    UV pair); every pose must share its topology (a tracked mesh). Also says where the atlas came from."""
-    first = source.meshes[0]
+def _floor(source: Source, centre: np.ndarray, radius: float, rotation: np.ndarray) -> float:
+    """The height (above the LED sphere's centre, along up) of the floor under the subject the cameras see: its lowest
+    vertex inside the LED sphere over every mesh frame (a stray vertex 100 m away is not), else its lowest of all. One
+    frame at a time: this pass also checks every frame (:meth:`MeshFrames.positions`) before anything is written."""
+    lowest_inside = lowest = math.inf
+    for k in progress(range(len(source.meshes)), "reading the meshes", len(source.meshes)):
+        mesh_m = source.mesh_metres(source.meshes.positions(k))
+        heights = (mesh_m - centre) @ rotation[1]
+        inside = np.linalg.norm(mesh_m - centre, axis=1) < radius
+        lowest = min(lowest, float(heights.min()))
+        if inside.any():
+            lowest_inside = min(lowest_inside, float(heights[inside].min()))
+    return lowest_inside if math.isfinite(lowest_inside) else lowest
+
+
+@dataclass
+class SubjectPlan:
+    """The subject as gra-mi stores it: the first mesh's UV atlas (its own, or one generated for it), a vertex per
+    position and UV pair; each mesh frame's vertices in the world frame, made when written (:meth:`write`)."""
+
+    faces: np.ndarray
+    uvs: np.ndarray
+    position_of: np.ndarray  # the source position of each vertex
+    atlas: str  # where the atlas came from
+
+    def vertices(self, source: Source, frame: WorldFrame, k: int) -> np.ndarray:
+        return frame.apply(source.mesh_metres(source.meshes.positions(k)[self.position_of])).astype(np.float32)
+
+    def posed(self, source: Source, frame: WorldFrame, k: int) -> MeshSequence:
+        """Mesh frame ``k`` alone, as a one-frame sequence (what the reprojection check looks at)."""
+        v = self.vertices(source, frame, k)[None]
+        return MeshSequence(self.faces, self.uvs, v, vertex_normals(v, self.faces), fps=1.0, frame_labels=[f"pose {k}"])
+
+    def write(self, source: Source, frame: WorldFrame, folder: Path) -> None:
+        count = len(source.meshes)
+        layout = SequenceLayout(self.faces, self.uvs, count, fps=1.0, frame_labels=[f"pose {k}" for k in range(count)])
+        frames = ((self.vertices(source, frame, k), None) for k in range(count))
+        write_sequence(folder, layout, frames, source=str(source.folder))
+
+
+def plan_subject(source: Source, uv_resolution: int) -> SubjectPlan:
+    """Every mesh frame shares the first's topology (a tracked mesh; checked as each is read)."""
+    first = source.meshes.first
     if first.face_uvs is None:
         first.uvs, first.face_uvs, said = generate_atlas(first.positions, first.faces, uv_resolution)
     else:
         said = "the mesh's own"
     faces, position_of, uv_of = split_uv_seams(first.faces, first.face_uvs)
-    for k, mesh in enumerate(source.meshes[1:], 1):
-        if mesh.positions.shape != first.positions.shape or not np.array_equal(mesh.faces, first.faces):
-            raise GraMiInputError(
-                source.folder, f"mesh {k} has another topology than mesh 0: a tracked sequence keeps its vertices and faces"
-            )
-    vertices = np.stack([frame.apply(source.mesh_metres(m.positions[position_of])) for m in source.meshes]).astype(np.float32)
-    labels = [f"pose {k}" for k in range(len(source.meshes))]
-    uvs = first.uvs[uv_of].astype(np.float32)
-    return MeshSequence(faces, uvs, vertices, vertex_normals(vertices, faces), fps=1.0, frame_labels=labels), said
+    return SubjectPlan(faces, first.uvs[uv_of].astype(np.float32), position_of, said)
 
 
 def generate_atlas(positions: np.ndarray, faces: np.ndarray, resolution: int) -> tuple[np.ndarray, np.ndarray, str]:

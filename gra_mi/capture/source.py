@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from gra_mi.capture.lens import held_fraction
+from gra_mi.capture.mesh_frames import MeshFrames
 from gra_mi.core.config import comma_list, option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive
 from gra_mi.core.guard import path_component
@@ -70,7 +71,7 @@ class Source:
     images: list[dict[int, Path]]  # per camera: frame key → image file
     units: float  # metres per source unit of the calibration (0.001: millimetres)
     leds: np.ndarray  # (L, 3) metres, the source's frame
-    meshes: list  # ObjMesh per pose (one topology), source units
+    meshes: MeshFrames  # one file per mesh frame (one topology), source units; each checked when read
     masks: list[Path | None]  # per camera: a mask file, else the images' alpha or non-black pixels
     frames: list = field(default_factory=list)  # (frame key, FrameLighting, drive): an LED, "white" or an envmap file
     left_out: list[int] = field(default_factory=list)  # LEDs whose OLATs were not imported
@@ -90,7 +91,6 @@ class Source:
         :func:`import_capture` calls it first."""
         self._check_cameras()
         self._check_leds()
-        self._check_meshes()
         self._check_frames()
 
     def _check_cameras(self) -> None:
@@ -151,14 +151,6 @@ class Source:
         if pairs:
             a, b = pairs[0]
             raise GraMiInputError(where, f"LEDs {a} and {b} are at one position {leds[a].round(6).tolist()}: an LED listed twice")
-
-    def _check_meshes(self) -> None:
-        for k, mesh in enumerate(self.meshes):
-            bad = ~np.isfinite(np.asarray(mesh.positions, float)).all(axis=1)
-            if bad.any():
-                raise GraMiInputError(
-                    self.folder, f"the mesh of pose {k} has {int(bad.sum())} non-finite vertices (first: {int(np.argmax(bad))})"
-                )
 
     def _check_frames(self) -> None:
         keys = [key for key, _, _ in self.frames]

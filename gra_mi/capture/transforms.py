@@ -28,8 +28,9 @@ from pydantic import Field, field_validator
 from gra_mi.capture.dataset import FrameLighting
 from gra_mi.capture.importer import import_capture
 from gra_mi.capture.lens import LensDistortion
+from gra_mi.capture.mesh_frames import read_meshes
 from gra_mi.capture.source import ImportConfig, Source
-from gra_mi.capture.source_files import CalibCamera, ObjMesh, image_size, one_uv_tile, read_obj, read_points
+from gra_mi.capture.source_files import CalibCamera, image_size, read_points
 from gra_mi.core.config import option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.io import read_json
@@ -276,40 +277,3 @@ def _frame_entry(key: int, lighting: tuple, pose: int, split: str, led_index: di
         return (key, FrameLighting(key, split, sequence, "pattern", None, f"patterns/olat_{led:03d}.json", pose=pose), led)
     name = f"envmaps/{lighting[1].name}"
     return (key, FrameLighting(key, split, sequence, "envmap", name, pose=pose), lighting[1])
-
-
-def read_meshes(mesh: Path, poses: int) -> list:
-    """One mesh, or a folder of one per mesh frame (OBJ or PLY, sorted by name)."""
-    if mesh.is_dir():
-        files = sorted(p for p in mesh.iterdir() if p.suffix.lower() in MESH_SUFFIXES)
-        if len(files) < poses:
-            raise GraMiInputError(mesh, f"{len(files)} OBJ/PLY files, but the frames name {poses} mesh frames (mesh_frame)")
-        return [read_mesh(f) for f in files[:poses]]
-    if poses > 1:
-        raise GraMiInputError(mesh, f"the frames name {poses} mesh frames (mesh_frame): give a folder of one mesh per frame")
-    return [read_mesh(mesh)]
-
-
-MESH_SUFFIXES = (".obj", ".ply")
-
-
-def read_mesh(path: Path) -> ObjMesh:
-    """An OBJ (:func:`read_obj`) or a PLY (per-vertex ``s t`` / ``u v`` texture coordinates where it has them)."""
-    if path.suffix.lower() == ".obj":
-        return read_obj(path)
-    if path.suffix.lower() != ".ply":
-        raise GraMiInputError(path, f"expected an .obj or .ply mesh, got {path.suffix or 'no suffix'}")
-    import trimesh
-
-    try:
-        mesh = trimesh.load(path, process=False, force="mesh")
-    except Exception as exc:  # trimesh raises several kinds for a damaged file
-        raise GraMiInputError(path, f"not a readable PLY ({exc})") from None
-    faces = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))), np.int64)
-    if faces.size == 0:
-        raise GraMiInputError(path, "no faces: the subject's mesh must be a surface")
-    uv = getattr(getattr(mesh, "visual", None), "uv", None)
-    if uv is None:
-        return ObjMesh(np.asarray(mesh.vertices, float), np.zeros((0, 2)), faces, None)
-    uv = one_uv_tile(path, np.asarray(uv, float))
-    return ObjMesh(np.asarray(mesh.vertices, float), np.stack([uv[:, 0], 1.0 - uv[:, 1]], 1), faces, faces)

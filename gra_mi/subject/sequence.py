@@ -17,10 +17,13 @@ tool's ``np.savez_compressed``) are read whole, as they must be.
 
 from __future__ import annotations
 
+import contextlib
 import math
+import shutil
 import struct
+import tempfile
 import zipfile
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -28,6 +31,7 @@ import numpy as np
 
 from gra_mi.core.errors import GraMiInputError
 from gra_mi.core.io import atomic_path
+from gra_mi.core.progress import progress
 from gra_mi.subject.geometry import split_uv_seams, vertex_normals  # noqa: F401  (part of this module's interface)
 from gra_mi.subject.interchange import is_interchange_file, read_interchange
 
@@ -183,45 +187,115 @@ def write_ply(
 def save_sequence(seq: MeshSequence, folder: str | Path, write_plys: bool = True) -> Path:
     """Write ``sequence.npz`` (and per-frame PLYs for scene files); returns the folder."""
     validate_sequence(seq)
+    frames = ((seq.vertices[t], seq.normals[t]) for t in range(seq.num_frames))
+    layout = SequenceLayout(seq.faces, seq.uvs, seq.num_frames, seq.fps, seq.frame_labels, seq.vertex_colors)
+    return write_sequence(folder, layout, frames, write_plys, seq.origin)
+
+
+@dataclass
+class SequenceLayout:
+    """What every frame of a sequence shares: :func:`write_sequence` takes the frames themselves one at a time."""
+
+    faces: np.ndarray  # (F, 3)
+    uvs: np.ndarray  # (V, 2)
+    num_frames: int
+    fps: float = 24.0
+    frame_labels: list[str] = field(default_factory=list)
+    vertex_colors: np.ndarray | None = None
+
+
+def write_sequence(
+    folder: str | Path,
+    layout: SequenceLayout,
+    frames: Iterable[tuple[np.ndarray, np.ndarray | None]],
+    write_plys: bool = True,
+    source: str = "<sequence>",
+) -> Path:
+    """Write ``sequence.npz`` (and per-frame PLYs) from ``frames``, (vertices, normals or None: computed from the
+    faces) one at a time: a sequence of any length is written holding one frame (the vertices go straight into the
+    archive, the normals through a file beside it). Each frame is checked as it comes; returns the folder."""
     folder = Path(folder)
-    if write_plys:
-        for t in range(seq.num_frames):
-            write_ply(folder / "frames" / ply_name(t), seq.vertices[t], seq.normals[t], seq.uvs, seq.faces, seq.vertex_colors)
-    extra = {} if seq.vertex_colors is None else {"vertex_colors": np.asarray(seq.vertex_colors, np.float32)}
-    with atomic_path(folder / "sequence.npz") as tmp:
-        # Stored, not compressed, so that load_sequence can map the frames (they compress by ~15 % only); NumPy
-        # copies a mapped source a chunk at a time, and asarray makes no copy of float32.
-        _write_aligned_npz(
-            tmp,
-            faces=np.asarray(seq.faces, np.int32),
-            uvs=np.asarray(seq.uvs, np.float32),
-            vertices=np.asarray(seq.vertices, np.float32),
-            normals=np.asarray(seq.normals, np.float32),
-            fps=np.float32(seq.fps),
-            frame_labels=np.array(seq.frame_labels or [""] * seq.num_frames),
-            **extra,
-        )
+    count, faces = layout.num_frames, np.asarray(layout.faces, np.int32)
+    _checked_layout(layout, source)
+    shape = (count, len(layout.uvs), 3)
+    extra = {} if layout.vertex_colors is None else {"vertex_colors": np.asarray(layout.vertex_colors, np.float32)}
+    with atomic_path(folder / "sequence.npz") as tmp, tempfile.TemporaryDirectory(dir=tmp.parent, prefix=".normals.") as scratch:
+        # Stored, not compressed, so that load_sequence can map the frames (they compress by ~15 % only)
+        with zipfile.ZipFile(tmp, "w", zipfile.ZIP_STORED, allowZip64=True) as archive:
+            _add_aligned(archive, "faces", faces)
+            _add_aligned(archive, "uvs", np.asarray(layout.uvs, np.float32))
+            normals_path = Path(scratch) / "normals.npy"
+            with _aligned_member(archive, "vertices") as out, open(normals_path, "wb") as normals_out:
+                for fh in (out, normals_out):
+                    np.lib.format.write_array_header_1_0(fh, {"descr": "<f4", "fortran_order": False, "shape": shape})
+                written = 0
+                for t, (vertices, normals) in enumerate(progress(frames, "writing the subject", count)):
+                    vertices, normals = _checked_frame(vertices, normals, faces, shape[1], t, count, source)
+                    out.write(vertices.tobytes())
+                    normals_out.write(normals.tobytes())
+                    if write_plys:
+                        write_ply(folder / "frames" / ply_name(t), vertices, normals, layout.uvs, faces, layout.vertex_colors)
+                    written += 1
+            if written != count:
+                raise GraMiInputError(source, f"{written} frames given for a sequence of {count}", field="vertices")
+            with _aligned_member(archive, "normals") as out, open(normals_path, "rb") as fh:
+                shutil.copyfileobj(fh, out, 1 << 18)  # bounded: a long sequence copies in many small reads
+            _add_aligned(archive, "fps", np.float32(layout.fps))
+            _add_aligned(archive, "frame_labels", np.array(layout.frame_labels or [""] * count))
+            for name, array in extra.items():
+                _add_aligned(archive, name, array)
     return folder
 
 
-def _write_aligned_npz(path: Path, **arrays: np.ndarray) -> None:
-    """``np.savez``'s archive (entries stored, as ZIP64), each array's data starting on a 64-byte boundary of the file,
-    as NumPy aligns its own allocations: a mapped frame goes straight to Embree, which refuses vertex data that is not
-    4-byte aligned. An entry's local header gets a padding record in its extra field (0xD935, as Android's zipalign
-    writes); NumPy pads each .npy header to a multiple of 64 bytes itself."""
-    with zipfile.ZipFile(path, "w", zipfile.ZIP_STORED, allowZip64=True) as archive:
-        for name, array in arrays.items():
-            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
-            # the entry's data follows 30 bytes, its name, the padding record and the 20-byte ZIP64 record zipfile adds
-            pad = -(archive.fp.tell() + 30 + len(info.filename) + 4 + 20) % ALIGN
-            info.extra = struct.pack("<HH", 0xD935, pad) + bytes(pad)
-            with archive.open(info, "w", force_zip64=True) as out:
-                np.lib.format.write_array(out, np.asanyarray(array), allow_pickle=False)
+def _checked_layout(layout: SequenceLayout, source: str) -> None:
+    """The shared arrays checked as :func:`validate_sequence` checks them (on a stand-in frame)."""
+    if layout.num_frames < 1:
+        raise GraMiInputError(source, "a sequence needs at least one frame", field="vertices")
+    if layout.frame_labels and len(layout.frame_labels) != layout.num_frames:
+        raise GraMiInputError(source, "one label per frame expected", field="frame_labels")
+    stand_in = np.zeros((1, len(layout.uvs), 3), np.float32)
+    validate_sequence(
+        MeshSequence(layout.faces, np.asarray(layout.uvs), stand_in, stand_in + 1, 1.0, [], layout.vertex_colors), source, False
+    )
+
+
+def _checked_frame(vertices, normals, faces: np.ndarray, count: int, t: int, frames: int, source: str) -> tuple[np.ndarray, np.ndarray]:
+    if t >= frames:
+        raise GraMiInputError(source, f"more frames given than the sequence's {frames}", field="vertices")
+    vertices = np.asarray(vertices, np.float32)
+    if vertices.shape != (count, 3):
+        raise GraMiInputError(source, f"frame {t}: expected ({count}, 3) vertices, got {vertices.shape}", field="vertices")
+    if not np.isfinite(vertices).all():
+        _check_frames(vertices[None], vertices[None], t, source)
+    normals = vertex_normals(vertices, faces) if normals is None else np.asarray(normals, np.float32)
+    if normals.shape != vertices.shape:
+        raise GraMiInputError(source, f"frame {t}: normals {normals.shape} do not match vertices {vertices.shape}", field="normals")
+    _check_frames(vertices[None], normals[None], t, source)
+    return np.ascontiguousarray(vertices, "<f4"), np.ascontiguousarray(normals, "<f4")
+
+
+@contextlib.contextmanager
+def _aligned_member(archive: zipfile.ZipFile, name: str) -> Iterator:
+    """A stored ZIP64 entry ``name.npy`` whose data starts on a 64-byte boundary of the file, as NumPy aligns its own
+    allocations: a mapped frame goes straight to Embree, which refuses vertex data that is not 4-byte aligned. The
+    local header gets a padding record in its extra field (0xD935, as Android's zipalign writes); NumPy pads each
+    .npy header to a multiple of 64 bytes itself."""
+    info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+    # the entry's data follows 30 bytes, its name, the padding record and the 20-byte ZIP64 record zipfile adds
+    pad = -(archive.fp.tell() + 30 + len(info.filename) + 4 + 20) % ALIGN
+    info.extra = struct.pack("<HH", 0xD935, pad) + bytes(pad)
+    with archive.open(info, "w", force_zip64=True) as out:
+        yield out
+
+
+def _add_aligned(archive: zipfile.ZipFile, name: str, array: np.ndarray) -> None:
+    with _aligned_member(archive, name) as out:
+        np.lib.format.write_array(out, np.asanyarray(array), allow_pickle=False)
 
 
 def _mapped_member(path: Path, archive: zipfile.ZipFile, name: str) -> np.ndarray | None:
     """The array ``name`` of an .npz mapped read-only from the file, or None where it cannot be (compressed, not
-    little-endian float32 in C order, not aligned as :func:`_write_aligned_npz` aligns it): a stored zip member is the
+    little-endian float32 in C order, not aligned as :func:`_aligned_member` aligns it): a stored zip member is the
     .npy file's bytes as they are."""
     info = archive.getinfo(f"{name}.npy")
     if info.compress_type != zipfile.ZIP_STORED or info.flag_bits & 0x1:  # compressed or encrypted
