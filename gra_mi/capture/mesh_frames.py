@@ -3,7 +3,7 @@ so that an import of tens of thousands of frames holds one at a time (:class:`Me
 
 The first file is read whole (its faces and UVs are every frame's). Later OBJ frames of a tracked sequence differ from
 it only in their ``v`` lines: where every other line of a file is the first file's, its positions are read from those
-lines alone (about 10× faster than a full parse); any other file is read whole and its topology compared."""
+lines alone (about 9× faster than a full parse); any other file is read whole and its topology compared."""
 
 from __future__ import annotations
 
@@ -90,11 +90,8 @@ def _obj_lines(path: Path) -> tuple[list[bytes], bytes]:
     except OSError as exc:
         raise GraMiInputError(path, f"cannot read the mesh ({exc.strerror or exc})") from None
     positions = [line for line in lines if line[:2] == b"v "]
-    rest = hashlib.blake2b(digest_size=16)
-    for line in lines:
-        if line[:2] != b"v ":
-            rest.update(line + b"\n")
-    return positions, rest.digest()
+    rest = b"\n".join(line for line in lines if line[:2] != b"v ")
+    return positions, hashlib.blake2b(rest, digest_size=16).digest()
 
 
 def _fast_positions(path: Path, topology: bytes, count: int) -> np.ndarray | None:
@@ -103,11 +100,13 @@ def _fast_positions(path: Path, topology: bytes, count: int) -> np.ndarray | Non
     lines, digest = _obj_lines(path)
     if digest != topology or len(lines) != count:
         return None
-    rows = [line.split() for line in lines]
-    if any(len(row) != 4 for row in rows):
+    words = b" ".join(lines).split()
+    # every fourth word a "v": each line is "v x y z" (a line with more or fewer numbers shifts the ones after it)
+    if len(words) != 4 * count or words[0::4].count(b"v") != count:
         return None
+    del words[0::4]
     try:
-        positions = np.array([row[1:] for row in rows], dtype=float)
+        positions = np.array(list(map(float, words))).reshape(count, 3)
     except ValueError:
         return None
     return positions if np.isfinite(positions).all() else None
