@@ -101,7 +101,15 @@ def measure(run: BenchmarkRun) -> str:
             per_frame[way] = (times["read"] + times["write"]) / frames, result["peak_mb"]
             same = differences(run.work / f"whole_{frames}", out)
             rows.append(
-                (f"{frames:,}", f"{size:,.0f}", way, f"{times['read']:.1f}", f"{times['write']:.1f}", f"{result['peak_mb']:,.0f}", f"{same:g}")
+                (
+                    f"{frames:,}",
+                    f"{size:,.0f}",
+                    way,
+                    f"{times['read']:.1f}",
+                    f"{times['write']:.1f}",
+                    f"{result['peak_mb']:,.0f}",
+                    f"{same:g}",
+                )
             )
             print(rows[-1], file=sys.stderr, flush=True)
     notes = [

@@ -78,6 +78,17 @@ def test_a_bad_frame_is_named_by_its_file(tmp_path, edit, needles):
         assert needle in str(info.value)
 
 
+def test_a_folder_of_frames_is_in_the_numbers_order_and_one_name_per_frame(tmp_path):
+    from gra_mi.capture.mesh_frames import mesh_files_in_order
+
+    for name in ("frame_10.obj", "frame_2.obj", "frame_1.obj", "notes.txt", "frame_0.ply"):
+        (tmp_path / name).write_text("")
+    assert [p.name for p in mesh_files_in_order(tmp_path)] == ["frame_0.ply", "frame_1.obj", "frame_2.obj", "frame_10.obj"]
+    (tmp_path / "frame_02.ply").write_text("")
+    with pytest.raises(GraMiInputError, match="frame_02.ply and frame_2.obj are one mesh frame"):
+        read_meshes(tmp_path, 3)
+
+
 def test_ply_frames_are_compared_by_topology(tmp_path):
     import trimesh
 

@@ -8,6 +8,7 @@ lines alone (about 9× faster than a full parse); any other file is read whole a
 from __future__ import annotations
 
 import hashlib
+import re
 from pathlib import Path
 
 import numpy as np
@@ -50,15 +51,30 @@ class MeshFrames:
 
 
 def read_meshes(mesh: Path, poses: int) -> MeshFrames:
-    """One mesh, or a folder of one per mesh frame (OBJ or PLY, sorted by name): the first ``poses``."""
+    """One mesh, or a folder of one per mesh frame (OBJ or PLY, in the numbers' order: ``frame_2`` before
+    ``frame_10``): the first ``poses``."""
     if mesh.is_dir():
-        files = sorted(p for p in mesh.iterdir() if p.suffix.lower() in MESH_SUFFIXES)
+        files = mesh_files_in_order(mesh)
         if len(files) < poses:
             raise GraMiInputError(mesh, f"{len(files)} OBJ/PLY files, but the frames name {poses} mesh frames (mesh_frame)")
         return MeshFrames(files[:poses])
     if poses > 1:
         raise GraMiInputError(mesh, f"the frames name {poses} mesh frames (mesh_frame): give a folder of one mesh per frame")
     return MeshFrames([mesh])
+
+
+def mesh_files_in_order(folder: Path) -> list[Path]:
+    """A folder's OBJ and PLY files in their names' order with numbers compared as numbers (``frame_2`` before
+    ``frame_10``, as a tracker numbers them unpadded); two names for one place (``frame_1.obj`` and ``frame_01.obj``,
+    or ``.obj`` and ``.ply``) are refused naming both, where one would silently win."""
+    keyed: dict[tuple, Path] = {}
+    for path in (p for p in folder.iterdir() if p.suffix.lower() in MESH_SUFFIXES):
+        key = tuple(int(part) if part.isdigit() else part for part in re.split(r"(\d+)", path.stem))
+        if key in keyed:
+            first, second = sorted((keyed[key].name, path.name))
+            raise GraMiInputError(folder, f"{first} and {second} are one mesh frame: keep one")
+        keyed[key] = path
+    return [keyed[key] for key in sorted(keyed)]  # re.split alternates text and numbers: like compares with like
 
 
 def read_mesh(path: Path) -> ObjMesh:

@@ -48,7 +48,8 @@ class TransformsOptions:
 
     mesh: Path | None = None
     """transforms, easymocap: the subject's mesh (OBJ or PLY; without UVs an atlas is generated), or a folder of one
-    per mesh frame (a tracked sequence, one topology; frames name theirs with `mesh_frame`)."""
+    per mesh frame (a tracked sequence, one topology, in the names' numbered order: frame_2 before frame_10; frames
+    name theirs with `mesh_frame`)."""
     units: str = field(default="m", metadata=option(choices=tuple(UNITS)))
     """transforms, easymocap: the unit of the calibration's positions (camera translations, `pl_pos`, --leds)."""
     mesh_units: str = field(default="m", metadata=option(choices=tuple(UNITS)))
