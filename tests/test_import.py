@@ -404,6 +404,105 @@ def test_transforms_json_imports_to_the_same_rig(olat_capture, imported, spellin
     np.testing.assert_allclose(mine.led_positions, theirs.led_positions, atol=1e-5)
 
 
+def _olat_ratio_spread(native, out: Path) -> float:
+    """How far each OLAT frame's brightness over its LED's stated intensity strays from the native capture's, over
+    the frames (std / mean of the ratio, the worst channel): 0 where every LED is lit as the capture says."""
+    from gra_mi.capture.dataset import Capture, load_observation
+    from gra_mi.stage.lightstage import load_calibration
+
+    capture = Capture.load(out)
+    stages = load_calibration(out / "rig" / "calibration.json"), load_calibration(native.folder / "rig" / "calibration.json")
+    native_frames = {Path(f.pattern).stem: f for f in native.frames if f.kind == "pattern" and "olat" in f.pattern}
+    ratios = []
+    for frame in (f for f in capture.frames if f.kind == "pattern" and "olat" in f.pattern):
+        theirs = native_frames[Path(frame.pattern).stem]
+        led = int(Path(frame.pattern).stem.split("_")[1])
+        a, b = load_observation(capture, "Cam01", frame.frame), load_observation(native, "cam00", theirs.frame)
+        inside = (a[..., 3] > 0.99) & (b[..., 3] > 0.99)
+        mine = a[..., :3][inside].mean(axis=0) / capture.lighting(stages[0], frame)[led]
+        ratios.append(mine / (b[..., :3][inside].mean(axis=0) / native.lighting(stages[1], theirs)[led]))
+    ratios = np.array(ratios)
+    return float((ratios.std(axis=0) / ratios.mean(axis=0)).max())
+
+
+def test_led_gains_light_each_olat_by_its_led(olat_capture, imported, tmp_path):
+    """A stage whose LEDs differ in brightness and colour (each OLAT photo of the HumanOLAT layout scaled by its LED's
+    RGB gain): imported with the gains (a --led-gains file, or transforms.json's pl_intensity), every OLAT frame's
+    brightness over its LED's intensity is the native capture's; imported without, it strays by the gains' spread."""
+    from gra_mi.capture.humanolat import camera_name, images_of, olat_numbers, read_spiral, write_avif
+    from gra_mi.capture.source_files import read_image
+
+    root, native, subject = olat_capture
+    gains = np.random.default_rng(3).uniform(0.5, 1.0, (24, 3))
+    gained = tmp_path / "layout" / subject.name
+    shutil.copytree(subject, gained, ignore=shutil.ignore_patterns("json_*"))
+    order = read_spiral(gained / "shared" / "LSX3_light_z_spiral.txt", 24)
+    for cam in range(8):
+        images = images_of(gained / "POSE_00" / "images_processed" / camera_name(cam))
+        for position, number in enumerate(olat_numbers(24)[0]):
+            write_avif(images[number], read_image(images[number])[0] * gains[order[position]])
+    (tmp_path / "gains.txt").write_text("# LED gains, r g b\n" + "".join(f"{r} {g} {b}\n" for r, g, b in gains))
+    with_gains = _imported(tmp_path, gained, "with_gains", "--led-gains", str(tmp_path / "gains.txt"))
+    without = _imported(tmp_path, gained, "without", "--test-olat-every", "5")
+    assert "normalised to a mean of 1" in json.loads((with_gains / "capture.json").read_text())["source"]["gains"]
+    # the equal-gain stage's own import strays by 8-bit quantisation of dim OLATs alone (1.5 %); the gained one's
+    # photos were quantised twice and are dimmer (2.6 %); left without its gains, it strays by their spread (19 %)
+    floor = _olat_ratio_spread(native, imported)
+    assert _olat_ratio_spread(native, with_gains) < 2 * floor and _olat_ratio_spread(native, without) > 6 * floor, floor
+    # the same gains as the dataset's tools would state them, per frame
+    folder = gained / "json"
+    write_transforms_as_humanolat_tools_do(gained, folder)
+    for path in folder.glob("transforms_*.json"):
+        data = json.loads(path.read_text())
+        for frame in data["frames"]:
+            frame["pl_intensity"] = gains[frame["light_idx"]].tolist()
+        path.write_text(json.dumps(data))
+    out = tmp_path / "from_json"
+    args = ["import", "transforms", str(folder), "--out", str(out), "--mesh", str(gained / "POSE_00" / "model" / "model.obj")]
+    assert main([*args, "--mesh-units", "mm", "--uv-resolution", "32"]) == 0
+    assert _olat_ratio_spread(native, out) < 2 * floor
+    # both at once are two answers to one question
+    assert main([*args, "--mesh-units", "mm", "--uv-resolution", "32", "--led-gains", str(tmp_path / "gains.txt")]) == 2
+
+
+@pytest.mark.parametrize(
+    "text, needles",
+    [
+        ("1\n" * 23, ["23 gains", "24 LEDs"]),
+        ("1\n" * 23 + "nan\n", ["line 24", "finite"]),
+        ("1\n" * 23 + "-1\n", ["line 24", "non-negative"]),
+        ("1\n" * 23 + "1 1\n", ["line 24", "r g b"]),
+        ("1\n" * 23 + "bright\n", ["line 24"]),
+        ("1\n" * 23 + "0.001\n", ["LED 23", "below 1%"]),
+        ("0\n" * 24, ["every gain is 0"]),
+    ],
+)
+def test_bad_led_gains_are_named(tmp_path, text, needles):
+    from gra_mi.capture.source_files import read_led_gains
+    from gra_mi.core.errors import GraMiInputError
+
+    (tmp_path / "gains.txt").write_text(text)
+    with pytest.raises(GraMiInputError) as info:
+        read_led_gains(tmp_path / "gains.txt", list(range(24)))
+    for needle in ["gains.txt", *needles]:
+        assert needle in str(info.value)
+
+
+def test_led_gains_are_read_in_the_sources_numbering_and_normalised(tmp_path):
+    from gra_mi.capture.source_files import read_led_gains
+
+    (tmp_path / "gains.txt").write_text("# stage calibration\n1.0\n\n0.5 1.0 1.5  # a blue LED\n2\n3\n")
+    gains = read_led_gains(tmp_path / "gains.txt", [1, 3])  # a source whose LEDs are numbered 1 and 3
+    np.testing.assert_allclose(gains, np.array([[0.5, 1.0, 1.5], [3.0, 3.0, 3.0]]) / 2.0)  # their mean: 2
+    (tmp_path / "binary.txt").write_bytes(bytes(range(256)))
+    from gra_mi.core.errors import GraMiInputError
+
+    with pytest.raises(GraMiInputError, match="binary.txt"):
+        read_led_gains(tmp_path / "binary.txt", [0])
+    with pytest.raises(GraMiInputError, match="missing"):
+        read_led_gains(tmp_path / "absent.txt", [0])
+
+
 def test_a_mesh_without_uvs_gets_an_atlas_and_fits(olat_capture, tmp_path):
     """A PLY with positions and faces only (a scan as many tools export it): the import generates a UV atlas
     (xatlas), reprojects as well as the mesh with its own atlas, and the fit runs in the new atlas."""
@@ -466,6 +565,9 @@ def test_a_transforms_json_without_intrinsics_or_lights_is_refused(olat_capture,
         ({"camera_model": "OPENCV_FISHEYE", "k1": 0.1, "p1": 0.01}, ["frames[2]", "tangential"]),
         ({"k2": "abc"}, ["frames[2].k2", "valid number"]),
         ({"k1": 0.05}, ["frames[2]", "two different lens distortions"]),
+        ({"pl_intensity": [1, -1, 1]}, ["frames[2].pl_intensity", "non-negative"]),
+        ({"pl_intensity": [0.5, 0.5]}, ["frames[2].pl_intensity"]),
+        ({"pl_intensity": [0.5, 0.5, 0.5]}, ["pl_intensity", "two intensities"]),  # its LED's other frames say 1
     ):
         broken = json.loads(json.dumps(data))
         broken["frames"][2] |= bad

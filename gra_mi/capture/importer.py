@@ -97,6 +97,7 @@ def import_capture(
     returns it, the others return None."""
 
     source.check()
+    gains = source.led_gains(config.led_gains)
     ensure_mitsuba()
     frame = world_frame(source, config.up)
     plans = _camera_plans(source, frame, config)
@@ -119,16 +120,16 @@ def import_capture(
     checks = reprojection_checks(source, frame, subject.posed(source, frame, pose), plans, masks, config.min_iou, 0)
     said = asdict(config) | (asdict(options) if options is not None else {})
     shard, command = shard or Shard(), f"import {source.format}"
-    inputs = {"source": source.folder, "files outside the source": files_read_outside(source)}
+    inputs = {"source": source.folder, "files outside the source": files_read_outside(source), "LED gains": config.led_gains}
     if (done := _already_published(out, run_record(command, inputs, said), overwrite)) is not None:
         return done
     staging = staging_folder(out)
     # a changed source restarts the staging (its images would mix two exports); --overwrite empties it too
     claim_output(staging, command, inputs, said, overwrite=overwrite, shard=shard, restart=shard.whole)
-    stage = build_stage(source, frame, plans, config.led_intensity)
+    stage = build_stage(source, frame, plans, config.led_intensity, gains)
     _write_stage_files(staging, stage, source, frame, subject)
     record = {"format": source.format, "folder": str(source.folder), "transform": frame.matrix(), **record}
-    record |= {"gains": "assumed equal (the source has none)", "left_out_leds": source.left_out, "uv_atlas": subject.atlas, "images": {}}
+    record |= {"gains": _gains_said(config.led_gains, gains), "left_out_leds": source.left_out, "uv_atlas": subject.atlas, "images": {}}
     record["checked_frame"] = next(f.frame for k, f, _ in source.frames if k == key)  # the masks' overlays show it
     frames = [replace(f, missing=missing.get(k, [])) for k, f, _ in source.frames]
     capture = Capture(staging, source.format, "captured", config.uv_resolution, train_cameras, eval_cameras, frames, source=record)
@@ -259,6 +260,13 @@ def _camera_plans(source: Source, frame: WorldFrame, config: ImportConfig) -> li
     return [plan_camera(source, names.index(c), frame, config.scale) for c in chosen]
 
 
+def _gains_said(path: Path | None, gains: np.ndarray | None) -> str:
+    if gains is None:
+        return "assumed equal (none given: --led-gains)"
+    said = path or "the source's pl_intensity"
+    return f"from {said}, normalised to a mean of 1 (from {gains.min():.3f} to {gains.max():.3f})"
+
+
 def _write_stage_files(out: Path, stage: Lightstage, source: Source, frame: WorldFrame, subject: SubjectPlan) -> None:
     write_rig(stage, out / "rig")
     if not (out / "subject" / "sequence.npz").is_file():
@@ -353,7 +361,7 @@ def _linearity_of_a_complete_camera(out: Path, source: Source, plans: list[Camer
 
 def linearity(source: Source, plan: CameraPlan, mask: np.ndarray) -> dict:
     """The white frame against the sum of every OLAT (door LEDs included) of one camera, over the subject: 1 for a
-    linear sensor, a subject that held still and equal LED gains."""
+    linear sensor and a subject that held still (each LED's gain is in both)."""
     inside = mask_at_source(mask, plan) > 0.5
     total = np.zeros(int(inside.sum()) * 3)
     for number in progress(source.olat_keys, description=f"linearity {plan.camera.name}"):
@@ -427,7 +435,7 @@ def import_markdown(r: dict, source_format: str) -> str:
         lines += [
             "",
             f"Linearity ({lin['camera']}): the sum of the {lin['olats']} OLATs over the white frame is {lin['olats_over_white']:.3f} "
-            "over the subject (1: a linear sensor, a subject that held still, equal LED gains).",
+            "over the subject (1: a linear sensor and a subject that held still, whatever the LEDs' gains).",
         ]
     lines += [
         "",

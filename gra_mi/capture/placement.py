@@ -125,7 +125,9 @@ def resample_image(image: np.ndarray, plan: CameraPlan) -> np.ndarray:
     return image
 
 
-def build_stage(source: Source, frame: WorldFrame, plans: list[CameraPlan], led_intensity: float) -> Lightstage:
+def build_stage(
+    source: Source, frame: WorldFrame, plans: list[CameraPlan], led_intensity: float, gains: np.ndarray | None = None
+) -> Lightstage:
     positions = frame.apply(source.leds)
     centre = frame.apply(fit_sphere(source.leds)[0][None])[0]
     to_centre = centre - positions
@@ -136,6 +138,7 @@ def build_stage(source: Source, frame: WorldFrame, plans: list[CameraPlan], led_
         cameras=[p.camera for p in plans],
         center=centre,
         radius=frame.led_radius,
+        led_gains=gains,
         max_led_intensity=led_intensity,
     )
 

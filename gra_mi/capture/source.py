@@ -11,6 +11,7 @@ import numpy as np
 
 from gra_mi.capture.lens import held_fraction
 from gra_mi.capture.mesh_frames import MeshFrames
+from gra_mi.capture.source_files import normalised_gains, read_led_gains
 from gra_mi.core.config import comma_list, option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive
 from gra_mi.core.guard import path_component
@@ -41,6 +42,12 @@ class ImportConfig:
     """UV resolution of the maps fitted to the capture."""
     min_iou: float = 0.5
     """Stop when the mesh reprojected over a camera's mask overlaps it less than this (intersection over union)."""
+    led_gains: Path | None = None
+    """A text file of the LEDs' measured gains (a calibration of the stage): line k is LED k's, in the source's LED
+    numbering (HumanOLAT's light positions file, --leds, or transforms.json's light_idx), one number or `r g b`
+    (linear; `#` comments). Normalised to a mean of 1, so --led-intensity is the mean LED's. An OLAT frame is lit by
+    its LED's gain; environment-map frames are taken to have been driven with the gains undone (the emitted light is
+    the map's). Default: equal gains."""
     missing_images: str = field(default="refuse", metadata=option(choices=("refuse", "skip")))
     """A camera without an image of a frame: refuse (name it and stop), or skip (import the rest; capture.json and the
     report list the gaps, the fit and RelightNet leave them out, the evaluation and the refiner refuse a camera with a
@@ -83,6 +90,8 @@ class Source:
     mask_cache: dict[int, np.ndarray] = field(default_factory=dict, repr=False)  # per camera: a mask every frame shares
 
     leds_path: Path | None = None  # what an LED error names (None: the calibration)
+    led_numbers: list[int] | None = None  # the source's number of each LED in ``leds`` (None: 0, 1, …), for --led-gains
+    stated_gains: np.ndarray | None = None  # (L, 3) gains the source itself states (transforms.json's pl_intensity)
     mesh_files: list[Path] = field(default_factory=list)  # the mesh file(s) or folder read (for provenance)
 
     def check(self) -> None:
@@ -171,6 +180,16 @@ class Source:
                     n += 1
                 entry.envmap = name = f"envmaps/{stem}_{n}{suffix}"
             stored[name] = source
+
+    def led_gains(self, path: Path | None) -> np.ndarray | None:
+        """The LEDs' gains over their mean: from ``path`` (--led-gains), else as the source states them, else None
+        (equal). A source that states gains and a file besides are two answers: refused."""
+        numbers = self.led_numbers or list(range(len(self.leds)))
+        if path is not None and self.stated_gains is not None:
+            raise GraMiParameterError("led_gains", f"{self.calib_path} states the LEDs' gains itself (pl_intensity): give one or the other")
+        if path is not None:
+            return read_led_gains(path, numbers)
+        return None if self.stated_gains is None else normalised_gains(self.stated_gains, numbers, self.calib_path)
 
     def mesh_metres(self, positions: np.ndarray) -> np.ndarray:
         return positions * (self.units if self.mesh_units is None else self.mesh_units)

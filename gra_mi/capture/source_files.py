@@ -58,6 +58,50 @@ def read_points(path: Path) -> np.ndarray:
     return np.array(points, float)
 
 
+MIN_RELATIVE_GAIN = 0.01  # of the mean: an LED dimmer than this is taken for a mistake, not a calibration
+
+
+def read_led_gains(path: Path, numbers: list[int]) -> np.ndarray:
+    """(L, 3) linear RGB gains of the LEDs the source numbers ``numbers``, from a text file: line k (blank lines and
+    ``#`` comments skipped) is LED k's gain, one number for every channel or ``r g b``. Normalised to a mean of 1 over
+    those LEDs and channels, so that ``--led-intensity`` stays the mean LED's and only the gains' ratios count."""
+    if not path.is_file():
+        raise GraMiInputError(path, "missing: the LED gains file (--led-gains)")
+    try:
+        lines = path.read_text().splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise GraMiInputError(path, f"not a text file of LED gains ({exc})") from None
+    gains = []
+    for k, line in enumerate(lines):
+        words = line.split("#")[0].split()
+        if not words:
+            continue
+        try:
+            values = [float(w) for w in words]
+        except ValueError:
+            values = []
+        if len(values) not in (1, 3) or not np.isfinite(values).all() or min(values) < 0:
+            raise GraMiInputError(path, f"line {k + 1}: expected one gain or 'r g b', finite and non-negative, got '{line.strip()}'")
+        gains.append(values * 3 if len(values) == 1 else values)
+    if len(gains) != max(numbers) + 1:
+        raise GraMiInputError(path, f"{len(gains)} gains, but the source numbers {max(numbers) + 1} LEDs: one line per LED, in its order")
+    return normalised_gains(np.array(gains)[numbers], numbers, path)
+
+
+def normalised_gains(gains: np.ndarray, numbers: list[int], path: Path) -> np.ndarray:
+    """(L, 3) gains of the LEDs numbered ``numbers`` over their mean; an LED below 1 % of the mean is refused."""
+    mean = float(gains.mean())
+    if mean <= 0:
+        raise GraMiInputError(path, "every gain is 0: no LED lights")
+    dim = np.flatnonzero(gains.min(axis=1) < MIN_RELATIVE_GAIN * mean)
+    if dim.size:  # an envmap's share of such an LED would need a drive no stage has
+        raise GraMiInputError(
+            path, f"LED {numbers[dim[0]]}'s gain {gains[dim[0]].tolist()} is below {MIN_RELATIVE_GAIN:.0%} of the mean {mean:.4g}: "
+            "an LED that barely lights cannot stand in for its share of an environment map; check the file",
+        )  # fmt: skip
+    return gains / mean
+
+
 def write_obj(folder: Path, positions: np.ndarray, uvs: np.ndarray, faces: np.ndarray, texture: np.ndarray | None) -> None:
     """model.obj (one ``vt`` per vertex; OBJ's v points up the image, so it is 1 − gra-mi's v), material.mtl and
     model.jpeg (the texture, row 0 at the top)."""

@@ -94,6 +94,7 @@ def read_transforms(folder: Path, options: TransformsOptions) -> Source:
     files = _json_files(folder)
     calib, sizes, frames, unnamed, masks = {}, {}, [], {}, {}
     leds = {} if options.leds is None else dict(enumerate(read_points(options.leds)))
+    stated: dict[int, np.ndarray] = {}  # LED → its pl_intensity
     for path, split in files:
         data = _read(path)
         shared = parse(TransformsCamera, {k: v for k, v in data.items() if k != "frames"}, path)
@@ -110,7 +111,7 @@ def read_transforms(folder: Path, options: TransformsOptions) -> Source:
                 raise GraMiInputError(path, f"camera {camera} appears with two different lens distortions", field=where)
             calib.setdefault(camera, CalibCamera(intrinsic, c2w, [], lens=lens))
             sizes.setdefault(camera, size)
-            frames.append(_Frame(image, camera, _lighting(path, entry, where, leds), entry.mesh_frame, split))
+            frames.append(_Frame(image, camera, _lighting(path, entry, where, leds, stated), entry.mesh_frame, split))
             if entry.mask_path is not None and camera not in masks:  # nerfstudio's per-frame mask; a static pose needs one per camera
                 masks[camera] = _image_path(path, entry.mask_path, f"{where}.mask_path")
     if not leds:
@@ -131,8 +132,16 @@ def read_transforms(folder: Path, options: TransformsOptions) -> Source:
         folder, "transforms", files[0][0], names, [calib[n] for n in names], [sizes[n] for n in names], images, UNITS[options.units],
         np.array([leds[k] for k in sorted(leds)]) * UNITS[options.units], meshes,
         [masks.get(n) if len(meshes) == 1 else None for n in names], source_frames,
-        mesh_units=UNITS[options.mesh_units], leds_path=options.leds or files[0][0], mesh_files=[options.mesh],
+        mesh_units=UNITS[options.mesh_units], leds_path=options.leds or files[0][0], mesh_files=[options.mesh], led_numbers=sorted(leds),
+        stated_gains=_stated_gains(stated, sorted(leds)),
     )  # fmt: skip
+
+
+def _stated_gains(stated: dict[int, np.ndarray], numbers: list[int]) -> np.ndarray | None:
+    """The LEDs' pl_intensity in ``numbers`` order (1 where no frame states one), or None where every one is 1."""
+    if all(np.allclose(g, 1.0) for g in stated.values()):
+        return None
+    return np.array([stated.get(k, np.ones(3)) for k in numbers], float)
 
 
 def _json_files(folder: Path) -> list[tuple[Path, str]]:
@@ -190,6 +199,7 @@ class TransformsFrame(TransformsCamera):
     cam_idx: Count | None = None
     light_idx: Count | None = None
     pl_pos: matrix(3) | None = None
+    pl_intensity: matrix(3) | None = None  # the LED's RGB gain (HumanOLAT's tools write [1, 1, 1])
     mesh_frame: Count = 0
     envmap: str | None = None
     mask_path: str | None = None
@@ -201,6 +211,13 @@ class TransformsFrame(TransformsCamera):
             raise ValueError(f"the last row must be (0, 0, 0, 1), got {m[3].tolist()}")
         rigid_rotation(m[:3, :3], "camera-to-world rotation")
         return m
+
+    @field_validator("pl_intensity")
+    @classmethod
+    def _gain(cls, v: np.ndarray | None) -> np.ndarray | None:
+        if v is not None and v.min() < 0:
+            raise ValueError(f"an LED's intensity must be non-negative, got {v.tolist()}")
+        return v
 
     @field_validator("camera_intrinsics")
     @classmethod
@@ -253,9 +270,13 @@ def _lens(path: Path, value, where: str) -> LensDistortion | None:
     return LensDistortion.of(CAMERA_MODELS[model], path, where, **terms)
 
 
-def _lighting(path: Path, entry: TransformsFrame, where: str, leds: dict) -> tuple:
+def _lighting(path: Path, entry: TransformsFrame, where: str, leds: dict, stated: dict) -> tuple:
     if entry.light_idx is not None:
         index = entry.light_idx
+        gain = np.ones(3) if entry.pl_intensity is None else entry.pl_intensity
+        if index in stated and not np.allclose(stated[index], gain, rtol=1e-6):
+            raise GraMiInputError(path, f"LED {index} appears with two intensities", field=f"{where}.pl_intensity")
+        stated[index] = gain
         position = entry.pl_pos if entry.pl_pos is not None else leds.get(index)
         if position is None:
             raise GraMiInputError(path, f"LED {index} needs its position (3 finite numbers, or --leds)", field=f"{where}.pl_pos")
