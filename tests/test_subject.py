@@ -371,3 +371,11 @@ def test_anny_body_sequence(tmp_path, llvm_variant):
     ls.set_pattern(uniform_pattern(ls.stage, 0.5))
     image = render(ls, "cam05", spp=2)
     assert image.shape == (540, 1024, 4) and 0.02 < (image[..., 3] > 0.5).mean() < 0.5
+    # `gra-mi subject` poses and writes a frame at a time: the same file contents as the whole sequence
+    from gra_mi.cli import main
+
+    assert main(["subject", "--kind", "anny", "--clips", ",".join(clips), "--frames-per-clip", "4", "--out", str(tmp_path / "cli")]) == 0
+    written = load_sequence(tmp_path / "cli")
+    np.testing.assert_array_equal(written.vertices, seq.vertices)
+    np.testing.assert_array_equal(written.normals, seq.normals)
+    assert written.frame_labels == seq.frame_labels and np.array_equal(written.vertex_colors, seq.vertex_colors)

@@ -68,7 +68,7 @@ def mesh_files_in_order(folder: Path) -> list[Path]:
     ``frame_10``, as a tracker numbers them unpadded); two names for one place (``frame_1.obj`` and ``frame_01.obj``,
     or ``.obj`` and ``.ply``) are refused naming both, where one would silently win."""
     keyed: dict[tuple, Path] = {}
-    for path in (p for p in folder.iterdir() if p.suffix.lower() in MESH_SUFFIXES):
+    for path in (p for p in folder.iterdir() if p.suffix.lower() in MESH_SUFFIXES and p.is_file()):
         key = tuple(int(part) if part.isdigit() else part for part in re.split(r"(\d+)", path.stem))
         if key in keyed:
             first, second = sorted((keyed[key].name, path.name))

@@ -66,9 +66,9 @@ def read_led_gains(path: Path, numbers: list[int]) -> np.ndarray:
     ``#`` comments skipped) is LED k's gain, one number for every channel or ``r g b``. Normalised to a mean of 1 over
     those LEDs and channels, so that ``--led-intensity`` stays the mean LED's and only the gains' ratios count."""
     if not path.is_file():
-        raise GraMiInputError(path, "missing: the LED gains file (--led-gains)")
+        raise GraMiInputError(path, "missing, or not a file: the LED gains (--led-gains)")
     try:
-        lines = path.read_text().splitlines()
+        lines = path.read_text(encoding="utf-8-sig").splitlines()  # a spreadsheet's export may start with a BOM
     except (OSError, UnicodeDecodeError) as exc:
         raise GraMiInputError(path, f"not a text file of LED gains ({exc})") from None
     gains = []

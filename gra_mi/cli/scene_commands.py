@@ -20,8 +20,8 @@ from gra_mi.stage.envmap import EnvmapOptions
 from gra_mi.stage.envmap_library import write_envmap_set
 from gra_mi.stage.lightstage import RigLayout, load_calibration, load_pattern, olat_pattern
 from gra_mi.stage.scene import RenderConfig, render_to_folder, write_rig, write_scene_file
-from gra_mi.subject.anny_body import MOTION_CLIPS, anny_sequence
-from gra_mi.subject.sequence import save_sequence, tiny_subject
+from gra_mi.subject.anny_body import MOTION_CLIPS, anny_frames
+from gra_mi.subject.sequence import SequenceLayout, tiny_subject, write_sequence
 
 RIG_OPTIONS = ("num_leds", "radius", "num_cameras", "camera_distance", "width", "height", "max_led_intensity")
 
@@ -101,10 +101,11 @@ def run_subject(c: SubjectCommand) -> None:
 
     if c.kind == "tiny":
         seq = tiny_subject(c.frames)
-    else:
-        seq = anny_sequence(c.clips, c.frames_per_clip)
-    save_sequence(seq, c.out)
-    print(f"wrote {seq.num_frames} frames, {seq.num_vertices} vertices, {len(seq.faces)} triangles to {c.out}")
+        layout, frames = SequenceLayout.of(seq), zip(seq.vertices, seq.normals, strict=True)
+    else:  # posed and written a frame at a time: any number of frames
+        layout, frames = anny_frames(c.clips, c.frames_per_clip)
+    write_sequence(c.out, layout, frames, source=c.kind)
+    print(f"wrote {layout.num_frames} frames, {len(layout.uvs)} vertices, {len(layout.faces)} triangles to {c.out}")
 
 
 @dataclass(kw_only=True)

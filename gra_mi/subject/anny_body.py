@@ -14,13 +14,13 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
 
 from gra_mi.core.progress import progress
-from gra_mi.subject.sequence import MeshSequence, sequence_from_frames, split_uv_seams, vertex_normals
+from gra_mi.subject.sequence import MeshSequence, SequenceLayout, split_uv_seams, validate_sequence, vertex_normals
 
 logger = logging.getLogger(__name__)
 
@@ -154,9 +154,20 @@ def _body_colors(model, position_index: np.ndarray) -> np.ndarray:
 
 
 def anny_sequence(clips: list[str], frames_per_clip: int | list[int] | None = None, fps: float = 24.0) -> MeshSequence:
-    """Animate the anny body through the given clips and export a tracked mesh sequence (world frame)."""
+    """Animate the anny body through the given clips and export a tracked mesh sequence (world frame), whole."""
+    layout, frames = anny_frames(clips, frames_per_clip, fps)
+    vertices, normals = (np.stack(arrays) for arrays in zip(*frames, strict=True))
+    seq = MeshSequence(layout.faces, layout.uvs, vertices, normals, fps, layout.frame_labels, layout.vertex_colors, origin="anny")
+    validate_sequence(seq, "anny")
+    return seq
+
+
+def anny_frames(
+    clips: list[str], frames_per_clip: int | list[int] | None = None, fps: float = 24.0
+) -> tuple[SequenceLayout, Iterator[tuple[np.ndarray, np.ndarray]]]:
+    """The anny body through the given clips, a frame at a time: what every frame shares, and each frame's (vertices,
+    normals) as it is posed (:func:`~gra_mi.subject.sequence.write_sequence` writes a sequence of any length so)."""
     import anny
-    import torch
 
     logger.info("building the anny body model (cached after the first run)")
     model = anny.Anny()
@@ -166,37 +177,37 @@ def anny_sequence(clips: list[str], frames_per_clip: int | list[int] | None = No
     face_uv = model.face_texture_coordinate_indices.cpu().numpy()
     uv_table = model.texture_coordinates.cpu().numpy()
     new_faces, position_index, uv_index = split_uv_seams(faces, face_uv)
-    uvs = np.clip(uv_table[uv_index], 0.0, 1.0)
-    dtype = model.template_vertices.dtype
-
-    frames, labels = [], []
+    uvs = np.clip(uv_table[uv_index], 0.0, 1.0).astype(np.float32)
     schedule = clip_frames(clips, frames_per_clip)
-    with torch.no_grad():
+    colors = _body_colors(model, position_index)
+    layout = SequenceLayout(new_faces, uvs, len(schedule), fps, [name for name, _ in schedule], colors)
+
+    def frames() -> Iterator[tuple[np.ndarray, np.ndarray]]:
         for name, phase in progress(schedule, description="posing anny"):
-            rotations, turn = MOTION_CLIPS[name].pose_at(phase)
-            pose = {}
-            for bone, parts in rotations.items():
-                r = np.eye(3)
-                for axis, angle in parts:
-                    r = r @ _axis_rotation(axis, angle)
-                h = torch.eye(4, dtype=dtype)
-                h[:3, :3] = torch.as_tensor(r, dtype=dtype)
-                pose[bone] = h[None]
-            verts = model(pose_parameters=pose)["vertices"][0].cpu().numpy().astype(np.float64)
-            verts = verts @ (_axis_rotation("z", turn) if turn else np.eye(3)).T  # turn about anny's up axis
-            world = verts @ ANNY_TO_WORLD.T
-            world[:, 1] -= world[:, 1].min()  # feet on the floor (y = 0)
-            frames.append(world)
-            labels.append(name)
-    seq = sequence_from_frames(
-        [f[position_index] for f in frames],
-        new_faces,
-        uvs,
-        source="anny",
-        fps=fps,
-        frame_labels=labels,
-        vertex_colors=_body_colors(model, position_index),
-    )
-    # Normals from the welded mesh, so UV seams do not show as shading creases.
-    seq.normals = vertex_normals(np.stack(frames), faces)[:, position_index]
-    return seq
+            world = _posed(model, name, phase)
+            # Normals from the welded mesh, so UV seams do not show as shading creases.
+            yield world[position_index].astype(np.float32), vertex_normals(world, faces)[position_index]
+
+    return layout, frames()
+
+
+def _posed(model, name: str, phase: float) -> np.ndarray:
+    """The body's welded vertices in the world frame at ``phase`` of clip ``name``, feet on the floor (y = 0)."""
+    import torch
+
+    rotations, turn = MOTION_CLIPS[name].pose_at(phase)
+    dtype = model.template_vertices.dtype
+    pose = {}
+    for bone, parts in rotations.items():
+        r = np.eye(3)
+        for axis, angle in parts:
+            r = r @ _axis_rotation(axis, angle)
+        h = torch.eye(4, dtype=dtype)
+        h[:3, :3] = torch.as_tensor(r, dtype=dtype)
+        pose[bone] = h[None]
+    with torch.no_grad():
+        verts = model(pose_parameters=pose)["vertices"][0].cpu().numpy().astype(np.float64)
+    verts = verts @ (_axis_rotation("z", turn) if turn else np.eye(3)).T  # turn about anny's up axis
+    world = verts @ ANNY_TO_WORLD.T
+    world[:, 1] -= world[:, 1].min()
+    return world

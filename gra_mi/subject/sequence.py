@@ -188,8 +188,7 @@ def save_sequence(seq: MeshSequence, folder: str | Path, write_plys: bool = True
     """Write ``sequence.npz`` (and per-frame PLYs for scene files); returns the folder."""
     validate_sequence(seq)
     frames = ((seq.vertices[t], seq.normals[t]) for t in range(seq.num_frames))
-    layout = SequenceLayout(seq.faces, seq.uvs, seq.num_frames, seq.fps, seq.frame_labels, seq.vertex_colors)
-    return write_sequence(folder, layout, frames, write_plys, seq.origin)
+    return write_sequence(folder, SequenceLayout.of(seq), frames, write_plys, seq.origin)
 
 
 @dataclass
@@ -202,6 +201,10 @@ class SequenceLayout:
     fps: float = 24.0
     frame_labels: list[str] = field(default_factory=list)
     vertex_colors: np.ndarray | None = None
+
+    @classmethod
+    def of(cls, seq: MeshSequence) -> SequenceLayout:
+        return cls(seq.faces, seq.uvs, seq.num_frames, seq.fps, seq.frame_labels, seq.vertex_colors)
 
 
 def write_sequence(
