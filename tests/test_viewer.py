@@ -110,6 +110,30 @@ def test_a_long_sequence_s_visibility_is_held_within_the_memory_budget(llvm_vari
     assert cached.relighter.cache.misses == traced
 
 
+def test_a_bad_frame_is_said_when_shown_not_read_at_start(llvm_variant, tmp_path):
+    """The session checks a frame when it is used (a long sequence starts without a pass over every frame): the
+    background trace skips a bad one and says which, and showing it says so too; the other frames render."""
+    import shutil
+
+    from gra_mi.apps.viewer import ViewerSession, ViewSources, with_lighting
+    from gra_mi.subject.sequence import load_sequence
+
+    shutil.copytree(SCENES, tmp_path / "scenes", ignore=shutil.ignore_patterns("body_*", "outputs"))
+    subject = tmp_path / "scenes" / "subjects" / "tiny"
+    seq = load_sequence(subject)
+    vertices = np.array(seq.vertices)
+    vertices[3, 5] = np.nan  # as another tool might write it
+    np.savez(subject / "sequence.npz", faces=seq.faces, uvs=seq.uvs, vertices=vertices, normals=np.asarray(seq.normals))
+    session = ViewerSession(ViewSources(scene=tmp_path / "scenes" / "tiny_lightstage.xml", uv_resolution=64))
+    skipped = session.precompute(list(range(session.num_frames)), far_field=True)
+    assert len(skipped) == 1 and "frame 3" in skipped[0] and "sequence.npz" in skipped[0]
+    with_lighting(session, frame=3)
+    with pytest.raises(GraMiInputError, match="frame 3"):
+        session.render(front_camera(session))
+    with_lighting(session, frame=4)
+    assert session.render(front_camera(session)).image.std() > 1  # the subject, not a blank page
+
+
 def test_session_refuses_what_it_does_not_have_and_keeps_its_lighting(llvm_variant, tmp_path):
     from gra_mi.apps.viewer import with_lighting
 

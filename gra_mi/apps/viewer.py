@@ -90,7 +90,7 @@ class ViewerSession:
 
         self.sources, self.notices = sources, []
         self.lock = threading.RLock()
-        self.ls = LightstageScene.load(sources.scene)
+        self.ls = LightstageScene.load(sources.scene, every_frame=False)  # a frame is checked when it is shown
         albedo, roughness, self.confidence = self._maps()
         self.relighter = Relighter(self.ls, sources.uv_resolution, albedo, roughness, cache_dir=sources.vis_cache, transport=transport)
         frame_bytes = 4 * self.relighter.atlas.num_texels * -(-self.ls.stage.num_leds // 32)  # a frame's bits, every LED on
@@ -274,15 +274,21 @@ class ViewerSession:
         frames = list(range(self.num_frames))
         return frames if self.sources.vis_cache is not None else frames[: self.relighter.cache.keep]
 
-    def precompute(self, frames: list[int], far_field: bool, progress=None, stop: threading.Event | None = None) -> None:
-        """Trace each frame's visibility into the cache (one frame per lock, so the page stays responsive)."""
+    def precompute(self, frames: list[int], far_field: bool, progress=None, stop: threading.Event | None = None) -> list[str]:
+        """Trace each frame's visibility into the cache (one frame per lock, so the page stays responsive). A frame the
+        sequence holds badly (checked as it is used) is skipped; returns what was wrong with each skipped one."""
+        skipped = []
         for k, frame in enumerate(frames):
             if stop is not None and stop.is_set():
-                return
+                break
             with self.lock:
-                self.relighter.visibility(frame, far_field)
+                try:
+                    self.relighter.visibility(frame, far_field)
+                except GraMiInputError as exc:
+                    skipped.append(str(exc))
             if progress is not None:
                 progress(k + 1, len(frames))
+        return skipped
 
     def ground_truth(self, camera: str, frame: int) -> tuple[np.ndarray, str] | None:
         """The capture's image of ``camera`` at a frame showing this pose, as sRGB8, and what lit it."""

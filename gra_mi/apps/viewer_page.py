@@ -219,8 +219,10 @@ class ViewerPage:
         def progress(done: int, total: int) -> None:
             self.progress.value = 100.0 * done / total
 
-        self.session.precompute(frames, far_field=self.session.lighting.far_field, progress=progress, stop=self.stop)
+        skipped = self.session.precompute(frames, far_field=self.session.lighting.far_field, progress=progress, stop=self.stop)
         self.progress.visible = False
+        if skipped:  # said once, not per frame: the first names the file and the frame
+            self.say(f"{len(skipped)} frame(s) could not be traced and will not show: {skipped[0]}")
 
     def _connect(self, client) -> None:
         """A new browser starts where the rig's first camera stands, orbiting the subject's centre."""

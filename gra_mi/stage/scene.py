@@ -24,7 +24,7 @@ from gra_mi.core.io import atomic_write_text, write_exr, write_png
 from gra_mi.stage import scene_keys as keys
 from gra_mi.stage.envmap import LedLighting, envmap_to_leds, stage_background_plate
 from gra_mi.stage.lightstage import Camera, Lightstage, load_calibration, save_calibration, validate_pattern
-from gra_mi.subject.sequence import MeshSequence, load_sequence, save_sequence
+from gra_mi.subject.sequence import MeshSequence, check_frames, load_sequence, save_sequence
 
 logger = logging.getLogger(__name__)
 
@@ -230,7 +230,8 @@ class LightstageScene:
         cls, path: str | Path, frame: int = 0, spp: int | None = None, subject: str | None = None, every_frame: bool = True
     ) -> LightstageScene:
         """Load a scene file (Mitsuba variant must be chosen first: :func:`gra_mi.variant.choose_variant`).
-        ``every_frame`` False: the subject's frames are checked by the command, those it uses (:func:`check_frames`)."""
+        ``every_frame`` False: the subject's frames are checked as they are used (``frame`` now, each later one by
+        :meth:`set_frame`); a command checks those it will use first (:func:`check_frames`) to stop before any work."""
         import mitsuba as mi
 
         path = Path(path)
@@ -245,6 +246,7 @@ class LightstageScene:
         sequence = load_sequence(subject_path, every_frame)
         if not 0 <= frame < sequence.num_frames:
             raise GraMiParameterError("frame", f"frame {frame} out of range [0, {sequence.num_frames}) for {subject_path}")
+        check_frames(sequence, [frame])
         stage = load_calibration(path.parent / defaults[keys.PARAM_CALIBRATION])
         kwargs = {keys.PARAM_FRAME: keys.frame_param(frame), keys.PARAM_SUBJECT: str(subject_path.resolve())}
         if spp is not None:
@@ -294,6 +296,7 @@ class LightstageScene:
             return False
         import mitsuba as mi
 
+        check_frames(self.sequence, [frame])  # a frame read from a mapped file is checked when it is used
         # Copies: Dr.Jit's CPU arrays alias a contiguous NumPy buffer, and the mesh would then hold the sequence's own
         # memory (for a saved sequence, its file mapped read-only) for as long as it keeps the frame.
         self.params[keys.SUBJECT_POSITIONS] = mi.Float(np.array(self.sequence.vertices[frame], np.float32).ravel())
