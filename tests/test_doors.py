@@ -327,7 +327,7 @@ def _humanolat_source(leds: int):
     return Source(Path("subject"), "humanolat", Path("cameras.calib"), [], [], [], [], 0.001, positions, [], [], order=order)
 
 
-def test_the_door_leds_are_left_out_of_the_rig_by_default():
+def test_the_door_leds_are_left_out_of_the_rig_by_default(tmp_path):
     from gra_mi.capture.humanolat import DOOR_LEDS, HumanolatOptions, humanolat_frames
 
     source = _humanolat_source(331)
@@ -339,9 +339,16 @@ def test_the_door_leds_are_left_out_of_the_rig_by_default():
     for _, entry, drive in plan:  # each OLAT's LED, renumbered in the rig, is where the source put it
         assert entry.pattern == f"patterns/olat_{drive:03d}.json"
         np.testing.assert_array_equal(source.leds[drive], original[kept[drive]])
+    # a gains file names every LED of the stage, the door's too: each rig LED gets its own
+    gains = np.random.default_rng(2).uniform(0.5, 1.5, (331, 3))
+    path = tmp_path / "gains.txt"
+    path.write_text("".join(f"{r} {g} {b}\n" for r, g, b in gains))
+    picked = source.led_gains(path)
+    np.testing.assert_allclose(picked, gains[kept] / gains[kept].mean())
     source = _humanolat_source(331)
     plan, left_out = humanolat_frames(source, HumanolatOptions(keep_door_leds=True))
     assert len(source.leds) == 331 and not left_out and plan[0][2] == "white"
+    np.testing.assert_allclose(source.led_gains(path), gains / gains.mean())
 
 
 def test_an_output_file_may_have_siblings_of_its_own_stem_only(tmp_path):

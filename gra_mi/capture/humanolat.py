@@ -373,8 +373,8 @@ def humanolat_frames(source: Source, config: HumanolatOptions) -> tuple[list, li
         split, sequence = ("test", 1) if (k + 1) % config.test_olat_every == 0 else ("train", 0)
         index = rig_index[led]  # the LED's index in the rig gra-mi writes (the door's left out)
         plan.append((number, FrameLighting(k + 1, split, sequence, "pattern", None, f"patterns/olat_{index:03d}.json", pose=0), index))
-    if door:
-        source.leds = source.leds[sorted(rig_index)]
+    if door:  # the rig's LEDs renumbered; --led-gains still names them by the source's numbers
+        source.leds, source.led_numbers = source.leds[sorted(rig_index)], sorted(rig_index)
     return plan, left_out
 
 
