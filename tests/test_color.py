@@ -23,6 +23,21 @@ def test_srgb_matches_colour_science_and_round_trips(backend):
     np.testing.assert_allclose(back(srgb_decode(srgb_encode(as_array(GRID)))), GRID, atol=1e-12)
 
 
+def test_every_8_and_16_bit_level_decodes_as_colour_science_decodes_it():
+    """The table an import decodes 8- and 16-bit images through: each level's value from colour-science's sRGB curve,
+    and the same float32 as decoding ``level / top`` directly."""
+    from gra_mi.core.color import srgb_decode_levels
+
+    for dtype, top in ((np.uint8, 255), (np.uint16, 65535)):
+        levels = np.arange(top + 1, dtype=dtype)
+        table = srgb_decode_levels(levels)
+        assert table.dtype == np.float32
+        np.testing.assert_allclose(table, colour.cctf_decoding(levels / top, function="sRGB"), rtol=1e-6, atol=1e-9)
+        np.testing.assert_array_equal(table, srgb_decode(levels.astype(np.float32) / top).astype(np.float32))
+    with pytest.raises(ValueError, match="8- or 16-bit"):
+        srgb_decode_levels(np.zeros(3, np.float32))
+
+
 @pytest.mark.parametrize("backend", ["numpy", "torch"])
 def test_values_a_display_cannot_show_go_to_the_nearest_end(backend):
     values = np.array([np.nan, np.inf, -np.inf, -0.5, 1.5])

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from gra_mi.capture.lens import LensDistortion
-from gra_mi.core.color import srgb_decode, srgb_encode
+from gra_mi.core.color import srgb_decode_levels, srgb_encode
 from gra_mi.core.errors import GraMiInputError
 from gra_mi.core.io import atomic_path, atomic_write_text, read_exr
 
@@ -216,7 +216,7 @@ def read_image(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     top = 65535 if pixels.dtype == np.uint16 else 255
     alpha = pixels[..., 3].astype(np.float32) / top if pixels.ndim == 3 and pixels.shape[2] == 4 else None
     pixels = pixels[..., :3] if pixels.ndim == 3 else np.repeat(pixels[..., None], 3, axis=-1)
-    rgb = srgb_decode(pixels.astype(np.float32) / top).astype(np.float32)
+    rgb = srgb_decode_levels(pixels.astype(pixels.dtype.newbyteorder("="), copy=False))  # exact: srgb_decode of level / top
     return rgb, (pixels >= top).any(axis=-1), None if alpha is None or alpha.min() == 1 else alpha
 
 
