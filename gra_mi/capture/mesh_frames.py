@@ -23,11 +23,11 @@ class MeshFrames:
     """The mesh of each mesh frame, in the file's units: ``first`` whole, every frame's positions on demand
     (:meth:`positions`, checked: finite, the first's topology)."""
 
-    def __init__(self, files: list[Path], first: ObjMesh | None = None):
+    def __init__(self, files: list[Path]):
         if not files:
             raise ValueError("a mesh sequence needs at least one file")  # a reader's mistake, not the user's
         self.files = list(files)
-        self.first = first if first is not None else read_mesh(self.files[0])
+        self.first = read_mesh(self.files[0])
         self._topology = _obj_lines(self.files[0])[1] if self.files[0].suffix.lower() == ".obj" else None
 
     def __len__(self) -> int:

@@ -262,12 +262,15 @@ def _checked_layout(layout: SequenceLayout, source: str) -> None:
     )
 
 
-def _checked_frame(vertices, normals, faces: np.ndarray, count: int, t: int, frames: int, source: str) -> tuple[np.ndarray, np.ndarray]:
-    if t >= frames:
-        raise GraMiInputError(source, f"more frames given than the sequence's {frames}", field="vertices")
+def _checked_frame(
+    vertices, normals, faces: np.ndarray, num_vertices: int, t: int, num_frames: int, source: str
+) -> tuple[np.ndarray, np.ndarray]:
+    """Frame ``t`` as written: float32 little-endian, its normals computed from the faces where not given, checked."""
+    if t >= num_frames:
+        raise GraMiInputError(source, f"more frames given than the sequence's {num_frames}", field="vertices")
     vertices = np.asarray(vertices, np.float32)
-    if vertices.shape != (count, 3):
-        raise GraMiInputError(source, f"frame {t}: expected ({count}, 3) vertices, got {vertices.shape}", field="vertices")
+    if vertices.shape != (num_vertices, 3):
+        raise GraMiInputError(source, f"frame {t}: expected ({num_vertices}, 3) vertices, got {vertices.shape}", field="vertices")
     if not np.isfinite(vertices).all():
         _check_frames(vertices[None], vertices[None], t, source)
     normals = vertex_normals(vertices, faces) if normals is None else np.asarray(normals, np.float32)
