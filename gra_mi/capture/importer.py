@@ -17,6 +17,7 @@ import json
 import logging
 import os
 import shutil
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, replace
 from pathlib import Path
 
@@ -41,7 +42,7 @@ from gra_mi.capture.source_files import image_size, read_image, resample_columns
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.guard import staging_folder
 from gra_mi.core.io import atomic_write_text, read_exr, write_exr, write_png
-from gra_mi.core.limits import require_memory, require_memory_for
+from gra_mi.core.limits import MEMORY_SHARE, machine_memory, require_memory, require_memory_for
 from gra_mi.core.progress import progress
 from gra_mi.core.provenance import PROVENANCE, claim_output, release_folder, run_differences, run_record
 from gra_mi.core.shard import Shard
@@ -51,6 +52,7 @@ from gra_mi.stage.scene import subject_scene_xml, write_rig
 
 logger = logging.getLogger(__name__)
 IMAGE_BYTES_PER_PIXEL = 4 * 4 * 8  # RGBA float32: the decoded source, its resampling and mask, the written EXR
+MAX_WORKERS = 8  # threads importing one camera's images (decoding and writing release the GIL)
 LENS_BYTES_PER_PIXEL = 256  # of a source image, undistorted: its maps (kept for two cameras), samples and weights
 
 
@@ -134,7 +136,8 @@ def import_capture(
     frames = [replace(f, missing=missing.get(k, [])) for k, f, _ in source.frames]
     capture = Capture(staging, source.format, "captured", config.uv_resolution, train_cameras, eval_cameras, frames, source=record)
     mine = shard.take(source.frames)
-    saturated = {plan.camera.name: _import_camera(source, plan, capture, mine) for plan in plans}
+    workers = import_workers(max(p.source_size[0] * p.source_size[1] for p in plans) * IMAGE_BYTES_PER_PIXEL)
+    saturated = {plan.camera.name: _import_camera(source, plan, capture, mine, workers) for plan in plans}
     if not shard.whole:
         saturated = _merge_shards(staging, shard, saturated)
         if saturated is None:
@@ -294,28 +297,44 @@ def _drive(stage: Lightstage, drive) -> np.ndarray:
     return olat_pattern(stage, drive)
 
 
-def _import_camera(source: Source, plan: CameraPlan, capture: Capture, frames: list) -> list[float]:
-    """The ``frames`` of one camera, one image at a time: sRGB → linear, onto the planned grid, its mask as alpha.
-    Returns each frame's fraction of saturated subject pixels."""
-    saturated, name = [], plan.camera.name
-    for key, entry, _ in progress(frames, description=f"import {name}"):
-        path = capture.image_path(name, entry.frame)
-        image_path = source.images[plan.index].get(key)
-        if image_path is None:  # a gap --missing-images skip let through (recorded in capture.json)
-            continue
-        rgb, clipped, alpha = read_image(image_path)
-        mask = frame_mask(source, plan, key, (rgb, alpha))  # the image decoded once
-        saturated.append(float((clipped & (mask_at_source(mask, plan) > 0.5)).mean()) if clipped.any() else 0.0)
-        if path.is_file():
-            continue
-        if clipped.any():  # a planned pixel any clipped source pixel contributes to is left out of the fit
-            write_mask(capture.saturation_path(name, entry.frame), resample_image(clipped[..., None].astype(np.float32), plan)[..., 0] > 0)
-        rgb = resample_image(rgb, plan)
-        if alpha is None:  # a binary mask: the background is cut away
-            rgb = rgb * (mask[..., None] > 0.5)
-        elif image_path.suffix.lower() != ".exr":  # straight alpha (PNG, AVIF) → premultiplied, as EXR holds it
-            rgb = rgb * mask[..., None]
-        write_exr(path, np.concatenate([rgb, mask[..., None]], axis=-1).astype(np.float32))
+def import_workers(image_bytes: float) -> int:
+    """Threads that import a camera's images: one per core, at most :data:`MAX_WORKERS`, as many as memory holds
+    (each holds one image's arrays)."""
+    held = int(MEMORY_SHARE * machine_memory() // max(image_bytes, 1.0))
+    return max(1, min(os.cpu_count() or 1, MAX_WORKERS, held))
+
+
+def _import_camera(source: Source, plan: CameraPlan, capture: Capture, frames: list, workers: int = 1) -> list[float]:
+    """The ``frames`` of one camera: each image decoded, resampled and written by one of ``workers`` threads (decoding
+    and EXR compression release the GIL). The first goes alone, so the camera's mask and lens tables are made once.
+    Returns each frame's fraction of saturated subject pixels, in order."""
+    jobs = [(key, entry) for key, entry, _ in frames if key in source.images[plan.index]]  # gaps --missing-images skip let through
+    if not jobs:
+        return []
+    first = _import_image(source, plan, capture, *jobs[0])
+    with ThreadPoolExecutor(workers) as pool:
+        rest = pool.map(lambda job: _import_image(source, plan, capture, *job), jobs[1:])
+        return [first, *progress(rest, description=f"import {plan.camera.name}", total=len(jobs) - 1)]
+
+
+def _import_image(source: Source, plan: CameraPlan, capture: Capture, key: int, entry) -> float:
+    """One source image: sRGB → linear, onto the planned grid, its mask as alpha; its saturated share of the subject.
+    An image already written (a resumed import) is only read for that share."""
+    name = plan.camera.name
+    path, image_path = capture.image_path(name, entry.frame), source.images[plan.index][key]
+    rgb, clipped, alpha = read_image(image_path)
+    mask = frame_mask(source, plan, key, (rgb, alpha))  # the image decoded once
+    saturated = float((clipped & (mask_at_source(mask, plan) > 0.5)).mean()) if clipped.any() else 0.0
+    if path.is_file():
+        return saturated
+    if clipped.any():  # a planned pixel any clipped source pixel contributes to is left out of the fit
+        write_mask(capture.saturation_path(name, entry.frame), resample_image(clipped[..., None].astype(np.float32), plan)[..., 0] > 0)
+    rgb = resample_image(rgb, plan)
+    if alpha is None:  # a binary mask: the background is cut away
+        rgb = rgb * (mask[..., None] > 0.5)
+    elif image_path.suffix.lower() != ".exr":  # straight alpha (PNG, AVIF) → premultiplied, as EXR holds it
+        rgb = rgb * mask[..., None]
+    write_exr(path, np.concatenate([rgb, mask[..., None]], axis=-1).astype(np.float32))
     return saturated
 
 
@@ -364,8 +383,10 @@ def linearity(source: Source, plan: CameraPlan, mask: np.ndarray) -> dict:
     linear sensor and a subject that held still (each LED's gain is in both)."""
     inside = mask_at_source(mask, plan) > 0.5
     total = np.zeros(int(inside.sum()) * 3)
-    for number in progress(source.olat_keys, description=f"linearity {plan.camera.name}"):
-        total += read_image(source.images[plan.index][number])[0][inside].ravel()
+    with ThreadPoolExecutor(import_workers(inside.size * IMAGE_BYTES_PER_PIXEL)) as pool:  # summed in order: deterministic
+        lit = pool.map(lambda number: read_image(source.images[plan.index][number])[0][inside].ravel(), source.olat_keys)
+        for pixels in progress(lit, description=f"linearity {plan.camera.name}", total=len(source.olat_keys)):
+            total += pixels
     white = read_image(source.images[plan.index][source.white])[0][inside].ravel()
     ratio = float(total.sum() / max(white.sum(), 1e-12))
     return {"camera": plan.camera.name, "olats_over_white": ratio, "olats": len(source.olat_keys)}
