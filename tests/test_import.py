@@ -465,6 +465,29 @@ def test_led_gains_light_each_olat_by_its_led(olat_capture, imported, tmp_path):
     assert main([*args, "--mesh-units", "mm", "--uv-resolution", "32", "--led-gains", str(tmp_path / "gains.txt")]) == 2
 
 
+@pytest.mark.parametrize("planes, greyscale, alpha", [(1, True, False), (2, True, True), (3, False, False), (4, False, True)])
+def test_16_bit_pngs_keep_every_bit(tmp_path, planes, greyscale, alpha):
+    """A 16-bit PNG as pypng writes it (grey, grey + alpha, RGB, RGBA): every level decoded with the sRGB curve, not
+    Pillow's 8-bit reading of it; the top level saturates; alpha in [0, 1]."""
+    import png
+
+    from gra_mi.capture.source_files import read_image
+    from gra_mi.core.color import srgb_decode
+
+    levels = np.random.default_rng(planes).integers(0, 65536, (6, 9, planes)).astype(np.uint16)
+    levels[0, 0, 0] = 65535
+    path = tmp_path / "image.png"
+    with open(path, "wb") as fh:
+        png.Writer(9, 6, greyscale=greyscale, alpha=alpha, bitdepth=16).write(fh, levels.reshape(6, -1).tolist())
+    rgb, saturated, opacity = read_image(path)
+    colour = levels[..., : planes - alpha]
+    expected = srgb_decode(np.repeat(colour, 3 // colour.shape[-1], axis=-1).astype(np.float32) / 65535).astype(np.float32)
+    np.testing.assert_array_equal(rgb, expected)
+    assert saturated[0, 0] and saturated.sum() == (colour == 65535).any(axis=-1).sum()
+    if alpha:
+        np.testing.assert_allclose(opacity, levels[..., -1] / 65535, atol=1e-7)
+
+
 @pytest.mark.parametrize(
     "text, needles",
     [

@@ -208,16 +208,38 @@ def read_image(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     if path.suffix.lower() == ".exr":
         image = read_exr(path)
         return image[..., :3], np.zeros(image.shape[:2], bool), image[..., 3] if image.shape[2] == 4 else None
-    try:
-        with Image.open(path) as image:
-            pixels = np.asarray(image if image.mode in ("I;16", "I;16B", "RGB", "RGBA") else image.convert("RGBA"))
-    except (OSError, SyntaxError, ValueError) as exc:
-        raise GraMiInputError(path, f"not a readable image ({exc})") from None
+    if path.suffix.lower() == ".png" and _png_bit_depth(path) == 16:
+        pixels = _read_png16(path)  # Pillow reads a 16-bit colour PNG as 8-bit: half its bits would be lost unsaid
+    else:
+        try:
+            with Image.open(path) as image:
+                pixels = np.asarray(image if image.mode in ("I;16", "I;16B", "RGB", "RGBA") else image.convert("RGBA"))
+        except (OSError, SyntaxError, ValueError) as exc:
+            raise GraMiInputError(path, f"not a readable image ({exc})") from None
     top = 65535 if pixels.dtype == np.uint16 else 255
     alpha = pixels[..., 3].astype(np.float32) / top if pixels.ndim == 3 and pixels.shape[2] == 4 else None
     pixels = pixels[..., :3] if pixels.ndim == 3 else np.repeat(pixels[..., None], 3, axis=-1)
     rgb = srgb_decode_levels(pixels.astype(pixels.dtype.newbyteorder("="), copy=False))  # exact: srgb_decode of level / top
     return rgb, (pixels >= top).any(axis=-1), None if alpha is None or alpha.min() == 1 else alpha
+
+
+def _png_bit_depth(path: Path) -> int | None:
+    """The bit depth a PNG's header states (None: not a PNG)."""
+    with open(path, "rb") as fh:
+        head = fh.read(26)  # signature (8), IHDR length and type (8), width, height (8), bit depth, colour type
+    return head[24] if len(head) == 26 and head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR" else None
+
+
+def _read_png16(path: Path) -> np.ndarray:
+    """A 16-bit PNG's levels, every bit kept (OpenCV; its BGR order undone): (H, W) grey, (H, W, 3) or (H, W, 4)."""
+    import cv2
+
+    pixels = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if pixels is None:
+        raise GraMiInputError(path, "not a readable 16-bit PNG")
+    if pixels.ndim == 3:  # BGR, BGRA (grey with alpha comes as BGRA too)
+        pixels = pixels[..., [2, 1, 0, 3][: pixels.shape[2]]]
+    return pixels
 
 
 def image_size(path: Path) -> tuple[int, int]:
