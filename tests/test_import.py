@@ -488,6 +488,20 @@ def test_16_bit_pngs_keep_every_bit(tmp_path, planes, greyscale, alpha):
         np.testing.assert_allclose(opacity, levels[..., -1] / 65535, atol=1e-7)
 
 
+def test_a_16_bit_mask_is_split_at_half_its_range(tmp_path):
+    """Pillow's conversion to 8 bits clips 16-bit levels (200 of 65,535 would become 200 of 255: the subject)."""
+    import png
+    from PIL import Image
+
+    from gra_mi.capture.source_files import read_mask
+
+    with open(tmp_path / "mask16.png", "wb") as fh:
+        png.Writer(5, 1, greyscale=True, bitdepth=16).write(fh, [[0, 200, 20000, 40000, 65535]])
+    assert read_mask(tmp_path / "mask16.png").tolist() == [[False, False, False, True, True]]
+    Image.fromarray(np.array([[0, 100, 200]], np.uint8)).save(tmp_path / "mask8.png")
+    assert read_mask(tmp_path / "mask8.png").tolist() == [[False, False, True]]
+
+
 @pytest.mark.parametrize(
     "text, needles",
     [

@@ -231,10 +231,9 @@ def load_fit_observation(capture: Capture, camera: str, frame: int) -> np.ndarra
     image = load_observation(capture, camera, frame)
     path = capture.saturation_path(camera, frame)
     if path.is_file():
-        from PIL import Image
+        from gra_mi.capture.source_files import read_mask
 
-        with Image.open(path) as mask:
-            clipped = np.asarray(mask.convert("L")) > 127
+        clipped = read_mask(path)
         if clipped.shape != image.shape[:2]:
             raise GraMiInputError(path, f"is {clipped.shape[1]}x{clipped.shape[0]}, its image {image.shape[1]}x{image.shape[0]}")
         image[clipped, 3] = 0.0

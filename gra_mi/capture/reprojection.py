@@ -11,7 +11,7 @@ import numpy as np
 
 from gra_mi.capture.placement import CameraPlan, WorldFrame, plan_camera, resample_image
 from gra_mi.capture.source import Source
-from gra_mi.capture.source_files import read_image
+from gra_mi.capture.source_files import read_image, read_mask
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.progress import progress
 from gra_mi.stage.lightstage import Camera
@@ -50,13 +50,7 @@ def frame_mask(source: Source, plan: CameraPlan, key: int, image: tuple | None =
 
 
 def _mask_file(path: Path, plan: CameraPlan) -> np.ndarray:
-    from PIL import Image
-
-    try:
-        with Image.open(path) as image:
-            mask = (np.asarray(image.convert("L")) > 127).astype(np.float32)
-    except (OSError, SyntaxError, ValueError) as exc:
-        raise GraMiInputError(path, f"not a readable mask ({exc})") from None
+    mask = read_mask(path).astype(np.float32)
     if mask.shape[::-1] != plan.source_size:
         raise GraMiInputError(path, f"is {mask.shape[1]}x{mask.shape[0]}, its camera's images {plan.source_size[0]}x{plan.source_size[1]}")
     return resample_image(mask[..., None], plan)[..., 0]

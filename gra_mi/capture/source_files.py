@@ -262,6 +262,20 @@ def image_size(path: Path) -> tuple[int, int]:
         raise GraMiInputError(path, f"not a readable image ({exc})") from None
 
 
+def read_mask(path: Path) -> np.ndarray:
+    """A mask image as (H, W) bool: the subject where a pixel's grey level is above half its range, 8- or 16-bit
+    (Pillow's own conversion to 8 bits clips 16-bit levels, so a level of 200 in 65,535 would count as the subject)."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as image:
+            if image.mode in ("I;16", "I;16B", "I;16L", "I"):  # a 16-bit grey PNG
+                return np.asarray(image) > 32767
+            return np.asarray(image.convert("L")) > 127
+    except (OSError, SyntaxError, ValueError) as exc:
+        raise GraMiInputError(path, f"not a readable mask ({exc})") from None
+
+
 def write_mask(path: Path, mask: np.ndarray) -> None:
     from PIL import Image
 
