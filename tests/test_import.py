@@ -488,6 +488,25 @@ def test_16_bit_pngs_keep_every_bit(tmp_path, planes, greyscale, alpha):
         np.testing.assert_allclose(opacity, levels[..., -1] / 65535, atol=1e-7)
 
 
+def test_an_exr_source_image_is_read_as_radiance_or_refused_by_name(tmp_path):
+    """A grey (Y) EXR is every channel's; NaN, infinite or negative radiance and an alpha outside [0, 1] are the
+    source's faults, named by its file before anything is written (not found later in the written capture)."""
+    from gra_mi.capture.source_files import read_image
+    from gra_mi.core.errors import GraMiInputError
+    from gra_mi.core.io import write_exr
+
+    write_exr(tmp_path / "grey.exr", np.full((4, 5), 0.25, np.float32))
+    rgb, saturated, alpha = read_image(tmp_path / "grey.exr")
+    assert rgb.shape == (4, 5, 3) and (rgb == 0.25).all() and not saturated.any() and alpha is None
+    for name, value, channel, needle in (("nan", np.nan, 0, "NaN"), ("negative", -0.01, 1, "negative"), ("alpha", 1.5, 3, "alpha")):
+        image = np.full((4, 5, 4), 0.5, np.float32)
+        image[1, 2, channel] = value
+        write_exr(tmp_path / f"{name}.exr", image)
+        with pytest.raises(GraMiInputError, match=needle) as info:
+            read_image(tmp_path / f"{name}.exr")
+        assert f"{name}.exr" in str(info.value)
+
+
 def test_a_16_bit_mask_is_split_at_half_its_range(tmp_path):
     """Pillow's conversion to 8 bits clips 16-bit levels (200 of 65,535 would become 200 of 255: the subject)."""
     import png

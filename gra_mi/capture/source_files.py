@@ -207,7 +207,17 @@ def read_image(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
 
     if path.suffix.lower() == ".exr":
         image = read_exr(path)
-        return image[..., :3], np.zeros(image.shape[:2], bool), image[..., 3] if image.shape[2] == 4 else None
+        rgb = np.repeat(image, 3, axis=-1) if image.shape[2] == 1 else image[..., :3]  # a grey (Y) EXR: every channel
+        bad = ~np.isfinite(rgb) | (rgb < 0)
+        if bad.any():  # the source's, named here: a written capture would refuse it with no word of where it came from
+            raise GraMiInputError(
+                path, f"{int(bad.any(axis=-1).sum())} pixels are NaN, infinite or negative: captured radiance must be finite and "
+                ">= 0 (clamp after black-level subtraction)",
+            )  # fmt: skip
+        alpha = image[..., 3] if image.shape[2] == 4 else None
+        if alpha is not None and not (np.isfinite(alpha).all() and 0 <= alpha.min() and alpha.max() <= 1):
+            raise GraMiInputError(path, "its alpha must be a coverage in [0, 1] (finite)")
+        return rgb, np.zeros(image.shape[:2], bool), alpha
     if path.suffix.lower() == ".png" and _png_bit_depth(path) == 16:
         pixels = _read_png16(path)  # Pillow reads a 16-bit colour PNG as 8-bit: half its bits would be lost unsaid
     else:
