@@ -140,3 +140,27 @@ def test_one_command_parser_does_not_import_torch():
     code = "import sys; from gra_mi.cli.main import build_parser; build_parser('rig'); print('torch' in sys.modules)"
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert result.stdout.strip() == "False"
+
+
+def test_threaded_work_keeps_the_order_and_stops_at_a_failure():
+    """gra_mi.core.progress.threaded: results in the items' order; a failure is raised at its item's turn and what had
+    not started is never run (a long import stops at its bad image, not after the rest)."""
+    import threading
+    import time
+
+    from gra_mi.core.progress import threaded
+
+    assert list(threaded(lambda k: k * k, list(range(50)), 4, "squares")) == [k * k for k in range(50)]
+    started, lock = [], threading.Lock()
+
+    def work(k: int) -> int:
+        with lock:
+            started.append(k)
+        if k == 3:
+            raise ValueError("bad item 3")
+        time.sleep(0.01)
+        return k
+
+    with pytest.raises(ValueError, match="bad item 3"):
+        list(threaded(work, list(range(400)), 2, "items"))
+    assert len(started) < 100, f"{len(started)} of 400 items started after the failure"

@@ -13,7 +13,7 @@ import numpy as np
 
 from gra_mi.core.errors import GraMiInputError
 from gra_mi.core.io import atomic_write_text, read_exr, read_json
-from gra_mi.core.progress import progress
+from gra_mi.core.progress import threaded
 from gra_mi.stage.envmap import envmap_to_leds, load_envmap
 from gra_mi.stage.lightstage import load_calibration, load_pattern, uniform_pattern
 
@@ -156,16 +156,13 @@ class Capture:
         """Read and check every image once before work starts (a bad one found hours into a fit, or after caches
         were written, would leave partial output). About 2 ms an image at the small preset's size."""
 
-        from concurrent.futures import ThreadPoolExecutor
-
         views = [(cam, f.frame) for cam in self.train_cameras + self.eval_cameras for f in self.frames if self.has_image(cam, f)]
 
         def check(view: tuple[str, int]) -> None:
             load_observation(self, *view)  # the image itself is not kept
 
-        with ThreadPoolExecutor(min(os.cpu_count() or 1, 8)) as pool:  # EXR decoding releases the GIL
-            for _ in progress(pool.map(check, views), "checking the capture's images", len(views)):
-                pass
+        for _ in threaded(check, views, min(os.cpu_count() or 1, 8), "checking the capture's images"):  # EXR decoding releases the GIL
+            pass
 
     def load_scene(self):
         """The capture's scene (``scene.xml``), the subject's frames checked those the capture shows: every frame's

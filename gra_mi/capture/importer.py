@@ -17,7 +17,6 @@ import json
 import logging
 import os
 import shutil
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, replace
 from pathlib import Path
 
@@ -43,7 +42,7 @@ from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.guard import staging_folder
 from gra_mi.core.io import atomic_write_text, read_exr, write_exr, write_png
 from gra_mi.core.limits import MEMORY_SHARE, machine_memory, require_memory, require_memory_for
-from gra_mi.core.progress import progress
+from gra_mi.core.progress import threaded
 from gra_mi.core.provenance import PROVENANCE, claim_output, release_folder, run_differences, run_record
 from gra_mi.core.shard import Shard
 from gra_mi.render.runtime import ensure_mitsuba
@@ -312,9 +311,8 @@ def _import_camera(source: Source, plan: CameraPlan, capture: Capture, frames: l
     if not jobs:
         return []
     first = _import_image(source, plan, capture, *jobs[0])
-    with ThreadPoolExecutor(workers) as pool:
-        rest = pool.map(lambda job: _import_image(source, plan, capture, *job), jobs[1:])
-        return [first, *progress(rest, description=f"import {plan.camera.name}", total=len(jobs) - 1)]
+    rest = threaded(lambda job: _import_image(source, plan, capture, *job), jobs[1:], workers, f"import {plan.camera.name}")
+    return [first, *rest]
 
 
 def _import_image(source: Source, plan: CameraPlan, capture: Capture, key: int, entry) -> float:
@@ -383,10 +381,12 @@ def linearity(source: Source, plan: CameraPlan, mask: np.ndarray) -> dict:
     linear sensor and a subject that held still (each LED's gain is in both)."""
     inside = mask_at_source(mask, plan) > 0.5
     total = np.zeros(int(inside.sum()) * 3)
-    with ThreadPoolExecutor(import_workers(inside.size * IMAGE_BYTES_PER_PIXEL)) as pool:  # summed in order: deterministic
-        lit = pool.map(lambda number: read_image(source.images[plan.index][number])[0][inside].ravel(), source.olat_keys)
-        for pixels in progress(lit, description=f"linearity {plan.camera.name}", total=len(source.olat_keys)):
-            total += pixels
+    lit = threaded(
+        lambda number: read_image(source.images[plan.index][number])[0][inside].ravel(),
+        list(source.olat_keys), import_workers(inside.size * IMAGE_BYTES_PER_PIXEL), f"linearity {plan.camera.name}",
+    )  # fmt: skip
+    for pixels in lit:  # summed in order: the same sum whatever the threads
+        total += pixels
     white = read_image(source.images[plan.index][source.white])[0][inside].ravel()
     ratio = float(total.sum() / max(white.sum(), 1e-12))
     return {"camera": plan.camera.name, "olats_over_white": ratio, "olats": len(source.olat_keys)}

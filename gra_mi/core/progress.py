@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import os
 import sys
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from typing import TypeVar
 
 T = TypeVar("T")
+R = TypeVar("R")
 
 
 def progress(items: Iterable[T], description: str, total: int | None = None) -> Iterator[T]:
@@ -25,3 +26,16 @@ def progress(items: Iterable[T], description: str, total: int | None = None) -> 
         for item in items:
             yield item
             bar.advance(task)
+
+
+def threaded(work: Callable[[T], R], items: list[T], workers: int, description: str) -> Iterator[R]:
+    """``work`` of each item on ``workers`` threads (for work that releases the GIL: decoding, compression, NumPy), the
+    results in the items' order with a progress bar. A failure stops what has not started: it is raised when its item's
+    turn comes, without waiting for the rest of a long list."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    pool = ThreadPoolExecutor(max(1, workers))
+    try:
+        yield from progress(pool.map(work, items), description, len(items))
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
