@@ -121,6 +121,50 @@ def test_glb_passes_the_khronos_validator_and_a_broken_one_does_not(tmp_path, av
     assert validate_glb(broken).errors
 
 
+def _gltf_pixels(gltf: dict, node: dict, width: int, height: int, points: np.ndarray) -> np.ndarray:
+    """Where a glTF camera node sees ``points``, by the spec's own perspective matrix (infinite far plane) and the
+    node's column-major matrix: pixels of a ``width`` × ``height`` image, row 0 at the top."""
+    camera = gltf["cameras"][node["camera"]]["perspective"]
+    t = math.tan(camera["yfov"] / 2.0)
+    projection = np.array([[1 / (camera["aspectRatio"] * t), 0, 0, 0], [0, 1 / t, 0, 0], [0, 0, -1, -2 * camera["znear"]], [0, 0, -1, 0]])
+    view = np.linalg.inv(np.array(node["matrix"]).reshape(4, 4).T)
+    clip = np.concatenate([points, np.ones((len(points), 1))], 1) @ (projection @ view).T
+    ndc = clip[:, :3] / clip[:, 3:]
+    return np.stack([(ndc[:, 0] + 1) / 2 * width, (1 - ndc[:, 1]) / 2 * height], 1)
+
+
+@pytest.mark.skipif(gltf_validator() is None, reason="node or the npm package gltf-validator is missing (scripts/setup.sh)")
+def test_a_glbs_cameras_see_as_the_rigs_and_its_lit_leds_are_point_lights(tmp_path, avatar):
+    """Cameras and LEDs in a .glb: the Khronos validator accepts them (KHR_lights_punctual), each camera projects the
+    mesh where the rig's camera does (the spec's projection, written here), a camera whose principal point glTF cannot
+    hold is said, and only the LEDs that are on are lights, each at its position with 683 lm/W × its W/sr."""
+    from dataclasses import replace
+
+    seq = avatar[0]
+    rig = default_lightstage()
+    centred = [replace(cam, cx=cam.width / 2, cy=cam.height / 2) for cam in rig.cameras]
+    drive = olat_pattern(rig, 5) + olat_pattern(rig, 40, 0.5)
+    report = export_avatar(tmp_path / "a.glb", *avatar, rig=replace(rig, cameras=centred), led_intensities=drive)
+    assert report.errors == [] and report.warnings == [], report.errors + report.warnings
+    data = (tmp_path / "a.glb").read_bytes()
+    gltf = json.loads(data[20 : 20 + struct.unpack("<I", data[12:16])[0]])
+    cameras = [n for n in gltf["nodes"] if "camera" in n]
+    points = seq.vertices[0][::5].astype(np.float64)
+    assert len(cameras) == len(centred) and set(gltf["scenes"][0]["nodes"]) == set(range(len(gltf["nodes"])))
+    for node, cam in zip(cameras, centred, strict=True):
+        np.testing.assert_allclose(_gltf_pixels(gltf, node, cam.width, cam.height, points), cam.project(points)[:, :2], atol=1e-6)
+    lights = gltf["extensions"]["KHR_lights_punctual"]["lights"]
+    lit = [n for n in gltf["nodes"] if "extensions" in n]
+    assert [light["name"] for light in lights] == ["led0005", "led0040"] and gltf["extensionsUsed"] == ["KHR_lights_punctual"]
+    for node, led in zip(lit, (5, 40), strict=True):
+        light = lights[node["extensions"]["KHR_lights_punctual"]["light"]]
+        np.testing.assert_allclose(node["translation"], rig.led_positions[led])
+        assert light["type"] == "point" and light["intensity"] == pytest.approx(683 * drive[led].max()) and light["color"] == [1, 1, 1]
+    shifted = replace(rig, cameras=[replace(centred[0], cx=centred[0].cx + 12.5), *centred[1:]])
+    off = export_avatar(tmp_path / "b.glb", *avatar, rig=shifted)
+    assert off.errors == [] and len(off.warnings) == 1 and "(+12.5, +0.0) px off" in off.warnings[0], off.warnings
+
+
 @pytest.mark.parametrize("name", ["a.usdz", "a.usda", "a.usdc", "a.glb"])
 def test_an_export_reads_back_to_the_same_mesh(tmp_path, avatar, name):
     seq = avatar[0]
@@ -212,9 +256,9 @@ def test_a_truncated_export_is_refused(tmp_path, avatar):
             load_sequence(path)
 
 
-def test_export_refuses_lights_in_a_glb_and_unknown_formats(tmp_path, avatar):
-    with pytest.raises(GraMiInputError, match="cameras and lights"):
-        export_avatar(tmp_path / "a.glb", *avatar, rig=default_lightstage())
+def test_export_refuses_an_environment_in_a_glb_and_unknown_formats(tmp_path, avatar):
+    with pytest.raises(GraMiInputError, match="no environment light"):
+        export_avatar(tmp_path / "a.glb", *avatar, envmap=reference_map("studio", 16))
     with pytest.raises(GraMiInputError, match="unknown format"):
         export_avatar(tmp_path / "a.fbx", *avatar)
 
@@ -255,6 +299,33 @@ def blender_scene(tmp_path_factory):
     camera = subject_window(default_lightstage().cameras[0], seq.vertices.reshape(-1, 3), 128)
     assets = [export_usd(folder / "avatar.usdz", seq, albedo, roughness), export_glb(folder / "avatar.glb", seq, albedo, roughness)]
     return seq, albedo, roughness, folder, camera, assets
+
+
+@needs_blender
+def test_blender_imports_a_glbs_cameras_and_lights_as_the_rig_holds_them(tmp_path, avatar):
+    """Blender's own glTF importer: every camera where the rig's stands, looking where it looks with its vertical field
+    of view, and every lit LED a point light at its position emitting 4π × its W/sr (in watts) in its colour."""
+    from dataclasses import replace
+
+    from gra_mi.eval.blender import inventory_in_blender
+
+    rig = default_lightstage()
+    rig = replace(rig, cameras=rig.cameras[:3])
+    drive = olat_pattern(rig, 7) * np.array([1.0, 0.5, 0.25])
+    export_avatar(tmp_path / "a.glb", *avatar, rig=rig, led_intensities=drive)
+    seen = inventory_in_blender(tmp_path / "a.glb", tmp_path / "inventory.json")
+    cameras = {c["name"]: c for c in seen["cameras"]}
+    assert sorted(cameras) == sorted(cam.name for cam in rig.cameras), cameras.keys()
+    for cam in rig.cameras:
+        c2w = np.array(cameras[cam.name]["camera_to_world"])
+        np.testing.assert_allclose(c2w[:3, 3], cam.position, atol=1e-5)
+        np.testing.assert_allclose(c2w[:3, 2], cam.rotation[:, 2], atol=1e-5)  # OpenCV's +Z: where it looks
+        np.testing.assert_allclose(c2w[:3, 1], cam.rotation[:, 1], atol=1e-5)  # +Y: the image's down
+        assert cameras[cam.name]["angle_y"] == pytest.approx(2 * math.atan(cam.height / (2 * cam.fy)), rel=1e-5)
+    (light,) = seen["lights"]
+    assert light["type"] == "POINT" and light["energy"] == pytest.approx(4 * math.pi * drive[7].max(), rel=1e-4)
+    np.testing.assert_allclose(light["position"], rig.led_positions[7], atol=1e-5)
+    np.testing.assert_allclose(light["color"], [1.0, 0.5, 0.25], atol=1e-6)
 
 
 @needs_blender

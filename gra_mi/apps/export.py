@@ -14,7 +14,7 @@ import logging
 import os
 import shutil
 import subprocess
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -90,22 +90,37 @@ def validate_glb(path: Path) -> ExportReport:
     return ExportReport(path, f"glTF-Validator {result.get('validatorVersion', '')}", errors, warnings)
 
 
+def off_centre_cameras(cameras: list) -> list[str]:
+    """What a glTF camera loses: its principal point (glTF's look through the image's centre)."""
+    said = []
+    for cam in cameras:
+        dx, dy = cam.cx - cam.width / 2.0, cam.cy - cam.height / 2.0
+        if max(abs(dx), abs(dy)) > 0.5:
+            said.append(
+                f"camera {cam.name}: its principal point is ({dx:+.1f}, {dy:+.1f}) px off the image's centre, which glTF cannot hold"
+            )
+    return said
+
+
 def export_avatar(
     out: Path, seq: MeshSequence, albedo: np.ndarray, roughness: np.ndarray, frames: list[int] | None = None,
     rig: Lightstage | None = None, envmap: np.ndarray | None = None, led_intensities: np.ndarray | None = None,
 ) -> ExportReport:  # fmt: skip
     """Write ``out`` in the format its suffix names and validate it. ``frames``: the sequence's frames to export, in
-    order (default: all). Cameras and lights travel in USD only (glTF's punctual lights cannot hold an environment
-    map); asking for them in a .glb is an error, not a silent drop."""
+    order (default: all). The rig's cameras and its lit LEDs travel in both formats; an environment map in USD only
+    (glTF's punctual lights cannot hold one): asking for it in a .glb is an error, not a silent drop."""
     if frames is not None and not frames:
         raise GraMiParameterError("frames", "selects no frame")
     if frames is not None and (bad := [f for f in frames if not 0 <= f < seq.num_frames]):
         raise GraMiParameterError("frames", f"frame {bad[0]} is not in the subject's {seq.num_frames} frames (0 … {seq.num_frames - 1})")
     suffix = out.suffix.lower()
     if suffix in GLTF_SUFFIXES:
-        if rig is not None or envmap is not None or led_intensities is not None:
-            raise GraMiInputError(out, "a .glb carries the mesh, its animation and the material; export cameras and lights to .usd*")
-        return validate_glb(export_glb(out, seq, albedo, roughness, frames))
+        if envmap is not None:
+            raise GraMiInputError(out, "glTF has no environment light: export the environment map to .usd* (a DomeLight)")
+        leds = None if led_intensities is None else (rig.led_positions, led_intensities)
+        cameras = rig.cameras if rig is not None else None
+        report = validate_glb(export_glb(out, seq, albedo, roughness, frames, cameras, leds))
+        return replace(report, warnings=report.warnings + off_centre_cameras(cameras or []))
     if suffix not in USD_SUFFIXES:
         raise GraMiInputError(out, f"unknown format '{suffix}': expected one of {', '.join(USD_SUFFIXES + GLTF_SUFFIXES)}")
     lighting = None

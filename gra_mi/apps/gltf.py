@@ -4,13 +4,18 @@
 - a PBR material: ``baseColorTexture`` = albedo (sRGB PNG), ``metallicRoughnessTexture`` with roughness in G and
   metallic 0 in B. glTF's roughness is perceptual (α = r²), the same convention as gra-mi's;
 - the other frames as morph targets (position and normal deltas), with an animation that steps through them at the
-  sequence's frame rate.
+  sequence's frame rate;
+- optionally a rig's cameras (perspective, looking along −Z with +Y up as glTF's do; glTF has no principal point, so
+  a camera whose centre is off the image's is said in the export's warnings) and the LEDs that are on as
+  ``KHR_lights_punctual`` point lights, in candela: 683 lm/W × the LED's W/sr, which Blender's importer turns back
+  into the watts a point light of that intensity emits (4π × W/sr).
 """
 
 from __future__ import annotations
 
 import io
 import json
+import math
 import struct
 from pathlib import Path
 
@@ -18,10 +23,14 @@ import numpy as np
 
 from gra_mi.core.errors import GraMiParameterError
 from gra_mi.core.io import atomic_path, to_srgb8
+from gra_mi.stage.lightstage import Camera
 from gra_mi.subject.sequence import MeshSequence
 
 FLOAT, UINT = 5126, 5125
 ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER = 34962, 34963
+LUMENS_PER_WATT = 683.0  # glTF's punctual lights are photometric (candela); gra-mi's LEDs radiometric (W/sr)
+OPENCV_TO_GLTF_CAMERA = np.diag([1.0, -1.0, -1.0, 1.0])  # OpenCV looks along +Z with +Y down; glTF along −Z, +Y up
+NEAR_M = 0.01
 
 
 class _Buffer:
@@ -86,9 +95,52 @@ def _stepping_through(buf: _Buffer, count: int, fps: float) -> dict:
     return {"name": "performance", "samplers": [sampler], "channels": [{"sampler": 0, "target": {"node": 0, "path": "weights"}}]}
 
 
-def export_glb(path: str | Path, seq: MeshSequence, albedo: np.ndarray, roughness: np.ndarray, frames: list[int] | None = None) -> Path:
+def camera_entries(cameras: list[Camera]) -> tuple[list[dict], list[dict]]:
+    """(glTF cameras, their nodes): each camera's vertical field of view and aspect from its focal lengths, its node's
+    matrix the camera-to-world turned to glTF's camera axes (column-major)."""
+    entries, nodes = [], []
+    for k, cam in enumerate(cameras):
+        yfov = 2.0 * math.atan(cam.height / (2.0 * cam.fy))
+        aspect = (cam.width / cam.fx) / (cam.height / cam.fy)  # tan(xfov / 2) / tan(yfov / 2)
+        entries.append({"name": cam.name, "type": "perspective", "perspective": {"yfov": yfov, "aspectRatio": aspect, "znear": NEAR_M}})
+        matrix = cam.camera_to_world @ OPENCV_TO_GLTF_CAMERA
+        nodes.append({"name": cam.name, "camera": k, "matrix": matrix.T.ravel().tolist()})
+    return entries, nodes
+
+
+def led_light_entries(positions: np.ndarray, intensities: np.ndarray) -> tuple[list[dict], list[dict]]:
+    """(KHR_lights_punctual lights, their nodes) of the LEDs that are on (the others are not written)."""
+    lights, nodes = [], []
+    for led in np.flatnonzero(np.asarray(intensities).max(axis=1) > 0):
+        peak = float(np.max(intensities[led]))
+        color = (np.asarray(intensities[led], np.float64) / peak).tolist()
+        lights.append({"name": f"led{led:04d}", "type": "point", "color": color, "intensity": peak * LUMENS_PER_WATT})
+        node = {"name": f"led{led:04d}", "translation": np.asarray(positions[led], np.float64).tolist()}
+        nodes.append(node | {"extensions": {"KHR_lights_punctual": {"light": len(lights) - 1}}})
+    return lights, nodes
+
+
+def _add_rig(gltf: dict, cameras: list[Camera], leds: tuple[np.ndarray, np.ndarray] | None) -> None:
+    """The cameras and lit LEDs as nodes of the scene beside the avatar."""
+    entries, nodes = camera_entries(cameras)
+    lights, light_nodes = led_light_entries(*leds) if leds is not None else ([], [])
+    if entries:
+        gltf["cameras"] = entries
+    if lights:
+        gltf["extensionsUsed"] = ["KHR_lights_punctual"]
+        gltf["extensions"] = {"KHR_lights_punctual": {"lights": lights}}
+    first = len(gltf["nodes"])
+    gltf["nodes"] += nodes + light_nodes
+    gltf["scenes"][0]["nodes"] += list(range(first, len(gltf["nodes"])))
+
+
+def export_glb(
+    path: str | Path, seq: MeshSequence, albedo: np.ndarray, roughness: np.ndarray, frames: list[int] | None = None,
+    cameras: list[Camera] | None = None, leds: tuple[np.ndarray, np.ndarray] | None = None,
+) -> Path:  # fmt: skip
     """Write ``path`` (.glb). ``frames``: the sequence's frames to animate, in order (default: all); the first is the
-    mesh, the others its morph targets, and the animation's time 0 is the first (``extras.gra_mi.source_frames``)."""
+    mesh, the others its morph targets, and the animation's time 0 is the first (``extras.gra_mi.source_frames``).
+    ``cameras``: a rig's cameras; ``leds``: (positions, W/sr intensities (L, 3)) of a rig's LEDs under a pattern."""
     frames = list(range(seq.num_frames)) if frames is None else list(frames)
     check_glb_size(seq, len(frames), frames[0])
     buf = _Buffer()
@@ -143,6 +195,7 @@ def export_glb(path: str | Path, seq: MeshSequence, albedo: np.ndarray, roughnes
         mesh["weights"] = [0.0] * len(targets)
         gltf["animations"] = [_stepping_through(buf, len(frames), seq.fps)]
     gltf["nodes"][0]["extras"] = {"gra_mi": {"source_frames": frames}}  # the sequence's frame at each step
+    _add_rig(gltf, cameras or [], leds)
     while len(buf.data) % 4:
         buf.data += b"\0"
     gltf["buffers"] = [{"byteLength": len(buf.data)}]

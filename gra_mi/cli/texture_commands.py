@@ -82,13 +82,14 @@ class ExportCommand(CommandConfig):
     list; they become the animation's time 0, 1, … (USD's gra_mi:sourceFrame and glTF's extras name the sequence's
     frame at each). Only these frames are read from a mapped sequence; the export holds them in memory."""
     rig: Path | None = None
-    """USD only: a rig calibration (calibration.json, or a capture or rig folder holding one) whose cameras are
-    written as USD cameras, and whose LEDs --pattern lights."""
+    """A rig calibration (calibration.json, or a capture or rig folder holding one) whose cameras are written (USD
+    Cameras; glTF perspective cameras, which cannot hold a principal point off the image's centre: said when so), and
+    whose LEDs --pattern lights."""
     envmap: Path | None = None
     """USD only: an environment map to hand over as a DomeLight (lat-long, read like `relight --envmap`)."""
     pattern: Path | None = None
-    """USD only: LED drive values (JSON or .npy, as `relight --pattern`); the LEDs that are on become SphereLights.
-    Needs --rig."""
+    """LED drive values (JSON or .npy, as `relight --pattern`); the LEDs that are on become USD SphereLights or glTF
+    point lights (KHR_lights_punctual, in candela). Needs --rig."""
     envmaps: EnvmapOptions = field(default_factory=EnvmapOptions)
 
     def validate(self) -> None:

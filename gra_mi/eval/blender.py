@@ -48,7 +48,7 @@ def _run_job(job: dict, job_file: Path, timeout: float) -> None:
     job_file.write_text(json.dumps(job))
     env = {k: v for k, v in os.environ.items() if not k.startswith("PYTHON")}  # gra-mi's paths must not reach bpy
     done = subprocess.run([*command, str(job_file)], capture_output=True, text=True, timeout=timeout, cwd=job_file.parent, env=env)
-    written = job.get("reexport", job.get("out"))
+    written = job.get("reexport", job.get("inventory", job.get("out")))
     if done.returncode != 0 or not Path(written).is_file():
         raise RuntimeError(f"Blender failed ({done.returncode}):\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}")
 
@@ -58,6 +58,13 @@ def reexport_in_blender(asset: Path, out: Path, timeout: float = 600.0) -> Path:
     out.parent.mkdir(parents=True, exist_ok=True)
     _run_job({"asset": str(Path(asset).resolve()), "reexport": str(out.resolve())}, out.with_name(f"{out.name}.job.json"), timeout)
     return out
+
+
+def inventory_in_blender(asset: Path, out: Path, timeout: float = 600.0) -> dict:
+    """The cameras and lights Blender imports from ``asset``, in gra-mi's world (:func:`blender_job.inventory`)."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    _run_job({"asset": str(Path(asset).resolve()), "inventory": str(out.resolve())}, out.with_name(f"{out.name}.job.json"), timeout)
+    return json.loads(out.read_text())
 
 
 def render_in_blender(

@@ -6,7 +6,8 @@ It imports only Blender and the standard library (it runs in Blender's own Pytho
 convention), ``camera`` (OpenCV ``camera_to_world`` in gra-mi's world, ``fx fy cx cy width height``), ``spp``,
 ``lambert`` (swap the imported Principled BSDF for a Diffuse BSDF on the same base colour), ``out`` (RGBA EXR) and
 ``report`` (JSON: Blender's version, the frame shown, the imported mesh's vertices at that frame in gra-mi's world).
-A job with ``reexport`` (a .glb or .usd* path) instead writes the imported asset back out with Blender's exporters.
+A job with ``reexport`` (a .glb or .usd* path) instead writes the imported asset back out with Blender's exporters;
+one with ``inventory`` (a JSON path) writes the cameras and lights Blender imported, in gra-mi's world.
 
 Conventions handled here, each checked by tests/test_export.py against Mitsuba:
 - Blender is Z up; both importers turn a Y-up file by (x, y, z) → (x, −z, y);
@@ -26,12 +27,13 @@ GRA_MI_TO_BLENDER = mathutils.Matrix(((1, 0, 0, 0), (0, 0, -1, 0), (0, 1, 0, 0),
 OPENCV_TO_OPENGL = mathutils.Matrix(((1, 0, 0, 0), (0, -1, 0, 0), (0, 0, -1, 0), (0, 0, 0, 1)))
 
 
-def import_asset(path: str) -> None:
+def import_asset(path: str, rig: bool = False) -> None:
+    """The asset alone (a render sets its own camera and world), or with the cameras and lights it carries (``rig``)."""
     bpy.ops.wm.read_factory_settings(use_empty=True)
     if path.lower().endswith(".glb"):
         bpy.ops.import_scene.gltf(filepath=path)
     else:
-        bpy.ops.wm.usd_import(filepath=path, import_cameras=False, import_lights=False)
+        bpy.ops.wm.usd_import(filepath=path, import_cameras=rig, import_lights=rig)
 
 
 def show_frame(scene, frame: int, fps: float, glb: bool) -> int:
@@ -127,11 +129,33 @@ def reexport(path: str) -> None:
         bpy.ops.wm.usd_export(filepath=path, export_animation=True)
 
 
+def inventory(path: str) -> None:
+    """The imported cameras (camera-to-world with OpenCV axes, vertical field of view) and lights (type, position,
+    power in W, colour), in gra-mi's world."""
+    to_gra_mi = GRA_MI_TO_BLENDER.inverted()
+    cameras, lights = [], []
+    for obj in bpy.context.scene.objects:
+        world = to_gra_mi @ obj.matrix_world
+        if obj.type == "CAMERA":
+            c2w = world @ OPENCV_TO_OPENGL.inverted()
+            cameras.append({"name": obj.name, "camera_to_world": [list(row) for row in c2w], "angle_y": obj.data.angle_y})
+        elif obj.type == "LIGHT":
+            data = obj.data
+            lights.append(
+                {"name": obj.name, "type": data.type, "position": list(world.translation), "energy": data.energy, "color": list(data.color)}
+            )
+    with open(path, "w") as fh:
+        json.dump({"blender": bpy.app.version_string, "cameras": cameras, "lights": lights}, fh)
+
+
 def main(job_path: str) -> None:
     job = json.load(open(job_path))
-    import_asset(job["asset"])
+    import_asset(job["asset"], rig="inventory" in job)
     if "reexport" in job:
         reexport(job["reexport"])
+        return
+    if "inventory" in job:
+        inventory(job["inventory"])
         return
     scene = bpy.context.scene
     glb = job["asset"].lower().endswith(".glb")
