@@ -302,9 +302,12 @@ def blender_scene(tmp_path_factory):
 
 
 @needs_blender
-def test_blender_imports_a_glbs_cameras_and_lights_as_the_rig_holds_them(tmp_path, avatar):
-    """Blender's own glTF importer: every camera where the rig's stands, looking where it looks with its vertical field
-    of view, and every lit LED a point light at its position emitting 4π × its W/sr (in watts) in its colour."""
+@pytest.mark.parametrize("name", ["a.glb", "a.usda"])
+def test_blender_imports_the_cameras_and_lights_as_the_rig_holds_them(tmp_path, avatar, name):
+    """Blender's own importers: every camera where the rig's stands, looking where it looks with its vertical field of
+    view, and every lit LED a point light at its position emitting 4π × its W/sr (in watts) in its colour. Blender
+    4.5's USD importer reads a SphereLight's intensity as π × intensity watts whatever its radius: with its
+    ``light_intensity_scale`` at the sphere's area (4π r²) it gets the power the USD holds."""
     from dataclasses import replace
 
     from gra_mi.eval.blender import inventory_in_blender
@@ -312,16 +315,17 @@ def test_blender_imports_a_glbs_cameras_and_lights_as_the_rig_holds_them(tmp_pat
     rig = default_lightstage()
     rig = replace(rig, cameras=rig.cameras[:3])
     drive = olat_pattern(rig, 7) * np.array([1.0, 0.5, 0.25])
-    export_avatar(tmp_path / "a.glb", *avatar, rig=rig, led_intensities=drive)
-    seen = inventory_in_blender(tmp_path / "a.glb", tmp_path / "inventory.json")
-    cameras = {c["name"]: c for c in seen["cameras"]}
-    assert sorted(cameras) == sorted(cam.name for cam in rig.cameras), cameras.keys()
-    for cam in rig.cameras:
-        c2w = np.array(cameras[cam.name]["camera_to_world"])
+    export_avatar(tmp_path / name, *avatar, rig=rig, led_intensities=drive)
+    scale = 1.0 if name.endswith(".glb") else 4 * math.pi * LED_RADIUS_M**2
+    seen = inventory_in_blender(tmp_path / name, tmp_path / "inventory.json", scale)
+    cameras = sorted(seen["cameras"], key=lambda c: c["name"])  # USD's prims are cam000 …, glTF's nodes the rig's names
+    assert len(cameras) == len(rig.cameras), [c["name"] for c in cameras]
+    for seen_camera, cam in zip(cameras, rig.cameras, strict=True):
+        c2w = np.array(seen_camera["camera_to_world"])
         np.testing.assert_allclose(c2w[:3, 3], cam.position, atol=1e-5)
         np.testing.assert_allclose(c2w[:3, 2], cam.rotation[:, 2], atol=1e-5)  # OpenCV's +Z: where it looks
         np.testing.assert_allclose(c2w[:3, 1], cam.rotation[:, 1], atol=1e-5)  # +Y: the image's down
-        assert cameras[cam.name]["angle_y"] == pytest.approx(2 * math.atan(cam.height / (2 * cam.fy)), rel=1e-5)
+        assert seen_camera["angle_y"] == pytest.approx(2 * math.atan(cam.height / (2 * cam.fy)), rel=1e-5)
     (light,) = seen["lights"]
     assert light["type"] == "POINT" and light["energy"] == pytest.approx(4 * math.pi * drive[7].max(), rel=1e-4)
     np.testing.assert_allclose(light["position"], rig.led_positions[7], atol=1e-5)

@@ -7,7 +7,8 @@ convention), ``camera`` (OpenCV ``camera_to_world`` in gra-mi's world, ``fx fy c
 ``lambert`` (swap the imported Principled BSDF for a Diffuse BSDF on the same base colour), ``out`` (RGBA EXR) and
 ``report`` (JSON: Blender's version, the frame shown, the imported mesh's vertices at that frame in gra-mi's world).
 A job with ``reexport`` (a .glb or .usd* path) instead writes the imported asset back out with Blender's exporters;
-one with ``inventory`` (a JSON path) writes the cameras and lights Blender imported, in gra-mi's world.
+one with ``inventory`` (a JSON path) writes the cameras and lights Blender imported, in gra-mi's world (a USD's with
+``light_intensity_scale``, the importer's option of that name).
 
 Conventions handled here, each checked by tests/test_export.py against Mitsuba:
 - Blender is Z up; both importers turn a Y-up file by (x, y, z) → (x, −z, y);
@@ -27,13 +28,14 @@ GRA_MI_TO_BLENDER = mathutils.Matrix(((1, 0, 0, 0), (0, 0, -1, 0), (0, 1, 0, 0),
 OPENCV_TO_OPENGL = mathutils.Matrix(((1, 0, 0, 0), (0, -1, 0, 0), (0, 0, -1, 0), (0, 0, 0, 1)))
 
 
-def import_asset(path: str, rig: bool = False) -> None:
-    """The asset alone (a render sets its own camera and world), or with the cameras and lights it carries (``rig``)."""
+def import_asset(path: str, rig: bool = False, light_scale: float = 1.0) -> None:
+    """The asset alone (a render sets its own camera and world), or with the cameras and lights it carries (``rig``;
+    ``light_scale``: the USD importer's ``light_intensity_scale``)."""
     bpy.ops.wm.read_factory_settings(use_empty=True)
     if path.lower().endswith(".glb"):
         bpy.ops.import_scene.gltf(filepath=path)
     else:
-        bpy.ops.wm.usd_import(filepath=path, import_cameras=rig, import_lights=rig)
+        bpy.ops.wm.usd_import(filepath=path, import_cameras=rig, import_lights=rig, light_intensity_scale=light_scale)
 
 
 def show_frame(scene, frame: int, fps: float, glb: bool) -> int:
@@ -150,7 +152,7 @@ def inventory(path: str) -> None:
 
 def main(job_path: str) -> None:
     job = json.load(open(job_path))
-    import_asset(job["asset"], rig="inventory" in job)
+    import_asset(job["asset"], rig="inventory" in job, light_scale=job.get("light_intensity_scale", 1.0))
     if "reexport" in job:
         reexport(job["reexport"])
         return
