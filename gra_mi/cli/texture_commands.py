@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -128,6 +129,11 @@ def run_export(c: ExportCommand) -> int:
     print(f"wrote {report.summary()}")
     for line in report.errors + report.warnings:
         print(f"  {line}")
+    if leds is not None and c.out.suffix.lower() != ".glb":
+        from gra_mi.apps.usd import LED_RADIUS_M
+
+        print(f"  in Blender, import with light_intensity_scale = {4 * math.pi * LED_RADIUS_M**2:.5f}: its USD importer "
+              "ignores a SphereLight's radius (docs/export.md)")  # fmt: skip
     return 1 if report.errors else 0
 
 
