@@ -150,7 +150,7 @@ def test_threaded_work_keeps_the_order_and_stops_at_a_failure():
 
     from gra_mi.core.progress import threaded
 
-    assert list(threaded(lambda k: k * k, list(range(50)), 4, "squares")) == [k * k for k in range(50)]
+    assert list(threaded(lambda k: k * k, list(range(50)), "squares", 4)) == [k * k for k in range(50)]
     started, lock = [], threading.Lock()
 
     def work(k: int) -> int:
@@ -162,5 +162,5 @@ def test_threaded_work_keeps_the_order_and_stops_at_a_failure():
         return k
 
     with pytest.raises(ValueError, match="bad item 3"):
-        list(threaded(work, list(range(400)), 2, "items"))
+        list(threaded(work, list(range(400)), "items", 2))
     assert len(started) < 100, f"{len(started)} of 400 items started after the failure"

@@ -5,7 +5,6 @@ read. :mod:`gra_mi.capture.synthetic` writes one; real data converted to this la
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -161,7 +160,7 @@ class Capture:
         def check(view: tuple[str, int]) -> None:
             load_observation(self, *view)  # the image itself is not kept
 
-        for _ in threaded(check, views, min(os.cpu_count() or 1, 8), "checking the capture's images"):  # EXR decoding releases the GIL
+        for _ in threaded(check, views, "checking the capture's images"):  # EXR decoding releases the GIL
             pass
 
     def load_scene(self):

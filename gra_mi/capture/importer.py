@@ -42,7 +42,7 @@ from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.guard import staging_folder
 from gra_mi.core.io import atomic_write_text, read_exr, write_exr, write_png
 from gra_mi.core.limits import MEMORY_SHARE, machine_memory, require_memory, require_memory_for
-from gra_mi.core.progress import threaded
+from gra_mi.core.progress import thread_count, threaded
 from gra_mi.core.provenance import PROVENANCE, claim_output, release_folder, run_differences, run_record
 from gra_mi.core.shard import Shard
 from gra_mi.render.runtime import ensure_mitsuba
@@ -51,7 +51,6 @@ from gra_mi.stage.scene import subject_scene_xml, write_rig
 
 logger = logging.getLogger(__name__)
 IMAGE_BYTES_PER_PIXEL = 4 * 4 * 8  # RGBA float32: the decoded source, its resampling and mask, the written EXR
-MAX_WORKERS = 8  # threads importing one camera's images (decoding and writing release the GIL)
 LENS_BYTES_PER_PIXEL = 256  # of a source image, undistorted: its maps (kept for two cameras), samples and weights
 
 
@@ -297,10 +296,9 @@ def _drive(stage: Lightstage, drive) -> np.ndarray:
 
 
 def import_workers(image_bytes: float) -> int:
-    """Threads that import a camera's images: one per core, at most :data:`MAX_WORKERS`, as many as memory holds
-    (each holds one image's arrays)."""
-    held = int(MEMORY_SHARE * machine_memory() // max(image_bytes, 1.0))
-    return max(1, min(os.cpu_count() or 1, MAX_WORKERS, held))
+    """Threads that import a camera's images (:func:`thread_count`), no more than memory holds: each holds one
+    image's arrays."""
+    return thread_count(int(MEMORY_SHARE * machine_memory() // max(image_bytes, 1.0)))
 
 
 def _import_camera(source: Source, plan: CameraPlan, capture: Capture, frames: list, workers: int = 1) -> list[float]:
@@ -311,7 +309,7 @@ def _import_camera(source: Source, plan: CameraPlan, capture: Capture, frames: l
     if not jobs:
         return []
     first = _import_image(source, plan, capture, *jobs[0])
-    rest = threaded(lambda job: _import_image(source, plan, capture, *job), jobs[1:], workers, f"import {plan.camera.name}")
+    rest = threaded(lambda job: _import_image(source, plan, capture, *job), jobs[1:], f"import {plan.camera.name}", workers)
     return [first, *rest]
 
 
@@ -383,7 +381,7 @@ def linearity(source: Source, plan: CameraPlan, mask: np.ndarray) -> dict:
     total = np.zeros(int(inside.sum()) * 3)
     lit = threaded(
         lambda number: read_image(source.images[plan.index][number])[0][inside].ravel(),
-        list(source.olat_keys), import_workers(inside.size * IMAGE_BYTES_PER_PIXEL), f"linearity {plan.camera.name}",
+        list(source.olat_keys), f"linearity {plan.camera.name}", import_workers(inside.size * IMAGE_BYTES_PER_PIXEL),
     )  # fmt: skip
     for pixels in lit:  # summed in order: the same sum whatever the threads
         total += pixels

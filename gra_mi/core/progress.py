@@ -28,13 +28,21 @@ def progress(items: Iterable[T], description: str, total: int | None = None) -> 
             bar.advance(task)
 
 
-def threaded(work: Callable[[T], R], items: list[T], workers: int, description: str) -> Iterator[R]:
-    """``work`` of each item on ``workers`` threads (for work that releases the GIL: decoding, compression, NumPy), the
-    results in the items' order with a progress bar. A failure stops what has not started: it is raised when its item's
-    turn comes, without waiting for the rest of a long list."""
+MAX_THREADS = 8  # for work that releases the GIL: more rarely helps, and each thread holds its item's arrays
+
+
+def thread_count(limit: int | None = None) -> int:
+    """One thread per core, at most :data:`MAX_THREADS` and ``limit`` (e.g. what memory holds)."""
+    return max(1, min(os.cpu_count() or 1, MAX_THREADS, MAX_THREADS if limit is None else limit))
+
+
+def threaded(work: Callable[[T], R], items: list[T], description: str, workers: int | None = None) -> Iterator[R]:
+    """``work`` of each item on ``workers`` threads (default :func:`thread_count`; for work that releases the GIL:
+    decoding, compression, NumPy), the results in the items' order with a progress bar. A failure stops what has not
+    started: it is raised when its item's turn comes, without waiting for the rest of a long list."""
     from concurrent.futures import ThreadPoolExecutor
 
-    pool = ThreadPoolExecutor(max(1, workers))
+    pool = ThreadPoolExecutor(thread_count() if workers is None else max(1, workers))
     try:
         yield from progress(pool.map(work, items), description, len(items))
     finally:

@@ -24,7 +24,7 @@ from gra_mi.core.io import atomic_write_text, write_exr, write_png
 from gra_mi.stage import scene_keys as keys
 from gra_mi.stage.envmap import LedLighting, envmap_to_leds, stage_background_plate
 from gra_mi.stage.lightstage import Camera, Lightstage, load_calibration, save_calibration, validate_pattern
-from gra_mi.subject.sequence import MeshSequence, check_frames, load_sequence, save_sequence
+from gra_mi.subject.sequence import MeshSequence, check_frame, check_frames, load_sequence, save_sequence
 
 logger = logging.getLogger(__name__)
 
@@ -296,11 +296,13 @@ class LightstageScene:
             return False
         import mitsuba as mi
 
-        check_frames(self.sequence, [frame])  # a frame read from a mapped file is checked when it is used
         # Copies: Dr.Jit's CPU arrays alias a contiguous NumPy buffer, and the mesh would then hold the sequence's own
         # memory (for a saved sequence, its file mapped read-only) for as long as it keeps the frame.
-        self.params[keys.SUBJECT_POSITIONS] = mi.Float(np.array(self.sequence.vertices[frame], np.float32).ravel())
-        self.params[keys.SUBJECT_NORMALS] = mi.Float(np.array(self.sequence.normals[frame], np.float32).ravel())
+        vertices = np.array(self.sequence.vertices[frame], np.float32)
+        normals = np.array(self.sequence.normals[frame], np.float32)
+        check_frame(vertices, normals, frame, self.sequence.origin)  # a frame read from a mapped file: checked when used
+        self.params[keys.SUBJECT_POSITIONS] = mi.Float(vertices.ravel())
+        self.params[keys.SUBJECT_NORMALS] = mi.Float(normals.ravel())
         self.params.update()
         self.frame = frame
         return True

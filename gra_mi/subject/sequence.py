@@ -105,6 +105,11 @@ def check_frames(seq: MeshSequence, frames: list[int]) -> None:
         _check_frames(np.asarray(seq.vertices[t : t + 1]), np.asarray(seq.normals[t : t + 1]), t, seq.origin)
 
 
+def check_frame(vertices: np.ndarray, normals: np.ndarray, frame: int, source: str) -> None:
+    """One frame's positions and normals, (V, 3) each, already read: checked as :func:`check_frames` checks them."""
+    _check_frames(vertices[None], normals[None], frame, source)
+
+
 def _check_frames(vertices: np.ndarray, normals: np.ndarray, start: int, source: str) -> None:
     """Frames ``start``… of a sequence: finite positions, finite non-zero normals."""
     bad = ~np.isfinite(vertices).all(axis=(1, 2))
@@ -272,11 +277,11 @@ def _checked_frame(
     if vertices.shape != (num_vertices, 3):
         raise GraMiInputError(source, f"frame {t}: expected ({num_vertices}, 3) vertices, got {vertices.shape}", field="vertices")
     if not np.isfinite(vertices).all():
-        _check_frames(vertices[None], vertices[None], t, source)
+        check_frame(vertices, vertices, t, source)
     normals = vertex_normals(vertices, faces) if normals is None else np.asarray(normals, np.float32)
     if normals.shape != vertices.shape:
         raise GraMiInputError(source, f"frame {t}: normals {normals.shape} do not match vertices {vertices.shape}", field="normals")
-    _check_frames(vertices[None], normals[None], t, source)
+    check_frame(vertices, normals, t, source)
     return np.ascontiguousarray(vertices, "<f4"), np.ascontiguousarray(normals, "<f4")
 
 
