@@ -382,7 +382,7 @@ def test_the_roughness_grid_in_one_walk_equals_one_value_at_a_time(onebounce_cap
         fitter._loop(views[1], fitter.observation(views[1])[0]).run(tuple(grid), roughness_derivative=True)
     fitter._loops.clear()
     empty = View(views[0].frame, views[0].pose, views[0].camera, 0)
-    np.testing.assert_array_equal(fitter._grid_error([empty, views[1]], grid), fitter._grid_error([views[1]], grid))
+    np.testing.assert_array_equal(fitter.grid_error([empty, views[1]], grid), fitter.grid_error([views[1]], grid))
 
 
 def test_the_grid_sums_give_each_candidates_least_squares_error(variant):

@@ -37,7 +37,7 @@ from gra_mi.capture.placement import (
 )
 from gra_mi.capture.reprojection import frame_mask, reprojection_checks
 from gra_mi.capture.source import ImportConfig, Source
-from gra_mi.capture.source_files import image_size, read_image, resample_columns, write_mask
+from gra_mi.capture.source_files import image_size, read_image, resample_columns, write_led_gains, write_mask
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.guard import staging_folder
 from gra_mi.core.io import atomic_write_text, read_exr, write_exr, write_png
@@ -97,7 +97,7 @@ def import_capture(
     returns it, the others return None."""
 
     source.check()
-    gains = source.led_gains(config.led_gains)
+    gains = source.led_gains(config.led_gains, config.estimate_led_gains)
     ensure_mitsuba()
     frame = world_frame(source, config.up)
     plans = _camera_plans(source, frame, config)
@@ -127,6 +127,10 @@ def import_capture(
     # a changed source restarts the staging (its images would mix two exports); --overwrite empties it too
     claim_output(staging, command, inputs, said, overwrite=overwrite, shard=shard, restart=shard.whole)
     stage = build_stage(source, frame, plans, config.led_intensity, gains)
+    if config.estimate_led_gains and not any(_lit_alone(stage, entry, drive) for _, entry, drive in source.frames):
+        raise GraMiParameterError(
+            "estimate_led_gains", f"{source.folder} has no frame lit by one LED alone (an OLAT): gains are measured on OLATs"
+        )
     _write_stage_files(staging, stage, source, frame, subject)
     record = {"format": source.format, "folder": str(source.folder), "transform": frame.matrix(), **record}
     record |= {"gains": _gains_said(config.led_gains, gains), "left_out_leds": source.left_out, "uv_atlas": subject.atlas, "images": {}}
@@ -144,6 +148,9 @@ def import_capture(
         gaps = {"missing_frames": [f.frame for f in frames if plan.camera.name in f.missing]}
         record["images"][plan.camera.name] = _camera_summary(source, plan, saturated[plan.camera.name]) | gaps
     capture.save()
+    if config.estimate_led_gains:  # on the written images, before the report that says what came of it
+        record["gains"], record["gain_estimate"] = _estimate_gains(capture, stage, source)
+        capture.save()
     _write_report(staging, source, frame, plans, checks, record)
     shutil.rmtree(staging / "parts", ignore_errors=True)
     check_loadable(staging, source)
@@ -266,6 +273,30 @@ def _gains_said(path: Path | None, gains: np.ndarray | None) -> str:
         return "assumed equal (none given: --led-gains)"
     said = path or "the source's pl_intensity"
     return f"from {said}, normalised to a mean of 1 (from {gains.min():.3f} to {gains.max():.3f})"
+
+
+def _lit_alone(stage: Lightstage, entry, drive) -> bool:
+    """Whether a source frame is lit by one LED alone."""
+    return entry.kind != "envmap" and int(np.count_nonzero(_drive(stage, drive).max(axis=1))) == 1
+
+
+def _estimate_gains(capture: Capture, stage: Lightstage, source: Source) -> tuple[str, dict]:
+    """The LEDs' gains measured on the imported OLATs (:mod:`gra_mi.fit.led_gains`), written into the rig, as a
+    --led-gains file in the source's numbering and as a plot; (what the report says of them, the estimate's summary)."""
+    from gra_mi.fit.led_gains import estimate_led_gains, plot_gains
+
+    estimate = estimate_led_gains(capture)
+    stage.led_gains = estimate.gains
+    write_rig(stage, capture.folder / "rig")
+    numbers = source.led_numbers or list(range(len(source.leds)))
+    write_led_gains(capture.folder / "import" / "led_gains.txt", estimate.gains, numbers, estimate.measured, source.folder)
+    plot_gains(estimate, numbers, capture.folder / "import" / "led_gains.png")
+    summary = estimate.summary()
+    said = (
+        f"estimated from the OLATs on the training cameras ({summary['measured_leds']} of {stage.num_leds} LEDs measured, "
+        f"from {summary['range'][0]:.3f} to {summary['range'][1]:.3f}; the others 1): import/led_gains.txt"
+    )
+    return said, summary
 
 
 def _write_stage_files(out: Path, stage: Lightstage, source: Source, frame: WorldFrame, subject: SubjectPlan) -> None:
@@ -409,7 +440,12 @@ def _write_report(out: Path, source: Source, frame: WorldFrame, plans: list[Came
             "led_sphere_radius_m": round(frame.led_radius, 4),
             "led_sphere_rms_m": round(frame.led_fit_rms, 5),
         },
-        "leds": {"count": len(source.leds), "left_out": record["left_out_leds"], "gains": record["gains"]},
+        "leds": {
+            "count": len(source.leds),
+            "left_out": record["left_out_leds"],
+            "gains": record["gains"],
+            "estimate": record.get("gain_estimate"),
+        },
         "linearity": _linearity_of_a_complete_camera(out, source, plans, first),
         "frames": {"imported": sum(1 for _ in (out / "images" / plans[0].camera.name).glob("frame_*.exr"))},
         "uv_atlas": record["uv_atlas"],
@@ -449,6 +485,14 @@ def import_markdown(r: dict, source_format: str) -> str:
     ]
     if gaps:
         lines += ["", f"Missing images, skipped (--missing-images skip; the frames in capture.json say which): {'; '.join(gaps)}."]
+    if (estimate := leds.get("estimate")) is not None:
+        lines += [
+            "",
+            f"LED gains estimated in {estimate['rounds']} rounds ({estimate['seconds']:.0f} s): the one-bounce model's relative L1 on "
+            f"the texels several LEDs light, {100 * estimate['relative_l1']['equal gains']:.1f} % with equal gains, "
+            f"{100 * estimate['relative_l1']['estimated']:.1f} % with these. Not measured (kept 1): "
+            f"{', '.join(map(str, estimate['unmeasured_leds'])) or 'none'}. ![LED gains](import/led_gains.png)",
+        ]
     if r["linearity"] is not None:
         lin = r["linearity"]
         lines += [

@@ -48,6 +48,11 @@ class ImportConfig:
     (linear; `#` comments). Normalised to a mean of 1, so --led-intensity is the mean LED's. An OLAT frame is lit by
     its LED's gain; environment-map frames are taken to have been driven with the gains undone (the emitted light is
     the map's). Default: equal gains."""
+    estimate_led_gains: bool = False
+    """Measure the LEDs' gains from the capture's own OLAT frames (where the stage states none): each LED's light
+    against the albedo that every LED's images share, on the training cameras (docs/data-format.md). Written into the
+    rig, and as import/led_gains.txt, a --led-gains file for the stage's other captures. An LED without an OLAT, or
+    whose light no training camera sees on texels other LEDs light too, keeps 1 (listed in the report)."""
     missing_images: str = field(default="refuse", metadata=option(choices=("refuse", "skip")))
     """A camera without an image of a frame: refuse (name it and stop), or skip (import the rest; capture.json and the
     report list the gaps, the fit and RelightNet leave them out, the evaluation and the refiner refuse a camera with a
@@ -181,12 +186,16 @@ class Source:
                 entry.envmap = name = f"envmaps/{stem}_{n}{suffix}"
             stored[name] = source
 
-    def led_gains(self, path: Path | None) -> np.ndarray | None:
+    def led_gains(self, path: Path | None, estimate: bool = False) -> np.ndarray | None:
         """The LEDs' gains over their mean: from ``path`` (--led-gains), else as the source states them, else None
-        (equal). A source that states gains and a file besides are two answers: refused."""
+        (equal, or to be estimated from the images). Two answers (a source that states gains and a file besides, or
+        either and ``estimate``) are refused."""
         numbers = self.led_numbers or list(range(len(self.leds)))
         if path is not None and self.stated_gains is not None:
             raise GraMiParameterError("led_gains", f"{self.calib_path} states the LEDs' gains itself (pl_intensity): give one or the other")
+        if estimate and (path is not None or self.stated_gains is not None):
+            said = path if path is not None else f"{self.calib_path}'s pl_intensity"
+            raise GraMiParameterError("estimate_led_gains", f"the gains are given ({said}): estimate them or give them, not both")
         if path is not None:
             return read_led_gains(path, numbers)
         return None if self.stated_gains is None else normalised_gains(self.stated_gains, numbers, self.calib_path)

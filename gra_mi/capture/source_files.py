@@ -88,6 +88,19 @@ def read_led_gains(path: Path, numbers: list[int]) -> np.ndarray:
     return normalised_gains(np.array(gains)[numbers], numbers, path)
 
 
+def write_led_gains(path: Path, gains: np.ndarray, numbers: list[int], measured: np.ndarray, source: Path) -> None:
+    """(L, 3) gains of the LEDs numbered ``numbers`` as :func:`read_led_gains` reads them: a line per LED of the
+    source's numbering, those the rig lacks (HumanOLAT's door LEDs) and those not ``measured`` 1, said in comments."""
+    by_number = dict(zip(numbers, range(len(numbers)), strict=True))
+    lines = [f"# LED gains (linear r g b, mean 1) estimated by gra-mi import --estimate-led-gains from {source}", "# line k: LED k"]
+    for number in range(max(numbers) + 1):
+        k = by_number.get(number)
+        note = "  # not in the rig" if k is None else ("" if measured[k] else "  # not measured")
+        r, g, b = (1.0, 1.0, 1.0) if k is None else gains[k]
+        lines.append(f"{r:.6f} {g:.6f} {b:.6f}{note}")
+    atomic_write_text(path, "\n".join(lines) + "\n")
+
+
 def normalised_gains(gains: np.ndarray, numbers: list[int], path: Path) -> np.ndarray:
     """(L, 3) gains of the LEDs numbered ``numbers`` over their mean; an LED below 1 % of the mean is refused."""
     mean = float(gains.mean())

@@ -226,7 +226,8 @@ def sample_image(image: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndar
 
 
 class MaterialFitter:
-    def __init__(self, capture: Capture, config: FitConfig, cache_dir: str | Path | None = None):
+    def __init__(self, capture: Capture, config: FitConfig, cache_dir: str | Path | None = None, frames: list | None = None):
+        """``frames``: the capture's frames to fit on (default: its training frames, every ``config.frame_step``-th)."""
         from gra_mi.render.relighter import Relighter
 
         ensure_mitsuba()
@@ -241,7 +242,7 @@ class MaterialFitter:
         )
         self._frozen: tuple | None = None  # (the maps' relighter, frame → its light after the first bounce)
         self.atlas = self.relighter.atlas
-        self.train = [f for f in capture.frames if f.split == "train"][:: config.frame_step]
+        self.train = frames if frames is not None else [f for f in capture.frames if f.split == "train"][:: config.frame_step]
         self.train_cameras = config.cameras or capture.train_cameras
         unknown = [c for c in self.train_cameras if c not in capture.train_cameras]
         if unknown:
@@ -471,7 +472,7 @@ class MaterialFitter:
         cameras_seen = self.cameras_seen(views)
         grid = np.linspace(0.0, 1.0, cfg.roughness_candidates)
         if "grid_error" not in state:
-            save(grid_error=self._grid_error(views, grid))
+            save(grid_error=self.grid_error(views, grid))
         roughness = refine_on_grid(state["grid_error"], grid)
         roughness[cameras_seen == 0] = DEFAULT_ROUGHNESS
         curve.append((time.perf_counter() - start, float("nan"), "roughness grid"))
@@ -479,7 +480,7 @@ class MaterialFitter:
         albedo_map = self.atlas.scatter(albedo.astype(np.float32), fill=DEFAULT_ALBEDO)
         return FitResult(albedo_map, self.atlas.scatter(roughness[:, None], fill=DEFAULT_ROUGHNESS), cameras_seen, curve, per_view)
 
-    def _grid_error(self, views, grid: np.ndarray) -> np.ndarray:
+    def grid_error(self, views, grid: np.ndarray) -> np.ndarray:
         """(candidates, M) squared error of each roughness candidate with its closed-form (least-squares) albedo."""
         import mitsuba as mi
 
@@ -496,16 +497,24 @@ class MaterialFitter:
         """Albedo at the chosen roughness: least squares, then L1 by reweighting (each observation weighted by 1 / its
         residual at the previous albedo); and each view's mean L1."""
 
-        m = self.atlas.num_texels
+        self.store_parts(views, roughness)
+        return self.solve_albedo(views, curve, start, lambda **arrays: save(**arrays, roughness=roughness))
+
+    def store_parts(self, views, roughness: np.ndarray) -> None:
+        """Each view's (D, S) at its observed texels for per-texel ``roughness``, kept in the view store."""
         for v in progress(views, description="albedo"):
             texels, _ = self.observation(v)
             d, s = self.parts(v, roughness, texels)
             self.store.put(f"parts:{v.name}", d=d, s=s)
+
+    def solve_albedo(self, views, curve: list, start: float, save) -> tuple[np.ndarray, dict[str, float]]:
+        """The albedo that explains the stored parts: least squares, then L1 by reweighting; and each view's mean L1."""
+        m = self.atlas.num_texels
         albedo = None
         for it in range(self.config.irls_iterations + 1):
             num, den = np.zeros((m, 3)), np.zeros((m, 3))
             for v in views:
-                texels, o, d, s = self._observation_parts(v)
+                texels, o, d, s = self.observation_parts(v)
                 w = 1.0 if albedo is None else 1.0 / np.maximum(np.abs(o - (albedo[texels] * d + s)), L1_DELTA)
                 np.add.at(num, texels, w * d * (o - s))
                 np.add.at(den, texels, w * d * d)
@@ -514,10 +523,10 @@ class MaterialFitter:
             per_view = self._irls_residuals(views, albedo)
             total, count = sum(t for t, _ in per_view.values()), sum(c for _, c in per_view.values())
             curve.append((time.perf_counter() - start, total / max(count, 1), "least squares" if it == 0 else f"L1 reweighting {it}"))
-            save(albedo=albedo, roughness=roughness)
+            save(albedo=albedo)
         return albedo, {name: t / c if c else float("nan") for name, (t, c) in per_view.items()}
 
-    def _observation_parts(self, view: View) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def observation_parts(self, view: View) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         texels, observed = self.observation(view)
         parts = self.store.get(f"parts:{view.name}")
         return texels, observed.astype(np.float64), parts["d"], parts["s"]
@@ -526,7 +535,7 @@ class MaterialFitter:
         """Per view: (Σ |residual|, number of values) at ``albedo``."""
         out = {}
         for v in views:
-            texels, o, d, s = self._observation_parts(v)
+            texels, o, d, s = self.observation_parts(v)
             residual = np.abs(o - (albedo[texels] * d + s))
             out[v.name] = (float(residual.sum()), residual.size)
         return out
