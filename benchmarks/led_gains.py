@@ -5,8 +5,8 @@ A synthetic `olat_quick` pose (331 LEDs, path-traced: interreflections, sheen, a
 model) is written as HumanOLAT ships a pose; for each gain draw, every OLAT photo is scaled by its LED's RGB gain
 (uniform in [0.5, 1], as a stage with ageing LEDs of varied colour). Each stage is imported without gains, with
 estimated gains and with the true gains as a --led-gains file; each import is fitted (`gra-mi fit`, defaults) and
-scored by `gra-mi eval` on the held-out cameras and OLATs. The stage with equal gains, estimated, is the estimate's
-floor: what it finds where there is nothing to find.
+scored by `gra-mi eval` on the held-out cameras and OLATs. The stage with equal gains is the estimate's floor: what it
+finds where there is nothing to find, and whether the fit loses by it.
 
     .venv/bin/python benchmarks/led_gains.py [--draws 2] [--work DIR] [--write docs/results/led-gains.md]
 """
@@ -24,6 +24,7 @@ import numpy as np
 from gra_mi.apps.harness import BenchmarkRun, run_benchmark
 
 PRESET = "olat_quick"
+LEDS = 331  # the preset's LEDs, HumanOLAT's
 TEST_OLAT_EVERY = 10  # every 10th OLAT held out, as the olat demo does
 WAYS = ("equal gains (none given)", "estimated (--estimate-led-gains)", "true gains (--led-gains)")
 
@@ -69,15 +70,18 @@ def imported(subject: Path, out: Path, intensity: float, *extra: str) -> tuple[P
 
 
 def gain_error(capture: Path, truth: np.ndarray | None) -> dict:
-    """The capture's gains against ``truth`` (None: equal) over the LEDs the estimate measured, each channel's mean 1."""
+    """The capture's gains against ``truth`` (None: equal; row k: the source's LED k) over the LEDs the estimate
+    measured, each channel's mean 1."""
+    from gra_mi.capture.humanolat import DOOR_LEDS
     from gra_mi.stage.lightstage import load_calibration
 
     stage = load_calibration(capture / "rig" / "calibration.json")
     report = json.loads((capture / "import_report.json").read_text())["leds"]
     estimate = report.get("estimate") or {}
-    measured = np.ones(stage.num_leds, bool)
-    measured[estimate.get("unmeasured_leds", [])] = False  # no door LEDs here: the source's numbers are the rig's
-    truth = np.ones((stage.num_leds, 3)) if truth is None else truth
+    numbers = [k for k in range(LEDS) if k not in DOOR_LEDS]  # the rig's LEDs: the door LEDs are left out
+    assert len(numbers) == stage.num_leds, (len(numbers), stage.num_leds)
+    measured = np.isin(numbers, estimate.get("unmeasured_leds", []), invert=True)
+    truth = np.ones((stage.num_leds, 3)) if truth is None else truth[numbers]
     truth, mine = truth / truth[measured].mean(axis=0), stage.gains / stage.gains[measured].mean(axis=0)
     error = np.abs(mine / truth - 1.0)[measured]
     return {"mean": float(error.mean()), "max": float(error.max()), "measured": int(measured.sum()), "estimate": estimate}
@@ -104,21 +108,22 @@ def fit_and_score(capture: Path, work: Path) -> dict:
 
 def measure(run: BenchmarkRun) -> str:
     subject, intensity = layout(run.work)
+    stages = {"equal-gain stage": None} | {
+        f"draw {k}": np.random.default_rng(k).uniform(0.5, 1.0, (LEDS, 3)) for k in range(run.args.draws)
+    }
     rows = []
-    floor, _ = imported(subject, run.work / "equal_stage", intensity, "--estimate-led-gains")
-    rows.append(
-        {"draw": "equal-gain stage", "way": WAYS[1], **gain_error(floor, None), "score": fit_and_score(floor, run.work / "equal_stage_fit")}
-    )
-    for draw in range(run.args.draws):
-        gains = np.random.default_rng(draw).uniform(0.5, 1.0, (331, 3))
-        folder = run.work / f"draw{draw}"
-        stage = gained(subject, folder / "layout", gains)
-        (folder / "gains.txt").write_text("".join(f"{r} {g} {b}\n" for r, g, b in gains))
-        ways = {WAYS[0]: (), WAYS[1]: ("--estimate-led-gains",), WAYS[2]: ("--led-gains", str(folder / "gains.txt"))}
+    for name, gains in stages.items():
+        folder = run.work / name.replace(" ", "_")
+        ways = {WAYS[0]: (), WAYS[1]: ("--estimate-led-gains",)}
+        if gains is not None:
+            (folder / "gains.txt").parent.mkdir(parents=True, exist_ok=True)
+            (folder / "gains.txt").write_text("".join(f"{r} {g} {b}\n" for r, g, b in gains))
+            ways[WAYS[2]] = ("--led-gains", str(folder / "gains.txt"))
+        stage = subject if gains is None else gained(subject, folder / "layout", gains)
         for k, (way, extra) in enumerate(ways.items()):
             capture, seconds = imported(stage, folder / f"import{k}", intensity, *extra)
             score = fit_and_score(capture, folder / f"fit{k}")
-            rows.append({"draw": f"draw {draw}", "way": way, **gain_error(capture, gains), "score": score, "import_seconds": seconds})
+            rows.append({"stage": name, "way": way, **gain_error(capture, gains), "score": score, "import_seconds": seconds})
             print(json.dumps(rows[-1], default=str), file=sys.stderr)
     (run.work / "rows.json").write_text(json.dumps(rows, indent=1, default=str))
     return page(rows, run)
@@ -145,7 +150,7 @@ def page(rows: list[dict], run: BenchmarkRun) -> str:
         l1 = f"{100 * e['relative_l1']['equal gains']:.1f} → {100 * e['relative_l1']['estimated']:.1f} %" if e else "—"
         seconds = f"{e['seconds']:.0f}" if e else "—"
         lines.append(
-            f"| {r['draw']} | {r['way']} | {100 * r['mean']:.1f} % | {100 * r['max']:.1f} % | {r['measured']} | {l1} | {seconds} "
+            f"| {r['stage']} | {r['way']} | {100 * r['mean']:.1f} % | {100 * r['max']:.1f} % | {r['measured']} | {l1} | {seconds} "
             f"| {s['psnr']:.2f} | {s['ssim']:.4f} |"
         )
     return "\n".join(lines) + "\n"

@@ -444,7 +444,7 @@ def gained_stage(olat_capture):
     return gained, gains
 
 
-def test_led_gains_light_each_olat_by_its_led(olat_capture, imported, gained_stage, tmp_path):
+def test_led_gains_light_each_olat_by_its_led(olat_capture, imported, gained_stage, tmp_path, capsys):
     """A stage whose LEDs differ in brightness and colour: imported with the gains (a --led-gains file, or
     transforms.json's pl_intensity), every OLAT frame's brightness over its LED's intensity is the native capture's;
     imported without, it strays by the gains' spread."""
@@ -470,15 +470,19 @@ def test_led_gains_light_each_olat_by_its_led(olat_capture, imported, gained_sta
     args = ["import", "transforms", str(folder), "--out", str(out), "--mesh", str(gained / "POSE_00" / "model" / "model.obj")]
     assert main([*args, "--mesh-units", "mm", "--uv-resolution", "32"]) == 0
     assert _olat_ratio_spread(native, out) < 2 * floor
-    # both at once are two answers to one question
-    assert main([*args, "--mesh-units", "mm", "--uv-resolution", "32", "--led-gains", str(tmp_path / "gains.txt")]) == 2
+    # both at once, or either and an estimate, are two answers to one question
+    args[args.index(str(out))] = str(tmp_path / "two_answers")
+    _one_line_error(capsys, [*args, "--led-gains", str(tmp_path / "gains.txt")], "pl_intensity", "one or the other")
+    _one_line_error(capsys, [*args, "--estimate-led-gains"], "pl_intensity", "not both")
 
 
-def test_led_gains_are_estimated_from_the_olats(olat_capture, gained_stage, tmp_path, monkeypatch):
+def test_led_gains_are_estimated_from_the_olats(olat_capture, gained_stage, tmp_path, monkeypatch, capsys):
     """Without a calibration, --estimate-led-gains measures each LED's gain on the OLATs against the albedo every
     LED's images share. The photos are path-traced (interreflections, a diffuse lobe that is not Lambertian), not the
     one-bounce model's; three LEDs play HumanOLAT's door LEDs, so the rig's order is not the source's numbering."""
     from gra_mi.capture import humanolat
+    from gra_mi.capture.humanolat import camera_name, images_of, olat_numbers, read_spiral, write_avif
+    from gra_mi.capture.source_files import read_image
     from gra_mi.stage.lightstage import load_calibration
 
     monkeypatch.setattr(humanolat, "DOOR_LEDS", (3, 7, 11))
@@ -501,21 +505,17 @@ def test_led_gains_are_estimated_from_the_olats(olat_capture, gained_stage, tmp_
     again = _imported(tmp_path, gained, "given", "--led-gains", str(out / "import" / "led_gains.txt"))
     np.testing.assert_allclose(load_calibration(again / "rig" / "calibration.json").led_gains, estimated, atol=2e-6)
     # estimated and given at once are two answers to one question
-    assert (
-        main(
-            [
-                "import",
-                "humanolat",
-                str(gained),
-                "--out",
-                str(tmp_path / "both"),
-                "--estimate-led-gains",
-                "--led-gains",
-                str(tmp_path / "x"),
-            ]
-        )
-        == 2
-    )
+    args = ["import", "humanolat", str(gained), "--out", str(tmp_path / "both"), "--estimate-led-gains"]
+    _one_line_error(capsys, [*args, "--led-gains", str(tmp_path / "x")], "estimate", "not both")
+    # a dead LED measures as one: refused, as a given gain that low is
+    dead = tmp_path / "dead" / gained.name
+    shutil.copytree(gained, dead, ignore=shutil.ignore_patterns("json*"))
+    position = int(np.flatnonzero(read_spiral(dead / "shared" / "LSX3_light_z_spiral.txt", 24) == 5)[0])
+    for cam in range(8):
+        image = images_of(dead / "POSE_00" / "images_processed" / camera_name(cam))[olat_numbers(24)[0][position]]
+        write_avif(image, np.zeros_like(read_image(image)[0]))
+    args[2:5] = [str(dead), "--out", str(tmp_path / "dead_out")]
+    _one_line_error(capsys, args, "LED 5's OLATs are dark", "dead LED")
 
 
 @pytest.mark.parametrize("planes, greyscale, alpha", [(1, True, False), (2, True, True), (3, False, False), (4, False, True)])

@@ -37,7 +37,7 @@ from gra_mi.capture.placement import (
 )
 from gra_mi.capture.reprojection import frame_mask, reprojection_checks
 from gra_mi.capture.source import ImportConfig, Source
-from gra_mi.capture.source_files import image_size, read_image, resample_columns, write_led_gains, write_mask
+from gra_mi.capture.source_files import MIN_RELATIVE_GAIN, image_size, read_image, resample_columns, write_led_gains, write_mask
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.guard import staging_folder
 from gra_mi.core.io import atomic_write_text, read_exr, write_exr, write_png
@@ -285,13 +285,23 @@ def _estimate_gains(capture: Capture, stage: Lightstage, source: Source) -> tupl
     --led-gains file in the source's numbering and as a plot; (what the report says of them, the estimate's summary)."""
     from gra_mi.fit.led_gains import estimate_led_gains, plot_gains
 
-    estimate = estimate_led_gains(capture)
+    try:
+        estimate = estimate_led_gains(capture)
+    except GraMiInputError as exc:  # said of the source: the capture being written is the import's own staging folder
+        raise GraMiParameterError("estimate_led_gains", f"{source.folder}: {exc.problem}") from None
+    numbers = source.led_numbers or list(range(len(source.leds)))
+    dark = np.flatnonzero(estimate.gains.min(axis=1) < MIN_RELATIVE_GAIN)
+    if dark.size:  # as a given gain that low is refused: no drive could give such an LED an environment map's share
+        raise GraMiParameterError(
+            "estimate_led_gains", f"{source.folder}: LED {numbers[dark[0]]}'s OLATs are dark (measured gain "
+            f"{np.round(estimate.gains[dark[0]], 4).tolist()}, below {MIN_RELATIVE_GAIN:.0%} of the mean): a dead LED, or its OLAT "
+            "images mixed up with another's?",
+        )  # fmt: skip
     stage.led_gains = estimate.gains
     write_rig(stage, capture.folder / "rig")
-    numbers = source.led_numbers or list(range(len(source.leds)))
     write_led_gains(capture.folder / "import" / "led_gains.txt", estimate.gains, numbers, estimate.measured, source.folder)
     plot_gains(estimate, numbers, capture.folder / "import" / "led_gains.png")
-    summary = estimate.summary()
+    summary = estimate.summary() | {"unmeasured_leds": [numbers[k] for k in np.flatnonzero(~estimate.measured)]}  # the source's numbers
     said = (
         f"estimated from the OLATs on the training cameras ({summary['measured_leds']} of {stage.num_leds} LEDs measured, "
         f"from {summary['range'][0]:.3f} to {summary['range'][1]:.3f}; the others 1): import/led_gains.txt"
