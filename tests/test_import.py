@@ -404,6 +404,47 @@ def test_transforms_json_imports_to_the_same_rig(olat_capture, imported, spellin
     np.testing.assert_allclose(mine.led_positions, theirs.led_positions, atol=1e-5)
 
 
+def test_exif_orientation_is_said_where_the_pixels_do_not_fit(olat_capture, tmp_path, capsys):
+    """Photos whose EXIF Orientation tag turns them for display (a phone's, a DSLR's): gra-mi reads pixels as stored,
+    as COLMAP does. Turned pixels a calibration made on the shown image does not fit stop the import naming the tag;
+    a tag over pixels that fit the calibration as stored changes nothing."""
+    from PIL import Image
+
+    from gra_mi.capture.source_files import read_image
+    from gra_mi.core.color import srgb_encode
+
+    _, _, subject = olat_capture
+    folder = subject / "json_exif"  # its file paths lead into the subject's folder
+    write_transforms_as_humanolat_tools_do(subject, folder, nerfstudio=True)
+    args = ["import", "transforms", str(folder), "--mesh", str(subject / "POSE_00" / "model" / "model.obj"), "--mesh-units", "mm"]
+    args += ["--uv-resolution", "32"]
+    originals = {}
+
+    def tag_cam01(quarters: int, orientation: int) -> None:
+        for path in folder.glob("transforms_*.json"):
+            data = json.loads(path.read_text())
+            for k, frame in enumerate(f for f in data["frames"] if f["cam_idx"] == 0):
+                frame.pop("mask_path", None)  # its mask from its pixels: a mask file would fit the mesh however they are turned
+                source = originals.setdefault((path.name, k), (path.parent / frame["file_path"]).resolve())
+                pixels = (srgb_encode(np.clip(read_image(source.with_name(source.name + ".avif"))[0], 0, 1)) * 255 + 0.5).astype(np.uint8)
+                exif = Image.Exif()
+                exif[0x0112] = orientation
+                target = tmp_path / "photos" / f"{path.stem}_{k}.png"
+                target.parent.mkdir(exist_ok=True)
+                Image.fromarray(np.ascontiguousarray(np.rot90(pixels, quarters))).save(target, exif=exif)
+                frame["file_path"] = str(target)
+            path.write_text(json.dumps(data))
+
+    tag_cam01(1, orientation=6)  # stored turned a quarter, shown upright: as the calibration saw it
+    _one_line_error(capsys, [*args, "--out", str(tmp_path / "turned")], "EXIF orientation 6", "rotated 90° clockwise", "as stored")
+    tag_cam01(2, orientation=3)  # turned half: the size fits, the mesh does not
+    _one_line_error(capsys, [*args, "--out", str(tmp_path / "upside_down")], "Cam01", "IoU", "EXIF orientation 3", "as stored")
+    tag_cam01(0, orientation=3)  # a tag over pixels the calibration fits as stored
+    assert main([*args, "--out", str(tmp_path / "as_stored")]) == 0
+    report = json.loads((tmp_path / "as_stored" / "import_report.json").read_text())
+    assert report["cameras"][0]["mask_iou"] > 0.9, report["cameras"][0]
+
+
 def _olat_ratio_spread(native, out: Path) -> float:
     """How far each OLAT frame's brightness over its LED's stated intensity strays from the native capture's, over
     the frames (std / mean of the ratio, the worst channel): 0 where every LED is lit as the capture says."""

@@ -37,7 +37,15 @@ from gra_mi.capture.placement import (
 )
 from gra_mi.capture.reprojection import frame_mask, reprojection_checks
 from gra_mi.capture.source import ImportConfig, Source
-from gra_mi.capture.source_files import MIN_RELATIVE_GAIN, image_size, read_image, resample_columns, write_led_gains, write_mask
+from gra_mi.capture.source_files import (
+    MIN_RELATIVE_GAIN,
+    image_size,
+    orientation_hint,
+    read_image,
+    resample_columns,
+    write_led_gains,
+    write_mask,
+)
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.guard import staging_folder
 from gra_mi.core.io import atomic_write_text, read_exr, write_exr, write_png
@@ -70,7 +78,8 @@ def check_images_present(source: Source, plans: list[CameraPlan], skip: bool) ->
                     f"camera {plan.camera.name} has no image of frame {key:06d} ({what}); --missing-images skip imports the rest",
                 )
             if image_size(path) != plan.source_size:
-                raise GraMiInputError(path, f"is {image_size(path)}, other images of {plan.camera.name} are {plan.source_size}")
+                said = f"is {image_size(path)}, the calibration's (and other images') size of {plan.camera.name} is {plan.source_size}"
+                raise GraMiInputError(path, said + orientation_hint(path))
     for plan in plans:
         if all(plan.camera.name in missing.get(key, []) for key, _, _ in source.frames):
             raise GraMiInputError(source.folder, f"camera {plan.camera.name} has no image of any frame: leave it out (--cameras)")

@@ -11,7 +11,7 @@ import numpy as np
 
 from gra_mi.capture.placement import CameraPlan, WorldFrame, plan_camera, resample_image
 from gra_mi.capture.source import Source
-from gra_mi.capture.source_files import read_image, read_mask
+from gra_mi.capture.source_files import orientation_hint, read_image, read_mask
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.progress import progress
 from gra_mi.stage.lightstage import Camera
@@ -165,7 +165,8 @@ def reprojection_checks(
             raise GraMiInputError(
                 source.calib_path,
                 f"camera {plan.camera.name}: the mesh reprojected over its mask overlaps it by IoU {iou:.2f} {below}; "
-                + likely_mistake(source, frame, plan, sequence, mask, pose, plans, masks),
+                + likely_mistake(source, frame, plan, sequence, mask, pose, plans, masks)
+                + orientation_hint(next(iter(source.images[plan.index].values()))),
             )
     return checks
 

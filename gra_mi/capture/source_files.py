@@ -285,6 +285,43 @@ def image_size(path: Path) -> tuple[int, int]:
         raise GraMiInputError(path, f"not a readable image ({exc})") from None
 
 
+EXIF_ORIENTATIONS = {
+    2: "mirrored",
+    3: "rotated 180°",
+    4: "flipped upside down",
+    5: "mirrored and rotated 90° counter-clockwise",
+    6: "rotated 90° clockwise",
+    7: "mirrored and rotated 90° clockwise",
+    8: "rotated 90° counter-clockwise",
+}  # what a viewer does to the stored pixels before showing them, by EXIF's Orientation tag (1: nothing)
+
+
+def exif_orientation(path: Path) -> int:
+    """The EXIF Orientation tag of a JPEG, PNG or AVIF (1: none, or not one of its values). gra-mi reads pixels as
+    stored, as COLMAP and OpenCV's calibration do; this says how a viewer would turn them."""
+    from PIL import Image
+
+    if path.suffix.lower() == ".exr":
+        return 1
+    try:
+        with Image.open(path) as image:
+            value = image.getexif().get(0x0112, 1)
+    except (OSError, SyntaxError, ValueError):
+        return 1  # read_image names an unreadable file
+    return value if value in EXIF_ORIENTATIONS else 1
+
+
+def orientation_hint(path: Path) -> str:
+    """What to say of ``path``'s EXIF orientation where its pixels do not fit the calibration ('' if it has none)."""
+    value = exif_orientation(path)
+    if value == 1:
+        return ""
+    return (
+        f"; {path.name} carries EXIF orientation {value} (shown {EXIF_ORIENTATIONS[value]}): gra-mi reads the pixels as stored, "
+        "as COLMAP does; if the calibration was made on the images as shown, turn their pixels first (`mogrify -auto-orient`)"
+    )
+
+
 def read_mask(path: Path) -> np.ndarray:
     """A mask image as (H, W) bool: the subject where a pixel's grey level is above half its range, 8- or 16-bit
     (Pillow's own conversion to 8 bits clips 16-bit levels, so a level of 200 in 65,535 would count as the subject)."""
