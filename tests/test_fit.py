@@ -465,3 +465,19 @@ def test_joining_views_compiles_no_kernel_per_view(onebounce_capture, monkeypatc
 
     # a handful of variants (Dr.Jit fuses the scatters of equal sizes differently), never one per view
     assert 0 < len(kernels_to_join(len(single))) <= 24
+
+
+def test_weighted_median_minimises_the_weighted_l1():
+    """The LED gain estimate's scale (:func:`~gra_mi.fit.led_gains.weighted_median`) against a brute-force search of
+    Σ w |v − s| over every candidate value (an L1 minimum lies at one of them), ties and zero weights included."""
+    from gra_mi.fit.led_gains import weighted_median
+
+    rng = np.random.default_rng(0)
+    for n in (1, 2, 7, 100):
+        values, weights = np.round(rng.normal(1.0, 0.3, n), 2), rng.uniform(0.0, 1.0, n)
+        weights[: n // 3] = 0.0
+        if weights.sum() == 0:
+            weights[-1] = 1.0
+        costs = np.sum(weights * np.abs(values[None, :] - values[:, None]), axis=1)  # Σ w |v − s| at every s = v_i
+        found = float(np.sum(weights * np.abs(values - weighted_median(values, weights))))
+        assert found == pytest.approx(costs.min(), rel=1e-12, abs=1e-15)

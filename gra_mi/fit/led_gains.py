@@ -7,17 +7,21 @@ A frame lit by one LED alone shows the subject under that LED times its gain g_l
 for an observation j of texel t in a view of LED l's frame. The albedo a and the gains g are found in turn, on the
 closed form's observations (:class:`~gra_mi.fit.materials.MaterialFitter`, at a coarse UV resolution):
 
-1. the roughness grid and the per-texel albedo at the current gains (the fit's closed form);
+1. the roughness grid (once), then the per-texel albedo at the current gains (the fit's closed form);
 2. each LED's gain times the ratio that best explains its views: the weighted median of O / P over its observations
    (P the prediction, weight P: the scale minimising Σ |O − s P|, so shadows the model misses and highlights do not
    drag it);
 3. the stored parts of the LED's views rescaled by that ratio (D and S are linear in the frame's light), and again,
    until no gain changes by more than :data:`TOLERANCE`.
 
+Only observations of texels that face their LED (:data:`MIN_LIGHT_COS`: grazing light is where the one-bounce BRDF
+is most wrong) count, and a gain is measured on the texels another LED lights too: a texel one LED alone lights is
+explained whatever that LED's gain (its albedo follows), so it only holds the ratio at 1. An LED without an OLAT
+frame, or outside the largest group of LEDs joined by such texels, is not measured and keeps 1.
+
 Gains are relative: each channel's mean over the measured LEDs is 1. A colour common to every LED cannot be told
 apart from the subject's, and stays in the albedo; the LEDs' overall brightness is the import's --led-intensity.
-An LED without an OLAT frame, or whose light no training camera sees on the subject, is not measured and keeps 1.
-Every OLAT frame is used, held-out ones included: one RGB number per LED comes from its images.
+Every OLAT frame is used, held-out ones included: one RGB number per LED comes from its training cameras' images.
 """
 
 from __future__ import annotations
@@ -37,8 +41,7 @@ logger = logging.getLogger(__name__)
 RESOLUTION = 64  # UV resolution of the estimate's albedo: each LED is measured over many texels, not fine detail
 ROUNDS = 50  # at most this many albedo / gain alternations
 TOLERANCE = 1e-3  # stop once no gain changes by more than this (relative)
-MIN_VIEW_COS = 0.0  # observations of texels seen more obliquely are left out
-MIN_LIGHT_COS = 0.4  # and of texels lit more obliquely: grazing light is where the one-bounce BRDF is most wrong
+MIN_LIGHT_COS = 0.4  # observations of texels lit more obliquely are left out
 MIN_OBSERVATIONS = 50  # observations of texels another LED lights too that an LED needs to be measured
 MIN_SHARED_TEXELS = 10  # texels two LEDs both light for the one's gain to tie to the other's
 
@@ -47,7 +50,7 @@ MIN_SHARED_TEXELS = 10  # texels two LEDs both light for the one's gain to tie t
 class GainEstimate:
     gains: np.ndarray  # (L, 3) each channel's mean over the measured LEDs 1
     measured: np.ndarray  # (L,) LEDs whose gain the images measured (the others keep 1)
-    observations: np.ndarray  # (L,) texel observations that measured each LED
+    observations: np.ndarray  # (L,) observations of texels another LED lights too: what measured each LED
     changes: list[float] = field(default_factory=list)  # each round's largest relative change of a gain
     residual: list[float] = field(default_factory=list)  # relative L1 of the model before the first round and after each
     seconds: float = 0.0
@@ -178,19 +181,19 @@ def _ratios(fitter, by_led: dict, albedo: np.ndarray, shared: np.ndarray) -> tup
 
 
 def _keep_well_lit(fitter, view, led: np.ndarray) -> None:
-    """Keep the view's observations of texels facing its camera and its LED."""
+    """Keep the view's observations of texels that face its LED (those it has face its camera)."""
     texels, observed, d, s = fitter.observation_parts(view)
-    keep = (_facing(fitter, view, texels) >= MIN_VIEW_COS) & (_facing(fitter, view, texels, led) >= MIN_LIGHT_COS)
+    keep = _facing(fitter, view, texels, led) >= MIN_LIGHT_COS
     fitter.store.put(f"observed:{view.name}", texels=texels[keep], observed=observed[keep].astype(np.float32))
     fitter.store.put(f"parts:{view.name}", d=d[keep], s=s[keep])
     view.count = int(keep.sum())
 
 
-def _facing(fitter, view, texels: np.ndarray, toward=None) -> np.ndarray:
-    """Cosine between each of the view's texels' normals and the direction to its camera (or to ``toward``)."""
+def _facing(fitter, view, texels: np.ndarray, toward: np.ndarray) -> np.ndarray:
+    """Cosine between each of the view's texels' normals and the direction to the point ``toward``."""
     geom = fitter.relighter.geometry(view.pose)
     p, n = np.array(geom.position).T[texels], np.array(geom.normal).T[texels]
-    d = (fitter.stage.camera(view.camera).position if toward is None else toward) - p
+    d = toward - p
     return np.sum(n * d, axis=1) / np.linalg.norm(d, axis=1)
 
 
