@@ -442,7 +442,8 @@ def test_exif_orientation_is_said_where_the_pixels_do_not_fit(olat_capture, tmp_
     tag_cam01(0, orientation=3)  # a tag over pixels the calibration fits as stored
     assert main([*args, "--out", str(tmp_path / "as_stored")]) == 0
     report = json.loads((tmp_path / "as_stored" / "import_report.json").read_text())
-    assert report["cameras"][0]["mask_iou"] > 0.9, report["cameras"][0]
+    assert report["cameras"][0]["mask_iou"] > 0.9 and report["cameras"][0]["exif_turned"] == 24, report["cameras"][0]
+    assert "EXIF orientation tag, read as stored" in (tmp_path / "as_stored" / "import_report.md").read_text()
 
 
 def _olat_ratio_spread(native, out: Path) -> float:

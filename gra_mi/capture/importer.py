@@ -39,6 +39,7 @@ from gra_mi.capture.reprojection import frame_mask, reprojection_checks
 from gra_mi.capture.source import ImportConfig, Source
 from gra_mi.capture.source_files import (
     MIN_RELATIVE_GAIN,
+    exif_orientation,
     image_size,
     orientation_hint,
     read_image,
@@ -385,8 +386,10 @@ def _import_image(source: Source, plan: CameraPlan, capture: Capture, key: int, 
 
 
 def _camera_summary(source: Source, plan: CameraPlan, saturated: list[float]) -> dict:
-    """What the report says of a camera's images: saturation, the square-pixel resampling's error."""
-    first = read_image(next(iter(source.images[plan.index].values())))[0]
+    """What the report says of a camera's images: saturation, the square-pixel resampling's error, the lens undone,
+    how many carry an EXIF orientation tag (read as stored)."""
+    paths = list(source.images[plan.index].values())
+    first = read_image(paths[0])[0]
     lens = None
     if plan.lens is not None:
         lens = {"model": plan.lens.describe(), "held": held_fraction(plan.source_k, plan.lens, *plan.source_size)}
@@ -395,6 +398,7 @@ def _camera_summary(source: Source, plan: CameraPlan, saturated: list[float]) ->
         "resampling_error": _resampling_error(first, plan),
         "anisotropy": plan.anisotropy,
         "lens": lens,
+        "exif_turned": sum(exif_orientation(p) != 1 for p in paths),
     }
 
 
@@ -504,6 +508,12 @@ def import_markdown(r: dict, source_format: str) -> str:
     ]
     if gaps:
         lines += ["", f"Missing images, skipped (--missing-images skip; the frames in capture.json say which): {'; '.join(gaps)}."]
+    if turned := [f"{c['camera']} ({c['exif_turned']})" for c in r["cameras"] if c.get("exif_turned")]:
+        lines += [
+            "",
+            f"Images with an EXIF orientation tag, read as stored (as COLMAP calibrates them): {', '.join(turned)}. A mask file "
+            "that fits the mesh says nothing of how the images are turned: look at one of their imported images.",
+        ]
     if (estimate := leds.get("estimate")) is not None:
         lines += [
             "",
