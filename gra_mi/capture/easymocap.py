@@ -233,8 +233,11 @@ def import_easymocap(
     files: TransformsOptions,
     overwrite: bool = False,
     shard=None,
+    estimate_gains=None,
 ):
     config.validate()
     options.validate()
     source = read_easymocap(Path(folder), options, files)
-    return import_capture(source, Path(out), config, {"units": files.units, "mesh_units": files.mesh_units}, overwrite, files, shard)
+    return import_capture(
+        source, Path(out), config, {"units": files.units, "mesh_units": files.mesh_units}, overwrite, files, shard, estimate_gains
+    )

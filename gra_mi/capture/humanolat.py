@@ -385,11 +385,13 @@ def import_humanolat(
     options: HumanolatOptions | None = None,
     overwrite: bool = False,
     shard: Shard | None = None,
+    estimate_gains=None,
 ) -> Capture | None:
-    """Import one pose of a HumanOLAT subject into ``out``; rerunning resumes (images already written are kept)."""
+    """Import one pose of a HumanOLAT subject into ``out``; rerunning resumes (images already written are kept).
+    ``estimate_gains``: :func:`~gra_mi.capture.importer.import_capture`'s."""
     config, options = config or ImportConfig(), options or HumanolatOptions()
     config.validate()
     options.validate()
     source = read_humanolat(Path(subject_dir), options)
     record = {"pose": options.pose, "units": "millimetres (calibration, mesh), metres (LEDs)"}
-    return import_capture(source, Path(out), config, record, overwrite, options, shard)
+    return import_capture(source, Path(out), config, record, overwrite, options, shard, estimate_gains)

@@ -96,16 +96,22 @@ def check_images_present(source: Source, plans: list[CameraPlan], skip: bool) ->
 
 
 def import_capture(
-    source: Source, out: Path, config: ImportConfig, record: dict, overwrite: bool = False, options=None, shard: Shard | None = None
-) -> Capture | None:
+    source: Source, out: Path, config: ImportConfig, record: dict, overwrite: bool = False, options=None, shard: Shard | None = None,
+    estimate_gains=None,
+) -> Capture | None:  # fmt: skip
     """The import, whatever the source: its checks, frame, cameras, the reprojection check, then the files.
 
     Everything is built in a staging folder beside ``out`` (:func:`gra_mi.core.guard.staging_folder`; an interrupted
     import resumes there), loaded back with gra-mi's own readers, and published by renaming it to ``out`` only when
     they accept it: a failure leaves nothing at ``out``. ``shard``: import only its frames' images (every shard writes
     the rig and subject alike); the shard that finds every shard's images done checks and publishes the capture and
-    returns it, the others return None."""
+    returns it, the others return None. ``estimate_gains``: what measures the LEDs' gains on the written capture
+    (``config.estimate_led_gains``; :func:`gra_mi.fit.led_gains.estimate_led_gains`, a layer above this one)."""
 
+    if config.estimate_led_gains and estimate_gains is None:
+        raise GraMiParameterError(
+            "estimate_led_gains", "needs estimate_gains=gra_mi.fit.led_gains.estimate_led_gains (gra-mi import passes it)"
+        )
     source.check()
     gains = source.led_gains(config.led_gains, config.estimate_led_gains)
     ensure_mitsuba()
@@ -159,7 +165,7 @@ def import_capture(
         record["images"][plan.camera.name] = _camera_summary(source, plan, saturated[plan.camera.name]) | gaps
     capture.save()
     if config.estimate_led_gains:  # on the written images, before the report that says what came of it
-        record["gains"], record["gain_estimate"] = _estimate_gains(capture, stage, source)
+        record["gains"], record["gain_estimate"] = _measured_gains(estimate_gains, capture, stage, source)
         capture.save()
     _write_report(staging, source, frame, plans, checks, record)
     shutil.rmtree(staging / "parts", ignore_errors=True)
@@ -290,13 +296,11 @@ def _lit_alone(stage: Lightstage, entry, drive) -> bool:
     return entry.kind != "envmap" and int(np.count_nonzero(_drive(stage, drive).max(axis=1))) == 1
 
 
-def _estimate_gains(capture: Capture, stage: Lightstage, source: Source) -> tuple[str, dict]:
-    """The LEDs' gains measured on the imported OLATs (:mod:`gra_mi.fit.led_gains`), written into the rig, as a
-    --led-gains file in the source's numbering and as a plot; (what the report says of them, the estimate's summary)."""
-    from gra_mi.fit.led_gains import estimate_led_gains, plot_gains
-
+def _measured_gains(estimate_gains, capture: Capture, stage: Lightstage, source: Source) -> tuple[str, dict]:
+    """The LEDs' gains ``estimate_gains`` measures on the imported OLATs, written into the rig, as a --led-gains file
+    in the source's numbering and as a plot; (what the report says of them, the estimate's summary)."""
     try:
-        estimate = estimate_led_gains(capture)
+        estimate = estimate_gains(capture)
     except GraMiInputError as exc:  # said of the source: the capture being written is the import's own staging folder
         raise GraMiParameterError("estimate_led_gains", f"{source.folder}: {exc.problem}") from None
     numbers = source.led_numbers or list(range(len(source.leds)))
@@ -310,13 +314,33 @@ def _estimate_gains(capture: Capture, stage: Lightstage, source: Source) -> tupl
     stage.led_gains = estimate.gains
     write_rig(stage, capture.folder / "rig")
     write_led_gains(capture.folder / "import" / "led_gains.txt", estimate.gains, numbers, estimate.measured, source.folder)
-    plot_gains(estimate, numbers, capture.folder / "import" / "led_gains.png")
+    _plot_gains(estimate, numbers, capture.folder / "import" / "led_gains.png")
     summary = estimate.summary() | {"unmeasured_leds": [numbers[k] for k in np.flatnonzero(~estimate.measured)]}  # the source's numbers
     said = (
         f"estimated from the OLATs on the training cameras ({summary['measured_leds']} of {stage.num_leds} LEDs measured, "
         f"from {summary['range'][0]:.3f} to {summary['range'][1]:.3f}; the others 1): import/led_gains.txt"
     )
     return said, summary
+
+
+def _plot_gains(estimate, numbers: list[int], path: Path) -> None:
+    """Each LED's measured gain per channel against its number in the source; LEDs not measured hollow."""
+    from gra_mi.core.io import pyplot, save_figure
+
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(min(4 + 0.03 * len(numbers), 14), 3.4))
+    x, measured = np.asarray(numbers), estimate.measured
+    for c, colour in enumerate(("tab:red", "tab:green", "tab:blue")):
+        ax.plot(x[measured], estimate.gains[measured, c], ".", color=colour, ms=4)
+    if not measured.all():
+        ax.plot(x[~measured], np.ones((~measured).sum()), "o", mfc="none", color="grey", ms=5, label="not measured (1)")
+        ax.legend(fontsize=8)
+    ax.axhline(1.0, color="k", lw=0.5)
+    ax.set_xlabel("LED (the source's number)")
+    ax.set_ylabel("gain (each channel's mean 1)")
+    ax.set_title("LED gains measured on the OLATs (red, green, blue)")
+    fig.tight_layout()
+    save_figure(fig, path)
 
 
 def _write_stage_files(out: Path, stage: Lightstage, source: Source, frame: WorldFrame, subject: SubjectPlan) -> None:

@@ -72,13 +72,14 @@ def import_transforms(
     options: TransformsOptions | None = None,
     overwrite: bool = False,
     shard=None,
+    estimate_gains=None,
 ):
     config, options = config or ImportConfig(), options or TransformsOptions()
     config.validate()
     options.validate()
     source = read_transforms(Path(folder), options)
     units = {"units": options.units, "mesh_units": options.mesh_units}
-    return import_capture(source, Path(out), config, units, overwrite, options, shard)
+    return import_capture(source, Path(out), config, units, overwrite, options, shard, estimate_gains)
 
 
 @dataclass

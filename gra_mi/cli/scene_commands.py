@@ -249,13 +249,15 @@ class ImportCommand(Restartable):
 
 
 def run_import(c: ImportCommand) -> None:
-    shard = c.shards.resolved()
+    from gra_mi.fit.led_gains import estimate_led_gains  # the fit's closed form measures them: a layer above the import
+
+    shard, gains = c.shards.resolved(), estimate_led_gains
     if c.source == "humanolat":
-        capture = import_humanolat(c.folder, c.out, c.config, c.humanolat, c.overwrite, shard)
+        capture = import_humanolat(c.folder, c.out, c.config, c.humanolat, c.overwrite, shard, gains)
     elif c.source == "transforms":
-        capture = import_transforms(c.folder, c.out, c.config, c.transforms, c.overwrite, shard)
+        capture = import_transforms(c.folder, c.out, c.config, c.transforms, c.overwrite, shard, gains)
     else:
-        capture = import_easymocap(c.folder, c.out, c.config, c.easymocap, c.transforms, c.overwrite, shard)
+        capture = import_easymocap(c.folder, c.out, c.config, c.easymocap, c.transforms, c.overwrite, shard, gains)
     if capture is None:
         print(f"shard {shard}: its images are in {c.out / 'images'}; the shard that finishes last writes capture.json")
         return

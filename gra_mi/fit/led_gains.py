@@ -208,23 +208,3 @@ def _rescale(fitter, views: list, ratio: np.ndarray) -> None:
     for v in views:
         parts = fitter.store.get(f"parts:{v.name}")
         fitter.store.put(f"parts:{v.name}", d=parts["d"] * ratio, s=parts["s"] * ratio)
-
-
-def plot_gains(estimate: GainEstimate, numbers: list[int], path) -> None:
-    """Each LED's estimated gain per channel against its number in the source; LEDs not measured hollow."""
-    from gra_mi.core.io import pyplot, save_figure
-
-    plt = pyplot()
-    fig, ax = plt.subplots(figsize=(min(4 + 0.03 * len(numbers), 14), 3.4))
-    x = np.asarray(numbers)
-    for c, colour in enumerate(("tab:red", "tab:green", "tab:blue")):
-        ax.plot(x[estimate.measured], estimate.gains[estimate.measured, c], ".", color=colour, ms=4)
-    if not estimate.measured.all():
-        ax.plot(x[~estimate.measured], np.ones((~estimate.measured).sum()), "o", mfc="none", color="grey", ms=5, label="not measured (1)")
-        ax.legend(fontsize=8)
-    ax.axhline(1.0, color="k", lw=0.5)
-    ax.set_xlabel("LED (the source's number)")
-    ax.set_ylabel("gain (each channel's mean 1)")
-    ax.set_title("LED gains measured on the OLATs (red, green, blue)")
-    fig.tight_layout()
-    save_figure(fig, path)
