@@ -418,13 +418,15 @@ def test_exif_orientation_is_said_where_the_pixels_do_not_fit(olat_capture, tmp_
     write_transforms_as_humanolat_tools_do(subject, folder, nerfstudio=True)
     args = ["import", "transforms", str(folder), "--mesh", str(subject / "POSE_00" / "model" / "model.obj"), "--mesh-units", "mm"]
     args += ["--uv-resolution", "32"]
-    originals = {}
+    originals, masks = {}, {}
 
-    def tag_cam01(quarters: int, orientation: int) -> None:
+    def tag_cam01(quarters: int, orientation: int, mask_file: bool = False) -> None:
         for path in folder.glob("transforms_*.json"):
             data = json.loads(path.read_text())
             for k, frame in enumerate(f for f in data["frames"] if f["cam_idx"] == 0):
-                frame.pop("mask_path", None)  # its mask from its pixels: a mask file would fit the mesh however they are turned
+                masks.setdefault((path.name, k), frame.pop("mask_path", None))
+                if mask_file:  # a mask file fits the mesh however the pixels are turned: checked against the pixels
+                    frame["mask_path"] = masks[(path.name, k)]
                 source = originals.setdefault((path.name, k), (path.parent / frame["file_path"]).resolve())
                 pixels = (srgb_encode(np.clip(read_image(source.with_name(source.name + ".avif"))[0], 0, 1)) * 255 + 0.5).astype(np.uint8)
                 exif = Image.Exif()
@@ -439,6 +441,8 @@ def test_exif_orientation_is_said_where_the_pixels_do_not_fit(olat_capture, tmp_
     _one_line_error(capsys, [*args, "--out", str(tmp_path / "turned")], "EXIF orientation 6", "rotated 90° clockwise", "as stored")
     tag_cam01(2, orientation=3)  # turned half: the size fits, the mesh does not
     _one_line_error(capsys, [*args, "--out", str(tmp_path / "upside_down")], "Cam01", "IoU", "EXIF orientation 3", "as stored")
+    tag_cam01(2, orientation=3, mask_file=True)
+    _one_line_error(capsys, [*args, "--out", str(tmp_path / "against_mask")], "Cam01", "outside its mask", "EXIF orientation 3")
     tag_cam01(0, orientation=3)  # a tag over pixels the calibration fits as stored
     assert main([*args, "--out", str(tmp_path / "as_stored")]) == 0
     report = json.loads((tmp_path / "as_stored" / "import_report.json").read_text())

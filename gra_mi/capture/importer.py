@@ -35,7 +35,7 @@ from gra_mi.capture.placement import (
     resample_image,
     world_frame,
 )
-from gra_mi.capture.reprojection import frame_mask, reprojection_checks
+from gra_mi.capture.reprojection import check_images_fit_masks, frame_mask, reprojection_checks
 from gra_mi.capture.source import ImportConfig, Source
 from gra_mi.capture.source_files import (
     MIN_RELATIVE_GAIN,
@@ -134,6 +134,7 @@ def import_capture(
     key, pose = next((k, f.mesh_frame) for k, f, _ in source.frames if k not in missing)
     masks = [frame_mask(source, plan, key) for plan in plans]
     checks = reprojection_checks(source, frame, subject.posed(source, frame, pose), plans, masks, config.min_iou, 0)
+    check_images_fit_masks(source, plans, key)
     said = asdict(config) | (asdict(options) if options is not None else {})
     shard, command = shard or Shard(), f"import {source.format}"
     inputs = {"source": source.folder, "files outside the source": files_read_outside(source), "LED gains": config.led_gains}

@@ -187,6 +187,33 @@ def _check_mask(source: Source, plan: CameraPlan, mask: np.ndarray) -> None:
         )
 
 
+MASKED_BACKGROUND = 0.2  # an image with this share of pixels at exactly 0 was masked (black background)
+OUTSIDE_MASK = 0.25  # a masked image with this share of its lit pixels outside its mask file does not go with it
+
+
+def check_images_fit_masks(source: Source, plans: list[CameraPlan], key: int) -> None:
+    """A mask file is checked against the mesh, not against the pixels: a camera whose masked (black-background) image
+    of frame ``key`` lights mostly outside its mask file has images that do not go with it (turned, another camera's,
+    another frame's). Cameras whose mask comes from their pixels, or whose images keep a background, are not checked."""
+    for plan in plans:
+        own = source.frame_masks[plan.index].get(key) if source.frame_masks else None
+        mask_file = own or source.masks[plan.index]
+        if mask_file is None:
+            continue
+        path = source.images[plan.index][key]
+        rgb, _, alpha = read_image(path)
+        lit = (rgb.max(axis=-1) > 0) if alpha is None else alpha > 0.5
+        if alpha is None and 1.0 - lit.mean() < MASKED_BACKGROUND:
+            continue
+        mask = read_mask(mask_file)
+        outside = float((lit & ~mask).sum() / max(lit.sum(), 1)) if mask.shape == lit.shape else 1.0
+        if outside > OUTSIDE_MASK:
+            raise GraMiInputError(
+                path, f"camera {plan.camera.name}: {100 * outside:.0f} % of the subject this image shows lies outside its mask "
+                f"{mask_file}: the image does not go with it (turned, or another camera's)" + orientation_hint(path),
+            )  # fmt: skip
+
+
 def _check_upright(source: Source, frame: WorldFrame, sequence, pose: int) -> None:
     """A subject whose height is well below its width along the chosen up axis would import lying on its side."""
     v = np.asarray(sequence.vertices[pose], float)
