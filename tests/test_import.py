@@ -550,6 +550,10 @@ def test_led_gains_are_estimated_from_the_olats(olat_capture, gained_stage, tmp_
     assert text.count("# not in the rig") == 3 and len([x for x in text.splitlines() if not x.startswith("#")]) == 24
     again = _imported(tmp_path, gained, "given", "--led-gains", str(out / "import" / "led_gains.txt"))
     np.testing.assert_allclose(load_calibration(again / "rig" / "calibration.json").led_gains, estimated, atol=2e-6)
+    # two shards: the last measures them on every shard's images, as one process does
+    for shard in ("0/2", "1/2"):
+        sharded = _imported(tmp_path, gained, "sharded", "--estimate-led-gains", "--shard", shard)
+    np.testing.assert_array_equal(load_calibration(sharded / "rig" / "calibration.json").led_gains, estimated)
     # estimated and given at once are two answers to one question
     args = ["import", "humanolat", str(gained), "--out", str(tmp_path / "both"), "--estimate-led-gains"]
     _one_line_error(capsys, [*args, "--led-gains", str(tmp_path / "x")], "estimate", "not both")
