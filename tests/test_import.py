@@ -557,6 +557,20 @@ def test_led_gains_are_estimated_from_the_olats(olat_capture, gained_stage, tmp_
     # estimated and given at once are two answers to one question
     args = ["import", "humanolat", str(gained), "--out", str(tmp_path / "both"), "--estimate-led-gains"]
     _one_line_error(capsys, [*args, "--led-gains", str(tmp_path / "x")], "estimate", "not both")
+    assert report["estimate"]["suspect_leds"] == []
+    # two neighbouring LEDs' OLATs swapped (a mixed-up firing order): each lit where the other's position says
+    swapped = tmp_path / "swapped" / gained.name
+    shutil.copytree(gained, swapped, ignore=shutil.ignore_patterns("json*"))
+    spiral = read_spiral(swapped / "shared" / "LSX3_light_z_spiral.txt", 24)
+    a, b = (olat_numbers(24)[0][int(np.flatnonzero(spiral == led)[0])] for led in (5, 10))  # 10: 5's nearest
+    for cam in range(8):
+        images = images_of(swapped / "POSE_00" / "images_processed" / camera_name(cam))
+        pixels = read_image(images[a])[0]
+        write_avif(images[a], read_image(images[b])[0])
+        write_avif(images[b], pixels)
+    mixed = _imported(tmp_path, swapped, "swapped_out", "--estimate-led-gains")
+    assert json.loads((mixed / "import_report.json").read_text())["leds"]["estimate"]["suspect_leds"] == [5, 10]
+    assert "Check the light order" in (mixed / "import_report.md").read_text()
     # a dead LED measures as one: refused, as a given gain that low is
     dead = tmp_path / "dead" / gained.name
     shutil.copytree(gained, dead, ignore=shutil.ignore_patterns("json*"))

@@ -316,7 +316,12 @@ def _measured_gains(estimate_gains, capture: Capture, stage: Lightstage, source:
     write_rig(stage, capture.folder / "rig")
     write_led_gains(capture.folder / "import" / "led_gains.txt", estimate.gains, numbers, estimate.measured, source.folder)
     _plot_gains(estimate, numbers, capture.folder / "import" / "led_gains.png")
-    summary = estimate.summary() | {"unmeasured_leds": [numbers[k] for k in np.flatnonzero(~estimate.measured)]}  # the source's numbers
+    summary = estimate.summary() | {  # in the source's numbers
+        "unmeasured_leds": [numbers[k] for k in np.flatnonzero(~estimate.measured)],
+        "suspect_leds": [numbers[k] for k in np.flatnonzero(estimate.suspect)],
+    }
+    if summary["suspect_leds"]:
+        logger.warning("LEDs %s: their OLATs are lit elsewhere than their positions say (import_report.md)", summary["suspect_leds"])
     said = (
         f"estimated from the OLATs on the training cameras ({summary['measured_leds']} of {stage.num_leds} LEDs measured, "
         f"from {summary['range'][0]:.3f} to {summary['range'][1]:.3f}; the others 1): import/led_gains.txt"
@@ -547,6 +552,13 @@ def import_markdown(r: dict, source_format: str) -> str:
             f"{100 * estimate['relative_l1']['estimated']:.1f} % with these. Not measured (kept 1): "
             f"{', '.join(map(str, estimate['unmeasured_leds'])) or 'none'}. ![LED gains](import/led_gains.png)",
         ]
+        if estimate["suspect_leds"]:
+            lines += [
+                "",
+                f"**Check the light order or positions**: the OLATs of LEDs {', '.join(map(str, estimate['suspect_leds']))} are lit "
+                "elsewhere than their positions say (the model's L1 on them is several times the other LEDs'). A mixed-up firing "
+                "order or LED file spoils the fit wherever they light.",
+            ]
     if r["linearity"] is not None:
         lin = r["linearity"]
         lines += [

@@ -44,6 +44,7 @@ TOLERANCE = 1e-3  # stop once no gain changes by more than this (relative)
 MIN_LIGHT_COS = 0.4  # observations of texels lit more obliquely are left out
 MIN_OBSERVATIONS = 50  # observations of texels another LED lights too that an LED needs to be measured
 MIN_SHARED_TEXELS = 10  # texels two LEDs both light for the one's gain to tie to the other's
+SUSPECT_RESIDUAL, SUSPECT_FLOOR = 3.0, 0.3  # an LED whose relative L1 is above both (× the median; absolute) is named
 
 
 @dataclass
@@ -53,12 +54,23 @@ class GainEstimate:
     observations: np.ndarray  # (L,) observations of texels another LED lights too: what measured each LED
     changes: list[float] = field(default_factory=list)  # each round's largest relative change of a gain
     residual: list[float] = field(default_factory=list)  # relative L1 of the model before the first round and after each
+    led_residual: np.ndarray | None = None  # (L,) each measured LED's relative L1 at the estimate (NaN: not measured)
     seconds: float = 0.0
+
+    @property
+    def suspect(self) -> np.ndarray:
+        """(L,) LEDs whose OLATs the model explains far worse than the others' at their best gain: lit elsewhere than
+        their position says (a mixed-up light order or positions)."""
+        if self.led_residual is None or not self.measured.any():
+            return np.zeros(self.measured.size, bool)
+        typical = float(np.nanmedian(self.led_residual[self.measured]))
+        return self.measured & (self.led_residual > max(SUSPECT_RESIDUAL * typical, SUSPECT_FLOOR))
 
     def summary(self) -> dict:
         return {
             "measured_leds": int(self.measured.sum()),
             "unmeasured_leds": [int(i) for i in np.flatnonzero(~self.measured)],
+            "suspect_leds": [int(i) for i in np.flatnonzero(self.suspect)],
             "rounds": len(self.changes),
             "last_change": self.changes[-1] if self.changes else None,
             "relative_l1": {"equal gains": self.residual[0], "estimated": self.residual[-1]} if self.residual else None,
@@ -99,7 +111,7 @@ def estimate_led_gains(capture, resolution: int = RESOLUTION, rounds: int = ROUN
     views = [v for its_views in by_led.values() for v in its_views]
     for _ in range(rounds):
         albedo, _ = fitter.solve_albedo(views, [], clock, lambda **_: None)
-        ratios, residual = _ratios(fitter, by_led, albedo, shared)
+        ratios, residual, _ = _ratios(fitter, by_led, albedo, shared)
         estimate.residual.append(residual)
         ratios /= (estimate.gains * ratios)[measured].mean(axis=0) / estimate.gains[measured].mean(axis=0)
         estimate.gains *= ratios
@@ -109,7 +121,8 @@ def estimate_led_gains(capture, resolution: int = RESOLUTION, rounds: int = ROUN
         if estimate.changes[-1] < TOLERANCE:
             break
     albedo, _ = fitter.solve_albedo(views, [], clock, lambda **_: None)
-    estimate.residual.append(_ratios(fitter, by_led, albedo, shared)[1])
+    _, last, estimate.led_residual = _ratios(fitter, by_led, albedo, shared)
+    estimate.residual.append(last)
     gains = estimate.gains * fitter.stage.gains  # the capture's own gains, corrected
     estimate.gains = np.where(measured[:, None], gains / gains[measured].mean(axis=0), 1.0)
     estimate.seconds = time.perf_counter() - clock
@@ -163,10 +176,11 @@ def _links(fitter, views: list, lit_by: dict, num_leds: int) -> tuple[np.ndarray
     return shared, measured, observations
 
 
-def _ratios(fitter, by_led: dict, albedo: np.ndarray, shared: np.ndarray) -> tuple[np.ndarray, float]:
+def _ratios(fitter, by_led: dict, albedo: np.ndarray, shared: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
     """(L, 3) each LED's L1-best scale of its views' predictions at ``shared`` texels (1 for LEDs not in ``by_led``),
-    and the model's relative L1 there."""
+    the model's relative L1 there, and (L,) each LED's (NaN for LEDs not in ``by_led``)."""
     ratios, error, total = np.ones((fitter.stage.num_leds, 3)), 0.0, 0.0
+    per_led = np.full(fitter.stage.num_leds, np.nan)
     for led, its_views in by_led.items():
         observed, predicted = [], []
         for v in its_views:
@@ -175,9 +189,10 @@ def _ratios(fitter, by_led: dict, albedo: np.ndarray, shared: np.ndarray) -> tup
             observed.append(o[keep])
             predicted.append(albedo[texels[keep]] * d[keep] + s[keep])
         o, p = np.concatenate(observed), np.concatenate(predicted)
-        error, total = error + float(np.abs(o - p).sum()), total + float(o.sum())
         ratios[led] = [_scale(o[:, c], p[:, c]) for c in range(3)]
-    return ratios, error / max(total, 1e-30)
+        per_led[led] = float(np.abs(o - p).sum() / max(o.sum(), 1e-30))
+        error, total = error + float(np.abs(o - p).sum()), total + float(o.sum())
+    return ratios, error / max(total, 1e-30), per_led
 
 
 def _keep_well_lit(fitter, view, led: np.ndarray) -> None:
