@@ -51,7 +51,6 @@ SUSPECT_RESIDUAL, SUSPECT_FLOOR = 3.0, 0.3  # an LED whose relative L1 is above 
 class GainEstimate:
     gains: np.ndarray  # (L, 3) each channel's mean over the measured LEDs 1
     measured: np.ndarray  # (L,) LEDs whose gain the images measured (the others keep 1)
-    observations: np.ndarray  # (L,) observations of texels another LED lights too: what measured each LED
     changes: list[float] = field(default_factory=list)  # each round's largest relative change of a gain
     residual: list[float] = field(default_factory=list)  # relative L1 of the model before the first round and after each
     led_residual: np.ndarray | None = None  # (L,) each measured LED's relative L1 at the estimate (NaN: not measured)
@@ -103,8 +102,8 @@ def estimate_led_gains(capture, resolution: int = RESOLUTION, rounds: int = ROUN
     clock = time.perf_counter()
     fitter, views, lit_by = _observations(capture, resolution, progress_bar)
     num_leds = fitter.stage.num_leds
-    shared, measured, observations = _links(fitter, views, lit_by, num_leds)
-    estimate = GainEstimate(np.ones((num_leds, 3)), measured, observations)
+    shared, measured = _links(fitter, views, lit_by, num_leds)
+    estimate = GainEstimate(np.ones((num_leds, 3)), measured)
     by_led: dict[int, list] = {}
     for v in (v for v in views if measured[lit_by[v.frame]]):  # an LED whose gain is not measured would bias the albedo
         by_led.setdefault(lit_by[v.frame], []).append(v)
@@ -148,16 +147,19 @@ def _observations(capture, resolution: int, progress_bar: bool):
     roughness = refine_on_grid(fitter.grid_error(views, grid), grid)
     roughness[fitter.cameras_seen(views) == 0] = DEFAULT_ROUGHNESS
     fitter.store_parts(views, roughness)
+    surfaces: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # pose → (positions, normals), converted once
     for v in views:
-        _keep_well_lit(fitter, v, fitter.stage.led_positions[lit_by[v.frame]])
+        if v.pose not in surfaces:
+            geom = fitter.relighter.geometry(v.pose)
+            surfaces[v.pose] = np.array(geom.position).T, np.array(geom.normal).T
+        _keep_well_lit(fitter, v, fitter.stage.led_positions[lit_by[v.frame]], *surfaces[v.pose])
     return fitter, [v for v in views if v.count > 0], lit_by
 
 
-def _links(fitter, views: list, lit_by: dict, num_leds: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _links(fitter, views: list, lit_by: dict, num_leds: int) -> tuple[np.ndarray, np.ndarray]:
     """What ties the gains together: a texel seen under one LED alone explains itself whatever that LED's gain (its
     albedo follows), so only texels seen under several LEDs measure them. Returns (M,) those texels, (L,) the LEDs
-    measured (the largest group joined by such texels, each with enough of them), and (L,) each LED's observations of
-    such texels."""
+    measured (the largest group joined by such texels, each with enough observations of them)."""
     from scipy.sparse.csgraph import connected_components
 
     under = np.zeros((num_leds, fitter.atlas.num_texels), bool)
@@ -173,7 +175,7 @@ def _links(fitter, views: list, lit_by: dict, num_leds: int) -> tuple[np.ndarray
     if not enough.any():
         raise GraMiInputError(fitter.capture.folder, "no LED's light falls on texels another LED lights too: no gain can be measured")
     measured = enough & (group == np.bincount(group[enough]).argmax())
-    return shared, measured, observations
+    return shared, measured
 
 
 def _ratios(fitter, by_led: dict, albedo: np.ndarray, shared: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
@@ -195,21 +197,14 @@ def _ratios(fitter, by_led: dict, albedo: np.ndarray, shared: np.ndarray) -> tup
     return ratios, error / max(total, 1e-30), per_led
 
 
-def _keep_well_lit(fitter, view, led: np.ndarray) -> None:
-    """Keep the view's observations of texels that face its LED (those it has face its camera)."""
+def _keep_well_lit(fitter, view, led: np.ndarray, positions: np.ndarray, normals: np.ndarray) -> None:
+    """Keep the view's observations of texels whose normal faces its LED (those it has face its camera)."""
     texels, observed, d, s = fitter.observation_parts(view)
-    keep = _facing(fitter, view, texels, led) >= MIN_LIGHT_COS
+    toward = led - positions[texels]
+    keep = np.sum(normals[texels] * toward, axis=1) >= MIN_LIGHT_COS * np.linalg.norm(toward, axis=1)
     fitter.store.put(f"observed:{view.name}", texels=texels[keep], observed=observed[keep].astype(np.float32))
     fitter.store.put(f"parts:{view.name}", d=d[keep], s=s[keep])
     view.count = int(keep.sum())
-
-
-def _facing(fitter, view, texels: np.ndarray, toward: np.ndarray) -> np.ndarray:
-    """Cosine between each of the view's texels' normals and the direction to the point ``toward``."""
-    geom = fitter.relighter.geometry(view.pose)
-    p, n = np.array(geom.position).T[texels], np.array(geom.normal).T[texels]
-    d = toward - p
-    return np.sum(n * d, axis=1) / np.linalg.norm(d, axis=1)
 
 
 def _scale(observed: np.ndarray, predicted: np.ndarray) -> float:
