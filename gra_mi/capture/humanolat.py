@@ -322,6 +322,11 @@ class HumanolatOptions:
     """humanolat: keep the 21 LEDs on the stage's door, whose positions the dataset calls unreliable, in the rig and
     import their OLATs. By default they are left out of both (an environment map is then never driven onto them), and
     so is the white frame, which they lit too."""
+    envmap_frames: bool = False
+    """humanolat: import the 10 environment-map frames (image numbers 3–12) as held-out lighting, each with its LED
+    drive solved from the pose's OLATs on the training cameras (the dataset does not say which map lit which frame).
+    A frame its OLATs do not explain is left out (the report says why); the door LEDs' light, when they are left out,
+    is subtracted from its images. Reads every OLAT of up to 8 training cameras once more."""
 
     def validate(self) -> None:
         require_positive({"olat_step": self.olat_step, "test_olat_every": self.test_olat_every})
@@ -359,8 +364,9 @@ def read_humanolat(subject_dir: Path, config: HumanolatOptions) -> Source:
 
 
 def humanolat_frames(source: Source, config: HumanolatOptions) -> tuple[list, list[int]]:
-    """[(image number, frame entry, LED or "white")] and the LEDs whose OLATs were left out. The white frame is test
-    lighting (sequence 0); every ``test_olat_every``-th imported OLAT is too (sequence 1); the rest train."""
+    """[(image number, frame entry, LED, "white" or ("solve", image number))] and the LEDs whose OLATs were left out.
+    The white frame is test lighting (sequence 0); every ``test_olat_every``-th imported OLAT is too (sequence 1), and
+    the environment-map frames (sequence 2); the rest train."""
     olat_at, _ = olat_numbers(len(source.order))
     door = set() if config.keep_door_leds else {d for d in DOOR_LEDS if d < len(source.leds)}
     chosen = [
@@ -373,6 +379,12 @@ def humanolat_frames(source: Source, config: HumanolatOptions) -> tuple[list, li
         split, sequence = ("test", 1) if (k + 1) % config.test_olat_every == 0 else ("train", 0)
         index = rig_index[led]  # the LED's index in the rig gra-mi writes (the door's left out)
         plan.append((number, FrameLighting(k + 1, split, sequence, "pattern", None, f"patterns/olat_{index:03d}.json", pose=0), index))
+    if config.envmap_frames:  # held out (sequence 2); the drive is solved from the OLATs at import
+        first = len(chosen) + 1
+        plan += [
+            (n, FrameLighting(first + k, "test", 2, "pattern", None, f"patterns/envmap_{n:06d}.json", pose=0), ("solve", n))
+            for k, n in enumerate(ENVMAPS)
+        ]
     if door:  # the rig's LEDs renumbered; --led-gains still names them by the source's numbers
         source.leds, source.led_numbers = source.leds[sorted(rig_index)], sorted(rig_index)
     return plan, left_out

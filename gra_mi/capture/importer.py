@@ -23,7 +23,9 @@ from pathlib import Path
 import numpy as np
 
 from gra_mi.capture.dataset import Capture
+from gra_mi.capture.import_report import write_report
 from gra_mi.capture.lens import held_fraction
+from gra_mi.capture.olat_drive import apply_solved_drives, plot_solved_drives
 from gra_mi.capture.placement import (
     CameraPlan,
     SubjectPlan,
@@ -49,7 +51,7 @@ from gra_mi.capture.source_files import (
 )
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.guard import staging_folder
-from gra_mi.core.io import atomic_write_text, read_exr, write_exr, write_png
+from gra_mi.core.io import atomic_write_text, write_exr
 from gra_mi.core.limits import MEMORY_SHARE, machine_memory, require_memory, require_memory_for
 from gra_mi.core.progress import thread_count, threaded
 from gra_mi.core.provenance import PROVENANCE, claim_output, release_folder, run_differences, run_record
@@ -73,7 +75,7 @@ def check_images_present(source: Source, plans: list[CameraPlan], skip: bool) ->
                 missing.setdefault(key, []).append(plan.camera.name)
                 continue
             if path is None:
-                what = {"white": "the white frame"}.get(drive, f"the OLAT of LED {drive + 1}" if isinstance(drive, int) else "its lighting")
+                what = _lighting_said(drive)
                 raise GraMiInputError(
                     source.folder,
                     f"camera {plan.camera.name} has no image of frame {key:06d} ({what}); --missing-images skip imports the rest",
@@ -88,6 +90,14 @@ def check_images_present(source: Source, plans: list[CameraPlan], skip: bool) ->
     if missing and not complete:  # the mesh is checked against every camera's mask on one frame
         raise GraMiInputError(source.folder, "no frame has an image from every camera: the reprojection check needs one")
     return missing
+
+
+def _lighting_said(drive) -> str:
+    if drive == "white":
+        return "the white frame"
+    if isinstance(drive, tuple) and drive[0] == "solve":
+        return "an environment-map frame: import without --envmap-frames"
+    return f"the OLAT of LED {drive + 1}" if isinstance(drive, int) else "its lighting"
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -143,13 +153,15 @@ def import_capture(
     staging = staging_folder(out)
     # a changed source restarts the staging (its images would mix two exports); --overwrite empties it too
     claim_output(staging, command, inputs, said, overwrite=overwrite, shard=shard, restart=shard.whole)
+    solved = apply_solved_drives(source, [p for p in plans if p.camera.name in train_cameras], staging / "import" / "solved_drives.json")
     stage = build_stage(source, frame, plans, config.led_intensity, gains)
     if config.estimate_led_gains and not any(_lit_alone(stage, entry, drive) for _, entry, drive in source.frames):
         raise GraMiParameterError(
             "estimate_led_gains", f"{source.folder} has no frame lit by one LED alone (an OLAT): gains are measured on OLATs"
         )
     _write_stage_files(staging, stage, source, frame, subject)
-    record = {"format": source.format, "folder": str(source.folder), "transform": frame.matrix(), **record}
+    plot_solved_drives(stage, source.frames, staging / "import" / "solved_drives.png")
+    record = {"format": source.format, "folder": str(source.folder), "transform": frame.matrix(), "solved_frames": solved, **record}
     record |= {"gains": _gains_said(config.led_gains, gains), "left_out_leds": source.left_out, "uv_atlas": subject.atlas, "images": {}}
     record["checked_frame"] = next(f.frame for k, f, _ in source.frames if k == key)  # the masks' overlays show it
     frames = [replace(f, missing=missing.get(k, [])) for k, f, _ in source.frames]
@@ -168,7 +180,7 @@ def import_capture(
     if config.estimate_led_gains:  # on the written images, before the report that says what came of it
         record["gains"], record["gain_estimate"] = _measured_gains(estimate_gains, capture, stage, source)
         capture.save()
-    _write_report(staging, source, frame, plans, checks, record)
+    write_report(staging, source, frame, plans, checks, record, workers)
     shutil.rmtree(staging / "parts", ignore_errors=True)
     check_loadable(staging, source)
     publish(staging, out)
@@ -366,7 +378,9 @@ def _write_stage_files(out: Path, stage: Lightstage, source: Source, frame: Worl
 
 def _drive(stage: Lightstage, drive) -> np.ndarray:
     """LED intensities of a frame's lighting: "white" (every LED at the maximum), an LED index (its OLAT),
-    ("uniform", fraction of the maximum) or ("pattern", a drive file of the source)."""
+    ("uniform", fraction of the maximum), ("pattern", a drive file of the source) or ("solved", the drive in OLATs)."""
+    if isinstance(drive, tuple) and drive[0] == "solved":  # 1: as its OLAT drove the LED
+        return np.asarray(drive[1], float) * stage.max_led_intensity
     if drive == "white":
         return uniform_pattern(stage, 1.0)
     if isinstance(drive, tuple) and drive[0] == "uniform":
@@ -401,6 +415,7 @@ def _import_image(source: Source, plan: CameraPlan, capture: Capture, key: int, 
     path, image_path = capture.image_path(name, entry.frame), source.images[plan.index][key]
     rgb, clipped, alpha = read_image(image_path)
     mask = frame_mask(source, plan, key, (rgb, alpha))  # the image decoded once
+    rgb, clipped = _subtract_light(source, plan, key, rgb, clipped)
     saturated = float((clipped & (mask_at_source(mask, plan) > 0.5)).mean()) if clipped.any() else 0.0
     if path.is_file():
         return saturated
@@ -413,6 +428,15 @@ def _import_image(source: Source, plan: CameraPlan, capture: Capture, key: int, 
         rgb = rgb * mask[..., None]
     write_exr(path, np.concatenate([rgb, mask[..., None]], axis=-1).astype(np.float32))
     return saturated
+
+
+def _subtract_light(source: Source, plan: CameraPlan, key: int, rgb: np.ndarray, clipped: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A frame's image less the light ``source.subtracted`` names (LEDs the rig leaves out: each one's OLAT image times
+    its drive), floored at 0 (the 8-bit steps of the images subtracted); a pixel saturated in any of them stays marked."""
+    for olat, weight in source.subtracted.get(key, []):
+        light, saturated, _ = read_image(source.images[plan.index][olat])
+        rgb, clipped = rgb - light * np.asarray(weight, np.float32), clipped | saturated
+    return (np.maximum(rgb, 0.0), clipped) if key in source.subtracted else (rgb, clipped)
 
 
 def _camera_summary(source: Source, plan: CameraPlan, saturated: list[float]) -> dict:
@@ -440,135 +464,3 @@ def _resampling_error(image: np.ndarray, plan: CameraPlan) -> float | None:
     back = resample_columns(there, plan.source_size[0])
     lit = image.max(axis=-1) > 0
     return float(np.sqrt(np.mean((back - image)[lit] ** 2)) / max(float(np.sqrt(np.mean(image[lit] ** 2))), 1e-12))
-
-
-# --------------------------------------------------------------------------------------------------------------
-# The import report
-# --------------------------------------------------------------------------------------------------------------
-
-
-def _linearity_of_a_complete_camera(out: Path, source: Source, plans: list[CameraPlan], first: int) -> dict | None:
-    """:func:`linearity` of the first camera with its white frame and every OLAT (a gap would bias the sum)."""
-    if source.olat_keys is None or source.white is None:
-        return None
-    wanted = [source.white, *source.olat_keys]
-    plan = next((p for p in plans if all(k in source.images[p.index] for k in wanted)), None)
-    if plan is None:
-        return None
-    return linearity(source, plan, read_exr(out / "images" / plan.camera.name / f"frame_{first:04d}.exr")[..., 3])
-
-
-def linearity(source: Source, plan: CameraPlan, mask: np.ndarray) -> dict:
-    """The white frame against the sum of every OLAT (door LEDs included) of one camera, over the subject: 1 for a
-    linear sensor and a subject that held still (each LED's gain is in both)."""
-    inside = mask_at_source(mask, plan) > 0.5
-    total = np.zeros(int(inside.sum()) * 3)
-    lit = threaded(
-        lambda number: read_image(source.images[plan.index][number])[0][inside].ravel(),
-        list(source.olat_keys), f"linearity {plan.camera.name}", import_workers(inside.size * IMAGE_BYTES_PER_PIXEL),
-    )  # fmt: skip
-    for pixels in lit:  # summed in order: the same sum whatever the threads
-        total += pixels
-    white = read_image(source.images[plan.index][source.white])[0][inside].ravel()
-    ratio = float(total.sum() / max(white.sum(), 1e-12))
-    return {"camera": plan.camera.name, "olats_over_white": ratio, "olats": len(source.olat_keys)}
-
-
-def _write_report(out: Path, source: Source, frame: WorldFrame, plans: list[CameraPlan], checks: list[dict], record: dict) -> None:
-    """import_report.json and .md, and an overlay per camera (mask green, reprojected mesh magenta, both white)."""
-    check_of = {c["camera"]: c for c in checks}
-    first = record["checked_frame"]  # the frame the reprojection check compared the masks on
-    for plan in plans:
-        mask = read_exr(out / "images" / plan.camera.name / f"frame_{first:04d}.exr")[..., 3] > 0.5
-        seen = check_of[plan.camera.name]["silhouette"]
-        overlay = np.stack([seen.astype(float), mask.astype(float), seen.astype(float)], axis=-1)
-        write_png(out / "import" / f"overlay_{plan.camera.name}.png", overlay, exposure=1.0)
-    report = {
-        "cameras": [{"camera": c["camera"], "mask_iou": round(c["iou"], 4)} | record["images"][c["camera"]] for c in checks],
-        "frame": {
-            "transform": frame.matrix(),
-            "up_source": frame.up_source.round(6).tolist(),
-            "up_estimated": frame.up_estimated,
-            "up_off_axis_deg": round(frame.up_off_axis_deg, 3),
-            "led_sphere_radius_m": round(frame.led_radius, 4),
-            "led_sphere_rms_m": round(frame.led_fit_rms, 5),
-        },
-        "leds": {
-            "count": len(source.leds),
-            "left_out": record["left_out_leds"],
-            "gains": record["gains"],
-            "estimate": record.get("gain_estimate"),
-        },
-        "linearity": _linearity_of_a_complete_camera(out, source, plans, first),
-        "frames": {"imported": sum(1 for _ in (out / "images" / plans[0].camera.name).glob("frame_*.exr"))},
-        "uv_atlas": record["uv_atlas"],
-    }
-    atomic_write_text(out / "import_report.json", json.dumps(report, indent=1) + "\n")
-    atomic_write_text(out / "import_report.md", import_markdown(report, source.format))
-
-
-def import_markdown(r: dict, source_format: str) -> str:
-    f, leds = r["frame"], r["leds"]
-    lines = [
-        "# Import report",
-        "",
-        f"Source: {source_format}. {len(r['cameras'])} cameras, {r['frames']['imported']} lightings each; {leds['count']} "
-        f"LEDs, the OLATs of {len(leds['left_out'])} left out; LED gains {leds['gains']}. UV atlas: {r['uv_atlas']}.",
-        "",
-        f"Up in the source: {f['up_source']} ({'estimated from the cameras' if f['up_estimated'] else 'given'}, "
-        f"{f['up_off_axis_deg']:.2f}° off its nearest axis). LED sphere: radius {f['led_sphere_radius_m']:.3f} m, the LEDs "
-        f"within {1000 * f['led_sphere_rms_m']:.1f} mm RMS of it. The transform into gra-mi's frame (Y up, metres) is in "
-        "capture.json (`source.transform`).",
-        "",
-        "| camera | mesh over mask (IoU) | saturated (subject, most of any image; left out of the fit) | fx / fy | square-pixel resampling error | lens distortion undone |",
-        "|---|---|---|---|---|---|",
-    ]
-    for c in r["cameras"]:
-        error = "—" if c["resampling_error"] is None else f"{100 * c['resampling_error']:.2f} %"
-        lens = (
-            "—" if c.get("lens") is None else f"{c['lens']['model']}; the source holds {100 * c['lens']['held']:.1f} % of the pinhole image"
-        )
-        lines.append(
-            f"| {c['camera']} | {c['mask_iou']:.3f} | {100 * c['saturated_fraction']:.2f} % | {c['anisotropy']:.4f} | {error} | {lens} |"
-        )
-    gaps = [
-        f"{c['camera']} ({len(c['missing_frames'])}: {', '.join(map(str, c['missing_frames'][:8]))}{' …' if len(c['missing_frames']) > 8 else ''})"
-        for c in r["cameras"]
-        if c.get("missing_frames")
-    ]
-    if gaps:
-        lines += ["", f"Missing images, skipped (--missing-images skip; the frames in capture.json say which): {'; '.join(gaps)}."]
-    if turned := [f"{c['camera']} ({c['exif_turned']})" for c in r["cameras"] if c.get("exif_turned")]:
-        lines += [
-            "",
-            f"Images with an EXIF orientation tag, read as stored (as COLMAP calibrates them): {', '.join(turned)}. A mask file "
-            "that fits the mesh says nothing of how the images are turned: look at one of their imported images.",
-        ]
-    if (estimate := leds.get("estimate")) is not None:
-        lines += [
-            "",
-            f"LED gains estimated in {estimate['rounds']} rounds ({estimate['seconds']:.0f} s): the one-bounce model's relative L1 on "
-            f"the texels several LEDs light, {100 * estimate['relative_l1']['equal gains']:.1f} % with equal gains, "
-            f"{100 * estimate['relative_l1']['estimated']:.1f} % with these. Not measured (kept 1): "
-            f"{', '.join(map(str, estimate['unmeasured_leds'])) or 'none'}. ![LED gains](import/led_gains.png)",
-        ]
-        if estimate["suspect_leds"]:
-            lines += [
-                "",
-                f"**Check the light order or positions**: the OLATs of LEDs {', '.join(map(str, estimate['suspect_leds']))} are lit "
-                "elsewhere than their positions say (the model's L1 on them is several times the other LEDs'). A mixed-up firing "
-                "order or LED file spoils the fit wherever they light.",
-            ]
-    if r["linearity"] is not None:
-        lin = r["linearity"]
-        lines += [
-            "",
-            f"Linearity ({lin['camera']}): the sum of the {lin['olats']} OLATs over the white frame is {lin['olats_over_white']:.3f} "
-            "over the subject (1: a linear sensor and a subject that held still, whatever the LEDs' gains).",
-        ]
-    lines += [
-        "",
-        "Overlays (green: the mask, magenta: the mesh reprojected, white: both): "
-        + " ".join(f"![{c['camera']}](import/overlay_{c['camera']}.png)" for c in r["cameras"]),
-    ]
-    return "\n".join(lines) + "\n"

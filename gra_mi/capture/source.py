@@ -85,7 +85,7 @@ class Source:
     leds: np.ndarray  # (L, 3) metres, the source's frame
     meshes: MeshFrames  # one file per mesh frame (one topology), source units; each checked when read
     masks: list[Path | None]  # per camera: a mask file, else the images' alpha or non-black pixels
-    frames: list = field(default_factory=list)  # (frame key, FrameLighting, drive): an LED, "white" or an envmap file
+    frames: list = field(default_factory=list)  # (frame key, FrameLighting, drive): an LED, "white", an envmap file, …
     left_out: list[int] = field(default_factory=list)  # LEDs whose OLATs were not imported
     white: int | None = None  # the frame key of an all-LEDs frame (the linearity check)
     olat_keys: list[int] | None = None  # the frame keys of every LED's OLAT, imported or not (the linearity check)
@@ -93,6 +93,7 @@ class Source:
     mesh_units: float | None = None  # metres per unit of the meshes (None: as the calibration)
     frame_masks: list[dict[int, Path]] | None = None  # per camera: frame key → its own mask file (a moving subject)
     mask_cache: dict[int, np.ndarray] = field(default_factory=dict, repr=False)  # per camera: a mask every frame shares
+    subtracted: dict[int, list] = field(default_factory=dict)  # frame key → [(OLAT key, RGB weight)] taken off its images
 
     leds_path: Path | None = None  # what an LED error names (None: the calibration)
     led_numbers: list[int] | None = None  # the source's number of each LED in ``leds`` (None: 0, 1, …), for --led-gains
