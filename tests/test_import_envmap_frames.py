@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from gra_mi.cli import main
 from gra_mi.core.io import read_exr
 from tests.test_import import _imported, olat_capture  # noqa: F401 (the module's fixture, shared)
 
@@ -151,3 +152,25 @@ def test_a_frame_edited_before_the_resume_is_solved_again(olat_capture, env_impo
     after = {r["key"]: np.array(r["drive"]) for r in json.loads((out / "import" / "solved_drives.json").read_text())}
     np.testing.assert_allclose(after[4].sum(axis=0), 0.5 * before[4].sum(axis=0), rtol=0.08)  # re-encoded: 8-bit, AVIF
     np.testing.assert_allclose(after[3], before[3])
+
+
+def test_missing_frames_and_other_routes_options_are_refused(olat_capture, tmp_path, capsys):  # noqa: F811
+    """A pose without images 3–12 stops --envmap-frames naming the frame and the way out; an option of another
+    route (--envmap-frames to transforms, --olat-step to easymocap) is refused rather than ignored unsaid."""
+    from gra_mi.capture.humanolat import camera_name, images_of
+
+    root, _, subject = olat_capture
+    bare = tmp_path / "layout" / subject.name
+    shutil.copytree(subject, bare, ignore=shutil.ignore_patterns("json_*"))
+    for cam in range(8):
+        images_of(bare / "POSE_00" / "images_processed" / camera_name(cam))[3].unlink()
+    for args, needles in [
+        (["humanolat", str(bare), "--envmap-frames"], ("000003", "environment-map frame", "without --envmap-frames")),
+        (["transforms", str(bare), "--envmap-frames"], ("--envmap-frames", "humanolat option", "gra-mi import transforms")),
+        (["easymocap", str(bare), "--olat-step", "2"], ("--olat-step", "humanolat option", "gra-mi import easymocap")),
+    ]:
+        capsys.readouterr()
+        assert main(["import", *args, "--out", str(tmp_path / "out")]) == 2
+        err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+        assert len(err) == 1 and all(n in err[0] for n in needles), err
+        assert not (tmp_path / "out").exists()

@@ -403,19 +403,22 @@ def _import_camera(source: Source, plan: CameraPlan, capture: Capture, frames: l
     jobs = [(key, entry) for key, entry, _ in frames if key in source.images[plan.index]]  # gaps --missing-images skip let through
     if not jobs:
         return []
-    first = _import_image(source, plan, capture, *jobs[0])
-    rest = threaded(lambda job: _import_image(source, plan, capture, *job), jobs[1:], f"import {plan.camera.name}", workers)
+    less = _subtracted_light(source, plan, [key for key, _ in jobs if key in source.subtracted], workers)
+    first = _import_image(source, plan, capture, *jobs[0], less)
+    rest = threaded(lambda job: _import_image(source, plan, capture, *job, less), jobs[1:], f"import {plan.camera.name}", workers)
     return [first, *rest]
 
 
-def _import_image(source: Source, plan: CameraPlan, capture: Capture, key: int, entry) -> float:
-    """One source image: sRGB → linear, onto the planned grid, its mask as alpha; its saturated share of the subject.
-    An image already written (a resumed import) is only read for that share."""
+def _import_image(source: Source, plan: CameraPlan, capture: Capture, key: int, entry, less: dict) -> float:
+    """One source image: sRGB → linear, less the light ``less`` holds for it (floored at 0: the 8-bit steps of the
+    images subtracted), onto the planned grid, its mask as alpha; its saturated share of the subject. An image
+    already written (a resumed import) is only read for that share."""
     name = plan.camera.name
     path, image_path = capture.image_path(name, entry.frame), source.images[plan.index][key]
     rgb, clipped, alpha = read_image(image_path)
     mask = frame_mask(source, plan, key, (rgb, alpha))  # the image decoded once
-    rgb, clipped = _subtract_light(source, plan, key, rgb, clipped)
+    if key in less:
+        rgb, clipped = np.maximum(rgb - less[key][0], 0.0), clipped | less[key][1]
     saturated = float((clipped & (mask_at_source(mask, plan) > 0.5)).mean()) if clipped.any() else 0.0
     if path.is_file():
         return saturated
@@ -430,13 +433,18 @@ def _import_image(source: Source, plan: CameraPlan, capture: Capture, key: int, 
     return saturated
 
 
-def _subtract_light(source: Source, plan: CameraPlan, key: int, rgb: np.ndarray, clipped: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """A frame's image less the light ``source.subtracted`` names (LEDs the rig leaves out: each one's OLAT image times
-    its drive), floored at 0 (the 8-bit steps of the images subtracted); a pixel saturated in any of them stays marked."""
-    for olat, weight in source.subtracted.get(key, []):
-        light, saturated, _ = read_image(source.images[plan.index][olat])
-        rgb, clipped = rgb - light * np.asarray(weight, np.float32), clipped | saturated
-    return (np.maximum(rgb, 0.0), clipped) if key in source.subtracted else (rgb, clipped)
+def _subtracted_light(source: Source, plan: CameraPlan, keys: list[int], workers: int) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """Per frame of ``keys``: (the light ``source.subtracted`` names for it, LEDs the rig leaves out: each one's OLAT
+    image times its drive; the pixels saturated in any of those images), each OLAT image read once for every frame."""
+    olats = sorted({olat for key in keys for olat, _ in source.subtracted[key]})
+    less: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    read = threaded(lambda olat: read_image(source.images[plan.index][olat])[:2], olats, f"light to subtract {plan.camera.name}", workers)
+    for olat, (light, saturated) in zip(olats, read, strict=True):  # summed in order: the same sums whatever the threads
+        for key in keys:
+            for weight in (w for o, w in source.subtracted[key] if o == olat):
+                rgb, clipped = less.get(key, (np.zeros_like(light), np.zeros_like(saturated)))
+                less[key] = (rgb + light * np.asarray(weight, np.float32), clipped | saturated)
+    return less
 
 
 def _camera_summary(source: Source, plan: CameraPlan, saturated: list[float]) -> dict:

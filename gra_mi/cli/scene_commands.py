@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 from gra_mi.capture.easymocap import EasymocapOptions, import_easymocap
@@ -244,7 +244,12 @@ class ImportCommand(Restartable):
     def validate(self) -> None:
         self.config.validate()
         self.shards.validate()
-        for name in {"humanolat": ["humanolat"], "transforms": ["transforms"], "easymocap": ["transforms", "easymocap"]}[self.source]:
+        read = {"humanolat": ["humanolat"], "transforms": ["transforms"], "easymocap": ["transforms", "easymocap"]}[self.source]
+        for name in ("humanolat", "transforms", "easymocap"):  # another route's option would be ignored unsaid
+            options, default = getattr(self, name), type(getattr(self, name))()
+            if name not in read and (given := [f.name for f in fields(options) if getattr(options, f.name) != getattr(default, f.name)]):
+                raise GraMiParameterError(given[0], f"is a {name} option: `gra-mi import {self.source}` does not read it")
+        for name in read:
             getattr(self, name).validate()
 
 
