@@ -174,3 +174,34 @@ def test_missing_frames_and_other_routes_options_are_refused(olat_capture, tmp_p
         err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
         assert len(err) == 1 and all(n in err[0] for n in needles), err
         assert not (tmp_path / "out").exists()
+
+
+def test_an_olat_that_grazes_the_subject_fits_its_mask(olat_capture, tmp_path, monkeypatch, capsys):  # noqa: F811
+    """With the door LEDs left out, the frame the masks are checked on is the first OLAT. One that only grazes the
+    subject lights little more than its anti-aliased edge, half of it outside the mask file: that is no image of another
+    camera or frame (it stopped an `olat_quick` import before the check weighed light and grew the mask by its edge);
+    a frame whose subject stands aside still stops the import."""
+    from scipy.ndimage import binary_dilation, binary_erosion
+
+    from gra_mi.capture import humanolat
+    from gra_mi.capture.humanolat import camera_name, images_of, olat_numbers, write_avif
+    from gra_mi.capture.source_files import read_image, read_mask
+
+    root, _, subject = olat_capture
+    monkeypatch.setattr(humanolat, "DOOR_LEDS", (3, 7, 11))
+    rim = tmp_path / "layout" / subject.name
+    shutil.copytree(subject, rim, ignore=shutil.ignore_patterns("json_*"))
+    first = olat_numbers(24)[0][0]
+    for cam in range(8):
+        images = images_of(rim / "POSE_00" / "images_processed" / camera_name(cam))
+        mask = read_mask(rim / "POSE_00" / "segmentations" / "masks" / "000" / f"{camera_name(cam)}.png")
+        edge = binary_dilation(mask, iterations=1) & ~binary_erosion(mask, iterations=1)  # half of it outside the mask
+        write_avif(images[first], read_image(images[0])[0] * edge[..., None] * 0.3)
+    _imported(tmp_path, rim, "rim")
+    moved = images_of(rim / "POSE_00" / "images_processed" / camera_name(1))[first]
+    white = read_image(images_of(subject / "POSE_00" / "images_processed" / camera_name(1))[0])[0]
+    write_avif(moved, np.roll(white, white.shape[1] // 2, axis=1))  # the subject half a frame aside
+    capsys.readouterr()
+    with pytest.raises(AssertionError):
+        _imported(tmp_path, rim, "moved")
+    assert "outside its mask" in capsys.readouterr().err and not (tmp_path / "moved").exists()
