@@ -25,14 +25,16 @@ IMPORT = """
 import json, sys, time
 from gra_mi.render.runtime import start_runtime
 start_runtime("llvm_ad_rgb")
-from gra_mi.capture.humanolat import import_humanolat
+from gra_mi.capture.humanolat import HumanolatOptions, import_humanolat
 from gra_mi.capture.source import ImportConfig
 start = time.perf_counter()
-capture = import_humanolat(sys.argv[1], sys.argv[2], ImportConfig(scale=float(sys.argv[3]), uv_resolution=64))
+options = HumanolatOptions(envmap_frames=sys.argv[4] == "envmap_frames")
+capture = import_humanolat(sys.argv[1], sys.argv[2], ImportConfig(scale=float(sys.argv[3]), uv_resolution=64), options)
 seconds = time.perf_counter() - start
 images = len(capture.frames) * (len(capture.train_cameras) + len(capture.eval_cameras))
-print(json.dumps({"seconds": seconds, "images": images}))
+print(json.dumps({"seconds": seconds, "images": images, "solved": len(capture.source["solved_frames"])}))
 """
+SOLVE_CAMERAS, OLATS, ENVMAP_FRAMES, DOOR_LEDS = 8, 331, 10, 21  # a full pose's solve: what it reads
 
 
 def stand_in(work: Path) -> Path:
@@ -58,13 +60,31 @@ def measure(run: BenchmarkRun) -> str:
         "| scale | images imported | s / image | a full pose (40 × 343), extrapolated | peak memory |",
         "|---|---|---|---|---|",
     ]
-    for scale in (1.0, 0.25):
-        out = run.work / f"imported_{scale}"
-        done = run_measured([sys.executable, "-c", IMPORT, str(subject), str(out), str(scale)])
+    seconds = {}
+    for scale, frames in ((1.0, "plain"), (0.25, "plain"), (1.0, "envmap_frames")):
+        out = run.work / f"imported_{scale}_{frames}"
+        done = run_measured([sys.executable, "-c", IMPORT, str(subject), str(out), str(scale), frames])
         m = json.loads(done["stdout"].strip().splitlines()[-1]) | {"peak_mib": done["peak_mb"]}
-        per = m["seconds"] / m["images"]
-        lines.append(f"| {scale:g} | {m['images']} | {per:.3f} | {per * FULL_IMAGES / 3600:.1f} h | {m['peak_mib']:.0f} MiB |")
-    return "\n".join(lines + ["", *lens_cost(subject)])
+        per, seconds[(scale, frames)] = m["seconds"] / m["images"], m
+        if frames == "plain":
+            lines.append(f"| {scale:g} | {m['images']} | {per:.3f} | {per * FULL_IMAGES / 3600:.1f} h | {m['peak_mib']:.0f} MiB |")
+    return "\n".join(lines + ["", *solve_cost(seconds), "", *lens_cost(subject)])
+
+
+def solve_cost(seconds: dict) -> list[str]:
+    """What --envmap-frames adds: the stand-in's import with and without it, per image the solve read (its one
+    training camera's OLATs and frames 3–12), and that per image times what a full pose's solve reads."""
+    plain, solved = seconds[(1.0, "plain")], seconds[(1.0, "envmap_frames")]
+    reads = 24 + ENVMAP_FRAMES  # the stand-in's OLATs and frames, on its one training camera (no door LEDs: 24 LEDs)
+    extra = solved["seconds"] - plain["seconds"] * solved["images"] / plain["images"]  # its frames imported too
+    full = SOLVE_CAMERAS * (OLATS + ENVMAP_FRAMES) + 40 * DOOR_LEDS
+    return [
+        f"`--envmap-frames` at scale 1: {solved['seconds']:.1f} s for {solved['images']} images against {plain['seconds']:.1f} s for "
+        f"{plain['images']} ({solved['solved']} frames solved; peak {solved['peak_mib']:.0f} MiB). The solve read {reads} images, "
+        f"{extra / reads:.3f} s each beyond importing the frames; a full pose's solve reads {SOLVE_CAMERAS} training cameras × "
+        f"({OLATS} OLATs + {ENVMAP_FRAMES} frames) and each camera's {DOOR_LEDS} door OLATs once ({full:,} images): about "
+        f"{extra / reads * full / 60:.0f} min more, extrapolated.",
+    ]
 
 
 LENS = [-0.2, 0.05, 0.002, -0.003, 0.0]  # OpenCV's k1 k2 p1 p2 k3: a wide-angle lens
