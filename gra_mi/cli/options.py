@@ -68,6 +68,9 @@ def _add_field(parser: argparse.ArgumentParser, f: dataclasses.Field, kind, spel
     default = _default(f)
     text = text.replace("%", "%%")  # argparse formats help
     flag = spelling.flag or "--" + f.name.replace("_", "-")
+    if kind is bool and default is None:  # automatic unless switched either way
+        parser.add_argument(flag, dest=f.name, action=argparse.BooleanOptionalAction, default=None, help=f"{text} (--no-… switches it off)")
+        return
     if kind is bool:
         flag = spelling.flag or (flag if not default else "--no-" + f.name.replace("_", "-"))
         action = "store_false" if default else "store_true"

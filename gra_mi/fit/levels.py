@@ -29,7 +29,7 @@ def fit_levels(capture, config, out: Path, make_fitter):
     start, earlier, clock = None, [], time.perf_counter()
     for k, resolution in enumerate(config.levels):
         last = k == len(config.levels) - 1
-        level = replace(config, resolution=resolution, levels=None, calibrate_brightness=config.calibrate_brightness and last)
+        level = replace(config, resolution=resolution, levels=None, calibrate_brightness=config.calibrate_brightness if last else False)
         folder = out if last else out / f"level_{resolution:04d}"
         fitter = make_fitter(capture, level, out / "cache")
         done = folder / "level.npz"

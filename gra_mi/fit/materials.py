@@ -123,10 +123,12 @@ class FitConfig:
     """Training cameras to fit on, comma-separated (a subset bounds the fit's memory on a large capture). Default: all."""
     frame_step: int = 1
     """Fit on every Nth training frame (lighting) only (1: all)."""
-    calibrate_brightness: bool = True
+    calibrate_brightness: bool | None = None
     """After the fit, scale the albedo (one gain per channel) so that renders of the training views hold the captured
     total light: L1 fits each pixel's median, and the light the one-bounce model leaves out (interreflections, sheen)
-    is one-sided, so without it every render comes out a few per cent too dark."""
+    is one-sided, so without it every render comes out a few per cent too dark. Default: on, unless most training
+    frames are OLATs (one LED each), whose dim views' indirect light it would put into the albedo (it cost an
+    imported OLAT pose 0.5–1.2 dB on held-out cameras: docs/results/envmap-frames.md)."""
     transport: LightTransport = field(default_factory=LightTransport)
 
     def validate(self) -> None:
@@ -338,7 +340,16 @@ class MaterialFitter:
             result = closed if self.config.solver == "closed-form" else self.optimize(closed, out, start)
         finally:
             self.store.close()
-        return self.calibrate_brightness(result) if self.config.calibrate_brightness else result
+        return self.calibrate_brightness(result) if self.calibrates else result
+
+    @property
+    def calibrates(self) -> bool:
+        """Whether the fit ends with the brightness calibration: as configured, else unless most training frames are
+        OLATs (lit by one LED)."""
+        if self.config.calibrate_brightness is not None:
+            return self.config.calibrate_brightness
+        alone = sum(int(np.count_nonzero(light.max(axis=1))) == 1 for light in self._lighting.values())
+        return alone <= len(self._lighting) / 2
 
     def freeze_indirect(self, result: FitResult) -> None:
         """Hold the light after the first bounce at what ``result``'s maps make of it: from now on every view's LED loop

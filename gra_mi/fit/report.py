@@ -223,6 +223,7 @@ def fit_record(fitter, result, out: Path, config) -> dict:
         "map_curve": map_curve,
         "never_observed": int(np.sum(result.observed_cameras == 0)),
         "albedo_gain": None if result.albedo_gain is None else [float(g) for g in result.albedo_gain],
+        "calibration": "as configured" if config.calibrate_brightness is not None else "automatic",
         "capture": {"folder": str(fitter.capture.folder), "renderer": fitter.capture.renderer}
         | {"training_frames": len(fitter.train), "training_cameras": len(fitter.train_cameras)},
         "texels": fitter.atlas.num_texels,
@@ -259,6 +260,8 @@ def fit_markdown(r: dict) -> str:
             f"- brightness calibration: albedo × ({', '.join(f'{g:.3f}' for g in r['albedo_gain'])}) (R, G, B) so that the training "
             "views' renders hold the captured total light (L1 alone leaves them too dark by the light the model leaves out)"
         )
+    elif r.get("calibration") == "automatic":
+        lines.append("- no brightness calibration: most training frames are OLATs (--calibrate-brightness forces it)")
     if r["without_highlights"] is not None:
         no_highlight, seen = r["without_highlights"]
         lines.append(
