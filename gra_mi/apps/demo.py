@@ -65,7 +65,6 @@ class OlatDemoPreset:
     capture: str  # a static_olat capture preset
     renderer: str
     roughness_candidates: int
-    calibrate_brightness: bool  # off: on OLATs the calibration adds the indirect light of the dim views to the albedo
     relightnet_steps: int
     synthesized_lightings: int
     library_envmaps: int  # held-out procedural maps scored by `gra-mi eval`, truth from the OLATs
@@ -73,7 +72,7 @@ class OlatDemoPreset:
 
 PRESETS = {
     "olat": OlatDemoPreset(
-        name="olat", capture="olat_quick", renderer="path", roughness_candidates=11, calibrate_brightness=False,
+        name="olat", capture="olat_quick", renderer="path", roughness_candidates=11,
         relightnet_steps=1600, synthesized_lightings=1024, library_envmaps=8,
     ),
     "tiny": DemoPreset(
@@ -205,9 +204,7 @@ def _olat_demo(preset: OlatDemoPreset, capture, ls, out: Path, record: dict, tra
 
     timings = record["timings"]
     with _timed(timings, "material fit from the OLATs"):
-        config = FitConfig(
-            roughness_candidates=preset.roughness_candidates, calibrate_brightness=preset.calibrate_brightness, transport=transport
-        )
+        config = FitConfig(roughness_candidates=preset.roughness_candidates, transport=transport)  # OLATs: no brightness calibration
         fit_result, _ = run_fit(capture.folder, out / "fit", config)
     record["fit"] = json.loads((out / "fit" / "fit.json").read_text())
     with _timed(timings, f"RelightNet training ({preset.relightnet_steps} steps, {preset.synthesized_lightings} synthesized lightings)"):
