@@ -121,7 +121,8 @@ def test_non_square_pixels_are_resampled_with_the_error_stated(olat_capture):
 
 def test_a_fit_of_the_imported_capture_matches_the_native_one(olat_capture, imported, tmp_path):
     """The same training OLATs fitted natively and after the round trip through 8-bit AVIF: the maps agree within
-    the quantisation's effect (albedo median 0.005, roughness 0.007 when measured)."""
+    the quantisation's effect (albedo 2.5 % median and 8.6 % 90th-percentile relative difference, roughness 0.007,
+    when measured)."""
     from gra_mi.fit.materials import FitConfig, run_fit
 
     root, native, _ = olat_capture
@@ -139,8 +140,9 @@ def test_a_fit_of_the_imported_capture_matches_the_native_one(olat_capture, impo
     fits = {name: run_fit(folder, tmp_path / f"fit_{name}", config)[0] for name, folder in (("native", same), ("imported", imported))}
     a, b = fits["native"], fits["imported"]
     both = (a.albedo.max(-1) > 0) & (b.albedo.max(-1) > 0)
-    assert np.median(np.abs(a.albedo - b.albedo)[both]) < 0.01
-    assert np.quantile(np.abs(a.albedo - b.albedo)[both], 0.9) < 0.03
+    # relative: an OLAT fit has no brightness calibration (its gain, clipped at 0.5 here, had halved both albedos)
+    relative = (np.abs(a.albedo - b.albedo) / np.maximum(a.albedo, 1e-3))[both]
+    assert np.median(relative) < 0.05 and np.quantile(relative, 0.9) < 0.15, (np.median(relative), np.quantile(relative, 0.9))
     assert np.median(np.abs(a.roughness[..., 0] - b.roughness[..., 0])[both]) < 0.02
     relight = json.loads((tmp_path / "fit_imported" / "fit.json").read_text())["relight"]["held-out cameras"]
     assert relight["psnr"] > 20, relight  # held-out OLATs and the white frame, relit from held-out cameras
