@@ -176,7 +176,7 @@ def apply_solved_drives(source: Source, plans: list[CameraPlan], cache: Path) ->
     olat_of = {int(led): key for led, key in zip(source.order, source.olat_keys, strict=True)}
     kept, rows = [], []
     for key, entry, drive in source.frames:
-        if key not in solved or not isinstance(drive, tuple):
+        if not (isinstance(drive, tuple) and drive[0] == "solve"):
             kept.append((key, entry, drive))
             continue
         s, index = solved[key], {n: i for i, n in enumerate(solved[key].leds)}
