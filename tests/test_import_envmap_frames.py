@@ -219,3 +219,15 @@ def test_an_olat_pose_is_fitted_without_the_brightness_calibration(env_imported,
     assert main([*args, "--out", str(tmp_path / "forced"), "--calibrate-brightness"]) == 0
     assert json.loads((tmp_path / "forced" / "fit.json").read_text())["albedo_gain"] is not None
     assert json.loads((path_traced_fit / "fit" / "fit.json").read_text())["albedo_gain"] is not None  # envmap-lit
+
+
+def test_two_shards_write_what_one_process_writes(olat_capture, env_imported):  # noqa: F811
+    """Each shard solves the drives (or reads the solve another shard kept) and imports its frames, the door light
+    subtracted where a shard takes a frame: the published capture is the one-process import's."""
+    from gra_mi.core.provenance import different_outputs
+
+    root, _, subject = olat_capture
+    for shard in ("0/2", "1/2"):
+        _imported(root, subject, "env_sharded", "--envmap-frames", "--shard", shard)
+    differ = different_outputs(env_imported, root / "env_sharded")
+    assert not differ, differ
