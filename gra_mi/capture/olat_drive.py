@@ -10,7 +10,7 @@ between the frames, light that is not the stage's, a camera's non-linearity, LED
 OLAT's) is measured, not assumed away: the importer leaves out a frame the OLATs do not explain.
 
 Neighbouring LEDs light the body almost alike, so the drive of a single LED is poorly determined; the light the drive
-gives is not (the held-out cameras' test in tests/test_import.py measures the relit image, not LED by LED).
+gives is not (tests/test_import_envmap_frames.py measures the relit image on held-out cameras, not LED by LED).
 """
 
 from __future__ import annotations
