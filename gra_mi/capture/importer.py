@@ -438,6 +438,8 @@ def _subtracted_light(source: Source, plan: CameraPlan, keys: list[int], workers
     image times its drive; the pixels saturated in any of those images), each OLAT image read once for every frame."""
     olats = sorted({olat for key in keys for olat, _ in source.subtracted[key]})
     less: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    if not olats:  # most imports: no frame has light to take off (no threads, no progress line per camera)
+        return less
     read = threaded(lambda olat: read_image(source.images[plan.index][olat])[:2], olats, f"light to subtract {plan.camera.name}", workers)
     for olat, (light, saturated) in zip(olats, read, strict=True):  # summed in order: the same sums whatever the threads
         for key in keys:

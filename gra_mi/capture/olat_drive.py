@@ -102,10 +102,11 @@ def solve_drives(source: Source, plans: list[CameraPlan], keys: list[int]) -> di
         gram = a.T @ a
         for j, key in enumerate(keys):
             b, out = frames[:, j, c].astype(np.float64), spoiled[:, j]
+            used, b = (a[~out], b[~out]) if out.any() else (a, b)  # a copy only where saturated blocks drop out
             g = gram - a[out].T @ a[out] if out.any() else gram
-            drives[key][:, c] = _nnls_normal(g, a[~out].T @ b[~out])
-            squared[key][0] += float(((a[~out] @ drives[key][:, c] - b[~out]) ** 2).sum())
-            squared[key][1] += float((b[~out] ** 2).sum())
+            drives[key][:, c] = _nnls_normal(g, used.T @ b)
+            squared[key][0] += float(((used @ drives[key][:, c] - b) ** 2).sum())
+            squared[key][1] += float((b**2).sum())
     weights = olats.sum(axis=0).astype(np.float64)
     names = [p.camera.name for p in chosen]
     return {
