@@ -1,10 +1,10 @@
-"""HumanOLAT's environment-map frames imported with their LED drive solved from the OLATs (`gra-mi import humanolat
---envmap-frames`): how well the solved drive gives each frame on cameras the solve never read, what it costs, and
+"""HumanOLAT's environment-map and gradient frames imported with their LED drive solved from the OLATs (`gra-mi import
+humanolat --envmap-frames --gradient-frames`): how well the solved drive gives each frame on cameras the solve never read, what it costs, and
 whether the held-out score of a fit under it is the score under the drive that truly lit the frames.
 
 A synthetic `olat_quick` pose (331 LEDs, path-traced: interreflections, sheen, a diffuse lobe that is not the fit's
-model) is written as HumanOLAT ships a pose: its environment-lit frames at image numbers 3–6, its white frame at 7–12.
-It is imported twice (without and with --envmap-frames; the 21 door LEDs left out, as by default, so their light is
+model) is written as HumanOLAT ships a pose: its gradient frames at image numbers 1–2, its environment-lit frames at
+3–6, its white frame at 7–12. It is imported twice (without and with the flags; the 21 door LEDs left out, as by default, so their light is
 subtracted from the frames). Each frame is then relit from the imported OLATs of the held-out cameras under three
 drives: the solved one, the true one (the map on the stage's LEDs, as the frame was rendered; the door's light is
 gone from both sides) and a flat drive of the same total (the baseline). The import is fitted (`gra-mi fit`) and
@@ -57,13 +57,14 @@ def drives(capture, native) -> dict[int, dict[str, np.ndarray]]:
     stage = load_calibration(capture.folder / "rig" / "calibration.json")
     native_stage = load_calibration(native.folder / "rig" / "calibration.json")
     rig = [k for k in range(native_stage.num_leds) if k not in DOOR_LEDS]
-    lit = [f for f in native.frames if f.kind == "envmap"] + [next(f for f in native.frames if f.pattern and "white" in f.pattern)] * 6
+    named = {Path(f.pattern).stem: f for f in native.frames if f.pattern}
+    lit = [named["gradient_up"], named["gradient_down"], *(f for f in native.frames if f.kind == "envmap"), *[named["white"]] * 6]
     found = {}
     for f in capture.frames:
-        if f.pattern and "envmap_" in f.pattern:
+        if f.pattern and Path(f.pattern).stem.startswith(("envmap_", "gradient_")):
             number = int(Path(f.pattern).stem.split("_")[1])
             solved = load_pattern(stage, capture.folder / f.pattern) / stage.max_led_intensity
-            true = (native.lighting(native_stage, lit[number - 3]) / native_stage.max_led_intensity)[rig]
+            true = (native.lighting(native_stage, lit[number - 1]) / native_stage.max_led_intensity)[rig]
             found[number] = {
                 "frame": f.frame,
                 DRIVES[0]: solved,
@@ -96,8 +97,8 @@ def relit_errors(capture, ways: dict[int, dict]) -> dict[int, dict[str, float]]:
 
 
 def scores(capture_dir: Path, ways: dict[int, dict], work: Path) -> dict[str, dict]:
-    """The fit's held-out score under the environment-map frames (test2 splits) with each way's drive, and under the
-    held-out OLATs (test1); beside it, the same with the brightness calibration forced on (off by default for an
+    """The fit's held-out score under the environment-map frames (test2 splits) and the gradient frames (test3) with each
+    way's drive, and under the held-out OLATs (test1); beside it, the same with the brightness calibration forced on (off by default for an
     OLAT pose)."""
     from gra_mi.eval.protocol import EvalConfig, EvalInputs, evaluate
     from gra_mi.fit.materials import FitConfig, run_fit
@@ -118,7 +119,7 @@ def scores(capture_dir: Path, ways: dict[int, dict], work: Path) -> dict[str, di
             (copy / pattern).write_text(json.dumps({"intensities": (np.asarray(way[d]) * intensity).tolist()}) + "\n")
         for name in fits if d == DRIVES[0] else ["default"]:
             report = evaluate(EvalInputs(copy, work / f"fit_{name}"), work / f"eval_{d.split()[0]}_{name}", EvalConfig())
-            found[f"{d}, {name} fit"] = {split: _mean_scores(report, split) for split in ("test2_", "test1_")}
+            found[f"{d}, {name} fit"] = {split: _mean_scores(report, split) for split in ("test2_", "test3_", "test1_")}
     return found
 
 
@@ -138,7 +139,7 @@ def measure(run: BenchmarkRun) -> str:
 
     subject, intensity, native_dir = layout(run.work)
     plain = imported(subject, run.work / "plain", intensity)
-    with_frames = imported(subject, run.work / "envmap_frames", intensity, "--envmap-frames")
+    with_frames = imported(subject, run.work / "envmap_frames", intensity, "--envmap-frames", "--gradient-frames")
     capture, native = Capture.load(run.work / "envmap_frames"), Capture.load(native_dir)
     report = json.loads((capture.folder / "import_report.json").read_text())["solved_frames"]
     ways = drives(capture, native)
@@ -157,12 +158,13 @@ def measure(run: BenchmarkRun) -> str:
 
 def page(r: dict, run: BenchmarkRun) -> str:
     lines = [
-        "# Results: environment-map frames, their drive solved from the OLATs",
+        "# Results: environment-map and gradient frames, their drive solved from the OLATs",
         "",
         f"Generated by `benchmarks/envmap_frames.py` ({run.stamp(PRESET)}).",
         "",
         f"A synthetic `{PRESET}` pose (331 LEDs, 8 cameras of which 2 held out, path-traced) written as HumanOLAT ships a",
-        "pose: its environment-lit frames at image numbers 3–6, its white frame at 7–12. Imported with `--envmap-frames`",
+        "pose: its gradients (bright above, bright below) at image numbers 1–2, its environment-lit frames at 3–6, its white",
+        "frame at 7–12. Imported with `--envmap-frames --gradient-frames`",
         f"(the drive solved on the {r['cameras']['train']} training cameras; the 21 door LEDs left out of the rig, their light",
         "subtracted). Unexplained: what the solved drive leaves of each frame on the training cameras. Held-out error: RMS",
         f"of the held-out cameras' ({', '.join(r['cameras']['eval'])}) OLAT images under a drive minus the frame, over the",
@@ -173,7 +175,7 @@ def page(r: dict, run: BenchmarkRun) -> str:
     ]
     for row in r["report"]:
         n, e = row["image"], r["relit"].get(row["image"], {})
-        what = "environment map" if n < 7 else "every LED (white)"
+        what = "every LED (white)" if n >= 7 else row["what"].split(" ", 1)[1].removesuffix(" frame")
         errs = " | ".join(f"{100 * e[d]:.1f} %" for d in DRIVES) if e else "left out | — | —"
         lines.append(f"| {n:06d} | {what} | {100 * row['residual']:.1f} % | {100 * row['outside_share']:.1f} % | {errs} |")
     s, lin = r["seconds"], r["linearity"]
@@ -183,28 +185,28 @@ def page(r: dict, run: BenchmarkRun) -> str:
         "of dim OLATs and the path tracer's noise): the solved drive makes up for it where the true drive cannot, which is",
         "why it relights the frames a little better than the truth does. For the white frames a flat drive is the truth.",
         "",
-        f"Import time: {s['plain']:.0f} s without the frames, {s['envmap_frames']:.0f} s with them (the solve reads every OLAT of",
+        f"Import time: {s['plain']:.0f} s without the 12 frames, {s['envmap_frames']:.0f} s with them (the solve reads every OLAT of",
         "the training cameras once more, and each frame's door OLATs once per camera).",
         "",
         "`gra-mi fit` on the import (defaults: for this OLAT pose, no brightness calibration; and with",
         "`--calibrate-brightness`), scored by `gra-mi eval` on the held-out cameras under the environment-map frames",
-        "(test2), each frame's drive as said, and under the held-out OLATs (test1):",
+        "(test2) and the gradient frames (test3), each frame's drive as said, and under the held-out OLATs (test1):",
         "",
-        "| frames' drive, fit | frames PSNR (dB) | SSIM | held-out OLATs PSNR (dB) | SSIM |",
-        "|---|---|---|---|---|",
+        "| frames' drive, fit | environment-map frames PSNR (dB) | SSIM | gradient frames PSNR (dB) | SSIM | held-out OLATs PSNR (dB) | SSIM |",
+        "|---|---|---|---|---|---|---|",
     ]
     for name, v in r["scores"].items():
+        cells = " | ".join(f"{v[split]['psnr']:.2f} | {v[split]['ssim']:.4f}" for split in ("test2_", "test3_", "test1_"))
+        lines.append(f"| {name} | {cells} |")
+    lines.append("")
+    for split, said in (("test2_", "environment-map frames"), ("test3_", "gradient frames")):
+        sc = {k: v[split]["psnr"] for k, v in r["scores"].items()}
+        solved, true, cal = sc[f"{DRIVES[0]}, default fit"], sc[f"{DRIVES[1]}, default fit"], sc[f"{DRIVES[0]}, calibrated fit"]
+        spread = sc[f"{DRIVES[0]}, default again fit"] - solved
         lines.append(
-            f"| {name} | {v['test2_']['psnr']:.2f} | {v['test2_']['ssim']:.4f} | {v['test1_']['psnr']:.2f} | {v['test1_']['ssim']:.4f} |"
+            f"- {said}: solved − true drive {solved - true:+.3f} dB (one fit scored under both); the calibration's cost "
+            f"{cal - solved:+.3f} dB; the default fit run again {spread:+.4f} dB (the run-to-run spread)."
         )
-    sc = {k: v["test2_"]["psnr"] for k, v in r["scores"].items()}
-    solved, true, cal = sc[f"{DRIVES[0]}, default fit"], sc[f"{DRIVES[1]}, default fit"], sc[f"{DRIVES[0]}, calibrated fit"]
-    spread = sc[f"{DRIVES[0]}, default again fit"] - solved
-    lines += [
-        "",
-        f"Solved − true drive: {solved - true:+.3f} dB (one fit scored under both); the calibration's cost under the frames:",
-        f"{cal - solved:+.3f} dB; the default fit run again: {spread:+.4f} dB (the run-to-run spread).",
-    ]
     return "\n".join(lines) + "\n"
 
 

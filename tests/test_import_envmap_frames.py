@@ -1,5 +1,6 @@
-"""`gra-mi import humanolat --envmap-frames`: the environment-map frames (image numbers 3–12), whose drive the dataset
-does not state, imported as held-out lighting with the drive solved from the pose's OLATs. Checked where it counts:
+"""`gra-mi import humanolat --envmap-frames --gradient-frames`: the environment-map frames (image numbers 3–12) and the
+gradient frames (1–2), whose drive the dataset does not state, imported as held-out lighting with the drive solved
+from the pose's OLATs. Checked where it counts:
 the solved drive's OLAT sum against each frame on the held-out cameras (which the solve never read), next to the true
 drive the synthetic capture was rendered with and a flat drive of the same total; the door LEDs' light taken off
 exactly; a frame that is no mix of the OLATs left out, said; a frame's images edited before a resume solved again."""
@@ -19,12 +20,13 @@ from gra_mi.core.io import read_exr
 from tests.test_import import _imported, olat_capture  # noqa: F401 (the module's fixture, shared)
 
 ENV_NUMBERS = list(range(3, 13))
+GRADIENT_NUMBERS = [1, 2]
 
 
 @pytest.fixture(scope="module")
 def env_imported(olat_capture):  # noqa: F811
     root, _, subject = olat_capture
-    return _imported(root, subject, "env_imported", "--envmap-frames")
+    return _imported(root, subject, "env_imported", "--envmap-frames", "--gradient-frames")
 
 
 def _olat_frames(capture) -> dict[int, int]:
@@ -36,9 +38,9 @@ def _olat_frames(capture) -> dict[int, int]:
     return {int(np.argmax(load_pattern(stage, capture.folder / f.pattern).max(axis=1))): f.frame for f in olats}
 
 
-def _env_frames(capture) -> dict[int, object]:
-    """Source image number → the imported frame entry of an environment-map frame."""
-    return {int(Path(f.pattern).stem.split("_")[1]): f for f in capture.frames if f.pattern and "envmap_" in f.pattern}
+def _env_frames(capture, kind: str = "envmap") -> dict[int, object]:
+    """Source image number → the imported frame entry of an environment-map frame (``kind`` gradient: a gradient's)."""
+    return {int(Path(f.pattern).stem.split("_")[1]): f for f in capture.frames if f.pattern and f"{kind}_" in f.pattern}
 
 
 def _relative_error(capture, camera: str, frame: int, drive: np.ndarray, olats: dict[int, int]) -> float:
@@ -48,7 +50,7 @@ def _relative_error(capture, camera: str, frame: int, drive: np.ndarray, olats: 
     return float(np.sqrt(np.mean((relit - truth) ** 2)) / np.sqrt(np.mean(truth**2)))
 
 
-def test_envmap_frames_are_lit_by_the_drive_their_olats_give(olat_capture, env_imported):  # noqa: F811
+def test_envmap_and_gradient_frames_are_lit_by_the_drive_their_olats_give(olat_capture, env_imported):  # noqa: F811
     from gra_mi.capture.dataset import Capture
     from gra_mi.stage.lightstage import load_calibration, load_pattern
 
@@ -56,29 +58,32 @@ def test_envmap_frames_are_lit_by_the_drive_their_olats_give(olat_capture, env_i
     capture = Capture.load(env_imported)
     stage = load_calibration(capture.folder / "rig" / "calibration.json")
     native_stage = load_calibration(native.folder / "rig" / "calibration.json")
-    env = _env_frames(capture)
+    env, gradients = _env_frames(capture), _env_frames(capture, "gradient")
     assert sorted(env) == ENV_NUMBERS and {(f.split, f.sequence) for f in env.values()} == {("test", 2)}
-    # the layout's 3–4 are the native capture's environment-lit frames, 5–12 its white frame (write_humanolat)
+    assert sorted(gradients) == GRADIENT_NUMBERS and {(f.split, f.sequence) for f in gradients.values()} == {("test", 3)}
+    assert len({f.frame for f in capture.frames}) == len(capture.frames)
+    # the layout's 1–2 are the native capture's gradients, 3–4 its environment-lit frames, 5–12 its white frame
     native_env = [f for f in native.frames if f.kind == "envmap"]
-    white = next(f for f in native.frames if f.pattern and Path(f.pattern).stem == "white")
-    truth = {3: native_env[0], 4: native_env[1], 5: white}
+    named = {Path(f.pattern).stem: f for f in native.frames if f.pattern}
+    truth = {3: native_env[0], 4: native_env[1], 5: named["white"], 1: named["gradient_up"], 2: named["gradient_down"]}
     olats = _olat_frames(capture)
     for number, entry in truth.items():
-        solved = load_pattern(stage, capture.folder / env[number].pattern) / stage.max_led_intensity  # in OLATs
+        frame = (env | gradients)[number]
+        solved = load_pattern(stage, capture.folder / frame.pattern) / stage.max_led_intensity  # in OLATs
         true = native.lighting(native_stage, entry) / native_stage.max_led_intensity
         np.testing.assert_allclose(solved.sum(axis=0), true.sum(axis=0), rtol=0.03)  # the light's total and colour
         flat = np.broadcast_to(solved.mean(axis=0), solved.shape)  # the baseline: as much light, from everywhere
         for camera in capture.eval_cameras:  # cameras the solve never read
-            frame = env[number].frame
-            errors = [_relative_error(capture, camera, frame, d, olats) for d in (solved, true, flat)]
+            errors = [_relative_error(capture, camera, frame.frame, d, olats) for d in (solved, true, flat)]
             assert errors[0] < errors[1] + 0.01, (number, camera, errors)  # as good as the drive that lit it
             if number != 5:
                 assert errors[0] < 0.4 * errors[2], (number, camera, errors)  # an environment is no flat light
     report = json.loads((env_imported / "import_report.json").read_text())["solved_frames"]
-    assert [r["image"] for r in report] == ENV_NUMBERS and all(r["residual"] < 0.15 and "left_out" not in r for r in report)
+    assert [r["image"] for r in report] == ENV_NUMBERS + GRADIENT_NUMBERS
+    assert all(r["residual"] < 0.15 and "left_out" not in r for r in report)
+    assert {r["what"] for r in report} == {"an environment-map frame", "a gradient frame"}
     assert set(report[0]["cameras"]) == set(capture.train_cameras)
-    assert "Environment-map frames" in (env_imported / "import_report.md").read_text()
-    assert (env_imported / "import" / "solved_drives.png").is_file()
+    assert "| 000001 | " in (env_imported / "import_report.md").read_text()
 
 
 def test_the_door_leds_light_is_taken_off_the_frames(olat_capture, env_imported, tmp_path, monkeypatch):  # noqa: F811
@@ -142,12 +147,12 @@ def test_a_frame_edited_before_the_resume_is_solved_again(olat_capture, env_impo
     with monkeypatch.context() as patch:
         patch.setattr(importer, "build_stage", lambda *a: (_ for _ in ()).throw(KeyboardInterrupt()))
         with pytest.raises(AssertionError, match="130 == 0"):  # gra-mi import: interrupted (rerun to resume)
-            _imported(tmp_path, layout, "resumed", "--envmap-frames")
+            _imported(tmp_path, layout, "resumed", "--envmap-frames", "--gradient-frames")
     assert (tmp_path / ".resumed.partial" / "import" / "solved_drives.json").is_file()
     for cam in range(8):  # frame 4 at half its brightness: its drive halves
         path = images_of(layout / "POSE_00" / "images_processed" / camera_name(cam))[4]
         write_avif(path, read_image(path)[0] * 0.5)
-    out = _imported(tmp_path, layout, "resumed", "--envmap-frames")
+    out = _imported(tmp_path, layout, "resumed", "--envmap-frames", "--gradient-frames")
     before = {r["key"]: np.array(r["drive"]) for r in json.loads((env_imported / "import" / "solved_drives.json").read_text())}
     after = {r["key"]: np.array(r["drive"]) for r in json.loads((out / "import" / "solved_drives.json").read_text())}
     np.testing.assert_allclose(after[4].sum(axis=0), 0.5 * before[4].sum(axis=0), rtol=0.08)  # re-encoded: 8-bit, AVIF
@@ -155,7 +160,7 @@ def test_a_frame_edited_before_the_resume_is_solved_again(olat_capture, env_impo
 
 
 def test_missing_frames_and_other_routes_options_are_refused(olat_capture, tmp_path, capsys):  # noqa: F811
-    """A pose without images 3–12 stops --envmap-frames naming the frame and the way out; an option of another
+    """A pose without images 3–12 (1–2) stops --envmap-frames (--gradient-frames) naming the frame and the way out; an option of another
     route (--envmap-frames to transforms, --olat-step to easymocap) is refused rather than ignored unsaid."""
     from gra_mi.capture.humanolat import camera_name, images_of
 
@@ -163,9 +168,11 @@ def test_missing_frames_and_other_routes_options_are_refused(olat_capture, tmp_p
     bare = tmp_path / "layout" / subject.name
     shutil.copytree(subject, bare, ignore=shutil.ignore_patterns("json_*"))
     for cam in range(8):
-        images_of(bare / "POSE_00" / "images_processed" / camera_name(cam))[3].unlink()
+        for number in (1, 3):
+            images_of(bare / "POSE_00" / "images_processed" / camera_name(cam))[number].unlink()
     for args, needles in [
         (["humanolat", str(bare), "--envmap-frames"], ("000003", "environment-map frame", "without --envmap-frames")),
+        (["humanolat", str(bare), "--gradient-frames"], ("000001", "a gradient frame", "without --gradient-frames")),
         (["transforms", str(bare), "--envmap-frames"], ("--envmap-frames", "humanolat option", "gra-mi import transforms")),
         (["easymocap", str(bare), "--olat-step", "2"], ("--olat-step", "humanolat option", "gra-mi import easymocap")),
     ]:
@@ -228,6 +235,6 @@ def test_two_shards_write_what_one_process_writes(olat_capture, env_imported):  
 
     root, _, subject = olat_capture
     for shard in ("0/2", "1/2"):
-        _imported(root, subject, "env_sharded", "--envmap-frames", "--shard", shard)
+        _imported(root, subject, "env_sharded", "--envmap-frames", "--gradient-frames", "--shard", shard)
     differ = different_outputs(env_imported, root / "env_sharded")
     assert not differ, differ

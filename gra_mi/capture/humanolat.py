@@ -327,6 +327,9 @@ class HumanolatOptions:
     drive solved from the pose's OLATs on the training cameras (the dataset does not say which map lit which frame).
     A frame its OLATs do not explain is left out (the report says why); the door LEDs' light, when they are left out,
     is subtracted from its images. Reads every OLAT of up to 8 training cameras once more."""
+    gradient_frames: bool = False
+    """humanolat: import the 2 gradient frames (image numbers 1–2: the stage bright on one side, fading to the other) as
+    held-out lighting of their own, their drive solved as --envmap-frames solves an environment map's."""
 
     def validate(self) -> None:
         require_positive({"olat_step": self.olat_step, "test_olat_every": self.test_olat_every})
@@ -364,9 +367,10 @@ def read_humanolat(subject_dir: Path, config: HumanolatOptions) -> Source:
 
 
 def humanolat_frames(source: Source, config: HumanolatOptions) -> tuple[list, list[int]]:
-    """[(image number, frame entry, LED, "white" or ("solve", image number))] and the LEDs whose OLATs were left out.
-    The white frame is test lighting (sequence 0); every ``test_olat_every``-th imported OLAT is too (sequence 1), and
-    the environment-map frames (sequence 2); the rest train."""
+    """[(image number, frame entry, drive: an LED, "white" or ("solve", image number, what the frame is, the option that
+    asks for it))] and the LEDs whose OLATs were left out.
+    The white frame is test lighting (sequence 0); every ``test_olat_every``-th imported OLAT is too (sequence 1), the
+    environment-map frames (sequence 2) and the gradient frames (sequence 3); the rest train."""
     olat_at, _ = olat_numbers(len(source.order))
     door = set() if config.keep_door_leds else {d for d in DOOR_LEDS if d < len(source.leds)}
     chosen = [
@@ -379,11 +383,13 @@ def humanolat_frames(source: Source, config: HumanolatOptions) -> tuple[list, li
         split, sequence = ("test", 1) if (k + 1) % config.test_olat_every == 0 else ("train", 0)
         index = rig_index[led]  # the LED's index in the rig gra-mi writes (the door's left out)
         plan.append((number, FrameLighting(k + 1, split, sequence, "pattern", None, f"patterns/olat_{index:03d}.json", pose=0), index))
-    if config.envmap_frames:  # held out (sequence 2); the drive is solved from the OLATs at import
-        first = len(chosen) + 1
+    solved = [(ENVMAPS, "envmap", 2, ("an environment-map frame", "--envmap-frames"))] if config.envmap_frames else []
+    solved += [(GRADIENTS, "gradient", 3, ("a gradient frame", "--gradient-frames"))] if config.gradient_frames else []
+    for numbers, name, sequence, said in solved:  # held out; the drive is solved from the OLATs at import
+        first = 1 + max((entry.frame for _, entry, _ in plan), default=-1)
         plan += [
-            (n, FrameLighting(first + k, "test", 2, "pattern", None, f"patterns/envmap_{n:06d}.json", pose=0), ("solve", n))
-            for k, n in enumerate(ENVMAPS)
+            (n, FrameLighting(first + k, "test", sequence, "pattern", None, f"patterns/{name}_{n:06d}.json", pose=0), ("solve", n, *said))
+            for k, n in enumerate(numbers)
         ]
     if door:  # the rig's LEDs renumbered; --led-gains still names them by the source's numbers
         source.leds, source.led_numbers = source.leds[sorted(rig_index)], sorted(rig_index)

@@ -148,22 +148,24 @@ def import_markdown(r: dict, source_format: str) -> str:
 
 
 def _solved_frames_lines(rows: list[dict]) -> list[str]:
-    """The environment-map frames' solved drives: how much of each frame its OLATs explain, what was subtracted."""
+    """The frames whose drive was solved (--envmap-frames, --gradient-frames): how much of each frame its OLATs
+    explain, what was subtracted."""
     if not rows:
         return []
     lines = [
         "",
-        f"Environment-map frames (--envmap-frames): each one's LED drive solved from the OLATs on {', '.join(rows[0]['cameras'])}"
-        " (held-out lighting, sequence 2). ![drives](import/solved_drives.png)",
+        f"Frames lit by many LEDs at once, each one's LED drive solved from the OLATs on {', '.join(rows[0]['cameras'])}"
+        " (held-out lighting, a test sequence per kind). ![drives](import/solved_drives.png)",
         "",
-        "| image | frame | unexplained by its OLATs | light of LEDs outside the rig (subtracted) | mean drive (r, g, b; 1 = an OLAT's) |",
-        "|---|---|---|---|---|",
+        "| image | frame (test sequence) | lit by | unexplained by its OLATs | light of LEDs outside the rig (subtracted) | mean drive (r, g, b; 1 = an OLAT's) |",
+        "|---|---|---|---|---|---|",
     ]
     for row in rows:
         left = f" — **left out**: {row['left_out']}" if "left_out" in row else ""
         drive = ", ".join(f"{v:.3f}" for v in row["drive_mean"])
         lines.append(
-            f"| {row['image']:06d} | {row['frame']}{left} | {100 * row['residual']:.1f} % | {100 * row['outside_share']:.1f} % | {drive} |"
+            f"| {row['image']:06d} | {row['frame']} ({row['sequence']}){left} | {row['what']} | {100 * row['residual']:.1f} % "
+            f"| {100 * row['outside_share']:.1f} % | {drive} |"
         )
     if unseen := rows[0]["unseen"]:
         lines += ["", f"LEDs no solving camera sees lit (drive 0, unknown): {', '.join(map(str, unseen))}."]

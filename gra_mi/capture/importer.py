@@ -96,7 +96,7 @@ def _lighting_said(drive) -> str:
     if drive == "white":
         return "the white frame"
     if isinstance(drive, tuple) and drive[0] == "solve":
-        return "an environment-map frame: import without --envmap-frames"
+        return f"{drive[2]}: import without {drive[3]}"
     return f"the OLAT of LED {drive + 1}" if isinstance(drive, int) else "its lighting"
 
 

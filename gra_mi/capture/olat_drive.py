@@ -158,7 +158,7 @@ def _blocks(image: np.ndarray, block: int) -> np.ndarray:
 
 
 def apply_solved_drives(source: Source, plans: list[CameraPlan], cache: Path) -> list[dict]:
-    """Every frame of ``source.frames`` whose drive is to be solved (drive ``("solve", key)``) given its drive on the
+    """Every frame of ``source.frames`` whose drive is to be solved (drive ``("solve", key, …)``) given its drive on the
     rig's LEDs (``("solved", drive in the OLATs' units)``), or left out where its OLATs do not explain it
     (:data:`MAX_RESIDUAL`). The light of the source's LEDs that the rig leaves out (HumanOLAT's door) is subtracted from
     the frame's images (``source.subtracted``), so that the frame shows what the rig's LEDs gave. ``plans``: the
@@ -181,7 +181,8 @@ def apply_solved_drives(source: Source, plans: list[CameraPlan], cache: Path) ->
             kept.append((key, entry, drive))
             continue
         s, index = solved[key], {n: i for i, n in enumerate(solved[key].leds)}
-        row = {"image": key, "frame": entry.frame, "residual": s.residual, "outside_share": s.share(outside), "unseen": s.unseen}
+        row = {"image": key, "frame": entry.frame, "what": drive[2], "sequence": entry.sequence, "residual": s.residual}
+        row |= {"outside_share": s.share(outside), "unseen": s.unseen}
         rows.append(row | {"cameras": s.cameras, "drive_mean": s.drive.mean(axis=0).tolist()})
         if s.residual > MAX_RESIDUAL or not s.drive.any():
             why = "no light" if not s.drive.any() else f"{100 * s.residual:.0f} % of its light unexplained"
@@ -200,7 +201,7 @@ def plot_solved_drives(stage, frames: list, path: Path) -> None:
     dot in its drive's colour (scaled per frame to its brightest LED): what lit the frame, at a glance."""
     from gra_mi.core.io import pyplot, save_figure
 
-    solved = [(key, drive[1]) for key, _, drive in frames if isinstance(drive, tuple) and drive[0] == "solved"]
+    solved = [(Path(entry.pattern).stem, drive[1]) for _, entry, drive in frames if isinstance(drive, tuple) and drive[0] == "solved"]
     if not solved:
         return
     d = stage.led_directions()
@@ -213,12 +214,12 @@ def plot_solved_drives(stage, frames: list, path: Path) -> None:
         ax.set_facecolor("0.15")
         ax.set_xticks([])
         ax.set_yticks([])
-    for ax, (key, drive) in zip(axes.ravel(), solved, strict=False):
+    for ax, (name, drive) in zip(axes.ravel(), solved, strict=False):
         colour = np.clip(drive / max(float(drive.max()), 1e-12), 0, 1) ** (1 / 2.2)
         ax.scatter(azimuth, elevation, c=colour, s=9)
         ax.set_xlim(-180, 180)
         ax.set_ylim(-90, 90)
-        ax.set_title(f"image {key:06d}", fontsize=8)
+        ax.set_title(name, fontsize=8)
     fig.suptitle("LED drives solved from the OLATs (azimuth → , elevation ↑; each frame scaled to its brightest LED)", fontsize=9)
     fig.tight_layout()
     save_figure(fig, path)
