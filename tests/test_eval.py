@@ -126,6 +126,10 @@ def test_temporal_error_of_a_synthetic_flicker_of_known_amplitude():
         from_display(np.where(np.arange(48)[None, :, None] < 24, d + 0.02 * (-1) ** t, d + 0.3 * (-1) ** t)) for t, d in enumerate(shown)
     ]
     assert temporal_error(flicker, truths, half, EXPOSURE) == pytest.approx(0.04, abs=1e-9)
+    # a gap in the capture: no pair across it (a jump of 0.1 there, a flicker of ±0.01 elsewhere)
+    jumped = [from_display(d + 0.01 * (-1) ** t + (0.1 if t >= 4 else 0.0)) for t, d in enumerate(shown)]
+    assert temporal_error(jumped, truths, masks, EXPOSURE, breaks={4}) == pytest.approx(0.02, abs=1e-9)
+    assert temporal_error(jumped, truths, masks, EXPOSURE) > 0.025
 
 
 def test_frechet_distance_of_an_affine_map_is_analytic():

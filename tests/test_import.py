@@ -170,10 +170,68 @@ def test_a_capture_with_a_missing_image_imports_with_the_gap_recorded_and_fits(o
     assert not any(c == "Cam02" and e.frame == gaps[0].frame for e, c, _ in view_jobs(capture))
     with pytest.raises(GraMiInputError, match=f"camera Cam02 has no image of frame {gaps[0].frame}"):
         load_observation(capture, "Cam02", gaps[0].frame)
-    with pytest.raises(GraMiInputError, match="the evaluation needs every one"):
-        capture.require_images(["Cam02"], gaps, "the evaluation")
+    with pytest.raises(GraMiInputError, match="the refiner's sequences needs every one"):
+        capture.require_images(["Cam02"], gaps, "the refiner's sequences")
     result, _ = run_fit(out, tmp_path / "fit", FitConfig(solver="closed-form", roughness_candidates=3))
     assert np.isfinite(result.albedo).all() and (result.albedo.max(-1) > 0).mean() > 0.2
+
+
+def test_the_evaluation_scores_a_held_out_camera_on_the_images_it_has(imported, tmp_path):
+    """A held-out camera that lost a held-out OLAT and the white frame (a real capture's gaps): `gra-mi eval` scores
+    it on the frames it has, exactly as if the lost frame had never been captured; a sequence it has no image of is
+    not scored and said so; every other split scores as on the whole capture. The refiner, which needs an unbroken
+    video, still refuses the camera."""
+    from gra_mi.capture.dataset import Capture
+    from gra_mi.core.errors import GraMiInputError
+    from gra_mi.eval.protocol import EvalConfig, EvalInputs, evaluate
+    from gra_mi.fit.materials import FitConfig, run_fit
+
+    capture = Capture.load(imported)
+    camera = capture.eval_cameras[0]
+    olats = [f.frame for f in capture.frames if f.split == "test" and f.sequence == 1]
+    lost, white = olats[len(olats) // 2], next(f.frame for f in capture.frames if f.split == "test" and f.sequence == 0)
+    gapped, never = tmp_path / "gapped", tmp_path / "never"
+    for folder in (gapped, never):
+        shutil.copytree(imported, folder)
+        data = json.loads((folder / "capture.json").read_text())
+        if folder == gapped:  # as `gra-mi import --missing-images skip` records them
+            for entry in data["frames"]:
+                entry["missing"] = [camera] if entry["frame"] in (lost, white) else []
+            for frame in (lost, white):
+                (folder / capture.image_path(camera, frame).relative_to(imported)).unlink()
+        else:  # the lost OLAT never captured at all
+            data["frames"] = [e for e in data["frames"] if e["frame"] != lost]
+        (folder / "capture.json").write_text(json.dumps(data))
+    run_fit(imported, tmp_path / "fit", FitConfig(solver="closed-form", roughness_candidates=3))
+    reports = {
+        name: evaluate(EvalInputs(folder, tmp_path / "fit"), tmp_path / f"eval_{name}", EvalConfig())
+        for name, folder in (("whole", imported), ("gapped", gapped), ("never", never))
+    }
+    splits = {name: r["stages"]["microfacet"]["splits"] for name, r in reports.items()}
+    metrics = ("psnr", "ssim", "flip", "brightness")
+    ours = f"test1_{camera}"
+    assert set(splits["gapped"]) == set(splits["whole"]) - {f"test0_{camera}"}
+    assert {m: splits["gapped"][ours][m] for m in metrics} == {m: splits["never"][ours][m] for m in metrics}
+    assert splits["gapped"][ours]["frames_scored"] == splits["whole"][ours]["frames_scored"] - 1
+    for split in set(splits["gapped"]) - {ours}:
+        np.testing.assert_equal(splits["gapped"][split], splits["whole"][split], err_msg=split)  # NaN: one frame, no pair
+    protocol = reports["gapped"]["protocol"]
+    assert protocol["splits"][ours]["missing"] == [lost] and f"test0_{camera}" in protocol["unscored"]
+    said = (tmp_path / "eval_gapped" / "eval.md").read_text()
+    assert "(1 more without an image, left out)" in said and f"test0_{camera}: not scored: camera {camera} has no image" in said
+    with pytest.raises(GraMiInputError, match="the refiner's sequences needs every one"):
+        Capture.load(gapped).require_images([camera], Capture.load(gapped).frames, "the refiner's sequences")
+    # truth from the reflectance field (the sum of every OLAT): the camera that lost one is left out, the other scored
+    fields = evaluate(EvalInputs(gapped, tmp_path / "fit"), tmp_path / "eval_field", EvalConfig(library_envmaps=1))
+    other = next(c for c in capture.eval_cameras if c != camera)
+    assert f"field_{other}" in fields["stages"]["microfacet"]["splits"] and f"field_{camera}" in fields["protocol"]["unscored"]
+    data = json.loads((gapped / "capture.json").read_text())
+    for entry in data["frames"]:  # no held-out camera has an image of any held-out frame: nothing to score, said
+        entry["missing"] = list(capture.eval_cameras) if entry["split"] == "test" else []
+    (gapped / "capture.json").write_text(json.dumps(data))
+    with pytest.raises(GraMiInputError, match="no held-out camera has an image of the held-out lighting"):
+        evaluate(EvalInputs(gapped, tmp_path / "fit"), tmp_path / "eval_none", EvalConfig())
+    assert not (tmp_path / "eval_none" / "eval.json").exists()
 
 
 @pytest.mark.parametrize(

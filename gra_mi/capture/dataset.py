@@ -61,6 +61,21 @@ class Capture:
         """Whether ``camera`` has an image of the frame (an import records the gaps of a real capture)."""
         return camera not in entry.missing
 
+    def frames_with_images(self, camera: str, frames: list[int]) -> tuple[list[int], list[int], list[int]]:
+        """(the frames of ``frames`` that ``camera`` has an image of, those it has none of, and the positions in the
+        first list whose frame does not follow its predecessor there: a gap lies between the two)."""
+        entries = {f.frame: f for f in self.frames}
+        present, missing, breaks, last = [], [], [], None
+        for k, f in enumerate(frames):
+            if not self.has_image(camera, entries[f]):
+                missing.append(f)
+                continue
+            if last is not None and k > last + 1:
+                breaks.append(len(present))
+            present.append(f)
+            last = k
+        return present, missing, breaks
+
     def require_images(self, cameras: list[str], entries: list[FrameLighting], needed_by: str) -> None:
         """Refuse, before any work, a stage that needs every image of ``cameras`` × ``entries`` where one is missing."""
         for entry in entries:

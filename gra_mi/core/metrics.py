@@ -138,17 +138,18 @@ def flip(image: np.ndarray, reference: np.ndarray, mask: np.ndarray | None = Non
     return float(error[mask].mean()) if mask.any() else 0.0
 
 
-def temporal_error(frames: list[np.ndarray], truths: list[np.ndarray], masks: list[np.ndarray], exposure: float) -> float:
+def temporal_error(frames: list[np.ndarray], truths: list[np.ndarray], masks: list[np.ndarray], exposure: float, breaks=()) -> float:
     """Flicker: the mean absolute difference between a video's frame-to-frame change and the truth's, in display
     values (:func:`to_display` at one ``exposure`` for the whole video), over the pixels the subject covers in both
     frames of each pair. 0 when the video changes exactly as the truth does (a constant error, in colour or
-    brightness, costs nothing); a frame alternating by ±a around the truth scores 2a. NaN for fewer than 2 frames."""
+    brightness, costs nothing); a frame alternating by ±a around the truth scores 2a. NaN for fewer than 2 frames.
+    ``breaks``: frames that do not follow their predecessor (a gap in the capture lies between): no pair."""
     if len(frames) < 2:
         return float("nan")
     shown = [to_display(f, exposure) for f in frames]
     truth = [to_display(t, exposure) for t in truths]
     errors = []
-    for t in range(1, len(frames)):
+    for t in (t for t in range(1, len(frames)) if t not in breaks):
         both = np.asarray(masks[t], bool) & np.asarray(masks[t - 1], bool)
         if both.any():
             errors.append(float(np.abs((shown[t] - shown[t - 1]) - (truth[t] - truth[t - 1]))[both].mean()))

@@ -154,6 +154,8 @@ class Split:
     refined_dir: Path | None = None
     lighting_set: bool = False  # one pose under many lightings (not a video): every frame is scored
     lights: dict[int, object] = field(default_factory=dict)  # frame id < 0 → FieldLighting
+    missing: list[int] = field(default_factory=list)  # held-out frames the camera has no image of (left out)
+    breaks: list[int] = field(default_factory=list)  # positions in capture_frames that follow such a gap
 
 
 def scored_frames(split: Split, how: str) -> list[int]:
@@ -192,18 +194,19 @@ def _refined_folders(paths: list[Path]) -> dict[str, Path]:
     return found
 
 
-def _splits(capture, dataset, refined: dict[str, Path]) -> list[Split]:
+def _splits(capture, dataset, refined: dict[str, Path]) -> tuple[list[Split], dict[str, str]]:
+    """The held-out cameras × the held-out lighting sequences, each without the frames its camera has no image of (a
+    real capture's gaps); and the splits left with none (name → why)."""
     test = [f.frame for f in capture.frames if f.split == "test"]
     if not test or not capture.eval_cameras:
         what = "test frames" if not test else "held-out cameras (eval_cameras)"
         raise GraMiInputError(capture.folder / "capture.json", f"no {what}: nothing is held out to evaluate on")
-    capture.require_images(capture.eval_cameras, [f for f in capture.frames if f.split == "test"], "the evaluation")
     # The capture's held-out lighting sequences; the refiner's data plays them one after another per camera.
     sequences: dict[int, list[int]] = {}
     for f in capture.frames:
         if f.split == "test":
             sequences.setdefault(f.sequence, []).append(f.frame)
-    splits = []
+    splits, unscored = [], {}
     for cam in capture.eval_cameras:
         entry = None
         if dataset is not None:
@@ -215,23 +218,39 @@ def _splits(capture, dataset, refined: dict[str, Path]) -> list[Split]:
         static = len({f.mesh_frame for f in capture.frames}) == 1
         for k, frames in sequences.items():
             name = f"test_{cam}" if len(sequences) == 1 else f"test{k}_{cam}"
-            splits.append(Split(name, cam, frames, lighting_set=static))
-    return splits
+            present, missing, breaks = capture.frames_with_images(cam, frames)
+            if not present:
+                unscored[name] = f"camera {cam} has no image of any of its {len(frames)} frames (the import recorded them missing)"
+                logger.warning("%s: not scored: %s", name, unscored[name])
+                continue
+            splits.append(Split(name, cam, present, lighting_set=static, missing=missing, breaks=breaks))
+    if not splits:
+        raise GraMiInputError(capture.folder / "capture.json", "no held-out camera has an image of the held-out lighting", field="frames")
+    return splits, unscored
 
 
-def _field_splits(capture, config: EvalConfig) -> list[Split]:
-    """One split per held-out camera under the user's and the library's maps, truth from the reflectance field."""
-    from gra_mi.capture.reflectance import static_pose
+def _field_splits(capture, config: EvalConfig) -> tuple[list[Split], dict[str, str]]:
+    """One split per held-out camera under the user's and the library's maps, truth from the reflectance field; and
+    the cameras' splits left out for want of an OLAT image (name → why)."""
+    from gra_mi.capture.reflectance import OlatIndex, static_pose
     from gra_mi.eval.reflectance import field_lightings
     from gra_mi.stage.lightstage import load_calibration
 
     if not (config.envmap or config.library_envmaps):
-        return []
+        return [], {}
     static_pose(capture)
     stage = load_calibration(capture.folder / "rig" / "calibration.json")
     lights = field_lightings(capture, stage, {p.stem: config.envmaps.load(p) for p in config.envmap}, config.library_envmaps)
     by_id = {-(k + 1): light for k, light in enumerate(lights)}
-    return [Split(f"field_{cam}", cam, list(by_id), lighting_set=True, lights=by_id) for cam in capture.eval_cameras]
+    olats = [int(f) for f in OlatIndex.of(capture, stage).frames]
+    splits, unscored = [], {}
+    for cam in capture.eval_cameras:
+        if missing := capture.frames_with_images(cam, olats)[1]:
+            unscored[f"field_{cam}"] = f"camera {cam} has no image of {len(missing)} of its OLATs: a reflectance field sums every one"
+            logger.warning("field_%s: not scored: %s", cam, unscored[f"field_{cam}"])
+            continue
+        splits.append(Split(f"field_{cam}", cam, list(by_id), lighting_set=True, lights=by_id))
+    return splits, unscored
 
 
 def _perceptual_models(config: EvalConfig):
@@ -257,7 +276,9 @@ def evaluate(inputs: EvalInputs, out: str | Path, config: EvalConfig | None = No
     status = _Status(inputs)
     relighter, model = _texture_stages(inputs, capture, out, status, config.transport)
     dataset, refined = _video_stages(inputs, status)
-    splits = _splits(capture, dataset if refined else None, refined) + _field_splits(capture, config)
+    splits, unscored = _splits(capture, dataset if refined else None, refined)
+    field_splits, field_unscored = _field_splits(capture, config)
+    splits, unscored = splits + field_splits, unscored | field_unscored
     scale = config.scale
     if scale is None:
         scale = float(dataset.meta.get("scale", dataset.crop[1] / capture_width(capture))) if refined else 1.0
@@ -272,7 +293,7 @@ def evaluate(inputs: EvalInputs, out: str | Path, config: EvalConfig | None = No
     composited = write_videos(out / "videos", videos, splits, capture, relighter, scale, config.platform if config.composite else None)
     report = {
         "protocol": _protocol(config, scale, splits, capture, videos)
-        | {"lpips": lpips_model is not None, "fvd": i3d is not None, "composited": composited},
+        | {"lpips": lpips_model is not None, "fvd": i3d is not None, "composited": composited, "unscored": unscored},
         "stages": {s: asdict(r) for s, r in status.results.items()},
         "problems": status.problems,
     }
@@ -423,7 +444,7 @@ def _score_split(split: Split, frames: dict, results: dict, config: EvalConfig, 
     exposure = float(np.median([display_exposure(t, m) for t, m in zip(truths, masks, strict=True)]))
     scored, previous = scored_frames(split, config.frames), None
     for stage in (s for s in STAGES if s in frames):
-        row = _score(frames[stage], truths, masks, exposure, scored, lpips_model)
+        row = _score(frames[stage], truths, masks, exposure, scored, lpips_model, split.breaks)
         if previous is not None and same_frames(frames[stage], frames[previous]):
             row["unchanged_from"] = previous  # the stage delivered its input: its numbers are not its own result
         results[stage].splits[split.name] = row
@@ -435,6 +456,7 @@ def _score_split(split: Split, frames: dict, results: dict, config: EvalConfig, 
         "exposure": exposure,
         "coverage": frames.get("microfacet", frames.get("RelightNet")),
         "subject_pixels": [min(heights), max(heights)],
+        "breaks": split.breaks,
     }
 
 
@@ -486,6 +508,7 @@ def _protocol(config: EvalConfig, scale: float, splits: list[Split], capture, vi
                 "lighting": _lighting_said(capture, s),
                 "truth": TRUTH if s.lights else "the capture's images",
                 "frames": len(s.capture_frames),
+                "missing": s.missing,
                 "scored": scored_frames(s, config.frames),
                 "lighting_set": s.lighting_set,
                 "subject_pixels": videos[s.name]["subject_pixels"],  # rows the subject spans, least and most, scored frames
@@ -521,7 +544,7 @@ def _read_sequence(folder: Path, count: int, size: tuple[int, int]) -> list[np.n
     return images
 
 
-def _score(images, truths, masks, exposure, scored: list[int], lpips_model) -> dict:
+def _score(images, truths, masks, exposure, scored: list[int], lpips_model, breaks: list[int]) -> dict:
 
     rows = []
     for i in scored:
@@ -533,7 +556,7 @@ def _score(images, truths, masks, exposure, scored: list[int], lpips_model) -> d
             row["lpips"] = lpips_distance(lpips_model, images[i], truths[i], masks[i], display_exposure(truths[i], masks[i]))
         rows.append(row)
     result = {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
-    result["temporal"] = temporal_error(images, truths, masks, exposure)
+    result["temporal"] = temporal_error(images, truths, masks, exposure, set(breaks))
     result["frames_scored"] = len(rows)
     return result
 
@@ -550,6 +573,8 @@ def _fvd(i3d, results: dict[str, StageResult], videos: dict) -> None:
             if stage not in frames:
                 continue
             for start in range(0, len(frames["truth"]) - window + 1, window):
+                if any(start < b < start + window for b in video["breaks"]):
+                    continue  # a clip across a gap in the capture is no video
                 real.append(np.stack([to_display(f, exposure) for f in frames["truth"][start : start + window]]))
                 fake.append(np.stack([to_display(f, exposure) for f in frames[stage][start : start + window]]))
         if len(real) >= 2:

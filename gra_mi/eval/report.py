@@ -154,7 +154,12 @@ def eval_markdown(report: dict) -> str:
         text.append("FVD: not measured (give `--i3d-weights`).")
     text.append("")
     for s, about in protocol["splits"].items():
-        text.append(f"- {s}: camera {about['camera']}, lighting {about['lighting']}, {about['frames']} frames, truth {about['truth']}")
+        gaps = f" ({len(about['missing'])} more without an image, left out)" if about.get("missing") else ""
+        text.append(
+            f"- {s}: camera {about['camera']}, lighting {about['lighting']}, {about['frames']} frames{gaps}, truth {about['truth']}"
+        )
+    for s, why in protocol.get("unscored", {}).items():
+        text.append(f"- {s}: not scored: {why}")
     text.append("")
     for s in protocol["splits"]:
         videos = f"[videos/{s}.mp4](videos/{s}.mp4)"
