@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -566,6 +567,32 @@ def test_refiner_data_shards_write_what_one_process_writes(tiny_run, tmp_path):
     one = tiny_run / "refiner" / "data"
     skip = lambda p: "cache" in p.parts  # noqa: E731
     assert not different_outputs(one, tmp_path / "shards", ignore=skip)
+
+
+def test_refiner_data_of_a_capture_with_gaps_says_what_it_left_out(path_traced_fit, tmp_path):
+    """A held-out camera that lost a frame mid-sequence: its refiner sequence is the longest unbroken run of the
+    frames it has and dataset.json names the frames left out; a camera without the gap keeps every frame."""
+    from gra_mi.capture.dataset import Capture
+    from gra_mi.refiner.data import CaptureSequencesConfig, dataset_from_capture
+
+    cap = tmp_path / "cap"
+    shutil.copytree(path_traced_fit / "cap", cap)
+    capture = Capture.load(cap)
+    camera, test = capture.eval_cameras[0], [f.frame for f in capture.frames if f.split == "test"]
+    lost = test[len(test) // 3]
+    data = json.loads((cap / "capture.json").read_text())
+    for entry in data["frames"]:
+        entry["missing"] = [camera] if entry["frame"] == lost else []
+    (cap / "capture.json").write_text(json.dumps(data))
+    capture.image_path(camera, lost).unlink()
+    config = CaptureSequencesConfig(scale=0.25, test_length=4, train_length=4)
+    dataset = dataset_from_capture(cap, path_traced_fit / "fit", tmp_path / "data", config=config, cache_dir=tmp_path / "cache")
+    entry = {e["name"]: e for e in dataset.meta["sequences"]}[f"test_{camera}"]
+    after, before = test[test.index(lost) + 1 :], test[: test.index(lost)]
+    run = after if len(after) > len(before) else before
+    assert entry["left_out_frames"] == sorted(set(test) - set(run)) and set(entry["capture_frames"]) == set(run)
+    other = {e["name"]: e for e in dataset.meta["sequences"]}[f"selection_{capture.train_cameras[0]}"]  # the same lighting
+    assert "left_out_frames" not in other and set(other["capture_frames"]) == set(test)
 
 
 def test_a_stage_that_delivers_its_input_is_marked_as_such():

@@ -1025,22 +1025,49 @@ def test_residual_flow_space_round_trips_and_keeps_the_given_frames(model):
 
 def test_training_sequences_from_fewer_cameras():
     """`train_cameras N`: training sequences from N evenly spaced training cameras; the selection sequence (first
-    training camera) and the test sequences (held-out cameras) as before; more than the capture has is refused, and
-    so is a camera with a gap in a sequence (an import's --missing-images skip), before any work."""
+    training camera) and the test sequences (held-out cameras) as before; more than the capture has is refused."""
     from gra_mi.capture.dataset import Capture, FrameLighting
-    from gra_mi.core.errors import GraMiInputError, GraMiParameterError
+    from gra_mi.core.errors import GraMiParameterError
     from gra_mi.refiner.data import CaptureSequencesConfig, _sequence_jobs
 
     frames = [FrameLighting(0, "train", 0, "uniform", None), FrameLighting(1, "train", 0, "envmap", "e.exr")]
     frames += [FrameLighting(2, "test", 0, "envmap", "t.exr")]
     capture = Capture(Path("cap"), "x", "path", 8, [f"cam0{i}" for i in range(6)], ["cam06", "cam07"], frames)
-    _, jobs = _sequence_jobs(capture, CaptureSequencesConfig(train_cameras=3))
-    assert [(split, cam) for split, cam, _, _ in jobs] == [
+    jobs = _sequence_jobs(capture, CaptureSequencesConfig(train_cameras=3))
+    assert [(split, cam) for split, cam, *_ in jobs] == [
         ("train", "cam00"), ("train", "cam02"), ("train", "cam05"), ("selection", "cam00"), ("test", "cam06"), ("test", "cam07"),
     ]  # fmt: skip
-    assert len(_sequence_jobs(capture, CaptureSequencesConfig())[1]) == 6 + 1 + 2
+    assert len(_sequence_jobs(capture, CaptureSequencesConfig())) == 6 + 1 + 2
     with pytest.raises(GraMiParameterError, match="train_cameras"):
         _sequence_jobs(capture, CaptureSequencesConfig(train_cameras=7))
-    frames[2].missing = ["cam07"]
-    with pytest.raises(GraMiInputError, match="camera cam07 has no image of frame 2"):
+
+
+def test_sequences_leave_out_a_cameras_gaps():
+    """A real capture's gaps (an import's --missing-images skip): a training sequence drops the frames its camera
+    lacks; a held-out video keeps its longest unbroken run (no frame of it follows a gap); a camera without its uniformly
+    lit reference takes the next one; a camera with no reference or no frame of its sequence is refused by name."""
+    from gra_mi.capture.dataset import Capture, FrameLighting
+    from gra_mi.core.errors import GraMiInputError
+    from gra_mi.refiner.data import CaptureSequencesConfig, _sequence_jobs
+
+    frames = [FrameLighting(0, "train", 0, "uniform", None), FrameLighting(1, "train", 0, "envmap", "e.exr")]
+    frames += [FrameLighting(f, "test", 0, "envmap", "t.exr") for f in range(2, 10)]
+    frames += [FrameLighting(10, "train", 0, "envmap", "e.exr"), FrameLighting(11, "train", 0, "uniform", None)]
+    capture = Capture(Path("cap"), "x", "path", 8, ["cam00", "cam01"], ["cam06", "cam07"], frames)
+    gaps = {1: ["cam01"], 0: ["cam01"], 4: ["cam07"], 7: ["cam00"]}
+    for f in frames:
+        f.missing = gaps.get(f.frame, [])
+    jobs = {(split, cam): job for split, cam, *job in _sequence_jobs(capture, CaptureSequencesConfig())}
+    frames_of = {key: [e.frame for e in job[0]] for key, job in jobs.items()}
+    assert frames_of["train", "cam01"] == [10] and jobs["train", "cam01"][3] == [1] and jobs["train", "cam01"][2].frame == 11
+    assert frames_of["test", "cam07"] == [5, 6, 7, 8, 9] and jobs["test", "cam07"][3] == [2, 3, 4]
+    assert frames_of["selection", "cam00"] == [2, 3, 4, 5, 6]  # the longer run
+    assert frames_of["test", "cam06"] == list(range(2, 10)) and jobs["test", "cam06"][3] == []
+    frames[-1].missing = ["cam01"]
+    with pytest.raises(GraMiInputError, match="camera cam01 has no image of a uniformly lit training frame"):
+        _sequence_jobs(capture, CaptureSequencesConfig())
+    frames[-1].missing = []
+    for f in frames[2:10]:
+        f.missing = ["cam06"]
+    with pytest.raises(GraMiInputError, match="camera cam06 has no image of any frame of its test sequence"):
         _sequence_jobs(capture, CaptureSequencesConfig())

@@ -5,6 +5,7 @@ The dataset's format and reader are :mod:`gra_mi.refiner.dataset`; synthetic seq
 
 from __future__ import annotations
 
+import logging
 import math
 import shutil
 from dataclasses import dataclass, replace
@@ -24,6 +25,8 @@ from gra_mi.core.shard import Shard
 from gra_mi.refiner.dataset import RefinerDataset, crop_box, write_dataset_json, write_sequence
 from gra_mi.render.runtime import ensure_mitsuba
 from gra_mi.stage.envmap import leds_to_envmap, to_camera_space
+
+logger = logging.getLogger(__name__)
 
 # --------------------------------------------------------------------------------------------------------------
 # From the pipeline: a capture, its fit and RelightNet
@@ -150,30 +153,39 @@ def dataset_from_capture(
     capture, relighter, model = _coarse_stages(capture_dir, fit_dir, relightnet_dir, cache_dir or out / "cache")
     inputs = {"capture": capture_dir, "fit": fit_dir, "relightnet": relightnet_dir}
     claim_output(out, "refiner-data", inputs, config.record(), overwrite=overwrite, shard=shard)
-    uniform, jobs = _sequence_jobs(capture, config)
+    jobs = _sequence_jobs(capture, config)
     if shard.whole:
-        raw = [_raw_sequence(capture, relighter, model, job, uniform, config) for job in progress(jobs, description="refiner sequences")]
+        raw = [_raw_sequence(capture, relighter, model, job, config) for job in progress(jobs, description="refiner sequences")]
     else:
         for job in progress(shard.take(jobs), description=f"refiner sequences (shard {shard})"):
-            _save_part(out, job, _raw_sequence(capture, relighter, model, job, uniform, config))
+            _save_part(out, job, _raw_sequence(capture, relighter, model, job, config))
         if not all(_part_path(out, job).is_file() for job in jobs):
             return None  # another shard's sequences are still being made: the last shard writes the dataset
         raw = [_load_part(out, job) for job in jobs]
-    dataset = _write_dataset(out, raw, capture, config, relighter.ls.sequence.fps, "relightnet" if model is not None else "microfacet")
+    left_out = {f"{job[0]}_{job[1]}": job[5] for job in jobs if job[5]}
+    dataset = _write_dataset(
+        out, raw, capture, config, relighter.ls.sequence.fps, "relightnet" if model is not None else "microfacet", left_out
+    )
     shutil.rmtree(out / "parts", ignore_errors=True)
     return dataset
 
 
-def _raw_sequence(capture, relighter, model, job, uniform, config: CaptureSequencesConfig) -> tuple:
-    split, cam, entries, length = job
-    return (split, cam, *_capture_sequence(capture, relighter, model, cam, entries, length, uniform, config))
+def _raw_sequence(capture, relighter, model, job, config: CaptureSequencesConfig) -> tuple:
+    split, cam, entries, length, reference, _ = job
+    return (split, cam, *_capture_sequence(capture, relighter, model, cam, entries, length, reference, config))
 
 
-def _write_dataset(out: Path, raw: list[tuple], capture, config: CaptureSequencesConfig, fps: float, coarse: str) -> RefinerDataset:
-    """Every sequence (cut to its subject box with a zoom) and dataset.json, with the whole dataset's exposures."""
+def _write_dataset(
+    out: Path, raw: list[tuple], capture, config: CaptureSequencesConfig, fps: float, coarse: str, left_out: dict[str, list[int]]
+) -> RefinerDataset:
+    """Every sequence (cut to its subject box with a zoom) and dataset.json, with the whole dataset's exposures;
+    ``left_out``: sequence name → the capture frames it left out for want of an image."""
     crop = raw[0][3]
     boxes = _zoom_to_subject(raw, config) if config.zoom else {}
     entries = [_entry(split, cam, seq, frames, capture, out, boxes) for split, cam, seq, _, frames in raw]
+    for entry in entries:
+        if entry["name"] in left_out:
+            entry["left_out_frames"] = left_out[entry["name"]]
     h, w = raw[0][2]["coarse"].shape[1:3]
     exposure, env_exposure = _exposures([seq for _, _, seq, _, _ in raw])
     write_dataset_json(
@@ -229,10 +241,11 @@ def _coarse_stages(capture_dir, fit_dir, relightnet_dir, cache_dir):
     return capture, relighter, model
 
 
-def _sequence_jobs(capture, config: CaptureSequencesConfig):
-    """(the neutral reference frame, [(split, camera, capture frames, length)])."""
-    uniform = next((f for f in capture.frames if f.split == "train" and f.kind == "uniform"), None)
-    if uniform is None:
+def _sequence_jobs(capture, config: CaptureSequencesConfig) -> list[tuple]:
+    """[(split, camera, capture frames, length, the neutral reference frame, the frames left out for want of an
+    image)]."""
+    uniforms = [f for f in capture.frames if f.split == "train" and f.kind == "uniform"]
+    if not uniforms:
         raise GraMiInputError(capture.folder / "capture.json", "no uniformly lit training frame to serve as the neutral reference")
     # Training sequences hold the relit frames only: the refiner never refines a uniformly lit tracking frame, and
     # with them in, every other training frame is a flash that the 4-frame latents must mix with the relit ones.
@@ -250,9 +263,32 @@ def _sequence_jobs(capture, config: CaptureSequencesConfig):
     # that training never sees and the evaluation never scores, on which training chooses the refiner's mix.
     jobs += [("selection", cam, held_out, config.test_length) for cam in capture.train_cameras[:1] if held_out]
     jobs += [("test", cam, held_out, config.test_length) for cam in capture.eval_cameras]
-    for _, cam, entries, _ in jobs:  # a sequence with a gap would not be a video
-        capture.require_images([cam], [*entries, uniform], "the refiner's sequences")
-    return uniform, jobs
+    return [_with_images(capture, *job, uniforms) for job in jobs]
+
+
+def _with_images(capture, split: str, cam: str, entries: list, length: int, uniforms: list) -> tuple:
+    """A sequence job on the frames ``cam`` has an image of (a real capture's gaps). A training sequence drops the
+    frames it lacks (its relit frames are not consecutive in the capture anyway); a held-out video keeps its longest
+    unbroken run, so that no frame of it follows a gap. The reference: the camera's first uniformly lit frame."""
+    reference = next((u for u in uniforms if capture.has_image(cam, u)), None)
+    where = capture.folder / "capture.json"
+    if reference is None:
+        raise GraMiInputError(
+            where, f"camera {cam} has no image of a uniformly lit training frame, the refiner's neutral reference", field="frames"
+        )
+    present, _, breaks = capture.frames_with_images(cam, [e.frame for e in entries])
+    if not present:
+        raise GraMiInputError(
+            where, f"camera {cam} has no image of any frame of its {split} sequence: hold it out of the capture", field="frames"
+        )
+    if split != "train" and breaks:
+        runs = np.split(np.array(present), breaks)
+        present = [int(f) for f in max(runs, key=len)]  # the first of the longest
+    by_frame = {e.frame: e for e in entries}
+    left_out = [e.frame for e in entries if e.frame not in set(present)]
+    if left_out:
+        logger.warning("%s_%s: %d of its %d frames left out (no image, or past a gap)", split, cam, len(left_out), len(entries))
+    return split, cam, [by_frame[f] for f in present], length, reference, left_out
 
 
 def _capture_sequence(capture, relighter, model, cam: str, entries, length: int, uniform, config: CaptureSequencesConfig):
