@@ -510,6 +510,66 @@ def test_exif_orientation_is_said_where_the_pixels_do_not_fit(olat_capture, tmp_
     assert "EXIF orientation tag, read as stored" in (tmp_path / "as_stored" / "import_report.md").read_text()
 
 
+def _with_background(subject: Path, folder: Path) -> Path:
+    """The layout's images as photographs that keep their background: each camera's images over a backdrop (soft
+    stripes and blobs, as bright as the subject), the subject's edge where its mask file says."""
+    from scipy.ndimage import gaussian_filter
+
+    from gra_mi.capture.humanolat import camera_name, images_of, write_avif
+    from gra_mi.capture.source_files import read_image, read_mask
+
+    copy = folder / subject.name
+    shutil.copytree(subject, copy, ignore=shutil.ignore_patterns("json_*"))
+    rng = np.random.default_rng(3)
+    for cam in range(8):
+        images = images_of(copy / "POSE_00" / "images_processed" / camera_name(cam))
+        mask = read_mask(copy / "POSE_00" / "segmentations" / "masks" / "000" / f"{camera_name(cam)}.png")
+        h, w = mask.shape
+        x = np.arange(w)[None, :, None]
+        backdrop = 0.35 + 0.15 * np.sin(x / 3.0 + cam) + 0.2 * gaussian_filter(rng.standard_normal((h, w, 3)), 4) * 8
+        cover = gaussian_filter(mask.astype(np.float64), 0.7)[..., None]
+        for path in images.values():
+            rgb = read_image(path)[0]
+            level = float(np.median(rgb[mask].max(axis=-1))) if rgb[mask].any() else 0.0
+            write_avif(path, rgb * cover + np.clip(backdrop, 0.05, 1.0) * level * (1 - cover))
+    return copy
+
+
+def test_an_image_that_keeps_its_background_is_held_against_its_mask(olat_capture, tmp_path, capsys):
+    """Photographs with their background (no black around the subject) were never checked against their mask files:
+    their edges are. An image whose edges follow another camera's mask, or its own mask turned 180°, clearly better
+    than its own stops the import naming both; the untouched photographs import."""
+    from gra_mi.capture.humanolat import camera_name, images_of, write_avif
+    from gra_mi.capture.mask_fit import BETTER_OUTLINE, edge_strength, outline, outline_fit
+    from gra_mi.capture.source_files import read_image, read_mask
+
+    _, _, subject = olat_capture
+    photos = _with_background(subject, tmp_path / "layout")
+    folders = [photos / "POSE_00" / "images_processed" / camera_name(cam) for cam in range(8)]
+    masks = [read_mask(photos / "POSE_00" / "segmentations" / "masks" / "000" / f"{camera_name(cam)}.png") for cam in range(8)]
+    edges = [edge_strength(read_image(images_of(f)[0])[0]) for f in folders]
+    fits = np.array([[outline_fit(e, outline(m)) for m in masks] for e in edges])
+    others = np.where(np.eye(8, dtype=bool), 0, fits).max(axis=1)
+    assert (others < BETTER_OUTLINE * np.diag(fits)).all(), fits.round(2)  # cameras side by side see alike: no more
+    _imported(tmp_path, photos, "photos")
+    truth = json.loads((subject / "synthetic.json").read_text())
+    args = ["import", "humanolat", str(photos), "--uv-resolution", "32", "--led-intensity", str(truth["import_led_intensity"])]
+    swapped = {n: (images_of(folders[1])[n], images_of(folders[4])[n]) for n in images_of(folders[1])}
+    for a, b in swapped.values():  # Cam02's and Cam05's images swapped
+        data = a.read_bytes()
+        a.write_bytes(b.read_bytes())
+        b.write_bytes(data)
+    _one_line_error(capsys, [*args, "--out", str(tmp_path / "swapped")], "camera Cam02", "Cam05's mask", "does not go with its mask")
+    for a, b in swapped.values():
+        data = a.read_bytes()
+        a.write_bytes(b.read_bytes())
+        b.write_bytes(data)
+    for path in images_of(folders[2]).values():  # Cam03's turned 180°: the size fits
+        write_avif(path, np.rot90(read_image(path)[0], 2))
+    _one_line_error(capsys, [*args, "--out", str(tmp_path / "turned")], "camera Cam03", "turned 180°", "does not go with its mask")
+    assert not (tmp_path / "swapped").exists() and not (tmp_path / "turned").exists()
+
+
 def _olat_ratio_spread(native, out: Path) -> float:
     """How far each OLAT frame's brightness over its LED's stated intensity strays from the native capture's, over
     the frames (std / mean of the ratio, the worst channel): 0 where every LED is lit as the capture says."""
@@ -1002,7 +1062,7 @@ def test_broken_easymocap_rigs_stop_with_one_line(path_traced_fit, tmp_path, cap
         ({"frames": [{"frame": 0, "led": 10_000}]}, intri, ["lighting.json", "frames[0].led", "out of range"]),
         (
             good,
-            _with_matrix(intri, "dist_01", np.array([[0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0.01, 0]])),
+            _with_matrix(intri, "dist_01", np.array([[0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0.9, 0]])),
             ["intri.yml", "dist_01", "tilted"],
         ),
         (good, _with_matrix(intri, "dist_01", np.array([[0.1, 0, 0]])), ["intri.yml", "dist_01", "4, 5, 8"]),
@@ -1337,8 +1397,8 @@ def test_door_leds_leave_the_rig_with_their_olats_and_the_white_frame(olat_captu
 
 
 def test_images_through_a_lens_are_undistorted_at_import(path_traced_fit, tmp_path):
-    """An EasyMocap rig whose cameras have a wide-angle lens (OpenCV's full model: k1, k2, p1, p2, the rational k4, k5
-    and thin-prism terms; the images taken through it by OpenCV's own model): imported, its images match the pinhole truth as closely as a rig without distortion does,
+    """An EasyMocap rig whose cameras have a wide-angle lens (OpenCV's full model: k1, k2, p1, p2, the rational k4, k5,
+    thin-prism terms and a tilted sensor; the images taken through it by OpenCV's own model): imported, its images match the pinhole truth as closely as a rig without distortion does,
     the mesh lies on the masks; and with the same images but the lens left out of intri.yml they do not."""
     from gra_mi.capture.dataset import Capture, load_observation
     from gra_mi.capture.source_files import write_obj, write_points
@@ -1351,7 +1411,7 @@ def test_images_through_a_lens_are_undistorted_at_import(path_traced_fit, tmp_pa
     write_obj(tmp_path / "mesh", seq.vertices[0], seq.uvs, seq.faces, None)
     write_points(tmp_path / "leds.pc", stage.led_positions)
     (tmp_path / "lighting.json").write_text(json.dumps({"frames": [{"frame": 0, "split": "train", "uniform": 0.5}]}))
-    dist = np.array([-0.12, 0.05, 0.002, -0.003, 0.0, 0.08, 0.01, 0.0, 0.001, 0.0, -0.001, 0.0])
+    dist = np.array([-0.12, 0.05, 0.002, -0.003, 0.0, 0.08, 0.01, 0.0, 0.001, 0.0, -0.001, 0.0, 0.02, -0.03])
 
     def imported(name: str, lens: np.ndarray | None, said: np.ndarray | None) -> tuple[dict, list[float]]:
         write_easymocap(native, tmp_path / name, native.frames[:1], lens)

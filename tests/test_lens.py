@@ -15,6 +15,7 @@ FISHEYE = np.array([0.05, -0.01, 0.002, -0.0003])
 # OpenCV's full model (CALIB_RATIONAL_MODEL | CALIB_THIN_PRISM_MODEL): k1 k2 p1 p2 k3, k4 k5 k6 dividing, s1…s4;
 # rational calibrations come out with numerator and divisor of similar size, as here
 FULL = np.array([0.62, -0.21, 0.001, -0.0015, 0.03, 0.85, -0.12, 0.05, 0.002, -0.001, -0.0015, 0.0008])
+TILT = np.array([0.03, -0.05])  # τx, τy in radians: a Scheimpflug camera's sensor, a few degrees off square
 K = np.array([[150.0, 0, 81.3], [0, 146.0, 58.7], [0, 0, 1]])  # gra-mi's pixel centres at +0.5
 
 
@@ -32,8 +33,15 @@ def points():
 
 @pytest.mark.parametrize(
     "coefficients",
-    [OPENCV, FULL[:8], FULL, np.concatenate([FULL, np.zeros(2)])],
-    ids=["k1-k3 p1 p2", "rational", "rational + thin prism", "14 with the tilt zero"],
+    [
+        OPENCV,
+        FULL[:8],
+        FULL,
+        np.concatenate([FULL, np.zeros(2)]),
+        np.concatenate([FULL, TILT]),
+        np.concatenate([OPENCV, np.zeros(7), TILT]),
+    ],
+    ids=["k1-k3 p1 p2", "rational", "rational + thin prism", "14 with the tilt zero", "14, a tilted sensor", "k1-k3 p1 p2, tilted"],
 )
 def test_radial_tangential_points_match_opencv(points, coefficients):
     lens = LensDistortion.opencv(coefficients, "intri.yml", "dist_01")
@@ -91,6 +99,19 @@ def test_an_image_undistorts_as_opencv_undistorts_it_with_the_full_model():
     np.testing.assert_allclose(ours[2:-2, 2:-2], theirs[2:-2, 2:-2], atol=2e-3)
 
 
+def test_an_image_through_a_tilted_sensor_undistorts_as_opencv_undistorts_it():
+    rng = np.random.default_rng(3)
+    image = cv2.GaussianBlur(rng.random((120, 160, 3)).astype(np.float32), (0, 0), 3)
+    coefficients = np.concatenate([OPENCV, np.zeros(7), TILT])
+    ours = undistort_image(image, K, LensDistortion.opencv(coefficients, "intri.yml", "dist_01"))
+    theirs = cv2.undistort(image, _opencv_k(K), coefficients)
+    held = ours[..., :3].max(axis=-1) > 0  # the tilt brings pixels from outside the source image into view
+    inner = np.zeros_like(held)
+    inner[4:-4, 4:-4] = True
+    np.testing.assert_allclose(ours[held & inner], theirs[held & inner], atol=2e-3)
+    assert (held & inner).mean() > 0.8
+
+
 def test_pixels_past_the_fold_are_left_black_not_mirrored():
     """A strong barrel folds back (r·d(r) stops growing): cv2.undistort fills the pinhole pixels past it with the
     image folded back on itself; here they hold nothing, and the share the source holds is said."""
@@ -115,7 +136,8 @@ def test_pixels_past_the_fold_are_left_black_not_mirrored():
     [
         (lambda: LensDistortion.opencv([0.1, float("nan"), 0, 0, 0], "intri.yml", "dist_01"), ["finite"]),
         (lambda: LensDistortion.opencv([0.1, 0, 0], "intri.yml", "dist_01"), ["4, 5, 8"]),
-        (lambda: LensDistortion.opencv([0.1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0.01, 0], "intri.yml", "dist_01"), ["tilted"]),
+        (lambda: LensDistortion.opencv([0.1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0.9, 0], "intri.yml", "dist_01"), ["tilted", "45°"]),
+        (lambda: LensDistortion.of("fisheye", "t.json", "frames[2]", k1=0.1, tau_x=0.01), ["fisheye", "tilt"]),
         (lambda: LensDistortion.opencv(["0.1", "a", 0, 0], "intri.yml", "dist_01"), ["numbers"]),
         (lambda: LensDistortion.of("fisheye", "t.json", "frames[2]", k1=0.1, p1=0.01), ["fisheye", "only radial"]),
         (lambda: LensDistortion.of("fisheye", "t.json", "frames[2]", k1=0.1, q1=0.01), ["fisheye", "only radial"]),

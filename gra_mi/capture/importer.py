@@ -25,6 +25,7 @@ import numpy as np
 from gra_mi.capture.dataset import Capture
 from gra_mi.capture.import_report import write_report
 from gra_mi.capture.lens import held_fraction
+from gra_mi.capture.mask_fit import check_images_fit_masks
 from gra_mi.capture.olat_drive import apply_solved_drives, plot_solved_drives
 from gra_mi.capture.placement import (
     CameraPlan,
@@ -37,7 +38,7 @@ from gra_mi.capture.placement import (
     resample_image,
     world_frame,
 )
-from gra_mi.capture.reprojection import check_images_fit_masks, frame_mask, reprojection_checks
+from gra_mi.capture.reprojection import frame_mask, reprojection_checks
 from gra_mi.capture.source import ImportConfig, Source
 from gra_mi.capture.source_files import (
     MIN_RELATIVE_GAIN,

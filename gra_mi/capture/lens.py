@@ -8,7 +8,9 @@ cx) / fx, (v − cy) / fy) with gra-mi's pixel centres at (column + ½, row + ½
   d = (1 + k1 r² + k2 r⁴ + k3 r⁶ + k4 r⁸) / (1 + q1 r² + q2 r⁴ + q3 r⁶),
   x_d = x d + 2 p1 x y + p2 (r² + 2 x²) + s1 r² + s2 r⁴, y_d = y d + p1 (r² + 2 y²) + 2 p2 x y + s3 r² + s4 r⁴.
   k4 is nerfstudio's r⁸ term; the divisor's q1…q3 are what OpenCV calls k4…k6 (its rational model) and s1…s4 its
-  thin-prism terms. OpenCV's tilted-sensor terms (τx, τy, the 13th and 14th) are refused unless zero.
+  thin-prism terms. OpenCV's tilted sensor (τx, τy, its 13th and 14th terms, a Scheimpflug camera's) then maps
+  (x_d, y_d) through the projection of a plane turned by τx about x and τy about y, as its
+  ``computeTiltProjectionMatrix`` does.
 - ``fisheye`` (OpenCV's ``cv2.fisheye``, nerfstudio's ``OPENCV_FISHEYE``): θ = atan r,
   θ_d = θ (1 + k1 θ² + k2 θ⁴ + k3 θ⁶ + k4 θ⁸), (x_d, y_d) = (θ_d / r) (x, y).
 
@@ -37,15 +39,16 @@ class LensDistortion:
     p: tuple[float, float] = (0.0, 0.0)  # tangential (radial-tangential only)
     q: tuple[float, float, float] = (0.0, 0.0, 0.0)  # the radial divisor's r², r⁴, r⁶ (OpenCV's rational k4…k6)
     s: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)  # thin prism: x += s1 r² + s2 r⁴, y += s3 r² + s4 r⁴
+    tilt: tuple[float, float] = (0.0, 0.0)  # the sensor's tilt τx, τy in radians (OpenCV's tilted model)
     origin: tuple[str, str] = field(default=("", ""), compare=False)  # (file, field) it was read from: what errors name
 
     @classmethod
     def of(cls, model: str, source, where: str, **terms: float | None) -> LensDistortion | None:
-        """The distortion named by ``terms`` (k1 … k4, p1, p2, q1 … q3, s1 … s4; None or absent: 0), or None where
-        every term is 0. ``source``/``where``: the file and field it is read from, what an error names."""
+        """The distortion named by ``terms`` (k1 … k4, p1, p2, q1 … q3, s1 … s4, tau_x, tau_y; None or absent: 0), or
+        None where every term is 0. ``source``/``where``: the file and field it is read from, what an error names."""
         if model not in MODELS:
             raise ValueError(f"lens model {model!r}: expected one of {MODELS}")  # a reader's mistake, not the user's
-        names = ("k1", "k2", "k3", "k4", "p1", "p2", "q1", "q2", "q3", "s1", "s2", "s3", "s4")
+        names = ("k1", "k2", "k3", "k4", "p1", "p2", "q1", "q2", "q3", "s1", "s2", "s3", "s4", "tau_x", "tau_y")
         if set(terms) - set(names):
             raise ValueError(f"unknown lens terms {sorted(set(terms) - set(names))}")  # a reader's mistake too
         values = {key: float(terms.get(key) or 0.0) for key in names}
@@ -54,13 +57,15 @@ class LensDistortion:
         if model == "fisheye" and any(values[key] for key in names[4:]):
             raise GraMiInputError(
                 source,
-                "the fisheye model has only radial terms (k1 … k4): no tangential (p1, p2), rational or thin-prism ones",
+                "the fisheye model has only radial terms (k1 … k4): no tangential (p1, p2), rational, thin-prism or tilt ones",
                 field=where,
             )
         if not any(values.values()):
             return None
-        k, p, q, s = ([values[key] for key in group] for group in (names[:4], names[4:6], names[6:9], names[9:]))
-        lens = cls(model, tuple(k), tuple(p), tuple(q), tuple(s), (str(source), where))
+        if max(abs(values["tau_x"]), abs(values["tau_y"])) >= math.pi / 4:
+            raise GraMiInputError(source, f"a sensor tilted by {_nonzero(values)} radians (45° or more) is not a camera", field=where)
+        k, p, q, s, tilt = ([values[key] for key in group] for group in (names[:4], names[4:6], names[6:9], names[9:13], names[13:]))
+        lens = cls(model, tuple(k), tuple(p), tuple(q), tuple(s), tuple(tilt), (str(source), where))
         if lens.fold_radius() < 1e-3:
             raise GraMiInputError(source, f"the distortion {values} folds at the image centre: not a lens", field=where)
         return lens
@@ -68,7 +73,7 @@ class LensDistortion:
     @classmethod
     def opencv(cls, coefficients, source, where: str) -> LensDistortion | None:
         """From OpenCV's ``distCoeffs`` order (k1, k2, p1, p2[, k3[, k4, k5, k6[, s1, s2, s3, s4[, τx, τy]]]]): its
-        rational k4…k6 are the divisor's q1…q3 here; the tilted-sensor τx, τy are refused unless zero."""
+        rational k4…k6 are the divisor's q1…q3 here."""
         try:
             values = [float(c) for c in np.asarray(coefficients, float).ravel()]
         except (TypeError, ValueError):
@@ -77,11 +82,7 @@ class LensDistortion:
             raise GraMiInputError(source, f"distortion coefficients must be finite numbers, got {values}", field=where)
         if len(values) not in OPENCV_COUNTS:
             raise GraMiInputError(source, f"expected 4, 5, 8, 12 or 14 OpenCV distortion coefficients, got {len(values)}", field=where)
-        if any(values[12:]):
-            raise GraMiInputError(
-                source, f"OpenCV's tilted-sensor terms (τx, τy = {values[12:]}) are not supported: undistort first", field=where
-            )
-        names = ("k1", "k2", "p1", "p2", "k3", "q1", "q2", "q3", "s1", "s2", "s3", "s4")
+        names = ("k1", "k2", "p1", "p2", "k3", "q1", "q2", "q3", "s1", "s2", "s3", "s4", "tau_x", "tau_y")
         return cls.of("radial-tangential", source, where, **dict(zip(names, values, strict=False)))
 
     def _radial(self, r2: np.ndarray) -> np.ndarray:
@@ -105,7 +106,15 @@ class LensDistortion:
         s1, s2, s3, s4 = self.s
         x_d = x * d + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) + r2 * (s1 + r2 * s2)
         y_d = y * d + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y + r2 * (s3 + r2 * s4)
-        return np.stack([x_d, y_d], axis=-1)
+        return self._tilted(np.stack([x_d, y_d], axis=-1))
+
+    def _tilted(self, xy_d: np.ndarray) -> np.ndarray:
+        """Where a tilted sensor (:func:`tilt_matrix`) sees the distorted points (…, 2)."""
+        if not any(self.tilt):
+            return xy_d
+        m = tilt_matrix(*self.tilt)
+        mapped = xy_d @ m[:, :2].T + m[:, 2]
+        return mapped[..., :2] / mapped[..., 2:]
 
     def undistort(self, xy_d: np.ndarray, iterations: int = 40) -> np.ndarray:
         """The inverse of :meth:`distort` (Newton's method with a numerical Jacobian, each point until it is within
@@ -145,11 +154,24 @@ class LensDistortion:
     def reach(self) -> float:
         """The farthest (normalized, radial) a point can be imaged before the distortion folds back (inf: no fold)."""
         fold = self.fold_radius()
-        return math.inf if math.isinf(fold) else fold * float(self._radial(np.array(fold * fold)))
+        if math.isinf(fold):
+            return math.inf
+        angle = np.linspace(0.0, 2 * math.pi, 721)
+        circle = fold * float(self._radial(np.array(fold * fold))) * np.stack([np.cos(angle), np.sin(angle)], axis=-1)
+        return float(np.hypot(*self._tilted(circle).T).max())
 
     def describe(self) -> str:
-        groups = (("k", self.k), ("p", self.p), ("q", self.q), ("s", self.s))
+        groups = (("k", self.k), ("p", self.p), ("q", self.q), ("s", self.s), ("tau", self.tilt))
         return f"{self.model} ({', '.join(f'{name}{i + 1}={v:g}' for name, values in groups for i, v in enumerate(values) if v)})"
+
+
+def tilt_matrix(tau_x: float, tau_y: float) -> np.ndarray:
+    """OpenCV's tilted-sensor projection (its ``computeTiltProjectionMatrix``): the sensor plane turned by τx about x,
+    then τy about y, and projected back along the optical axis onto the plane z = 1."""
+    cx, sx, cy, sy = math.cos(tau_x), math.sin(tau_x), math.cos(tau_y), math.sin(tau_y)
+    turn = np.array([[cy, 0, -sy], [0, 1, 0], [sy, 0, cy]]) @ np.array([[1, 0, 0], [0, cx, sx], [0, -sx, cx]])
+    project = np.array([[turn[2, 2], 0, -turn[0, 2]], [0, turn[2, 2], -turn[1, 2]], [0, 0, 1]])
+    return project @ turn
 
 
 def _nonzero(values: dict[str, float]) -> dict[str, float]:

@@ -187,39 +187,6 @@ def _check_mask(source: Source, plan: CameraPlan, mask: np.ndarray) -> None:
         )
 
 
-MASKED_BACKGROUND = 0.2  # an image with this share of pixels at exactly 0 was masked (black background)
-OUTSIDE_MASK = 0.25  # a masked image with this share of its light outside its mask file does not go with it
-MASK_EDGE = 2  # pixels the mask file is grown by first: an edge pixel the subject partly covers is lit on either side
-
-
-def check_images_fit_masks(source: Source, plans: list[CameraPlan], key: int) -> None:
-    """A mask file is checked against the mesh, not against the pixels: a camera whose masked (black-background) image
-    of frame ``key`` puts much of its light (its alpha, for an image with one) outside its mask file, grown by
-    :data:`MASK_EDGE` pixels, has images that do not go with it (turned, another camera's, another frame's). Light, not
-    lit pixels: an OLAT that grazes the subject lights little more than its anti-aliased edge. Cameras whose mask comes
-    from their pixels, or whose images keep a background, are not checked."""
-    from scipy.ndimage import binary_dilation
-
-    for plan in plans:
-        own = source.frame_masks[plan.index].get(key) if source.frame_masks else None
-        mask_file = own or source.masks[plan.index]
-        if mask_file is None:
-            continue
-        path = source.images[plan.index][key]
-        rgb, _, alpha = read_image(path)
-        lit = (rgb.max(axis=-1) > 0) if alpha is None else alpha > 0.5
-        if alpha is None and 1.0 - lit.mean() < MASKED_BACKGROUND:
-            continue
-        mask = binary_dilation(read_mask(mask_file), iterations=MASK_EDGE)
-        light = rgb.sum(axis=-1) if alpha is None else alpha
-        outside = float(light[~mask].sum() / max(light.sum(), 1e-30)) if mask.shape == lit.shape else 1.0
-        if outside > OUTSIDE_MASK:
-            raise GraMiInputError(
-                path, f"camera {plan.camera.name}: {100 * outside:.0f} % of the subject this image shows lies outside its mask "
-                f"{mask_file}: the image does not go with it (turned, or another camera's)" + orientation_hint(path),
-            )  # fmt: skip
-
-
 def _check_upright(source: Source, frame: WorldFrame, sequence, pose: int) -> None:
     """A subject whose height is well below its width along the chosen up axis would import lying on its side."""
     v = np.asarray(sequence.vertices[pose], float)

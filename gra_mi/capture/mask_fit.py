@@ -1,0 +1,103 @@
+"""The check that an image goes with its mask file. The mask files are checked against the mesh (reprojection.py), but
+not the pixels against the masks: images turned, another camera's or another frame's would import under correct
+masks and spoil the fit unsaid. A masked (black-background) image is checked by where its light lies; an image that
+keeps its background, by where its edges lie: a subject's outline is an edge in its photograph, so the image's
+edges line up with its own mask's outline better than with any other mask's."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from gra_mi.capture.placement import CameraPlan
+from gra_mi.capture.source import Source
+from gra_mi.capture.source_files import orientation_hint, read_image, read_mask
+from gra_mi.core.errors import GraMiInputError
+
+MASKED_BACKGROUND = 0.2  # an image with this share of pixels at exactly 0 was masked (black background)
+OUTSIDE_MASK = 0.25  # a masked image with this share of its light outside its mask file does not go with it
+MASK_EDGE = 2  # pixels the mask file is grown by first: an edge pixel the subject partly covers is lit on either side
+BETTER_OUTLINE = 1.5  # another mask's outline this much better on an image's edges than its own: not its image
+CLEAR_OUTLINE = 1.5  # ... and at least this much above the image's mean edge strength (an outline, not noise)
+TURNED = "its mask turned 180° (the image turned?)"
+
+
+def check_images_fit_masks(source: Source, plans: list[CameraPlan], key: int) -> None:
+    """Every camera's image of frame ``key`` against its mask file: a masked image by its light outside the mask
+    (:func:`_light_outside`), an image with a background by its edges (:func:`_check_outlines`). Cameras whose mask
+    comes from their pixels are not checked."""
+    with_background = {}
+    for plan in plans:
+        own = source.frame_masks[plan.index].get(key) if source.frame_masks else None
+        mask_file = own or source.masks[plan.index]
+        if mask_file is None:
+            continue
+        path = source.images[plan.index][key]
+        rgb, _, alpha = read_image(path)
+        mask = read_mask(mask_file)
+        if alpha is None and (rgb.max(axis=-1) == 0).mean() < MASKED_BACKGROUND:
+            if mask.shape == rgb.shape[:2]:
+                with_background[plan.camera.name] = (path, edge_strength(rgb), mask)
+            continue
+        outside = _light_outside(rgb, alpha, mask)
+        if outside > OUTSIDE_MASK:
+            raise GraMiInputError(
+                path, f"camera {plan.camera.name}: {100 * outside:.0f} % of the subject this image shows lies outside its mask "
+                f"{mask_file}: the image does not go with it (turned, or another camera's)" + orientation_hint(path),
+            )  # fmt: skip
+    _check_outlines(with_background)
+
+
+def _light_outside(rgb: np.ndarray, alpha: np.ndarray | None, mask: np.ndarray) -> float:
+    """The share of a masked image's light (its alpha, for an image with one) outside its mask, grown by
+    :data:`MASK_EDGE` pixels. Light, not lit pixels: an OLAT that grazes the subject lights little more than its
+    anti-aliased edge."""
+    from scipy.ndimage import binary_dilation
+
+    if mask.shape != rgb.shape[:2]:
+        return 1.0
+    grown = binary_dilation(mask, iterations=MASK_EDGE)
+    light = rgb.sum(axis=-1) if alpha is None else alpha
+    return float(light[~grown].sum() / max(light.sum(), 1e-30))
+
+
+def edge_strength(rgb: np.ndarray) -> np.ndarray:
+    """|∇| of the image's luminance as a display shows it (sRGB-encoded at its 99th percentile): contrast as seen,
+    not ruled by the brightest light."""
+    from scipy.ndimage import sobel
+
+    from gra_mi.core.color import srgb_encode
+
+    luminance = rgb.mean(axis=-1, dtype=np.float32)
+    top = float(np.partition(luminance.ravel(), int(0.99 * (luminance.size - 1)))[int(0.99 * (luminance.size - 1))])
+    shown = srgb_encode(np.clip(luminance / max(top, 1e-12), 0.0, 1.0)).astype(np.float32)
+    return np.hypot(sobel(shown, axis=0), sobel(shown, axis=1))
+
+
+def outline(mask: np.ndarray) -> np.ndarray:
+    """A mask's outline: the pixels one step inside or outside its edge."""
+    from scipy.ndimage import binary_dilation, binary_erosion
+
+    return binary_dilation(mask, iterations=1) & ~binary_erosion(mask, iterations=1)
+
+
+def outline_fit(edges: np.ndarray, line: np.ndarray) -> float:
+    """How much stronger an image's edges are along an outline than over the whole image (1: unrelated)."""
+    return float(edges[line].mean() / max(float(edges.mean()), 1e-12)) if line.any() else 0.0
+
+
+def _check_outlines(images: dict[str, tuple]) -> None:
+    """Each image with a background against its own mask, the mask turned 180°, and every other camera's mask of its
+    size: one that fits clearly better (:data:`BETTER_OUTLINE`) than its own says the image is not its camera's."""
+    lines = {name: outline(mask) for name, (_, _, mask) in images.items()}
+    for name, (path, edges, _) in images.items():
+        own = outline_fit(edges, lines[name])
+        others = {TURNED: np.rot90(lines[name], 2)}
+        others |= {f"camera {other}'s mask (the image {other}'s?)": line for other, line in lines.items() if other != name}
+        fits = {what: outline_fit(edges, line) for what, line in others.items() if line.shape == edges.shape}
+        what, best = max(fits.items(), key=lambda item: item[1])
+        if best > BETTER_OUTLINE * own and best > CLEAR_OUTLINE:
+            raise GraMiInputError(
+                path, f"camera {name}: this image's edges follow {what} (outline {best:.1f}× the image's mean edge) "
+                f"better than its own mask's (outline {own:.1f}×): the image does not go with its mask"
+                + (orientation_hint(path) if what == TURNED else ""),
+            )  # fmt: skip
