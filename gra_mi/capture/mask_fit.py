@@ -23,28 +23,29 @@ TURNED = "its mask turned 180° (the image turned?)"
 
 def check_images_fit_masks(source: Source, plans: list[CameraPlan], key: int) -> None:
     """Every camera's image of frame ``key`` against its mask file: a masked image by its light outside the mask
-    (:func:`_light_outside`), an image with a background by its edges (:func:`_check_outlines`). Cameras whose mask
+    (:func:`_light_outside`), an image with a background by its edges (:func:`_check_outline`). Cameras whose mask
     comes from their pixels are not checked."""
-    with_background = {}
+    mask_files = {}
     for plan in plans:
         own = source.frame_masks[plan.index].get(key) if source.frame_masks else None
-        mask_file = own or source.masks[plan.index]
-        if mask_file is None:
-            continue
+        if (own or source.masks[plan.index]) is not None:
+            mask_files[plan.camera.name] = own or source.masks[plan.index]
+    masks = {name: read_mask(path) for name, path in mask_files.items()}
+    outlines = {name: (mask.shape, np.flatnonzero(outline(mask))) for name, mask in masks.items()}  # a few kB each
+    for plan in (p for p in plans if p.camera.name in masks):
         path = source.images[plan.index][key]
         rgb, _, alpha = read_image(path)
-        mask = read_mask(mask_file)
+        mask = masks[plan.camera.name]
         if alpha is None and (rgb.max(axis=-1) == 0).mean() < MASKED_BACKGROUND:
             if mask.shape == rgb.shape[:2]:
-                with_background[plan.camera.name] = (path, edge_strength(rgb), mask)
+                _check_outline(plan.camera.name, path, edge_strength(rgb), outlines)
             continue
         outside = _light_outside(rgb, alpha, mask)
         if outside > OUTSIDE_MASK:
             raise GraMiInputError(
                 path, f"camera {plan.camera.name}: {100 * outside:.0f} % of the subject this image shows lies outside its mask "
-                f"{mask_file}: the image does not go with it (turned, or another camera's)" + orientation_hint(path),
+                f"{mask_files[plan.camera.name]}: the image does not go with it (turned, or another camera's)" + orientation_hint(path),
             )  # fmt: skip
-    _check_outlines(with_background)
 
 
 def _light_outside(rgb: np.ndarray, alpha: np.ndarray | None, mask: np.ndarray) -> float:
@@ -81,23 +82,25 @@ def outline(mask: np.ndarray) -> np.ndarray:
 
 
 def outline_fit(edges: np.ndarray, line: np.ndarray) -> float:
-    """How much stronger an image's edges are along an outline than over the whole image (1: unrelated)."""
-    return float(edges[line].mean() / max(float(edges.mean()), 1e-12)) if line.any() else 0.0
+    """How much stronger an image's edges are along an outline (its flat pixel indices) than over the whole image (1:
+    unrelated)."""
+    return float(edges.ravel()[line].mean() / max(float(edges.mean()), 1e-12)) if line.size else 0.0
 
 
-def _check_outlines(images: dict[str, tuple]) -> None:
-    """Each image with a background against its own mask, the mask turned 180°, and every other camera's mask of its
-    size: one that fits clearly better (:data:`BETTER_OUTLINE`) than its own says the image is not its camera's."""
-    lines = {name: outline(mask) for name, (_, _, mask) in images.items()}
-    for name, (path, edges, _) in images.items():
-        own = outline_fit(edges, lines[name])
-        others = {TURNED: np.rot90(lines[name], 2)}
-        others |= {f"camera {other}'s mask (the image {other}'s?)": line for other, line in lines.items() if other != name}
-        fits = {what: outline_fit(edges, line) for what, line in others.items() if line.shape == edges.shape}
-        what, best = max(fits.items(), key=lambda item: item[1])
-        if best > BETTER_OUTLINE * own and best > CLEAR_OUTLINE:
-            raise GraMiInputError(
-                path, f"camera {name}: this image's edges follow {what} (outline {best:.1f}× the image's mean edge) "
-                f"better than its own mask's (outline {own:.1f}×): the image does not go with its mask"
-                + (orientation_hint(path) if what == TURNED else ""),
-            )  # fmt: skip
+def _check_outline(name: str, path, edges: np.ndarray, outlines: dict[str, tuple]) -> None:
+    """An image with a background against its own mask's outline, that outline turned 180° and every other camera's
+    of its size: one that fits clearly better (:data:`BETTER_OUTLINE`) than its own says the image is not its camera's."""
+    own = outline_fit(edges, outlines[name][1])
+    others = {TURNED: edges.size - 1 - outlines[name][1]}  # a flat index i, turned 180°, is size − 1 − i
+    others |= {
+        f"camera {other}'s mask (the image {other}'s?)": line
+        for other, (shape, line) in outlines.items()
+        if other != name and shape == edges.shape
+    }
+    what, best = max(((what, outline_fit(edges, line)) for what, line in others.items()), key=lambda item: item[1])
+    if best > BETTER_OUTLINE * own and best > CLEAR_OUTLINE:
+        raise GraMiInputError(
+            path, f"camera {name}: this image's edges follow {what} (outline {best:.1f}× the image's mean edge) "
+            f"better than its own mask's (outline {own:.1f}×): the image does not go with its mask"
+            + (orientation_hint(path) if what == TURNED else ""),
+        )  # fmt: skip
