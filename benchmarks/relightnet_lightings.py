@@ -27,7 +27,7 @@ GROUPS = ("held-out envmaps", "held-out OLATs", "library maps (Σ OLAT truth)")
 def group_of(name: str, about: dict) -> str:
     if name.startswith("field_"):
         return "library maps (Σ OLAT truth)"
-    return "held-out OLATs" if about["lighting"] == "LED pattern" else "held-out envmaps"
+    return "held-out OLATs" if about["lighting"] == "OLATs" else "held-out envmaps"
 
 
 def train_and_score(capture: Path, fit: Path, work: Path, count: int, steps: int, seed: int, library: int) -> dict:

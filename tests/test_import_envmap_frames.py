@@ -84,6 +84,8 @@ def test_envmap_and_gradient_frames_are_lit_by_the_drive_their_olats_give(olat_c
     assert {r["what"] for r in report} == {"an environment-map frame", "a gradient frame"}
     assert set(report[0]["cameras"]) == set(capture.train_cameras)
     assert "| 000001 | " in (env_imported / "import_report.md").read_text()
+    said = {f.sequence: f.lighting_name for f in capture.frames if f.split == "test"}
+    assert said[1] == "OLATs" and said[2].startswith("environment-map frames") and said[3].startswith("gradient frames")
 
 
 def test_the_door_leds_light_is_taken_off_the_frames(olat_capture, env_imported, tmp_path, monkeypatch):  # noqa: F811

@@ -211,7 +211,7 @@ def test_eval_scores_held_out_olats_and_maps_whose_truth_is_the_olat_sum(olat_ca
     cam = capture.eval_cameras[0]
     assert splits[f"field_{cam}"]["lighting"] == "my_sky, library_000, library_001"
     assert splits[f"field_{cam}"]["truth"].startswith("Σ OLAT") and splits[f"field_{cam}"]["scored"] == [0, 1, 2]
-    olats = next(s for s in splits.values() if s["lighting"] == "LED pattern")
+    olats = next(s for s in splits.values() if s["lighting"] == "OLATs")
     assert olats["scored"] == list(range(olats["frames"])) and olats["truth"] == "the capture's images"
     scores = report["stages"]["microfacet"]["splits"][f"field_{cam}"]
     assert 15 < scores["psnr"] < 60 and scores["frames_scored"] == 3
@@ -248,7 +248,7 @@ def test_the_olat_demo_runs_end_to_end_shrunk(tmp_path, monkeypatch):
     record = json.loads((tmp_path / "demo" / "demo.json").read_text())
     splits = record["eval"]["protocol"]["splits"]
     assert {s for s in splits if s.startswith("field_")} == {f"field_{c}" for c in record["capture"]["eval_cameras"]}
-    assert any(a["lighting"] == "LED pattern" for a in splits.values())  # the held-out OLATs
+    assert any(a["lighting"] == "OLATs" for a in splits.values())  # the held-out OLATs
     assert record["eval"]["stages"]["RelightNet"]["status"] == "done"
     assert "novel lighting (envmap, truth from OLATs)" in "".join(record["relightnet"]["splits"])
     text = report.read_text()

@@ -20,6 +20,14 @@ CAPTURE_FORMAT = "gra-mi-capture/1"
 UNIFORM_FRACTION = 0.5  # the tracking frames: every LED at half the stage maximum
 
 
+PATTERN_NAMES = {
+    "olat": "OLATs",
+    "white": "every LED",
+    "envmap": "environment-map frames (drive solved from the OLATs)",
+    "gradient": "gradient frames (drive solved from the OLATs)",
+}
+
+
 @dataclass
 class FrameLighting:
     frame: int
@@ -35,6 +43,15 @@ class FrameLighting:
     def mesh_frame(self) -> int:
         """The frame of the subject's sequence this image shows (geometry, visibility): ``pose``, or ``frame``."""
         return self.frame if self.pose is None else self.pose
+
+    @property
+    def lighting_name(self) -> str:
+        """What lit the frame, in words: its envmap's name, the kind of its LED pattern (by the file names gra-mi
+        writes: OLATs, solved environment-map and gradient frames), or "uniform"."""
+        if self.kind != "pattern":
+            return Path(self.envmap).stem if self.envmap else "uniform"
+        kind = Path(self.pattern or "").stem.rstrip("0123456789_")
+        return PATTERN_NAMES.get(kind, f"LED pattern ({kind})" if kind else "LED pattern")
 
 
 @dataclass

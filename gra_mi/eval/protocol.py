@@ -583,9 +583,8 @@ def _fvd(i3d, results: dict[str, StageResult], videos: dict) -> None:
 
 
 def _lighting_said(capture, split: Split) -> str:
-    """The held-out lighting of a split in words: its envmaps' names, or 'LED pattern'."""
+    """The held-out lighting of a split in words: its envmaps' names, or its LED patterns' kind."""
     if split.lights:
         return ", ".join(light.name for light in split.lights.values())
     entries = {f.frame: f for f in capture.frames}
-    names = dict.fromkeys(Path(entries[f].envmap).stem if entries[f].envmap else "LED pattern" for f in split.capture_frames)
-    return ", ".join(names)
+    return ", ".join(dict.fromkeys(entries[f].lighting_name for f in split.capture_frames))
