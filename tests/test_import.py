@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import shutil
 from pathlib import Path
 
@@ -232,6 +233,36 @@ def test_the_evaluation_scores_a_held_out_camera_on_the_images_it_has(imported, 
     with pytest.raises(GraMiInputError, match="no held-out camera has an image of the held-out lighting"):
         evaluate(EvalInputs(gapped, tmp_path / "fit"), tmp_path / "eval_none", EvalConfig())
     assert not (tmp_path / "eval_none" / "eval.json").exists()
+
+
+def test_synthesized_lightings_leave_out_a_camera_that_lost_an_olat(imported, tmp_path, caplog, capsys):
+    """RelightNet's synthesized lightings take their targets from each camera's reflectance field, the sum of every
+    OLAT: a training camera that lost one is left out of them, said (before, it stopped the training); with no whole
+    training camera left the run is refused naming why."""
+    from gra_mi.capture.dataset import Capture
+    from gra_mi.fit.materials import FitConfig, run_fit
+
+    capture = Capture.load(imported)
+    olat = next(f.frame for f in capture.frames if f.split == "train" and f.pattern and "olat_" in f.pattern)
+    gapped = tmp_path / "gapped"
+    shutil.copytree(imported, gapped)
+
+    def lose(cameras: list[str]) -> None:
+        data = json.loads((gapped / "capture.json").read_text())
+        for entry in data["frames"]:
+            entry["missing"] = cameras if entry["frame"] == olat else []
+        (gapped / "capture.json").write_text(json.dumps(data))
+
+    lose(["Cam01"])
+    (gapped / capture.image_path("Cam01", olat).relative_to(imported)).unlink()
+    run_fit(gapped, tmp_path / "fit", FitConfig(solver="closed-form", roughness_candidates=3))
+    args = ["train-relightnet", str(gapped), "--fit", str(tmp_path / "fit"), "--steps", "2", "--validate-every", "1"]
+    args += ["--base-channels", "4", "--patch", "2", "--synthesized-lightings", "2", "--synthesized-validation", "1"]
+    with caplog.at_level(logging.WARNING):
+        assert main([*args, "--out", str(tmp_path / "rn")]) == 0
+    assert any("camera Cam01 has no image of 1 OLAT" in r.message for r in caplog.records)
+    lose(list(capture.train_cameras))  # the held-out cameras keep it
+    _one_line_error(capsys, [*args, "--out", str(tmp_path / "rn_none")], "no training camera has an image of every OLAT")
 
 
 @pytest.mark.parametrize(

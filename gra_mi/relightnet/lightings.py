@@ -102,13 +102,37 @@ def synthesized_views(capture, relighter, config, device: str, cache: Path | Non
     index = OlatIndex.of(capture, stage, splits=("train",))
     train = synthesized_drives(stage, "train", config.synthesized_lightings, index, cache and cache / "synthesized_train.npz", SEED_OFFSET)
     val = synthesized_drives(stage, "test", config.synthesized_validation, index, cache and cache / "synthesized_val.npz", SEED_OFFSET)
-    cameras = capture.train_cameras + capture.eval_cameras
+    cameras = _cameras_with_every_olat(capture, index)
     views = SynthesizedViews.build(capture, relighter, train, index, cameras, config.env_height, device, "train")
-    views.cameras = capture.train_cameras
+    views.cameras = [c for c in capture.train_cameras if c in cameras]
     held = SynthesizedViews(capture, relighter, val, index, views.fields, views.grids, config.env_height, device, SYNTHESIZED_SPLIT)
-    validation = [held.view(k, c) for k, c in progress(held.keys(capture.eval_cameras), description="synthesized validation")]
+    shown = [c for c in capture.eval_cameras if c in cameras]
+    validation = [held.view(k, c) for k, c in progress(held.keys(shown), description="synthesized validation")] if shown else []
     logger.info("synthesized lightings: %d training, %d validation maps, from %d OLATs", len(train), len(val), len(index.frames))
     return views, validation
+
+
+def _cameras_with_every_olat(capture, index: OlatIndex) -> list[str]:
+    """The cameras whose reflectance field is whole (a sum of every OLAT needs every OLAT image): a camera a real
+    capture's gap left without one is left out of the synthesized lightings, said; none left is refused."""
+    from gra_mi.core.errors import GraMiInputError
+
+    olats, whole = [int(f) for f in index.frames], []
+    for camera in capture.train_cameras + capture.eval_cameras:
+        if missing := capture.frames_with_images(camera, olats)[1]:
+            logger.warning(
+                "synthesized lightings: camera %s has no image of %d OLAT(s) (frame %d, …): its views are left out",
+                camera,
+                len(missing),
+                missing[0],
+            )
+        else:
+            whole.append(camera)
+    if not any(c in whole for c in capture.train_cameras):
+        raise GraMiInputError(
+            capture.folder / "capture.json", "no training camera has an image of every OLAT: synthesized lightings need one", field="frames"
+        )
+    return whole
 
 
 class TrainingViews:
