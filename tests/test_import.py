@@ -569,7 +569,8 @@ def _with_background(subject: Path, folder: Path) -> Path:
 def test_an_image_that_keeps_its_background_is_held_against_its_mask(olat_capture, tmp_path, capsys):
     """Photographs with their background (no black around the subject) were never checked against their mask files:
     their edges are. An image whose edges follow another camera's mask, or its own mask turned 180°, clearly better
-    than its own stops the import naming both; the untouched photographs import."""
+    than its own stops the import naming both; the untouched photographs import. Without mask files, the error says
+    where this source's masks go."""
     from gra_mi.capture.humanolat import camera_name, images_of, write_avif
     from gra_mi.capture.mask_fit import BETTER_OUTLINE, edge_strength, outline, outline_fit
     from gra_mi.capture.source_files import read_image, read_mask
@@ -599,6 +600,10 @@ def test_an_image_that_keeps_its_background_is_held_against_its_mask(olat_captur
         write_avif(path, np.rot90(read_image(path)[0], 2))
     _one_line_error(capsys, [*args, "--out", str(tmp_path / "turned")], "camera Cam03", "turned 180°", "does not go with its mask")
     assert not (tmp_path / "swapped").exists() and not (tmp_path / "turned").exists()
+    folder = photos / "json_no_masks"  # the same photographs through a transforms.json without mask_path
+    write_transforms_as_humanolat_tools_do(photos, folder)
+    args = ["import", "transforms", str(folder), "--mesh", str(photos / "POSE_00" / "model" / "model.obj"), "--mesh-units", "mm"]
+    _one_line_error(capsys, [*args, "--out", str(tmp_path / "no_masks")], "covers the whole image", "keep their background", "mask_path")
 
 
 def _olat_ratio_spread(native, out: Path) -> float:

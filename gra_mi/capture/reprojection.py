@@ -23,6 +23,11 @@ MISTAKES = {
     "a calibration in metres read as millimetres": "metres",
     "a calibration in millimetres read as metres": "millimetres",
 }
+MASK_SOURCES = {  # where each source's masks go, for a capture whose images keep their background
+    "humanolat": "POSE_<nn>/segmentations/masks/000/Cam<NN>.png",
+    "transforms": "each frame's mask_path in the JSON",
+    "easymocap": "mask/<cam>/<frame>.png",
+}
 OUTLIER_IOU = 0.1  # a camera this far below the others' median IoU is wrong even above the threshold
 MIN_CHECK_PIXELS = 16  # images smaller than this on a side cannot be compared with the mesh
 
@@ -182,9 +187,11 @@ def _check_mask(source: Source, plan: CameraPlan, mask: np.ndarray) -> None:
     if covered < 1e-3:
         raise GraMiInputError(where, f"camera {plan.camera.name}: the subject's mask is empty (it must show the subject)")
     if covered > 0.99:
+        from_pixels = source.masks[plan.index] is None and not (source.frame_masks and source.frame_masks[plan.index])
         raise GraMiInputError(
             where, f"camera {plan.camera.name}: the subject's mask covers the whole image (it must show the subject alone)"
-        )
+            + (f"; no mask file was given and its images keep their background: give masks ({MASK_SOURCES[source.format]})" if from_pixels else ""),
+        )  # fmt: skip
 
 
 def _check_upright(source: Source, frame: WorldFrame, sequence, pose: int) -> None:
