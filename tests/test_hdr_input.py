@@ -229,3 +229,21 @@ def test_bad_envmap_options_name_the_flag(tmp_path, capsys, option, message):
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1, err
     assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    ("name", "message"), [("maps", "a folder: expected an HDR image file"), ("sky.png", "of type '.png': expected an HDR")]
+)
+def test_an_envmap_that_is_no_hdr_file_is_named(tmp_path, capsys, name, message):
+    """A folder, or an image of another kind, given as the environment map: what it is and what was expected."""
+    path = tmp_path / "in" / name
+    path.parent.mkdir(parents=True)
+    if path.suffix:
+        path.write_bytes(b"\x89PNG")
+    else:
+        path.mkdir()
+    out = tmp_path / "out"
+    assert main(["relight", "scene.xml", "--envmap", str(path), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and str(path) in err and message in err, err
+    assert not out.exists()

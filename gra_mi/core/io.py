@@ -290,7 +290,8 @@ def read_hdr_image(path: str | Path) -> np.ndarray:
         return read_exr(path)
     if path.suffix.lower() in (".hdr", ".pic"):
         return read_rgbe(path)
-    raise GraMiInputError(path, f"unsupported HDR image type '{path.suffix}', expected one of {', '.join(HDR_SUFFIXES)}")
+    what = "a folder" if path.is_dir() else f"of type '{path.suffix}'"
+    raise GraMiInputError(path, f"{what}: expected an HDR image file ({', '.join(HDR_SUFFIXES)})")
 
 
 # --------------------------------------------------------------------------------------------------------------
