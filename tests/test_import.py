@@ -235,10 +235,10 @@ def test_the_evaluation_scores_a_held_out_camera_on_the_images_it_has(imported, 
     assert not (tmp_path / "eval_none" / "eval.json").exists()
 
 
-def test_synthesized_lightings_leave_out_a_camera_that_lost_an_olat(imported, tmp_path, caplog, capsys):
-    """RelightNet's synthesized lightings take their targets from each camera's reflectance field, the sum of every
-    OLAT: a training camera that lost one is left out of them, said (before, it stopped the training); with no whole
-    training camera left the run is refused naming why."""
+def test_reflectance_fields_leave_out_a_camera_that_lost_an_olat(imported, tmp_path, caplog, capsys):
+    """A camera's reflectance field is the sum of every OLAT: RelightNet's synthesized lightings leave out a training
+    camera that lost one, said (before, it stopped the training), and so does `relight-field` over every camera, while
+    naming that camera refuses it; with no whole training camera left the training is refused naming why."""
     from gra_mi.capture.dataset import Capture
     from gra_mi.fit.materials import FitConfig, run_fit
 
@@ -261,6 +261,11 @@ def test_synthesized_lightings_leave_out_a_camera_that_lost_an_olat(imported, tm
     with caplog.at_level(logging.WARNING):
         assert main([*args, "--out", str(tmp_path / "rn")]) == 0
     assert any("camera Cam01 has no image of 1 OLAT" in r.message for r in caplog.records)
+    args_field = ["relight-field", str(gapped), "--olat", "3"]
+    assert main([*args_field, "--out", str(tmp_path / "rf")]) == 0  # every camera: the one that lost an OLAT left out
+    summary = json.loads((tmp_path / "rf" / "summary.json").read_text())
+    assert "Cam01" in summary["skipped"] and "Cam01" not in summary["cameras"] and len(summary["cameras"]) == 7
+    _one_line_error(capsys, [*args_field, "--cameras", "Cam01", "--out", str(tmp_path / "rf1")], "camera Cam01 has no image of frame")
     lose(list(capture.train_cameras))  # the held-out cameras keep it
     _one_line_error(capsys, [*args, "--out", str(tmp_path / "rn_none")], "no training camera has an image of every OLAT")
 

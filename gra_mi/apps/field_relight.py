@@ -16,7 +16,7 @@ import numpy as np
 from gra_mi.capture.dataset import Capture
 from gra_mi.capture.reflectance import OlatIndex, ReflectanceField, static_pose
 from gra_mi.core.config import option
-from gra_mi.core.errors import GraMiParameterError
+from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.io import atomic_write_text, write_exr, write_png
 from gra_mi.core.progress import progress
 from gra_mi.stage.lightstage import load_calibration
@@ -39,15 +39,28 @@ class FieldRelightConfig:
             raise GraMiParameterError("batch", f"must be >= 1, got {self.batch}")
 
 
-def relight_from_field(capture: Capture, out: Path, lights: dict, cameras: list[str], config: FieldRelightConfig) -> dict:
+def relight_from_field(
+    capture: Capture, out: Path, lights: dict, cameras: list[str], config: FieldRelightConfig, skip_incomplete: bool = False
+) -> dict:
     """``out/<light>/<camera>.exr`` (linear RGBA, alpha = the subject's mask) and a PNG preview for every light
-    (name → LED intensities (L, 3)) and camera; ``out/summary.json`` with what was held and what it cost."""
+    (name → LED intensities (L, 3)) and camera; ``out/summary.json`` with what was held and what it cost.
+    ``skip_incomplete``: leave out (and name in the summary) a camera a real capture's gap left without an OLAT image;
+    else such a camera is refused (the sum needs every OLAT)."""
     stage = load_calibration(capture.folder / "rig" / "calibration.json")
     static_pose(capture)
     index = OlatIndex.of(capture, stage)
     weights = {name: index.weights(intensities, name) for name, intensities in lights.items()}  # every drive checked first
     names = list(weights)
-    summary = {"capture": str(capture.folder), "olats": len(index.frames), "lightings": names, "cameras": {}}
+    summary = {"capture": str(capture.folder), "olats": len(index.frames), "lightings": names, "cameras": {}, "skipped": {}}
+    if skip_incomplete:
+        for camera in cameras:
+            if missing := capture.frames_with_images(camera, [int(f) for f in index.frames])[1]:
+                summary["skipped"][camera] = f"no image of {len(missing)} OLAT(s), frame {missing[0]} first: its sum needs every one"
+        cameras = [c for c in cameras if c not in summary["skipped"]]
+        if not cameras:
+            raise GraMiInputError(
+                capture.folder / "capture.json", "no camera has an image of every OLAT: nothing to relight", field="frames"
+            )
     for camera in cameras:
         start = time.perf_counter()
         rf = ReflectanceField.load(capture, camera, index, config.memory_gb)

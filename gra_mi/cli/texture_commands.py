@@ -244,7 +244,8 @@ class RelightFieldCommand(CommandConfig):
     capture: Path = field(metadata=option(positional=True))
     """Capture folder with OLAT frames (a pattern lighting one LED): `gra-mi capture --preset olat` or an import."""
     cameras: str = "all"
-    """Cameras: 'all' or a comma list of names or indices (the capture's training cameras, then its held-out ones)."""
+    """Cameras: 'all' (every camera with an image of every OLAT; the others are named and left out) or a comma list of
+    names or indices (the capture's training cameras, then its held-out ones; one that lacks an OLAT is refused)."""
     envmap: list[Path] = field(default_factory=list, metadata=option(repeat=True))
     """Lat-long HDR map (OpenEXR or Radiance .hdr) mapped onto the LEDs (repeatable)."""
     olat: list[int] = field(default_factory=list, metadata=option(repeat=True))
@@ -272,9 +273,13 @@ def run_relight_field(c: RelightFieldCommand) -> None:
     if unknown := [x for x in cameras if x not in names]:
         raise GraMiParameterError("cameras", f"{', '.join(unknown)}: not cameras of {capture.folder} ({', '.join(names)})")
     lights = {name: light.intensities for name, light in lights.items()}
-    summary = relight_from_field(capture, c.out, lights, cameras, c.field_relight)
+    summary = relight_from_field(capture, c.out, lights, cameras, c.field_relight, skip_incomplete=c.cameras == "all")
     cost = ", ".join(f"{cam} {s['ms_per_lighting']:.1f} ms ({s['held']})" for cam, s in summary["cameras"].items())
-    print(f"wrote {len(lights)} lightings x {len(cameras)} cameras from {summary['olats']} OLATs to {c.out}; per lighting: {cost}")
+    print(
+        f"wrote {len(lights)} lightings x {len(summary['cameras'])} cameras from {summary['olats']} OLATs to {c.out}; per lighting: {cost}"
+    )
+    for cam, why in summary["skipped"].items():
+        print(f"left out camera {cam}: {why}")
 
 
 @dataclass(kw_only=True)
