@@ -106,6 +106,24 @@ def test_imported_images_match_the_native_ones_within_8_bit(olat_capture, import
         assert error < 0.02, (cam, error)
 
 
+def test_the_report_says_how_many_levels_an_olat_spans(olat_capture, imported):
+    """8-bit OLATs are a coarse truth: the report counts the distinct values a single OLAT takes on the subject (the
+    median over the linearity camera's OLATs), here against the codes Pillow decodes from the AVIF files."""
+    from PIL import Image
+
+    from gra_mi.capture.humanolat import camera_name, images_of, olat_numbers
+    from gra_mi.capture.source_files import read_mask
+
+    _, _, subject = olat_capture
+    lin = json.loads((imported / "import_report.json").read_text())["linearity"]
+    images = images_of(subject / "POSE_00" / "images_processed" / lin["camera"])
+    mask = read_mask(subject / "POSE_00" / "segmentations" / "masks" / "000" / f"{lin['camera']}.png")
+    codes = [len(np.unique(np.asarray(Image.open(images[n]).convert("RGB"))[mask])) for n in olat_numbers(24)[0]]
+    assert lin["olat_levels"] == np.median(codes) and 1 < lin["olat_levels"] < 256, (lin, codes)
+    assert f"takes a median of {lin['olat_levels']:.0f} distinct values" in (imported / "import_report.md").read_text()
+    assert lin["camera"] == camera_name(0)
+
+
 def test_non_square_pixels_are_resampled_with_the_error_stated(olat_capture):
     from gra_mi.capture.humanolat import write_humanolat
     from gra_mi.stage.lightstage import load_calibration

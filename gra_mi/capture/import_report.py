@@ -28,18 +28,20 @@ def _linearity_of_a_complete_camera(out: Path, source: Source, plans: list[Camer
 
 def linearity(source: Source, plan: CameraPlan, mask: np.ndarray, workers: int) -> dict:
     """The white frame against the sum of every OLAT (door LEDs included) of one camera, over the subject: 1 for a
-    linear sensor and a subject that held still (each LED's gain is in both)."""
+    linear sensor and a subject that held still (each LED's gain is in both). Beside it, how many distinct values a
+    single OLAT takes there (its median): an 8-bit OLAT's truth is only as fine as its levels."""
     inside = mask_at_source(mask, plan) > 0.5
-    total = np.zeros(int(inside.sum()) * 3)
+    total, levels = np.zeros(int(inside.sum()) * 3), []
     lit = threaded(
         lambda number: read_image(source.images[plan.index][number])[0][inside].ravel(),
         list(source.olat_keys), f"linearity {plan.camera.name}", workers,
     )  # fmt: skip
     for pixels in lit:  # summed in order: the same sum whatever the threads
         total += pixels
+        levels.append(len(np.unique(pixels)))
     white = read_image(source.images[plan.index][source.white])[0][inside].ravel()
     ratio = float(total.sum() / max(white.sum(), 1e-12))
-    return {"camera": plan.camera.name, "olats_over_white": ratio, "olats": len(source.olat_keys)}
+    return {"camera": plan.camera.name, "olats_over_white": ratio, "olats": len(source.olat_keys), "olat_levels": float(np.median(levels))}
 
 
 def write_report(
@@ -137,7 +139,9 @@ def import_markdown(r: dict, source_format: str) -> str:
         lines += [
             "",
             f"Linearity ({lin['camera']}): the sum of the {lin['olats']} OLATs over the white frame is {lin['olats_over_white']:.3f} "
-            "over the subject (1: a linear sensor and a subject that held still, whatever the LEDs' gains).",
+            "over the subject (1: a linear sensor and a subject that held still, whatever the LEDs' gains). A single OLAT "
+            f"takes a median of {lin['olat_levels']:.0f} distinct values there: held-out OLATs are only as fine a truth as that "
+            "(docs/results/envmap-frames.md measures what that costs a synthetic pose).",
         ]
     lines += [
         "",
