@@ -124,6 +124,28 @@ def test_the_report_says_how_many_levels_an_olat_spans(olat_capture, imported):
     assert lin["camera"] == camera_name(0)
 
 
+def test_a_subject_that_moved_during_the_olats_is_said(olat_capture, imported, tmp_path):
+    """HumanOLAT fires every LED at full brightness every 21st image through the OLATs: a still subject and steady
+    LEDs give those frames alike. The report measures how far they stray and says so past 5 % (here one of them
+    brightened by a quarter, as LEDs that drifted would)."""
+    from gra_mi.capture.humanolat import camera_name, images_of, olat_numbers, write_avif
+    from gra_mi.capture.source_files import read_image
+
+    _, _, subject = olat_capture
+    still = json.loads((imported / "import_report.json").read_text())["linearity"]
+    assert still["steady_frames"] == 2 and still["steady_change"] < 0.01
+    assert "Moved or drifted" not in (imported / "import_report.md").read_text()
+    moved = tmp_path / "layout" / subject.name
+    shutil.copytree(subject, moved, ignore=shutil.ignore_patterns("json_*"))
+    later = olat_numbers(24)[1][1]
+    path = images_of(moved / "POSE_00" / "images_processed" / camera_name(0))[later]
+    write_avif(path, read_image(path)[0] * 1.25)
+    out = _imported(tmp_path, moved, "moved")
+    lin = json.loads((out / "import_report.json").read_text())["linearity"]
+    assert lin["steady_worst"] == later and lin["steady_change"] == pytest.approx(0.25, abs=0.03), lin
+    assert "**Moved or drifted**: the 2 full-bright frames" in (out / "import_report.md").read_text()
+
+
 def test_non_square_pixels_are_resampled_with_the_error_stated(olat_capture):
     from gra_mi.capture.humanolat import write_humanolat
     from gra_mi.stage.lightstage import load_calibration

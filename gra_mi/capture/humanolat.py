@@ -359,7 +359,7 @@ def read_humanolat(subject_dir: Path, config: HumanolatOptions) -> Source:
     masks = [pose / "segmentations" / "masks" / "000" / f"{name}.png" for name in names]
     source = Source(
         subject_dir, "humanolat", subject_dir / CALIB, names, calib, sizes, images, 0.001, leds,
-        MeshFrames([pose / "model" / "model.obj"]), [m if m.is_file() else None for m in masks], white=WHITE, order=order, olat_keys=olat_numbers(len(order))[0],
+        MeshFrames([pose / "model" / "model.obj"]), [m if m.is_file() else None for m in masks], white=WHITE, order=order, olat_keys=olat_numbers(len(order))[0], steady_keys=olat_numbers(len(order))[1],
         leds_path=subject_dir / LEDS, mesh_files=[pose / "model" / "model.obj"],
     )  # fmt: skip
     source.frames, source.left_out = humanolat_frames(source, config)

@@ -14,6 +14,8 @@ from gra_mi.capture.source_files import read_image
 from gra_mi.core.io import atomic_write_text, read_exr, write_png
 from gra_mi.core.progress import threaded
 
+STEADY_CHANGE = 0.05  # full-bright frames this far apart: the subject moved, or the LEDs drifted, during the OLATs
+
 
 def _linearity_of_a_complete_camera(out: Path, source: Source, plans: list[CameraPlan], first: int, workers: int) -> dict | None:
     """:func:`linearity` of the first camera with its white frame and every OLAT (a gap would bias the sum)."""
@@ -41,7 +43,21 @@ def linearity(source: Source, plan: CameraPlan, mask: np.ndarray, workers: int) 
         levels.append(len(np.unique(pixels)))
     white = read_image(source.images[plan.index][source.white])[0][inside].ravel()
     ratio = float(total.sum() / max(white.sum(), 1e-12))
-    return {"camera": plan.camera.name, "olats_over_white": ratio, "olats": len(source.olat_keys), "olat_levels": float(np.median(levels))}
+    found = {"camera": plan.camera.name, "olats_over_white": ratio, "olats": len(source.olat_keys), "olat_levels": float(np.median(levels))}
+    return found | _steadiness(source, plan, inside)
+
+
+def _steadiness(source: Source, plan: CameraPlan, inside: np.ndarray) -> dict:
+    """How far the frames lit alike all through the OLATs (HumanOLAT's full-bright frames) stray from the first of
+    them over the subject (relative RMS): a subject that moved, or LEDs that drifted, during the OLATs shows here."""
+    keys = [k for k in source.steady_keys or [] if k in source.images[plan.index]]
+    if len(keys) < 2:
+        return {}
+    first = read_image(source.images[plan.index][keys[0]])[0][inside]
+    change = {k: float(np.sqrt(np.mean((read_image(source.images[plan.index][k])[0][inside] - first) ** 2)) / np.sqrt(np.mean(first**2)))
+              for k in keys[1:]}  # fmt: skip
+    worst = max(change, key=change.get)
+    return {"steady_frames": len(keys), "steady_change": change[worst], "steady_worst": worst}
 
 
 def write_report(
@@ -143,6 +159,14 @@ def import_markdown(r: dict, source_format: str) -> str:
             f"takes a median of {lin['olat_levels']:.0f} distinct values there: held-out OLATs are only as fine a truth as that "
             "(docs/results/envmap-frames.md measures what that costs a synthetic pose).",
         ]
+        if "steady_change" in lin:
+            moved = lin["steady_change"] > STEADY_CHANGE
+            lines += [
+                "",
+                f"{'**Moved or drifted**: ' if moved else ''}the {lin['steady_frames']} full-bright frames through the OLATs differ from "
+                f"the first by up to {100 * lin['steady_change']:.1f} % (image {lin['steady_worst']:06d}) over the subject"
+                + (": the subject moved or the LEDs drifted during the OLATs, which the fit takes for one still pose." if moved else "."),
+            ]
     lines += [
         "",
         "Overlays (green: the mask, magenta: the mesh reprojected, white: both): "

@@ -89,6 +89,7 @@ class Source:
     left_out: list[int] = field(default_factory=list)  # LEDs whose OLATs were not imported
     white: int | None = None  # the frame key of an all-LEDs frame (the linearity check)
     olat_keys: list[int] | None = None  # the frame keys of every LED's OLAT, imported or not (the linearity check)
+    steady_keys: list[int] | None = None  # frames lit alike all through the OLATs (HumanOLAT's full-bright): the stillness check
     order: np.ndarray | None = None  # the OLAT firing order (HumanOLAT)
     mesh_units: float | None = None  # metres per unit of the meshes (None: as the calibration)
     frame_masks: list[dict[int, Path]] | None = None  # per camera: frame key → its own mask file (a moving subject)
