@@ -31,7 +31,8 @@ def _linearity_of_a_complete_camera(out: Path, source: Source, plans: list[Camer
 def linearity(source: Source, plan: CameraPlan, mask: np.ndarray, workers: int) -> dict:
     """The white frame against the sum of every OLAT (door LEDs included) of one camera, over the subject: 1 for a
     linear sensor and a subject that held still (each LED's gain is in both). Beside it, how many distinct values a
-    single OLAT takes there (its median): an 8-bit OLAT's truth is only as fine as its levels."""
+    single OLAT takes there (its median): an 8-bit OLAT's truth is only as fine as its levels; and how steady the
+    frames lit alike through the OLATs stay (:func:`_steadiness`)."""
     inside = mask_at_source(mask, plan) > 0.5
     total, levels = np.zeros(int(inside.sum()) * 3), []
     lit = threaded(
