@@ -135,8 +135,9 @@ def truth_fidelity(capture, native, exposure: float, work: Path) -> dict:
     from gra_mi.core.metrics import compare, subject_mask
     from gra_mi.eval.protocol import EvalConfig, EvalInputs, evaluate
     from gra_mi.fit.materials import FitConfig, run_fit
+    from gra_mi.stage.lightstage import load_calibration
 
-    rig = [k for k in range(331) if k not in DOOR_LEDS]
+    rig = [k for k in range(load_calibration(native.folder / "rig" / "calibration.json").num_leds) if k not in DOOR_LEDS]
     native_olat = {int(Path(f.pattern).stem.split("_")[1]): f.frame for f in native.frames if f.pattern and "olat_" in f.pattern}
     psnr, rounded, levels = [], [], []
     for camera in capture.eval_cameras:  # CamNN is the native camNN − 1

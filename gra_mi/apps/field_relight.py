@@ -53,9 +53,7 @@ def relight_from_field(
     names = list(weights)
     summary = {"capture": str(capture.folder), "olats": len(index.frames), "lightings": names, "cameras": {}, "skipped": {}}
     if skip_incomplete:
-        for camera in cameras:
-            if missing := capture.frames_with_images(camera, [int(f) for f in index.frames])[1]:
-                summary["skipped"][camera] = f"no image of {len(missing)} OLAT(s), frame {missing[0]} first: its sum needs every one"
+        summary["skipped"] = index.incomplete(capture, cameras)
         cameras = [c for c in cameras if c not in summary["skipped"]]
         if not cameras:
             raise GraMiInputError(

@@ -349,6 +349,7 @@ def read_humanolat(subject_dir: Path, config: HumanolatOptions) -> Source:
         )
     leds = read_points(subject_dir / LEDS)
     order = read_spiral(subject_dir / SPIRAL, len(leds))
+    olat_keys, steady_keys = olat_numbers(len(order))
     names = [camera_name(i) for i in range(len(calib))]
     images = [images_of(pose / "images_processed" / name) for name in names]
     sizes = []
@@ -359,7 +360,7 @@ def read_humanolat(subject_dir: Path, config: HumanolatOptions) -> Source:
     masks = [pose / "segmentations" / "masks" / "000" / f"{name}.png" for name in names]
     source = Source(
         subject_dir, "humanolat", subject_dir / CALIB, names, calib, sizes, images, 0.001, leds,
-        MeshFrames([pose / "model" / "model.obj"]), [m if m.is_file() else None for m in masks], white=WHITE, order=order, olat_keys=olat_numbers(len(order))[0], steady_keys=olat_numbers(len(order))[1],
+        MeshFrames([pose / "model" / "model.obj"]), [m if m.is_file() else None for m in masks], white=WHITE, order=order, olat_keys=olat_keys, steady_keys=steady_keys,
         leds_path=subject_dir / LEDS, mesh_files=[pose / "model" / "model.obj"],
     )  # fmt: skip
     source.frames, source.left_out = humanolat_frames(source, config)

@@ -35,13 +35,14 @@ def linearity(source: Source, plan: CameraPlan, mask: np.ndarray, workers: int) 
     frames lit alike through the OLATs stay (:func:`_steadiness`)."""
     inside = mask_at_source(mask, plan) > 0.5
     total, levels = np.zeros(int(inside.sum()) * 3), []
-    lit = threaded(
-        lambda number: read_image(source.images[plan.index][number])[0][inside].ravel(),
-        list(source.olat_keys), f"linearity {plan.camera.name}", workers,
-    )  # fmt: skip
-    for pixels in lit:  # summed in order: the same sum whatever the threads
-        total += pixels
-        levels.append(len(np.unique(pixels)))
+
+    def read(number: int) -> tuple[np.ndarray, int]:
+        pixels = read_image(source.images[plan.index][number])[0][inside].ravel()
+        return pixels, len(np.unique(pixels))  # counted in the reading thread
+
+    for pixels, count in threaded(read, list(source.olat_keys), f"linearity {plan.camera.name}", workers):
+        total += pixels  # summed in order: the same sum whatever the threads
+        levels.append(count)
     white = read_image(source.images[plan.index][source.white])[0][inside].ravel()
     ratio = float(total.sum() / max(white.sum(), 1e-12))
     found = {"camera": plan.camera.name, "olats_over_white": ratio, "olats": len(source.olat_keys), "olat_levels": float(np.median(levels))}

@@ -59,6 +59,16 @@ class OlatIndex:
             )
         return cls(np.array(frames), np.array(leds), np.array(intensity, np.float64), stage.num_leds)
 
+    def incomplete(self, capture: Capture, cameras: list[str]) -> dict[str, str]:
+        """The cameras of ``cameras`` a real capture's gaps left without an image of one of these OLATs (camera →
+        what it lacks, said): their reflectance field, the sum of every OLAT, cannot be made."""
+        lacking = {camera: capture.frames_with_images(camera, [int(f) for f in self.frames])[1] for camera in cameras}
+        return {
+            camera: f"camera {camera} has no image of {len(missing)} OLAT(s), frame {missing[0]} first: its reflectance field sums every one"
+            for camera, missing in lacking.items()
+            if missing
+        }
+
     def weights(self, lighting: np.ndarray, source: str) -> np.ndarray:
         """(K, 3) weights of the OLATs for LED intensities (L, 3). LEDs the capture has no OLAT of: a warning naming
         them when they carry little of the drive's light, an error naming them otherwise."""

@@ -242,15 +242,11 @@ def _field_splits(capture, config: EvalConfig) -> tuple[list[Split], dict[str, s
     stage = load_calibration(capture.folder / "rig" / "calibration.json")
     lights = field_lightings(capture, stage, {p.stem: config.envmaps.load(p) for p in config.envmap}, config.library_envmaps)
     by_id = {-(k + 1): light for k, light in enumerate(lights)}
-    olats = [int(f) for f in OlatIndex.of(capture, stage).frames]
-    splits, unscored = [], {}
-    for cam in capture.eval_cameras:
-        if missing := capture.frames_with_images(cam, olats)[1]:
-            unscored[f"field_{cam}"] = f"camera {cam} has no image of {len(missing)} of its OLATs: a reflectance field sums every one"
-            logger.warning("field_%s: not scored: %s", cam, unscored[f"field_{cam}"])
-            continue
-        splits.append(Split(f"field_{cam}", cam, list(by_id), lighting_set=True, lights=by_id))
-    return splits, unscored
+    incomplete = OlatIndex.of(capture, stage).incomplete(capture, capture.eval_cameras)
+    for cam, why in incomplete.items():
+        logger.warning("field_%s: not scored: %s", cam, why)
+    splits = [Split(f"field_{c}", c, list(by_id), lighting_set=True, lights=by_id) for c in capture.eval_cameras if c not in incomplete]
+    return splits, {f"field_{cam}": why for cam, why in incomplete.items()}
 
 
 def _perceptual_models(config: EvalConfig):

@@ -285,7 +285,8 @@ def _with_images(capture, split: str, cam: str, entries: list, length: int, unif
         runs = np.split(np.array(present), breaks)
         present = [int(f) for f in max(runs, key=len)]  # the first of the longest
     by_frame = {e.frame: e for e in entries}
-    left_out = [e.frame for e in entries if e.frame not in set(present)]
+    kept = set(present)
+    left_out = [e.frame for e in entries if e.frame not in kept]
     if left_out:
         logger.warning("%s_%s: %d of its %d frames left out (no image, or past a gap)", split, cam, len(left_out), len(entries))
     return split, cam, [by_frame[f] for f in present], length, reference, left_out

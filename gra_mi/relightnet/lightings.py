@@ -117,17 +117,11 @@ def _cameras_with_every_olat(capture, index: OlatIndex) -> list[str]:
     capture's gap left without one is left out of the synthesized lightings, said; none left is refused."""
     from gra_mi.core.errors import GraMiInputError
 
-    olats, whole = [int(f) for f in index.frames], []
-    for camera in capture.train_cameras + capture.eval_cameras:
-        if missing := capture.frames_with_images(camera, olats)[1]:
-            logger.warning(
-                "synthesized lightings: camera %s has no image of %d OLAT(s) (frame %d, …): its views are left out",
-                camera,
-                len(missing),
-                missing[0],
-            )
-        else:
-            whole.append(camera)
+    cameras = capture.train_cameras + capture.eval_cameras
+    incomplete = index.incomplete(capture, cameras)
+    for why in incomplete.values():
+        logger.warning("synthesized lightings: %s; its views are left out", why)
+    whole = [c for c in cameras if c not in incomplete]
     if not any(c in whole for c in capture.train_cameras):
         raise GraMiInputError(
             capture.folder / "capture.json", "no training camera has an image of every OLAT: synthesized lightings need one", field="frames"
