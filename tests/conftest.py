@@ -49,6 +49,18 @@ def default_stage():
     return load_calibration(SCENES / "rigs" / "default" / "calibration.json")
 
 
+@pytest.fixture(scope="module")
+def onebounce_capture(tmp_path_factory):
+    """The tiny preset captured with gra-mi's own one-bounce renderer (its model, no path-tracing noise)."""
+    from gra_mi.capture.synthetic import CaptureConfig, generate_capture
+    from gra_mi.core.runtime import choose_variant
+
+    choose_variant("llvm_ad_rgb")
+    out = tmp_path_factory.mktemp("capture")
+    generate_capture(out, CaptureConfig(preset="tiny", renderer="onebounce"))
+    return out
+
+
 @pytest.fixture(scope="session")
 def path_traced_fit(tmp_path_factory):
     """The tiny preset's path-traced capture (``cap/``) and its material fit (``fit/``), shared by every module

@@ -37,7 +37,8 @@ def run_fit(c: FitCommand) -> None:
     from gra_mi.fit.materials import run_fit as fit
 
     _, report = fit(c.capture, c.out, c.fit, c.overwrite)
-    print(f"done: open {report}")
+    if report is not None:  # under torchrun, rank 0 writes the report; the others have said nothing
+        print(f"done: open {report}")
 
 
 @dataclass(kw_only=True)

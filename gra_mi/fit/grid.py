@@ -37,9 +37,11 @@ class GridSums:
                 dr.scatter_reduce(dr.ReduceOp.Add, self.sums, term, (j * m + texels) * 3 + c)
         dr.eval(self.sums)
 
-    def error(self) -> np.ndarray:
-        """(candidates, M) squared error of each candidate with its closed-form albedo (texels no view saw: 0)."""
-        sums = np.asarray(self.sums).reshape(3 + 3 * self.k, self.m, 3)
+    def error(self, ranks=None) -> np.ndarray:
+        """(candidates, M) squared error of each candidate with its closed-form albedo (texels no view saw: 0); with
+        ``ranks`` (:class:`~gra_mi.fit.ranks.FitRanks`), of the sums every process added."""
+        sums = np.asarray(self.sums) if ranks is None else ranks.sum(self.sums)
+        sums = sums.reshape(3 + 3 * self.k, self.m, 3)
         s_dd, s_do, s_oo = sums[0], sums[1], sums[2]
         s_ds, s_ss, s_os = sums[3::3], sums[4::3], sums[5::3]
         with np.errstate(invalid="ignore", divide="ignore"):

@@ -43,6 +43,7 @@ def fit_levels(capture, config, out: Path, make_fitter):
             return fitter, replace(result, loss_curve=curve)
         start = LevelStart.of(fitter, result, earlier, (start.seconds if start else 0.0) + time.perf_counter() - clock)
         clock = time.perf_counter()
-        start.save(done)
+        if fitter.ranks.main:
+            start.save(done)
         earlier = start.curve
     raise AssertionError("levels is never empty (FitConfig.validate)")

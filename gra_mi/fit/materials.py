@@ -30,6 +30,7 @@ import json
 import logging
 import time
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -48,6 +49,7 @@ from gra_mi.fit.levels import fit_levels
 from gra_mi.fit.maps import DEFAULT_ALBEDO, DEFAULT_ROUGHNESS, LevelStart
 from gra_mi.fit.optimize import Evidence
 from gra_mi.fit.prior import SurfaceGraph
+from gra_mi.fit.ranks import FitRanks
 from gra_mi.fit.report import write_fit_outputs
 from gra_mi.fit.views import ViewStore
 from gra_mi.render.runtime import ensure_mitsuba
@@ -228,8 +230,17 @@ def sample_image(image: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndar
 
 
 class MaterialFitter:
-    def __init__(self, capture: Capture, config: FitConfig, cache_dir: str | Path | None = None, frames: list | None = None):
-        """``frames``: the capture's frames to fit on (default: its training frames, every ``config.frame_step``-th)."""
+    def __init__(
+        self,
+        capture: Capture,
+        config: FitConfig,
+        cache_dir: str | Path | None = None,
+        frames: list | None = None,
+        ranks: FitRanks | None = None,
+    ):
+        """``frames``: the capture's frames to fit on (default: its training frames, every ``config.frame_step``-th);
+        ``ranks``: the processes the fit runs on (default: this one alone), of which this one fits its share of the
+        frames (``train``; ``all_train`` holds every process's)."""
         from gra_mi.render.relighter import Relighter
 
         ensure_mitsuba()
@@ -244,7 +255,9 @@ class MaterialFitter:
         )
         self._frozen: tuple | None = None  # (the maps' relighter, frame → its light after the first bounce)
         self.atlas = self.relighter.atlas
-        self.train = frames if frames is not None else [f for f in capture.frames if f.split == "train"][:: config.frame_step]
+        self.ranks = ranks or FitRanks()
+        self.all_train = frames if frames is not None else [f for f in capture.frames if f.split == "train"][:: config.frame_step]
+        self.train = self.ranks.take(self.all_train)
         self.train_cameras = config.cameras or capture.train_cameras
         unknown = [c for c in self.train_cameras if c not in capture.train_cameras]
         if unknown:
@@ -289,7 +302,7 @@ class MaterialFitter:
         seen = {cam: np.zeros(self.atlas.num_texels, bool) for cam in self.train_cameras}
         for v in views:
             seen[v.camera][self.observation(v)[0]] = True
-        return np.sum(list(seen.values()), axis=0).astype(np.int64)
+        return np.sum(self.ranks.sum(np.stack(list(seen.values()))) > 0, axis=0).astype(np.int64)
 
     def parts(self, view: View, roughness: np.ndarray, texels: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(D, S) at the view's observed texels (``texels``, if already read) for per-texel roughness (M,). Only those
@@ -331,7 +344,7 @@ class MaterialFitter:
     def fit(self, out: Path | None = None, start: LevelStart | None = None) -> FitResult:
         """The closed-form solution (or, at a finer level, the coarser level's maps), then (solver "adam") the
         optimisation of the maps against the images."""
-        self.store = ViewStore.for_fit(self.streamed, out)
+        self.store = ViewStore.for_fit(self.streamed, out, self.ranks.rank)
         try:
             closed = self.fit_closed_form(out) if start is None else self.start_from(start)
             for _ in range(INDIRECT_ROUNDS if self.config.transport.bounces > 1 else 0):
@@ -349,7 +362,7 @@ class MaterialFitter:
         if self.config.calibrate_brightness is not None:
             return self.config.calibrate_brightness
         alone = sum(int(np.count_nonzero(light.max(axis=1))) == 1 for light in self._lighting.values())
-        return alone <= len(self._lighting) / 2
+        return self.ranks.total(alone) <= len(self.all_train) / 2
 
     def freeze_indirect(self, result: FitResult) -> None:
         """Hold the light after the first bounce at what ``result``'s maps make of it: from now on every view's LED loop
@@ -393,6 +406,7 @@ class MaterialFitter:
                 weight = 1.0 / max(float(truth[mask, :3].mean()), 1e-12)
                 for row, part in enumerate((truth[..., :3], diffuse, specular)):
                     sums[row] += weight * part[mask].sum(axis=0, dtype=np.float64)
+        sums = self.ranks.sum(sums)
         if not sums[1].all():
             logger.warning("brightness calibration skipped: a colour channel has no diffuse light in any training view")
             return result
@@ -416,7 +430,7 @@ class MaterialFitter:
         cfg, clock = self.config, time.perf_counter()
         offset = closed.loss_curve[-1][0] if closed.loss_curve else 0.0
         batches = opt.build_batches(self, cfg.min_view_cos, store=self.store)
-        geom = self.relighter.geometry(self.train[0].mesh_frame)
+        geom = self.relighter.geometry(self.all_train[0].mesh_frame)  # the same graph in every process
         graph = SurfaceGraph.build(np.array(geom.position).T.astype(np.float64), np.array(geom.normal).T.astype(np.float64))
         albedo_cf, roughness_cf = self.atlas.gather(closed.albedo), self.atlas.gather(closed.roughness)[:, 0]
         albedo, roughness = (albedo_cf, roughness_cf) if start is not None else self._adam_start(graph, closed)
@@ -432,7 +446,7 @@ class MaterialFitter:
             checkpoint=None if out is None else out / "optimize.npz", clock_offset=offset + time.perf_counter() - clock,
             held_roughness=held,
         )  # fmt: skip
-        per_view = dict(zip(batches.names, opt.view_l1(batches, albedo, roughness), strict=True))
+        per_view = opt.view_l1(batches, albedo, roughness)
         measure = "image space, relative" + (f" ({len(opt.curve_views(batches))} of {len(batches)} views)" if batches.streamed else "")
         first = closed.loss_curve[0][2] if start is not None else "closed form"
         return FitResult(
@@ -475,7 +489,7 @@ class MaterialFitter:
 
         def save(**arrays) -> None:
             state.update(arrays)
-            if checkpoint is not None:
+            if checkpoint is not None and self.ranks.main:
                 with atomic_path(checkpoint) as tmp, open(tmp, "wb") as fh:
                     np.savez(fh, **{**state, "curve": json.dumps(curve)})
 
@@ -502,7 +516,7 @@ class MaterialFitter:
             texels, o = self.observation(v)
             diffuse, specs = self.grid_parts(v, grid, texels)
             sums.add(mi.UInt32(texels.astype(np.uint32)), mi.Color3f(*o.T.astype(np.float32)), diffuse, specs)
-        return sums.error()
+        return sums.error(self.ranks)
 
     def _albedo_irls(self, views, roughness: np.ndarray, curve: list, start: float, save) -> tuple[np.ndarray, dict[str, float]]:
         """Albedo at the chosen roughness: least squares, then L1 by reweighting (each observation weighted by 1 / its
@@ -529,6 +543,7 @@ class MaterialFitter:
                 w = 1.0 if albedo is None else 1.0 / np.maximum(np.abs(o - (albedo[texels] * d + s)), L1_DELTA)
                 np.add.at(num, texels, w * d * (o - s))
                 np.add.at(den, texels, w * d * d)
+            num, den = self.ranks.sum(num), self.ranks.sum(den)
             with np.errstate(invalid="ignore", divide="ignore"):
                 albedo = np.where(den > 0, np.clip(num / den, 0.0, 1.0), DEFAULT_ALBEDO)
             per_view = self._irls_residuals(views, albedo)
@@ -549,21 +564,26 @@ class MaterialFitter:
             texels, o, d, s = self.observation_parts(v)
             residual = np.abs(o - (albedo[texels] * d + s))
             out[v.name] = (float(residual.sum()), residual.size)
-        return out
+        return self.ranks.merged(out)
 
 
-def run_fit(capture_dir: str | Path, out: str | Path, config: FitConfig, overwrite: bool = False) -> tuple[FitResult, Path]:
+def run_fit(capture_dir: str | Path, out: str | Path, config: FitConfig, overwrite: bool = False) -> tuple[FitResult, Path | None]:
     """Fit ``config``'s maps to a capture into ``out`` (resumes a run of the same capture and config there; a folder
-    made by another refuses, or with ``overwrite`` starts over)."""
+    made by another refuses, or with ``overwrite`` starts over); returns the result and the report's path. Under
+    torchrun, the processes fit together (:mod:`gra_mi.fit.ranks`): rank 0 claims the folder and writes the outputs
+    (the others return None for the report, without waiting for it)."""
 
     config.validate()
     capture = Capture.load(capture_dir)
     capture.check_images()
     ensure_mitsuba()
-    out = claim_output(out, "fit", {"capture": capture_dir}, config, overwrite=overwrite)
+    ranks = FitRanks.from_launcher()
+    out = claim_output(out, "fit", {"capture": capture_dir}, config, overwrite=overwrite) if ranks.main else Path(out)
+    ranks.barrier()  # the others start once the folder is claimed (or emptied by --overwrite)
+    make_fitter = partial(MaterialFitter, ranks=ranks)
     if config.levels:
-        fitter, result = fit_levels(capture, config, out, MaterialFitter)
+        fitter, result = fit_levels(capture, config, out, make_fitter)
     else:
-        fitter = MaterialFitter(capture, config, cache_dir=out / "cache")
+        fitter = make_fitter(capture, config, cache_dir=out / "cache")
         result = fitter.fit(out)
-    return result, write_fit_outputs(fitter, result, out, config)  # the fit as asked for, levels included
+    return result, write_fit_outputs(fitter, result, out, config) if ranks.main else None  # levels included

@@ -134,10 +134,9 @@ class TrainingViews:
     frames' cached visibility) and joined, so memory holds the views of one step, not all."""
 
     def __init__(self, fitter, min_view_cos: float = 0.0, store=None, progress_bar: bool = True):
-        self.fitter, self.store = fitter, store
-        self.keys: list[ViewKey] = []
-        self.pixels: list[int] = []
+        self.fitter, self.store, self.ranks = fitter, store, fitter.ranks
         self._held: list[ViewBatch] = []
+        local: list[tuple[ViewKey, int]] = []
         pending: list[ViewBatch] = []
         jobs = [(f.frame, f.mesh_frame, cam) for f in fitter.train for cam in fitter.train_cameras if fitter.capture.has_image(cam, f)]
         for frame, pose, cam in progress(jobs, description="pixel footprints") if progress_bar else jobs:
@@ -145,8 +144,7 @@ class TrainingViews:
             if arrays is None:
                 continue
             key = ViewKey(f"{cam}/frame_{frame:04d}", frame, pose, cam)
-            self.keys.append(key)
-            self.pixels.append(int(arrays["observed"].shape[0]))
+            local.append((key, int(arrays["observed"].shape[0])))
             if self.streamed:
                 store.put(f"footprints:{key.name}", **arrays)
                 continue
@@ -156,6 +154,18 @@ class TrainingViews:
                 pending = []
         if pending:
             self._held.append(ViewBatch.join(pending))
+        self._index_views(local)
+
+    def _index_views(self, local: list[tuple[ViewKey, int]]) -> None:
+        """Every process's views in the capture's frame-major order (names, pixels), and where this one's sit."""
+        frame_order = {f.frame: k for k, f in enumerate(self.fitter.all_train)}
+        camera_order = {c: k for k, c in enumerate(self.fitter.train_cameras)}
+        place = {key.name: ((frame_order[key.frame], camera_order[key.camera]), pixels) for key, pixels in local}
+        every = sorted(self.ranks.merged(place).items(), key=lambda item: item[1][0])
+        self.names: list[str] = [name for name, _ in every]
+        self.pixels: list[int] = [pixels for _, (_, pixels) in every]
+        index = {name: k for k, name in enumerate(self.names)}
+        self.keys: dict[int, ViewKey] = {index[key.name]: key for key, _ in local}  # this process's, by that index
 
     @property
     def streamed(self) -> bool:
@@ -165,16 +175,14 @@ class TrainingViews:
     def n_obs(self) -> int:
         return sum(self.pixels)
 
-    @property
-    def names(self) -> list[str]:
-        return [k.name for k in self.keys]
-
     def __len__(self) -> int:
-        return len(self.keys)
+        """Every process's views (the fit's, whichever process holds them)."""
+        return len(self.names)
 
     def in_batches(self, views: np.ndarray | None = None):
-        """The :class:`ViewBatch` es that shade ``views`` (indices, default all), in order. Held views are shaded all
-        together; a subset (a minibatch) needs them streamed."""
+        """The :class:`ViewBatch` es that shade this process's share of ``views`` (indices among every process's
+        views, default all), in order. Held views are shaded all together; a subset (a minibatch) needs them
+        streamed."""
         views = np.arange(len(self)) if views is None else np.asarray(views, np.int64)
         if not self.streamed:
             if not np.array_equal(views, np.arange(len(self))):
@@ -186,8 +194,8 @@ class TrainingViews:
         """Joined as a step's are: at most the fit's views per step (its memory's bound) and BATCH_ENTRIES at once."""
         at_once = self.fitter.config.batch_views or len(self)
         pending: list[ViewBatch] = []
-        for k in views:
-            key = self.keys[int(k)]
+        for k in (int(k) for k in views if int(k) in self.keys):
+            key = self.keys[k]
             pending.append(self._build(key, self.store.get(f"footprints:{key.name}")))
             if len(pending) >= at_once or sum(b.entries for b in pending) >= BATCH_ENTRIES:
                 yield ViewBatch.join(pending)
@@ -229,7 +237,7 @@ def image_l1(batches: TrainingViews, albedo: np.ndarray, roughness: np.ndarray, 
     for b in batches.in_batches(views):
         residual = np.abs(columns(_predict(b, a, r) - b.observed))
         total += sum(float(part.sum()) * w for part, w in zip(b.per_view(residual), b.weights, strict=True))
-    return total / (3.0 * max(sum(batches.pixels[int(k)] for k in views), 1))
+    return batches.ranks.total(total) / (3.0 * max(sum(batches.pixels[int(k)] for k in views), 1))
 
 
 def curve_views(batches: TrainingViews) -> np.ndarray:
@@ -237,13 +245,15 @@ def curve_views(batches: TrainingViews) -> np.ndarray:
     return curve_sample(len(batches), CURVE_VIEWS) if batches.streamed else np.arange(len(batches))
 
 
-def view_l1(batches: TrainingViews, albedo: np.ndarray, roughness: np.ndarray) -> list[float]:
-    """Mean absolute L1 over each view's pixels (radiance units)."""
+def view_l1(batches: TrainingViews, albedo: np.ndarray, roughness: np.ndarray) -> dict[str, float]:
+    """Mean absolute L1 over each view's pixels (radiance units), by view name in the views' order."""
     a, r = mi.Color3f(*np.asarray(albedo, np.float32).T), mi.Float(np.asarray(roughness, np.float32))
-    out = []
+    out = {}
     for b in batches.in_batches():
-        out += [float(part.mean()) for part in b.per_view(np.abs(columns(_predict(b, a, r) - b.observed)))]
-    return out
+        parts = b.per_view(np.abs(columns(_predict(b, a, r) - b.observed)))
+        out |= {name: float(part.mean()) for name, part in zip(b.names, parts, strict=True)}
+    every = batches.ranks.merged(out)
+    return {name: every[name] for name in batches.names}
 
 
 @dataclass
@@ -270,7 +280,7 @@ def gather_evidence(batches: TrainingViews, albedo: np.ndarray, roughness: np.nd
         np.add.at(views, texels, 1)
         np.add.at(highlights, texels, change >= HIGHLIGHT_CHANGE)
         np.add.at(information, texels, np.sum(np.square(b.lane_weights()[:, None] * dspec), axis=1))
-    return Evidence(views, highlights, information)
+    return Evidence(*batches.ranks.sum(np.stack([views, highlights, information])))
 
 
 @dataclass
@@ -325,7 +335,7 @@ def optimize_maps(
         done = it + 1
         if done % settings.checkpoint_every == 0 or done == settings.iterations:
             run.record(f"Adam {done}")
-            if checkpoint is not None:
+            if checkpoint is not None and batches.ranks.main:
                 run.save(checkpoint, done)
     albedo_now, roughness_now = run.maps()
     return albedo_now, roughness_now, run.curve, run.snapshots
@@ -388,7 +398,7 @@ class MapOptimizer:
             if with_grad:
                 dr.backward(term)
             total += float(dr.detach(term)[0])
-        return total
+        return self.batches.ranks.total(total)
 
     def prior_term(self, with_grad: bool) -> float:
         a, r = self.adam["albedo"], self.adam["roughness"]
@@ -396,7 +406,7 @@ class MapOptimizer:
         prior = s.smooth_roughness * dr.sum(dr.square(dr.gather(mi.Float, r, ei) - dr.gather(mi.Float, r, ej)))
         prior += s.smooth_albedo * dr.sum(dr.squared_norm(dr.gather(mi.Color3f, a, ei) - dr.gather(mi.Color3f, a, ej)))
         prior = prior / self.n_edges
-        if with_grad:
+        if with_grad and self.batches.ranks.main:  # every process has the same prior: its gradient counts once
             dr.backward(prior)
         return float(dr.detach(prior)[0])
 
@@ -411,6 +421,7 @@ class MapOptimizer:
         to [0, 1], and the texels Adam does not move kept."""
         s = self.settings
         self.loss(with_grad=True, views=batch_at(iteration, len(self.batches), s.batch_views, s.seed))
+        self._sum_gradients()
         decay = 0.1 ** (iteration / max(s.iterations - 1, 1))
         self.adam.set_learning_rate({"albedo": s.lr_albedo * decay, "roughness": s.lr_roughness * decay})
         before = {k: dr.detach(self.adam[k]) for k in self.free}
@@ -419,8 +430,20 @@ class MapOptimizer:
             self.adam[key] = dr.select(free, dr.clip(dr.detach(self.adam[key]), 0.0, 1.0), before[key])
         dr.eval(self.adam["albedo"], self.adam["roughness"])
 
+    def _sum_gradients(self) -> None:
+        """Each process's gradient is of its views' share of the loss: the step takes their sum."""
+        ranks = self.batches.ranks
+        if ranks.single:
+            return
+        for key, kind in (("albedo", mi.Color3f), ("roughness", mi.Float)):
+            value = self.adam[key]
+            total = ranks.sum(np.array(dr.grad(value))).astype(np.float32)
+            dr.set_grad(value, kind(*total) if total.ndim == 2 else kind(total))
+
     def refill(self) -> None:
         albedo, roughness = self.maps()
+        ranks = self.batches.ranks  # the processes' maps, made bit-identical again (their devices may round apart)
+        albedo, roughness = ranks.from_main(albedo), ranks.from_main(roughness)
         observed, anchors = self.observed, self.anchors
         if anchors.any() and not anchors.all():
             filled = np.clip(self.fill_roughness(roughness, float(np.median(roughness[anchors])))[:, 0], 0.0, 1.0)

@@ -225,7 +225,8 @@ def fit_record(fitter, result, out: Path, config) -> dict:
         "albedo_gain": None if result.albedo_gain is None else [float(g) for g in result.albedo_gain],
         "calibration": "as configured" if config.calibrate_brightness is not None else "automatic",
         "capture": {"folder": str(fitter.capture.folder), "renderer": fitter.capture.renderer}
-        | {"training_frames": len(fitter.train), "training_cameras": len(fitter.train_cameras)},
+        | {"training_frames": len(fitter.all_train), "training_cameras": len(fitter.train_cameras)},
+        "processes": fitter.ranks.world,
         "texels": fitter.atlas.num_texels,
         "resolution": fitter.atlas.resolution,
         "scored_min_cameras": SCORED_MIN_CAMERAS,
@@ -250,6 +251,7 @@ def fit_markdown(r: dict) -> str:
         f"{r['capture']['training_frames']} training frames × {r['capture']['training_cameras']} cameras; solver `{cfg['solver']}`"
         + (f" ({cfg['iterations']} Adam iterations{_batch_said(cfg)})." if cfg["solver"] == "adam" else "."),
         *([f"Coarse to fine: {' → '.join(f'{r}²' for r in cfg['levels'])} (each level in the curve below)."] if cfg.get("levels") else []),
+        *([f"Fitted by {r['processes']} processes, each on its share of the frames."] if r.get("processes", 1) > 1 else []),
         "",
         f"- texels never observed: {never} ({100 * never / m:.1f} %)"
         + (", filled from their neighbours" if r["without_highlights"] is not None else ", kept at the defaults"),

@@ -28,11 +28,12 @@ class ViewStore:
             self.folder.mkdir(parents=True)
 
     @classmethod
-    def for_fit(cls, streamed: bool, out: Path | None) -> ViewStore:
-        """In memory, or (``streamed``) in ``out``/views.tmp, or a temporary folder when the fit has no output folder."""
+    def for_fit(cls, streamed: bool, out: Path | None, rank: int = 0) -> ViewStore:
+        """In memory, or (``streamed``) in ``out``/views.tmp (process ``rank`` > 0 of a fit: views-RANK.tmp), or a
+        temporary folder when the fit has no output folder."""
         if not streamed:
             return cls()
-        return cls(scratch_folder("gra-mi-views-") if out is None else Path(out) / "views.tmp")
+        return cls(scratch_folder("gra-mi-views-") if out is None else Path(out) / ("views.tmp" if rank == 0 else f"views-{rank}.tmp"))
 
     @property
     def on_disk(self) -> bool:
