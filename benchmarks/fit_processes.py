@@ -5,10 +5,10 @@ The two processes are started as torchrun starts them (RANK, WORLD_SIZE, MASTER_
 two machines of one core each, each process is pinned to a core of its own (`taskset`) and compared with one process
 pinned to one core; the same fits unpinned show what two processes on one shared 2-core machine give.
 
-Capture: the `small` preset rendered with `--renderer onebounce` (48 training views at 256×135, UV 256²); the fit:
-its defaults with `--iterations ITERATIONS`, full batch or `--batch-views 8`.
+Capture: the `small` preset rendered with `--renderer onebounce`; the fit: its defaults on every FRAME_STEP-th training
+frame with `--iterations ITERATIONS`, full batch or `--batch-views 8`.
 
-    .venv/bin/python benchmarks/fit_processes.py [--iterations 40] [--write docs/results/fit-processes.md]
+    .venv/bin/python benchmarks/fit_processes.py [--iterations 40] [--frame-step 3] [--write docs/results/fit-processes.md]
 """
 
 from __future__ import annotations
@@ -73,11 +73,17 @@ def measure(run: BenchmarkRun) -> str:
     capture = run.work / "capture"
     if not (capture / "capture.json").is_file():
         generate_capture(capture, CaptureConfig(preset="small", renderer="onebounce", measure_noise=False))
-    iterations = ["--iterations", str(run.args.iterations)]
+    iterations = ["--iterations", str(run.args.iterations), "--frame-step", str(run.args.frame_step)]
+    from gra_mi.capture.dataset import Capture
+
+    loaded = Capture.load(capture)
+    frames = len([f for f in loaded.frames if f.split == "train"][:: run.args.frame_step])
+    width, height = loaded.camera_size(loaded.train_cameras[0])
+    views = f"{frames} training frames × {len(loaded.train_cameras)} cameras at {width}×{height}"
     rows = rows_for(run, capture, "every view each step", iterations)
     rows += rows_for(run, capture, "--batch-views 8", [*iterations, "--batch-views", "8"])
     notes = [
-        "Wall time of the command line (Python and Mitsuba start-up, the capture read, the closed form, the Adam steps, "
+        f"The fit: {views}, {run.args.iterations} Adam steps. Wall time of the command line (Python and Mitsuba start-up, the capture read, the closed form, the Adam steps, "
         "rank 0's report). *one core each*: each process pinned to a core of its own, the single process to one core "
         "(two one-core machines against one); *2 shared cores*: unpinned, where one process's Dr.Jit already uses both "
         "cores. *apart*: the largest difference between the two fits' albedo or roughness texels (the fit's run-to-run "
