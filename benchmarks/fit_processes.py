@@ -71,8 +71,7 @@ def measure(run: BenchmarkRun) -> str:
     from gra_mi.capture.synthetic import CaptureConfig, generate_capture
 
     capture = run.work / "capture"
-    if not (capture / "capture.json").is_file():
-        generate_capture(capture, CaptureConfig(preset="small", renderer="onebounce", measure_noise=False))
+    generate_capture(capture, CaptureConfig(preset="small", renderer="onebounce", measure_noise=False))  # resumes one in --work
     iterations = ["--iterations", str(run.args.iterations), "--frame-step", str(run.args.frame_step)]
     from gra_mi.capture.dataset import Capture
 

@@ -149,8 +149,8 @@ def estimate(rows: list[dict]) -> list[str]:
         "LED loop and ray casts that `docs/results/speed.md` measured at 40–60× the 2-core CPU (visibility of a new "
         f"frame 33 ms on an H100 against 1.6–2 s here): about {cpu_hours / 50:,.0f} GPU hours on one GPU, "
         f"{cpu_hours / 200:,.0f} on a node of 4 and {cpu_hours / 400:,.0f} on 8 with the per-frame stages sharded "
-        "(`--shard`, one process per GPU; the fit itself runs on one GPU: it subsamples views (`--frame-step`, "
-        "`--cameras`) rather than shard them).",
+        "(`--shard`) and the fit on torchrun's processes (each its share of the frames; fit-processes.md), one "
+        "process per GPU.",
     ]
 
 

@@ -10,7 +10,7 @@ import sys
 import numpy as np
 import pytest
 
-from gra_mi.core.errors import GraMiParameterError
+from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.shard import free_port
 
 from .test_cli import run_cli
@@ -84,3 +84,35 @@ def test_more_processes_than_frames_are_refused(onebounce_capture, tmp_path):
     refused = fit_on_processes(3, onebounce_capture, tmp_path / "fit", "--frame-step", "4", "--iterations", "2")
     assert refused.returncode != 0 and "start at most as many processes as frames" in refused.stderr
     assert not (tmp_path / "fit").exists(), "the claimed folder is removed again"
+
+
+def _ranks_worker(rank: int, port: int, results) -> None:
+    """Process ``rank`` of 2: what each reduction of FitRanks gives it."""
+    os.environ |= {"RANK": str(rank), "WORLD_SIZE": "2", "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(port)}
+    from gra_mi.fit.ranks import FitRanks
+
+    ranks = FitRanks.from_launcher()
+    said = {
+        "sum": ranks.sum(np.array([1.0, 2.0]) * (rank + 1)).tolist(),
+        "merged": ranks.merged({f"view {rank}": rank}),
+        "from_main": ranks.from_main(np.full(2, 10.0 + rank)).tolist(),
+    }
+    ranks.agree("same", "a value all share")
+    try:
+        ranks.agree(rank, "where to resume")
+    except GraMiInputError as exc:
+        said["refused"] = str(exc)
+    results.put((rank, said))
+
+
+def test_the_reductions_across_two_processes():
+    import torch.multiprocessing as mp
+
+    results = mp.get_context("spawn").SimpleQueue()
+    mp.spawn(_ranks_worker, args=(free_port(), results), nprocs=2, join=True)
+    said = dict(results.get() for _ in range(2))
+    for rank in (0, 1):
+        assert said[rank]["sum"] == [3.0, 6.0]
+        assert said[rank]["merged"] == {"view 0": 0, "view 1": 1}
+        assert said[rank]["from_main"] == [10.0, 10.0]
+        assert "process 0: 0, process 1: 1" in said[rank]["refused"] and "share the output folder" in said[rank]["refused"]

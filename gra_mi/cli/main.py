@@ -99,7 +99,11 @@ COMMANDS: dict[str, Command] = {
         "scene",
         "Import a real capture (HumanOLAT, transforms.json, EasyMocap) into the capture layout, with an import report to read first.",
     ),
-    "fit": Command("texture", "Fit per-texel albedo and roughness to a capture (albedo.exr, roughness.exr, fit_report.md)."),
+    "fit": Command(
+        "texture",
+        "Fit per-texel albedo and roughness to a capture (albedo.exr, roughness.exr, fit_report.md). Under torchrun "
+        "(--nproc_per_node N) the N processes fit together, each its share of the frames (docs/guides/scale.md).",
+    ),
     "edit-texture": Command(
         "texture",
         "Edit a fitted albedo: paint an image over it, or tint a UV mask; re-render with `relight --albedo`.",

@@ -33,6 +33,7 @@ def fit_levels(capture, config, out: Path, make_fitter):
         folder = out if last else out / f"level_{resolution:04d}"
         fitter = make_fitter(capture, level, out / "cache")
         done = folder / "level.npz"
+        fitter.ranks.agree(done.is_file(), f"{done}: whether this level is done")
         if not last and done.is_file():
             start = LevelStart.load(done, fitter.atlas)
             earlier = start.curve

@@ -486,6 +486,7 @@ class MaterialFitter:
         checkpoint = None if out is None else out / "checkpoint.npz"
         state = read_checkpoint_npz(checkpoint) if checkpoint is not None and checkpoint.is_file() else {}
         curve: list[tuple[float, float, str]] = [tuple(x) for x in json.loads(str(state["curve"]))] if "curve" in state else []
+        self.ranks.agree(sorted(state), f"{checkpoint}: what the closed form resumes from")
 
         def save(**arrays) -> None:
             state.update(arrays)

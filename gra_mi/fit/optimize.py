@@ -326,6 +326,7 @@ def optimize_maps(
     run = MapOptimizer(batches, graph, observed, has_highlight, settings, held_roughness)
     run.set_maps(albedo, roughness)
     first = run.resume(checkpoint, roughness.shape[0]) if checkpoint is not None and checkpoint.is_file() else 0
+    batches.ranks.agree(first, f"{checkpoint}: the Adam step it resumes from")
     run.start = time.perf_counter() - (run.curve[-1][0] if run.curve else clock_offset)
     if not run.curve:
         run.record("initial")

@@ -20,7 +20,7 @@ from datetime import timedelta
 
 import numpy as np
 
-from gra_mi.core.errors import GraMiParameterError
+from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 
 WAIT = timedelta(hours=12)
 """How long a process waits at a sum for the others (shares of frames differ in cost; a process that fails stops the
@@ -101,6 +101,19 @@ class FitRanks:
         tensor = torch.from_numpy(np.ascontiguousarray(array).copy())
         dist.broadcast(tensor, src=0, group=self.group)
         return tensor.numpy()
+
+    def agree(self, value, what: str) -> None:
+        """Refuse to go on unless every process has the same ``value`` (where it resumes from: processes that read
+        different checkpoints would take different steps and wait for each other for ever)."""
+        if self.single:
+            return
+        import torch.distributed as dist
+
+        values: list = [None] * self.world
+        dist.all_gather_object(values, value, group=self.group)
+        if any(v != values[0] for v in values):
+            said = ", ".join(f"process {rank}: {v}" for rank, v in enumerate(values))
+            raise GraMiInputError(what, f"the fit's processes disagree ({said}): they must share the output folder (one file system)")
 
     def barrier(self) -> None:
         if not self.single:

@@ -120,8 +120,9 @@ def render_scene_file(
 ) -> list[SceneRender]:
     """Render the named sensors (all by default) of a scene file into ``out/SENSOR.{exr,png}``.
 
-    ``integrator`` None and ``spp`` None: the scene's own (a scene without an integrator: ``path``). With ``gra_onebounce`` the scene's emitters are checked
-    first (:func:`gra_mi.render.scene_lights.scene_lights`): one it cannot compute stops the run by name.
+    ``integrator`` None and ``spp`` None: the scene's own (a scene without an integrator: ``path``). With
+    ``gra_onebounce`` the scene's emitters are checked first (:func:`gra_mi.render.scene_lights.scene_lights`): one
+    it cannot compute stops the run by name.
     """
     import mitsuba as mi
 
@@ -138,8 +139,9 @@ def render_scene_file(
     if chosen_integrator is None and scene.integrator() is None:
         logger.info("%s has no <integrator>: rendering with Mitsuba's path tracer (--integrator chooses another)", path)
         chosen_integrator = make_integrator("path")
-    if isinstance(chosen_integrator or scene.integrator(), GraOneBounce):  # refuse what it cannot compute, by name, now
-        scene_lights(scene, str(path))
+    onebounce = chosen_integrator or scene.integrator()
+    if isinstance(onebounce, GraOneBounce):  # refuse what it cannot compute, by name, now
+        scene_lights(scene, str(path), onebounce.dome_lights)
     renders = []
     for index in chosen:
         sensor = scene.sensors()[index]

@@ -1,10 +1,12 @@
-"""Which of a Mitsuba scene's emitters gra-mi's one-bounce integrator computes exactly, and which it refuses by name.
+"""Which of a Mitsuba scene's emitters gra-mi's one-bounce integrator computes, how, and which it refuses by name.
 
 A light that reaches a point from one position or one direction (a *delta* light: ``point``, ``spot``,
 ``projector``, ``directional``) is computed exactly with one shadow ray: its emitter's own ``sample_direction`` gives
-the incident radiance. Lights spread over a surface or over the sphere of directions (``area``, ``envmap``,
-``constant``, ``sunsky``, ``directionalarea``) need many samples; rather than render them black, gra-mi refuses the
-scene when it is loaded, naming the emitter and what to use instead.
+the incident radiance. An environment (``envmap``, ``constant``) is computed as a lightstage computes one: a dome of
+far-field lights, each carrying its cell of the sphere (:mod:`gra_mi.render.dome`). Lights spread over a surface
+(``area``, ``directionalarea``) or too sharp for a dome's cells (``sunsky``: a sun half a degree wide) need many
+samples; rather than render them black or blurred, gra-mi refuses the scene when it is loaded, naming the emitter and
+what to use instead.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gra_mi.core.errors import GraMiInputError
+from gra_mi.render.dome import DEFAULT_LIGHTS, cell_irradiance
 
 # Mitsuba class name → the plugin name a scene file uses.
 PLUGIN_NAMES = {
@@ -28,14 +31,15 @@ PLUGIN_NAMES = {
     "DirectionalArea": "directionalarea",
 }
 EXACT = ("point", "spot", "projector", "directional")
+DOME = ("envmap", "constant")  # environments integrated onto a dome of far-field lights
 ENVIRONMENTS = ("envmap", "constant", "sunsky")
 OTHER_INTEGRATORS = "Mitsuba's own integrators (`gra-mi render SCENE --integrator direct` or `path`)"
 ADVICE = {
     "area": f"an area light needs its surface sampled: render this scene with {OTHER_INTEGRATORS}, or stand point or spot "
     "emitters in for it",
     "directionalarea": f"a directional area light needs its surface sampled: render this scene with {OTHER_INTEGRATORS}",
-    "environment": "light from every direction: gra-mi lights with environments through a lightstage's LEDs (`gra-mi relight "
-    f"LIGHTSTAGE_SCENE --envmap MAP`); for this scene use {OTHER_INTEGRATORS}",
+    "environment": "a sun half a degree wide is sharper than a dome of lights can carry: render this scene with "
+    f"{OTHER_INTEGRATORS}, or give the sky as an `envmap` (gra_onebounce integrates one onto a dome of lights)",
 }
 
 
@@ -53,16 +57,19 @@ def emitter_label(index: int, emitter) -> str:
 
 @dataclass
 class SceneLights:
-    """The scene's delta lights: point emitters (the LEDs of a lightstage: one array, one loop) and the others."""
+    """The scene's delta lights: point emitters (the LEDs of a lightstage: one array, one loop) and the others; and its
+    environments as one dome of far-field lights."""
 
     points: list
     others: list
     positions: np.ndarray  # (P, 3) of the point emitters
     intensities: np.ndarray  # (P, 3) W/sr
+    dome_irradiance: np.ndarray  # (D, 3) W/m² from the directions fibonacci_sphere(D); zeros without an environment
+    environments: list
 
     @property
     def count(self) -> int:
-        return len(self.points) + len(self.others)
+        return len(self.points) + len(self.others) + len(self.environments)
 
 
 def point_lights(emitters: list) -> tuple[np.ndarray, np.ndarray]:
@@ -85,25 +92,31 @@ def point_lights(emitters: list) -> tuple[np.ndarray, np.ndarray]:
     return positions, intensities
 
 
-def scene_lights(scene, source: str | None = None) -> SceneLights:
-    """Classify and check the emitters of a loaded scene; ``source`` names the scene file in errors.
+def scene_lights(scene, source: str | None = None, dome_lights: int = DEFAULT_LIGHTS) -> SceneLights:
+    """Classify and check the emitters of a loaded scene; ``source`` names the scene file in errors; environments are
+    integrated onto a dome of ``dome_lights`` lights.
 
-    Refuses (:class:`GraMiInputError`, naming the emitter): a scene with no emitter, an emitter gra-mi cannot compute
-    exactly, a negative or non-finite intensity, a spot cone outside (0°, 180°).
+    Refuses (:class:`GraMiInputError`, naming the emitter): a scene with no emitter, an emitter gra-mi cannot compute,
+    a negative or non-finite intensity or radiance, a spot cone outside (0°, 180°).
     """
     import mitsuba as mi
 
     emitters = list(scene.emitters())
     if not emitters:
         raise GraMiInputError(source or "scene", "the scene has no emitter, so every render would be black: add a point, spot or "
-                              "directional emitter")  # fmt: skip
-    points, others, point_index = [], [], []
+                              "directional emitter, or an envmap")  # fmt: skip
+    points, others, point_index, environments = [], [], [], []
+    dome = np.zeros((dome_lights, 3))
     for index, emitter in enumerate(emitters):
         kind, label = plugin_name(emitter), emitter_label(index, emitter)
+        if kind in DOME:
+            dome += _environment(emitter, label, dome_lights, source)
+            environments.append(emitter)
+            continue
         if kind not in EXACT:
             raise GraMiInputError(
                 source or "scene", f"{label} is of type '{kind}', which gra_onebounce does not compute (it computes "
-                f"{', '.join(EXACT)} lights exactly): {_advice(kind)}"
+                f"{', '.join(EXACT)} lights exactly and {', '.join(DOME)} environments on a dome of lights): {_advice(kind)}"
             )  # fmt: skip
         if kind == "point":  # hundreds on a lightstage: read and checked at once below
             points.append(emitter)
@@ -117,7 +130,17 @@ def scene_lights(scene, source: str | None = None) -> SceneLights:
         k = int(bad[0])
         raise GraMiInputError(source or "scene", f"{emitter_label(point_index[k], points[k])} (point): 'intensity' must be finite and "
                               f">= 0, got {np.round(intensities[k], 6).tolist()} ({bad.size} such point lights)")  # fmt: skip
-    return SceneLights(points, others, positions, intensities)
+    return SceneLights(points, others, positions, intensities, dome, environments)
+
+
+def _environment(emitter, label: str, count: int, source: str | None) -> np.ndarray:
+    """The emitter's irradiance on the dome's cells, refused if any is negative or not finite."""
+    irradiance = cell_irradiance(emitter, count)
+    if not np.all(np.isfinite(irradiance)) or np.any(irradiance < 0):
+        bad = int(np.sum(~np.all(np.isfinite(irradiance) & (irradiance >= 0), axis=1)))
+        raise GraMiInputError(source or "scene", f"{label} ({plugin_name(emitter)}): its radiance must be finite and >= 0, "
+                              f"but {bad} of {count} directions' cells are not (NaN, Inf or negative pixels?)")  # fmt: skip
+    return irradiance
 
 
 def _advice(kind: str) -> str:

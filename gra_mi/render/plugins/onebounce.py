@@ -13,6 +13,13 @@ about Microfacet Rendering").
    * - ``stage_center``
      - point
      - Where the far-field directions and irradiances are measured. Default: (0, 1, 0).
+   * - ``hide_emitters``
+     - boolean
+     - Camera rays that escape see nothing instead of the environment (as in Mitsuba's integrators). Default: false.
+   * - ``dome_lights``
+     - integer
+     - How many far-field lights carry the scene's environment emitters (``envmap``, ``constant``), each the light
+       of its cell of the sphere (:mod:`gra_mi.render.dome`). Default: 1024.
 
 At each camera hit the integrator sums over the scene's delta lights:
 
@@ -20,11 +27,12 @@ At each camera hit the integrator sums over the scene's delta lights:
 
 with one shadow ray per light and E_k the light's incident irradiance-like weight (``point``: I/d², the LEDs, in
 near field by default; ``spot`` and ``projector``: I·falloff/d²; ``directional``: its irradiance), as the emitter's
-own ``sample_direction`` gives it. Point emitters (a lightstage has hundreds) are read from the scene once per
+own ``sample_direction`` gives it; environments (``envmap``, ``constant``) arrive through a dome of far-field lights,
+each with the irradiance of its cell, one shadow ray each, like a lightstage's LEDs. Point emitters (a lightstage has hundreds) are read from the scene once per
 render into arrays and evaluated in one symbolic Dr.Jit loop, not one virtual call per emitter; the other delta
 lights follow in a second loop that calls each emitter. Point lights that are off are dropped before the loop; lights
-below the shading point's horizon (shading or geometric normal) trace nothing. Emitters that cannot be computed
-exactly in one shadow ray (``area``, ``envmap``, ``constant``, ``sunsky``, ...) are refused by name when a render
+below the shading point's horizon (shading or geometric normal) trace nothing; dark cells of the dome are dropped.
+Emitters that need sampling (``area``, ``directionalarea``, ``sunsky``, ...) are refused by name when a render
 starts (:mod:`gra_mi.render.scene_lights`), as is a scene without light. Derivatives with respect to BSDF parameters
 (``gra_microfacet`` textures) follow Path Replay Backpropagation: the loops are replayed in the adjoint pass with
 gradients enabled around the BSDF evaluation only.
@@ -37,8 +45,11 @@ import mitsuba as mi
 import numpy as np
 from mitsuba.python.ad.integrators.common import RBIntegrator
 
+from gra_mi.core.errors import GraMiParameterError
+from gra_mi.render.dome import DEFAULT_LIGHTS, LIGHTS_RANGE
 from gra_mi.render.leds import LedLayout
 from gra_mi.render.scene_lights import scene_lights
+from gra_mi.stage.lightstage import fibonacci_sphere
 
 
 class LedArrays:
@@ -100,12 +111,22 @@ class GraOneBounce(RBIntegrator):
         self.far_field = bool(props.get("far_field", False))
         center = props.get("stage_center", mi.ScalarPoint3f(0.0, 1.0, 0.0))
         self.stage_center = np.array([center[0], center[1], center[2]], dtype=np.float64)
+        self.dome_lights = props.get("dome_lights", DEFAULT_LIGHTS)
+        low, high = LIGHTS_RANGE
+        if isinstance(self.dome_lights, bool) or not isinstance(self.dome_lights, int) or not low <= self.dome_lights <= high:
+            raise GraMiParameterError("dome_lights", f"expected an integer in [{low}, {high}], got {self.dome_lights!r}")
         self._lights = None
 
-    def prepare_lights(self, scene: mi.Scene) -> tuple[LedArrays, DeltaEmitters]:
-        """The scene's lights as the loops read them (checked: a light gra-mi cannot compute stops here, by name)."""
-        lights = scene_lights(scene)
-        return LedArrays(LedLayout(lights.positions, self.stage_center, self.far_field), lights.intensities), DeltaEmitters(lights.others)
+    def prepare_lights(self, scene: mi.Scene) -> tuple[LedArrays, DeltaEmitters, LedArrays]:
+        """The scene's lights as the loops read them (checked: a light gra-mi cannot compute stops here, by name): its
+        point lights, its other delta lights, its environments' dome (unit directions: irradiance I / 1²)."""
+        lights = scene_lights(scene, dome_lights=self.dome_lights)
+        dome = LedLayout(fibonacci_sphere(self.dome_lights), np.zeros(3), far_field=True)
+        return (
+            LedArrays(LedLayout(lights.positions, self.stage_center, self.far_field), lights.intensities),
+            DeltaEmitters(lights.others),
+            LedArrays(dome, lights.dome_irradiance),
+        )
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         self._lights = self.prepare_lights(scene)
@@ -121,13 +142,16 @@ class GraOneBounce(RBIntegrator):
 
     def sample(self, mode, scene, sampler, ray, δL, state_in, active, **kwargs):
         primal = mode == dr.ADMode.Primal
-        leds, others = self._lights if self._lights is not None else self.prepare_lights(scene)
+        leds, others, dome = self._lights if self._lights is not None else self.prepare_lights(scene)
         far_field = self.far_field
 
         si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.All, coherent=True, active=active)
         valid = active & si.is_valid()
         bsdf = si.bsdf(ray)
         L = mi.Spectrum(0.0 if primal else state_in)  # radiance (or, in the adjoint pass, what is left of it)
+        if primal and dome.count and not self.hide_emitters:  # a ray that escapes sees the environment, as in Mitsuba's
+            escaped = active & ~si.is_valid()
+            L += dr.select(escaped, si.emitter(scene, escaped).eval(si, escaped), 0.0)
         δL = mi.Spectrum(δL if δL is not None else 0.0)  # adjoint radiance
         if leds.count:
             L, δL = _sum_lights(
@@ -137,10 +161,14 @@ class GraOneBounce(RBIntegrator):
             L, δL = _sum_lights(
                 mode, others.count, lambda k, on: delta_contribution(scene, si, others, k, on), bsdf, si, valid, L, δL, "delta lights"
             )
+        if dome.count:
+            L, δL = _sum_lights(
+                mode, dome.count, lambda k, on: led_contribution(scene, si, dome, k, True, on), bsdf, si, valid, L, δL, "environment dome"
+            )
         return (L if primal else δL, valid, [], L)
 
     def to_string(self):
-        return f"GraOneBounce[far_field={self.far_field}]"
+        return f"GraOneBounce[far_field={self.far_field}, dome_lights={self.dome_lights}]"
 
 
 @dr.syntax

@@ -1,0 +1,63 @@
+"""A scene's environment emitters (``envmap``, ``constant``) as a dome of far-field lights, for ``gra_onebounce``.
+
+gra-mi lights with environments the way a lightstage does (paper: envmap → LEDs): the sphere of directions is cut into
+cells and each cell's light arrives from its centre, as one directional light with one shadow ray. For a Mitsuba
+scene's own environment emitter the cells are the Voronoi cells of a Fibonacci dome of ``count`` directions (about
+4π / count sr each), and each light's irradiance is the emitter's radiance integrated over its cell: evaluated by the
+emitter itself (its ``to_world``, ``scale`` and filtering included) at the pixel centres of a lat-long grid at least
+twice as fine as its bitmap, each weighted by its pixel's exact solid angle. The total flux is the emitter's to the
+grid's precision; what is approximated is where in a cell the light comes from, which shows for a sharp light (a sun)
+near a surface's horizon or in a highlight narrower than a cell (docs/accuracy.md: the error against Mitsuba's own
+integrators, and its cost, by ``count``).
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import numpy as np
+
+from gra_mi.stage.envmap import nearest_led, pixel_directions, pixel_solid_angles
+from gra_mi.stage.lightstage import fibonacci_sphere
+
+DEFAULT_LIGHTS = 1024  # ~6° cells: diffuse light within a per cent of Mitsuba's integrators (docs/accuracy.md)
+LIGHTS_RANGE = (16, 16384)
+MIN_ROWS, MAX_ROWS = 64, 1024  # the integration grid: twice the bitmap's rows, within these
+
+
+@lru_cache(maxsize=4)
+def dome_cells(rows: int, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(the dome's directions (count, 3), the grid's directions (rows · 2 rows, 3), the dome cell of each grid pixel):
+    the same for every render of a scene, so kept (the assignment is the costly part)."""
+    dome = fibonacci_sphere(count)
+    grid = pixel_directions(rows, 2 * rows).reshape(-1, 3)
+    return dome, grid, nearest_led(grid.astype(np.float32), dome.astype(np.float32))
+
+
+def grid_rows(emitter) -> int:
+    """Rows of the grid an emitter is integrated on: twice its bitmap's (an ``envmap``), within [MIN_ROWS, MAX_ROWS]."""
+    import mitsuba as mi
+
+    params = mi.traverse(emitter)
+    rows = 2 * int(params["data"].shape[0]) if "data" in params else MIN_ROWS
+    return int(np.clip(rows, MIN_ROWS, MAX_ROWS))
+
+
+def radiance_along(emitter, directions: np.ndarray) -> np.ndarray:
+    """(N, 3) the emitter's radiance arriving from world ``directions`` (N, 3): its own ``eval``."""
+    import drjit as dr
+    import mitsuba as mi
+
+    si = dr.zeros(mi.SurfaceInteraction3f, directions.shape[0])
+    si.wi = mi.Vector3f(*(-directions.T.astype(np.float32)))  # eval looks along -wi: from the scene outwards
+    return np.array(emitter.eval(si), dtype=np.float64).T.reshape(-1, 3)
+
+
+def cell_irradiance(emitter, count: int = DEFAULT_LIGHTS) -> np.ndarray:
+    """(count, 3) the irradiance an environment emitter sends through each cell of the dome of ``count`` lights (whose
+    directions are ``fibonacci_sphere(count)``): its radiance integrated over the cell."""
+    rows = grid_rows(emitter)
+    _, grid, cell = dome_cells(rows, count)
+    weight = np.broadcast_to(pixel_solid_angles(rows, 2 * rows), (rows, 2 * rows)).reshape(-1, 1)
+    light = radiance_along(emitter, grid) * weight
+    return np.stack([np.bincount(cell, weights=light[:, c], minlength=count) for c in range(3)], axis=1)
