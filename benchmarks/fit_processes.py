@@ -95,7 +95,10 @@ def measure(run: BenchmarkRun) -> str:
     return table_page("The material fit over two processes", "fit_processes.py", run.stamp("small (onebounce)"), rows, notes, columns)
 
 
+def arguments(parser) -> None:
+    parser.add_argument("--iterations", type=int, default=40, help="Adam steps of each fit.")
+    parser.add_argument("--frame-step", type=int, default=3, help="Fit every FRAME_STEP-th training frame.")
+
+
 if __name__ == "__main__":
-    run_benchmark(
-        __doc__, measure, arguments=lambda p: p.add_argument("--iterations", type=int, default=40, help="Adam steps of each fit.")
-    )
+    run_benchmark(__doc__, measure, arguments=arguments)
