@@ -134,17 +134,50 @@ def test_an_environment_lands_on_the_dome_with_its_flux(plugins):
     spread of an independent estimate (uniform directions over the sphere, the emitter's own radiance)."""
     import mitsuba as mi
 
-    from gra_mi.render.dome import cell_irradiance, radiance_along
+    from gra_mi.render.dome import cell_light, radiance_along
 
     constant = mi.load_dict({"type": "constant", "radiance": {"type": "rgb", "value": [0.5, 0.25, 1.0]}})
-    np.testing.assert_allclose(cell_irradiance(constant, 256).sum(axis=0), 4 * np.pi * np.array([0.5, 0.25, 1.0]), rtol=1e-5)
+    np.testing.assert_allclose(cell_light(constant, 256)[0].sum(axis=0), 4 * np.pi * np.array([0.5, 0.25, 1.0]), rtol=1e-5)
     envmap = mi.load_dict(sky())
     rng = np.random.default_rng(7)
     z, phi = rng.uniform(-1, 1, 2_000_000), rng.uniform(0, 2 * np.pi, 2_000_000)
     directions = np.stack([np.sqrt(1 - z * z) * np.cos(phi), z, np.sqrt(1 - z * z) * np.sin(phi)], axis=1)
     samples = 4 * np.pi * radiance_along(envmap, directions)
     spread = samples.std(axis=0) / np.sqrt(len(samples))
-    assert np.all(np.abs(cell_irradiance(envmap, 1024).sum(axis=0) - samples.mean(axis=0)) < 4 * spread)
+    assert np.all(np.abs(cell_light(envmap, 1024)[0].sum(axis=0) - samples.mean(axis=0)) < 4 * spread)
+
+
+def test_a_sun_inside_a_cell_shines_from_the_sun(plugins):
+    """A small bright patch on a black sky: its cell's light comes from the patch's own mean direction (not the cell's
+    centre), and the body under it is the body under one directional light per lit cell, of its flux, from there."""
+    import mitsuba as mi
+
+    from gra_mi.render.dome import cell_light, light_directions
+    from gra_mi.stage.envmap import direction_to_uv, pixel_directions, pixel_solid_angles
+
+    pixels, sun = np.zeros((64, 128, 3), np.float32), np.array([0.45, 0.35, 0.82])
+    u, v = direction_to_uv(sun / np.linalg.norm(sun))
+    row, col = int(round(float(v) * 63)), int(float(u) * 128)
+    pixels[row, col] = 2000.0
+    envmap = mi.load_dict({"type": "envmap", "bitmap": mi.Bitmap(pixels)})
+    irradiance, moment = cell_light(envmap, 256)
+    k = int(np.argmax(irradiance[:, 0]))
+    direction = light_directions(moment)[k]
+    patch = pixel_directions(64, 128)[row, col]
+    assert np.degrees(np.arccos(np.clip(direction @ patch, -1, 1))) < 1.0, "the light comes from the patch"
+    assert irradiance[k, 0] > 0.85 * irradiance[:, 0].sum(), "most of the patch's flux (filtered: it spreads) in one cell"
+    np.testing.assert_allclose(irradiance[:, 0].sum(), 2000.0 * pixel_solid_angles(64, 128)[row, 0], rtol=0.05)
+    dome = body_scene({"sky": {"type": "envmap", "bitmap": mi.Bitmap(pixels)}}, width=48, height=64)
+    directions = light_directions(moment)
+    lights = {
+        f"cell_{c}": {"type": "directional", "direction": (-directions[c]).tolist(), "irradiance": {"type": "rgb", "value": irradiance[c].tolist()}}
+        for c in np.flatnonzero(irradiance.max(axis=1) > 0)
+    }  # fmt: skip
+    exact = body_scene(lights, width=48, height=64)
+    ours = np.array(mi.render(dome, integrator=mi.load_dict({"type": "gra_onebounce", "dome_lights": 256, "hide_emitters": True}), spp=4))
+    reference = np.array(mi.render(exact, integrator=mi.load_dict({"type": "gra_onebounce"}), spp=4))
+    covered = reference[..., 3] > 0.999
+    assert mean_relative_error(ours, reference, floor=0.05 * float(np.percentile(reference[..., :3][covered], 95))) < 0.02
 
 
 @pytest.mark.parametrize("emitter", ["constant", "envmap"])

@@ -1,14 +1,16 @@
 """A scene's environment emitters (``envmap``, ``constant``) as a dome of far-field lights, for ``gra_onebounce``.
 
 gra-mi lights with environments the way a lightstage does (paper: envmap → LEDs): the sphere of directions is cut into
-cells and each cell's light arrives from its centre, as one directional light with one shadow ray. For a Mitsuba
+cells and each cell's light arrives as one directional light with one shadow ray. For a Mitsuba
 scene's own environment emitter the cells are the Voronoi cells of a Fibonacci dome of ``count`` directions (about
 4π / count sr each), and each light's irradiance is the emitter's radiance integrated over its cell: evaluated by the
 emitter itself (its ``to_world``, ``scale`` and filtering included) at the pixel centres of a lat-long grid at least
-twice as fine as its bitmap, each weighted by its pixel's exact solid angle. The total flux is the emitter's to the
-grid's precision; what is approximated is where in a cell the light comes from, which shows for a sharp light (a sun)
-near a surface's horizon or in a highlight narrower than a cell (docs/accuracy.md: the error against Mitsuba's own
-integrators, and its cost, by ``count``).
+twice as fine as its bitmap, each weighted by its pixel's exact solid angle; the light comes from the mean direction of
+the cell's light (its first moment), so a sun inside a cell shines from the sun, and a Lambertian surface facing the
+whole cell receives it exactly. The total flux is the emitter's to the grid's precision; what is approximated is the
+spread of light inside a cell: a cell's shadow is hard, a cell holding two lights sends them from one direction, and a
+highlight narrower than a cell is blurred (docs/accuracy.md: the error against Mitsuba's own integrators, and its cost,
+by ``count``).
 """
 
 from __future__ import annotations
@@ -53,11 +55,23 @@ def radiance_along(emitter, directions: np.ndarray) -> np.ndarray:
     return np.array(emitter.eval(si), dtype=np.float64).T.reshape(-1, 3)
 
 
-def cell_irradiance(emitter, count: int = DEFAULT_LIGHTS) -> np.ndarray:
-    """(count, 3) the irradiance an environment emitter sends through each cell of the dome of ``count`` lights (whose
-    directions are ``fibonacci_sphere(count)``): its radiance integrated over the cell."""
+def cell_light(emitter, count: int = DEFAULT_LIGHTS) -> tuple[np.ndarray, np.ndarray]:
+    """What an environment emitter sends through each cell of the dome of ``count`` lights (the Voronoi cells of
+    ``fibonacci_sphere(count)``): (count, 3) the irradiance, its radiance integrated over the cell, and (count, 3) the
+    first moment of its light over directions (Σ (R + G + B) · solid angle · direction), which places the cell's
+    light."""
     rows = grid_rows(emitter)
     _, grid, cell = dome_cells(rows, count)
     weight = np.broadcast_to(pixel_solid_angles(rows, 2 * rows), (rows, 2 * rows)).reshape(-1, 1)
     light = radiance_along(emitter, grid) * weight
-    return np.stack([np.bincount(cell, weights=light[:, c], minlength=count) for c in range(3)], axis=1)
+    moment = light.sum(axis=1, keepdims=True) * grid  # the channels' sum weighs where the light is
+    return tuple(np.stack([np.bincount(cell, weights=a[:, c], minlength=count) for c in range(3)], axis=1) for a in (light, moment))
+
+
+def light_directions(moments: np.ndarray) -> np.ndarray:
+    """Where each cell's light comes from: the mean direction of its light (a sun inside a cell: the sun's), or the cell's
+    centre where it has none."""
+    centres = fibonacci_sphere(moments.shape[0])
+    length = np.linalg.norm(moments, axis=1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(length > 1e-12 * max(float(length.max()), 1e-300), moments / length, centres)

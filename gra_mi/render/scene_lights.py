@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gra_mi.core.errors import GraMiInputError
-from gra_mi.render.dome import DEFAULT_LIGHTS, cell_irradiance
+from gra_mi.render.dome import DEFAULT_LIGHTS, cell_light, light_directions
 
 # Mitsuba class name → the plugin name a scene file uses.
 PLUGIN_NAMES = {
@@ -64,7 +64,8 @@ class SceneLights:
     others: list
     positions: np.ndarray  # (P, 3) of the point emitters
     intensities: np.ndarray  # (P, 3) W/sr
-    dome_irradiance: np.ndarray  # (D, 3) W/m² from the directions fibonacci_sphere(D); zeros without an environment
+    dome_directions: np.ndarray  # (D, 3) unit vectors towards each dome light (its cell's mean light direction)
+    dome_irradiance: np.ndarray  # (D, 3) W/m² of each; zeros without an environment
     environments: list
 
     @property
@@ -106,11 +107,12 @@ def scene_lights(scene, source: str | None = None, dome_lights: int = DEFAULT_LI
         raise GraMiInputError(source or "scene", "the scene has no emitter, so every render would be black: add a point, spot or "
                               "directional emitter, or an envmap")  # fmt: skip
     points, others, point_index, environments = [], [], [], []
-    dome = np.zeros((dome_lights, 3))
+    dome, moments = np.zeros((dome_lights, 3)), np.zeros((dome_lights, 3))
     for index, emitter in enumerate(emitters):
         kind, label = plugin_name(emitter), emitter_label(index, emitter)
         if kind in DOME:
-            dome += _environment(emitter, label, dome_lights, source)
+            irradiance, moment = _environment(emitter, label, dome_lights, source)
+            dome, moments = dome + irradiance, moments + moment
             environments.append(emitter)
             continue
         if kind not in EXACT:
@@ -130,17 +132,18 @@ def scene_lights(scene, source: str | None = None, dome_lights: int = DEFAULT_LI
         k = int(bad[0])
         raise GraMiInputError(source or "scene", f"{emitter_label(point_index[k], points[k])} (point): 'intensity' must be finite and "
                               f">= 0, got {np.round(intensities[k], 6).tolist()} ({bad.size} such point lights)")  # fmt: skip
-    return SceneLights(points, others, positions, intensities, dome, environments)
+    return SceneLights(points, others, positions, intensities, light_directions(moments), dome, environments)
 
 
-def _environment(emitter, label: str, count: int, source: str | None) -> np.ndarray:
-    """The emitter's irradiance on the dome's cells, refused if any is negative or not finite."""
-    irradiance = cell_irradiance(emitter, count)
+def _environment(emitter, label: str, count: int, source: str | None) -> tuple[np.ndarray, np.ndarray]:
+    """The emitter's light on the dome's cells (:func:`~gra_mi.render.dome.cell_light`), refused if any is negative or
+    not finite."""
+    irradiance, moment = cell_light(emitter, count)
     if not np.all(np.isfinite(irradiance)) or np.any(irradiance < 0):
         bad = int(np.sum(~np.all(np.isfinite(irradiance) & (irradiance >= 0), axis=1)))
         raise GraMiInputError(source or "scene", f"{label} ({plugin_name(emitter)}): its radiance must be finite and >= 0, "
                               f"but {bad} of {count} directions' cells are not (NaN, Inf or negative pixels?)")  # fmt: skip
-    return irradiance
+    return irradiance, moment
 
 
 def _advice(kind: str) -> str:

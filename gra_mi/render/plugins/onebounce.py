@@ -49,7 +49,6 @@ from gra_mi.core.errors import GraMiParameterError
 from gra_mi.render.dome import DEFAULT_LIGHTS, LIGHTS_RANGE
 from gra_mi.render.leds import LedLayout
 from gra_mi.render.scene_lights import scene_lights
-from gra_mi.stage.lightstage import fibonacci_sphere
 
 
 class LedArrays:
@@ -119,9 +118,9 @@ class GraOneBounce(RBIntegrator):
 
     def prepare_lights(self, scene: mi.Scene) -> tuple[LedArrays, DeltaEmitters, LedArrays]:
         """The scene's lights as the loops read them (checked: a light gra-mi cannot compute stops here, by name): its
-        point lights, its other delta lights, its environments' dome (unit directions: irradiance I / 1²)."""
+        point lights, its other delta lights, its environments' dome (unit directions, so irradiance is I / 1²)."""
         lights = scene_lights(scene, dome_lights=self.dome_lights)
-        dome = LedLayout(fibonacci_sphere(self.dome_lights), np.zeros(3), far_field=True)
+        dome = LedLayout(lights.dome_directions, np.zeros(3), far_field=True)
         return (
             LedArrays(LedLayout(lights.positions, self.stage_center, self.far_field), lights.intensities),
             DeltaEmitters(lights.others),
