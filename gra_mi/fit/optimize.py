@@ -20,7 +20,10 @@
   minibatches of views read from scratch files with their gradients accumulated (:mod:`gra_mi.fit.views`), whose
   memory does not grow with the capture;
 - a step's views are joined (:meth:`ViewBatch.join`, :meth:`~gra_mi.render.shading.TexelLedLoop.concat`): one LED
-  loop, one footprint average and one backward pass for up to :data:`BATCH_ENTRIES` entries, not one per view.
+  loop, one footprint average and one backward pass for up to :data:`BATCH_ENTRIES` entries, not one per view;
+- on several processes (:mod:`gra_mi.fit.ranks`) each holds the views of its frames, indexed among every process's;
+  the data term, its gradient, the evidence and the per-view errors are summed or gathered across them, and the prior's
+  gradient counts once (rank 0's).
 """
 
 from __future__ import annotations
