@@ -14,7 +14,7 @@
 #   3. on the GPU machine:   bash scripts/gpu_check.sh --commit $(git rev-parse --short HEAD)
 #        $OUT/gpu.md (the page) and $OUT/run.tar.gz (test report, logs, the demo's record, stage timings), nothing
 #        else there (the device tool returns at most 8 files). Through the
-#        device tool: carry [".gpu"], timeout_s 600 (the parts' own limits add up to 510 s); then copy gpu.md to
+#        device tool: carry [".gpu"], timeout_s 600 (the parts' own limits add up to 520 s); then copy gpu.md to
 #        docs/results/ and commit it.
 #
 # Options: --cpu (step 1), --trace (with --cpu: record the files opened), --commit SHA (the machine's copy may have
@@ -98,11 +98,11 @@ EOF
 
 XDIST=()
 [ "$CPU" = 0 ] && "$PYTHON" -c "import xdist" 2>/dev/null && XDIST=(-n 4)
-part tests 240 "$PYTHON" -m pytest -q -p no:cacheprovider -m "not slow" -k "$VARIANT" "${XDIST[@]}" --junitxml="$RUN/tests.xml" -rfE tests
-part demo 150 "$PYTHON" -m gra_mi.cli demo --preset tiny --variant "$VARIANT" --out "$RUN/demo" --overwrite
+part tests 225 "$PYTHON" -m pytest -q -p no:cacheprovider -m "not slow" -k "$VARIANT" "${XDIST[@]}" --junitxml="$RUN/tests.xml" -rfE tests
+part demo 140 "$PYTHON" -m gra_mi.cli demo --preset tiny --variant "$VARIANT" --out "$RUN/demo" --overwrite
 cp "$RUN/demo/demo.json" "$RUN/demo.json" 2>/dev/null
 part fit_step 45 "$PYTHON" benchmarks/fit_step.py --variant "$VARIANT" --capture "$RUN/demo/capture" --repeats 3 --write "$RUN/fit_step.md"
-part stages 120 "$PYTHON" benchmarks/stages.py --variant "$VARIANT" --json "$RUN/stages.json"
+part stages 110 "$PYTHON" benchmarks/stages.py --variant "$VARIANT" --json "$RUN/stages.json"
 rm -rf "$RUN/demo"
 
 if [ "$CPU" = 1 ]; then

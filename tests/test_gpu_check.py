@@ -207,3 +207,14 @@ def test_the_benchmarks_and_the_packer_refuse_what_they_cannot_use(tmp_path):
     (tmp_path / "not_a_capture").mkdir()
     folder = subprocess.run([*step, "--capture", str(tmp_path / "not_a_capture")], capture_output=True, text=True, timeout=300)
     assert folder.returncode != 0 and "capture.json: file not found" in folder.stderr
+
+
+def test_the_parts_fit_in_one_device_call():
+    """Every part may run to its limit (and 10 s to be killed) and the page must still be written within the device
+    tool's 600 s call: the limits' sum, which the script's header states, leaves time for unpacking and the page."""
+    import re
+
+    script = (REPO / "scripts" / "gpu_check.sh").read_text()
+    limits = [int(limit) for limit in re.findall(r"^part \w+ (\d+) ", script, flags=re.M)]
+    assert len(limits) >= 4 and sum(limits) + 10 * len(limits) <= 560
+    assert f"the parts' own limits add up to {sum(limits)} s" in script
