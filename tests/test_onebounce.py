@@ -34,7 +34,7 @@ def bsdf_xml(kind: str) -> str:
     )
 
 
-def make_scene(tmp_path, kind: str, leds: list[int], intensity: float = 3.0, camera: int = 1):
+def make_scene(tmp_path, kind: str, leds: list[int], intensity: float = 3.0, camera: int = 1, extra_emitters: str = ""):
     import mitsuba as mi
 
     from gra_mi.core.io import write_exr
@@ -47,7 +47,7 @@ def make_scene(tmp_path, kind: str, leds: list[int], intensity: float = 3.0, cam
         for k in leds
     )
     xml = (
-        f'<scene version="3.0.0">{camera_xml(STAGE.cameras[camera], "16")}{emitters}'
+        f'<scene version="3.0.0">{camera_xml(STAGE.cameras[camera], "16")}{emitters}{extra_emitters}'
         f'<shape type="ply" id="subject"><string name="filename" value="{TINY_PLY}"/>{bsdf_xml(kind)}</shape></scene>'
     )
     xml = xml.replace("ALBEDO", str(tmp_path / "albedo.exr")).replace("ROUGH", str(tmp_path / "rough.exr"))
@@ -161,11 +161,16 @@ def test_furnace_uniform_leds_light_a_small_sphere_uniformly(plugins):
     dr.eval()
 
 
-def test_gradients_match_finite_differences(plugins, tmp_path):
+@pytest.mark.parametrize("lights", ["leds", "environment"])
+def test_gradients_match_finite_differences(plugins, tmp_path, lights):
+    """Path Replay Backpropagation through the LED loop, and through the dome an environment becomes."""
     import drjit as dr
     import mitsuba as mi
 
-    scene = make_scene(tmp_path, "gra_microfacet", LEDS)
+    sky = '<emitter type="constant"><rgb name="radiance" value="0.6"/></emitter>'
+    scene = (
+        make_scene(tmp_path, "gra_microfacet", LEDS) if lights == "leds" else make_scene(tmp_path, "gra_microfacet", [], extra_emitters=sky)
+    )
     integrator = mi.load_dict({"type": "gra_onebounce"})
     params = mi.traverse(scene)
     albedo_key, rough_key = "subject.bsdf.albedo.data", "subject.bsdf.roughness.data"
