@@ -1,16 +1,18 @@
-"""A scene's environment emitters (``envmap``, ``constant``) as a dome of far-field lights, for ``gra_onebounce``.
+"""A scene's environment emitters (``envmap``, ``constant``, ``sunsky``) as a dome of far-field lights, for
+``gra_onebounce``.
 
 gra-mi lights with environments the way a lightstage does (paper: envmap → LEDs): the sphere of directions is cut into
-cells and each cell's light arrives as one directional light with one shadow ray. For a Mitsuba
-scene's own environment emitter the cells are the Voronoi cells of a Fibonacci dome of ``count`` directions (about
-4π / count sr each), and each light's irradiance is the emitter's radiance integrated over its cell: evaluated by the
-emitter itself (its ``to_world``, ``scale`` and filtering included) at the pixel centres of a lat-long grid at least
-twice as fine as its bitmap, each weighted by its pixel's exact solid angle; the light comes from the mean direction of
-the cell's light (its first moment), so a sun inside a cell shines from the sun, and a Lambertian surface facing the
-whole cell receives it exactly. The total flux is the emitter's to the grid's precision; what is approximated is the
-spread of light inside a cell: a cell's shadow is hard, a cell holding two lights sends them from one direction, and a
-highlight narrower than a cell is blurred (docs/accuracy.md: the error against Mitsuba's own integrators, and its cost,
-by ``count``).
+cells and each cell's light arrives as one directional light with one shadow ray. For a Mitsuba scene's own
+environment emitter the cells are the Voronoi cells of a Fibonacci dome of ``count`` directions (about 4π / count sr
+each), and each light's irradiance is the emitter's radiance integrated over its cell. A bitmap or a constant is
+evaluated by the emitter itself (its ``to_world``, ``scale`` and filtering included) at the pixel centres of a
+lat-long grid at least twice as fine as its bitmap, each weighted by its pixel's exact solid angle; a sky whose sun is
+smaller than any grid's pixel (``sunsky``) is integrated through the emitter's own importance sampling, which finds
+the sun. The light comes from the mean direction of the cell's light (its first moment), so a sun inside a cell
+shines from the sun, and a Lambertian surface facing the whole cell receives it exactly. The flux is the emitter's
+(to the grid's precision, or the samples'); what is approximated is the spread of light inside a cell: a cell's
+shadow is hard, a cell holding two lights sends them from one direction, and a highlight narrower than a cell is
+blurred (docs/accuracy.md: the error against Mitsuba's own integrators, and its cost, by ``count``).
 """
 
 from __future__ import annotations
@@ -25,6 +27,8 @@ from gra_mi.stage.lightstage import fibonacci_sphere
 DEFAULT_LIGHTS = 1024  # ~6° cells: diffuse light within a per cent of Mitsuba's integrators (docs/accuracy.md)
 LIGHTS_RANGE = (16, 16384)
 MIN_ROWS, MAX_ROWS = 64, 1024  # the integration grid: twice the bitmap's rows, within these
+GRIDDED = ("EnvironmentMapEmitter", "ConstantBackgroundEmitter")  # Mitsuba's classes of envmap and constant
+SAMPLED_SIDE = 1024  # the others: 1024² stratified samples of their own sampling (a sky's cell within a few per cent)
 
 
 @lru_cache(maxsize=4)
@@ -59,13 +63,33 @@ def cell_light(emitter, count: int = DEFAULT_LIGHTS) -> tuple[np.ndarray, np.nda
     """What an environment emitter sends through each cell of the dome of ``count`` lights (the Voronoi cells of
     ``fibonacci_sphere(count)``): (count, 3) the irradiance, its radiance integrated over the cell, and (count, 3) the
     first moment of its light over directions (Σ (R + G + B) · solid angle · direction), which places the cell's
-    light."""
-    rows = grid_rows(emitter)
-    _, grid, cell = dome_cells(rows, count)
-    weight = np.broadcast_to(pixel_solid_angles(rows, 2 * rows), (rows, 2 * rows)).reshape(-1, 1)
-    light = radiance_along(emitter, grid) * weight
-    moment = light.sum(axis=1, keepdims=True) * grid  # the channels' sum weighs where the light is
+    light. A bitmap or a constant is integrated on a grid; an emitter with a light too small for any grid (``sunsky``'s
+    half-degree sun) through its own importance sampling."""
+    if emitter.class_name() in GRIDDED:
+        rows = grid_rows(emitter)
+        _, directions, cell = dome_cells(rows, count)
+        weight = np.broadcast_to(pixel_solid_angles(rows, 2 * rows), (rows, 2 * rows)).reshape(-1, 1)
+        light = radiance_along(emitter, directions) * weight
+    else:
+        directions, light = sampled_light(emitter)
+        cell = nearest_led(directions.astype(np.float32), fibonacci_sphere(count).astype(np.float32))
+    moment = light.sum(axis=1, keepdims=True) * directions  # the channels' sum weighs where the light is
     return tuple(np.stack([np.bincount(cell, weights=a[:, c], minlength=count) for c in range(3)], axis=1) for a in (light, moment))
+
+
+def sampled_light(emitter) -> tuple[np.ndarray, np.ndarray]:
+    """(directions (N, 3), each one's share of the emitter's light (N, 3)) from the emitter's own ``sample_direction``
+    on a stratified grid of SAMPLED_SIDE² points: radiance over density, over N, so that the shares of any set of
+    directions estimate the light it holds (the same every render: no random numbers)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    side = (np.arange(SAMPLED_SIDE, dtype=np.float32) + 0.5) / SAMPLED_SIDE
+    u, v = np.meshgrid(side, side)
+    n = u.size
+    ds, weight = emitter.sample_direction(dr.zeros(mi.Interaction3f, n), mi.Point2f(u.ravel(), v.ravel()), True)
+    directions = np.array(ds.d, dtype=np.float64).T.reshape(-1, 3)
+    return directions, np.array(weight, dtype=np.float64).T.reshape(-1, 3) / n
 
 
 def light_directions(moments: np.ndarray) -> np.ndarray:

@@ -2,11 +2,10 @@
 
 A light that reaches a point from one position or one direction (a *delta* light: ``point``, ``spot``,
 ``projector``, ``directional``) is computed exactly with one shadow ray: its emitter's own ``sample_direction`` gives
-the incident radiance. An environment (``envmap``, ``constant``) is computed as a lightstage computes one: a dome of
-far-field lights, each carrying its cell of the sphere (:mod:`gra_mi.render.dome`). Lights spread over a surface
-(``area``, ``directionalarea``) or too sharp for a dome's cells (``sunsky``: a sun half a degree wide) need many
-samples; rather than render them black or blurred, gra-mi refuses the scene when it is loaded, naming the emitter and
-what to use instead.
+the incident radiance. An environment (``envmap``, ``constant``, ``sunsky``) is computed as a lightstage computes
+one: a dome of far-field lights, each carrying its cell of the sphere (:mod:`gra_mi.render.dome`). Lights spread over
+a surface (``area``, ``directionalarea``) need many samples; rather than render them black, gra-mi refuses the scene
+when it is loaded, naming the emitter and what to use instead.
 """
 
 from __future__ import annotations
@@ -31,15 +30,12 @@ PLUGIN_NAMES = {
     "DirectionalArea": "directionalarea",
 }
 EXACT = ("point", "spot", "projector", "directional")
-DOME = ("envmap", "constant")  # environments integrated onto a dome of far-field lights
-ENVIRONMENTS = ("envmap", "constant", "sunsky")
+DOME = ("envmap", "constant", "sunsky")  # environments integrated onto a dome of far-field lights
 OTHER_INTEGRATORS = "Mitsuba's own integrators (`gra-mi render SCENE --integrator direct` or `path`)"
 ADVICE = {
     "area": f"an area light needs its surface sampled: render this scene with {OTHER_INTEGRATORS}, or stand point or spot "
     "emitters in for it",
     "directionalarea": f"a directional area light needs its surface sampled: render this scene with {OTHER_INTEGRATORS}",
-    "environment": "a sun half a degree wide is sharper than a dome of lights can carry: render this scene with "
-    f"{OTHER_INTEGRATORS}, or give the sky as an `envmap` (gra_onebounce integrates one onto a dome of lights)",
 }
 
 
@@ -147,8 +143,6 @@ def _environment(emitter, label: str, count: int, source: str | None) -> tuple[n
 
 
 def _advice(kind: str) -> str:
-    if kind in ENVIRONMENTS:
-        return ADVICE["environment"]
     return ADVICE.get(kind, f"gra-mi cannot compute it: use {OTHER_INTEGRATORS}")
 
 

@@ -398,7 +398,7 @@ class RenderConfig:
     """Camera index or name."""
     integrator: str | None = field(default=None, metadata=option(choices=INTEGRATORS))
     """direct or path (Mitsuba's), or gra_onebounce (gra-mi's one bounce: exact for point, spot and directional
-    lights, envmap and constant environments through a dome of 1024 lights, area lights and sunsky refused by name).
+    lights, envmap, constant and sunsky environments through a dome of 1024 lights, area lights refused by name).
     Default: the scene's own (a gra-mi lightstage scene's: direct)."""
     spp: int | None = None
     """Samples per pixel. Default: the scene's own sampler's (a lightstage scene's -Dspp; the low-discrepancy

@@ -18,8 +18,8 @@ about Microfacet Rendering").
      - Camera rays that escape see nothing instead of the environment (as in Mitsuba's integrators). Default: false.
    * - ``dome_lights``
      - integer
-     - How many far-field lights carry the scene's environment emitters (``envmap``, ``constant``), each the light
-       of its cell of the sphere (:mod:`gra_mi.render.dome`). Default: 1024.
+     - How many far-field lights carry the scene's environment emitters (``envmap``, ``constant``, ``sunsky``),
+       each the light of its cell of the sphere (:mod:`gra_mi.render.dome`). Default: 1024.
 
 At each camera hit the integrator sums over the scene's delta lights:
 
@@ -27,15 +27,15 @@ At each camera hit the integrator sums over the scene's delta lights:
 
 with one shadow ray per light and E_k the light's incident irradiance-like weight (``point``: I/d², the LEDs, in
 near field by default; ``spot`` and ``projector``: I·falloff/d²; ``directional``: its irradiance), as the emitter's
-own ``sample_direction`` gives it; environments (``envmap``, ``constant``) arrive through a dome of far-field lights,
-each with the irradiance of its cell, one shadow ray each, like a lightstage's LEDs. Point emitters (a lightstage has hundreds) are read from the scene once per
-render into arrays and evaluated in one symbolic Dr.Jit loop, not one virtual call per emitter; the other delta
-lights follow in a second loop that calls each emitter. Point lights that are off are dropped before the loop; lights
-below the shading point's horizon (shading or geometric normal) trace nothing; dark cells of the dome are dropped.
-Emitters that need sampling (``area``, ``directionalarea``, ``sunsky``, ...) are refused by name when a render
-starts (:mod:`gra_mi.render.scene_lights`), as is a scene without light. Derivatives with respect to BSDF parameters
-(``gra_microfacet`` textures) follow Path Replay Backpropagation: the loops are replayed in the adjoint pass with
-gradients enabled around the BSDF evaluation only.
+own ``sample_direction`` gives it; environments (``envmap``, ``constant``, ``sunsky``) arrive through a dome of
+far-field lights, each with the irradiance of its cell, one shadow ray each, like a lightstage's LEDs. Point emitters
+(a lightstage has hundreds) are read from the scene once per render into arrays and evaluated in one symbolic Dr.Jit
+loop, not one virtual call per emitter; the other delta lights follow in a second loop that calls each emitter. Point
+lights that are off are dropped before the loop; lights below the shading point's horizon (shading or geometric
+normal) trace nothing; dark cells of the dome are dropped. Emitters spread over a surface (``area``,
+``directionalarea``) are refused by name when a render starts (:mod:`gra_mi.render.scene_lights`), as is a scene
+without light. Derivatives with respect to BSDF parameters (``gra_microfacet`` textures) follow Path Replay
+Backpropagation: the loops are replayed in the adjoint pass with gradients enabled around the BSDF evaluation only.
 """
 
 from __future__ import annotations
