@@ -386,6 +386,8 @@ def test_render_cli_renders_a_plain_scene_as_mitsuba_does(plugins, tmp_path):
             ["plain.xml", "on shape 'softbox'", "type 'area'"],
         ),
         ([], '<shape type="cube"><bsdf type="nonexistent_bsdf"/></shape>', ["plain.xml", "Mitsuba could not load the scene"]),
+        (["--dome-lights", "512"], "", ["dome-lights", "applies to --integrator gra_onebounce"]),
+        (["--integrator", "gra_onebounce", "--dome-lights", "4"], "", ["dome-lights", "expected an integer in [16, 16384], got 4"]),
     ],
 )
 def test_render_cli_bad_input_on_plain_scenes(tmp_path, args, extra, said):
@@ -396,6 +398,25 @@ def test_render_cli_bad_input_on_plain_scenes(tmp_path, args, extra, said):
     assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr
     for words in said:
         assert words in out.stderr, (words, out.stderr)
+
+
+def test_render_cli_lights_a_plain_scene_s_sky_through_a_dome_of_the_size_asked(plugins, tmp_path):
+    from gra_mi.core.io import read_exr
+
+    from .test_cli import run_cli
+
+    sky = '<emitter type="constant"><rgb name="radiance" value="0.5"/></emitter>'
+    (tmp_path / "plain.xml").write_text(PLAIN_SCENE.replace("EXTRA", sky))
+    for lights in ("64", "2048"):
+        args = ["--integrator", "gra_onebounce", "--dome-lights", lights, "--sensor", "front", "--spp", "4"]
+        out = run_cli("render", str(tmp_path / "plain.xml"), *args, "--out", str(tmp_path / lights))
+        assert out.returncode == 0, out.stderr
+    coarse, fine = (read_exr(tmp_path / lights / "front.exr") for lights in ("64", "2048"))
+    assert coarse.max() > 0 and abs(coarse[..., :3].mean() / fine[..., :3].mean() - 1) < 0.02, "the same light"
+    assert not np.array_equal(coarse, fine), "the dome's size was used"
+    lightstage = ["render", str(SCENES / "tiny_lightstage.xml"), "--olat", "3", "--integrator", "gra_onebounce", "--dome-lights", "64"]
+    refused = run_cli(*lightstage, "--out", str(tmp_path / "stage"))
+    assert refused.returncode == 2 and "not --sensor, -D or --dome-lights (its LEDs carry an --envmap)" in refused.stderr
 
 
 def test_relight_says_which_lightstage_parts_a_plain_scene_lacks(tmp_path):

@@ -152,6 +152,12 @@ class RenderCommand(CommandConfig):
         if len(given) > 1:
             raise GraMiInputError("lighting", f"give at most one of --envmap, --olat or --pattern (got {len(given)})")
         parse_defines(self.define)
+        if self.render.dome_lights is not None:
+            from gra_mi.render.dome import LIGHTS_RANGE
+
+            low, high = LIGHTS_RANGE
+            if not low <= self.render.dome_lights <= high:
+                raise GraMiParameterError("dome-lights", f"expected an integer in [{low}, {high}], got {self.render.dome_lights}")
         super().validate()
 
 
@@ -159,8 +165,11 @@ def run_render(c: RenderCommand) -> None:
     if not is_lightstage_scene(c.scene):
         _render_plain_scene(c)
         return
-    if c.sensor or c.define:
-        raise GraMiInputError(c.scene, "a lightstage scene takes --camera, --frame and --spp, not --sensor or -D")
+    if c.sensor or c.define or c.render.dome_lights is not None:
+        raise GraMiInputError(
+            c.scene, "a lightstage scene takes --camera, --frame and --spp, not --sensor, -D or --dome-lights (its LEDs carry "
+            "an --envmap)"
+        )  # fmt: skip
     if c.envmap is not None:
         light, envmap, drive = c.envmap.stem, c.envmaps.load(c.envmap), None
     elif c.olat is not None:
@@ -184,7 +193,7 @@ def _render_plain_scene(c: RenderCommand) -> None:
         )  # fmt: skip
     renders = render_scene_file(
         c.scene, c.out, sensors=c.sensor, integrator=c.render.integrator, spp=c.render.spp, seed=c.render.seed,
-        defines=parse_defines(c.define),
+        defines=parse_defines(c.define), dome_lights=c.render.dome_lights,
     )  # fmt: skip
     for r in renders:
         print(f"wrote {r.path} ({r.image.shape[1]}x{r.image.shape[0]})")

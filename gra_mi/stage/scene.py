@@ -354,8 +354,9 @@ class LightstageScene:
 INTEGRATORS = ("direct", "path", "gra_onebounce")
 
 
-def make_integrator(name: str | None, max_depth: int = 8):
-    """None: the scene's own integrator; otherwise Mitsuba's ``direct`` or ``path``, or gra-mi's ``gra_onebounce``.
+def make_integrator(name: str | None, max_depth: int = 8, dome_lights: int | None = None):
+    """None: the scene's own integrator; otherwise Mitsuba's ``direct`` or ``path``, or gra-mi's ``gra_onebounce``
+    (with ``dome_lights`` lights for the scene's environment, or its default).
 
     ``direct`` uses one emitter sample per pass (Mitsuba 3 #1861: more than one is too bright with point lights);
     use more spp instead.
@@ -369,7 +370,7 @@ def make_integrator(name: str | None, max_depth: int = 8):
     if name == "path":
         return mi.load_dict({"type": "path", "max_depth": max_depth})
     if name == "gra_onebounce":
-        return mi.load_dict({"type": "gra_onebounce"})
+        return mi.load_dict({"type": "gra_onebounce"} | ({} if dome_lights is None else {"dome_lights": dome_lights}))
     raise GraMiParameterError("integrator", f"unknown integrator '{name}', expected one of {', '.join(INTEGRATORS)}")
 
 
@@ -405,6 +406,9 @@ class RenderConfig:
     sampler rounds up to a power of 4)."""
     seed: int = 0
     """Sampler seed."""
+    dome_lights: int | None = None
+    """With --integrator gra_onebounce on a plain scene: how many far-field lights carry its environment emitter
+    (envmap, constant, sunsky), each the light of its cell of the sphere (16 to 16384). Default: 1024."""
     background: bool = False
     """Also write a preview composited over the envmap's background plate."""
 
@@ -413,6 +417,11 @@ class RenderConfig:
             raise GraMiParameterError("spp", f"must be >= 1, got {self.spp}")
         if self.integrator is not None and self.integrator not in INTEGRATORS:
             raise GraMiParameterError("integrator", f"expected one of {', '.join(INTEGRATORS)}, got {self.integrator!r}")
+        if self.dome_lights is not None and self.integrator != "gra_onebounce":
+            raise GraMiParameterError(
+                "dome-lights", "applies to --integrator gra_onebounce (a scene's own gra_onebounce sets it as "
+                '<integer name="dome_lights" value="..."/>)'
+            )  # fmt: skip
         require_seed(self.seed)
 
 
