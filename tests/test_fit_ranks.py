@@ -116,3 +116,13 @@ def test_the_reductions_across_two_processes():
         assert said[rank]["merged"] == {"view 0": 0, "view 1": 1}
         assert said[rank]["from_main"] == [10.0, 10.0]
         assert "process 0: 0, process 1: 1" in said[rank]["refused"] and "share the output folder" in said[rank]["refused"]
+
+
+def test_a_launcher_variable_that_is_not_a_number_is_named(monkeypatch):
+    from gra_mi.fit.ranks import FitRanks
+
+    monkeypatch.setenv("WORLD_SIZE", "two")
+    with pytest.raises(GraMiInputError, match="WORLD_SIZE: expected an integer, got 'two'"):
+        FitRanks.from_launcher()
+    monkeypatch.setenv("WORLD_SIZE", "1")
+    assert FitRanks.from_launcher().single

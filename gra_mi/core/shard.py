@@ -69,7 +69,8 @@ def parse_shard(text: str) -> Shard:
     return Shard(int(match.group(1)), int(match.group(2)))
 
 
-def _int_variable(env, name: str) -> int:
+def int_variable(env, name: str) -> int:
+    """A launcher's integer variable; one that is not an integer names itself."""
     try:
         return int(env[name])
     except ValueError:
@@ -87,8 +88,8 @@ def shard_from_environment(env=None) -> Shard | None:
             continue
         if count_name not in env:
             raise GraMiInputError(f"${index_name}", f"is set but ${count_name} is not: a launcher gives both (or pass --shard I/N)")
-        first = _int_variable(env, first_name) if first_name and first_name in env else 0
-        index, count = _int_variable(env, index_name) - first, _int_variable(env, count_name)
+        first = int_variable(env, first_name) if first_name and first_name in env else 0
+        index, count = int_variable(env, index_name) - first, int_variable(env, count_name)
         if not (count >= 1 and 0 <= index < count):
             raise GraMiInputError(f"${index_name}", f"{index_name}={env[index_name]} is not a shard of {count_name}={count}")
         return Shard(index, count)

@@ -21,6 +21,7 @@ from datetime import timedelta
 import numpy as np
 
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
+from gra_mi.core.shard import int_variable
 
 WAIT = timedelta(hours=12)
 """How long a process waits at a sum for the others (shares of frames differ in cost; a process that fails stops the
@@ -36,7 +37,7 @@ class FitRanks:
     @classmethod
     def from_launcher(cls) -> FitRanks:
         """The processes torchrun started (``WORLD_SIZE`` > 1: joins the process group), else one."""
-        if int(os.environ.get("WORLD_SIZE", "1")) <= 1:
+        if "WORLD_SIZE" not in os.environ or int_variable(os.environ, "WORLD_SIZE") <= 1:
             return cls()
         import torch.distributed as dist
 
