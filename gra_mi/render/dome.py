@@ -32,12 +32,11 @@ SAMPLED_SIDE = 1024  # the others: 1024² stratified samples of their own sampli
 
 
 @lru_cache(maxsize=4)
-def dome_cells(rows: int, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(the dome's directions (count, 3), the grid's directions (rows · 2 rows, 3), the dome cell of each grid pixel):
-    the same for every render of a scene, so kept (the assignment is the costly part)."""
-    dome = fibonacci_sphere(count)
+def dome_cells(rows: int, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """(the grid's directions (rows · 2 rows, 3), the cell of the dome of ``count`` each falls in): the same for every
+    render of a scene, so kept (the assignment is the costly part; callers only read them)."""
     grid = pixel_directions(rows, 2 * rows).reshape(-1, 3)
-    return dome, grid, nearest_led(grid.astype(np.float32), dome.astype(np.float32))
+    return grid, nearest_led(grid.astype(np.float32), fibonacci_sphere(count).astype(np.float32))
 
 
 def grid_rows(emitter) -> int:
@@ -67,7 +66,7 @@ def cell_light(emitter, count: int = DEFAULT_LIGHTS) -> tuple[np.ndarray, np.nda
     half-degree sun) through its own importance sampling."""
     if emitter.class_name() in GRIDDED:
         rows = grid_rows(emitter)
-        _, directions, cell = dome_cells(rows, count)
+        directions, cell = dome_cells(rows, count)
         weight = np.broadcast_to(pixel_solid_angles(rows, 2 * rows), (rows, 2 * rows)).reshape(-1, 1)
         light = radiance_along(emitter, directions) * weight
     else:
