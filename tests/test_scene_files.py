@@ -244,6 +244,27 @@ def test_an_environment_with_bad_pixels_is_refused_by_name(plugins, bad):
         scene_lights(scene, "sky.xml")
 
 
+def test_sampled_light_finds_its_cell_through_the_grid():
+    """A sample's cell is its grid pixel's (cached, fast), which is its nearest dome direction's except within a pixel
+    of a cell's border, where the two centres are equally near to within the pixel's size."""
+    from gra_mi.render.dome import LOOKUP_ROWS, dome_cells, grid_index
+    from gra_mi.stage.envmap import nearest_led
+    from gra_mi.stage.lightstage import fibonacci_sphere
+
+    rng = np.random.default_rng(0)
+    directions = rng.normal(size=(100_000, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    centres = fibonacci_sphere(1024)
+    looked_up = dome_cells(LOOKUP_ROWS, 1024)[1][grid_index(directions, LOOKUP_ROWS)]
+    nearest = nearest_led(directions, centres)
+    assert (looked_up == nearest).mean() > 0.95
+    moved = looked_up != nearest
+    angle = np.degrees(
+        np.arccos(np.clip(np.stack([np.sum(directions[moved] * centres[c[moved]], axis=1) for c in (looked_up, nearest)]), -1, 1))
+    )
+    assert np.all(angle[0] - angle[1] < 2 * 180 / (LOOKUP_ROWS - 1)), "only a border's sliver moves"
+
+
 SUNSKY_CHECK = """
 import numpy as np, mitsuba as mi
 mi.set_variant("llvm_ad_rgb")

@@ -21,7 +21,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from gra_mi.stage.envmap import nearest_led, pixel_directions, pixel_solid_angles
+from gra_mi.stage.envmap import direction_to_uv, nearest_led, pixel_directions, pixel_solid_angles
 from gra_mi.stage.lightstage import fibonacci_sphere
 
 DEFAULT_LIGHTS = 1024  # ~6° cells: diffuse light within a per cent of Mitsuba's integrators (docs/accuracy.md)
@@ -29,6 +29,7 @@ LIGHTS_RANGE = (16, 16384)
 MIN_ROWS, MAX_ROWS = 64, 1024  # the integration grid: twice the bitmap's rows, within these
 GRIDDED = ("EnvironmentMapEmitter", "ConstantBackgroundEmitter")  # Mitsuba's classes of envmap and constant
 SAMPLED_SIDE = 1024  # the others: 1024² stratified samples of their own sampling (a sky's cell within a few per cent)
+LOOKUP_ROWS = 512  # their samples find their cell through this grid's (0.35° pixels: only a border's sliver moves)
 
 
 @lru_cache(maxsize=4)
@@ -37,6 +38,14 @@ def dome_cells(rows: int, count: int) -> tuple[np.ndarray, np.ndarray]:
     render of a scene, so kept (the assignment is the costly part; callers only read them)."""
     grid = pixel_directions(rows, 2 * rows).reshape(-1, 3)
     return grid, nearest_led(grid.astype(np.float32), fibonacci_sphere(count).astype(np.float32))
+
+
+def grid_index(directions: np.ndarray, rows: int) -> np.ndarray:
+    """The pixel of the (rows, 2 rows) grid (:func:`dome_cells`' order) nearest each direction (N, 3)."""
+    u, v = direction_to_uv(directions)
+    row = np.clip(np.rint(v * (rows - 1)), 0, rows - 1).astype(np.int64)
+    col = np.clip(np.floor(u * 2 * rows), 0, 2 * rows - 1).astype(np.int64)
+    return row * 2 * rows + col
 
 
 def grid_rows(emitter) -> int:
@@ -71,7 +80,7 @@ def cell_light(emitter, count: int = DEFAULT_LIGHTS) -> tuple[np.ndarray, np.nda
         light = radiance_along(emitter, directions) * weight
     else:
         directions, light = sampled_light(emitter)
-        cell = nearest_led(directions.astype(np.float32), fibonacci_sphere(count).astype(np.float32))
+        cell = dome_cells(LOOKUP_ROWS, count)[1][grid_index(directions, LOOKUP_ROWS)]
     moment = light.sum(axis=1, keepdims=True) * directions  # the channels' sum weighs where the light is
     return tuple(np.stack([np.bincount(cell, weights=a[:, c], minlength=count) for c in range(3)], axis=1) for a in (light, moment))
 
