@@ -102,6 +102,7 @@ def _ranks_worker(rank: int, port: int, results) -> None:
         ranks.agree(rank, "where to resume")
     except GraMiInputError as exc:
         said["refused"] = str(exc)
+    ranks.close()
     results.put((rank, said))
 
 

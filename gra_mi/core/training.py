@@ -36,6 +36,18 @@ def init_distributed() -> tuple[int, int]:
     return rank, world
 
 
+def leave_distributed(*groups) -> None:
+    """Once every process is here, leave ``groups`` and the ``torchrun`` process group (nothing outside torchrun): a
+    process that exits holding gloo's connections can abort at interpreter exit ("terminate called without an active
+    exception") while another process still reads them."""
+    if not torch.distributed.is_initialized():
+        return
+    torch.distributed.barrier()
+    for group in groups:
+        torch.distributed.destroy_process_group(group)
+    torch.distributed.destroy_process_group()
+
+
 def write_training_log(out: Path, header: list[str], rows: list, title: str, ylabel: str) -> None:
     """``train_log.csv`` (columns ``header``) and ``loss.png`` (column 2 against column 1, log scale)."""
 
@@ -166,8 +178,8 @@ class TrainingLoop:
             torch.save({**self._state_of(), "step": step, "log": self.log_rows, "divergence": self.divergence}, tmp)
 
     def finish(self) -> bool:
-        """Last checkpoint, then a barrier; True on the process that writes the outputs (rank 0)."""
+        """Last checkpoint, then every process leaves the process group; True on the process that writes the outputs
+        (rank 0)."""
         self.save_checkpoint(self.total_steps)
-        if self.world > 1:
-            torch.distributed.barrier()
+        leave_distributed()
         return self.rank == 0

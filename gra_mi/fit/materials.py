@@ -572,7 +572,7 @@ def run_fit(capture_dir: str | Path, out: str | Path, config: FitConfig, overwri
     """Fit ``config``'s maps to a capture into ``out`` (resumes a run of the same capture and config there; a folder
     made by another refuses, or with ``overwrite`` starts over); returns the result and the report's path. Under
     torchrun, the processes fit together (:mod:`gra_mi.fit.ranks`): rank 0 claims the folder and writes the outputs
-    (the others return None for the report, without waiting for it)."""
+    (the others return None for the report once every process has fitted, without waiting for it)."""
 
     config.validate()
     capture = Capture.load(capture_dir)
@@ -587,4 +587,5 @@ def run_fit(capture_dir: str | Path, out: str | Path, config: FitConfig, overwri
     else:
         fitter = make_fitter(capture, config, cache_dir=out / "cache")
         result = fitter.fit(out)
+    ranks.close()  # the outputs are rank 0's alone
     return result, write_fit_outputs(fitter, result, out, config) if ranks.main else None  # levels included

@@ -121,3 +121,11 @@ class FitRanks:
             import torch.distributed as dist
 
             dist.barrier(group=self.group)
+
+    def close(self) -> None:
+        """Leave the fit's group and the process group once every process is here (before rank 0 writes the outputs
+        alone)."""
+        if not self.single:
+            from gra_mi.core.training import leave_distributed
+
+            leave_distributed(self.group)
