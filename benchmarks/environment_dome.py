@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gra_mi.apps.harness import BenchmarkRun, run_benchmark, table_page, timed
+from gra_mi.apps.harness import RENDER_COLUMNS, BenchmarkRun, integrator_rows, run_benchmark, table_page
 
 TINY_BODY = Path(__file__).resolve().parents[1] / "scenes" / "subjects" / "tiny" / "frames" / "frame_0000.ply"
 DOMES = ((256, 4), (1024, 1), (1024, 4), (1024, 64), (4096, 4))  # (lights, samples per pixel: anti-aliasing only)
@@ -42,48 +42,20 @@ def direct(spp_samples: int = 4):
     return mi.load_dict({"type": "direct", "emitter_samples": spp_samples, "bsdf_samples": spp_samples})
 
 
-def row_error(image: np.ndarray, truth: np.ndarray) -> tuple[str, str]:
-    """(mean relative error, bias of the mean) over the covered pixels, as the table prints them."""
-    from gra_mi.render.near_field_cases import mean_relative_error
-
-    covered = truth[..., 3] > 0.999
-    error = mean_relative_error(image, truth, floor=0.05 * float(np.percentile(truth[..., :3][covered], 95)))
-    bias = image[..., :3][covered].mean() / truth[..., :3][covered].mean() - 1
-    return f"{100 * error:.2f} %", f"{100 * bias:+.2f} %"
-
-
-def row(label: str, scene, integrator, spp: int, truth: np.ndarray) -> tuple:
-    import mitsuba as mi
-
-    np.array(mi.render(scene, integrator=integrator, spp=spp))  # compile first
-    times = [timed(lambda: np.array(mi.render(scene, integrator=integrator, spp=spp, seed=11)))[0] for _ in range(3)]
-    image = np.array(mi.render(scene, integrator=integrator, spp=spp, seed=11))
-    return (label, f"{1000 * float(np.median(times)):.0f}", *row_error(image, truth))
-
-
 def measure(run: BenchmarkRun) -> str:
     import mitsuba as mi
 
-    rows = []
-    for name in MAPS:
-        scene = scene_under(name)
-        truth = np.array(mi.render(scene, integrator=direct(), spp=run.args.truth_spp, seed=1))
-        for count, spp in DOMES:
-            integrator = mi.load_dict({"type": "gra_onebounce", "dome_lights": count})
-            rows.append((name, *row(f"gra_onebounce, dome of {count}, {spp} spp", scene, integrator, spp, truth)))
-        for spp in DIRECT_SPP:
-            rows.append((name, *row(f"direct, {spp} × (4 + 4) samples", scene, direct(), spp, truth)))
-        again = np.array(mi.render(scene, integrator=direct(), spp=run.args.truth_spp, seed=2))
-        rows.append((name, "the truth again, another seed (its own noise)", "–", *row_error(again, truth)))
+    domes = [(f"gra_onebounce, dome of {n}, {spp} spp", mi.load_dict({"type": "gra_onebounce", "dome_lights": n}), spp) for n, spp in DOMES]
+    passes = [(f"direct, {spp} × (4 + 4) samples", direct(), spp) for spp in DIRECT_SPP]
+    rows = integrator_rows({name: scene_under(name) for name in MAPS}, direct(), run.args.truth_spp, domes + passes)
     notes = [
         f"The truth: `direct` at {run.args.truth_spp} passes of 4 emitter + 4 BSDF samples (its own noise is in the "
         "error of every row, a few tenths of a per cent). gra_onebounce's samples per pixel only anti-alias; its error "
         "is the dome's: each cell's light from one direction (the mean of the cell's light) with one hard shadow, a "
         "highlight narrower than a cell blurred; its flux exact.",
     ]
-    columns = ("map", "integrator", "ms per image", "mean relative error", "bias of the mean")
     return table_page("An environment emitter: a dome of lights against Mitsuba's direct", "environment_dome.py",
-                      run.stamp("tiny subject, 96×128"), rows, notes, columns)  # fmt: skip
+                      run.stamp("tiny subject, 96×128"), rows, notes, ("map", *RENDER_COLUMNS))  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -161,16 +161,21 @@ def test_furnace_uniform_leds_light_a_small_sphere_uniformly(plugins):
     dr.eval()
 
 
-@pytest.mark.parametrize("lights", ["leds", "environment"])
+SOFTBOX = (  # an area light where LED 22 stands, facing the stage centre
+    '<shape type="rectangle"><transform name="to_world"><scale x="0.25" y="0.25"/><lookat origin="{}" target="0, 1, 0" '
+    'up="0, 1, 0"/></transform><emitter type="area"><rgb name="radiance" value="30"/></emitter></shape>'
+).format(", ".join(map(str, STAGE.led_positions[22])))
+EXTRA_LIGHTS = {"leds": "", "environment": '<emitter type="constant"><rgb name="radiance" value="0.6"/></emitter>', "area": SOFTBOX}
+
+
+@pytest.mark.parametrize("lights", sorted(EXTRA_LIGHTS))
 def test_gradients_match_finite_differences(plugins, tmp_path, lights):
-    """Path Replay Backpropagation through the LED loop, and through the dome an environment becomes."""
+    """Path Replay Backpropagation through the LED loop, through the dome an environment becomes, and through an area
+    light's samples (the adjoint pass replays the primal pass's sampler, so it draws the same points)."""
     import drjit as dr
     import mitsuba as mi
 
-    sky = '<emitter type="constant"><rgb name="radiance" value="0.6"/></emitter>'
-    scene = (
-        make_scene(tmp_path, "gra_microfacet", LEDS) if lights == "leds" else make_scene(tmp_path, "gra_microfacet", [], extra_emitters=sky)
-    )
+    scene = make_scene(tmp_path, "gra_microfacet", LEDS if lights == "leds" else [], extra_emitters=EXTRA_LIGHTS[lights])
     integrator = mi.load_dict({"type": "gra_onebounce"})
     params = mi.traverse(scene)
     albedo_key, rough_key = "subject.bsdf.albedo.data", "subject.bsdf.roughness.data"
@@ -196,6 +201,7 @@ def test_gradients_match_finite_differences(plugins, tmp_path, lights):
     albedo_np, rough_np = np.array(dr.detach(albedo)), np.array(dr.detach(rough))
     # The most influential texels (a texel no camera pixel sees has zero gradient and FD).
     for grad, base, is_albedo in ((g_albedo, albedo_np, True), (g_rough, rough_np, False)):
+        assert np.abs(grad).max() > 0.1, "the light reaches texels the loss weighs"
         for idx in np.argsort(np.abs(grad).ravel())[-3:]:
             eps = 1e-2
             plus, minus = base.copy().ravel(), base.copy().ravel()

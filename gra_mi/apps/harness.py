@@ -96,6 +96,50 @@ def side_by_side(calls: dict[str, Callable[[], object]], repeats: int, warmup: b
     return {name: statistics.median(t) for name, t in times.items()}
 
 
+RENDER_COLUMNS = ("integrator", "ms per image", "mean relative error", "bias of the mean")
+"""The columns of :func:`render_row` and :func:`truth_of`'s rows."""
+
+
+def truth_of(scene, integrator, spp: int) -> tuple:
+    """(the truth: ``scene`` at ``spp`` samples, seed 1; the row of its own noise: the same again at seed 2, against it)."""
+    import mitsuba as mi
+    import numpy as np
+
+    from gra_mi.render.near_field_cases import image_error
+
+    truth, again = (np.array(mi.render(scene, integrator=integrator, spp=spp, seed=seed)) for seed in (1, 2))
+    error, bias = image_error(again, truth)
+    return truth, ("the truth again, another seed (its own noise)", "–", f"{100 * error:.2f} %", f"{100 * bias:+.2f} %")
+
+
+def render_row(label: str, scene, integrator, spp: int, truth) -> tuple:
+    """A speed-against-error row for one integrator on ``scene``: (label, ms per image (the median of 3 renders
+    after one that compiles), mean relative error and bias of the mean against ``truth``)."""
+    import mitsuba as mi
+    import numpy as np
+
+    from gra_mi.render.near_field_cases import image_error
+
+    def render():
+        return np.array(mi.render(scene, integrator=integrator, spp=spp, seed=11))
+
+    seconds, image = timed(render, repeats=3, warmup=True)
+    error, bias = image_error(image, truth)
+    return (label, f"{1000 * seconds:.0f}", f"{100 * error:.2f} %", f"{100 * bias:+.2f} %")
+
+
+def integrator_rows(scenes: dict, truth_integrator, truth_spp: int, candidates: list[tuple]) -> list[tuple]:
+    """Speed against error, :data:`RENDER_COLUMNS` after the scene's name: on each of ``scenes`` (name → scene), each
+    candidate (label, integrator, spp) against the truth (``truth_integrator`` at ``truth_spp``), then the truth's
+    own noise."""
+    rows = []
+    for name, scene in scenes.items():
+        truth, noise = truth_of(scene, truth_integrator, truth_spp)
+        rows += [(name, *render_row(label, scene, integrator, spp, truth)) for label, integrator, spp in candidates]
+        rows.append((name, *noise))
+    return rows
+
+
 def table_page(
     title: str, script: str, stamp: str, rows: list[tuple], notes: list[str] = (), columns=("measurement", "value", "note")
 ) -> str:

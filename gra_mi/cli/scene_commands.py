@@ -152,12 +152,10 @@ class RenderCommand(CommandConfig):
         if len(given) > 1:
             raise GraMiInputError("lighting", f"give at most one of --envmap, --olat or --pattern (got {len(given)})")
         parse_defines(self.define)
-        if self.render.dome_lights is not None:
-            from gra_mi.render.dome import LIGHTS_RANGE
+        from gra_mi.render.scene_lights import checked_option
 
-            low, high = LIGHTS_RANGE
-            if not low <= self.render.dome_lights <= high:
-                raise GraMiParameterError("dome-lights", f"expected an integer in [{low}, {high}], got {self.render.dome_lights}")
+        for name, value in self.render.onebounce_options.items():
+            checked_option(name, value, flag=name.replace("_", "-"))
         super().validate()
 
 
@@ -165,10 +163,10 @@ def run_render(c: RenderCommand) -> None:
     if not is_lightstage_scene(c.scene):
         _render_plain_scene(c)
         return
-    if c.sensor or c.define or c.render.dome_lights is not None:
+    if c.sensor or c.define or c.render.onebounce_options:
         raise GraMiInputError(
-            c.scene, "a lightstage scene takes --camera, --frame and --spp, not --sensor, -D or --dome-lights (its LEDs carry "
-            "an --envmap)"
+            c.scene, "a lightstage scene takes --camera, --frame and --spp, not --sensor, -D, --dome-lights or --area-samples "
+            "(its LEDs carry an --envmap)"
         )  # fmt: skip
     if c.envmap is not None:
         light, envmap, drive = c.envmap.stem, c.envmaps.load(c.envmap), None
@@ -193,7 +191,7 @@ def _render_plain_scene(c: RenderCommand) -> None:
         )  # fmt: skip
     renders = render_scene_file(
         c.scene, c.out, sensors=c.sensor, integrator=c.render.integrator, spp=c.render.spp, seed=c.render.seed,
-        defines=parse_defines(c.define), dome_lights=c.render.dome_lights,
+        defines=parse_defines(c.define), onebounce=c.render.onebounce_options,
     )  # fmt: skip
     for r in renders:
         print(f"wrote {r.path} ({r.image.shape[1]}x{r.image.shape[0]})")

@@ -1,7 +1,7 @@
 """Near-field lighting where it is hardest, as Mitsuba scene dictionaries: the tiny subject lit by one emitter placed to
-stress ``gra_onebounce`` (1/d² across a patch, grazing light, a shadow edge, a spot's cone edge), and the metric
-Mitsuba's own tests use. tests/test_scene_files.py checks them against Mitsuba's ``direct``; benchmarks/moving_lights.py
-times them."""
+stress ``gra_onebounce`` (1/d² across a patch, grazing light, a shadow edge, a spot's cone edge), area lights, and the
+metric Mitsuba's own tests use. tests/test_scene_files.py checks them against Mitsuba's ``direct``;
+benchmarks/moving_lights.py and benchmarks/area_lights.py time them."""
 
 from __future__ import annotations
 
@@ -12,9 +12,10 @@ import numpy as np
 SPP = 256
 
 
-def look_at(origin, target):
-    """A camera or light placement, made into a transform when the scene is built (after the variant is chosen)."""
-    return ("look_at", origin, target)
+def look_at(origin, target, scale=(1.0, 1.0, 1.0)):
+    """A camera or light placement (a shape scaled by ``scale`` first), made into a transform when the scene is built
+    (after the variant is chosen)."""
+    return ("look_at", origin, target, scale)
 
 
 def _resolved(value):
@@ -23,7 +24,8 @@ def _resolved(value):
     if isinstance(value, dict):
         return {k: _resolved(v) for k, v in value.items()}
     if isinstance(value, tuple) and value[:1] == ("look_at",):
-        return mi.ScalarTransform4f().look_at(origin=value[1], target=value[2], up=[0, 1, 0])
+        placed = mi.ScalarTransform4f().look_at(origin=value[1], target=value[2], up=[0, 1, 0])
+        return placed @ mi.ScalarTransform4f().scale(list(value[3]))
     return value
 
 
@@ -56,6 +58,18 @@ def spot(origin, target, intensity, cutoff, beam=None):
     }
 
 
+def area(shape: str, origin, target, size, radiance) -> dict:
+    """An ``area`` light on a ``rectangle`` or ``disk`` (half-extents / radius ``size`` in metres) at ``origin``
+    facing ``target``; ``radiance``: a value, or an (H, W, 3) array become a bitmap texture on it."""
+    import mitsuba as mi
+
+    texture = {"type": "rgb", "value": radiance}
+    if isinstance(radiance, np.ndarray):
+        texture = {"type": "bitmap", "bitmap": mi.Bitmap(radiance.astype(np.float32)), "raw": True}
+    scale = (size, size, 1.0) if np.isscalar(size) else (*size, 1.0)
+    return {"type": shape, "to_world": look_at(origin, target, scale), "emitter": {"type": "area", "radiance": texture}}
+
+
 def point(position, intensity):
     return {"type": "point", "position": position, "intensity": {"type": "rgb", "value": intensity}}
 
@@ -77,3 +91,23 @@ HARD_CASES = {
     "spot_cone_edge": {"light": spot([0.0, 1.0, 1.0], [0.12, 1.0, 0.0], 8.0, cutoff=9.0, beam=6.0)},
     "directional": {"light": {"type": "directional", "direction": [-0.5, -0.3, -1.0], "irradiance": {"type": "rgb", "value": 1.5}}},
 }
+
+
+def area_cases() -> dict[str, dict]:
+    """Area lights around the tiny subject: a small softbox beside the head, a textured disk (warm to cool, one corner
+    dark) 30 cm from the chest, a window of 1 m² 1.5 m away at the side (soft shadows of the arms)."""
+    u, v = np.meshgrid(np.linspace(0, 1, 16), np.linspace(0, 1, 8))
+    gradient = np.stack([6 * u + 1, 4 * np.ones_like(u), 6 * (1 - u) + 1], -1) * (1 - 0.9 * (u * v)[..., None])
+    return {
+        "softbox": area("rectangle", [0.6, 1.3, 0.7], [0.1, 1.0, 0.0], (0.15, 0.1), 5.0),
+        "textured_disk": area("disk", [-0.25, 0.95, 0.45], [0.0, 1.0, 0.0], 0.08, gradient),
+        "window": area("rectangle", [1.3, 1.2, 0.8], [0.0, 1.0, 0.0], 0.5, 1.5),
+    }
+
+
+def image_error(image: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
+    """(mean relative error, relative bias of the mean) over the pixels the subject covers in ``truth``, the floor at
+    5 % of the truth's 95th percentile there."""
+    covered = truth[..., 3] > 0.999
+    error = mean_relative_error(image, truth, floor=0.05 * float(np.percentile(truth[..., :3][covered], 95)))
+    return error, float(image[..., :3][covered].mean() / truth[..., :3][covered].mean() - 1)

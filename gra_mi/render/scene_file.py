@@ -117,12 +117,12 @@ def render_scene_file(
     spp: int | None = None,
     seed: int = 0,
     defines: dict[str, str] | None = None,
-    dome_lights: int | None = None,
+    onebounce: dict | None = None,
 ) -> list[SceneRender]:
     """Render the named sensors (all by default) of a scene file into ``out/SENSOR.{exr,png}``.
 
-    ``integrator`` None and ``spp`` None: the scene's own (a scene without an integrator: ``path``); ``dome_lights``:
-    gra_onebounce's (:mod:`gra_mi.render.dome`). With
+    ``integrator`` None and ``spp`` None: the scene's own (a scene without an integrator: ``path``); ``onebounce``:
+    gra_onebounce's sample counts (:data:`gra_mi.render.scene_lights.OPTIONS`). With
     ``gra_onebounce`` the scene's emitters are checked first (:func:`gra_mi.render.scene_lights.scene_lights`): one
     it cannot compute stops the run by name.
     """
@@ -137,7 +137,7 @@ def render_scene_file(
     for index in chosen:  # a film too large for memory is named before a render allocates it
         width, height = scene.sensors()[index].film().size()
         require_memory_for(path, f"sensor {index} film", float(width) * height * FILM_BYTES_PER_PIXEL, f"a {width} × {height} film")
-    chosen_integrator = make_integrator(integrator, dome_lights=dome_lights)
+    chosen_integrator = make_integrator(integrator, onebounce=onebounce)
     if chosen_integrator is None and scene.integrator() is None:
         logger.info("%s has no <integrator>: rendering with Mitsuba's path tracer (--integrator chooses another)", path)
         chosen_integrator = make_integrator("path")

@@ -3,9 +3,11 @@
 A light that reaches a point from one position or one direction (a *delta* light: ``point``, ``spot``,
 ``projector``, ``directional``) is computed exactly with one shadow ray: its emitter's own ``sample_direction`` gives
 the incident radiance. An environment (``envmap``, ``constant``, ``sunsky``) is computed as a lightstage computes
-one: a dome of far-field lights, each carrying its cell of the sphere (:mod:`gra_mi.render.dome`). Lights spread over
-a surface (``area``, ``directionalarea``) need many samples; rather than render them black, gra-mi refuses the scene
-when it is loaded, naming the emitter and what to use instead.
+one: a dome of far-field lights, each carrying its cell of the sphere (:mod:`gra_mi.render.dome`). An ``area`` light
+is sampled on its surface, ``area_samples`` points per pixel sample, as Mitsuba's ``direct`` samples it (noise that
+falls with samples, no bias). A ``directionalarea`` light cannot be reached from a point (its light leaves its
+surface in one direction); rather than render it black, gra-mi refuses the scene when it is loaded, naming the emitter
+and what to use instead.
 """
 
 from __future__ import annotations
@@ -14,8 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gra_mi.core.errors import GraMiInputError
-from gra_mi.render.dome import DEFAULT_LIGHTS, cell_light, light_directions
+from gra_mi.core.errors import GraMiInputError, GraMiParameterError
+from gra_mi.render.dome import DEFAULT_LIGHTS, LIGHTS_RANGE, cell_light, light_directions
 
 # Mitsuba class name → the plugin name a scene file uses.
 PLUGIN_NAMES = {
@@ -31,12 +33,24 @@ PLUGIN_NAMES = {
 }
 EXACT = ("point", "spot", "projector", "directional")
 DOME = ("envmap", "constant", "sunsky")  # environments integrated onto a dome of far-field lights
+SAMPLED = ("area",)  # sampled on their surface
 OTHER_INTEGRATORS = "Mitsuba's own integrators (`gra-mi render SCENE --integrator direct` or `path`)"
-ADVICE = {
-    "area": f"an area light needs its surface sampled: render this scene with {OTHER_INTEGRATORS}, or stand point or spot "
-    "emitters in for it",
-    "directionalarea": f"a directional area light needs its surface sampled: render this scene with {OTHER_INTEGRATORS}",
+ADVICE = {  # Mitsuba's direct and path render a directionalarea light black, as gra_onebounce would
+    "directionalarea": "its light leaves its surface in one direction, so no shading point can sample it and only a light "
+    'tracer reaches it: give the scene <integrator type="ptracer"/> and render it with its own integrator, or stand a '
+    "directional emitter in for it",
 }
+DEFAULT_AREA_SAMPLES = 16
+OPTIONS = {"dome_lights": (LIGHTS_RANGE, DEFAULT_LIGHTS), "area_samples": ((1, 4096), DEFAULT_AREA_SAMPLES)}
+"""gra_onebounce's sample counts: (range, default). ``area_samples``: points on each area light per pixel sample."""
+
+
+def checked_option(name: str, value, flag: str | None = None) -> int:
+    """``value`` of one of :data:`OPTIONS`, refused (named ``flag`` or ``name``) unless an integer in its range."""
+    (low, high), _ = OPTIONS[name]
+    if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+        raise GraMiParameterError(flag or name, f"expected an integer in [{low}, {high}], got {value!r}")
+    return value
 
 
 def plugin_name(emitter) -> str:
@@ -53,8 +67,8 @@ def emitter_label(index: int, emitter) -> str:
 
 @dataclass
 class SceneLights:
-    """The scene's delta lights: point emitters (the LEDs of a lightstage: one array, one loop) and the others; and its
-    environments as one dome of far-field lights."""
+    """The scene's delta lights: point emitters (the LEDs of a lightstage: one array, one loop) and the others; its
+    environments as one dome of far-field lights; its area lights that are on."""
 
     points: list
     others: list
@@ -63,10 +77,11 @@ class SceneLights:
     dome_directions: np.ndarray  # (D, 3) unit vectors towards each dome light (its cell's mean light direction)
     dome_irradiance: np.ndarray  # (D, 3) W/m² of each; zeros without an environment
     environments: list
+    areas: list
 
     @property
     def count(self) -> int:
-        return len(self.points) + len(self.others) + len(self.environments)
+        return len(self.points) + len(self.others) + len(self.environments) + len(self.areas)
 
 
 def point_lights(emitters: list) -> tuple[np.ndarray, np.ndarray]:
@@ -94,7 +109,8 @@ def scene_lights(scene, source: str | None = None, dome_lights: int = DEFAULT_LI
     integrated onto a dome of ``dome_lights`` lights.
 
     Refuses (:class:`GraMiInputError`, naming the emitter): a scene with no emitter, an emitter gra-mi cannot compute,
-    a negative or non-finite intensity or radiance, a spot cone outside (0°, 180°).
+    a negative or non-finite intensity or radiance, a spot cone outside (0°, 180°). Area lights that emit nothing are
+    left out (no samples spent on them).
     """
     import mitsuba as mi
 
@@ -102,7 +118,7 @@ def scene_lights(scene, source: str | None = None, dome_lights: int = DEFAULT_LI
     if not emitters:
         raise GraMiInputError(source or "scene", "the scene has no emitter, so every render would be black: add a point, spot or "
                               "directional emitter, or an envmap")  # fmt: skip
-    points, others, point_index, environments = [], [], [], []
+    points, others, point_index, environments, areas = [], [], [], [], []
     dome, moments = np.zeros((dome_lights, 3)), np.zeros((dome_lights, 3))
     for index, emitter in enumerate(emitters):
         kind, label = plugin_name(emitter), emitter_label(index, emitter)
@@ -111,24 +127,24 @@ def scene_lights(scene, source: str | None = None, dome_lights: int = DEFAULT_LI
             dome, moments = dome + irradiance, moments + moment
             environments.append(emitter)
             continue
-        if kind not in EXACT:
+        if kind not in EXACT + SAMPLED:
             raise GraMiInputError(
                 source or "scene", f"{label} is of type '{kind}', which gra_onebounce does not compute (it computes "
-                f"{', '.join(EXACT)} lights exactly and {', '.join(DOME)} environments on a dome of lights): {_advice(kind)}"
+                f"{', '.join(EXACT)} lights exactly, {', '.join(DOME)} environments on a dome of lights and "
+                f"{', '.join(SAMPLED)} lights by sampling their surface): {_advice(kind)}"
             )  # fmt: skip
         if kind == "point":  # hundreds on a lightstage: read and checked at once below
             points.append(emitter)
             point_index.append(index)
-        else:
-            _check_values(mi.traverse(emitter), label, kind, source)
-            others.append(emitter)
+        elif _check_values(mi.traverse(emitter), label, kind, source):
+            (areas if kind in SAMPLED else others).append(emitter)
     positions, intensities = point_lights(points)
     bad = np.flatnonzero(~np.all(np.isfinite(intensities) & (intensities >= 0), axis=1))
     if bad.size:
         k = int(bad[0])
         raise GraMiInputError(source or "scene", f"{emitter_label(point_index[k], points[k])} (point): 'intensity' must be finite and "
                               f">= 0, got {np.round(intensities[k], 6).tolist()} ({bad.size} such point lights)")  # fmt: skip
-    return SceneLights(points, others, positions, intensities, light_directions(moments), dome, environments)
+    return SceneLights(points, others, positions, intensities, light_directions(moments), dome, environments, areas)
 
 
 def _environment(emitter, label: str, count: int, source: str | None) -> tuple[np.ndarray, np.ndarray]:
@@ -146,13 +162,18 @@ def _advice(kind: str) -> str:
     return ADVICE.get(kind, f"gra-mi cannot compute it: use {OTHER_INTEGRATORS}")
 
 
-def _check_values(params, label: str, kind: str, source: str | None) -> None:
+def _check_values(params, label: str, kind: str, source: str | None) -> bool:
+    """Refuse a negative or non-finite intensity, irradiance or radiance (a constant or a bitmap's pixels) or a bad spot
+    cone; False for a light whose every such value is 0 (it is off)."""
+    values = []
     for key in params.keys():
-        if key.endswith(("intensity.value", "irradiance.value")):
+        if key.startswith(("intensity", "irradiance", "radiance")) and key.endswith((".value", ".data")):
             value = np.asarray(params[key], np.float64)
+            values.append(value)
             if not np.all(np.isfinite(value)) or np.any(value < 0):
+                bad = value[~(np.isfinite(value) & (value >= 0))]
                 raise GraMiInputError(source or "scene", f"{label} ({kind}): '{key.split('.')[0]}' must be finite and >= 0, got "
-                                      f"{np.round(value.ravel(), 6).tolist()}")  # fmt: skip
+                                      f"{np.round(bad.ravel()[:6], 6).tolist()} ({bad.size} such values)")  # fmt: skip
     if kind == "spot":
         cutoff, beam = float(np.ravel(params["cutoff_angle"])[0]), float(np.ravel(params["beam_width"])[0])
         if not 0 < cutoff < 180:
@@ -161,3 +182,4 @@ def _check_values(params, label: str, kind: str, source: str | None) -> None:
             raise GraMiInputError(
                 source or "scene", f"{label} (spot): beam_width must lie in [0°, cutoff_angle = {cutoff:g}°], got {beam:g}°"
             )
+    return not values or any(np.any(v > 0) for v in values)

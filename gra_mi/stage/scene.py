@@ -354,9 +354,9 @@ class LightstageScene:
 INTEGRATORS = ("direct", "path", "gra_onebounce")
 
 
-def make_integrator(name: str | None, max_depth: int = 8, dome_lights: int | None = None):
+def make_integrator(name: str | None, max_depth: int = 8, onebounce: dict | None = None):
     """None: the scene's own integrator; otherwise Mitsuba's ``direct`` or ``path``, or gra-mi's ``gra_onebounce``
-    (with ``dome_lights`` lights for the scene's environment, or its default).
+    (with the sample counts in ``onebounce``, e.g. ``{"dome_lights": 256}``, or its defaults).
 
     ``direct`` uses one emitter sample per pass (Mitsuba 3 #1861: more than one is too bright with point lights);
     use more spp instead.
@@ -370,7 +370,7 @@ def make_integrator(name: str | None, max_depth: int = 8, dome_lights: int | Non
     if name == "path":
         return mi.load_dict({"type": "path", "max_depth": max_depth})
     if name == "gra_onebounce":
-        return mi.load_dict({"type": "gra_onebounce"} | ({} if dome_lights is None else {"dome_lights": dome_lights}))
+        return mi.load_dict({"type": "gra_onebounce"} | (onebounce or {}))
     raise GraMiParameterError("integrator", f"unknown integrator '{name}', expected one of {', '.join(INTEGRATORS)}")
 
 
@@ -399,7 +399,7 @@ class RenderConfig:
     """Camera index or name."""
     integrator: str | None = field(default=None, metadata=option(choices=INTEGRATORS))
     """direct or path (Mitsuba's), or gra_onebounce (gra-mi's one bounce: exact for point, spot and directional
-    lights, envmap, constant and sunsky environments through a dome of 1024 lights, area lights refused by name).
+    lights, envmap, constant and sunsky environments through a dome of 1024 lights, area lights by sampling them).
     Default: the scene's own (a gra-mi lightstage scene's: direct)."""
     spp: int | None = None
     """Samples per pixel. Default: the scene's own sampler's (a lightstage scene's -Dspp; the low-discrepancy
@@ -409,6 +409,9 @@ class RenderConfig:
     dome_lights: int | None = None
     """With --integrator gra_onebounce on a plain scene: how many far-field lights carry its environment emitter
     (envmap, constant, sunsky), each the light of its cell of the sphere (16 to 16384). Default: 1024."""
+    area_samples: int | None = None
+    """With --integrator gra_onebounce on a plain scene: how many points it samples on each area light per pixel
+    sample, one shadow ray each (1 to 4096). Default: 16."""
     background: bool = False
     """Also write a preview composited over the envmap's background plate."""
 
@@ -417,12 +420,19 @@ class RenderConfig:
             raise GraMiParameterError("spp", f"must be >= 1, got {self.spp}")
         if self.integrator is not None and self.integrator not in INTEGRATORS:
             raise GraMiParameterError("integrator", f"expected one of {', '.join(INTEGRATORS)}, got {self.integrator!r}")
-        if self.dome_lights is not None and self.integrator != "gra_onebounce":
-            raise GraMiParameterError(
-                "dome-lights", "applies to --integrator gra_onebounce (a scene's own gra_onebounce sets it as "
-                '<integer name="dome_lights" value="..."/>)'
-            )  # fmt: skip
+        for name in self.onebounce_options:
+            if self.integrator != "gra_onebounce":
+                raise GraMiParameterError(
+                    name.replace("_", "-"), "applies to --integrator gra_onebounce (a scene's own gra_onebounce sets it "
+                    f'as <integer name="{name}" value="..."/>)'
+                )  # fmt: skip
         require_seed(self.seed)
+
+    @property
+    def onebounce_options(self) -> dict[str, int]:
+        """gra_onebounce's sample counts given on the command line (its parameter names)."""
+        given = {"dome_lights": self.dome_lights, "area_samples": self.area_samples}
+        return {name: value for name, value in given.items() if value is not None}
 
 
 def render_to_folder(

@@ -20,6 +20,9 @@ about Microfacet Rendering").
      - integer
      - How many far-field lights carry the scene's environment emitters (``envmap``, ``constant``, ``sunsky``),
        each the light of its cell of the sphere (:mod:`gra_mi.render.dome`). Default: 1024.
+   * - ``area_samples``
+     - integer
+     - Points sampled on each ``area`` light per pixel sample (one shadow ray each). Default: 16.
 
 At each camera hit the integrator sums over the scene's delta lights:
 
@@ -28,13 +31,15 @@ At each camera hit the integrator sums over the scene's delta lights:
 with one shadow ray per light and E_k the light's incident irradiance-like weight (``point``: I/d², the LEDs, in
 near field by default; ``spot`` and ``projector``: I·falloff/d²; ``directional``: its irradiance), as the emitter's
 own ``sample_direction`` gives it; environments (``envmap``, ``constant``, ``sunsky``) arrive through a dome of
-far-field lights, each with the irradiance of its cell, one shadow ray each, like a lightstage's LEDs. Point emitters
+far-field lights, each with the irradiance of its cell, one shadow ray each, like a lightstage's LEDs; ``area`` lights
+are sampled on their surface by their own ``sample_direction``, ``area_samples`` points per pixel sample spread over
+it as a rank-1 lattice shifted at random per pixel sample (unbiased, with less noise than independent points; the
+camera sees their surface as Mitsuba shows it). Point emitters
 (a lightstage has hundreds) are read from the scene once per render into arrays and evaluated in one symbolic Dr.Jit
 loop, not one virtual call per emitter; the other delta lights follow in a second loop that calls each emitter. Point
-lights that are off are dropped before the loop; lights below the shading point's horizon (shading or geometric
-normal) trace nothing; dark cells of the dome are dropped. Emitters spread over a surface (``area``,
-``directionalarea``) are refused by name when a render starts (:mod:`gra_mi.render.scene_lights`), as is a scene
-without light. Derivatives with respect to BSDF parameters (``gra_microfacet`` textures) follow Path Replay
+lights and area lights that are off are dropped before the loop; lights below the shading point's horizon (shading
+or geometric normal) trace nothing; dark cells of the dome are dropped. ``directionalarea`` emitters are refused by
+name when a render starts (:mod:`gra_mi.render.scene_lights`), as is a scene without light. Derivatives with respect to BSDF parameters (``gra_microfacet`` textures) follow Path Replay
 Backpropagation: the loops are replayed in the adjoint pass with gradients enabled around the BSDF evaluation only.
 """
 
@@ -45,10 +50,10 @@ import mitsuba as mi
 import numpy as np
 from mitsuba.python.ad.integrators.common import RBIntegrator
 
-from gra_mi.core.errors import GraMiParameterError
-from gra_mi.render.dome import DEFAULT_LIGHTS, LIGHTS_RANGE
 from gra_mi.render.leds import LedLayout
-from gra_mi.render.scene_lights import scene_lights
+from gra_mi.render.scene_lights import OPTIONS, checked_option, scene_lights
+
+GOLDEN = 0.6180339887498949  # the rank-1 lattice's second coordinate steps by 1/φ
 
 
 class LedArrays:
@@ -65,11 +70,27 @@ class LedArrays:
 
 
 class DeltaEmitters:
-    """The scene's other delta lights (spot, projector, directional) as one array of emitter pointers."""
+    """The scene's other delta lights (spot, projector, directional), or its area lights, as one array of emitter
+    pointers; ``samples`` points are drawn on each per pixel sample (a delta light: 1)."""
 
-    def __init__(self, emitters: list):
-        self.count = len(emitters)
+    def __init__(self, emitters: list, samples: int = 1):
+        self.count, self.samples = len(emitters), samples
         self.pointers = mi.EmitterPtr(emitters) if emitters else None
+
+
+def area_contribution(scene, si, areas: DeltaEmitters, shift, k, active):
+    """(ωo in the local frame, incident radiance / pdf over the samples, mask) for sample k: point k % S of the
+    lattice {((j + ½) / S, j / φ mod 1)} shifted by ``shift`` (one uniform 2D point per pixel sample, so each point is
+    uniform and the sum unbiased) on area light k // S, drawn by the emitter's own ``sample_direction``."""
+    samples = areas.samples
+    emitter = dr.gather(mi.EmitterPtr, areas.pointers, k // samples, active)
+    j = mi.Float(k % samples)
+    lattice = mi.Point2f((j + 0.5) / samples, j * GOLDEN) + shift
+    ds, weight = emitter.sample_direction(si, lattice - dr.floor(lattice), active)
+    wo = si.to_local(ds.d)
+    facing = active & (ds.pdf > 0) & (wo.z > 0) & (dr.dot(si.n, ds.d) > 0) & (dr.max(weight) > 0)
+    visible = facing & ~scene.ray_test(si.spawn_ray_to(ds.p), facing)
+    return wo, weight / samples, visible
 
 
 def delta_contribution(scene, si, emitters: DeltaEmitters, k, active):
@@ -110,21 +131,20 @@ class GraOneBounce(RBIntegrator):
         self.far_field = bool(props.get("far_field", False))
         center = props.get("stage_center", mi.ScalarPoint3f(0.0, 1.0, 0.0))
         self.stage_center = np.array([center[0], center[1], center[2]], dtype=np.float64)
-        self.dome_lights = props.get("dome_lights", DEFAULT_LIGHTS)
-        low, high = LIGHTS_RANGE
-        if isinstance(self.dome_lights, bool) or not isinstance(self.dome_lights, int) or not low <= self.dome_lights <= high:
-            raise GraMiParameterError("dome_lights", f"expected an integer in [{low}, {high}], got {self.dome_lights!r}")
+        self.dome_lights, self.area_samples = (checked_option(name, props.get(name, default)) for name, (_, default) in OPTIONS.items())
         self._lights = None
 
-    def prepare_lights(self, scene: mi.Scene) -> tuple[LedArrays, DeltaEmitters, LedArrays]:
+    def prepare_lights(self, scene: mi.Scene) -> tuple[LedArrays, DeltaEmitters, LedArrays, DeltaEmitters]:
         """The scene's lights as the loops read them (checked: a light gra-mi cannot compute stops here, by name): its
-        point lights, its other delta lights, its environments' dome (unit directions, so irradiance is I / 1²)."""
+        point lights, its other delta lights, its environments' dome (unit directions, so irradiance is I / 1²), its
+        area lights."""
         lights = scene_lights(scene, dome_lights=self.dome_lights)
         dome = LedLayout(lights.dome_directions, np.zeros(3), far_field=True)
         return (
             LedArrays(LedLayout(lights.positions, self.stage_center, self.far_field), lights.intensities),
             DeltaEmitters(lights.others),
             LedArrays(dome, lights.dome_irradiance),
+            DeltaEmitters(lights.areas, self.area_samples),
         )
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
@@ -141,16 +161,15 @@ class GraOneBounce(RBIntegrator):
 
     def sample(self, mode, scene, sampler, ray, δL, state_in, active, **kwargs):
         primal = mode == dr.ADMode.Primal
-        leds, others, dome = self._lights if self._lights is not None else self.prepare_lights(scene)
+        leds, others, dome, areas = self._lights if self._lights is not None else self.prepare_lights(scene)
         far_field = self.far_field
 
         si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.All, coherent=True, active=active)
         valid = active & si.is_valid()
         bsdf = si.bsdf(ray)
         L = mi.Spectrum(0.0 if primal else state_in)  # radiance (or, in the adjoint pass, what is left of it)
-        if primal and dome.count and not self.hide_emitters:  # a ray that escapes sees the environment, as in Mitsuba's
-            escaped = active & ~si.is_valid()
-            L += dr.select(escaped, si.emitter(scene, escaped).eval(si, escaped), 0.0)
+        if primal and (dome.count or areas.count) and not self.hide_emitters:  # emitters seen directly, as in Mitsuba's
+            L += si.emitter(scene, active).eval(si, active)  # an escaped ray's environment; an area light's surface
         δL = mi.Spectrum(δL if δL is not None else 0.0)  # adjoint radiance
         if leds.count:
             L, δL = _sum_lights(
@@ -164,10 +183,16 @@ class GraOneBounce(RBIntegrator):
             L, δL = _sum_lights(
                 mode, dome.count, lambda k, on: led_contribution(scene, si, dome, k, True, on), bsdf, si, valid, L, δL, "environment dome"
             )
+        if areas.count:
+            shift = sampler.next_2d(valid)  # the same in the adjoint pass: it replays the primal pass's sampler
+            L, δL = _sum_lights(
+                mode, areas.count * areas.samples, lambda k, on: area_contribution(scene, si, areas, shift, k, on), bsdf, si, valid, L,
+                δL, "area lights",
+            )  # fmt: skip
         return (L if primal else δL, valid, [], L)
 
     def to_string(self):
-        return f"GraOneBounce[far_field={self.far_field}, dome_lights={self.dome_lights}]"
+        return f"GraOneBounce[far_field={self.far_field}, dome_lights={self.dome_lights}, area_samples={self.area_samples}]"
 
 
 @dr.syntax
