@@ -20,6 +20,7 @@ from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.guard import path_component
 from gra_mi.core.io import atomic_path, write_exr, write_png
 from gra_mi.core.limits import require_memory_for
+from gra_mi.core.progress import progress
 from gra_mi.stage import scene_keys as keys
 from gra_mi.stage.scene import make_integrator, scene_defaults
 
@@ -145,7 +146,7 @@ def render_scene_file(
     if isinstance(onebounce, GraOneBounce):  # refuse what it cannot compute, by name, now
         scene_lights(scene, str(path), onebounce.dome_lights)
     renders = []
-    for index in chosen:
+    for index in progress(chosen, description=f"render {path.name}"):
         sensor = scene.sensors()[index]
         image = np.array(mi.render(scene, sensor=index, integrator=chosen_integrator, spp=spp or 0, seed=seed), dtype=np.float32)
         name = sensor_name(index, sensor, path)
