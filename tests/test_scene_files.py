@@ -552,6 +552,17 @@ def test_render_cli_lights_a_plain_scene_s_sky_through_a_dome_of_the_size_asked(
     assert refused.returncode == 2 and "not --sensor, -D, --dome-lights or --area-samples (its LEDs carry" in refused.stderr
 
 
+def test_render_cli_names_what_a_scene_s_own_gra_onebounce_refused(tmp_path):
+    """A bad value in the scene's own integrator: the plugin's message, not the traceback Mitsuba folds into its own."""
+    from .test_cli import run_cli
+
+    own = '<integrator type="gra_onebounce"><integer name="area_samples" value="0"/></integrator>'
+    (tmp_path / "plain.xml").write_text(PLAIN_SCENE.replace('<integrator type="path"/>', own).replace("EXTRA", ""))
+    out = run_cli("render", str(tmp_path / "plain.xml"), "--out", str(tmp_path / "r"))
+    assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr
+    assert "plain.xml" in out.stderr and "area_samples: expected an integer in [1, 4096], got 0" in out.stderr
+
+
 def test_render_cli_samples_a_plain_scene_s_area_light_as_often_as_asked(plugins, tmp_path):
     """The same light at 1 and at 64 points per pixel sample, the noise of one point gone with 64."""
     import mitsuba as mi

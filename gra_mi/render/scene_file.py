@@ -22,7 +22,7 @@ from gra_mi.core.io import atomic_path, write_exr, write_png
 from gra_mi.core.limits import require_memory_for
 from gra_mi.core.progress import progress
 from gra_mi.stage import scene_keys as keys
-from gra_mi.stage.scene import make_integrator, scene_defaults
+from gra_mi.stage.scene import make_integrator, mitsuba_load_error, scene_defaults
 
 logger = logging.getLogger(__name__)
 NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
@@ -69,7 +69,7 @@ def load_scene_file(path: str | Path, defines: dict[str, str] | None = None):
     try:
         return mi.load_file(str(path), parallel=False, **defines)
     except Exception as exc:  # Mitsuba reports parse and plugin errors as RuntimeError with its own location
-        raise GraMiInputError(path, f"Mitsuba could not load the scene: {str(exc).splitlines()[0]}") from None
+        raise GraMiInputError(path, mitsuba_load_error(exc)) from None
 
 
 def sensor_name(index: int, sensor, source: Path | None = None) -> str:

@@ -253,8 +253,8 @@ class LightstageScene:
             kwargs[keys.PARAM_SPP] = str(int(spp))
         try:
             scene = mi.load_file(str(path), parallel=False, **kwargs)
-        except Exception as exc:  # Mitsuba reports parse and plugin errors as RuntimeError with its own location
-            raise GraMiInputError(path, f"Mitsuba could not load the scene: {str(exc).splitlines()[0]}") from None
+        except Exception as exc:
+            raise GraMiInputError(path, mitsuba_load_error(exc)) from None
         params = mi.traverse(scene)
         loaded = cls(path, scene, params, stage, sequence, frame)
         loaded._check_consistency()
@@ -349,6 +349,16 @@ class LightstageScene:
             if sensor.id() == cam.name:
                 return i
         raise GraMiInputError(self.path, f"no sensor with id '{cam.name}' in the scene")
+
+
+def mitsuba_load_error(exc: Exception) -> str:
+    """Mitsuba's parse or plugin error in one line: its location and what went wrong, and where a Python plugin (ours)
+    raised, that exception's own message instead of the traceback Mitsuba folds into it."""
+    lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+    said = lines[0] if lines else type(exc).__name__
+    if "Traceback (most recent call last)" in said and len(lines) > 1:
+        said = said.split("Traceback (most recent call last)")[0].rstrip(": ") + ": " + lines[-1]
+    return f"Mitsuba could not load the scene: {said}"
 
 
 INTEGRATORS = ("direct", "path", "gra_onebounce")
