@@ -178,8 +178,8 @@ def test_a_lambertian_plane_under_an_area_light_matches_the_closed_form(plugins,
     light, expected = CLOSED_FORMS[shape]
     image = np.array(mi.render(plane_under(light), integrator=mi.load_dict({"type": "gra_onebounce", "area_samples": 256}), spp=4))
     assert image[..., 3].min() == 1
-    np.testing.assert_allclose(image[..., :3].mean(), expected, rtol=2e-3)
-    np.testing.assert_allclose(image[..., :3], expected, rtol=0.02)
+    np.testing.assert_allclose(image[..., :3].mean(), expected, rtol=1e-3)  # the narrow view's pixels lie off axis
+    np.testing.assert_allclose(image[..., :3], expected, rtol=5e-3)
 
 
 def test_the_camera_sees_an_area_light_s_front_as_mitsuba_shows_it(plugins):
