@@ -148,8 +148,9 @@ def test_an_area_light_an_environment_and_a_point_light_together_sum_as_direct_d
     assert error <= 0.015 and abs(bias) < 0.005, (error, bias)
 
 
-def plane_under(light: dict, camera_at=(0.0, -1.0, 1.0), fov: float = 0.5, reflectance: float = 0.5):
-    """A Lambertian plane (z = 0, facing +z) under ``light``, seen through a narrow camera aimed at its origin."""
+def plane_under(light: dict, camera_at=(0.0, -1.0, 1.0), fov: float = 0.5, bsdf: dict | None = None, size: int = 8):
+    """A plane (z = 0, facing +z; Lambertian, reflectance 0.5, unless ``bsdf``) under ``light``, seen through a camera
+    aimed at its origin (narrow by default)."""
     import mitsuba as mi
 
     from gra_mi.render.near_field_cases import _resolved
@@ -157,9 +158,9 @@ def plane_under(light: dict, camera_at=(0.0, -1.0, 1.0), fov: float = 0.5, refle
     return mi.load_dict(_resolved({
         "type": "scene", "light": light,
         "plane": {"type": "rectangle", "to_world": look_at([0, 0, 0], [0, 0, 1], (5, 5, 1)),
-                  "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": reflectance}}},
+                  "bsdf": bsdf or {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.5}}},
         "camera": {"type": "perspective", "fov": fov, "to_world": mi.ScalarTransform4f().look_at(origin=list(camera_at), target=[0, 0, 0], up=[0, 1, 0]),
-                   "film": {"type": "hdrfilm", "width": 8, "height": 8, "pixel_format": "rgba", "rfilter": {"type": "box"}}},
+                   "film": {"type": "hdrfilm", "width": size, "height": size, "pixel_format": "rgba", "rfilter": {"type": "box"}}},
     }))  # fmt: skip
 
 
@@ -180,6 +181,26 @@ def test_a_lambertian_plane_under_an_area_light_matches_the_closed_form(plugins,
     assert image[..., 3].min() == 1
     np.testing.assert_allclose(image[..., :3].mean(), expected, rtol=1e-3)  # the narrow view's pixels lie off axis
     np.testing.assert_allclose(image[..., :3], expected, rtol=5e-3)
+
+
+def test_bsdf_samples_carry_a_glossy_highlight_of_a_large_area_light(plugins):
+    """A glossy plane (roughness 0.08) mirrors a large window: the light's points rarely land in its narrow highlight,
+    the BSDF's directions do. Weighted against each other (power heuristic) they sum to Mitsuba's path tracer's
+    image, with a fraction of the points' noise alone."""
+    import mitsuba as mi
+
+    glossy = {"type": "gra_microfacet", "albedo": {"type": "rgb", "value": 0.3}, "roughness": 0.08}
+    window = area("rectangle", [-1.5, 0, 1.0], [0, 0, 0], (0.6, 0.6), 3.0)
+    scene = plane_under(window, camera_at=(1.5, 0, 1.0), fov=30, bsdf=glossy, size=32)
+    truth = np.array(mi.render(scene, integrator=mi.load_dict({"type": "path", "max_depth": 2}), spp=8192, seed=9))[..., :3]
+    lit = truth.max(axis=-1) > 0
+    said = {}
+    for samples in (0, 16):
+        integrator = mi.load_dict({"type": "gra_onebounce", "bsdf_samples": samples})
+        image = np.array(mi.render(scene, integrator=integrator, spp=16, seed=1))[..., :3]
+        said[samples] = np.abs(image - truth)[lit].mean() / truth[lit].mean(), image[lit].mean() / truth[lit].mean() - 1
+    assert said[16][0] < 0.06 and abs(said[16][1]) < 0.01, said
+    assert said[0][0] > 4 * said[16][0], said
 
 
 def test_the_camera_sees_an_area_light_s_front_as_mitsuba_shows_it(plugins):
@@ -210,12 +231,14 @@ def test_an_area_light_that_is_off_costs_nothing_and_bad_radiance_is_refused_by_
         mi.load_dict({"type": "gra_onebounce", "area_samples": 0})
 
 
-@pytest.mark.parametrize("value", [0, 5000, "many", 1.5, True])
-def test_bad_area_sample_counts_are_refused_by_name(plugins, value):
+@pytest.mark.parametrize(
+    "name, value", [("area_samples", v) for v in (0, 5000, "many", 1.5, True)] + [("bsdf_samples", -1), ("bsdf_samples", 4097)]
+)
+def test_bad_area_sample_counts_are_refused_by_name(plugins, name, value):
     import mitsuba as mi
 
-    with pytest.raises(RuntimeError, match="area_samples: expected an integer in"):
-        mi.load_dict({"type": "gra_onebounce", "area_samples": value})
+    with pytest.raises(RuntimeError, match=f"{name}: expected an integer in"):
+        mi.load_dict({"type": "gra_onebounce", name: value})
 
 
 def sky_bitmap(height: int = 32):
@@ -521,6 +544,7 @@ def test_render_cli_renders_a_plain_scene_as_mitsuba_does(plugins, tmp_path):
         (["--area-samples", "8"], "", ["area-samples", "applies to --integrator gra_onebounce", 'name="area_samples"']),
         (["--integrator", "gra_onebounce", "--area-samples", "0"], "", ["area-samples", "expected an integer in [1, 4096], got 0"]),
         (["--integrator", "gra_onebounce", "--area-samples", "many"], "", ["--area-samples", "invalid int value: 'many'"]),
+        (["--integrator", "gra_onebounce", "--bsdf-samples", "-1"], "", ["bsdf-samples", "expected an integer in [0, 4096], got -1"]),
     ],
 )
 def test_render_cli_bad_input_on_plain_scenes(tmp_path, args, extra, said):
@@ -549,7 +573,7 @@ def test_render_cli_lights_a_plain_scene_s_sky_through_a_dome_of_the_size_asked(
     assert not np.array_equal(coarse, fine), "the dome's size was used"
     lightstage = ["render", str(SCENES / "tiny_lightstage.xml"), "--olat", "3", "--integrator", "gra_onebounce", "--dome-lights", "64"]
     refused = run_cli(*lightstage, "--out", str(tmp_path / "stage"))
-    assert refused.returncode == 2 and "not --sensor, -D, --dome-lights or --area-samples (its LEDs carry" in refused.stderr
+    assert refused.returncode == 2 and "not --sensor, -D or gra_onebounce's sample counts (--dome-lights" in refused.stderr
 
 
 def test_render_cli_names_what_a_scene_s_own_gra_onebounce_refused(tmp_path):

@@ -165,8 +165,8 @@ def run_render(c: RenderCommand) -> None:
         return
     if c.sensor or c.define or c.render.onebounce_options:
         raise GraMiInputError(
-            c.scene, "a lightstage scene takes --camera, --frame and --spp, not --sensor, -D, --dome-lights or --area-samples "
-            "(its LEDs carry an --envmap)"
+            c.scene, "a lightstage scene takes --camera, --frame and --spp, not --sensor, -D or gra_onebounce's sample "
+            "counts (--dome-lights, --area-samples, --bsdf-samples: its LEDs carry an --envmap)"
         )  # fmt: skip
     if c.envmap is not None:
         light, envmap, drive = c.envmap.stem, c.envmaps.load(c.envmap), None

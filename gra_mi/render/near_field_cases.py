@@ -29,15 +29,16 @@ def _resolved(value):
     return value
 
 
-def body_scene(emitters: dict, body: Path, width: int = 96, height: int = 128):
-    """The tiny subject (its frame 0 PLY: ``body`` (a gra_microfacet material with a visible highlight) seen from the front, lit by ``emitters``."""
+def body_scene(emitters: dict, body: Path, width: int = 96, height: int = 128, roughness: float = 0.35):
+    """The tiny subject (its frame 0 PLY: ``body``; a gra_microfacet material with a visible highlight, glossier with
+    a lower ``roughness``) seen from the front, lit by ``emitters``."""
     import mitsuba as mi
 
     scene = {
         "type": "scene",
         "body": {
             "type": "ply", "filename": str(body), "face_normals": False,
-            "bsdf": {"type": "gra_microfacet", "albedo": {"type": "rgb", "value": [0.6, 0.5, 0.4]}, "roughness": 0.35},
+            "bsdf": {"type": "gra_microfacet", "albedo": {"type": "rgb", "value": [0.6, 0.5, 0.4]}, "roughness": roughness},
         },
         "camera": {
             "type": "perspective", "fov": 50, "to_world": look_at([0.1, 1.0, 1.3], [0.1, 1.0, 0.0]),

@@ -41,8 +41,14 @@ ADVICE = {  # Mitsuba's direct and path render a directionalarea light black, as
     "directional emitter in for it",
 }
 DEFAULT_AREA_SAMPLES = 16
-OPTIONS = {"dome_lights": (LIGHTS_RANGE, DEFAULT_LIGHTS), "area_samples": ((1, 4096), DEFAULT_AREA_SAMPLES)}
-"""gra_onebounce's sample counts: (range, default). ``area_samples``: points on each area light per pixel sample."""
+DEFAULT_BSDF_SAMPLES = 4
+OPTIONS = {
+    "dome_lights": (LIGHTS_RANGE, DEFAULT_LIGHTS),
+    "area_samples": ((1, 4096), DEFAULT_AREA_SAMPLES),
+    "bsdf_samples": ((0, 4096), DEFAULT_BSDF_SAMPLES),
+}
+"""gra_onebounce's sample counts: (range, default). ``area_samples``: points on each area light per pixel sample;
+``bsdf_samples``: directions drawn from the BSDF per pixel sample that may reach an area light."""
 
 
 def checked_option(name: str, value, flag: str | None = None) -> int:

@@ -422,6 +422,10 @@ class RenderConfig:
     area_samples: int | None = None
     """With --integrator gra_onebounce on a plain scene: how many points it samples on each area light per pixel
     sample, one shadow ray each (1 to 4096). Default: 16."""
+    bsdf_samples: int | None = None
+    """With --integrator gra_onebounce on a plain scene with area lights: how many directions it draws from the
+    material per pixel sample, each traced to the area light it may reach and weighted against the lights' own
+    points (multiple importance sampling: glossy highlights, lights close to a surface) (0 to 4096). Default: 4."""
     background: bool = False
     """Also write a preview composited over the envmap's background plate."""
 
@@ -441,7 +445,7 @@ class RenderConfig:
     @property
     def onebounce_options(self) -> dict[str, int]:
         """gra_onebounce's sample counts given on the command line (its parameter names)."""
-        given = {"dome_lights": self.dome_lights, "area_samples": self.area_samples}
+        given = {"dome_lights": self.dome_lights, "area_samples": self.area_samples, "bsdf_samples": self.bsdf_samples}
         return {name: value for name, value in given.items() if value is not None}
 
 

@@ -23,6 +23,10 @@ about Microfacet Rendering").
    * - ``area_samples``
      - integer
      - Points sampled on each ``area`` light per pixel sample (one shadow ray each). Default: 16.
+   * - ``bsdf_samples``
+     - integer
+     - Directions drawn from the BSDF per pixel sample that may reach an ``area`` light (one ray each), weighted
+       against the lights' points by the power heuristic; 0: the points alone. Default: 4.
 
 At each camera hit the integrator sums over the scene's delta lights:
 
@@ -33,14 +37,18 @@ near field by default; ``spot`` and ``projector``: I·falloff/d²; ``directional
 own ``sample_direction`` gives it; environments (``envmap``, ``constant``, ``sunsky``) arrive through a dome of
 far-field lights, each with the irradiance of its cell, one shadow ray each, like a lightstage's LEDs; ``area`` lights
 are sampled on their surface by their own ``sample_direction``, ``area_samples`` points per pixel sample spread over
-it as a rank-1 lattice shifted at random per pixel sample (unbiased, with less noise than independent points; the
-camera sees their surface as Mitsuba shows it). Point emitters
-(a lightstage has hundreds) are read from the scene once per render into arrays and evaluated in one symbolic Dr.Jit
-loop, not one virtual call per emitter; the other delta lights follow in a second loop that calls each emitter. Point
-lights and area lights that are off are dropped before the loop; lights below the shading point's horizon (shading
-or geometric normal) trace nothing; dark cells of the dome are dropped. ``directionalarea`` emitters are refused by
-name when a render starts (:mod:`gra_mi.render.scene_lights`), as is a scene without light. Derivatives with respect to BSDF parameters (``gra_microfacet`` textures) follow Path Replay
-Backpropagation: the loops are replayed in the adjoint pass with gradients enabled around the BSDF evaluation only.
+it as a rank-1 lattice shifted at random per pixel sample (unbiased, with less noise than independent points), and
+reached by ``bsdf_samples`` directions from the BSDF (a lattice too), the two weighted by the power heuristic as
+Mitsuba's ``direct`` weighs its emitter and BSDF samples: the points carry a small light, the directions a glossy
+highlight or a large light close by. The BSDF's delta lobes (a perfect mirror) see no area light, as they see no delta
+light; the camera sees the lights' surface as Mitsuba shows it. Point emitters (a lightstage has hundreds) are read
+from the scene once per render into arrays and evaluated in one symbolic Dr.Jit loop, not one virtual call per
+emitter; the other delta lights follow in a second loop that calls each emitter. Point lights and area lights that
+are off are dropped before the loop; lights below the shading point's horizon (shading or geometric normal) trace
+nothing; dark cells of the dome are dropped. ``directionalarea`` emitters are refused by name when a render starts
+(:mod:`gra_mi.render.scene_lights`), as is a scene without light. Derivatives with respect to BSDF parameters
+(``gra_microfacet`` textures) follow Path Replay Backpropagation: the loops are replayed in the adjoint pass with
+gradients enabled around the BSDF evaluation only (the directions' pdf held fixed).
 """
 
 from __future__ import annotations
@@ -71,26 +79,61 @@ class LedArrays:
 
 class DeltaEmitters:
     """The scene's other delta lights (spot, projector, directional), or its area lights, as one array of emitter
-    pointers; ``samples`` points are drawn on each per pixel sample (a delta light: 1)."""
+    pointers; ``samples`` points are drawn on each per pixel sample (a delta light: 1), and ``bsdf_samples``
+    directions from the BSDF that may hit one (area lights only)."""
 
-    def __init__(self, emitters: list, samples: int = 1):
-        self.count, self.samples = len(emitters), samples
+    def __init__(self, emitters: list, samples: int = 1, bsdf_samples: int = 0):
+        self.count, self.samples, self.bsdf_samples = len(emitters), samples, bsdf_samples
         self.pointers = mi.EmitterPtr(emitters) if emitters else None
 
 
-def area_contribution(scene, si, areas: DeltaEmitters, shift, k, active):
-    """(ωo in the local frame, incident radiance / pdf over the samples, mask) for sample k: point k % S of the
-    lattice {((j + ½) / S, j / φ mod 1)} shifted by ``shift`` (one uniform 2D point per pixel sample, so each point is
-    uniform and the sum unbiased) on area light k // S, drawn by the emitter's own ``sample_direction``."""
+def lattice_point(j, count: int, shift):
+    """Point j of the rank-1 lattice {((j + ½) / N, j / φ mod 1)} shifted by ``shift`` (mod 1): each point is uniform
+    when the shift is, and the N points are spread over the square."""
+    point = mi.Point2f((j + 0.5) / count, j * GOLDEN) + shift
+    return point - dr.floor(point)
+
+
+def power_heuristic(ours, other):
+    """Veach's power heuristic for a strategy of density ``ours`` beside one of density ``other`` (counts folded in)."""
+    return dr.select(ours > 0, dr.square(ours) / (dr.square(ours) + dr.square(other)), 0.0)
+
+
+def area_contribution(scene, si, bsdf, areas: DeltaEmitters, shift, k, active):
+    """(ωo in the local frame, incident radiance / pdf over the samples, mask) for sample k: lattice point k % S
+    (:func:`lattice_point`) on area light k // S, drawn by the emitter's own ``sample_direction``; weighted against the
+    BSDF's samples of the same direction (:func:`bsdf_contribution`) when there are any."""
     samples = areas.samples
     emitter = dr.gather(mi.EmitterPtr, areas.pointers, k // samples, active)
-    j = mi.Float(k % samples)
-    lattice = mi.Point2f((j + 0.5) / samples, j * GOLDEN) + shift
-    ds, weight = emitter.sample_direction(si, lattice - dr.floor(lattice), active)
+    ds, weight = emitter.sample_direction(si, lattice_point(mi.Float(k % samples), samples, shift), active)
     wo = si.to_local(ds.d)
     facing = active & (ds.pdf > 0) & (wo.z > 0) & (dr.dot(si.n, ds.d) > 0) & (dr.max(weight) > 0)
     visible = facing & ~scene.ray_test(si.spawn_ray_to(ds.p), facing)
+    if areas.bsdf_samples:
+        bsdf_pdf = bsdf.pdf(mi.BSDFContext(), si, wo, visible)
+        weight *= power_heuristic(samples * ds.pdf, areas.bsdf_samples * bsdf_pdf)
     return wo, weight / samples, visible
+
+
+def bsdf_contribution(scene, si, bsdf, areas: DeltaEmitters, shift, shift_1d, k, active):
+    """(ωo, the radiance of the area light it reaches / pdf over the samples, mask) for BSDF sample k (a lattice point,
+    as the lights'), weighted against the lights' own samples of that direction: where a light's surface sampling is
+    poor (a large light close by, a glossy highlight) the BSDF's is good. Smooth lobes only (a one-bounce integrator's
+    delta lobes see no light); reflection above both horizons, as the lights' samples."""
+    count = areas.bsdf_samples
+    j = mi.Float(k)
+    lobe = j / count + shift_1d
+    sample, _ = bsdf.sample(mi.BSDFContext(), si, lobe - dr.floor(lobe), lattice_point(j, count, shift), active)
+    direction = si.to_world(sample.wo)
+    smooth = ~mi.has_flag(sample.sampled_type, mi.BSDFFlags.Delta)
+    facing = active & smooth & (sample.pdf > 0) & (sample.wo.z > 0) & (dr.dot(si.n, direction) > 0)
+    hit = scene.ray_intersect(si.spawn_ray(direction), facing)
+    facing &= hit.is_valid()  # an environment is the dome's
+    emitter = hit.emitter(scene, facing)  # null where the surface emits nothing: no radiance, no pdf
+    radiance = emitter.eval(hit, facing)
+    light_pdf = emitter.pdf_direction(si, mi.DirectionSample3f(scene, hit, si), facing)
+    weight = radiance * power_heuristic(count * sample.pdf, areas.samples * light_pdf) / (count * sample.pdf)
+    return sample.wo, weight, facing & (dr.max(radiance) > 0)
 
 
 def delta_contribution(scene, si, emitters: DeltaEmitters, k, active):
@@ -131,7 +174,9 @@ class GraOneBounce(RBIntegrator):
         self.far_field = bool(props.get("far_field", False))
         center = props.get("stage_center", mi.ScalarPoint3f(0.0, 1.0, 0.0))
         self.stage_center = np.array([center[0], center[1], center[2]], dtype=np.float64)
-        self.dome_lights, self.area_samples = (checked_option(name, props.get(name, default)) for name, (_, default) in OPTIONS.items())
+        self.dome_lights, self.area_samples, self.bsdf_samples = (
+            checked_option(name, props.get(name, default)) for name, (_, default) in OPTIONS.items()
+        )
         self._lights = None
 
     def prepare_lights(self, scene: mi.Scene) -> tuple[LedArrays, DeltaEmitters, LedArrays, DeltaEmitters]:
@@ -144,7 +189,7 @@ class GraOneBounce(RBIntegrator):
             LedArrays(LedLayout(lights.positions, self.stage_center, self.far_field), lights.intensities),
             DeltaEmitters(lights.others),
             LedArrays(dome, lights.dome_irradiance),
-            DeltaEmitters(lights.areas, self.area_samples),
+            DeltaEmitters(lights.areas, self.area_samples, self.bsdf_samples),
         )
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
@@ -184,15 +229,30 @@ class GraOneBounce(RBIntegrator):
                 mode, dome.count, lambda k, on: led_contribution(scene, si, dome, k, True, on), bsdf, si, valid, L, δL, "environment dome"
             )
         if areas.count:
-            shift = sampler.next_2d(valid)  # the same in the adjoint pass: it replays the primal pass's sampler
-            L, δL = _sum_lights(
-                mode, areas.count * areas.samples, lambda k, on: area_contribution(scene, si, areas, shift, k, on), bsdf, si, valid, L,
-                δL, "area lights",
-            )  # fmt: skip
+            L, δL = self._sum_area_lights(mode, scene, sampler, si, bsdf, areas, valid, L, δL)
         return (L if primal else δL, valid, [], L)
 
+    def _sum_area_lights(self, mode, scene, sampler, si, bsdf, areas: DeltaEmitters, valid, L, δL):
+        """The area lights' points, then the BSDF's directions that reach one (each weighted against the other). The
+        random shifts are drawn here, the same in the adjoint pass: it replays the primal pass's sampler."""
+        shift = sampler.next_2d(valid)
+        L, δL = _sum_lights(
+            mode, areas.count * areas.samples, lambda k, on: area_contribution(scene, si, bsdf, areas, shift, k, on), bsdf, si,
+            valid, L, δL, "area lights",
+        )  # fmt: skip
+        if areas.bsdf_samples:
+            shift, shift_1d = sampler.next_2d(valid), sampler.next_1d(valid)
+            L, δL = _sum_lights(
+                mode, areas.bsdf_samples, lambda k, on: bsdf_contribution(scene, si, bsdf, areas, shift, shift_1d, k, on), bsdf,
+                si, valid, L, δL, "BSDF samples towards area lights",
+            )  # fmt: skip
+        return L, δL
+
     def to_string(self):
-        return f"GraOneBounce[far_field={self.far_field}, dome_lights={self.dome_lights}, area_samples={self.area_samples}]"
+        return (
+            f"GraOneBounce[far_field={self.far_field}, dome_lights={self.dome_lights}, area_samples={self.area_samples}, "
+            f"bsdf_samples={self.bsdf_samples}]"
+        )
 
 
 @dr.syntax
