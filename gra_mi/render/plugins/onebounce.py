@@ -99,20 +99,17 @@ def power_heuristic(ours, other):
     return dr.select(ours > 0, dr.square(ours) / (dr.square(ours) + dr.square(other)), 0.0)
 
 
-def area_contribution(scene, si, bsdf, areas: DeltaEmitters, shift, k, active):
-    """(ωo in the local frame, incident radiance / pdf over the samples, mask) for sample k: lattice point k % S
-    (:func:`lattice_point`) on area light k // S, drawn by the emitter's own ``sample_direction``; weighted against the
-    BSDF's samples of the same direction (:func:`bsdf_contribution`) when there are any."""
+def area_contribution(scene, si, areas: DeltaEmitters, shift, k, active):
+    """(ωo in the local frame, incident radiance / pdf over the samples, mask, this strategy's density there) for
+    sample k: lattice point k % S (:func:`lattice_point`) on area light k // S, drawn by the emitter's own
+    ``sample_direction``. With BSDF samples the sum weighs it against theirs (:func:`bsdf_contribution`)."""
     samples = areas.samples
     emitter = dr.gather(mi.EmitterPtr, areas.pointers, k // samples, active)
     ds, weight = emitter.sample_direction(si, lattice_point(mi.Float(k % samples), samples, shift), active)
     wo = si.to_local(ds.d)
     facing = active & (ds.pdf > 0) & (wo.z > 0) & (dr.dot(si.n, ds.d) > 0) & (dr.max(weight) > 0)
     visible = facing & ~scene.ray_test(si.spawn_ray_to(ds.p), facing)
-    if areas.bsdf_samples:
-        bsdf_pdf = bsdf.pdf(mi.BSDFContext(), si, wo, visible)
-        weight *= power_heuristic(samples * ds.pdf, areas.bsdf_samples * bsdf_pdf)
-    return wo, weight / samples, visible
+    return wo, weight / samples, visible, samples * ds.pdf if areas.bsdf_samples else None
 
 
 def bsdf_contribution(scene, si, bsdf, areas: DeltaEmitters, shift, shift_1d, k, active):
@@ -133,7 +130,7 @@ def bsdf_contribution(scene, si, bsdf, areas: DeltaEmitters, shift, shift_1d, k,
     radiance = emitter.eval(hit, facing)
     light_pdf = emitter.pdf_direction(si, mi.DirectionSample3f(scene, hit, si), facing)
     weight = radiance * power_heuristic(count * sample.pdf, areas.samples * light_pdf) / (count * sample.pdf)
-    return sample.wo, weight, facing & (dr.max(radiance) > 0)
+    return sample.wo, weight, facing & (dr.max(radiance) > 0), None
 
 
 def delta_contribution(scene, si, emitters: DeltaEmitters, k, active):
@@ -143,7 +140,7 @@ def delta_contribution(scene, si, emitters: DeltaEmitters, k, active):
     wo = si.to_local(ds.d)
     facing = active & (wo.z > 0) & (dr.dot(si.n, ds.d) > 0) & (dr.max(weight) > 0)
     visible = facing & ~scene.ray_test(si.spawn_ray_to(ds.p), facing)
-    return wo, weight, visible
+    return wo, weight, visible, None
 
 
 def led_contribution(scene, si, leds: LedArrays, k, far_field: bool, active):
@@ -165,7 +162,7 @@ def led_contribution(scene, si, leds: LedArrays, k, far_field: bool, active):
     else:
         ray = si.spawn_ray_to(p)
     visible = facing & ~scene.ray_test(ray, facing)
-    return wo, intensity / dist2, visible
+    return wo, intensity / dist2, visible, None
 
 
 class GraOneBounce(RBIntegrator):
@@ -237,8 +234,8 @@ class GraOneBounce(RBIntegrator):
         random shifts are drawn here, the same in the adjoint pass: it replays the primal pass's sampler."""
         shift = sampler.next_2d(valid)
         L, δL = _sum_lights(
-            mode, areas.count * areas.samples, lambda k, on: area_contribution(scene, si, bsdf, areas, shift, k, on), bsdf, si,
-            valid, L, δL, "area lights",
+            mode, areas.count * areas.samples, lambda k, on: area_contribution(scene, si, areas, shift, k, on), bsdf, si,
+            valid, L, δL, "area lights", other_count=areas.bsdf_samples,
         )  # fmt: skip
         if areas.bsdf_samples:
             shift, shift_1d = sampler.next_2d(valid), sampler.next_1d(valid)
@@ -256,17 +253,24 @@ class GraOneBounce(RBIntegrator):
 
 
 @dr.syntax
-def _sum_lights(mode, count: int, contribution_of, bsdf, si, valid, L, δL, what: str):
-    """L ± Σ_k f(ωi, ωk) cosθk · weight_k over ``count`` lights (``contribution_of(k, mask)`` gives ωo, weight, mask);
-    in the adjoint pass the same sum is replayed with gradients around the BSDF only."""
+def _sum_lights(mode, count: int, contribution_of, bsdf, si, valid, L, δL, what: str, other_count: int = 0):
+    """L ± Σ_k f(ωi, ωk) cosθk · weight_k over ``count`` lights (``contribution_of(k, mask)`` gives ωo, weight, mask
+    and, where another strategy samples the same directions, this one's density: each term is then weighted against
+    ``other_count`` × the BSDF's density by the power heuristic, from the same evaluation of the BSDF); in the adjoint
+    pass the same sum is replayed with gradients around the BSDF's value only."""
     primal = mode == dr.ADMode.Primal
     ctx = mi.BSDFContext()
     k = mi.UInt32(0)
     n = mi.UInt32(count)
     while dr.hint(valid & (k < n), label=f"gra_onebounce {what} ({mode.name})"):
-        wo, weight, visible = contribution_of(k, valid)
+        wo, weight, visible, density = contribution_of(k, valid)
         with dr.resume_grad(when=not primal):
-            contribution = bsdf.eval(ctx, si, wo, visible) * weight
+            if dr.hint(density is None, mode="scalar"):
+                value = bsdf.eval(ctx, si, wo, visible)
+            else:
+                value, bsdf_pdf = bsdf.eval_pdf(ctx, si, wo, visible)
+                value *= power_heuristic(density, other_count * dr.detach(bsdf_pdf))
+            contribution = value * weight
             contribution = dr.select(visible, contribution, 0.0)
             if dr.hint(not primal, mode="scalar"):
                 if dr.hint(mode == dr.ADMode.Backward, mode="scalar"):
