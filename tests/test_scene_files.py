@@ -600,8 +600,11 @@ def test_render_cli_samples_a_plain_scene_s_area_light_as_often_as_asked(plugins
     (tmp_path / "plain.xml").write_text(PLAIN_SCENE.replace("EXTRA", softbox))
     for samples in ("1", "64"):
         args = ["--integrator", "gra_onebounce", "--area-samples", samples, "--sensor", "front", "--spp", "16"]
-        out = run_cli("render", str(tmp_path / "plain.xml"), *args, "--out", str(tmp_path / samples))
+        out = run_cli("render", str(tmp_path / "plain.xml"), *args, *(["--dome-lights", "64"] if samples == "1" else []),
+                      "--out", str(tmp_path / samples))  # fmt: skip
         assert out.returncode == 0, out.stderr
+        said = "no environment emitter that emits: --dome-lights changes nothing"
+        assert (said in out.stderr) == (samples == "1"), out.stderr  # a count the scene has nothing for is said
     rough, fine = (read_exr(tmp_path / samples / "front.exr")[..., :3] for samples in ("1", "64"))
     scene = mi.load_file(str(tmp_path / "plain.xml"))  # the same pixel samples (seed 0), the light sampled 256 times
     truth = np.array(mi.render(scene, integrator=mi.load_dict({"type": "gra_onebounce", "area_samples": 256}), spp=16))[..., :3]

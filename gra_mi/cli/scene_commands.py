@@ -191,7 +191,7 @@ def _render_plain_scene(c: RenderCommand) -> None:
         )  # fmt: skip
     renders = render_scene_file(
         c.scene, c.out, sensors=c.sensor, integrator=c.render.integrator, spp=c.render.spp, seed=c.render.seed,
-        defines=parse_defines(c.define), onebounce=c.render.onebounce_options,
+        defines=parse_defines(c.define), options=c.render.onebounce_options,
     )  # fmt: skip
     for r in renders:
         print(f"wrote {r.path} ({r.image.shape[1]}x{r.image.shape[0]})")

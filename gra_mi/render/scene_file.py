@@ -118,12 +118,13 @@ def render_scene_file(
     spp: int | None = None,
     seed: int = 0,
     defines: dict[str, str] | None = None,
-    onebounce: dict | None = None,
+    options: dict | None = None,
 ) -> list[SceneRender]:
     """Render the named sensors (all by default) of a scene file into ``out/SENSOR.{exr,png}``.
 
-    ``integrator`` None and ``spp`` None: the scene's own (a scene without an integrator: ``path``); ``onebounce``:
-    gra_onebounce's sample counts (:data:`gra_mi.render.scene_lights.OPTIONS`). With
+    ``integrator`` None and ``spp`` None: the scene's own (a scene without an integrator: ``path``); ``options``:
+    gra_onebounce's sample counts (:data:`gra_mi.render.scene_lights.OPTIONS`; one the scene has nothing for is warned
+    about). With
     ``gra_onebounce`` the scene's emitters are checked first (:func:`gra_mi.render.scene_lights.scene_lights`): one
     it cannot compute stops the run by name.
     """
@@ -138,13 +139,13 @@ def render_scene_file(
     for index in chosen:  # a film too large for memory is named before a render allocates it
         width, height = scene.sensors()[index].film().size()
         require_memory_for(path, f"sensor {index} film", float(width) * height * FILM_BYTES_PER_PIXEL, f"a {width} × {height} film")
-    chosen_integrator = make_integrator(integrator, onebounce=onebounce)
+    chosen_integrator = make_integrator(integrator, onebounce=options)
     if chosen_integrator is None and scene.integrator() is None:
         logger.info("%s has no <integrator>: rendering with Mitsuba's path tracer (--integrator chooses another)", path)
         chosen_integrator = make_integrator("path")
     onebounce = chosen_integrator or scene.integrator()
     if isinstance(onebounce, GraOneBounce):  # refuse what it cannot compute, by name, now
-        scene_lights(scene, str(path), onebounce.dome_lights)
+        _warn_unused_counts(path, scene_lights(scene, str(path), onebounce.dome_lights), options or {})
     renders = []
     for index in progress(chosen, description=f"render {path.name}"):
         sensor = scene.sensors()[index]
@@ -158,3 +159,13 @@ def render_scene_file(
         write_png(out / f"{name}.png", image[..., :3], exposure=None)
         renders.append(SceneRender(name, image, out / f"{name}.exr"))
     return renders
+
+
+def _warn_unused_counts(path: Path, lights, options: dict) -> None:
+    """Say which of the sample counts asked for the scene has nothing to spend on (they change nothing there)."""
+    sampled = {"dome_lights": (lights.environments, "environment emitter"), "area_samples": (lights.areas, "area light"),
+               "bsdf_samples": (lights.areas, "area light")}  # fmt: skip
+    for name in options:
+        emitters, kind = sampled[name]
+        if not emitters:
+            logger.warning("%s has no %s that emits: --%s changes nothing", path, kind, name.replace("_", "-"))
