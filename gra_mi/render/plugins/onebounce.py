@@ -113,7 +113,7 @@ def area_contribution(scene, si, areas: DeltaEmitters, shift, k, active):
 
 
 def bsdf_contribution(scene, si, bsdf, areas: DeltaEmitters, shift, shift_1d, k, active):
-    """(ωo, the radiance of the area light it reaches / pdf over the samples, mask) for BSDF sample k (a lattice point,
+    """(ωo, the radiance of the area light it reaches / pdf over the samples, mask, None) for BSDF sample k (a lattice point,
     as the lights'), weighted against the lights' own samples of that direction: where a light's surface sampling is
     poor (a large light close by, a glossy highlight) the BSDF's is good. Smooth lobes only (a one-bounce integrator's
     delta lobes see no light); reflection above both horizons, as the lights' samples."""
@@ -134,7 +134,8 @@ def bsdf_contribution(scene, si, bsdf, areas: DeltaEmitters, shift, shift_1d, k,
 
 
 def delta_contribution(scene, si, emitters: DeltaEmitters, k, active):
-    """(ωo in the local frame, incident weight, mask) for delta emitter k: its own ``sample_direction``, exact."""
+    """(ωo in the local frame, incident weight, mask, None: no other strategy) for delta emitter k: its own
+    ``sample_direction``, exact."""
     emitter = dr.gather(mi.EmitterPtr, emitters.pointers, k, active)
     ds, weight = emitter.sample_direction(si, dr.full(mi.Point2f, 0.5, dr.width(si.p)), active)
     wo = si.to_local(ds.d)
@@ -144,7 +145,8 @@ def delta_contribution(scene, si, emitters: DeltaEmitters, k, active):
 
 
 def led_contribution(scene, si, leds: LedArrays, k, far_field: bool, active):
-    """(ωo in the local frame, incident irradiance-like weight I/d², mask) for LED k at the shading point."""
+    """(ωo in the local frame, incident irradiance-like weight I/d², mask, None: no other strategy) for LED k at the
+    shading point."""
     p = dr.gather(mi.Point3f, leds.position, k, active)
     intensity = dr.gather(mi.Color3f, leds.intensity, k, active)
     if far_field:
