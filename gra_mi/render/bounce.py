@@ -32,12 +32,12 @@ import numpy as np
 from gra_mi.core.io import atomic_path
 from gra_mi.render import brdf
 from gra_mi.render.atlas import SurfaceFilter, TexelGeometry, UVAtlas
+from gra_mi.render.lattice import lattice_point
 from gra_mi.render.shading import local_view
 from gra_mi.render.transport import DEFAULT_RAYS
 from gra_mi.render.visibility import RAY_EPSILON
 
 CHUNK_RAYS = 1 << 20  # rays per kernel: bounds the surface interactions held at once (~100 MB)
-GOLDEN = 0.6180339887498949
 
 
 @dataclass
@@ -222,10 +222,8 @@ def _trace_chunk(scene, subject_ptr, geom, resolution, mesh, chunk, rays, seed):
     ng = dr.gather(mi.Vector3f, geom.geo_normal, t)
     # A Fibonacci lattice shifted per texel (Cranley–Patterson): stratified over the hemisphere, uncorrelated between
     # neighbouring texels, the same on every run.
-    kf = mi.Float(k)
-    u = _fraction((kf + 0.5) / rays + mi.sample_tea_float32(t, 2 * seed))
-    v = _fraction(kf * GOLDEN + mi.sample_tea_float32(t, 2 * seed + 1))
-    local = mi.warp.square_to_cosine_hemisphere(mi.Point2f(u, v))
+    shift = mi.Point2f(mi.sample_tea_float32(t, 2 * seed), mi.sample_tea_float32(t, 2 * seed + 1))
+    local = mi.warp.square_to_cosine_hemisphere(lattice_point(mi.Float(k), rays, shift))
     d = frame.to_world(local)
     above = (dr.dot(d, ng) > 0) & (local.z > 0)
     pi = scene.ray_intersect_preliminary(mi.Ray3f(p + ng * RAY_EPSILON, d), coherent=False, active=above)
@@ -243,10 +241,6 @@ def _trace_chunk(scene, subject_ptr, geom, resolution, mesh, chunk, rays, seed):
     out = (dr.gather(mi.UInt32, t, keep), dr.gather(mi.UInt32, source, keep), dr.gather(mi.Vector3f, d, keep))
     dr.eval(*out)
     return np.array(out[0]), np.array(out[1]), np.array(out[2]).T.reshape(-1, 3).astype(np.float32)
-
-
-def _fraction(x):
-    return x - dr.floor(x)
 
 
 def light_along_rays(op: BounceOperator, geom: TexelGeometry, albedo: mi.Color3f, first: tuple, bounces: int) -> mi.Color3f:

@@ -106,6 +106,22 @@ def area_cases() -> dict[str, dict]:
     }
 
 
+def area_stage(count: int = 96, seed: int = 0) -> dict[str, dict]:
+    """A lightstage built of ``count`` area lights (disks 3 cm across, 1.1 m from the subject's centre on a Fibonacci
+    sphere, none below 20 cm from the floor, each facing the centre) under a drive pattern: tinted radiances spread
+    over two orders of magnitude, one in five off. Light that many emitters share: what ``area_samples`` divides."""
+    rng = np.random.default_rng(seed)
+    k = np.arange(count) + 0.5
+    y = 1.0 - 1.4 * k / count  # cos of the polar angle from +y: down to 20 cm above the floor
+    ring = np.sqrt(1.0 - y**2)
+    azimuth = np.pi * (3.0 - np.sqrt(5.0)) * k
+    centre = np.array([0.0, 1.0, 0.0])
+    places = centre + 1.1 * np.stack([ring * np.cos(azimuth), y, ring * np.sin(azimuth)], -1)
+    radiance = 10.0 ** rng.uniform(0, 2, count)[:, None] * rng.uniform(0.6, 1.0, (count, 3))
+    radiance[rng.random(count) < 0.2] = 0.0
+    return {f"led_{i:03d}": area("disk", list(places[i]), list(centre), 0.015, radiance[i].tolist()) for i in range(count)}
+
+
 def image_error(image: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
     """(mean relative error, relative bias of the mean) over the pixels the subject covers in ``truth``, the floor at
     5 % of the truth's 95th percentile there."""

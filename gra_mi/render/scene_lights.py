@@ -4,8 +4,9 @@ A light that reaches a point from one position or one direction (a *delta* light
 ``projector``, ``directional``) is computed exactly with one shadow ray: its emitter's own ``sample_direction`` gives
 the incident radiance. An environment (``envmap``, ``constant``, ``sunsky``) is computed as a lightstage computes
 one: a dome of far-field lights, each carrying its cell of the sphere (:mod:`gra_mi.render.dome`). An ``area`` light
-is sampled on its surface, ``area_samples`` points per pixel sample, as Mitsuba's ``direct`` samples it (noise that
-falls with samples, no bias). A ``directionalarea`` light cannot be reached from a point (its light leaves its
+is sampled on its surface as Mitsuba's ``direct`` samples it (noise that falls with samples, no bias): the
+``area_samples`` points per pixel sample are shared among the area lights in proportion to their weights
+(:func:`area_weights`: power × Mitsuba's ``sampling_weight``), at least one each. A ``directionalarea`` light cannot be reached from a point (its light leaves its
 surface in one direction); rather than render it black, gra-mi refuses the scene when it is loaded, naming the emitter
 and what to use instead.
 """
@@ -47,8 +48,10 @@ OPTIONS = {
     "area_samples": ((1, 4096), DEFAULT_AREA_SAMPLES),
     "bsdf_samples": ((0, 4096), DEFAULT_BSDF_SAMPLES),
 }
-"""gra_onebounce's sample counts: (range, default). ``area_samples``: points on each area light per pixel sample;
-``bsdf_samples``: directions drawn from the BSDF per pixel sample that may reach an area light."""
+"""gra_onebounce's sample counts: (range, default). ``area_samples``: points per pixel sample on the area lights (shared
+among them by :func:`area_weights`, at least one each); ``bsdf_samples``: directions drawn from the BSDF per pixel sample that may reach
+an area light."""
+POWER_POINTS = 256  # points per area light over which its mean radiance is estimated
 
 
 def checked_option(name: str, value, flag: str | None = None) -> int:
@@ -84,6 +87,7 @@ class SceneLights:
     dome_irradiance: np.ndarray  # (D, 3) W/m² of each; zeros without an environment
     environments: list
     areas: list
+    area_weights: np.ndarray  # (A,) > 0: each area light's share of the points (:func:`area_weights`)
 
     @property
     def count(self) -> int:
@@ -143,14 +147,45 @@ def scene_lights(scene, source: str | None = None, dome_lights: int = DEFAULT_LI
             points.append(emitter)
             point_index.append(index)
         elif _check_values(mi.traverse(emitter), label, kind, source):
-            (areas if kind in SAMPLED else others).append(emitter)
+            (areas if kind in SAMPLED else others).append(_checked_weight(emitter, label, source) if kind in SAMPLED else emitter)
     positions, intensities = point_lights(points)
     bad = np.flatnonzero(~np.all(np.isfinite(intensities) & (intensities >= 0), axis=1))
     if bad.size:
         k = int(bad[0])
         raise GraMiInputError(source or "scene", f"{emitter_label(point_index[k], points[k])} (point): 'intensity' must be finite and "
                               f">= 0, got {np.round(intensities[k], 6).tolist()} ({bad.size} such point lights)")  # fmt: skip
-    return SceneLights(points, others, positions, intensities, light_directions(moments), dome, environments, areas)
+    directions = light_directions(moments)
+    return SceneLights(points, others, positions, intensities, directions, dome, environments, areas, area_weights(areas))
+
+
+def area_weights(emitters: list) -> np.ndarray:
+    """Each area light's weight in sharing gra_onebounce's points: its power (mean radiance over a lattice of points on
+    its surface × its area) times its Mitsuba ``sampling_weight`` (raise it for a dim light close to the subject,
+    whose power alone undersells its light there)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    from gra_mi.render.lattice import lattice_point
+
+    if not emitters:
+        return np.zeros(0)
+    n, m = len(emitters), POWER_POINTS
+    lights = dr.gather(mi.EmitterPtr, mi.EmitterPtr(emitters), mi.UInt32(np.repeat(np.arange(n), m)))
+    points = lattice_point(mi.Float(np.tile(np.arange(m), n)), m)
+    where = mi.SurfaceInteraction3f(lights.get_shape().sample_position(0.0, points), dr.zeros(mi.Color0f))
+    where.wi = mi.Vector3f(0.0, 0.0, 1.0)  # seen from the front
+    radiance = np.array(lights.eval(where), dtype=np.float64).T.reshape(n, m, -1).mean(axis=(1, 2))
+    power = radiance * np.array([e.get_shape().surface_area()[0] for e in emitters], dtype=np.float64)
+    return power * np.array([e.sampling_weight() for e in emitters], dtype=np.float64)
+
+
+def _checked_weight(emitter, label: str, source: str | None):
+    """The area light, refused unless its ``sampling_weight`` is finite and > 0 (0 would leave it unsampled)."""
+    weight = emitter.sampling_weight()
+    if not (np.isfinite(weight) and weight > 0):
+        raise GraMiInputError(source or "scene", f"{label} (area): 'sampling_weight' must be finite and > 0 (gra_onebounce shares "
+                              f"its points among area lights in proportion to power × sampling_weight), got {weight:g}")  # fmt: skip
+    return emitter
 
 
 def _environment(emitter, label: str, count: int, source: str | None) -> tuple[np.ndarray, np.ndarray]:

@@ -22,7 +22,8 @@ about Microfacet Rendering").
        each the light of its cell of the sphere (:mod:`gra_mi.render.dome`). Default: 1024.
    * - ``area_samples``
      - integer
-     - Points sampled on each ``area`` light per pixel sample (one shadow ray each). Default: 16.
+     - Points sampled on the ``area`` lights per pixel sample (one shadow ray each), shared among them in proportion
+       to their power × their ``sampling_weight``, at least one each. Default: 16.
    * - ``bsdf_samples``
      - integer
      - Directions drawn from the BSDF per pixel sample that may reach an ``area`` light (one ray each), weighted
@@ -36,8 +37,10 @@ with one shadow ray per light and E_k the light's incident irradiance-like weigh
 near field by default; ``spot`` and ``projector``: I·falloff/d²; ``directional``: its irradiance), as the emitter's
 own ``sample_direction`` gives it; environments (``envmap``, ``constant``, ``sunsky``) arrive through a dome of
 far-field lights, each with the irradiance of its cell, one shadow ray each, like a lightstage's LEDs; ``area`` lights
-are sampled on their surface by their own ``sample_direction``, ``area_samples`` points per pixel sample spread over
-it as a rank-1 lattice shifted at random per pixel sample (unbiased, with less noise than independent points), and
+are sampled on their surface by their own ``sample_direction``, ``area_samples`` points per pixel sample in all,
+shared among the lights in proportion to power × ``sampling_weight`` and at least one each (every light is in every
+estimate), spread over each light as a rank-1 lattice shifted at random per pixel sample (unbiased, with less
+noise than independent points: :mod:`gra_mi.render.lattice`), and
 reached by ``bsdf_samples`` directions from the BSDF (a lattice too), the two weighted by the power heuristic as
 Mitsuba's ``direct`` weighs its emitter and BSDF samples: the points carry a small light, the directions a glossy
 highlight or a large light close by. The BSDF's delta lobes (a perfect mirror) see no area light, as they see no delta
@@ -53,15 +56,16 @@ gradients enabled around the BSDF evaluation only (the directions' pdf held fixe
 
 from __future__ import annotations
 
+from contextlib import contextmanager
+
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 from mitsuba.python.ad.integrators.common import RBIntegrator
 
+from gra_mi.render.lattice import fraction, lattice_point
 from gra_mi.render.leds import LedLayout
 from gra_mi.render.scene_lights import OPTIONS, checked_option, scene_lights
-
-GOLDEN = 0.6180339887498949  # the rank-1 lattice's second coordinate steps by 1/φ
 
 
 class LedArrays:
@@ -78,20 +82,50 @@ class LedArrays:
 
 
 class DeltaEmitters:
-    """The scene's other delta lights (spot, projector, directional), or its area lights, as one array of emitter
-    pointers; ``samples`` points are drawn on each per pixel sample (a delta light: 1), and ``bsdf_samples``
-    directions from the BSDF that may hit one (area lights only)."""
+    """The scene's other delta lights (spot, projector, directional) as one array of emitter pointers."""
 
-    def __init__(self, emitters: list, samples: int = 1, bsdf_samples: int = 0):
-        self.count, self.samples, self.bsdf_samples = len(emitters), samples, bsdf_samples
+    def __init__(self, emitters: list):
+        self.count = len(emitters)
         self.pointers = mi.EmitterPtr(emitters) if emitters else None
 
 
-def lattice_point(j, count: int, shift):
-    """Point j of the rank-1 lattice {((j + ½) / N, j / φ mod 1)} shifted by ``shift`` (mod 1): each point is uniform
-    when the shift is, and the N points are spread over the square."""
-    point = mi.Point2f((j + 0.5) / count, j * GOLDEN) + shift
-    return point - dr.floor(point)
+class AreaLights:
+    """The scene's area lights that are on, and how many of the ``samples`` points per pixel sample each gets: a share
+    in proportion to its weight (:func:`~gra_mi.render.scene_lights.area_weights`), at least one (:func:`points_per_light`),
+    so every light is in every estimate. ``bsdf_samples`` directions from the BSDF may hit one."""
+
+    def __init__(self, emitters: list, weights: np.ndarray, samples: int, bsdf_samples: int):
+        self.count, self.bsdf_samples = len(emitters), bsdf_samples
+        self.samples = 0  # points per pixel sample over all lights: the loop's length
+        if not emitters:
+            return
+        self.pointers = mi.EmitterPtr(emitters)
+        points = points_per_light(weights, samples)
+        self.samples = int(points.sum())
+        # Point t of the loop: which light, which of that light's points, out of how many.
+        light = np.repeat(np.arange(self.count), points)
+        self.light_of = mi.UInt32(light.astype(np.uint32))
+        self.index_on = mi.Float((np.arange(self.samples) - np.repeat(np.cumsum(points) - points, points)).astype(np.float32))
+        self.points_on = mi.Float(points[light].astype(np.float32))
+        # A light a BSDF direction hits is known by its pointer (a registry id): its count of points, looked up by that id.
+        ids = np.array(dr.reinterpret_array(mi.UInt32, self.pointers), dtype=np.int64)
+        table = np.zeros(ids.max() + 1, dtype=np.float32)
+        table[ids] = points
+        self.points_by_id = mi.Float(table)
+
+    def points_of(self, emitter, active):
+        """How many points each pixel sample draws on ``emitter`` (0 for none, or for a light that is off)."""
+        ids = dr.reinterpret_array(mi.UInt32, emitter)
+        known = active & (ids < dr.width(self.points_by_id))
+        return dr.gather(mi.Float, self.points_by_id, ids, known)
+
+
+def points_per_light(weights: np.ndarray, samples: int) -> np.ndarray:
+    """``samples`` points shared among lights in proportion to ``weights`` (rounded), at least one each: a light too
+    dim for a point of its own still gets one, so no pixel sample leaves a light out (choosing lights at random
+    instead is several times noisier on a stage of small lights)."""
+    share = weights / weights.sum() if weights.sum() > 0 else np.full(len(weights), 1.0 / len(weights))
+    return np.maximum(1, np.rint(samples * share)).astype(np.int64)
 
 
 def power_heuristic(ours, other):
@@ -99,28 +133,29 @@ def power_heuristic(ours, other):
     return dr.select(ours > 0, dr.square(ours) / (dr.square(ours) + dr.square(other)), 0.0)
 
 
-def area_contribution(scene, si, areas: DeltaEmitters, shift, k, active):
+def area_contribution(scene, si, areas: AreaLights, shift, t, active):
     """(ωo in the local frame, incident radiance / pdf over the samples, mask, this strategy's density there) for
-    sample k: lattice point k % S (:func:`lattice_point`) on area light k // S, drawn by the emitter's own
-    ``sample_direction``. With BSDF samples the sum weighs it against theirs (:func:`bsdf_contribution`)."""
-    samples = areas.samples
-    emitter = dr.gather(mi.EmitterPtr, areas.pointers, k // samples, active)
-    ds, weight = emitter.sample_direction(si, lattice_point(mi.Float(k % samples), samples, shift), active)
+    point t of the loop: point j of the n a light gets, lattice point j of n (:func:`~gra_mi.render.lattice.lattice_point`)
+    on it drawn by the emitter's own ``sample_direction``. With BSDF samples the sum weighs it against theirs
+    (:func:`bsdf_contribution`)."""
+    light = dr.gather(mi.UInt32, areas.light_of, t, active)
+    count = dr.gather(mi.Float, areas.points_on, t, active)
+    emitter = dr.gather(mi.EmitterPtr, areas.pointers, light, active)
+    ds, weight = emitter.sample_direction(si, lattice_point(dr.gather(mi.Float, areas.index_on, t, active), count, shift), active)
     wo = si.to_local(ds.d)
     facing = active & (ds.pdf > 0) & (wo.z > 0) & (dr.dot(si.n, ds.d) > 0) & (dr.max(weight) > 0)
     visible = facing & ~scene.ray_test(si.spawn_ray_to(ds.p), facing)
-    return wo, weight / samples, visible, samples * ds.pdf if areas.bsdf_samples else None
+    return wo, weight / count, visible, count * ds.pdf if areas.bsdf_samples else None
 
 
-def bsdf_contribution(scene, si, bsdf, areas: DeltaEmitters, shift, shift_1d, k, active):
+def bsdf_contribution(scene, si, bsdf, areas: AreaLights, shift, shift_1d, k, active):
     """(ωo, the radiance of the area light it reaches / pdf over the samples, mask, None) for BSDF sample k (a lattice point,
     as the lights'), weighted against the lights' own samples of that direction: where a light's surface sampling is
     poor (a large light close by, a glossy highlight) the BSDF's is good. Smooth lobes only (a one-bounce integrator's
     delta lobes see no light); reflection above both horizons, as the lights' samples."""
     count = areas.bsdf_samples
     j = mi.Float(k)
-    lobe = j / count + shift_1d
-    sample, _ = bsdf.sample(mi.BSDFContext(), si, lobe - dr.floor(lobe), lattice_point(j, count, shift), active)
+    sample, _ = bsdf.sample(mi.BSDFContext(), si, fraction(j / count + shift_1d), lattice_point(j, count, shift), active)
     direction = si.to_world(sample.wo)
     smooth = ~mi.has_flag(sample.sampled_type, mi.BSDFFlags.Delta)
     facing = active & smooth & (sample.pdf > 0) & (sample.wo.z > 0) & (dr.dot(si.n, direction) > 0)
@@ -128,8 +163,8 @@ def bsdf_contribution(scene, si, bsdf, areas: DeltaEmitters, shift, shift_1d, k,
     facing &= hit.is_valid()  # an environment is the dome's
     emitter = hit.emitter(scene, facing)  # null where the surface emits nothing: no radiance, no pdf
     radiance = emitter.eval(hit, facing)
-    light_pdf = emitter.pdf_direction(si, mi.DirectionSample3f(scene, hit, si), facing)
-    weight = radiance * power_heuristic(count * sample.pdf, areas.samples * light_pdf) / (count * sample.pdf)
+    light_pdf = areas.points_of(emitter, facing) * emitter.pdf_direction(si, mi.DirectionSample3f(scene, hit, si), facing)
+    weight = radiance * power_heuristic(count * sample.pdf, light_pdf) / (count * sample.pdf)
     return sample.wo, weight, facing & (dr.max(radiance) > 0), None
 
 
@@ -178,7 +213,7 @@ class GraOneBounce(RBIntegrator):
         )
         self._lights = None
 
-    def prepare_lights(self, scene: mi.Scene) -> tuple[LedArrays, DeltaEmitters, LedArrays, DeltaEmitters]:
+    def prepare_lights(self, scene: mi.Scene) -> tuple[LedArrays, DeltaEmitters, LedArrays, AreaLights]:
         """The scene's lights as the loops read them (checked: a light gra-mi cannot compute stops here, by name): its
         point lights, its other delta lights, its environments' dome (unit directions, so irradiance is I / 1²), its
         area lights."""
@@ -188,20 +223,30 @@ class GraOneBounce(RBIntegrator):
             LedArrays(LedLayout(lights.positions, self.stage_center, self.far_field), lights.intensities),
             DeltaEmitters(lights.others),
             LedArrays(dome, lights.dome_irradiance),
-            DeltaEmitters(lights.areas, self.area_samples, self.bsdf_samples),
+            AreaLights(lights.areas, lights.area_weights, self.area_samples, self.bsdf_samples),
         )
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
-        self._lights = self.prepare_lights(scene)
-        return super().render(scene, sensor, seed, spp, develop, evaluate)
+        with self._lights_of(scene):
+            return super().render(scene, sensor, seed, spp, develop, evaluate)
 
     def render_backward(self, scene, params, grad_in, sensor=0, seed=0, spp=0):
-        self._lights = self.prepare_lights(scene)
-        return super().render_backward(scene, params, grad_in, sensor, seed, spp)
+        with self._lights_of(scene):
+            return super().render_backward(scene, params, grad_in, sensor, seed, spp)
 
     def render_forward(self, scene, params, sensor=0, seed=0, spp=0):
+        with self._lights_of(scene):
+            return super().render_forward(scene, params, sensor, seed, spp)
+
+    @contextmanager
+    def _lights_of(self, scene):
+        """The scene's lights for the length of one render, then let go: held longer they would keep its emitters
+        alive, and every emitter alive is traced by each call on an emitter pointer."""
         self._lights = self.prepare_lights(scene)
-        return super().render_forward(scene, params, sensor, seed, spp)
+        try:
+            yield
+        finally:
+            self._lights = None
 
     def sample(self, mode, scene, sampler, ray, δL, state_in, active, **kwargs):
         primal = mode == dr.ADMode.Primal
@@ -231,12 +276,12 @@ class GraOneBounce(RBIntegrator):
             L, δL = self._sum_area_lights(mode, scene, sampler, si, bsdf, areas, valid, L, δL)
         return (L if primal else δL, valid, [], L)
 
-    def _sum_area_lights(self, mode, scene, sampler, si, bsdf, areas: DeltaEmitters, valid, L, δL):
+    def _sum_area_lights(self, mode, scene, sampler, si, bsdf, areas: AreaLights, valid, L, δL):
         """The area lights' points, then the BSDF's directions that reach one (each weighted against the other). The
         random shifts are drawn here, the same in the adjoint pass: it replays the primal pass's sampler."""
         shift = sampler.next_2d(valid)
         L, δL = _sum_lights(
-            mode, areas.count * areas.samples, lambda k, on: area_contribution(scene, si, areas, shift, k, on), bsdf, si,
+            mode, areas.samples, lambda k, on: area_contribution(scene, si, areas, shift, k, on), bsdf, si,
             valid, L, δL, "area lights", other_count=areas.bsdf_samples,
         )  # fmt: skip
         if areas.bsdf_samples:
