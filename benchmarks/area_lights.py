@@ -10,7 +10,7 @@ per pass at STAGE_TRUTH_SPP passes. Each row renders the same scene: gra_oneboun
 pixel sample (rank-1 lattices shifted at random per sample), or `direct` with E emitter and B BSDF samples per pass. Error: mean relative error over the covered pixels (the metric of
 Mitsuba's own tests) and the bias of the mean; time: the median of 3 renders after one that compiles.
 
-    .venv/bin/python benchmarks/area_lights.py [--truth-spp 16384] [--stage-truth-spp 1024] [--write docs/results/area-lights.md]
+    .venv/bin/python benchmarks/area_lights.py [--truth-spp 16384] [--stage-truth-spp 4096] [--write docs/results/area-lights.md]
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ OURS = ((1, 0, 16), (4, 0, 16), (16, 0, 16), (16, 4, 16), (16, 16, 16), (64, 16,
 DIRECT = ((1, 0, 64), (1, 0, 256), (1, 0, 1024), (16, 0, 16), (1, 1, 256), (16, 16, 16))  # (emitter, BSDF samples, passes)
 GLOSSY = 0.08  # the glossy body's roughness: a highlight narrower than the window seen in it
 STAGES = (24, 96, 384)  # area LEDs
-STAGE_OURS = ((16, 4, 16), (64, 4, 16))
+STAGE_OURS = ((16, 4, 16), (256, 4, 16), (16, 4, 64))
 STAGE_DIRECT = ((16, 0, 16), (64, 0, 16))
 
 
@@ -80,6 +80,6 @@ if __name__ == "__main__":
 
     def arguments(parser):
         parser.add_argument("--truth-spp", type=int, default=16384, help="Passes of the truth (one emitter and one BSDF sample each).")
-        parser.add_argument("--stage-truth-spp", type=int, default=1024, help="Passes of the stages' truth (64 emitter samples each).")
+        parser.add_argument("--stage-truth-spp", type=int, default=4096, help="Passes of the stages' truth (64 emitter samples each).")
 
     run_benchmark(__doc__, measure, arguments=arguments)

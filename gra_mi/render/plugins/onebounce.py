@@ -43,8 +43,8 @@ estimate), spread over each light as a rank-1 lattice shifted at random per pixe
 noise than independent points: :mod:`gra_mi.render.lattice`), and
 reached by ``bsdf_samples`` directions from the BSDF (a lattice too), the two weighted by the power heuristic as
 Mitsuba's ``direct`` weighs its emitter and BSDF samples: the points carry a small light, the directions a glossy
-highlight or a large light close by. The BSDF's delta lobes (a perfect mirror) see no area light, as they see no delta
-light; the camera sees the lights' surface as Mitsuba shows it. Point emitters (a lightstage has hundreds) are read
+highlight or a large light close by. Each delta lobe of a material (a mirror, a glass's reflection and transmission, a
+plastic's coat) sees the environment and area lights along its one direction, one ray per lobe; the camera sees the lights' surface as Mitsuba shows it. Point emitters (a lightstage has hundreds) are read
 from the scene once per render into arrays and evaluated in one symbolic Dr.Jit loop, not one virtual call per
 emitter; the other delta lights follow in a second loop that calls each emitter. Point lights and area lights that
 are off are dropped before the loop; lights below the shading point's horizon (shading or geometric normal) trace
@@ -57,6 +57,7 @@ gradients enabled around the BSDF evaluation only (the directions' pdf held fixe
 from __future__ import annotations
 
 from contextlib import contextmanager
+from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
@@ -66,6 +67,9 @@ from mitsuba.python.ad.integrators.common import RBIntegrator
 from gra_mi.render.lattice import fraction, lattice_point
 from gra_mi.render.leds import LedLayout
 from gra_mi.render.scene_lights import OPTIONS, checked_option, scene_lights
+
+# A light's term may not depend on what is differentiated (a mirror's smooth lobes are zero): no gradient, no error.
+MAY_NOT_DEPEND = dr.ADFlag.Default | dr.ADFlag.AllowNoGrad
 
 
 class LedArrays:
@@ -151,8 +155,8 @@ def area_contribution(scene, si, areas: AreaLights, shift, t, active):
 def bsdf_contribution(scene, si, bsdf, areas: AreaLights, shift, shift_1d, k, active):
     """(ωo, the radiance of the area light it reaches / pdf over the samples, mask, None) for BSDF sample k (a lattice point,
     as the lights'), weighted against the lights' own samples of that direction: where a light's surface sampling is
-    poor (a large light close by, a glossy highlight) the BSDF's is good. Smooth lobes only (a one-bounce integrator's
-    delta lobes see no light); reflection above both horizons, as the lights' samples."""
+    poor (a large light close by, a glossy highlight) the BSDF's is good. Smooth lobes only (the delta lobes have a ray
+    each: :func:`_add_delta_lobe`); reflection above both horizons, as the lights' samples."""
     count = areas.bsdf_samples
     j = mi.Float(k)
     sample, _ = bsdf.sample(mi.BSDFContext(), si, fraction(j / count + shift_1d), lattice_point(j, count, shift), active)
@@ -202,6 +206,17 @@ def led_contribution(scene, si, leds: LedArrays, k, far_field: bool, active):
     return wo, intensity / dist2, visible, None
 
 
+@dataclass
+class Lights:
+    """What one render lights with (:meth:`GraOneBounce.prepare_lights`)."""
+
+    leds: LedArrays  # the point lights
+    others: DeltaEmitters  # spot, projector, directional
+    dome: LedArrays  # the environments' far-field lights
+    areas: AreaLights
+    delta_lobes: tuple  # the components that are delta lobes in some material (a mirror, glass), with light to see there
+
+
 class GraOneBounce(RBIntegrator):
     def __init__(self, props: mi.Properties):
         super().__init__(props)
@@ -213,17 +228,19 @@ class GraOneBounce(RBIntegrator):
         )
         self._lights = None
 
-    def prepare_lights(self, scene: mi.Scene) -> tuple[LedArrays, DeltaEmitters, LedArrays, AreaLights]:
+    def prepare_lights(self, scene: mi.Scene) -> Lights:
         """The scene's lights as the loops read them (checked: a light gra-mi cannot compute stops here, by name): its
         point lights, its other delta lights, its environments' dome (unit directions, so irradiance is I / 1²), its
-        area lights."""
+        area lights; and which material components are delta lobes that may see an environment or area light."""
         lights = scene_lights(scene, dome_lights=self.dome_lights)
         dome = LedLayout(lights.dome_directions, np.zeros(3), far_field=True)
-        return (
+        seen_in_delta_lobes = lights.environments or lights.areas
+        return Lights(
             LedArrays(LedLayout(lights.positions, self.stage_center, self.far_field), lights.intensities),
             DeltaEmitters(lights.others),
             LedArrays(dome, lights.dome_irradiance),
             AreaLights(lights.areas, lights.area_weights, self.area_samples, self.bsdf_samples),
+            delta_components(scene) if seen_in_delta_lobes else (),
         )
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
@@ -250,7 +267,8 @@ class GraOneBounce(RBIntegrator):
 
     def sample(self, mode, scene, sampler, ray, δL, state_in, active, **kwargs):
         primal = mode == dr.ADMode.Primal
-        leds, others, dome, areas = self._lights if self._lights is not None else self.prepare_lights(scene)
+        lights = self._lights if self._lights is not None else self.prepare_lights(scene)
+        leds, others, dome, areas = lights.leds, lights.others, lights.dome, lights.areas
         far_field = self.far_field
 
         si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.All, coherent=True, active=active)
@@ -274,6 +292,8 @@ class GraOneBounce(RBIntegrator):
             )
         if areas.count:
             L, δL = self._sum_area_lights(mode, scene, sampler, si, bsdf, areas, valid, L, δL)
+        for component in lights.delta_lobes:
+            L, δL = _add_delta_lobe(mode, scene, si, bsdf, component, valid, L, δL)
         return (L if primal else δL, valid, [], L)
 
     def _sum_area_lights(self, mode, scene, sampler, si, bsdf, areas: AreaLights, valid, L, δL):
@@ -299,6 +319,37 @@ class GraOneBounce(RBIntegrator):
         )
 
 
+def delta_components(scene) -> tuple[int, ...]:
+    """The component indices that are a delta lobe in some material of ``scene`` (a mirror's one, a glass's reflection
+    and transmission, a plastic's coat): each is followed with one ray (:func:`_add_delta_lobe`)."""
+    found = set()
+    for shape in scene.shapes():
+        bsdf = shape.bsdf()
+        found |= {c for c in range(bsdf.component_count()) if mi.has_flag(bsdf.flags(c), mi.BSDFFlags.Delta)}
+    return tuple(sorted(found))
+
+
+def _add_delta_lobe(mode, scene, si, bsdf, component: int, valid, L, δL):
+    """L ± what the material's delta lobe ``component`` sees: its one direction, and the area light or environment it
+    reaches there (a delta light never is). One ray per lobe, each lobe on its own, so a glass's reflection and
+    transmission are both exact rather than chosen at random; no other strategy samples a delta direction, so the
+    BSDF sample's own weight is the estimate. In the adjoint pass the gradient flows through that weight."""
+    primal = mode == dr.ADMode.Primal
+    ctx = mi.BSDFContext(mi.TransportMode.Radiance, mi.BSDFFlags.Delta, component)
+    middle = dr.full(mi.Point2f, 0.5, dr.width(valid))  # a delta lobe draws nothing from its samples
+    with dr.resume_grad(when=not primal):
+        sample, weight = bsdf.sample(ctx, si, middle.x, middle, valid)
+        reached = valid & mi.has_flag(sample.sampled_type, mi.BSDFFlags.Delta) & (sample.pdf > 0)
+        hit = scene.ray_intersect(si.spawn_ray(si.to_world(dr.detach(sample.wo))), reached)
+        contribution = dr.select(reached, weight * dr.detach(hit.emitter(scene, reached).eval(hit, reached)), 0.0)
+        if not primal:
+            if mode == dr.ADMode.Backward:
+                dr.backward_from(δL * contribution, flags=MAY_NOT_DEPEND)
+            else:
+                δL += dr.forward_to(contribution, flags=MAY_NOT_DEPEND)
+    return (L + dr.detach(contribution) if primal else L - dr.detach(contribution)), δL
+
+
 @dr.syntax
 def _sum_lights(mode, count: int, contribution_of, bsdf, si, valid, L, δL, what: str, other_count: int = 0):
     """L ± Σ_k f(ωi, ωk) cosθk · weight_k over ``count`` lights (``contribution_of(k, mask)`` gives ωo, weight, mask
@@ -321,9 +372,9 @@ def _sum_lights(mode, count: int, contribution_of, bsdf, si, valid, L, δL, what
             contribution = dr.select(visible, contribution, 0.0)
             if dr.hint(not primal, mode="scalar"):
                 if dr.hint(mode == dr.ADMode.Backward, mode="scalar"):
-                    dr.backward_from(δL * contribution)
+                    dr.backward_from(δL * contribution, flags=MAY_NOT_DEPEND)
                 else:
-                    δL += dr.forward_to(contribution)
+                    δL += dr.forward_to(contribution, flags=MAY_NOT_DEPEND)
         L = L + dr.detach(contribution) if primal else L - dr.detach(contribution)
         k += 1
     return L, δL
