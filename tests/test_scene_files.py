@@ -8,15 +8,18 @@ import pytest
 
 from gra_mi.core.errors import GraMiInputError
 from gra_mi.render.near_field_cases import (
+    DELTA_MATERIALS,
     HARD_CASES,
     SPP,
     area,
     area_cases,
     area_stage,
+    ball_scene,
     image_error,
     look_at,
     mean_relative_error,
     point,
+    sky,
     spot,
 )
 from gra_mi.render.near_field_cases import body_scene as scene_around
@@ -301,47 +304,7 @@ def test_bad_area_sample_counts_are_refused_by_name(plugins, name, value):
         mi.load_dict({"type": "gra_onebounce", name: value})
 
 
-def sky_bitmap(height: int = 32):
-    """A smooth sky brighter above, with a broad warm lamp low on one side: (H, 2H, 3)."""
-    import mitsuba as mi
-
-    from gra_mi.stage.envmap import pixel_directions
-
-    d = pixel_directions(height, 2 * height)
-    sky = 0.3 + 0.7 * np.clip(d[..., 1:2], 0, 1) * np.array([0.6, 0.8, 1.0])
-    lamp = 6.0 * np.exp((d @ np.array([0.8, 0.2, 0.57]) - 1.0) / 0.02)[..., None] * np.array([1.0, 0.8, 0.5])
-    return mi.Bitmap((sky + lamp).astype(np.float32))
-
-
-def sky() -> dict:
-    """The sky turned (to_world) and scaled, as a user's scene might hold it."""
-    import mitsuba as mi
-
-    turned = mi.ScalarTransform4f().rotate([0, 1, 0], 35).rotate([1, 0, 0], 10)
-    return {"type": "envmap", "bitmap": sky_bitmap(), "scale": 1.5, "to_world": turned}
-
-
-DELTA_MATERIALS = {  # materials with a delta lobe, and the passes of direct's truth (glass: it picks a lobe at random)
-    "mirror": ({"type": "conductor"}, 1024),
-    "gold": ({"type": "conductor", "material": "Au"}, 1024),
-    "plastic": ({"type": "plastic", "diffuse_reflectance": {"type": "rgb", "value": [0.2, 0.4, 0.6]}}, 1024),
-    "glass": ({"type": "dielectric"}, 65536),
-}
-
-
-def ball_scene(material: dict):
-    """A ball of ``material`` under a sky and a softbox (a chrome ball, as a lightstage calibrates with), 32 × 32."""
-    import mitsuba as mi
-
-    from gra_mi.render.near_field_cases import _resolved
-
-    return mi.load_dict(_resolved({
-        "type": "scene", "sky": sky(),
-        "softbox": area("rectangle", [0.6, 0.5, 0.8], [0, 0, 0], (0.15, 0.1), 6.0),
-        "ball": {"type": "sphere", "radius": 0.3, "bsdf": material},
-        "camera": {"type": "perspective", "fov": 30, "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 1.5], target=[0, 0, 0], up=[0, 1, 0]),
-                   "film": {"type": "hdrfilm", "width": 32, "height": 32, "pixel_format": "rgba", "rfilter": {"type": "box"}}},
-    }))  # fmt: skip
+TRUTH_PASSES = {"glass": 65536}  # direct picks a glass's lobe at random: its truth needs more passes (others: 1024)
 
 
 @pytest.mark.parametrize("material", sorted(DELTA_MATERIALS))
@@ -351,8 +314,8 @@ def test_a_delta_lobe_sees_the_environment_and_area_lights_as_direct_does(plugin
     Mitsuba's ``direct``, whose BSDF sample finds the same."""
     import mitsuba as mi
 
-    bsdf, passes = DELTA_MATERIALS[material]
-    scene = ball_scene(bsdf)
+    scene = ball_scene(DELTA_MATERIALS[material], size=32)
+    passes = TRUTH_PASSES.get(material, 1024)
     ours = np.array(mi.render(scene, integrator=mi.load_dict({"type": "gra_onebounce"}), spp=64, seed=1))
     truth = np.array(
         mi.render(scene, integrator=mi.load_dict({"type": "direct", "emitter_samples": 1, "bsdf_samples": 1}), spp=passes, seed=5)
@@ -369,7 +332,7 @@ def test_a_blend_with_a_mirror_is_the_blend_of_its_parts(plugins):
 
     def render(weight: float):
         blend = {"type": "blendbsdf", "weight": weight, "a": {"type": "conductor"}, "b": {"type": "diffuse"}}
-        return np.array(mi.render(ball_scene(blend), integrator=mi.load_dict({"type": "gra_onebounce"}), spp=16, seed=3))[..., :3]
+        return np.array(mi.render(ball_scene(blend, size=32), integrator=mi.load_dict({"type": "gra_onebounce"}), spp=16, seed=3))[..., :3]
 
     mirror, diffuse = render(0.0), render(1.0)
     assert mirror.max() > 1.0 and diffuse.max() > 0.1

@@ -1,7 +1,8 @@
 """Near-field lighting where it is hardest, as Mitsuba scene dictionaries: the tiny subject lit by one emitter placed to
-stress ``gra_onebounce`` (1/d² across a patch, grazing light, a shadow edge, a spot's cone edge), area lights, and the
-metric Mitsuba's own tests use. tests/test_scene_files.py checks them against Mitsuba's ``direct``;
-benchmarks/moving_lights.py and benchmarks/area_lights.py time them."""
+stress ``gra_onebounce`` (1/d² across a patch, grazing light, a shadow edge, a spot's cone edge), area lights, a stage
+of area LEDs, balls of materials with delta lobes under a sky, and the metric Mitsuba's own tests use.
+tests/test_scene_files.py checks them against Mitsuba's ``direct``; benchmarks/moving_lights.py,
+benchmarks/area_lights.py and benchmarks/delta_lobes.py time them."""
 
 from __future__ import annotations
 
@@ -120,6 +121,48 @@ def area_stage(count: int = 96, seed: int = 0) -> dict[str, dict]:
     radiance = 10.0 ** rng.uniform(0, 2, count)[:, None] * rng.uniform(0.6, 1.0, (count, 3))
     radiance[rng.random(count) < 0.2] = 0.0
     return {f"led_{i:03d}": area("disk", list(places[i]), list(centre), 0.015, radiance[i].tolist()) for i in range(count)}
+
+
+def sky_bitmap(height: int = 32):
+    """A smooth sky brighter above, with a broad warm lamp low on one side: (H, 2H, 3)."""
+    import mitsuba as mi
+
+    from gra_mi.stage.envmap import pixel_directions
+
+    d = pixel_directions(height, 2 * height)
+    sky = 0.3 + 0.7 * np.clip(d[..., 1:2], 0, 1) * np.array([0.6, 0.8, 1.0])
+    lamp = 6.0 * np.exp((d @ np.array([0.8, 0.2, 0.57]) - 1.0) / 0.02)[..., None] * np.array([1.0, 0.8, 0.5])
+    return mi.Bitmap((sky + lamp).astype(np.float32))
+
+
+def sky() -> dict:
+    """The sky turned (to_world) and scaled, as a user's scene might hold it."""
+    import mitsuba as mi
+
+    turned = mi.ScalarTransform4f().rotate([0, 1, 0], 35).rotate([1, 0, 0], 10)
+    return {"type": "envmap", "bitmap": sky_bitmap(), "scale": 1.5, "to_world": turned}
+
+
+DELTA_MATERIALS = {  # Mitsuba materials with a delta lobe
+    "mirror": {"type": "conductor"},
+    "gold": {"type": "conductor", "material": "Au"},
+    "plastic": {"type": "plastic", "diffuse_reflectance": {"type": "rgb", "value": [0.2, 0.4, 0.6]}},
+    "glass": {"type": "dielectric"},
+}
+
+
+def ball_scene(material: dict, size: int = 64):
+    """A ball of ``material`` under :func:`sky` and a softbox (a chrome ball, as a lightstage calibrates with), seen
+    on a ``size`` × ``size`` film."""
+    import mitsuba as mi
+
+    return mi.load_dict(_resolved({
+        "type": "scene", "sky": sky(),
+        "softbox": area("rectangle", [0.6, 0.5, 0.8], [0, 0, 0], (0.15, 0.1), 6.0),
+        "ball": {"type": "sphere", "radius": 0.3, "bsdf": material},
+        "camera": {"type": "perspective", "fov": 30, "to_world": look_at([0, 0, 1.5], [0, 0, 0]),
+                   "film": {"type": "hdrfilm", "width": size, "height": size, "pixel_format": "rgba", "rfilter": {"type": "box"}}},
+    }))  # fmt: skip
 
 
 def image_error(image: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
