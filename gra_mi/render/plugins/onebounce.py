@@ -278,37 +278,39 @@ class GraOneBounce(RBIntegrator):
         if primal and (dome.count or areas.count) and not self.hide_emitters:  # emitters seen directly, as in Mitsuba's
             L += si.emitter(scene, active).eval(si, active)  # an escaped ray's environment; an area light's surface
         δL = mi.Spectrum(δL if δL is not None else 0.0)  # adjoint radiance
+        smooth = valid & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)  # a mirror's points skip the lights' loops
         if leds.count:
             L, δL = _sum_lights(
-                mode, leds.count, lambda k, on: led_contribution(scene, si, leds, k, far_field, on), bsdf, si, valid, L, δL, "LEDs"
+                mode, leds.count, lambda k, on: led_contribution(scene, si, leds, k, far_field, on), bsdf, si, smooth, L, δL, "LEDs"
             )
         if others.count:
             L, δL = _sum_lights(
-                mode, others.count, lambda k, on: delta_contribution(scene, si, others, k, on), bsdf, si, valid, L, δL, "delta lights"
+                mode, others.count, lambda k, on: delta_contribution(scene, si, others, k, on), bsdf, si, smooth, L, δL, "delta lights"
             )
         if dome.count:
             L, δL = _sum_lights(
-                mode, dome.count, lambda k, on: led_contribution(scene, si, dome, k, True, on), bsdf, si, valid, L, δL, "environment dome"
+                mode, dome.count, lambda k, on: led_contribution(scene, si, dome, k, True, on), bsdf, si, smooth, L, δL, "environment dome"
             )
         if areas.count:
-            L, δL = self._sum_area_lights(mode, scene, sampler, si, bsdf, areas, valid, L, δL)
+            L, δL = self._sum_area_lights(mode, scene, sampler, si, bsdf, areas, valid, smooth, L, δL)
         for component in lights.delta_lobes:
             L, δL = _add_delta_lobe(mode, scene, si, bsdf, component, valid, L, δL)
         return (L if primal else δL, valid, [], L)
 
-    def _sum_area_lights(self, mode, scene, sampler, si, bsdf, areas: AreaLights, valid, L, δL):
-        """The area lights' points, then the BSDF's directions that reach one (each weighted against the other). The
-        random shifts are drawn here, the same in the adjoint pass: it replays the primal pass's sampler."""
+    def _sum_area_lights(self, mode, scene, sampler, si, bsdf, areas: AreaLights, valid, smooth, L, δL):
+        """The area lights' points, then the BSDF's directions that reach one (each weighted against the other), where
+        the material has a smooth lobe. The random shifts are drawn here for every valid point, the same in the adjoint
+        pass: it replays the primal pass's sampler."""
         shift = sampler.next_2d(valid)
         L, δL = _sum_lights(
             mode, areas.samples, lambda k, on: area_contribution(scene, si, areas, shift, k, on), bsdf, si,
-            valid, L, δL, "area lights", other_count=areas.bsdf_samples,
+            smooth, L, δL, "area lights", other_count=areas.bsdf_samples,
         )  # fmt: skip
         if areas.bsdf_samples:
             shift, shift_1d = sampler.next_2d(valid), sampler.next_1d(valid)
             L, δL = _sum_lights(
                 mode, areas.bsdf_samples, lambda k, on: bsdf_contribution(scene, si, bsdf, areas, shift, shift_1d, k, on), bsdf,
-                si, valid, L, δL, "BSDF samples towards area lights",
+                si, smooth, L, δL, "BSDF samples towards area lights",
             )  # fmt: skip
         return L, δL
 
