@@ -129,6 +129,47 @@ def test_a_directional_area_light_is_refused_by_name(plugins):
     assert isinstance(rendered.value.__cause__, GraMiInputError) and "type 'directionalarea'" in str(rendered.value.__cause__)
 
 
+VOLUMES = {  # what a surface integrator would draw wrongly: (extra scene objects, what the refusal names)
+    "fog in a ball": ({"fog": {"type": "sphere", "radius": 0.3, "center": [0, 1, 0.5], "bsdf": {"type": "null"},
+                               "interior": {"type": "homogeneous", "id": "smoke", "sigma_t": 2.0}}},
+                      ["shape 'fog'", "medium 'smoke'", '<integrator type="volpath"/>']),
+    "a cutout": ({"card": {"type": "rectangle", "to_world": look_at([0, 1.2, 0.5], [0, 1.2, 1.3], (0.1, 0.1, 1)),
+                           "bsdf": {"type": "mask", "opacity": 0.5, "bsdf": {"type": "diffuse"}}}},
+                 ["shape 'card'", "'mask' cutout", '<integrator type="path"/>']),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("case", sorted(VOLUMES))
+def test_a_medium_or_a_see_through_material_is_refused_by_name(plugins, case):
+    """gra_onebounce shades surfaces: a participating medium would be skipped and a null or mask material drawn
+    opaque, so either stops the render, naming the shape and the integrator that computes it."""
+    import mitsuba as mi
+
+    from gra_mi.render.scene_lights import scene_lights
+
+    extra, names = VOLUMES[case]
+    scene = body_scene(extra | {"p": point([0.5, 1.2, 0.8], 1.0)})
+    with pytest.raises(GraMiInputError) as info:
+        scene_lights(scene, "my_scene.xml")
+    assert str(info.value).startswith("my_scene.xml") and all(name in str(info.value) for name in names), str(info.value)
+    with pytest.raises(RuntimeError) as rendered:
+        mi.render(scene, integrator=mi.load_dict({"type": "gra_onebounce"}), spp=1)
+    assert isinstance(rendered.value.__cause__, GraMiInputError) and names[0] in str(rendered.value.__cause__)
+
+
+def test_a_camera_inside_fog_is_refused_by_name(plugins):
+    import mitsuba as mi
+
+    from gra_mi.render.scene_lights import scene_lights
+
+    scene = mi.load_dict({
+        "type": "scene", "p": point([0.5, 1.2, 0.8], 1.0), "ball": {"type": "sphere"},
+        "eye": {"type": "perspective", "medium": {"type": "homogeneous", "id": "haze"}},
+    })  # fmt: skip
+    with pytest.raises(GraMiInputError, match="sensor 'eye' has a participating medium 'haze'"):
+        scene_lights(scene, "my_scene.xml")
+
+
 AREA_LIGHTS = sorted(area_cases())
 
 
@@ -322,6 +363,26 @@ def test_a_delta_lobe_sees_the_environment_and_area_lights_as_direct_does(plugin
     )
     covered = truth[..., 3] > 0.999
     assert covered.sum() > 300 and truth[..., :3][covered].mean() > 0.05, "the ball shows light (before, ours showed none)"
+    assert_near_truth(ours, truth, tmp_path, 0.03, 0.01)
+
+
+def test_a_mirror_ball_inside_a_shape_group_is_seen(plugins, tmp_path):
+    """The materials are found wherever the scene holds them: an instanced chrome ball as ``direct`` renders it."""
+    import mitsuba as mi
+
+    from gra_mi.render.near_field_cases import _resolved
+
+    scene = mi.load_dict(_resolved({
+        "type": "scene", "sky": sky(), "softbox": area("rectangle", [0.6, 0.5, 0.8], [0, 0, 0], (0.15, 0.1), 6.0),
+        "group": {"type": "shapegroup", "ball": {"type": "sphere", "radius": 0.3, "bsdf": DELTA_MATERIALS["mirror"]}},
+        "placed": {"type": "instance", "shapegroup": {"type": "ref", "id": "group"}},
+        "camera": {"type": "perspective", "fov": 30, "to_world": look_at([0, 0, 1.5], [0, 0, 0]),
+                   "film": {"type": "hdrfilm", "width": 32, "height": 32, "pixel_format": "rgba", "rfilter": {"type": "box"}}},
+    }))  # fmt: skip
+    ours = np.array(mi.render(scene, integrator=mi.load_dict({"type": "gra_onebounce"}), spp=64, seed=1))
+    truth = np.array(
+        mi.render(scene, integrator=mi.load_dict({"type": "direct", "emitter_samples": 1, "bsdf_samples": 1}), spp=1024, seed=5)
+    )
     assert_near_truth(ours, truth, tmp_path, 0.03, 0.01)
 
 

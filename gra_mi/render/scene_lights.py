@@ -119,11 +119,12 @@ def scene_lights(scene, source: str | None = None, dome_lights: int = DEFAULT_LI
     integrated onto a dome of ``dome_lights`` lights.
 
     Refuses (:class:`GraMiInputError`, naming the emitter): a scene with no emitter, an emitter gra-mi cannot compute,
-    a negative or non-finite intensity or radiance, a spot cone outside (0°, 180°). Area lights that emit nothing are
-    left out (no samples spent on them).
+    a negative or non-finite intensity or radiance, a spot cone outside (0°, 180°); and what a surface integrator
+    cannot show (:func:`refuse_volumes`). Area lights that emit nothing are left out (no samples spent on them).
     """
     import mitsuba as mi
 
+    refuse_volumes(scene, source)
     emitters = list(scene.emitters())
     if not emitters:
         raise GraMiInputError(source or "scene", "the scene has no emitter, so every render would be black: add a point, spot or "
@@ -169,12 +170,14 @@ def area_weights(emitters: list) -> np.ndarray:
 
     if not emitters:
         return np.zeros(0)
-    n, m = len(emitters), POWER_POINTS
-    lights = dr.gather(mi.EmitterPtr, mi.EmitterPtr(emitters), mi.UInt32(np.repeat(np.arange(n), m)))
-    points = lattice_point(mi.Float(np.tile(np.arange(m), n)), m)
-    where = mi.SurfaceInteraction3f(lights.get_shape().sample_position(0.0, points), dr.zeros(mi.Color0f))
-    where.wi = mi.Vector3f(0.0, 0.0, 1.0)  # seen from the front
-    radiance = np.array(lights.eval(where), dtype=np.float64).T.reshape(n, m, -1).mean(axis=(1, 2))
+    points = lattice_point(dr.arange(mi.Float, POWER_POINTS), POWER_POINTS)
+    radiances = []
+    for emitter in emitters:  # each its own shape (a call through a pointer array would trace every shape, groups too)
+        where = mi.SurfaceInteraction3f(emitter.get_shape().sample_position(0.0, points), dr.zeros(mi.Color0f))
+        where.wi = mi.Vector3f(0.0, 0.0, 1.0)  # seen from the front
+        radiances.append(dr.mean(emitter.eval(where), axis=None))
+    dr.eval(radiances)
+    radiance = np.array([r[0] for r in radiances], dtype=np.float64)
     power = radiance * np.array([e.get_shape().surface_area()[0] for e in emitters], dtype=np.float64)
     return power * np.array([e.sampling_weight() for e in emitters], dtype=np.float64)
 
@@ -186,6 +189,43 @@ def _checked_weight(emitter, label: str, source: str | None):
         raise GraMiInputError(source or "scene", f"{label} (area): 'sampling_weight' must be finite and > 0 (gra_onebounce shares "
                               f"its points among area lights in proportion to power × sampling_weight), got {weight:g}")  # fmt: skip
     return emitter
+
+
+def scene_objects(scene) -> dict:
+    """Every object of the scene's graph (shapes inside shape groups, nested materials, media) → its parent."""
+    import mitsuba as mi
+
+    return {node: parent for node, (parent, _) in mi.traverse(scene).hierarchy.items()}
+
+
+def owner_label(node, parents: dict) -> str:
+    """The shape, sensor or emitter ``node`` belongs to (itself, or the nearest above it), as an error names it."""
+    import mitsuba as mi
+
+    while node is not None and not isinstance(node, (mi.Shape, mi.Sensor, mi.Emitter)):
+        node = parents.get(node)
+    kind = {mi.Shape: "shape", mi.Sensor: "sensor", mi.Emitter: "emitter"}
+    return next((f"{name} '{node.id()}'" for cls, name in kind.items() if isinstance(node, cls)), "the scene")
+
+
+def refuse_volumes(scene, source: str | None = None) -> None:
+    """Refuse, by name, what gra_onebounce (a surface integrator, as Mitsuba's ``direct``) would render wrongly rather
+    than compute: a participating medium (a shape's interior or exterior, a sensor's, an emitter's) and a material
+    with a null component (``null``: a medium's invisible boundary; ``mask``: a cutout), which it would draw opaque;
+    inside shape groups too. Mitsuba's ``path`` passes through null surfaces, ``volpath`` computes media."""
+    import mitsuba as mi
+
+    parents = scene_objects(scene)
+    for node in sorted(parents, key=lambda n: not isinstance(n, mi.Medium)):  # a medium first: a null boundary is its
+        if isinstance(node, mi.Medium):
+            raise GraMiInputError(source or "scene", f"{owner_label(node, parents)} has a participating medium '{node.id()}' "
+                                  f"({node.class_name()}), which gra_onebounce does not compute (it shades surfaces): give the "
+                                  'scene <integrator type="volpath"/> and render it with its own integrator, or remove the medium')  # fmt: skip
+        if isinstance(node, mi.BSDF) and mi.has_flag(node.flags(), mi.BSDFFlags.Null):
+            raise GraMiInputError(source or "scene", f"{owner_label(node, parents)} has a material with a see-through part "
+                                  f"({node.class_name()}: a 'null' boundary or a 'mask' cutout), which gra_onebounce would draw "
+                                  'opaque: give the scene <integrator type="path"/> and render it with its own integrator, or '
+                                  "another material")  # fmt: skip
 
 
 def _environment(emitter, label: str, count: int, source: str | None) -> tuple[np.ndarray, np.ndarray]:

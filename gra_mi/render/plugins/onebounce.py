@@ -66,7 +66,7 @@ from mitsuba.python.ad.integrators.common import RBIntegrator
 
 from gra_mi.render.lattice import fraction, lattice_point
 from gra_mi.render.leds import LedLayout
-from gra_mi.render.scene_lights import OPTIONS, checked_option, scene_lights
+from gra_mi.render.scene_lights import OPTIONS, checked_option, scene_lights, scene_objects
 
 # A light's term may not depend on what is differentiated (a mirror's smooth lobes are zero): no gradient, no error.
 MAY_NOT_DEPEND = dr.ADFlag.Default | dr.ADFlag.AllowNoGrad
@@ -322,11 +322,12 @@ class GraOneBounce(RBIntegrator):
 
 
 def delta_components(scene) -> tuple[int, ...]:
-    """The component indices that are a delta lobe in some material of ``scene`` (a mirror's one, a glass's reflection
-    and transmission, a plastic's coat): each is followed with one ray (:func:`_add_delta_lobe`)."""
+    """The component indices that are a delta lobe in some surface's material of ``scene`` (a mirror's one, a glass's
+    reflection and transmission, a plastic's coat; inside shape groups too): each is followed with one ray
+    (:func:`_add_delta_lobe`)."""
+    parents = scene_objects(scene)
     found = set()
-    for shape in scene.shapes():
-        bsdf = shape.bsdf()
+    for bsdf in (node for node, parent in parents.items() if isinstance(node, mi.BSDF) and isinstance(parent, mi.Shape)):
         found |= {c for c in range(bsdf.component_count()) if mi.has_flag(bsdf.flags(c), mi.BSDFFlags.Delta)}
     return tuple(sorted(found))
 
