@@ -307,6 +307,30 @@ def test_bsdf_samples_carry_a_glossy_highlight_of_a_large_area_light(plugins, wi
     assert said[0][0] > 4 * said[16][0], said
 
 
+BEHIND = {  # a plane seen and lit from below: the back of a two-sided material, a rough glass lit through
+    "twosided": {"type": "twosided", "b": {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.5}}},
+    "rough glass": {"type": "roughdielectric", "alpha": 0.3},
+}
+LIGHTS_BELOW = {
+    "point": {"type": "point", "position": [0, 0, -0.5], "intensity": {"type": "rgb", "value": 1.0}},
+    "area": area("disk", [0, 0, -0.5], [0, 0, 0], 0.2, 3.0),
+    "sky": {"type": "constant", "radiance": {"type": "rgb", "value": [0.3, 0.35, 0.4]}},
+}
+
+
+@pytest.mark.parametrize("material, light", [(m, light) for m in sorted(BEHIND) for light in sorted(LIGHTS_BELOW)])
+def test_a_surface_seen_from_behind_is_lit_as_direct_lights_it(plugins, material, light):
+    """Light on the viewer's side of a two-sided plane's back, and light through a rough glass (from the far side),
+    reach the camera as in Mitsuba's ``direct`` (they were cut at the surface's front horizon: black)."""
+    import mitsuba as mi
+
+    scene = plane_under(LIGHTS_BELOW[light], camera_at=(0.0, -1.0, -1.0), fov=5, bsdf=BEHIND[material])
+    ours = np.array(mi.render(scene, integrator=mi.load_dict({"type": "gra_onebounce"}), spp=64, seed=1))[..., :3]
+    truth = np.array(mi.render(scene, integrator=mi.load_dict({"type": "direct"}), spp=4096, seed=5))[..., :3]
+    assert truth.mean() > 0.01
+    assert ours.mean() == pytest.approx(truth.mean(), rel=0.01)
+
+
 def test_the_camera_sees_an_area_light_s_front_as_mitsuba_shows_it(plugins):
     """Its radiance in front, nothing behind it (Mitsuba's area lights are one-sided), nothing with hide_emitters."""
     import mitsuba as mi

@@ -47,9 +47,11 @@ highlight or a large light close by. Each delta lobe of a material (a mirror, a 
 plastic's coat) sees the environment and area lights along its one direction, one ray per lobe; the camera sees the lights' surface as Mitsuba shows it. Point emitters (a lightstage has hundreds) are read
 from the scene once per render into arrays and evaluated in one symbolic Dr.Jit loop, not one virtual call per
 emitter; the other delta lights follow in a second loop that calls each emitter. Point lights and area lights that
-are off are dropped before the loop; lights below the shading point's horizon (shading or geometric normal) trace
-nothing; dark cells of the dome are dropped. ``directionalarea`` emitters are refused by name when a render starts
-(:mod:`gra_mi.render.scene_lights`), as is a scene without light. Derivatives with respect to BSDF parameters
+are off are dropped before the loop; lights on the far side of a surface from the viewer (by the shading or the
+geometric normal) trace nothing unless the material transmits (:func:`lit_side`; the back of a ``twosided`` plane is
+lit from its own side); points whose material has no smooth lobe skip the loops; dark cells of the dome are dropped.
+``directionalarea`` emitters, media and see-through (``null``, ``mask``) materials are refused by name when a render
+starts (:mod:`gra_mi.render.scene_lights`), as is a scene without light. Derivatives with respect to BSDF parameters
 (``gra_microfacet`` textures) follow Path Replay Backpropagation: the loops are replayed in the adjoint pass with
 gradients enabled around the BSDF evaluation only (the directions' pdf held fixed).
 """
@@ -132,12 +134,22 @@ def points_per_light(weights: np.ndarray, samples: int) -> np.ndarray:
     return np.maximum(1, np.rint(samples * share)).astype(np.int64)
 
 
+def lit_side(si, wo, direction, transmits):
+    """Whether light arriving along ``direction`` (``wo`` in the local frame) can reach the viewer at ``si``: from the
+    viewer's side of the surface (the back of a ``twosided`` plane seen from behind included), or from the other side
+    where the material transmits; the shading and the geometric normal must agree on the side (no light leaks between
+    them). Elsewhere the material is black: no ray is traced."""
+    shading = wo.z * si.wi.z > 0
+    geometric = dr.dot(si.n, direction) * dr.dot(si.n, si.to_world(si.wi)) > 0
+    return (wo.z != 0) & (shading == geometric) & (shading | transmits)
+
+
 def power_heuristic(ours, other):
     """Veach's power heuristic for a strategy of density ``ours`` beside one of density ``other`` (counts folded in)."""
     return dr.select(ours > 0, dr.square(ours) / (dr.square(ours) + dr.square(other)), 0.0)
 
 
-def area_contribution(scene, si, areas: AreaLights, shift, t, active):
+def area_contribution(scene, si, transmits, areas: AreaLights, shift, t, active):
     """(ωo in the local frame, incident radiance / pdf over the samples, mask, this strategy's density there) for
     point t of the loop: point j of the n a light gets, lattice point j of n (:func:`~gra_mi.render.lattice.lattice_point`)
     on it drawn by the emitter's own ``sample_direction``. With BSDF samples the sum weighs it against theirs
@@ -147,22 +159,22 @@ def area_contribution(scene, si, areas: AreaLights, shift, t, active):
     emitter = dr.gather(mi.EmitterPtr, areas.pointers, light, active)
     ds, weight = emitter.sample_direction(si, lattice_point(dr.gather(mi.Float, areas.index_on, t, active), count, shift), active)
     wo = si.to_local(ds.d)
-    facing = active & (ds.pdf > 0) & (wo.z > 0) & (dr.dot(si.n, ds.d) > 0) & (dr.max(weight) > 0)
+    facing = active & (ds.pdf > 0) & lit_side(si, wo, ds.d, transmits) & (dr.max(weight) > 0)
     visible = facing & ~scene.ray_test(si.spawn_ray_to(ds.p), facing)
     return wo, weight / count, visible, count * ds.pdf if areas.bsdf_samples else None
 
 
-def bsdf_contribution(scene, si, bsdf, areas: AreaLights, shift, shift_1d, k, active):
+def bsdf_contribution(scene, si, transmits, bsdf, areas: AreaLights, shift, shift_1d, k, active):
     """(ωo, the radiance of the area light it reaches / pdf over the samples, mask, None) for BSDF sample k (a lattice point,
     as the lights'), weighted against the lights' own samples of that direction: where a light's surface sampling is
     poor (a large light close by, a glossy highlight) the BSDF's is good. Smooth lobes only (the delta lobes have a ray
-    each: :func:`_add_delta_lobe`); reflection above both horizons, as the lights' samples."""
+    each: :func:`_add_delta_lobe`); on the side :func:`lit_side` allows, as the lights' samples."""
     count = areas.bsdf_samples
     j = mi.Float(k)
     sample, _ = bsdf.sample(mi.BSDFContext(), si, fraction(j / count + shift_1d), lattice_point(j, count, shift), active)
     direction = si.to_world(sample.wo)
     smooth = ~mi.has_flag(sample.sampled_type, mi.BSDFFlags.Delta)
-    facing = active & smooth & (sample.pdf > 0) & (sample.wo.z > 0) & (dr.dot(si.n, direction) > 0)
+    facing = active & smooth & (sample.pdf > 0) & lit_side(si, sample.wo, direction, transmits)
     hit = scene.ray_intersect(si.spawn_ray(direction), facing)
     facing &= hit.is_valid()  # an environment is the dome's
     emitter = hit.emitter(scene, facing)  # null where the surface emits nothing: no radiance, no pdf
@@ -172,18 +184,18 @@ def bsdf_contribution(scene, si, bsdf, areas: AreaLights, shift, shift_1d, k, ac
     return sample.wo, weight, facing & (dr.max(radiance) > 0), None
 
 
-def delta_contribution(scene, si, emitters: DeltaEmitters, k, active):
+def delta_contribution(scene, si, transmits, emitters: DeltaEmitters, k, active):
     """(ωo in the local frame, incident weight, mask, None: no other strategy) for delta emitter k: its own
     ``sample_direction``, exact."""
     emitter = dr.gather(mi.EmitterPtr, emitters.pointers, k, active)
     ds, weight = emitter.sample_direction(si, dr.full(mi.Point2f, 0.5, dr.width(si.p)), active)
     wo = si.to_local(ds.d)
-    facing = active & (wo.z > 0) & (dr.dot(si.n, ds.d) > 0) & (dr.max(weight) > 0)
+    facing = active & lit_side(si, wo, ds.d, transmits) & (dr.max(weight) > 0)
     visible = facing & ~scene.ray_test(si.spawn_ray_to(ds.p), facing)
     return wo, weight, visible, None
 
 
-def led_contribution(scene, si, leds: LedArrays, k, far_field: bool, active):
+def led_contribution(scene, si, transmits, leds: LedArrays, k, far_field: bool, active):
     """(ωo in the local frame, incident irradiance-like weight I/d², mask, None: no other strategy) for LED k at the
     shading point."""
     p = dr.gather(mi.Point3f, leds.position, k, active)
@@ -196,8 +208,7 @@ def led_contribution(scene, si, leds: LedArrays, k, far_field: bool, active):
         dist2 = dr.squared_norm(offset)
         wo_world = offset * dr.rsqrt(dist2)
     wo = si.to_local(wo_world)
-    # Below the shading or the geometric horizon: nothing to trace.
-    facing = active & (wo.z > 0) & (dr.dot(si.n, wo_world) > 0)
+    facing = active & lit_side(si, wo, wo_world, transmits)
     if far_field:
         ray = si.spawn_ray(wo_world)
     else:
@@ -279,17 +290,42 @@ class GraOneBounce(RBIntegrator):
             L += si.emitter(scene, active).eval(si, active)  # an escaped ray's environment; an area light's surface
         δL = mi.Spectrum(δL if δL is not None else 0.0)  # adjoint radiance
         smooth = valid & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)  # a mirror's points skip the lights' loops
+        transmits = mi.has_flag(bsdf.flags(), mi.BSDFFlags.Transmission)  # lit from behind too
         if leds.count:
             L, δL = _sum_lights(
-                mode, leds.count, lambda k, on: led_contribution(scene, si, leds, k, far_field, on), bsdf, si, smooth, L, δL, "LEDs"
+                mode,
+                leds.count,
+                lambda k, on: led_contribution(scene, si, transmits, leds, k, far_field, on),
+                bsdf,
+                si,
+                smooth,
+                L,
+                δL,
+                "LEDs",
             )
         if others.count:
             L, δL = _sum_lights(
-                mode, others.count, lambda k, on: delta_contribution(scene, si, others, k, on), bsdf, si, smooth, L, δL, "delta lights"
+                mode,
+                others.count,
+                lambda k, on: delta_contribution(scene, si, transmits, others, k, on),
+                bsdf,
+                si,
+                smooth,
+                L,
+                δL,
+                "delta lights",
             )
         if dome.count:
             L, δL = _sum_lights(
-                mode, dome.count, lambda k, on: led_contribution(scene, si, dome, k, True, on), bsdf, si, smooth, L, δL, "environment dome"
+                mode,
+                dome.count,
+                lambda k, on: led_contribution(scene, si, transmits, dome, k, True, on),
+                bsdf,
+                si,
+                smooth,
+                L,
+                δL,
+                "environment dome",
             )
         if areas.count:
             L, δL = self._sum_area_lights(mode, scene, sampler, si, bsdf, areas, valid, smooth, L, δL)
@@ -301,15 +337,15 @@ class GraOneBounce(RBIntegrator):
         """The area lights' points, then the BSDF's directions that reach one (each weighted against the other), where
         the material has a smooth lobe. The random shifts are drawn here for every valid point, the same in the adjoint
         pass: it replays the primal pass's sampler."""
-        shift = sampler.next_2d(valid)
+        shift, transmits = sampler.next_2d(valid), mi.has_flag(bsdf.flags(), mi.BSDFFlags.Transmission)
         L, δL = _sum_lights(
-            mode, areas.samples, lambda k, on: area_contribution(scene, si, areas, shift, k, on), bsdf, si,
+            mode, areas.samples, lambda k, on: area_contribution(scene, si, transmits, areas, shift, k, on), bsdf, si,
             smooth, L, δL, "area lights", other_count=areas.bsdf_samples,
         )  # fmt: skip
         if areas.bsdf_samples:
             shift, shift_1d = sampler.next_2d(valid), sampler.next_1d(valid)
             L, δL = _sum_lights(
-                mode, areas.bsdf_samples, lambda k, on: bsdf_contribution(scene, si, bsdf, areas, shift, shift_1d, k, on), bsdf,
+                mode, areas.bsdf_samples, lambda k, on: bsdf_contribution(scene, si, transmits, bsdf, areas, shift, shift_1d, k, on), bsdf,
                 si, smooth, L, δL, "BSDF samples towards area lights",
             )  # fmt: skip
         return L, δL
