@@ -224,7 +224,6 @@ def test_gradients_match_finite_differences(plugins, tmp_path, lights):
 def test_a_mirror_s_gradient_matches_finite_differences(plugins):
     """The adjoint pass through a delta lobe: a conductor's reflectance seen in a mirror plane that reflects a softbox
     and a constant sky."""
-    import drjit as dr
     import mitsuba as mi
 
     scene = mi.load_dict({
@@ -236,26 +235,34 @@ def test_a_mirror_s_gradient_matches_finite_differences(plugins):
         "camera": {"type": "perspective", "fov": 40, "to_world": mi.ScalarTransform4f().look_at(origin=[0.4, 0, 0.8], target=[0, 0, 0], up=[0, 1, 0]),
                    "film": {"type": "hdrfilm", "width": 16, "height": 16, "pixel_format": "rgba"}},
     })  # fmt: skip
-    integrator = mi.load_dict({"type": "gra_onebounce"})
-    params = mi.traverse(scene)
-    key = "plane.bsdf.specular_reflectance.value"
+    assert_colour_gradient_matches_finite_differences(scene, "plane.bsdf.specular_reflectance.value", spp=4)
+
+
+def assert_colour_gradient_matches_finite_differences(scene, key: str, spp: int, seed: int = 2) -> None:
+    """gra_onebounce's adjoint pass (the primal's pixel samples replayed) against central differences, per channel of
+    the RGB parameter ``key``, for a random weighting of the image; the gradient must be well away from 0."""
+    import drjit as dr
+    import mitsuba as mi
+
+    integrator, params = mi.load_dict({"type": "gra_onebounce"}), mi.traverse(scene)
     base = np.array(params[key]).ravel().copy()
-    weights = np.random.default_rng(4).uniform(0.5, 1.5, (16, 16, 3))
+    width, height = scene.sensors()[0].film().size()
+    weights = np.random.default_rng(4).uniform(0.5, 1.5, (height, width, 3))
 
     def loss_value(value):
         params[key] = mi.Color3f(*map(float, value))
         params.update()
-        image = np.array(mi.render(scene, params, integrator=integrator, spp=4, seed=2), dtype=np.float64)
+        image = np.array(mi.render(scene, params, integrator=integrator, spp=spp, seed=seed), dtype=np.float64)
         return float(np.sum(image[..., :3] * weights))
 
-    reflectance = mi.Color3f(*map(float, base))
-    dr.enable_grad(reflectance)
-    params[key] = reflectance
+    colour = mi.Color3f(*map(float, base))
+    dr.enable_grad(colour)
+    params[key] = colour
     params.update()
-    grad_image = np.zeros((16, 16, 4), np.float32)
+    grad_image = np.zeros((height, width, 4), np.float32)
     grad_image[..., :3] = weights
-    integrator.render_backward(scene, params, mi.TensorXf(grad_image), sensor=0, seed=2, spp=4)
-    grad = np.array(dr.grad(reflectance)).ravel()
+    integrator.render_backward(scene, params, mi.TensorXf(grad_image), sensor=0, seed=seed, spp=spp)
+    grad = np.array(dr.grad(colour)).ravel()
     assert (np.abs(grad) > 1.0).all(), grad
     for channel in range(3):
         plus, minus = base.copy(), base.copy()

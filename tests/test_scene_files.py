@@ -133,16 +133,13 @@ VOLUMES = {  # what a surface integrator would draw wrongly: (extra scene object
     "fog in a ball": ({"fog": {"type": "sphere", "radius": 0.3, "center": [0, 1, 0.5], "bsdf": {"type": "null"},
                                "interior": {"type": "homogeneous", "id": "smoke", "sigma_t": 2.0}}},
                       ["shape 'fog'", "medium 'smoke'", '<integrator type="volpath"/>']),
-    "a cutout": ({"card": {"type": "rectangle", "to_world": look_at([0, 1.2, 0.5], [0, 1.2, 1.3], (0.1, 0.1, 1)),
-                           "bsdf": {"type": "mask", "opacity": 0.5, "bsdf": {"type": "diffuse"}}}},
-                 ["shape 'card'", "'mask' cutout", '<integrator type="path"/>']),
 }  # fmt: skip
 
 
 @pytest.mark.parametrize("case", sorted(VOLUMES))
-def test_a_medium_or_a_see_through_material_is_refused_by_name(plugins, case):
-    """gra_onebounce shades surfaces: a participating medium would be skipped and a null or mask material drawn
-    opaque, so either stops the render, naming the shape and the integrator that computes it."""
+def test_a_medium_is_refused_by_name(plugins, case):
+    """gra_onebounce shades surfaces: a participating medium would be skipped, so it stops the render, naming the shape
+    and the integrator that computes it."""
     import mitsuba as mi
 
     from gra_mi.render.scene_lights import scene_lights
@@ -168,6 +165,84 @@ def test_a_camera_inside_fog_is_refused_by_name(plugins):
     })  # fmt: skip
     with pytest.raises(GraMiInputError, match="sensor 'eye' has a participating medium 'haze'"):
         scene_lights(scene, "my_scene.xml")
+
+
+def card_scene(card_bsdf: dict | None, light: dict, camera_at=(0.0, 0.0, 3.0)):
+    """A wall (z = 0) and, where ``card_bsdf`` is given, a card 1.5 m in front of it facing the camera, under ``light``."""
+    import mitsuba as mi
+
+    from gra_mi.render.near_field_cases import _resolved
+
+    shapes = {
+        "wall": {
+            "type": "rectangle",
+            "to_world": look_at([0, 0, 0], [0, 0, 1], (4, 4, 1)),
+            "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.5, 0.6, 0.7]}},
+        }
+    }
+    if card_bsdf is not None:
+        shapes["card"] = {"type": "rectangle", "to_world": look_at([0, 0, 1.5], [0, 0, 3], (0.3, 0.3, 1)), "bsdf": card_bsdf}
+    return mi.load_dict(_resolved({
+        "type": "scene", "light": light, **shapes,
+        "camera": {"type": "perspective", "fov": 30, "to_world": look_at(list(camera_at), [0, 0, 0]),
+                   "film": {"type": "hdrfilm", "width": 24, "height": 24, "pixel_format": "rgba", "rfilter": {"type": "box"}}},
+    }))  # fmt: skip
+
+
+CARD = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.9, 0.3, 0.2]}}
+
+
+def test_a_cutout_card_shows_its_opacity_s_share_of_itself_and_of_what_is_behind(plugins):
+    """A ``mask`` card of opacity 0.3: the camera sees 0.3 of the card and 0.7 of the wall behind it (the light stands
+    where the card's shadow misses the view), as the two opaque renders blend; ``null`` shows the wall alone."""
+    import mitsuba as mi
+
+    lamp = point([2.0, 0.0, 2.5], 6.0)
+
+    def render(card, spp=256):
+        integrator = mi.load_dict({"type": "gra_onebounce"})
+        return np.array(mi.render(card_scene(card, lamp), integrator=integrator, spp=spp, seed=1))[..., :3]
+
+    opaque, bare = render(CARD), render(None)
+    assert np.abs(opaque - bare).max() > 0.1, "the card is in view"
+    blended = render({"type": "mask", "opacity": 0.3, "bsdf": CARD}, spp=1024)
+    np.testing.assert_allclose(blended.mean(), (0.3 * opaque + 0.7 * bare).mean(), rtol=0.01)
+    assert np.abs(blended - (0.3 * opaque + 0.7 * bare)).mean() < 0.02 * bare.mean() + 0.01 * opaque.mean()
+    np.testing.assert_allclose(render({"type": "null"}, spp=16), render(None, spp=16), rtol=1e-4, atol=1e-6)  # rays restart at it
+
+
+@pytest.mark.parametrize("light", ["point", "area", "sky"])
+def test_light_through_a_cutout_card_keeps_one_minus_its_opacity(plugins, light):
+    """The wall behind a ``mask`` card of opacity 0.3, lit through it: in the card's shadow 0.7 of the light arrives,
+    exactly where the light is a point (the camera sees past the card), on average under an area light or a sky."""
+    import mitsuba as mi
+
+    lights = {"point": point([0.0, 0.0, 3.0], 8.0), "area": area("disk", [0, 0, 3.0], [0, 0, 0], 0.1, 60.0),
+              "sky": {"type": "constant", "radiance": {"type": "rgb", "value": 0.5}}}  # fmt: skip
+
+    def render(card):  # the camera low and to the side: it sees the wall where the card's shadow falls, not the card
+        integrator = mi.load_dict({"type": "gra_onebounce"})
+        return np.array(mi.render(card_scene(card, lights[light], camera_at=(0.0, -2.5, 0.6)), integrator=integrator, spp=64, seed=1))[
+            ..., :3
+        ]
+
+    bare, opaque, masked = render(None), render(CARD), render({"type": "mask", "opacity": 0.3, "bsdf": CARD})
+    shadow = opaque.max(axis=-1) < (0.99 if light == "sky" else 0.9) * bare.max(axis=-1)  # the card hides a little sky
+    assert shadow.sum() > 20, "the card's shadow is in view"
+    expected = 0.7 * bare + 0.3 * opaque  # the light the card lets through, plus what the opaque card leaves
+    if light == "point":
+        np.testing.assert_allclose(masked, expected, rtol=1e-4, atol=1e-6)
+    else:
+        assert masked[shadow].mean() == pytest.approx(expected[shadow].mean(), rel=0.02)
+
+
+def test_gradients_through_a_cutout_card_match_finite_differences(plugins):
+    """The adjoint pass replays the camera's choices at a ``mask`` card (the same sampler) and carries their weight:
+    the wall's reflectance, seen past the card and lit through it, against finite differences."""
+    from .test_onebounce import assert_colour_gradient_matches_finite_differences
+
+    scene = card_scene({"type": "mask", "opacity": 0.4, "bsdf": CARD}, point([0.3, 0.2, 3.0], 8.0))
+    assert_colour_gradient_matches_finite_differences(scene, "wall.bsdf.reflectance.value", spp=16)
 
 
 AREA_LIGHTS = sorted(area_cases())

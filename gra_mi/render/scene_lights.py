@@ -119,8 +119,8 @@ def scene_lights(scene, source: str | None = None, dome_lights: int = DEFAULT_LI
     integrated onto a dome of ``dome_lights`` lights.
 
     Refuses (:class:`GraMiInputError`, naming the emitter): a scene with no emitter, an emitter gra-mi cannot compute,
-    a negative or non-finite intensity or radiance, a spot cone outside (0°, 180°); and what a surface integrator
-    cannot show (:func:`refuse_volumes`). Area lights that emit nothing are left out (no samples spent on them).
+    a negative or non-finite intensity or radiance, a spot cone outside (0°, 180°); and a participating medium
+    (:func:`refuse_volumes`). Area lights that emit nothing are left out (no samples spent on them).
     """
     import mitsuba as mi
 
@@ -209,23 +209,17 @@ def owner_label(node, parents: dict) -> str:
 
 
 def refuse_volumes(scene, source: str | None = None) -> None:
-    """Refuse, by name, what gra_onebounce (a surface integrator, as Mitsuba's ``direct``) would render wrongly rather
-    than compute: a participating medium (a shape's interior or exterior, a sensor's, an emitter's) and a material
-    with a null component (``null``: a medium's invisible boundary; ``mask``: a cutout), which it would draw opaque;
-    inside shape groups too. Mitsuba's ``path`` passes through null surfaces, ``volpath`` computes media."""
+    """Refuse, by name, a participating medium (a shape's interior or exterior, a sensor's, an emitter's; inside shape
+    groups too), which gra_onebounce (a surface integrator, as Mitsuba's ``direct`` and ``path``) would render as if it
+    were not there; Mitsuba's ``volpath`` computes media."""
     import mitsuba as mi
 
     parents = scene_objects(scene)
-    for node in sorted(parents, key=lambda n: not isinstance(n, mi.Medium)):  # a medium first: a null boundary is its
+    for node in parents:
         if isinstance(node, mi.Medium):
             raise GraMiInputError(source or "scene", f"{owner_label(node, parents)} has a participating medium '{node.id()}' "
                                   f"({node.class_name()}), which gra_onebounce does not compute (it shades surfaces): give the "
                                   'scene <integrator type="volpath"/> and render it with its own integrator, or remove the medium')  # fmt: skip
-        if isinstance(node, mi.BSDF) and mi.has_flag(node.flags(), mi.BSDFFlags.Null):
-            raise GraMiInputError(source or "scene", f"{owner_label(node, parents)} has a material with a see-through part "
-                                  f"({node.class_name()}: a 'null' boundary or a 'mask' cutout), which gra_onebounce would draw "
-                                  'opaque: give the scene <integrator type="path"/> and render it with its own integrator, or '
-                                  "another material")  # fmt: skip
 
 
 def _environment(emitter, label: str, count: int, source: str | None) -> tuple[np.ndarray, np.ndarray]:
