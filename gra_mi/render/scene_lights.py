@@ -6,9 +6,10 @@ the incident radiance. An environment (``envmap``, ``constant``, ``sunsky``) is 
 one: a dome of far-field lights, each carrying its cell of the sphere (:mod:`gra_mi.render.dome`). An ``area`` light
 is sampled on its surface as Mitsuba's ``direct`` samples it (noise that falls with samples, no bias): the
 ``area_samples`` points per pixel sample are shared among the area lights in proportion to their weights
-(:func:`area_weights`: power × Mitsuba's ``sampling_weight``), at least one each. A ``directionalarea`` light cannot be reached from a point (its light leaves its
-surface in one direction); rather than render it black, gra-mi refuses the scene when it is loaded, naming the emitter
-and what to use instead.
+(:func:`area_weights`: power × Mitsuba's ``sampling_weight``), at least one each. A ``directionalarea`` light cannot
+be reached from a point (its light leaves its surface in one direction); rather than render it black, gra-mi refuses
+the scene when it is loaded, naming the emitter and what to use instead; so it does a participating medium
+(:func:`refuse_volumes`).
 """
 
 from __future__ import annotations
@@ -217,9 +218,10 @@ def refuse_volumes(scene, source: str | None = None) -> None:
     parents = scene_objects(scene)
     for node in parents:
         if isinstance(node, mi.Medium):
-            raise GraMiInputError(source or "scene", f"{owner_label(node, parents)} has a participating medium '{node.id()}' "
-                                  f"({node.class_name()}), which gra_onebounce does not compute (it shades surfaces): give the "
-                                  'scene <integrator type="volpath"/> and render it with its own integrator, or remove the medium')  # fmt: skip
+            raise GraMiInputError(source or "scene", f"{owner_label(node, parents)} has a participating medium "
+                                  f"'{node.id()}' ({node.class_name()}), which gra_onebounce does not compute (it shades "
+                                  'surfaces): give the scene <integrator type="volpath"/> and render it with its own '
+                                  "integrator, or remove the medium")  # fmt: skip
 
 
 def _environment(emitter, label: str, count: int, source: str | None) -> tuple[np.ndarray, np.ndarray]:

@@ -33,29 +33,30 @@ At each camera hit the integrator sums over the scene's delta lights:
 
     L = Σ_k  f(ωi, ωk) cosθk · E_k · V_k
 
-with one shadow ray per light and E_k the light's incident irradiance-like weight (``point``: I/d², the LEDs, in
-near field by default; ``spot`` and ``projector``: I·falloff/d²; ``directional``: its irradiance), as the emitter's
-own ``sample_direction`` gives it; environments (``envmap``, ``constant``, ``sunsky``) arrive through a dome of
-far-field lights, each with the irradiance of its cell, one shadow ray each, like a lightstage's LEDs; ``area`` lights
-are sampled on their surface by their own ``sample_direction``, ``area_samples`` points per pixel sample in all,
-shared among the lights in proportion to power × ``sampling_weight`` and at least one each (every light is in every
-estimate), spread over each light as a rank-1 lattice shifted at random per pixel sample (unbiased, with less
-noise than independent points: :mod:`gra_mi.render.lattice`), and
-reached by ``bsdf_samples`` directions from the BSDF (a lattice too), the two weighted by the power heuristic as
-Mitsuba's ``direct`` weighs its emitter and BSDF samples: the points carry a small light, the directions a glossy
-highlight or a large light close by. Each delta lobe of a material (a mirror, a glass's reflection and transmission, a
-plastic's coat) sees the environment and area lights along its one direction, one ray per lobe; the camera sees the lights' surface as Mitsuba shows it. Point emitters (a lightstage has hundreds) are read
-from the scene once per render into arrays and evaluated in one symbolic Dr.Jit loop, not one virtual call per
-emitter; the other delta lights follow in a second loop that calls each emitter. Point lights and area lights that
-are off are dropped before the loop; lights on the far side of a surface from the viewer (by the shading or the
-geometric normal) trace nothing unless the material transmits (:func:`lit_side`; the back of a ``twosided`` plane is
-lit from its own side); points whose material has no smooth lobe skip the loops; dark cells of the dome are dropped.
-A see-through material (``mask``, ``null``) is passed by a camera ray with the probability of its transmission
+with one shadow ray per light and E_k the light's incident irradiance-like weight (``point``: I/d², the LEDs, in near
+field by default; ``spot`` and ``projector``: I·falloff/d²; ``directional``: its irradiance), as the emitter's own
+``sample_direction`` gives it; environments (``envmap``, ``constant``, ``sunsky``) arrive through a dome of far-field
+lights, each with the irradiance of its cell, one shadow ray each, like a lightstage's LEDs; ``area`` lights are
+sampled on their surface by their own ``sample_direction``, ``area_samples`` points per pixel sample in all, shared
+among the lights in proportion to power × ``sampling_weight`` and at least one each (every light is in every
+estimate), spread over each light as a rank-1 lattice shifted at random per pixel sample (unbiased, with less noise
+than independent points: :mod:`gra_mi.render.lattice`), and reached by ``bsdf_samples`` directions from the BSDF (a
+lattice too), the two weighted by the power heuristic as Mitsuba's ``direct`` weighs its emitter and BSDF samples: the
+points carry a small light, the directions a glossy highlight or a large light close by. Each delta lobe of a material
+(a mirror, a glass's reflection and transmission, a plastic's coat) sees the environment and area lights along its one
+direction, one ray per lobe; the camera sees the lights' surface as Mitsuba shows it. Point emitters (a lightstage has
+hundreds) are read from the scene once per render into arrays and evaluated in one symbolic Dr.Jit loop, not one
+virtual call per emitter; the other delta lights follow in a second loop that calls each emitter. Point lights and
+area lights that are off are dropped before the loop; lights on the far side of a surface from the viewer (by the
+shading or the geometric normal) trace nothing unless the material transmits
+(:meth:`~gra_mi.render.plugins.light_terms.ShadingPoint.faces`; the back of a ``twosided`` plane is lit from its own
+side); points whose material has no smooth lobe skip the loops; dark cells of the dome are dropped. A see-through
+material (``mask``, ``null``) is passed by a camera ray with the probability of its transmission
 (:func:`first_seen_surface`) and multiplies the light of the shadow rays that cross it
 (:func:`~gra_mi.render.plugins.light_terms.cross_see_through`). ``directionalarea`` emitters and participating media
-are refused by name when a render starts (:mod:`gra_mi.render.scene_lights`), as is a scene without light. Derivatives with respect to BSDF parameters
-(``gra_microfacet`` textures) follow Path Replay Backpropagation: the loops are replayed in the adjoint pass with
-gradients enabled around the BSDF evaluation only (the directions' pdf held fixed).
+are refused by name when a render starts (:mod:`gra_mi.render.scene_lights`), as is a scene without light. Derivatives
+with respect to BSDF parameters (``gra_microfacet`` textures) follow Path Replay Backpropagation: the loops are
+replayed in the adjoint pass with gradients enabled around the BSDF evaluation only (the directions' pdf held fixed).
 """
 
 from __future__ import annotations
