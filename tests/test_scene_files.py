@@ -406,6 +406,33 @@ def test_a_surface_seen_from_behind_is_lit_as_direct_lights_it(plugins, material
     assert ours.mean() == pytest.approx(truth.mean(), rel=0.01)
 
 
+def test_hair_strands_are_lit_from_both_sides_as_direct_lights_them(plugins, tmp_path):
+    """Strands (Mitsuba's ``linearcurve``) with its ``hair`` BSDF, whose lobes transmit: a key light in front, a rim
+    light behind and a sky, against Mitsuba's ``direct`` over the strands' pixels."""
+    import mitsuba as mi
+
+    rows = []
+    for i in range(60):
+        for t in np.linspace(0, 1, 8):
+            rows.append(f"{-0.3 + 0.01 * i + 0.05 * np.sin(6 * t + i):.4f} {0.5 - t:.4f} {0.05 * np.cos(5 * t + i):.4f} 0.006")
+        rows.append("")
+    (tmp_path / "hair.txt").write_text("\n".join(rows))
+    scene = mi.load_dict({
+        "type": "scene", "hair": {"type": "linearcurve", "filename": str(tmp_path / "hair.txt"), "bsdf": {"type": "hair"}},
+        "key": point([0.5, 0.8, 1.0], 3.0), "rim": point([-0.3, 0.3, -1.0], 3.0),
+        "sky": {"type": "constant", "radiance": {"type": "rgb", "value": 0.2}},
+        "camera": {"type": "perspective", "fov": 60, "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 1.5], target=[0, 0, 0], up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 48, "height": 48, "pixel_format": "rgba"}},
+    })  # fmt: skip
+    ours = np.array(mi.render(scene, integrator=mi.load_dict({"type": "gra_onebounce"}), spp=64, seed=1))
+    truth = np.array(
+        mi.render(scene, integrator=mi.load_dict({"type": "direct", "emitter_samples": 1, "bsdf_samples": 1}), spp=1024, seed=5)
+    )
+    strands = truth[..., 3] > 0.5
+    assert strands.sum() > 150
+    assert ours[..., :3][strands].mean() == pytest.approx(truth[..., :3][strands].mean(), rel=0.015)
+
+
 def test_the_camera_sees_an_area_light_s_front_as_mitsuba_shows_it(plugins):
     """Its radiance in front, nothing behind it (Mitsuba's area lights are one-sided), nothing with hide_emitters."""
     import mitsuba as mi
