@@ -5,10 +5,11 @@ The scenes (`near_field_cases.area_cases`): the tiny subject (a gra_microfacet m
 under a small softbox beside the head, a textured disk 30 cm from the chest, or a 1 m² window at the side, and the
 window again on a glossy body; then stages of 24, 96 and 384 area LEDs (`near_field_cases.area_stage`: disks 3 cm
 across, powers two orders of magnitude apart, one in five off), where the lights share the points. The truth:
-Mitsuba's `direct` (one emitter and one BSDF sample per pass) at TRUTH_SPP passes; on the stages, 64 emitter samples
-per pass at STAGE_TRUTH_SPP passes. Each row renders the same scene: gra_onebounce with S points on the light and B directions from the BSDF per
-pixel sample (rank-1 lattices shifted at random per sample), or `direct` with E emitter and B BSDF samples per pass. Error: mean relative error over the covered pixels (the metric of
-Mitsuba's own tests) and the bias of the mean; time: the median of 3 renders after one that compiles.
+Mitsuba's `direct` (one emitter and one BSDF sample per pass) at --truth-spp passes; on the stages, 64 emitter samples
+per pass at --stage-truth-spp passes. Each row renders the same scene: gra_onebounce with S points on the light and B
+directions from the BSDF per pixel sample (rank-1 lattices shifted at random per sample), or `direct` with E emitter
+and B BSDF samples per pass. Error: mean relative error over the covered pixels (the metric of Mitsuba's own tests)
+and the bias of the mean; time: the median of 3 renders after one that compiles.
 
     .venv/bin/python benchmarks/area_lights.py [--truth-spp 16384] [--stage-truth-spp 4096] [--write docs/results/area-lights.md]
 """

@@ -49,9 +49,9 @@ OPTIONS = {
     "area_samples": ((1, 4096), DEFAULT_AREA_SAMPLES),
     "bsdf_samples": ((0, 4096), DEFAULT_BSDF_SAMPLES),
 }
-"""gra_onebounce's sample counts: (range, default). ``area_samples``: points per pixel sample on the area lights (shared
-among them by :func:`area_weights`, at least one each); ``bsdf_samples``: directions drawn from the BSDF per pixel sample that may reach
-an area light."""
+"""gra_onebounce's sample counts: (range, default). ``area_samples``: points per pixel sample on the area lights
+(shared among them by :func:`area_weights`, at least one each); ``bsdf_samples``: directions drawn from the BSDF per
+pixel sample that may reach an area light."""
 POWER_POINTS = 256  # points per area light over which its mean radiance is estimated
 
 
