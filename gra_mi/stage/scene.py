@@ -421,8 +421,8 @@ class RenderConfig:
     (envmap, constant, sunsky), each the light of its cell of the sphere (16 to 16384). Default: 1024."""
     area_samples: int | None = None
     """With --integrator gra_onebounce on a plain scene: how many points it samples on the area lights per pixel
-    sample, one shadow ray each, shared among the lights in proportion to power × their sampling_weight (1 to 4096).
-    Default: 16."""
+    sample, one shadow ray each, shared among the lights in proportion to power × their sampling_weight, at least one
+    each (1 to 4096). Default: 16."""
     bsdf_samples: int | None = None
     """With --integrator gra_onebounce on a plain scene with area lights: how many directions it draws from the
     material per pixel sample, each traced to the area light it may reach and weighted against the lights' own
