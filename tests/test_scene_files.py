@@ -319,9 +319,10 @@ def test_a_light_s_sampling_weight_moves_the_points_not_the_light(plugins, tmp_p
         errors[weight], bias = image_error(image, truth)
         assert abs(bias) < 0.006, (weight, bias)
     assert errors[100.0] < 0.9 * errors[1.0], errors
-    with pytest.raises(GraMiInputError, match="'sampling_weight' must be finite and > 0") as info:
-        scene_lights(scene(0.0), "lamp.xml")
-    assert "on shape 'lamp'" in str(info.value), str(info.value)
+    for bad in (0.0, float("nan"), float("inf")):
+        with pytest.raises(GraMiInputError, match="'sampling_weight' must be finite and > 0") as info:
+            scene_lights(scene(bad), "lamp.xml")
+        assert "on shape 'lamp'" in str(info.value), str(info.value)
 
 
 def plane_under(light: dict, camera_at=(0.0, -1.0, 1.0), fov: float = 0.5, bsdf: dict | None = None, size: int = 8, more=None):
