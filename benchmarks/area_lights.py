@@ -19,7 +19,7 @@ from __future__ import annotations
 import gc
 from pathlib import Path
 
-from gra_mi.apps.harness import RENDER_COLUMNS, BenchmarkRun, integrator_rows, run_benchmark, table_page
+from gra_mi.apps.harness import RENDER_COLUMNS, BenchmarkRun, direct_integrator, integrator_rows, run_benchmark, table_page
 from gra_mi.render.near_field_cases import area_cases, area_stage, body_scene
 
 TINY_BODY = Path(__file__).resolve().parents[1] / "scenes" / "subjects" / "tiny" / "frames" / "frame_0000.ply"
@@ -31,12 +31,6 @@ STAGE_OURS = ((16, 4, 16), (256, 4, 16), (16, 4, 64))
 STAGE_DIRECT = ((16, 0, 16), (64, 0, 16))
 
 
-def direct(emitter_samples: int = 1, bsdf_samples: int = 0):
-    import mitsuba as mi
-
-    return mi.load_dict({"type": "direct", "emitter_samples": emitter_samples, "bsdf_samples": bsdf_samples})
-
-
 def candidates(ours: tuple, theirs: tuple) -> list[tuple]:
     """(label, integrator, spp): gra_onebounce with each (points, BSDF directions, spp), then `direct` with each
     (emitter samples, BSDF samples, passes)."""
@@ -46,17 +40,17 @@ def candidates(ours: tuple, theirs: tuple) -> list[tuple]:
         (f"gra_onebounce, {s} points + {b} BSDF directions × {spp} spp", mi.load_dict({"type": "gra_onebounce", "area_samples": s, "bsdf_samples": b}), spp)
         for s, b, spp in ours
     ]  # fmt: skip
-    return rows + [(f"direct, {s} emitter + {b} BSDF samples × {spp} spp", direct(s, b), spp) for s, b, spp in theirs]
+    return rows + [(f"direct, {s} emitter + {b} BSDF samples × {spp} spp", direct_integrator(s, b), spp) for s, b, spp in theirs]
 
 
 def measure(run: BenchmarkRun) -> str:
 
     scenes = {name: body_scene({"light": light}, TINY_BODY) for name, light in area_cases().items()}
     scenes["window, glossy body"] = body_scene({"light": area_cases()["window"]}, TINY_BODY, roughness=GLOSSY)
-    rows = integrator_rows(scenes, direct(1, 1), run.args.truth_spp, candidates(OURS, DIRECT))
+    rows = integrator_rows(scenes, direct_integrator(1, 1), run.args.truth_spp, candidates(OURS, DIRECT))
     for n in STAGES:  # one stage alive at a time: a call on an emitter traces every emitter that exists
         stage = {f"stage of {n} area LEDs": body_scene(area_stage(n), TINY_BODY)}
-        rows += integrator_rows(stage, direct(64, 0), run.args.stage_truth_spp, candidates(STAGE_OURS, STAGE_DIRECT))
+        rows += integrator_rows(stage, direct_integrator(64, 0), run.args.stage_truth_spp, candidates(STAGE_OURS, STAGE_DIRECT))
         del stage
         gc.collect()
     notes = [

@@ -13,7 +13,7 @@ the ball's pixels and the bias of the mean; time: the median of 3 renders after 
 
 from __future__ import annotations
 
-from gra_mi.apps.harness import RENDER_COLUMNS, BenchmarkRun, integrator_rows, run_benchmark, table_page
+from gra_mi.apps.harness import RENDER_COLUMNS, BenchmarkRun, direct_integrator, integrator_rows, run_benchmark, table_page
 from gra_mi.render.near_field_cases import DELTA_MATERIALS, ball_scene
 
 OURS = (4, 16, 64)  # spp
@@ -23,13 +23,10 @@ DIRECT = (16, 64, 256)  # passes of one emitter and one BSDF sample
 def measure(run: BenchmarkRun) -> str:
     import mitsuba as mi
 
-    def direct():
-        return mi.load_dict({"type": "direct", "emitter_samples": 1, "bsdf_samples": 1})
-
     candidates = [(f"gra_onebounce × {spp} spp", mi.load_dict({"type": "gra_onebounce"}), spp) for spp in OURS]
-    candidates += [(f"direct, 1 emitter + 1 BSDF sample × {spp} spp", direct(), spp) for spp in DIRECT]
+    candidates += [(f"direct, 1 emitter + 1 BSDF sample × {spp} spp", direct_integrator(1, 1), spp) for spp in DIRECT]
     scenes = {name: ball_scene(material) for name, material in DELTA_MATERIALS.items()}
-    rows = integrator_rows(scenes, direct(), run.args.truth_spp, candidates)
+    rows = integrator_rows(scenes, direct_integrator(1, 1), run.args.truth_spp, candidates)
     notes = [
         f"The truth: `direct` at {run.args.truth_spp} passes (its own noise is in the error of every row; a glass's "
         "is the largest, as `direct` picks its reflection or its transmission at random). gra_onebounce's rows "

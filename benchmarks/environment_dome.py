@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gra_mi.apps.harness import RENDER_COLUMNS, BenchmarkRun, integrator_rows, run_benchmark, table_page
+from gra_mi.apps.harness import RENDER_COLUMNS, BenchmarkRun, direct_integrator, integrator_rows, run_benchmark, table_page
 
 TINY_BODY = Path(__file__).resolve().parents[1] / "scenes" / "subjects" / "tiny" / "frames" / "frame_0000.ply"
 DOMES = ((256, 4), (1024, 1), (1024, 4), (1024, 64), (4096, 4))  # (lights, samples per pixel: anti-aliasing only)
@@ -36,18 +36,12 @@ def scene_under(name: str):
     return body_scene({"sky": sky}, TINY_BODY)
 
 
-def direct(spp_samples: int = 4):
-    import mitsuba as mi
-
-    return mi.load_dict({"type": "direct", "emitter_samples": spp_samples, "bsdf_samples": spp_samples})
-
-
 def measure(run: BenchmarkRun) -> str:
     import mitsuba as mi
 
     domes = [(f"gra_onebounce, dome of {n}, {spp} spp", mi.load_dict({"type": "gra_onebounce", "dome_lights": n}), spp) for n, spp in DOMES]
-    passes = [(f"direct, {spp} × (4 + 4) samples", direct(), spp) for spp in DIRECT_SPP]
-    rows = integrator_rows({name: scene_under(name) for name in MAPS}, direct(), run.args.truth_spp, domes + passes)
+    passes = [(f"direct, {spp} × (4 + 4) samples", direct_integrator(4, 4), spp) for spp in DIRECT_SPP]
+    rows = integrator_rows({name: scene_under(name) for name in MAPS}, direct_integrator(4, 4), run.args.truth_spp, domes + passes)
     notes = [
         f"The truth: `direct` at {run.args.truth_spp} passes of 4 emitter + 4 BSDF samples (its own noise is in the "
         "error of every row, a few tenths of a per cent). gra_onebounce's samples per pixel only anti-alias; its error "

@@ -100,6 +100,14 @@ RENDER_COLUMNS = ("integrator", "ms per image", "mean relative error", "bias of 
 """The columns of :func:`render_row` and :func:`truth_of`'s rows."""
 
 
+def direct_integrator(emitter_samples: int = 1, bsdf_samples: int = 0):
+    """Mitsuba's ``direct`` with these samples per pass, the reference the scene-file benchmarks measure against.
+    Several emitter samples over-weight delta lights (Mitsuba 3 #1861): give them only scenes without."""
+    import mitsuba as mi
+
+    return mi.load_dict({"type": "direct", "emitter_samples": emitter_samples, "bsdf_samples": bsdf_samples})
+
+
 def truth_of(scene, integrator, spp: int) -> tuple:
     """(the truth: ``scene`` at ``spp`` samples, seed 1; the row of its own noise: the same again at seed 2, against it)."""
     import mitsuba as mi

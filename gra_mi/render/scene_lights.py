@@ -89,6 +89,7 @@ class SceneLights:
     environments: list
     areas: list
     area_weights: np.ndarray  # (A,) > 0: each area light's share of the points (:func:`area_weights`)
+    objects: dict  # every object of the scene's graph → its parent (:func:`scene_objects`), walked once
 
     @property
     def count(self) -> int:
@@ -125,7 +126,8 @@ def scene_lights(scene, source: str | None = None, dome_lights: int = DEFAULT_LI
     """
     import mitsuba as mi
 
-    refuse_volumes(scene, source)
+    objects = scene_objects(scene)
+    refuse_volumes(objects, source)
     emitters = list(scene.emitters())
     if not emitters:
         raise GraMiInputError(source or "scene", "the scene has no emitter, so every render would be black: add a point, spot or "
@@ -157,7 +159,7 @@ def scene_lights(scene, source: str | None = None, dome_lights: int = DEFAULT_LI
         raise GraMiInputError(source or "scene", f"{emitter_label(point_index[k], points[k])} (point): 'intensity' must be finite and "
                               f">= 0, got {np.round(intensities[k], 6).tolist()} ({bad.size} such point lights)")  # fmt: skip
     directions = light_directions(moments)
-    return SceneLights(points, others, positions, intensities, directions, dome, environments, areas, area_weights(areas))
+    return SceneLights(points, others, positions, intensities, directions, dome, environments, areas, area_weights(areas), objects)
 
 
 def area_weights(emitters: list) -> np.ndarray:
@@ -209,13 +211,12 @@ def owner_label(node, parents: dict) -> str:
     return next((f"{name} '{node.id()}'" for cls, name in kind.items() if isinstance(node, cls)), "the scene")
 
 
-def refuse_volumes(scene, source: str | None = None) -> None:
+def refuse_volumes(parents: dict, source: str | None = None) -> None:
     """Refuse, by name, a participating medium (a shape's interior or exterior, a sensor's, an emitter's; inside shape
     groups too), which gra_onebounce (a surface integrator, as Mitsuba's ``direct`` and ``path``) would render as if it
-    were not there; Mitsuba's ``volpath`` computes media."""
+    were not there; Mitsuba's ``volpath`` computes media. ``parents``: the scene's :func:`scene_objects`."""
     import mitsuba as mi
 
-    parents = scene_objects(scene)
     for node in parents:
         if isinstance(node, mi.Medium):
             raise GraMiInputError(source or "scene", f"{owner_label(node, parents)} has a participating medium "

@@ -83,7 +83,7 @@ from gra_mi.render.plugins.light_terms import (
     power_heuristic,
     scaled,
 )
-from gra_mi.render.scene_lights import OPTIONS, checked_option, scene_lights, scene_objects
+from gra_mi.render.scene_lights import OPTIONS, checked_option, scene_lights
 
 # A light's term may not depend on what is differentiated (a mirror's smooth lobes are zero): no gradient, no error.
 MAY_NOT_DEPEND = dr.ADFlag.Default | dr.ADFlag.AllowNoGrad
@@ -124,8 +124,8 @@ class GraOneBounce(RBIntegrator):
             DeltaEmitters(lights.others),
             LedArrays(dome, lights.dome_irradiance),
             AreaLights(lights.areas, lights.area_weights, self.area_samples, self.bsdf_samples),
-            delta_components(scene) if seen_in_delta_lobes else (),
-            see_through(scene),
+            delta_components(lights.objects) if seen_in_delta_lobes else (),
+            see_through(lights.objects),
         )
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
@@ -203,9 +203,10 @@ def _sum_area_lights(mode, sampler, at: ShadingPoint, areas: AreaLights, valid, 
     return L, δL
 
 
-def see_through(scene) -> bool:
-    """Whether some material of ``scene`` lets light through its surface (``null``, ``mask``)."""
-    return any(isinstance(node, mi.BSDF) and mi.has_flag(node.flags(), mi.BSDFFlags.Null) for node in scene_objects(scene))
+def see_through(objects: dict) -> bool:
+    """Whether some material among a scene's ``objects`` (:func:`~gra_mi.render.scene_lights.scene_objects`) lets light
+    through its surface (``null``, ``mask``)."""
+    return any(isinstance(node, mi.BSDF) and mi.has_flag(node.flags(), mi.BSDFFlags.Null) for node in objects)
 
 
 @dr.syntax
@@ -231,13 +232,12 @@ def first_seen_surface(scene, sampler, ray, active) -> tuple:
     return scene.ray_intersect(ray, ray_flags=mi.RayFlags.All, coherent=True, active=active), weight
 
 
-def delta_components(scene) -> tuple[int, ...]:
-    """The component indices that are a delta lobe in some surface's material of ``scene`` (a mirror's one, a glass's
-    reflection and transmission, a plastic's coat; inside shape groups too): each is followed with one ray
-    (:func:`_add_delta_lobe`)."""
-    parents = scene_objects(scene)
+def delta_components(objects: dict) -> tuple[int, ...]:
+    """The component indices that are a delta lobe in some surface's material among a scene's ``objects`` (each → its
+    parent, :func:`~gra_mi.render.scene_lights.scene_objects`; a mirror's one, a glass's reflection and transmission, a
+    plastic's coat; inside shape groups too): each is followed with one ray (:func:`_add_delta_lobe`)."""
     found = set()
-    for bsdf in (node for node, parent in parents.items() if isinstance(node, mi.BSDF) and isinstance(parent, mi.Shape)):
+    for bsdf in (node for node, parent in objects.items() if isinstance(node, mi.BSDF) and isinstance(parent, mi.Shape)):
         found |= {c for c in range(bsdf.component_count()) if mi.has_flag(bsdf.flags(c), mi.BSDFFlags.Delta)}
     return tuple(sorted(found))
 
