@@ -798,6 +798,16 @@ def test_render_cli_renders_a_plain_scene_as_mitsuba_does(plugins, tmp_path):
             ["plain.xml", "on shape 'panel'", "type 'directionalarea'"],
         ),
         ([], '<shape type="cube"><bsdf type="nonexistent_bsdf"/></shape>', ["plain.xml", "Mitsuba could not load the scene"]),
+        (
+            [],
+            '<shape type="cube" id="box"><bsdf type="bumpmap"><texture type="checkerboard" name="height"/><bsdf type="diffuse"/></bsdf></shape>',
+            ["plain.xml", "shape 'box' has a bumpmap over a Checkerboard texture, which has no gradient", "bitmap height texture"],
+        ),
+        (
+            [],
+            '<shape type="sphere"><bsdf type="bumpmap"><texture type="mesh_attribute" name="h"><string name="name" value="vertex_x"/></texture><bsdf type="diffuse"/></bsdf></shape>',
+            ["plain.xml", "a shape without an id (Sphere) has a bumpmap over a MeshAttribute texture"],
+        ),
         (["--dome-lights", "512"], "", ["dome-lights", "applies to --integrator gra_onebounce"]),
         (["--integrator", "gra_onebounce", "--dome-lights", "4"], "", ["dome-lights", "expected an integer in [16, 16384], got 4"]),
         (["--area-samples", "8"], "", ["area-samples", "applies to --integrator gra_onebounce", 'name="area_samples"']),
@@ -814,6 +824,30 @@ def test_render_cli_bad_input_on_plain_scenes(tmp_path, args, extra, said):
     assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr
     for words in said:
         assert words in out.stderr, (words, out.stderr)
+
+
+def test_a_render_that_fails_inside_mitsuba_names_the_scene_the_sensor_and_mitsuba_s_own_words(plugins, tmp_path, monkeypatch):
+    """Mitsuba wraps a plugin's error in ``dr.custom``'s and ``dr.while_loop``'s ("see above"); what the user reads is
+    the innermost message, with the file and the sensor it was rendering."""
+    import mitsuba as mi
+
+    from gra_mi.core.errors import GraMiInputError
+    from gra_mi.render.scene_file import render_scene_file
+
+    def failing_render(*args, **kwargs):
+        try:
+            raise RuntimeError("[Texture] Texture::eval_1_grad(): not implemented!\n  more of Mitsuba's words")
+        except RuntimeError as inner:
+            raise RuntimeError(
+                "drjit.custom(<_RenderOp>): error while performing a custom differentiable operation. (see above)."
+            ) from inner
+
+    (tmp_path / "plain.xml").write_text(PLAIN_SCENE.replace("EXTRA", ""))
+    monkeypatch.setattr(mi, "render", failing_render)
+    with pytest.raises(GraMiInputError) as caught:
+        render_scene_file(tmp_path / "plain.xml", tmp_path / "r", integrator="direct")
+    said = str(caught.value)
+    assert "plain.xml" in said and "sensor 'front'" in said and said.endswith("Texture::eval_1_grad(): not implemented!"), said
 
 
 def test_render_cli_lights_a_plain_scene_s_sky_through_a_dome_of_the_size_asked(plugins, tmp_path):

@@ -135,6 +135,7 @@ def render_scene_file(
 
     path, out = Path(path), Path(out)
     scene = load_scene_file(path, defines)
+    check_bump_maps(scene, path)
     chosen = select_sensors(path, scene, list(sensors or []))
     for index in chosen:  # a film too large for memory is named before a render allocates it
         width, height = scene.sensors()[index].film().size()
@@ -148,9 +149,11 @@ def render_scene_file(
         _warn_unused_counts(path, scene_lights(scene, str(path), onebounce.dome_lights), options or {})
     renders = []
     for index in progress(chosen, description=f"render {path.name}"):
-        sensor = scene.sensors()[index]
-        image = np.array(mi.render(scene, sensor=index, integrator=chosen_integrator, spp=spp or 0, seed=seed), dtype=np.float32)
-        name = sensor_name(index, sensor, path)
+        sensor, name = scene.sensors()[index], sensor_name(index, scene.sensors()[index], path)
+        try:
+            image = np.array(mi.render(scene, sensor=index, integrator=chosen_integrator, spp=spp or 0, seed=seed), dtype=np.float32)
+        except Exception as exc:  # Mitsuba's render errors come wrapped in its custom-op's; its own message is the first
+            raise GraMiInputError(path, f"Mitsuba could not render sensor '{name}': {root_message(exc)}") from exc
         if image.shape[-1] > 4:  # AOVs: every channel, named and ordered as Mitsuba's own writer does
             with atomic_path(out / f"{name}.exr") as tmp:
                 sensor.film().bitmap().write(str(tmp))
@@ -159,6 +162,35 @@ def render_scene_file(
         write_png(out / f"{name}.png", image[..., :3], exposure=None)
         renders.append(SceneRender(name, image, out / f"{name}.exr"))
     return renders
+
+
+def root_message(exc: BaseException) -> str:
+    """The first line of the innermost exception of a chain (Mitsuba wraps a plugin's error in ``dr.custom``'s and
+    ``dr.while_loop``'s, whose own messages say only "see above")."""
+    while exc.__cause__ is not None:
+        exc = exc.__cause__
+    lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+    return lines[0] if lines else type(exc).__name__
+
+
+def check_bump_maps(scene, path: Path) -> None:
+    """Refuse, by name, a ``bumpmap`` whose height texture has no gradient (Mitsuba's ``checkerboard`` and
+    ``mesh_attribute`` have none): every integrator would stop in the middle of its render with Mitsuba's
+    "eval_1_grad(): not implemented". Asked of the texture itself, so a texture that gains one passes."""
+    import mitsuba as mi
+
+    from gra_mi.render.scene_lights import object_name, owner_label, scene_objects
+
+    objects = scene_objects(scene)
+    for texture, parent in objects.items():
+        if not (isinstance(texture, mi.Texture) and isinstance(parent, mi.BSDF) and parent.class_name() == "BumpMap"):
+            continue
+        try:
+            texture.eval_1_grad(mi.SurfaceInteraction3f())
+        except RuntimeError:
+            raise GraMiInputError(path, f"{owner_label(parent, objects)} has a bumpmap{object_name(parent)} over a "
+                                  f"{texture.class_name()} texture{object_name(texture)}, which has no gradient (a bumpmap "
+                                  "needs one): give it a bitmap height texture") from None  # fmt: skip
 
 
 def _warn_unused_counts(path: Path, lights, options: dict) -> None:

@@ -208,7 +208,15 @@ def owner_label(node, parents: dict) -> str:
     while node is not None and not isinstance(node, (mi.Shape, mi.Sensor, mi.Emitter)):
         node = parents.get(node)
     kind = {mi.Shape: "shape", mi.Sensor: "sensor", mi.Emitter: "emitter"}
-    return next((f"{name} '{node.id()}'" for cls, name in kind.items() if isinstance(node, cls)), "the scene")
+    found = next((name for cls, name in kind.items() if isinstance(node, cls)), None)
+    if found is None:
+        return "the scene"
+    return f"{found} '{node.id()}'" if node.id() else f"a {found} without an id ({node.class_name()})"
+
+
+def object_name(node) -> str:
+    """`` 'ID'`` of a scene object, or nothing where it has no id (for a sentence that already says its type)."""
+    return f" '{node.id()}'" if node.id() else ""
 
 
 def refuse_volumes(parents: dict, source: str | None = None) -> None:
