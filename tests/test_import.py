@@ -275,39 +275,60 @@ def test_the_evaluation_scores_a_held_out_camera_on_the_images_it_has(imported, 
     assert not (tmp_path / "eval_none" / "eval.json").exists()
 
 
-def test_reflectance_fields_leave_out_a_camera_that_lost_an_olat(imported, tmp_path, caplog, capsys):
-    """A camera's reflectance field is the sum of every OLAT: RelightNet's synthesized lightings leave out a training
-    camera that lost one, said (before, it stopped the training), and so does `relight-field` over every camera, while
-    naming that camera refuses it; with no whole training camera left the training is refused naming why."""
+def test_a_camera_that_lost_an_olat_takes_that_led_s_light_from_its_neighbours(imported, tmp_path, caplog, capsys):
+    """A camera's reflectance field sums every OLAT. One a real capture's gap lost is stood in for by the OLATs of
+    that LED's nearest neighbours while its LED carries a small share of a lighting's light (RelightNet's synthesized
+    lightings, `relight-field`): closer to the whole capture's sum than leaving its light out. Where the LED carries
+    more, the camera is left out of `relight-field` over every camera and refused where it is named."""
     from gra_mi.capture.dataset import Capture
+    from gra_mi.core.io import read_exr
     from gra_mi.fit.materials import FitConfig, run_fit
+    from gra_mi.stage.lightstage import load_calibration
 
     capture = Capture.load(imported)
-    olat = next(f.frame for f in capture.frames if f.split == "train" and f.pattern and "olat_" in f.pattern)
+    entry = next(f for f in capture.frames if f.split == "train" and f.pattern and "olat_" in f.pattern)
+    led = int(np.argmax(capture.lighting(load_calibration(imported / "rig" / "calibration.json"), entry).max(axis=1)))
     gapped = tmp_path / "gapped"
     shutil.copytree(imported, gapped)
-
-    def lose(cameras: list[str]) -> None:
-        data = json.loads((gapped / "capture.json").read_text())
-        for entry in data["frames"]:
-            entry["missing"] = cameras if entry["frame"] == olat else []
-        (gapped / "capture.json").write_text(json.dumps(data))
-
-    lose(["Cam01"])
-    (gapped / capture.image_path("Cam01", olat).relative_to(imported)).unlink()
+    data = json.loads((gapped / "capture.json").read_text())
+    for frame in data["frames"]:
+        frame["missing"] = ["Cam01"] if frame["frame"] == entry.frame else []
+    (gapped / "capture.json").write_text(json.dumps(data))
+    (gapped / capture.image_path("Cam01", entry.frame).relative_to(imported)).unlink()
     run_fit(gapped, tmp_path / "fit", FitConfig(solver="closed-form", roughness_candidates=3))
     args = ["train-relightnet", str(gapped), "--fit", str(tmp_path / "fit"), "--steps", "2", "--validate-every", "1"]
     args += ["--base-channels", "4", "--patch", "2", "--synthesized-lightings", "2", "--synthesized-validation", "1"]
     with caplog.at_level(logging.WARNING):
         assert main([*args, "--out", str(tmp_path / "rn")]) == 0
-    assert any("camera Cam01 has no image of 1 OLAT" in r.message for r in caplog.records)
-    args_field = ["relight-field", str(gapped), "--olat", "3"]
-    assert main([*args_field, "--out", str(tmp_path / "rf")]) == 0  # every camera: the one that lost an OLAT left out
+    assert any(f"camera Cam01 has no image of the OLAT of LEDs {led}" in r.message for r in caplog.records)
+
+    drives = {"dim": np.ones(24), "dropped": np.ones(24)}
+    drives["dim"][led], drives["dropped"][led] = 0.2, 0.0  # 0.86 % of the light on the lost LED; none
+    for name, drive in drives.items():
+        (tmp_path / f"{name}.json").write_text(json.dumps({"intensities": drive.tolist()}))
+    field = ["relight-field", "--cameras", "Cam01", "--pattern"]
+    assert main([field[0], str(gapped), *field[1:], str(tmp_path / "dim.json"), "--out", str(tmp_path / "rf_gap")]) == 0
+    for name in drives:
+        assert main([field[0], str(imported), *field[1:], str(tmp_path / f"{name}.json"), "--out", str(tmp_path / f"rf_{name}")]) == 0
+    summary = json.loads((tmp_path / "rf_gap" / "summary.json").read_text())["cameras"]["Cam01"]
+    assert summary["lacking_olat_frames"] == [entry.frame] and abs(summary["light_from_neighbours"]["dim"] - 0.2 / 23.2) < 1e-9
+    whole, stood_in, dropped = (read_exr(tmp_path / run / name / "Cam01.exr") for run, name in
+                                (("rf_dim", "dim"), ("rf_gap", "dim"), ("rf_dropped", "dropped")))  # fmt: skip
+    subject = whole[..., 3] > 0.5
+
+    def error(image):
+        return float(np.sqrt(np.mean((image[subject, :3] - whole[subject, :3]) ** 2) / np.mean(whole[subject, :3] ** 2)))
+
+    # 24 LEDs stand about 40° apart (a real stage's 331: 10°, where the error is a third of leaving the light out:
+    # docs/results/missing-olats.md)
+    assert error(stood_in) < 0.6 * error(dropped) and error(stood_in) < 0.01, (error(stood_in), error(dropped))
+
+    olat = ["relight-field", str(gapped), "--olat", str(led)]
+    assert main([*olat, "--out", str(tmp_path / "rf")]) == 0  # every camera: Cam01 would take all of it from neighbours
     summary = json.loads((tmp_path / "rf" / "summary.json").read_text())
     assert "Cam01" in summary["skipped"] and "Cam01" not in summary["cameras"] and len(summary["cameras"]) == 7
-    _one_line_error(capsys, [*args_field, "--cameras", "Cam01", "--out", str(tmp_path / "rf1")], "camera Cam01 has no image of frame")
-    lose(list(capture.train_cameras))  # the held-out cameras keep it
-    _one_line_error(capsys, [*args, "--out", str(tmp_path / "rn_none")], "no training camera has an image of every OLAT")
+    _one_line_error(capsys, [*olat, "--cameras", "Cam01", "--out", str(tmp_path / "rf1")], f"drives LEDs {led} (100.0 % of its light)",
+                    "no OLAT image of this camera")  # fmt: skip
 
 
 @pytest.mark.parametrize(

@@ -134,6 +134,65 @@ def test_missing_olats_warn_or_stop_by_the_light_they_carry(olat_captures, tmp_p
     assert len(err) == 1 and "drives LEDs 5" in err[0] and "no OLAT in the capture" in err[0]
 
 
+def test_an_led_s_light_moves_to_its_nearest_neighbours_with_the_same_irradiance():
+    """Each of the 3 nearest usable LEDs takes a share inversely proportional to its angle, times its squared distance
+    over the lost LED's (the same irradiance at the centre); LEDs further away take nothing."""
+    from gra_mi.capture.reflectance import moved_to_neighbours
+
+    angles = np.radians([0.0, 10.0, 20.0, -10.0, 90.0])
+    directions = np.stack([np.sin(angles), np.zeros(5), np.cos(angles)], axis=1)
+    distances = np.array([1.0, 1.0, 2.0, 1.0, 1.0])
+    lighting = np.zeros((5, 3))
+    lighting[0], lighting[4] = [1.0, 2.0, 3.0], 1.0
+    usable = np.array([False, True, True, True, True])
+    moved, gone, share = moved_to_neighbours(lighting, usable, directions, distances)
+    expected = np.zeros((5, 3))
+    expected[1] = expected[3] = 0.4 * lighting[0]  # 1/10° : 1/10° : 1/20° → 0.4, 0.4, 0.2
+    expected[2] = 0.2 * 4.0 * lighting[0]  # twice as far: four times the intensity
+    expected[4] = 1.0
+    np.testing.assert_allclose(moved, expected, rtol=1e-12)
+    assert gone.tolist() == [0] and share == pytest.approx(6.0 / 9.0)
+
+
+def test_a_camera_without_one_olat_image_sums_the_rest_and_its_neighbours(olat_captures, tmp_path):
+    """The camera's field loads without the lost image; a drive that puts a little light on that LED takes it from
+    the neighbours' OLATs (close to the whole sum); the LED's own OLAT, all of whose light would be stood in for, is
+    refused naming the camera."""
+    from gra_mi.capture.dataset import Capture
+    from gra_mi.capture.reflectance import OlatIndex, ReflectanceField
+    from gra_mi.core.errors import GraMiInputError
+    from gra_mi.stage.lightstage import load_calibration
+
+    capture = olat_captures["onebounce"]
+    folder = tmp_path / "gap"
+    shutil.copytree(capture.folder, folder)
+    data = json.loads((folder / "capture.json").read_text())
+    lost = next(f for f in data["frames"] if f.get("pattern") == "patterns/olat_005.json")
+    lost["missing"] = ["cam04"]
+    (folder / "capture.json").write_text(json.dumps(data))
+    (folder / capture.image_path("cam04", lost["frame"]).relative_to(capture.folder)).unlink()
+    gapped = Capture.load(folder)
+    stage = load_calibration(folder / "rig" / "calibration.json")
+    index = OlatIndex.of(gapped, stage)
+    rf = ReflectanceField.load(gapped, "cam04", index, progress_bar=False)
+    whole = _field(capture, "cam04")[2]
+    assert index.leds[rf.lacking].tolist() == [5]
+    drive = np.ones((24, 3))
+    drive[5] = 0.2
+    ours, truth = rf.relight(rf.weights(drive, "dim"))[0], whole.relight(index.weights(drive, "dim"))[0]
+    dropped = whole.relight(index.weights(drive * (np.arange(24) != 5)[:, None], "dropped"))[0]
+    subject = truth[..., 3] > 0.5
+
+    def error(image):
+        return np.abs(image[subject, :3] - truth[subject, :3]).mean() / truth[subject, :3].mean()
+
+    assert error(ours) < 0.02 and error(ours) < error(dropped), (error(ours), error(dropped))  # 24 LEDs: 40° apart
+    with pytest.raises(GraMiInputError, match="olat 5 on camera cam04: drives LEDs 5 \\(100.0 % of its light\\)"):
+        rf.weights(np.eye(24)[5][:, None].repeat(3, axis=1), "olat 5")
+    with pytest.raises(ValueError, match="use ReflectanceField.weights"):
+        rf.relight(index.weights(drive, "dim"))
+
+
 @pytest.mark.parametrize(
     "drive, needle",
     [

@@ -25,7 +25,9 @@ from gra_mi.core.progress import progress
 logger = logging.getLogger(__name__)
 
 MISSING_SHARE_LIMIT = 0.02
-"""A drive whose LEDs without an OLAT carry more than this share of its light cannot be summed (below it: a warning)."""
+"""A drive whose LEDs without an OLAT carry more than this share of its light cannot be summed (below it: their light
+comes from their neighbours' OLATs, :func:`moved_to_neighbours`, with a warning)."""
+NEIGHBOURS = 3  # the LEDs whose OLATs stand in for an LED without one: the nearest by direction from the stage centre
 SUBJECT_MARGIN = 2  # pixels kept around the first OLAT's subject: a path-traced or matted edge moves between images
 PIXEL_CHUNK = 1 << 16  # float16 stacks are widened to float32 this many pixels at a time
 
@@ -38,6 +40,8 @@ class OlatIndex:
     leds: np.ndarray  # (K,) LED index
     intensity: np.ndarray  # (K, 3) the LED's radiant intensity in its OLAT
     num_leds: int
+    directions: np.ndarray  # (L, 3) unit vectors from the stage centre to every LED
+    distances: np.ndarray  # (L,) their distances from it
 
     @classmethod
     def of(cls, capture: Capture, stage, splits: tuple[str, ...] = ("train", "test")) -> OlatIndex:
@@ -57,34 +61,80 @@ class OlatIndex:
             raise GraMiInputError(
                 capture.folder / "capture.json", "no OLAT frames (a pattern lighting one LED): the capture holds no reflectance field"
             )
-        return cls(np.array(frames), np.array(leds), np.array(intensity, np.float64), stage.num_leds)
+        directions = stage.led_directions()
+        return cls(np.array(frames), np.array(leds), np.array(intensity, np.float64), stage.num_leds, directions, stage.led_distances())
 
-    def incomplete(self, capture: Capture, cameras: list[str]) -> dict[str, str]:
-        """The cameras of ``cameras`` a real capture's gaps left without an image of one of these OLATs (camera →
-        what it lacks, said): their reflectance field, the sum of every OLAT, cannot be made."""
-        lacking = {camera: capture.frames_with_images(camera, [int(f) for f in self.frames])[1] for camera in cameras}
-        return {
-            camera: f"camera {camera} has no image of {len(missing)} OLAT(s), frame {missing[0]} first: its reflectance field sums every one"
-            for camera, missing in lacking.items()
-            if missing
-        }
+    def lacking(self, capture: Capture, camera: str) -> np.ndarray:
+        """The positions in this index of the OLATs ``camera`` has no image of (a real capture's gaps)."""
+        missing = set(capture.frames_with_images(camera, [int(f) for f in self.frames])[1])
+        return np.array([k for k, frame in enumerate(self.frames) if int(frame) in missing], np.int64)
 
-    def weights(self, lighting: np.ndarray, source: str) -> np.ndarray:
-        """(K, 3) weights of the OLATs for LED intensities (L, 3). LEDs the capture has no OLAT of: a warning naming
-        them when they carry little of the drive's light, an error naming them otherwise."""
+    def light_from_neighbours(self, capture: Capture, camera: str, drives: dict) -> dict[str, float]:
+        """Drive name → the share of its light (LED intensities (L, 3)) that ``camera`` takes from neighbouring OLATs:
+        the light of the LEDs whose OLAT it has no image of (``{}`` for a camera with every one). A drive where that is
+        more than :data:`MISSING_SHARE_LIMIT` is refused, naming it, the camera and the LEDs."""
+        lacking = self.lacking(capture, camera)
+        if not lacking.size:
+            return {}
+        for name, drive in drives.items():
+            self.weights(drive, f"{name} on camera {camera}", lacking, quiet=True)
+        leds = self.leds[lacking]
+        return {name: float(np.sum(drive[leds]) / max(float(np.sum(drive)), 1e-30)) for name, drive in drives.items()}
+
+    def weights(self, lighting: np.ndarray, source: str, lacking: np.ndarray | None = None, quiet: bool = False) -> np.ndarray:
+        """(K, 3) weights of the OLATs for LED intensities (L, 3). The light of LEDs the capture has no OLAT of, or a
+        camera has no image of (``lacking``: positions in this index), comes from their neighbours' OLATs
+        (:func:`moved_to_neighbours`), with a warning (unless ``quiet``) while it is at most
+        :data:`MISSING_SHARE_LIMIT` of the drive's light; above it the drive is refused, naming them."""
         lighting = np.asarray(lighting, np.float64)
         if lighting.shape != (self.num_leds, 3):
             raise GraMiInputError(source, f"expected ({self.num_leds}, 3) LED intensities, got {lighting.shape}")
         if not np.all(np.isfinite(lighting)) or lighting.min() < 0:
             raise GraMiInputError(source, "LED intensities must be finite and non-negative")
-        missing = np.setdiff1d(np.flatnonzero(lighting.max(axis=1) > 0), self.leds)
-        if missing.size:
-            share = float(lighting[missing].sum() / max(lighting.sum(), 1e-30))
-            named = ", ".join(str(i) for i in missing[:12]) + (" …" if missing.size > 12 else "")
+        usable = np.zeros(self.num_leds, bool)
+        usable[self.leds] = True
+        lacking = np.asarray([] if lacking is None else lacking, np.int64)
+        usable[self.leds[lacking]] = False
+        moved, gone, share = moved_to_neighbours(lighting, usable, self.directions, self.distances)
+        if gone.size:
+            named = ", ".join(str(i) for i in gone[:12]) + (" …" if gone.size > 12 else "")
+            camera_gap = bool(np.isin(gone, self.leds).any())  # an OLAT the capture has, but not this camera's image of it
             if share > MISSING_SHARE_LIMIT:
-                raise GraMiInputError(source, f"drives LEDs {named} ({100 * share:.1f} % of its light), which have no OLAT in the capture")
-            logger.warning("%s: LEDs %s have no OLAT; their %.2f %% of the light is left out", source, named, 100 * share)
-        return lighting[self.leds] / np.maximum(self.intensity, 1e-30)
+                why = "which have no OLAT image of this camera" if camera_gap else "which have no OLAT in the capture"
+                raise GraMiInputError(source, f"drives LEDs {named} ({100 * share:.1f} % of its light), {why}")
+            if not quiet:
+                logger.warning("%s: LEDs %s have no OLAT%s; their %.2f %% of the light comes from their %d nearest LEDs' OLATs",
+                               source, named, " image of this camera" if camera_gap else "", 100 * share, NEIGHBOURS)  # fmt: skip
+        weights = moved[self.leds] / np.maximum(self.intensity, 1e-30)
+        weights[lacking] = 0.0
+        return weights
+
+
+def moved_to_neighbours(
+    lighting: np.ndarray, usable: np.ndarray, directions: np.ndarray, distances: np.ndarray, neighbours: int = NEIGHBOURS
+) -> tuple:
+    """(``lighting`` with the light of the LEDs not ``usable`` moved onto their ``neighbours`` nearest usable LEDs,
+    the LEDs it left, the share of the light it moved). Each neighbour takes a share inversely proportional to its angle
+    from the LED, scaled by the ratio of their squared distances, so the subject receives the same light from about the
+    same direction: light is smooth over a stage's neighbouring LEDs except at the shadows' and highlights' edges."""
+    gone = np.flatnonzero(~usable & (lighting.max(axis=1) > 0))
+    if not gone.size:
+        return lighting, gone, 0.0
+    share = float(lighting[gone].sum() / max(lighting.sum(), 1e-30))
+    have = np.flatnonzero(usable)
+    if not have.size:
+        return np.zeros_like(lighting), gone, share
+    cosines = directions[gone] @ directions[have].T
+    nearest = np.argsort(-cosines, axis=1)[:, :neighbours]
+    angles = np.arccos(np.clip(np.take_along_axis(cosines, nearest, axis=1), -1.0, 1.0))
+    shares = 1.0 / np.maximum(angles, 1e-6)
+    shares /= shares.sum(axis=1, keepdims=True)
+    targets = have[nearest]
+    scale = shares * (distances[targets] / distances[gone][:, None]) ** 2
+    moved = lighting.copy()
+    moved[gone] = 0.0
+    np.add.at(moved, targets.ravel(), (scale[..., None] * lighting[gone][:, None, :]).reshape(-1, 3))
+    return moved, gone, share
 
 
 @dataclass
@@ -100,20 +150,25 @@ class ReflectanceField:
     stack: np.ndarray | None = None  # (3, K, P) held in memory, or None: streamed from disk
     scale: np.ndarray | None = None  # (K,) a float16 stack's per-OLAT scale
     stats: dict = field(default_factory=dict)
+    lacking: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # OLATs (index positions) without an image
     _on_device: tuple | None = field(default=None, repr=False, compare=False)  # (device, the stack there)
 
     @classmethod
     def load(cls, capture: Capture, camera: str, index: OlatIndex, memory_gb: float = 4.0, progress_bar: bool = True) -> ReflectanceField:
         """The OLATs of one camera over the first OLAT's subject pixels (its mask and anything it lights, grown by
         ``SUBJECT_MARGIN``), held when they fit ``memory_gb``. Light another OLAT puts outside those pixels is counted
-        (``stats``), not kept."""
-        entries = {f.frame: f for f in capture.frames}
-        capture.require_images([camera], [entries[int(f)] for f in index.frames], "a reflectance field (the sum of its OLATs)")
-        first = load_observation(capture, camera, int(index.frames[0]))
+        (``stats``), not kept. OLATs a real capture's gaps left the camera without are :attr:`lacking`: their light
+        comes from their neighbours' (:meth:`weights`)."""
+        lacking = index.lacking(capture, camera)
+        if lacking.size == len(index.frames):
+            raise GraMiInputError(capture.folder / "capture.json", f"camera {camera} has no image of any OLAT", field="frames")
+        gaps = set(lacking.tolist())
+        present = [int(f) for k, f in enumerate(index.frames) if k not in gaps]
+        first = load_observation(capture, camera, present[0])
         alpha = first[..., 3]
         subject = (alpha > 0) | (first[..., :3].max(axis=-1) > 0)
         pixels = np.flatnonzero(binary_dilation(subject, iterations=SUBJECT_MARGIN).ravel())
-        field_ = cls(capture, camera, index, first.shape[:2], pixels, alpha)
+        field_ = cls(capture, camera, index, first.shape[:2], pixels, alpha, lacking=lacking)
         k, p = len(index.frames), pixels.size
         held = 2 * 3 * k * p <= memory_gb * 2**30
         if not held:
@@ -124,6 +179,9 @@ class ReflectanceField:
         outside = total = 0.0
         frames = progress(index.frames, description=f"OLATs {camera}") if progress_bar else index.frames
         for j, frame in enumerate(frames):
+            if j in gaps:
+                field_.stack[:, j] = 0.0  # its weight is always 0 (:meth:`weights`)
+                continue
             rgb = load_observation(capture, camera, int(frame))[..., :3].reshape(-1, 3)
             values = rgb[pixels].T
             total += float(rgb.sum())
@@ -140,11 +198,18 @@ class ReflectanceField:
             logger.warning("%s: %.2f %% of the OLATs' light falls outside the first OLAT's subject pixels", camera, 100 * outside / total)
         return field_
 
+    def weights(self, lighting: np.ndarray, source: str, quiet: bool = False) -> np.ndarray:
+        """(K, 3) OLAT weights for LED intensities (L, 3) on this camera (:meth:`OlatIndex.weights`: the light of an
+        OLAT the camera lacks comes from its neighbours')."""
+        return self.index.weights(lighting, f"{source} on camera {self.camera}" if self.lacking.size else source, self.lacking, quiet)
+
     def relight(self, weights: np.ndarray) -> np.ndarray:
-        """Images (N, H, W, 4) for OLAT weights (N, K, 3) (:meth:`OlatIndex.weights`); alpha is the subject's mask."""
+        """Images (N, H, W, 4) for OLAT weights (N, K, 3) (:meth:`weights`); alpha is the subject's mask."""
         weights = np.asarray(weights, np.float64)
         if weights.ndim == 2:
             weights = weights[None]
+        if np.any(weights[:, self.lacking]):
+            raise ValueError(f"weights for OLATs camera {self.camera} has no image of: use ReflectanceField.weights")
         n = weights.shape[0]
         sums = self._sum_held(weights) if self.stack is not None else self._sum_streamed(weights)
         out = np.zeros((n, self.shape[0] * self.shape[1], 4), np.float32)
@@ -211,7 +276,7 @@ class ReflectanceField:
         sums = np.zeros((weights.shape[0], self.pixels.size, 3), np.float64)
         for j, frame in enumerate(self.index.frames):
             if not np.any(weights[:, j]):
-                continue  # an LED no lighting of the batch drives is not read
+                continue  # an LED no lighting of the batch drives is not read (nor one the camera has no image of)
             image = load_observation(self.capture, self.camera, int(frame))[..., :3].reshape(-1, 3)[self.pixels]
             sums += weights[:, j][:, None, :] * image[None]
         return sums.astype(np.float32)

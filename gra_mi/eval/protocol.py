@@ -242,9 +242,17 @@ def _field_splits(capture, config: EvalConfig) -> tuple[list[Split], dict[str, s
     stage = load_calibration(capture.folder / "rig" / "calibration.json")
     lights = field_lightings(capture, stage, {p.stem: config.envmaps.load(p) for p in config.envmap}, config.library_envmaps)
     by_id = {-(k + 1): light for k, light in enumerate(lights)}
-    incomplete = OlatIndex.of(capture, stage).incomplete(capture, capture.eval_cameras)
-    for cam, why in incomplete.items():
-        logger.warning("field_%s: not scored: %s", cam, why)
+    index, incomplete = OlatIndex.of(capture, stage), {}
+    for cam in capture.eval_cameras:  # a camera that lost an OLAT: its truth takes that LED's light from neighbours
+        try:
+            shares = index.light_from_neighbours(capture, cam, {light.name: light.intensities for light in lights})
+        except GraMiInputError as exc:
+            incomplete[cam] = str(exc)
+            logger.warning("field_%s: not scored: %s", cam, exc)
+            continue
+        if shares:
+            logger.warning("field_%s: the truth takes at most %.2f %% of a lighting's light from neighbouring OLATs (the camera lacks "
+                           "an OLAT image)", cam, 100 * max(shares.values()))  # fmt: skip
     splits = [Split(f"field_{c}", c, list(by_id), lighting_set=True, lights=by_id) for c in capture.eval_cameras if c not in incomplete]
     return splits, {f"field_{cam}": why for cam, why in incomplete.items()}
 

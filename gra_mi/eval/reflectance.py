@@ -62,4 +62,5 @@ class FieldTruth:
             self.index = OlatIndex.of(self.capture, load_calibration(Path(self.capture.folder) / "rig" / "calibration.json"))
         if camera not in self.fields:
             self.fields[camera] = ReflectanceField.load(self.capture, camera, self.index)
-        return self.fields[camera].relight(self.index.weights(light.intensities, light.name))[0]
+        rf = self.fields[camera]
+        return rf.relight(rf.weights(light.intensities, light.name, quiet=True))[0]

@@ -18,7 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from gra_mi.capture.reflectance import OlatIndex, ReflectanceField, static_pose
+from gra_mi.capture.reflectance import MISSING_SHARE_LIMIT, OlatIndex, ReflectanceField, static_pose
+from gra_mi.core.errors import GraMiInputError
 from gra_mi.core.io import atomic_path
 from gra_mi.core.progress import progress
 from gra_mi.relightnet.data import SYNTHESIZED_SPLIT, Sample
@@ -79,7 +80,20 @@ class SynthesizedViews:
         return cls(capture, relighter, drives, index, fields, grids, env_height, device, split)
 
     def keys(self, cameras: list[str] | None = None) -> list[tuple[int, str]]:
-        return [(k, c) for k in range(len(self.drives)) for c in (cameras or self.fields)]
+        """(lighting, camera) pairs, but those whose sum would take more than a little light from neighbouring OLATs
+        (:meth:`summable`)."""
+        cameras = cameras or list(self.fields)
+        summable = {c: self.summable(c) for c in cameras}
+        return [(k, c) for k in range(len(self.drives)) for c in cameras if summable[c][k]]
+
+    def summable(self, camera: str) -> np.ndarray:
+        """(N,) whether each drive's light on the LEDs whose OLAT ``camera`` has no image of is within
+        :data:`~gra_mi.capture.reflectance.MISSING_SHARE_LIMIT` (their light then comes from neighbouring OLATs)."""
+        lacking = self.fields[camera].lacking
+        if not lacking.size:
+            return np.ones(len(self.drives), bool)
+        share = self.drives[:, self.index.leds[lacking]].sum(axis=(1, 2)) / np.maximum(self.drives.sum(axis=(1, 2)), 1e-30)
+        return share <= MISSING_SHARE_LIMIT
 
     def view(self, k: int, camera: str):
         from gra_mi.relightnet.infer import view_inputs
@@ -87,7 +101,8 @@ class SynthesizedViews:
         pose = static_pose(self.capture)
         intensities = self.drives[k]
         features, mask, env, _ = view_inputs(self.relighter, pose, camera, intensities, self.env_height, self.device)
-        image = self.fields[camera].relight(self.index.weights(intensities, f"synthesized lighting {k}"))[0]
+        field = self.fields[camera]
+        image = field.relight(field.weights(intensities, f"synthesized lighting {k}", quiet=True))[0]
         grid, hit = self.grids[camera]
         target = to_torch(image[..., :3], self.device).permute(2, 0, 1)[None].contiguous()
         pixels = hit * to_torch((image[..., 3] > 0.99).astype(np.float32), self.device)[None, None]
@@ -102,31 +117,29 @@ def synthesized_views(capture, relighter, config, device: str, cache: Path | Non
     index = OlatIndex.of(capture, stage, splits=("train",))
     train = synthesized_drives(stage, "train", config.synthesized_lightings, index, cache and cache / "synthesized_train.npz", SEED_OFFSET)
     val = synthesized_drives(stage, "test", config.synthesized_validation, index, cache and cache / "synthesized_val.npz", SEED_OFFSET)
-    cameras = _cameras_with_every_olat(capture, index)
+    cameras = [c for c in capture.train_cameras + capture.eval_cameras if index.lacking(capture, c).size < len(index.frames)]
     views = SynthesizedViews.build(capture, relighter, train, index, cameras, config.env_height, device, "train")
     views.cameras = [c for c in capture.train_cameras if c in cameras]
+    if not views.keys(views.cameras):
+        raise GraMiInputError(capture.folder / "capture.json", "no training camera has the OLAT images its synthesized lightings need", field="frames")  # fmt: skip
     held = SynthesizedViews(capture, relighter, val, index, views.fields, views.grids, config.env_height, device, SYNTHESIZED_SPLIT)
     shown = [c for c in capture.eval_cameras if c in cameras]
     validation = [held.view(k, c) for k, c in progress(held.keys(shown), description="synthesized validation")] if shown else []
+    _say_gaps(views, held)
     logger.info("synthesized lightings: %d training, %d validation maps, from %d OLATs", len(train), len(val), len(index.frames))
     return views, validation
 
 
-def _cameras_with_every_olat(capture, index: OlatIndex) -> list[str]:
-    """The cameras whose reflectance field is whole (a sum of every OLAT needs every OLAT image): a camera a real
-    capture's gap left without one is left out of the synthesized lightings, said; none left is refused."""
-    from gra_mi.core.errors import GraMiInputError
-
-    cameras = capture.train_cameras + capture.eval_cameras
-    incomplete = index.incomplete(capture, cameras)
-    for why in incomplete.values():
-        logger.warning("synthesized lightings: %s; its views are left out", why)
-    whole = [c for c in cameras if c not in incomplete]
-    if not any(c in whole for c in capture.train_cameras):
-        raise GraMiInputError(
-            capture.folder / "capture.json", "no training camera has an image of every OLAT: synthesized lightings need one", field="frames"
-        )
-    return whole
+def _say_gaps(*views: SynthesizedViews) -> None:
+    """Once per camera that lacks an OLAT image: whose light comes from its neighbours, and in how many lightings
+    that would have been too much of the light (those pairs are left out)."""
+    for camera, field in views[0].fields.items():
+        if field.lacking.size:
+            left = sum(int((~v.summable(camera)).sum()) for v in views)
+            logger.warning("synthesized lightings: camera %s has no image of the OLAT of LEDs %s: their light comes from their neighbours' "
+                           "OLATs; %d of %d lightings, where it is more than %.0f %% of the light, are left out for it", camera,
+                           ", ".join(str(led) for led in field.index.leds[field.lacking]), left, sum(len(v.drives) for v in views),
+                           100 * MISSING_SHARE_LIMIT)  # fmt: skip
 
 
 class TrainingViews:
