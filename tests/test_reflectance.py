@@ -281,6 +281,32 @@ def test_eval_scores_held_out_olats_and_maps_whose_truth_is_the_olat_sum(olat_ca
     summed = FieldTruth(capture)(cam, FieldLighting("probe", capture.lighting(stage, entry)))
     photo = load_observation(capture, cam, entry.frame)
     assert summed[..., :3].sum() == pytest.approx(photo[..., :3].sum(), rel=0.01)
+    # the camera loses the OLAT image of an LED that carries little of these lightings' light: still scored, its
+    # truth taking that light from the neighbours' OLATs, and scoring the fit as the whole truth does
+    gapped = _lose_dimmest_olat(capture, stage, cam, {"my_sky": sky}, tmp_path / "gapped")
+    again = ["eval", "--capture", str(gapped), "--fit", str(fit), "--out", str(tmp_path / "eval_gap"), "--library-envmaps", "2"]
+    assert main([*again, "--envmap", str(tmp_path / "my_sky.exr")]) == 0
+    report_gap = json.loads((tmp_path / "eval_gap" / "eval.json").read_text())
+    assert "from their neighbours' OLATs" in report_gap["protocol"]["splits"][f"field_{cam}"]["truth"]
+    assert report_gap["stages"]["microfacet"]["splits"][f"field_{cam}"]["psnr"] == pytest.approx(scores["psnr"], abs=0.2)
+
+
+def _lose_dimmest_olat(capture, stage, camera: str, envmaps: dict, folder: Path) -> Path:
+    """A copy of ``capture`` whose ``camera`` lacks the OLAT image of the LED with the least light in the evaluation's
+    field lightings of ``envmaps`` (and 2 library maps), as an import records a lost image."""
+    from gra_mi.eval.reflectance import field_lightings
+
+    drives = np.stack([light.intensities for light in field_lightings(capture, stage, envmaps, 2)])
+    share = (drives.sum(axis=2) / drives.sum(axis=(1, 2))[:, None]).max(axis=0)
+    led = int(np.argmin(np.where(share > 0, share, np.inf)))
+    assert 0 < share[led] <= 0.02, share
+    shutil.copytree(capture.folder, folder)
+    data = json.loads((folder / "capture.json").read_text())
+    lost = next(f for f in data["frames"] if f.get("pattern") == f"patterns/olat_{led:03d}.json")
+    lost["missing"] = [camera]
+    (folder / "capture.json").write_text(json.dumps(data))
+    (folder / capture.image_path(camera, lost["frame"]).relative_to(capture.folder)).unlink()
+    return folder
 
 
 def test_eval_refuses_a_reflectance_field_truth_without_olats(olat_captures, tmp_path, capsys):

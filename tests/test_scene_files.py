@@ -685,9 +685,15 @@ def test_sunsky_lights_the_body_as_mitsubas_direct_does():
     import subprocess
     import sys
 
-    out = subprocess.run(
-        [sys.executable, "-c", SUNSKY_CHECK.replace("__BODY__", repr(str(BODY)))], capture_output=True, text=True, timeout=600
-    )
+    def check():
+        command = [sys.executable, "-c", SUNSKY_CHECK.replace("__BODY__", repr(str(BODY)))]
+        return subprocess.run(command, capture_output=True, text=True, timeout=600)
+
+    out = check()
+    if out.returncode and 'failed to instantiate emitter plugin of type "sunsky"' in out.stderr:
+        # Mitsuba's sunsky has failed to load in a fresh process too ("std::bad_alloc", "basic_string::_M_create": a
+        # garbage length read), twice in full-suite runs here and never in 60 runs alone: once more before failing
+        out = check()
     assert out.returncode == 0, out.stderr[-3000:]
     said = dict(line.split() for line in out.stdout.splitlines() if line.split()[0] in ("FLUX", "ERROR", "BIAS"))
     assert float(said["FLUX"]) < 1e-9, "every sample lands in a cell"

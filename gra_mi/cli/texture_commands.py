@@ -245,8 +245,9 @@ class RelightFieldCommand(CommandConfig):
     capture: Path = field(metadata=option(positional=True))
     """Capture folder with OLAT frames (a pattern lighting one LED): `gra-mi capture --preset olat` or an import."""
     cameras: str = "all"
-    """Cameras: 'all' (every camera with an image of every OLAT; the others are named and left out) or a comma list of
-    names or indices (the capture's training cameras, then its held-out ones; one that lacks an OLAT is refused)."""
+    """Cameras: 'all' or a comma list of names or indices (the capture's training cameras, then its held-out ones). A
+    camera that lacks an OLAT image takes that LED's light from its 3 nearest LEDs' OLATs where it is at most 2 % of
+    every lighting's; where it is more, the camera is named and left out ('all') or refused (named)."""
     envmap: list[Path] = field(default_factory=list, metadata=option(repeat=True))
     """Lat-long HDR map (OpenEXR or Radiance .hdr) mapped onto the LEDs (repeatable)."""
     olat: list[int] = field(default_factory=list, metadata=option(repeat=True))

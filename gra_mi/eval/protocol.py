@@ -156,6 +156,7 @@ class Split:
     lights: dict[int, object] = field(default_factory=dict)  # frame id < 0 → FieldLighting
     missing: list[int] = field(default_factory=list)  # held-out frames the camera has no image of (left out)
     breaks: list[int] = field(default_factory=list)  # positions in capture_frames that follow such a gap
+    truth_note: str = ""  # how a reflectance-field truth stands in for an OLAT image the camera lacks
 
 
 def scored_frames(split: Split, how: str) -> list[int]:
@@ -242,7 +243,7 @@ def _field_splits(capture, config: EvalConfig) -> tuple[list[Split], dict[str, s
     stage = load_calibration(capture.folder / "rig" / "calibration.json")
     lights = field_lightings(capture, stage, {p.stem: config.envmaps.load(p) for p in config.envmap}, config.library_envmaps)
     by_id = {-(k + 1): light for k, light in enumerate(lights)}
-    index, incomplete = OlatIndex.of(capture, stage), {}
+    index, incomplete, notes = OlatIndex.of(capture, stage), {}, {}
     for cam in capture.eval_cameras:  # a camera that lost an OLAT: its truth takes that LED's light from neighbours
         try:
             shares = index.light_from_neighbours(capture, cam, {light.name: light.intensities for light in lights})
@@ -251,9 +252,11 @@ def _field_splits(capture, config: EvalConfig) -> tuple[list[Split], dict[str, s
             logger.warning("field_%s: not scored: %s", cam, exc)
             continue
         if shares:
-            logger.warning("field_%s: the truth takes at most %.2f %% of a lighting's light from neighbouring OLATs (the camera lacks "
-                           "an OLAT image)", cam, 100 * max(shares.values()))  # fmt: skip
-    splits = [Split(f"field_{c}", c, list(by_id), lighting_set=True, lights=by_id) for c in capture.eval_cameras if c not in incomplete]
+            notes[cam] = (f"; the light of the LEDs whose OLAT image camera {cam} lacks (at most {100 * max(shares.values()):.2f} % "
+                          "of a lighting's) from their neighbours' OLATs")  # fmt: skip
+            logger.warning("field_%s: truth %s", cam, notes[cam][2:])
+    splits = [Split(f"field_{c}", c, list(by_id), lighting_set=True, lights=by_id, truth_note=notes.get(c, ""))
+              for c in capture.eval_cameras if c not in incomplete]  # fmt: skip
     return splits, {f"field_{cam}": why for cam, why in incomplete.items()}
 
 
@@ -510,7 +513,7 @@ def _protocol(config: EvalConfig, scale: float, splits: list[Split], capture, vi
             s.name: {
                 "camera": s.camera,
                 "lighting": _lighting_said(capture, s),
-                "truth": TRUTH if s.lights else "the capture's images",
+                "truth": TRUTH + s.truth_note if s.lights else "the capture's images",
                 "frames": len(s.capture_frames),
                 "missing": s.missing,
                 "scored": scored_frames(s, config.frames),
