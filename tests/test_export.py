@@ -336,7 +336,9 @@ def test_blender_imports_the_cameras_and_lights_as_the_rig_holds_them(tmp_path, 
 def test_blender_renders_the_export_as_mitsuba_renders_gra_mis_model(blender_scene, llvm_variant):
     seq, albedo, roughness, folder, camera, assets = blender_scene
     assert np.abs(seq.vertices[2] - seq.vertices[0]).max() > 0.2, "the pose moves between the two frames"
-    rows, _ = compare_with_blender(assets, seq, [0, 2], albedo, roughness, folder / "studio.exr", camera, folder, spp=128)
+    rows, _ = compare_with_blender(
+        assets, seq, [0, 2], albedo, roughness, folder / "studio.exr", camera, folder, 128, ("fitted", "lambert")
+    )
     for row in rows:
         assert row["pose_error_m"] < 1e-5, row
         assert row["iou"] >= 0.99 and abs(row["brightness"]) <= 0.03 and row["psnr"] >= 30.0, row

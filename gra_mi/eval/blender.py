@@ -69,17 +69,23 @@ def inventory_in_blender(asset: Path, out: Path, light_intensity_scale: float = 
     return json.loads(out.read_text())
 
 
+MATERIALS = {"fitted": (False, None), "fitted, single-scatter GGX": (False, "GGX"), "lambert": (True, None)}
+"""The materials :func:`compare_with_blender` renders: (Lambert on both sides, the Principled BSDF's distribution in
+Blender: None keeps the importer's, Blender's multiple-scattering GGX)."""
+
+
 def render_in_blender(
     asset: Path, frame: int, fps: float, envmap: Path, camera: Camera, folder: Path, spp: int = 128, lambert: bool = False,
-    seed: int = 0, timeout: float = 900.0,
+    seed: int = 0, timeout: float = 900.0, distribution: str | None = None,
 ) -> tuple[np.ndarray, dict]:  # fmt: skip
     """(RGBA image, report) of Blender's Cycles render of ``asset`` at sequence frame ``frame``; the report has
-    Blender's version and the imported mesh's vertices at that frame (gra-mi's world)."""
+    Blender's version and the imported mesh's vertices at that frame (gra-mi's world). ``distribution``: set the
+    imported Principled BSDF's ('GGX', 'MULTI_GGX'; None: as imported)."""
     folder.mkdir(parents=True, exist_ok=True)
-    tag = f"{Path(asset).name}_f{frame}{'_lambert' if lambert else ''}"
+    tag = f"{Path(asset).name}_f{frame}{'_lambert' if lambert else ''}{f'_{distribution}' if distribution else ''}"
     job = {
         "asset": str(Path(asset).resolve()), "frame": int(frame), "fps": float(fps), "envmap": str(Path(envmap).resolve()),
-        "spp": int(spp), "lambert": bool(lambert), "seed": int(seed),
+        "spp": int(spp), "lambert": bool(lambert), "seed": int(seed), "distribution": distribution,
         "out": str((folder / f"blender_{tag}.exr").resolve()), "report": str((folder / f"blender_{tag}.json").resolve()),
         "camera": {
             "camera_to_world": np.asarray(camera.camera_to_world, float).tolist(), "width": camera.width, "height": camera.height,
@@ -155,19 +161,22 @@ def subject_window(camera: Camera, points: np.ndarray, size: int = 192, margin: 
 
 def compare_with_blender(
     assets: list[Path], seq: MeshSequence, frames: list[int], albedo: np.ndarray, roughness: np.ndarray, envmap: Path,
-    camera: Camera, folder: Path, spp: int = 128,
+    camera: Camera, folder: Path, spp: int = 128, materials: tuple[str, ...] = tuple(MATERIALS),
 ) -> tuple[list[dict], dict[str, np.ndarray]]:  # fmt: skip
-    """Blender's renders of each exported asset against Mitsuba's of the same mesh and maps, at each frame, with the
-    fitted material and with Lambert (the handover alone): (rows of :func:`agreement` plus the imported pose's largest
-    distance from gra-mi's, images by name). Mitsuba renders with 4× Blender's samples."""
-    rows, images = [], {}
+    """Blender's renders of each exported asset against Mitsuba's of the same mesh and maps, at each frame, with each
+    of ``materials`` (:data:`MATERIALS`: the fitted material as imported, with Blender's GGX set to single scattering
+    as gra-mi's, and Lambert on both sides: the handover alone): (rows of :func:`agreement` plus the imported pose's
+    largest distance from gra-mi's, images by name). Mitsuba renders with 4× Blender's samples."""
+    rows, images, references = [], {}, {}
     for frame in frames:
-        for lambert in (False, True):
-            material = "lambert" if lambert else "fitted"
-            reference = render_in_mitsuba(seq, frame, albedo, roughness, envmap, camera, folder, 4 * spp, lambert)
+        for material in materials:
+            lambert, distribution = MATERIALS[material]
+            if (frame, lambert) not in references:
+                references[frame, lambert] = render_in_mitsuba(seq, frame, albedo, roughness, envmap, camera, folder, 4 * spp, lambert)
+            reference = references[frame, lambert]
             images[f"mitsuba_{material}_f{frame}"] = reference
             for asset in assets:
-                image, report = render_in_blender(asset, frame, seq.fps, envmap, camera, folder, spp, lambert)
+                image, report = render_in_blender(asset, frame, seq.fps, envmap, camera, folder, spp, lambert, distribution=distribution)
                 images[f"blender_{Path(asset).suffix[1:]}_{material}_f{frame}"] = image
                 rows.append({"asset": Path(asset).name, "frame": frame, "material": material, "blender": report["blender"],
                              "pose_error_m": pose_error(np.asarray(report["vertices"]), seq.vertices[frame]),

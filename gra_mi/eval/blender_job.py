@@ -73,6 +73,16 @@ def use_lambert(scene) -> None:
             tree.links.new(diffuse.outputs["BSDF"], output.inputs["Surface"])
 
 
+def use_distribution(scene, distribution: str) -> None:
+    """Set every imported Principled BSDF's microfacet distribution ('GGX': single scattering, as gra-mi's BRDF;
+    Blender's default 'MULTI_GGX' adds the light of multiple scattering between microfacets)."""
+    for obj in scene.objects:
+        for slot in getattr(obj, "material_slots", []):
+            for node in slot.material.node_tree.nodes:
+                if node.type == "BSDF_PRINCIPLED":
+                    node.distribution = distribution
+
+
 def set_world(scene, envmap: str) -> None:
     world = bpy.data.worlds.new("gra-mi envmap")
     scene.world = world
@@ -164,6 +174,8 @@ def main(job_path: str) -> None:
     shown = show_frame(scene, job["frame"], job["fps"], glb)
     if job.get("lambert"):
         use_lambert(scene)
+    elif job.get("distribution"):
+        use_distribution(scene, job["distribution"])
     set_world(scene, job["envmap"])
     set_camera(scene, job["camera"])
     set_cycles(scene, job["spp"], job.get("seed", 0))
