@@ -632,6 +632,30 @@ def _with_background(subject: Path, folder: Path) -> Path:
     return copy
 
 
+def test_a_masked_image_a_neighbouring_camera_took_is_told_by_the_mask_that_holds_its_light(tmp_path):
+    """On a 40-camera stage a neighbour's image puts 5–30 % of its light outside a camera's own mask (below the 25 %
+    that stops any image): where another camera's mask of about the same size holds it several times better, the
+    image is refused naming both. A loose mask edge, or a much larger mask that would hold any light, is not."""
+    from gra_mi.capture.mask_fit import NEIGHBOUR_OUTSIDE, OUTSIDE_MASK, _check_light, _light_outside
+    from gra_mi.core.errors import GraMiInputError
+
+    y, x = np.mgrid[:100, :100]
+
+    def disk(cx: float, r: float = 20.0) -> np.ndarray:
+        return (x - cx) ** 2 + (y - 50) ** 2 <= r**2
+
+    masks = {"Cam01": disk(50), "Cam02": disk(58), "Cam09": np.ones((100, 100), bool)}
+    neighbours = np.repeat(disk(58)[..., None], 3, axis=-1).astype(np.float32)  # Cam02's view, shown as Cam01's
+    outside = _light_outside(neighbours, None, masks["Cam01"])
+    assert NEIGHBOUR_OUTSIDE < outside < OUTSIDE_MASK, outside  # the old rule alone let it through
+    with pytest.raises(GraMiInputError, match="camera Cam01: .* outside camera Cam02's mask: the image looks like camera Cam02's"):
+        _check_light("Cam01", tmp_path / "Cam01.avif", neighbours, None, masks, "Cam01.png")
+    loose = np.repeat(disk(50, 23.0)[..., None], 3, axis=-1).astype(np.float32)  # a mask 3 pixels tight all round
+    assert _light_outside(loose, None, masks["Cam01"]) > NEIGHBOUR_OUTSIDE
+    _check_light("Cam01", tmp_path / "Cam01.avif", loose, None, masks, "Cam01.png")  # no mask holds it BETTER_LIGHT× better
+    _check_light("Cam01", tmp_path / "Cam01.avif", neighbours, None, {k: masks[k] for k in ("Cam01", "Cam09")}, "Cam01.png")
+
+
 def test_an_image_that_keeps_its_background_is_held_against_its_mask(olat_capture, tmp_path, capsys):
     """Photographs with their background (no black around the subject) were never checked against their mask files:
     their edges are. An image whose edges follow another camera's mask, or its own mask turned 180°, clearly better
