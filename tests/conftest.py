@@ -35,6 +35,15 @@ def variant(request):
 
 
 @pytest.fixture
+def plugins(variant):
+    """The variant's fixture with gra-mi's Mitsuba plugins (gra_microfacet, gra_onebounce) registered for it."""
+    from gra_mi.render.plugins import register_plugins
+
+    register_plugins()
+    return variant
+
+
+@pytest.fixture
 def llvm_variant():
     """Only the CPU variant (for tests whose subject is file I/O or numpy, not the backend)."""
     from gra_mi.core.runtime import choose_variant

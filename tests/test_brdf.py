@@ -61,14 +61,6 @@ def plugin_eval(albedo, roughness, wi, wo):
     return out
 
 
-@pytest.fixture
-def plugins(variant):
-    from gra_mi.render.plugins import register_plugins
-
-    register_plugins()
-    return variant
-
-
 def test_shared_formula_matches_float64_reference(plugins):
     # The same Dr.Jit code the plugin and the texel shader run, evaluated in double precision.
     import drjit as dr

@@ -17,14 +17,6 @@ from .test_brdf import ref_eval_cos
 ROUGHNESSES = (0.01, 0.05, 0.2, 0.5, 1.0)
 
 
-@pytest.fixture
-def plugins(variant):
-    from gra_mi.render.plugins import register_plugins
-
-    register_plugins()
-    return variant
-
-
 def incident(cos_theta: float, azimuth: float) -> np.ndarray:
     """A unit ωi at the given cosine and azimuth (random azimuths: the x–z plane hides float32 cancellations)."""
     sin_theta = np.sqrt(max(1.0 - cos_theta**2, 0.0))

@@ -15,14 +15,6 @@ STAGE = load_calibration(SCENES / "rigs" / "tiny" / "calibration.json")
 LEDS = [3, 10, 22, 40, 51, 60]
 
 
-@pytest.fixture
-def plugins(variant):
-    from gra_mi.render.plugins import register_plugins
-
-    register_plugins()
-    return variant
-
-
 def bsdf_xml(kind: str) -> str:
     if kind == "diffuse":
         return '<bsdf type="diffuse"><rgb name="reflectance" value="0.6, 0.45, 0.3"/></bsdf>'

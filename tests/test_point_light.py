@@ -14,14 +14,6 @@ from .test_stability import _plane_scene, _texels
 TINY = SCENES / "tiny_lightstage.xml"
 
 
-@pytest.fixture
-def plugins(variant):
-    from gra_mi.render.plugins import register_plugins
-
-    register_plugins()
-    return variant
-
-
 def test_inverse_square_falloff_and_full_visibility_on_a_plane(plugins):
     from gra_mi.render.point_light import PointLight, point_light_visibility, shade_point_light
 

@@ -33,14 +33,6 @@ def body_scene(emitters: dict, **size):
     return scene_around(emitters, BODY, **size)
 
 
-@pytest.fixture
-def plugins(variant):
-    from gra_mi.render.plugins import register_plugins
-
-    register_plugins()
-    return variant
-
-
 def render_both(scene, seed: int = 3):
     """(gra_onebounce, Mitsuba's direct) at the same spp and seed; one emitter per scene, so direct never picks among
     emitters at random and its estimate of a delta light is exact up to pixel anti-aliasing."""

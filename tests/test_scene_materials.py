@@ -10,8 +10,6 @@ import pytest
 
 from gra_mi.render.near_field_cases import _resolved, area, image_error, look_at, point, sky
 
-from .test_scene_files import plugins  # noqa: F401 (a fixture)
-
 CAMERA_AT = [0.0, -2.0, 2.0]
 
 
@@ -74,7 +72,7 @@ def bent_normal_materials() -> dict:
 
 
 @pytest.mark.parametrize("material", BENT)
-def test_bent_shading_normals_under_a_point_light_are_mitsuba_s_direct_exactly(plugins, material):  # noqa: F811
+def test_bent_shading_normals_under_a_point_light_are_mitsuba_s_direct_exactly(plugins, material):
     """One point light, the same pixel samples: both integrators compute the same shadow ray and BSDF value, so the
     images agree to float precision (no light lost or added where shading and geometric normals disagree)."""
     scene = ball_on_floor(bent_normal_materials()[material], lights()["point"])
@@ -86,7 +84,7 @@ def test_bent_shading_normals_under_a_point_light_are_mitsuba_s_direct_exactly(p
 
 @pytest.mark.parametrize("light", ["area", "sky"])
 @pytest.mark.parametrize("material", BENT)
-def test_bent_shading_normals_under_area_lights_and_skies_match_direct(plugins, material, light):  # noqa: F811
+def test_bent_shading_normals_under_area_lights_and_skies_match_direct(plugins, material, light):
     scene = ball_on_floor(bent_normal_materials()[material], lights()[light])
     ours = render(scene, {"type": "gra_onebounce"}, spp=128)
     truth = render(scene, {"type": "direct"}, spp=4096, seed=2)
@@ -102,7 +100,7 @@ SEE_THROUGH = {
 
 @pytest.mark.parametrize("light", ["point", "area", "sky"])
 @pytest.mark.parametrize("material", sorted(SEE_THROUGH))
-def test_see_through_materials_match_volpath(plugins, material, light):  # noqa: F811
+def test_see_through_materials_match_volpath(plugins, material, light):
     """Mitsuba's ``direct`` and ``path`` stop shadow rays at a thin glass or a cutout (full shadow); ``volpath`` lets
     them through as gra_onebounce does, and with two bounces computes the same direct light: camera rays that pass
     the surface see what is behind it, the floor gets the light that passes, the ball shows its own reflection."""
@@ -129,7 +127,7 @@ def sensors() -> dict:
 
 
 @pytest.mark.parametrize("sensor", ["orthographic", "thinlens", "cropped, Gaussian filter"])
-def test_other_sensors_see_what_direct_sees(plugins, sensor):  # noqa: F811
+def test_other_sensors_see_what_direct_sees(plugins, sensor):
     scene = ball_on_floor({"type": "roughplastic", "alpha": 0.2}, lights()["area"], sensor=sensors()[sensor])
     ours = render(scene, {"type": "gra_onebounce"}, spp=64)
     truth = render(scene, {"type": "direct"}, spp=4096, seed=2)
@@ -138,7 +136,7 @@ def test_other_sensors_see_what_direct_sees(plugins, sensor):  # noqa: F811
     assert error < 0.02 and abs(bias) < 0.01, (error, bias)
 
 
-def test_an_irradiance_meter_reads_the_light_it_faces(plugins):  # noqa: F811
+def test_an_irradiance_meter_reads_the_light_it_faces(plugins):
     """A meter on a small disk facing a sky of radiance L reads πL: the camera ray of an irradiance meter is a
     cosine-weighted direction, and gra_onebounce shows the sky along it as Mitsuba's integrators do."""
     import mitsuba as mi

@@ -11,14 +11,6 @@ from gra_mi.stage.lightstage import default_lightstage
 from .test_brdf import ref_eval_cos
 
 
-@pytest.fixture
-def plugins(variant):
-    from gra_mi.render.plugins import register_plugins
-
-    register_plugins()
-    return variant
-
-
 def f64(*arrays):
     import drjit as dr
 
