@@ -798,6 +798,11 @@ def test_render_cli_renders_a_plain_scene_as_mitsuba_does(plugins, tmp_path):
         ([], '<shape type="cube"><bsdf type="nonexistent_bsdf"/></shape>', ["plain.xml", "Mitsuba could not load the scene"]),
         (
             [],
+            '<shape type="cube"><bsdf type="diffuse"><float name="roughness" value="0.3"/></bsdf></shape>',
+            ["plain.xml", "unreferenced property", 'float "roughness": 0.3'],
+        ),
+        (
+            [],
             '<shape type="cube" id="box"><bsdf type="bumpmap"><texture type="checkerboard" name="height"/><bsdf type="diffuse"/></bsdf></shape>',
             ["plain.xml", "shape 'box' has a bumpmap over a Checkerboard texture, which has no gradient", "bitmap height texture"],
         ),

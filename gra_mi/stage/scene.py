@@ -358,6 +358,8 @@ def mitsuba_load_error(exc: Exception) -> str:
     said = lines[0] if lines else type(exc).__name__
     if "Traceback (most recent call last)" in said and len(lines) > 1:
         said = said.split("Traceback (most recent call last)")[0].rstrip(": ") + ": " + lines[-1]
+    elif said.endswith(":") and len(lines) > 1:  # a list follows ("unreferenced property ...:", then "- float "fov": 40")
+        said += " " + "; ".join(line.lstrip("- ") for line in lines[1:6])
     return f"Mitsuba could not load the scene: {said}"
 
 
