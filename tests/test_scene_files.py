@@ -783,6 +783,14 @@ def test_render_cli_renders_a_plain_scene_as_mitsuba_does(plugins, tmp_path):
     assert abs(ours[..., :3].mean() / direct[..., :3].mean() - 1) < 0.03  # direct picks one of two lights per sample: noisy
 
 
+def test_a_sensor_named_twice_is_rendered_once(plugins, tmp_path):
+    from gra_mi.render.scene_file import load_scene_file, select_sensors
+
+    (tmp_path / "plain.xml").write_text(PLAIN_SCENE.replace("EXTRA", ""))
+    scene = load_scene_file(tmp_path / "plain.xml")
+    assert select_sensors(tmp_path / "plain.xml", scene, ["front", "0", "sensor1", "front"]) == [0, 1]
+
+
 @pytest.mark.parametrize(
     "args, extra, said",
     [

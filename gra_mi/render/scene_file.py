@@ -99,7 +99,7 @@ def select_sensors(path: Path, scene, wanted: list[str]) -> list[int]:
             chosen.append(int(item))
         else:
             raise GraMiParameterError("sensor", f"{path} has no sensor '{item}' (its sensors: {', '.join(names)}, or an index)")
-    return chosen
+    return list(dict.fromkeys(chosen))  # a sensor named twice (by id and by index) is rendered once
 
 
 @dataclass
