@@ -1009,3 +1009,38 @@ def test_render_cli_keeps_every_aov_channel(tmp_path):
     with OpenEXR.File(str(tmp_path / "r" / "cam.exr"), separate_channels=True) as f:
         assert {"dd.T", "nn.X", "nn.Y", "nn.Z", "img.R"} <= set(f.channels())
     assert (tmp_path / "r" / "cam.png").is_file()
+
+
+def test_many_samples_are_rendered_in_passes_averaged_as_one_render(plugins, tmp_path, monkeypatch):
+    """A JIT variant holds a whole pass's paths at once: samples beyond a pass's budget come in passes with their own
+    seeds, averaged by their sample counts (here 16 spp of a 48 × 32 film in 3 passes of 6, 6 and 4), every channel of
+    an AOV film too."""
+    import mitsuba as mi
+
+    from gra_mi.core.io import read_exr
+    from gra_mi.render import scene_file
+    from gra_mi.stage import scene as stage_scene
+
+    monkeypatch.setattr(stage_scene, "PASS_SAMPLES", 48 * 32 * 6)
+    (tmp_path / "plain.xml").write_text(PLAIN_SCENE.replace("EXTRA", ""))
+    scene_file.render_scene_file(tmp_path / "plain.xml", tmp_path / "r", sensors=["front"], spp=16, seed=2)
+    scene = mi.load_file(str(tmp_path / "plain.xml"))
+    passes = [np.array(mi.render(scene, sensor=0, spp=n, seed=2 * 3 + k), np.float64) * n for k, n in enumerate((6, 6, 4))]
+    np.testing.assert_allclose(read_exr(tmp_path / "r" / "front.exr"), sum(passes) / 16, rtol=1e-5, atol=1e-6)
+    aov = '<integrator type="aov"><string name="aovs" value="dd:depth"/><integrator type="path" name="img"/></integrator>'
+    (tmp_path / "aov.xml").write_text(PLAIN_SCENE.replace('<integrator type="path"/>', aov).replace("EXTRA", ""))
+    scene_file.render_scene_file(tmp_path / "aov.xml", tmp_path / "a", sensors=["front"], spp=16, seed=2)
+    import OpenEXR
+
+    with OpenEXR.File(str(tmp_path / "a" / "front.exr"), separate_channels=True) as f:
+        names, depth = set(f.channels()), f.channels()["dd.T"].pixels
+    assert {"dd.T", "img.R"} <= names and np.isfinite(depth).all() and depth.max() > 0
+
+
+@pytest.mark.parametrize("spp", [0, -3, 2**20 + 1, 99999999999])
+def test_sample_counts_outside_what_a_render_can_take_are_refused_by_name(spp):
+    from gra_mi.core.errors import GraMiParameterError
+    from gra_mi.stage.scene import RenderConfig
+
+    with pytest.raises(GraMiParameterError, match=rf"must be in \[1, 1048576\], got {spp}"):
+        RenderConfig(spp=spp).validate()

@@ -22,7 +22,7 @@ from gra_mi.core.io import atomic_path, write_exr, write_png
 from gra_mi.core.limits import require_memory_for
 from gra_mi.core.progress import progress
 from gra_mi.stage import scene_keys as keys
-from gra_mi.stage.scene import make_integrator, mitsuba_load_error, scene_defaults
+from gra_mi.stage.scene import make_integrator, mitsuba_load_error, render_in_passes, scene_defaults
 
 logger = logging.getLogger(__name__)
 NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
@@ -149,28 +149,16 @@ def render_scene_file(
         _warn_unused_counts(path, scene_lights(scene, str(path), onebounce.dome_lights), options or {})
     renders = []
     for index in progress(chosen, description=f"render {path.name}"):
-        sensor, name = scene.sensors()[index], sensor_name(index, scene.sensors()[index], path)
-        try:
-            image = np.array(mi.render(scene, sensor=index, integrator=chosen_integrator, spp=spp or 0, seed=seed), dtype=np.float32)
-        except Exception as exc:  # Mitsuba's render errors come wrapped in its custom-op's; its own message is the first
-            raise GraMiInputError(path, f"Mitsuba could not render sensor '{name}': {root_message(exc)}") from exc
-        if image.shape[-1] > 4:  # AOVs: every channel, named and ordered as Mitsuba's own writer does
+        name = sensor_name(index, scene.sensors()[index], path)
+        image, film, channels = render_in_passes(scene, index, chosen_integrator, spp, seed, path, name)
+        if len(channels) > 4:  # AOVs: every channel of the film, named and ordered as Mitsuba's own writer does
             with atomic_path(out / f"{name}.exr") as tmp:
-                sensor.film().bitmap().write(str(tmp))
+                mi.Bitmap(film, channel_names=channels).write(str(tmp))
         else:
             write_exr(out / f"{name}.exr", image)
         write_png(out / f"{name}.png", image[..., :3], exposure=None)
         renders.append(SceneRender(name, image, out / f"{name}.exr"))
     return renders
-
-
-def root_message(exc: BaseException) -> str:
-    """The first line of the innermost exception of a chain (Mitsuba wraps a plugin's error in ``dr.custom``'s and
-    ``dr.while_loop``'s, whose own messages say only "see above")."""
-    while exc.__cause__ is not None:
-        exc = exc.__cause__
-    lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
-    return lines[0] if lines else type(exc).__name__
 
 
 def check_bump_maps(scene, path: Path) -> None:

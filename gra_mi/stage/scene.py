@@ -21,6 +21,7 @@ import numpy as np
 from gra_mi.core.config import option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_seed
 from gra_mi.core.io import atomic_write_text, write_exr, write_png
+from gra_mi.core.progress import progress
 from gra_mi.stage import scene_keys as keys
 from gra_mi.stage.envmap import LedLighting, envmap_to_leds, stage_background_plate
 from gra_mi.stage.lightstage import Camera, Lightstage, load_calibration, save_calibration, validate_pattern
@@ -389,10 +390,47 @@ def make_integrator(name: str | None, max_depth: int = 8, onebounce: dict | None
 def render(ls: LightstageScene, camera: int | str, integrator: str | None = "direct", spp: int | None = 64, seed: int = 0) -> np.ndarray:
     """Render one camera: (H, W, 4) linear RGB + alpha (coverage) as float32 (``None``: the scene's own integrator or
     sample count)."""
+    index = ls.sensor_index(camera)
+    name = ls.scene.sensors()[index].id() or f"sensor {index}"
+    return render_in_passes(ls.scene, index, make_integrator(integrator), spp, seed, ls.path, name)[0]
+
+
+PASS_SAMPLES = 1 << 28  # samples over the film per render call (Mitsuba's limit: 2^32; its own split beyond it crashed)
+MAX_SPP = 1 << 20  # samples per pixel a render may ask for (a megapixel at this many is days of one GPU)
+
+
+def render_in_passes(scene, index: int, integrator, spp: int | None, seed: int, path: Path, name: str) -> tuple:
+    """(the developed image, the film's channels and their names) of ``mi.render`` of sensor ``index`` at ``spp``
+    samples per pixel (None: its sampler's), in passes of at most :data:`PASS_SAMPLES` samples over the film, each with
+    its own seed, averaged by their sample counts. A JIT variant counts a render's samples in 32 bits: past 2^32 (4,096
+    spp of a 1024² film) Mitsuba 3.9 splits the render itself and crashed doing so (a segmentation fault)."""
     import mitsuba as mi
 
-    image = mi.render(ls.scene, sensor=ls.sensor_index(camera), integrator=make_integrator(integrator), spp=spp or 0, seed=seed)
-    return np.array(image, dtype=np.float32)
+    sensor = scene.sensors()[index]
+    total = int(spp or sensor.sampler().sample_count())
+    width, height = sensor.film().crop_size()
+    per_pass = max(1, min(total, PASS_SAMPLES // max(int(width) * int(height), 1)))
+    passes = -(-total // per_pass)
+    image = film = 0.0
+    for k in progress(range(passes), description=f"{name}: {passes} passes") if passes > 1 else range(passes):
+        count = min(per_pass, total - k * per_pass)
+        pass_seed = seed if passes == 1 else (seed * passes + k) % 2**32
+        try:
+            image += count * np.array(mi.render(scene, sensor=index, integrator=integrator, spp=count, seed=pass_seed), np.float64)
+        except Exception as exc:  # Mitsuba's render errors come wrapped in its custom-op's; its own message is the first
+            raise GraMiInputError(path, f"Mitsuba could not render sensor '{name}': {root_message(exc)}") from exc
+        film += count * np.array(sensor.film().bitmap(), np.float64)
+    channels = [field.name for field in sensor.film().bitmap().struct_()]
+    return (image / total).astype(np.float32), (film / total).astype(np.float32), channels
+
+
+def root_message(exc: BaseException) -> str:
+    """The first line of the innermost exception of a chain (Mitsuba wraps a plugin's error in ``dr.custom``'s and
+    ``dr.while_loop``'s, whose own messages say only "see above")."""
+    while exc.__cause__ is not None:
+        exc = exc.__cause__
+    lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+    return lines[0] if lines else type(exc).__name__
 
 
 def composite_over(render_rgba: np.ndarray, plate: np.ndarray) -> np.ndarray:
@@ -433,8 +471,8 @@ class RenderConfig:
     """Also write a preview composited over the envmap's background plate."""
 
     def validate(self) -> None:
-        if self.spp is not None and self.spp < 1:
-            raise GraMiParameterError("spp", f"must be >= 1, got {self.spp}")
+        if self.spp is not None and not 1 <= self.spp <= MAX_SPP:
+            raise GraMiParameterError("spp", f"must be in [1, {MAX_SPP}], got {self.spp}")
         if self.integrator is not None and self.integrator not in INTEGRATORS:
             raise GraMiParameterError("integrator", f"expected one of {', '.join(INTEGRATORS)}, got {self.integrator!r}")
         for name in self.onebounce_options:
