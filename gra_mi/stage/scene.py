@@ -400,7 +400,7 @@ MAX_SPP = 1 << 20  # samples per pixel a render may ask for (a megapixel at this
 
 
 def render_in_passes(scene, index: int, integrator, spp: int | None, seed: int, path: Path, name: str) -> tuple:
-    """(the developed image, the film's channels and their names) of ``mi.render`` of sensor ``index`` at ``spp``
+    """(the developed image, the film's channels (None without AOVs) and their names) of ``mi.render`` of sensor ``index`` at ``spp``
     samples per pixel (None: its sampler's), in passes of at most :data:`PASS_SAMPLES` samples over the film, each with
     its own seed, averaged by their sample counts. A JIT variant counts a render's samples in 32 bits: past 2^32 (4,096
     spp of a 1024² film) Mitsuba 3.9 splits the render itself and crashed doing so (a segmentation fault)."""
@@ -411,7 +411,7 @@ def render_in_passes(scene, index: int, integrator, spp: int | None, seed: int, 
     width, height = sensor.film().crop_size()
     per_pass = max(1, min(total, PASS_SAMPLES // max(int(width) * int(height), 1)))
     passes = -(-total // per_pass)
-    image = film = 0.0
+    image, film, channels = 0.0, 0.0, None
     for k in progress(range(passes), description=f"{name}: {passes} passes") if passes > 1 else range(passes):
         count = min(per_pass, total - k * per_pass)
         pass_seed = seed if passes == 1 else (seed * passes + k) % 2**32
@@ -419,9 +419,11 @@ def render_in_passes(scene, index: int, integrator, spp: int | None, seed: int, 
             image += count * np.array(mi.render(scene, sensor=index, integrator=integrator, spp=count, seed=pass_seed), np.float64)
         except Exception as exc:  # Mitsuba's render errors come wrapped in its custom-op's; its own message is the first
             raise GraMiInputError(path, f"Mitsuba could not render sensor '{name}': {root_message(exc)}") from exc
-        film += count * np.array(sensor.film().bitmap(), np.float64)
-    channels = [field.name for field in sensor.film().bitmap().struct_()]
-    return (image / total).astype(np.float32), (film / total).astype(np.float32), channels
+        if channels is None:  # the film's channels are the integrator's, known once it has rendered
+            channels = [field.name for field in sensor.film().bitmap().struct_()]
+        if len(channels) > 4:  # AOVs: the film itself (every channel) is kept beside the developed image
+            film += count * np.array(sensor.film().bitmap(), np.float64)
+    return (image / total).astype(np.float32), (film / total).astype(np.float32) if len(channels) > 4 else None, channels
 
 
 def root_message(exc: BaseException) -> str:
