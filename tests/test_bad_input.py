@@ -369,6 +369,12 @@ OPTION_CASES = [
     ("rig-calibration-fields", ["rig", "--from-calibration", "{root}/calib_fields.json"], ["calib_fields.json"]),
     ("rig-leds-one-point", ["rig", "--from-calibration", "{root}/calib_one_point.json"], ["calib_one_point.json", "same position"]),
     ("rig-image-size-absurd", ["rig", "--from-calibration", "{root}/calib_huge.json"], ["calib_huge.json", "image_size"]),
+    ("rig-leds-beyond-memory", ["rig", "--num-leds", "100000000"], ["--num-leds", "GiB"]),
+    (
+        "rig-layout-with-calibration",
+        ["rig", "--from-calibration", "{cap}/rig/calibration.json", "--num-leds", "5"],
+        ["--num-leds", "--from-calibration"],
+    ),
     ("scene-calibration-disagrees", ["relight", "{root}/scenes_moved/tiny_lightstage.xml", "--olat", "0"], ["LED 3", "calibration"]),
     # scene, subject, envmaps
     ("scene-spp", ["scene", "--rig", "{cap}/rig", "--subject", "{cap}/subject", "--spp", "-5"], ["--spp"]),
@@ -377,6 +383,9 @@ OPTION_CASES = [
     ("subject-frames", ["subject", "--kind", "tiny", "--frames", "0"], ["--frames"]),
     ("subject-frames-per-clip", ["subject", "--frames-per-clip", "0"], ["--frames-per-clip"]),
     ("subject-clip", ["subject", "--clips", "moonwalk"], ["moonwalk"]),
+    ("subject-tiny-clips", ["subject", "--kind", "tiny", "--clips", "walk"], ["--clips", "--kind tiny"]),
+    ("subject-anny-frames", ["subject", "--frames", "3"], ["--frames", "--kind anny"]),
+    ("subject-tiny-memory", ["subject", "--kind", "tiny", "--frames", "100000000"], ["--frames", "GiB"]),
     ("envmaps-train", ["envmaps", "--train", "-1"], ["--train"]),
     ("envmaps-height", ["envmaps", "--height", "1"], ["--height"]),
     # capture
@@ -542,9 +551,12 @@ def _fill(argv, paths: dict) -> list[str]:
     return [str(a).format(**paths) for a in argv]
 
 
+FILE_OUTPUTS = {"scene": ".xml", "edit-texture": ".exr", "export": ".glb", "refiner-prompt": ".safetensors"}
+
+
 @pytest.mark.parametrize("argv,needles", [pytest.param(a, n, id=i) for i, a, n in OPTION_CASES])
 def test_bad_option(argv, needles, inputs, capsys, tmp_path, llvm_variant):
-    out = tmp_path / "out"
+    out = tmp_path / ("out" + FILE_OUTPUTS.get(argv[0], ""))  # a command whose --out is one file: its format's name
     from gra_mi.core.runtime import cuda_available
 
     if "cuda_ad_rgb" in argv and cuda_available():

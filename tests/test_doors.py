@@ -275,6 +275,7 @@ def test_sizes_beyond_memory_are_refused_before_anything_is_written(inputs, tmp_
         "GiB",
         out=out,
     )
+    assert_refused(["envmaps", "--height", "1000000", "--out", out], capsys, "--height", "GiB", out=out)
 
 
 def test_a_film_too_large_for_memory_is_refused(tmp_path, capsys, llvm_variant):
@@ -360,3 +361,28 @@ def test_an_output_file_may_have_siblings_of_its_own_stem_only(tmp_path):
         for target in (tmp_path / "other.png", tmp_path / "edited_x" / "y.png", tmp_path / "editedx.png"):
             with pytest.raises(GraMiInputError, match="outside the output folder"):
                 atomic_write_text(target, "no")
+
+
+@pytest.mark.parametrize("name", ["edited.png", "edited", "folder"])
+@pytest.mark.parametrize(
+    "command, expected",
+    [
+        (["edit-texture", "--albedo", "{albedo}", "--image", "{albedo}"], ".exr"),
+        (["scene", "--rig", "{root}", "--subject", "{root}"], ".xml"),
+        (["export", "--subject", "{root}", "--albedo", "{albedo}", "--roughness", "{albedo}"], ".glb"),
+        (["refiner-prompt", "--pipeline", "{root}"], ".safetensors"),
+    ],
+)
+def test_an_output_file_named_as_another_format_or_a_folder_is_refused(tmp_path, capsys, command, expected, name):
+    """An EXR written as ``edited.png`` was overwritten by its own PNG preview (the user kept an 8-bit albedo and was
+    told to relight with it); one named ``edited`` was written, then its preview refused. Every command whose --out is
+    one file refuses another suffix and a folder, by the option, before reading anything."""
+    inputs = tmp_path / "inputs"
+    inputs.mkdir()
+    write_exr(inputs / "albedo.exr", np.full((8, 8, 3), 0.5, np.float32))
+    (tmp_path / "folder").mkdir()
+    argv = [a.format(albedo=inputs / "albedo.exr", root=inputs) for a in command] + ["--out", str(tmp_path / name)]
+    before = snapshot(tmp_path)
+    needle = "is a folder" if name == "folder" else "give a file name ending"
+    assert_refused(argv, capsys, "--out", needle, expected)
+    assert snapshot(tmp_path) == before and sorted(p.name for p in tmp_path.iterdir()) == ["folder", "inputs"]

@@ -384,7 +384,7 @@ def test_export_command_round_trip_and_hostile_outputs(tmp_path, avatar, capsys)
     refused = [
         (["--out", str(tmp_path / "subject" / "x.usdz"), "--subject", str(tmp_path / "subject")], "lies inside"),
         (["--out", str(tmp_path / "c.glb"), "--subject", str(tmp_path / "subject"), "--rig", str(tmp_path / "subject")], "calibration"),
-        (["--out", str(tmp_path / "c.fbx"), "--subject", str(tmp_path / "subject")], "unknown format"),
+        (["--out", str(tmp_path / "c.fbx"), "--subject", str(tmp_path / "subject")], "give a file name ending .usda"),
         (["--out", str(tmp_path / "c.usdz"), "--subject", str(tmp_path / "albedo.exr")], "not a subject"),
         (["--out", str(tmp_path / "a.usdz"), "--subject", str(tmp_path / "a.usdz")], "the subject input"),
         (["--out", str(tmp_path / "c.usdz"), "--subject", str(tmp_path / "subject"), "--rig", str(tmp_path / "rig"),

@@ -164,7 +164,7 @@ class RefinerPromptCommand(CommandConfig):
     """Local diffusers WAN2.1(-VACE) folder with tokenizer/ and text_encoder/."""
     prompt: str = "a person, photorealistic, studio lighting"
     """The fixed prompt."""
-    out: Path
+    out: Path = field(metadata=option(writes=(".safetensors",)))
     """The .safetensors file to write."""
 
 

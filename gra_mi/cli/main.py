@@ -15,7 +15,7 @@ import logging
 import sys
 from dataclasses import dataclass
 
-from gra_mi.cli.options import add_config, command_paths, config_from_args, option_flags
+from gra_mi.cli.options import add_config, command_paths, config_from_args, option_flags, output_files
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.guard import check_apart, writing_into
 from gra_mi.core.provenance import discard_unused_claims
@@ -193,7 +193,7 @@ def main(argv: list[str] | None = None) -> int:
         config = config_from_args(config_class, args)
         config.validate()
         outputs, inputs = command_paths(config)
-        check_apart(outputs, inputs)  # before anything is written
+        check_apart(outputs, inputs, output_files(config))  # before anything is written
         with writing_into(outputs.values()):
             code = run(config)
     except GraMiInputError as exc:

@@ -9,7 +9,7 @@ import argparse
 import dataclasses
 import types
 import typing
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 from gra_mi.core.config import Option, field_help, option_of
@@ -125,11 +125,15 @@ class CommandConfig:
     """A command's config: its inputs, output and options, validated before anything is read or written."""
 
     def validate(self) -> None:
-        """The configs it holds validate themselves; a command adds its own checks."""
+        """The configs it holds validate themselves, and its output files' names; a command adds its own checks."""
+        from gra_mi.core.guard import check_output_file
+
         for f in dataclasses.fields(self):
             value = getattr(self, f.name)
             if dataclasses.is_dataclass(value) and hasattr(value, "validate"):
                 value.validate()
+            elif option_of(f).writes and isinstance(value, Path):
+                check_output_file(value, option_of(f).writes, f.name)
 
 
 @dataclasses.dataclass(kw_only=True)
@@ -155,6 +159,24 @@ def _path_values(config, prefix: str = "") -> Iterator[tuple[str, Path]]:
             yield prefix + f.name, value
         elif isinstance(value, list | tuple):
             yield from ((f"{prefix}{f.name}[{i}]", v) for i, v in enumerate(value) if isinstance(v, Path))
+
+
+def changed_options(config, names: Iterable[str] | None = None) -> list[str]:
+    """The fields of ``config`` (or the ``names`` among them) set to something other than their defaults: options that
+    another choice of the same command would ignore, to be refused rather than dropped unsaid."""
+    changed = []
+    for f in dataclasses.fields(config):
+        if names is not None and f.name not in names:
+            continue
+        default = f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
+        if default is not dataclasses.MISSING and getattr(config, f.name) != default:
+            changed.append(f.name)
+    return changed
+
+
+def output_files(config) -> set[str]:
+    """The options of ``config`` that name an output file rather than a folder (``Option.writes``)."""
+    return {"--" + f.name.replace("_", "-") for f in dataclasses.fields(config) if option_of(f).writes}
 
 
 def command_paths(config) -> tuple[dict[str, Path], dict[str, Path]]:

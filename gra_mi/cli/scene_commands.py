@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from gra_mi.capture.easymocap import EasymocapOptions, import_easymocap
@@ -10,10 +10,11 @@ from gra_mi.capture.humanolat import HumanolatOptions, import_humanolat, write_h
 from gra_mi.capture.source import ImportConfig
 from gra_mi.capture.synthetic import PRESETS, CaptureConfig, generate_capture
 from gra_mi.capture.transforms import TransformsOptions, import_transforms
-from gra_mi.cli.options import CommandConfig, Restartable
+from gra_mi.cli.options import CommandConfig, Restartable, changed_options
 from gra_mi.core.config import comma_list, option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive
 from gra_mi.core.guard import names_of
+from gra_mi.core.limits import require_memory
 from gra_mi.core.shard import ShardOptions
 from gra_mi.render.scene_file import is_lightstage_scene, parse_defines, render_scene_file
 from gra_mi.stage.envmap import EnvmapOptions
@@ -34,12 +35,21 @@ class RigCommand(CommandConfig):
     """Make the XML from an existing calibration JSON instead of the default layout."""
     layout: RigLayout = field(default_factory=RigLayout, metadata=option(fields=RIG_OPTIONS))
 
+    def validate(self) -> None:
+        super().validate()
+        if self.from_calibration is not None and (given := changed_options(self.layout, RIG_OPTIONS)):
+            raise GraMiParameterError(given[0], "lays out the default rig: --from-calibration takes the rig as its calibration has it")
+
 
 def run_rig(c: RigCommand) -> None:
 
     stage = load_calibration(c.from_calibration) if c.from_calibration else c.layout.build()
     folder = write_rig(stage, c.out)
     print(f"wrote rig with {stage.num_leds} LEDs and {len(stage.cameras)} cameras to {folder}")
+
+
+TINY_FRAME_BYTES = 131072  # the peak of making the tiny subject, per frame (measured: 109 kB)
+ENVMAP_BYTES_PER_PIXEL = 512  # the peak of baking one map (measured: about 400 bytes a pixel, the sky's directions)
 
 
 @dataclass(kw_only=True)
@@ -54,11 +64,13 @@ class EnvmapsCommand(CommandConfig):
     """Lat-long height in pixels (width = 2x)."""
 
     def validate(self) -> None:
+        super().validate()
         for split in ("train", "test"):
             if getattr(self, split) < 0:
                 raise GraMiParameterError(split, "must be >= 0")
         if self.height < 4:
             raise GraMiParameterError("height", f"must be >= 4 (lat-long rows), got {self.height}")
+        require_memory("height", ENVMAP_BYTES_PER_PIXEL * 2 * self.height**2, f"a {2 * self.height}x{self.height} map")
 
 
 def run_envmaps(c: EnvmapsCommand) -> None:
@@ -92,9 +104,15 @@ class SubjectCommand(CommandConfig):
     """Frames for --kind tiny."""
 
     def validate(self) -> None:
+        super().validate()
         require_positive({"frames": self.frames})
         if self.frames_per_clip is not None:
             require_positive({"frames_per_clip": self.frames_per_clip})
+        ignored = changed_options(self, ("clips", "frames_per_clip") if self.kind == "tiny" else ("frames",))
+        if ignored:
+            raise GraMiParameterError(ignored[0], f"is not an option of --kind {self.kind} (see `gra-mi subject --help`)")
+        if self.kind == "tiny":  # held in memory whole, then written
+            require_memory("frames", self.frames * TINY_FRAME_BYTES, f"{self.frames:,} frames of the tiny subject")
 
 
 def run_subject(c: SubjectCommand) -> None:
@@ -110,7 +128,7 @@ def run_subject(c: SubjectCommand) -> None:
 
 @dataclass(kw_only=True)
 class SceneCommand(CommandConfig):
-    out: Path
+    out: Path = field(metadata=option(writes=(".xml",)))
     """Scene XML file to write."""
     rig: Path
     """Rig folder (from `gra-mi rig`)."""
@@ -253,8 +271,7 @@ class ImportCommand(Restartable):
         self.shards.validate()
         read = {"humanolat": ["humanolat"], "transforms": ["transforms"], "easymocap": ["transforms", "easymocap"]}[self.source]
         for name in ("humanolat", "transforms", "easymocap"):  # another route's option would be ignored unsaid
-            options, default = getattr(self, name), type(getattr(self, name))()
-            if name not in read and (given := [f.name for f in fields(options) if getattr(options, f.name) != getattr(default, f.name)]):
+            if name not in read and (given := changed_options(getattr(self, name))):
                 raise GraMiParameterError(given[0], f"is a {name} option: `gra-mi import {self.source}` does not read it")
         for name in read:
             getattr(self, name).validate()

@@ -21,6 +21,7 @@ from gra_mi.render.composite import PLATFORM_FLAGS, PlatformConfig
 from gra_mi.stage.envmap import EnvmapOptions
 from gra_mi.stage.lightstage import load_calibration, load_pattern
 from gra_mi.stage.scene import LightstageScene
+from gra_mi.subject.interchange import GLTF_SUFFIXES, USD_SUFFIXES
 from gra_mi.subject.sequence import check_frames, load_sequence
 
 
@@ -53,10 +54,11 @@ class EditTextureCommand(CommandConfig):
     """Linear RGB albedo r,g,b in [0,1] painted where --mask is set."""
     opacity: float = 1.0
     """Strength of the edit in [0, 1]."""
-    out: Path
+    out: Path = field(metadata=option(writes=(".exr",)))
     """Edited albedo EXR to write (a PNG preview is written beside it)."""
 
     def validate(self) -> None:
+        super().validate()
         if self.image is None and (self.mask is None or self.color is None):
             raise GraMiInputError("edit-texture", "give --image, or --mask with --color")
 
@@ -70,7 +72,7 @@ def run_edit_texture(c: EditTextureCommand) -> None:
 
 @dataclass(kw_only=True)
 class ExportCommand(CommandConfig):
-    out: Path
+    out: Path = field(metadata=option(writes=USD_SUFFIXES + GLTF_SUFFIXES))
     """The file to write; its suffix picks the format: .usdz (one package), .usda / .usdc (textures in a folder
     NAME_textures beside it) or .glb. Each is checked by its format's validator after writing."""
     subject: Path
@@ -95,6 +97,7 @@ class ExportCommand(CommandConfig):
     envmaps: EnvmapOptions = field(default_factory=EnvmapOptions)
 
     def validate(self) -> None:
+        super().validate()
         if self.frames.strip().isdigit():  # an export's --frames N once meant the first N frames: say so, never guess
             n = int(self.frames)
             raise GraMiParameterError("frames", f"'{n}' is ambiguous: ':{n}' exports the first {n} frames, '{n}:{n + 1}' frame {n} alone")

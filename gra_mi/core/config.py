@@ -32,6 +32,8 @@ class Option:
     """For a nested config: which of its fields are options (default: all of them)."""
     renames: tuple[tuple[str, str], ...] = ()
     """For a nested config: (field, flag) pairs for its fields spelled differently here (``radius`` → ``--platform-radius``)."""
+    writes: tuple[str, ...] = ()
+    """An output file, not a folder: the suffixes its name may end in (``(".exr",)``), checked before anything runs."""
 
 
 def option(**spelling) -> dict:

@@ -21,7 +21,7 @@ import tempfile
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
-from gra_mi.core.errors import GraMiInputError
+from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 
 MAX_COMPONENT_BYTES = 200  # below every common file system's 255-byte limit, with room for suffixes
 _CONTROL = re.compile(r"[\x00-\x1f\x7f]")
@@ -127,8 +127,6 @@ def _relation(out: Path, given: Path) -> str | None:
 def names_of(paths: Iterable[str | Path], parameter: str) -> dict[str, Path]:
     """Files named by their stem (an envmap, a pattern), each stem a plain name and used once: two files with one stem
     are refused naming both (one would overwrite or replace the other)."""
-    from gra_mi.core.errors import GraMiParameterError
-
     named: dict[str, Path] = {}
     for path in map(Path, paths):
         stem = path_component(path.stem, path, "file name")
@@ -138,17 +136,29 @@ def names_of(paths: Iterable[str | Path], parameter: str) -> dict[str, Path]:
     return named
 
 
-def check_apart(outputs: dict[str, Path], inputs: dict[str, Path]) -> None:
-    """Refuse an output folder that is, holds or lies inside an input, before anything is written."""
+def check_apart(outputs: dict[str, Path], inputs: dict[str, Path], files: Iterable[str] = ()) -> None:
+    """Refuse an output folder (or the output files named in ``files``) that is, holds or lies inside an input, before
+    anything is written."""
     for out_name, out in outputs.items():
-        out_r = Path(out).resolve()
+        out_r, kind = Path(out).resolve(), "file" if out_name in files else "folder"
         for in_name, given in inputs.items():
             relation = _relation(out_r, Path(given).resolve())
             if relation:
                 raise GraMiInputError(
                     out,
-                    f"the output folder{f' ({out_name})' if out_name else ''} {relation} {given} (the {in_name} input); write the output to another folder",
+                    f"the output {kind}{f' ({out_name})' if out_name else ''} {relation} {given} (the {in_name} input); "
+                    f"write the output to another folder",
                 )
+
+
+def check_output_file(path: Path, suffixes: tuple[str, ...], parameter: str) -> None:
+    """An output that is one file: refused where it names a folder or ends in another suffix than the format's (an
+    EXR written as ``edited.png`` would be overwritten by its own preview; a name without one would be ambiguous)."""
+    expected = " or ".join(suffixes)
+    if path.is_dir():
+        raise GraMiParameterError(parameter, f"{path} is a folder; give the file to write, a name ending {expected}")
+    if path.suffix.lower() not in suffixes:
+        raise GraMiParameterError(parameter, f"'{path}': give a file name ending {expected} (the format written)")
 
 
 def scene_references(scene_file: Path) -> list[Path]:

@@ -21,6 +21,7 @@ import numpy as np
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive
 from gra_mi.core.guard import path_component
 from gra_mi.core.io import atomic_write_text, read_json
+from gra_mi.core.limits import require_memory
 
 CALIBRATION_FORMAT = "gra-mi-lightstage/1"
 
@@ -220,6 +221,10 @@ def camera_rings(
     return cameras
 
 
+RIG_ITEM_BYTES = 4096  # the peak of writing a rig, per LED or camera (measured: 2.2 kB an LED at 100,000 LEDs)
+RIG_ITEMS = {"num_leds": "LEDs", "num_cameras": "cameras"}
+
+
 @dataclass(kw_only=True)
 class RigLayout:
     """The default rig's layout (:func:`default_lightstage`)."""
@@ -248,6 +253,9 @@ class RigLayout:
         )
         if self.camera_distance >= self.radius:
             raise GraMiInputError("rig", f"cameras ({self.camera_distance} m) must stand inside the LED sphere ({self.radius} m)")
+        for name in RIG_ITEMS:  # a typed zero too many would write for an hour and fill the disk
+            count = getattr(self, name)
+            require_memory(name, count * RIG_ITEM_BYTES, f"a rig of {count:,} {RIG_ITEMS[name]}")
 
     def build(self) -> Lightstage:
         self.validate()
