@@ -343,6 +343,7 @@ OPTION_CASES = [
     ("relight-platform-spp", ["relight", TINY, "--olat", "0", "--platform-spp", "0"], ["--platform-spp"]),
     ("relight-platform-radius", ["relight", TINY, "--olat", "0", "--platform-radius", "-1"], ["--platform-radius"]),
     ("relight-platform-reflectance", ["relight", TINY, "--olat", "0", "--platform-reflectance", "1.5"], ["--platform-reflectance"]),
+    ("relight-platform-alone", ["relight", TINY, "--olat", "0", "--platform-radius", "2"], ["--platform-radius", "with --composite only"]),
     ("relight-relightnet-missing", ["relight", TINY, "--olat", "0", "--stage", "relightnet"], ["--relightnet"]),
     # render
     ("render-seed", ["render", TINY, "--olat", "0", "--seed", "-5"], ["--seed"]),
@@ -448,6 +449,8 @@ OPTION_CASES = [
     ("refine-mix-nan", [*REFINE, "--mix", "nan"], ["--mix"]),
     ("refine-frames", [*REFINE, "--frames", "-1"], ["--frames"]),
     ("refine-seed", [*REFINE, "--seed", "-1"], ["--seed"]),
+    ("refine-filter-alone", [*REFINE, "--filter-radius", "8"], ["--filter-radius", "with --deflicker only"]),
+    ("refine-platform-alone", [*REFINE, "--platform-spp", "4"], ["--platform-spp", "with --composite only"]),
     (
         "refine-eps",
         [*REFINE, "--deflicker", "--filter-eps", "nan"],
@@ -540,6 +543,7 @@ OPTION_CASES = [
     ("eval-scale", ["eval", "--capture", "{cap}", "--fit", "{fit}", "--scale", "0"], ["--scale"]),
     ("eval-frames", ["eval", "--capture", "{cap}", "--fit", "{fit}", "--frames", "some"], ["--frames"]),
     ("eval-nothing", ["eval", "--fit", "{fit}"], ["--capture"]),
+    ("eval-platform-alone", ["eval", "--capture", "{cap}", "--fit", "{fit}", "--platform-spp", "4"], ["--platform-spp", "--composite"]),
     ("eval-lighting-spp", ["eval-lighting", "{cap}", "--fit", "{fit}", "--spp", "0"], ["--spp"]),
     ("demo-preset", ["demo", "--preset", "huge"], ["--preset"]),
     ("variant-cuda", ["render", TINY, "--olat", "0", "--variant", "cuda_ad_rgb"], ["cuda"]),

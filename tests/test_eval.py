@@ -308,6 +308,11 @@ def test_deflicker_cli_on_folders(tmp_path, capsys):
     assert "f03.exr" in err and "64×20" in err and "Traceback" not in err
     assert main(["deflicker", frames, "--stable", stable_dir, "--filter-radius", "0"]) == 2
     assert "--filter-radius" in capsys.readouterr().err
+    write_exr(tmp_path / "stable" / "f03.exr", stable[3].astype(np.float32))
+    for radius, said in (("48", "at most 47"), ("100000", "past the 64×48 frame's borders")):  # it once asked for 160 GB
+        assert main(["deflicker", frames, "--stable", stable_dir, "--filter-radius", radius, "--out", str(tmp_path / "o4")]) == 2
+        assert said in capsys.readouterr().err and not (tmp_path / "o4").exists()
+    assert main(["deflicker", frames, "--stable", stable_dir, "--filter-radius", "47", "--out", str(tmp_path / "o4")]) == 0
 
 
 # --------------------------------------------------------------------------------------------------------------

@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from gra_mi.cli.options import CommandConfig, Restartable
-from gra_mi.core.config import option
+from gra_mi.core.config import option, options_need_switch
 from gra_mi.core.errors import GraMiParameterError, require_positive
 from gra_mi.core.shard import ShardOptions
 from gra_mi.refiner.config import RefinerConfig
@@ -138,6 +138,11 @@ class RefineCommand(Restartable):
     """Also write composite.mp4: the frames over the environment on a platform with the subject's shadow (data made
     from a capture)."""
     platform: PlatformConfig = field(default_factory=PlatformConfig, metadata=option(renames=PLATFORM_FLAGS))
+
+    def validate(self) -> None:
+        super().validate()
+        options_need_switch(self.flicker, self.deflicker, "--deflicker")
+        options_need_switch(self.platform, self.composite, "--composite")
 
 
 def run_refine(c: RefineCommand) -> None:

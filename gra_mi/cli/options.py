@@ -9,7 +9,7 @@ import argparse
 import dataclasses
 import types
 import typing
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 
 from gra_mi.core.config import Option, field_help, option_of
@@ -159,19 +159,6 @@ def _path_values(config, prefix: str = "") -> Iterator[tuple[str, Path]]:
             yield prefix + f.name, value
         elif isinstance(value, list | tuple):
             yield from ((f"{prefix}{f.name}[{i}]", v) for i, v in enumerate(value) if isinstance(v, Path))
-
-
-def changed_options(config, names: Iterable[str] | None = None) -> list[str]:
-    """The fields of ``config`` (or the ``names`` among them) set to something other than their defaults: options that
-    another choice of the same command would ignore, to be refused rather than dropped unsaid."""
-    changed = []
-    for f in dataclasses.fields(config):
-        if names is not None and f.name not in names:
-            continue
-        default = f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
-        if default is not dataclasses.MISSING and getattr(config, f.name) != default:
-            changed.append(f.name)
-    return changed
 
 
 def output_files(config) -> set[str]:

@@ -10,8 +10,8 @@ from gra_mi.capture.humanolat import HumanolatOptions, import_humanolat, write_h
 from gra_mi.capture.source import ImportConfig
 from gra_mi.capture.synthetic import PRESETS, CaptureConfig, generate_capture
 from gra_mi.capture.transforms import TransformsOptions, import_transforms
-from gra_mi.cli.options import CommandConfig, Restartable, changed_options
-from gra_mi.core.config import comma_list, option
+from gra_mi.cli.options import CommandConfig, Restartable
+from gra_mi.core.config import changed_options, comma_list, option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive
 from gra_mi.core.guard import names_of
 from gra_mi.core.limits import require_memory

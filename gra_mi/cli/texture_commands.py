@@ -12,7 +12,7 @@ from gra_mi.apps.relight import RelightConfig, SubjectMaps, collect_lights, reli
 from gra_mi.apps.texture_edit import edit_albedo_file, parse_color
 from gra_mi.capture.dataset import Capture
 from gra_mi.cli.options import CommandConfig, Restartable
-from gra_mi.core.config import option
+from gra_mi.core.config import option, options_need_switch
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.shard import ShardOptions
 from gra_mi.eval.lighting import EnvmapAccuracyConfig, envmap_accuracy
@@ -183,6 +183,7 @@ class RelightCommand(Restartable):
         if not (self.envmap or self.olat or self.pattern or self.point_light or self.lights):
             raise GraMiInputError("lighting", "give at least one --envmap, --olat, --pattern, --point-light or --lights")
         super().validate()
+        options_need_switch(self.platform, self.relight.composite, "--composite")
 
 
 def relit_frames(frames: list[int], count: int, stage: str) -> list[int]:

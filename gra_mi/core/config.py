@@ -8,8 +8,10 @@ import ast
 import dataclasses
 import inspect
 import textwrap
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+
+from gra_mi.core.errors import GraMiParameterError
 
 
 @dataclass(frozen=True)
@@ -67,3 +69,23 @@ def field_help(cls) -> dict[str, str]:
 def comma_list(text: str) -> list[str]:
     """``a, b,c`` → ``["a", "b", "c"]`` (empty items dropped): the parser of list-valued options."""
     return [t.strip() for t in text.split(",") if t.strip()]
+
+
+def changed_options(config, names: Iterable[str] | None = None) -> list[str]:
+    """The fields of ``config`` (or the ``names`` among them) set to something other than their defaults: options that
+    another choice of the same command would ignore, to be refused rather than dropped unsaid."""
+    changed = []
+    for f in dataclasses.fields(config):
+        if names is not None and f.name not in names:
+            continue
+        default = f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
+        if default is not dataclasses.MISSING and getattr(config, f.name) != default:
+            changed.append(f.name)
+    return changed
+
+
+def options_need_switch(options, switched: bool, switch: str) -> None:
+    """Refuse the options of a feature that is off (``--filter-radius`` without ``--deflicker``): they would be
+    ignored unsaid."""
+    if not switched and (given := changed_options(options)):
+        raise GraMiParameterError(given[0], f"takes effect with {switch} only: add {switch}, or leave it out")

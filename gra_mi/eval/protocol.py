@@ -33,7 +33,7 @@ import numpy as np
 
 from gra_mi.capture.dataset import Capture, load_observation
 from gra_mi.core.color import display_exposure, to_display
-from gra_mi.core.config import option
+from gra_mi.core.config import option, options_need_switch
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.guard import names_of
 from gra_mi.core.io import atomic_write_text, read_exr, read_json
@@ -92,6 +92,7 @@ class EvalConfig:
         if self.scale is not None and not (0 < self.scale <= 1):
             raise GraMiParameterError("scale", f"must be in (0, 1], got {self.scale}")
         self.platform.validate()
+        options_need_switch(self.platform, self.composite, "--composite")
 
 
 @dataclass

@@ -65,8 +65,8 @@ def deflicker_frame(frame: np.ndarray, stable: np.ndarray, exposure: float, conf
         raise GraMiParameterError(
             "stable", f"frame is {frame.shape[1]}×{frame.shape[0]}, its stable render {stable.shape[1]}×{stable.shape[0]}"
         )
+    k = filter_window(config, frame.shape)
     x, c = _encode(frame, exposure), _encode(stable, exposure)
-    k = 2 * config.filter_radius + 1
     low_x = guided_blur(x, x, k, config.filter_eps, border_type="reflect")
     low_c = guided_blur(x, c, k, config.filter_eps, border_type="reflect")
     # the correction as a change, so what lies above the display's white (clipped in x) passes through
@@ -74,6 +74,17 @@ def deflicker_frame(frame: np.ndarray, stable: np.ndarray, exposure: float, conf
     if frame.shape[-1] > 3:
         out = np.concatenate([out, frame[..., 3:]], axis=-1)
     return out
+
+
+def filter_window(config: DeflickerConfig, shape: tuple[int, ...]) -> int:
+    """The guided filter's window (2r + 1 pixels), its radius refused where not less than the frame's side: a reflected
+    border needs it inside, and its k × k kernel costs k² floats (a radius of 100,000 asked for 160 GB)."""
+    k, (h, w) = 2 * config.filter_radius + 1, shape[:2]
+    if config.filter_radius >= min(h, w):
+        raise GraMiParameterError(
+            "filter_radius", f"{config.filter_radius}: the window reaches past the {w}×{h} frame's borders; at most {min(h, w) - 1}"
+        )
+    return k
 
 
 def _frame_files(folder: Path, what: str) -> list[Path]:
@@ -125,7 +136,9 @@ def deflicker_folder(
             raise GraMiInputError(out, f"is the {name} folder: the corrected frames would overwrite their input; choose another --out")
     pairs = list(zip(frames, stable, strict=True))
     for path, guide_path in progress(pairs, description="deflicker: checking frames"):  # nothing written before all pass
-        _check_pair(path, read_frame(path), guide_path, read_frame(guide_path))
+        frame = read_frame(path)
+        _check_pair(path, frame, guide_path, read_frame(guide_path))
+        filter_window(config, frame.shape)
     written = []
     with Mp4Stream(out / "deflickered.mp4", 24.0) as mp4:
         for path, guide_path in progress(pairs, description="deflicker"):

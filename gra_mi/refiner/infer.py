@@ -35,7 +35,7 @@ from gra_mi.core.provenance import claim_output
 from gra_mi.core.runtime import torch_device
 from gra_mi.refiner.conditioning import latent_frames, seed_mask
 from gra_mi.refiner.dataset import RefinerDataset, video_to_image
-from gra_mi.refiner.deflicker import DeflickerConfig, deflicker_frame
+from gra_mi.refiner.deflicker import DeflickerConfig, deflicker_frame, filter_window
 from gra_mi.refiner.flow import euler_sample
 from gra_mi.refiner.model import VideoRefiner
 from gra_mi.render.composite import PlatformCompositor, PlatformConfig
@@ -257,6 +257,8 @@ def refine_to_folder(
     if sequence not in dataset.sequences:
         raise GraMiParameterError("sequence", f"no sequence '{sequence}' in {dataset.folder} (have {sorted(dataset.sequences)})")
     dataset.check([sequence])
+    if deflicker is not None:  # before the folder is claimed and the refiner runs
+        filter_window(deflicker, dataset.delivered(sequence, 0, "coarse").shape)
     said = {"sequence": sequence, "refine": asdict(config), "deflicker": asdict(deflicker) if deflicker else None}
     said["composite"] = asdict(composite) if composite else None
     claim_output(out, "refine", {"model": model_dir, "data": dataset_dir}, said, overwrite=overwrite, restart=True)
