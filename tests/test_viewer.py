@@ -11,6 +11,7 @@ import pytest
 
 from gra_mi.apps.viewer_browser import chromium, viewer_in_browser
 from gra_mi.core.errors import GraMiInputError
+from gra_mi.core.io import write_exr
 
 from .conftest import SCENES
 from .test_cli import run_cli
@@ -182,6 +183,43 @@ def test_view_command_bad_input(tmp_path):
         port = busy.getsockname()[1]
         taken = run_cli("view", "--scene", str(TINY), "--port", str(port), "--seconds", "1")
     assert taken.returncode == 2 and "--port" in taken.stderr and "cannot listen" in taken.stderr and "Traceback" not in taken.stderr
+
+
+def test_view_command_refuses_what_it_would_ignore_or_drop(tmp_path):
+    """Options a run folder would ignore, a stage named that cannot load (a notice only for a run's own), a map named
+    that is not one, two maps with one name, a non-positive --seconds (which once stopped the page while its visibility
+    thread traced: tracebacks from a torn-down Mitsuba and a C++ abort)."""
+    (tmp_path / "run" / "capture").mkdir(parents=True)
+    (tmp_path / "run" / "capture" / "capture.json").write_text("{}")
+    write_exr(tmp_path / "square.exr", np.ones((8, 8, 3), np.float32))
+    (tmp_path / "empty").mkdir()
+    cases = [
+        (["view", str(tmp_path / "run"), "--relightnet", str(tmp_path / "empty")], "--relightnet", "run folder brings its own"),
+        (["view", "--scene", str(TINY), "--fit", str(tmp_path / "empty")], "empty", "not a fit folder"),
+        (["view", "--scene", str(TINY), "--relightnet", str(tmp_path / "empty")], "relightnet.json", "not found"),
+        (["view", "--scene", str(TINY), "--envmap", str(tmp_path / "square.exr")], "square.exr", "twice as wide"),
+        (["view", "--scene", str(TINY), "--envmap", "a/sky.exr", "--envmap", "b/sky.exr"], "--envmap", "both named 'sky'"),
+        (["view", "--scene", str(TINY), "--seconds", "0"], "--seconds", "> 0"),
+        (["view", "--scene", str(TINY), "--host", "no such host"], "--host", "not an address"),
+    ]
+    for argv, *said in cases:
+        out = run_cli(*argv, "--seconds", "1") if "--seconds" not in argv else run_cli(*argv)
+        assert out.returncode == 2 and all(s in out.stderr for s in said) and "Traceback" not in out.stderr, (argv, out.stderr)
+
+
+def test_closing_the_page_waits_for_its_threads(llvm_variant):
+    """Closed at once, the page joins its visibility thread (which was still tracing when Python exited)."""
+    import socket
+
+    from gra_mi.apps.viewer_page import ViewerPage
+
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    page = ViewerPage(tiny_session(), port=port)
+    assert any(w.name == "visibility" for w in page.workers)
+    page.close()
+    assert not any(w.is_alive() for w in page.workers)
 
 
 # ------------------------------------------------------------------------------------------------ in a real browser

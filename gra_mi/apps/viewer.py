@@ -47,6 +47,7 @@ class ViewSources:
     envmaps: list[Path] = field(default_factory=list)
     vis_cache: Path | None = None
     uv_resolution: int = 256
+    named: frozenset[str] = frozenset()  # stages the user named ("fit", "relightnet"): refused, not noted, when unusable
 
     @classmethod
     def of_run(cls, run: Path, **kw) -> ViewSources:
@@ -113,6 +114,8 @@ class ViewerSession:
         from gra_mi.render.relighter import load_texture
 
         fit = self.sources.fit
+        if fit is not None and "fit" in self.sources.named and not (fit / "albedo.exr").is_file():
+            raise GraMiInputError(fit, "not a fit folder: no albedo.exr (made by `gra-mi fit`)")
         if fit is None or not (fit / "albedo.exr").is_file():
             self.notices.append("no fit: the subject shows its own colours (vertex colours baked to UV, roughness 0.5)")
             return None, None, None
@@ -130,6 +133,8 @@ class ViewerSession:
         try:
             model = RelightNet.load(folder, device)
         except (GraMiInputError, OSError, RuntimeError, ValueError) as exc:
+            if "relightnet" in self.sources.named:
+                raise exc if isinstance(exc, GraMiInputError) else GraMiInputError(folder, str(exc).splitlines()[0]) from None
             self.notices.append(f"RelightNet not available: {str(exc).splitlines()[0]}")
             return None
         if model.config.resolution != self.relighter.atlas.resolution:

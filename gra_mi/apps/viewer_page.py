@@ -22,6 +22,7 @@ from gra_mi.core.errors import GraMiInputError
 logger = logging.getLogger(__name__)
 
 LED_COLOR, LED_LIT = (90, 90, 110), (255, 60, 40)
+WORKER_JOIN_S = 120  # a frame's visibility or a view in progress finishes first (seconds on a CPU)
 
 
 class ClientView:
@@ -31,7 +32,7 @@ class ClientView:
         self.page, self.client = page, client
         self.wanted = threading.Event()
         self.closed = False
-        threading.Thread(target=self._loop, daemon=True, name=f"view-{client.client_id}").start()
+        page.start_worker(self._loop, f"view-{client.client_id}")
         client.camera.on_update(lambda _: self.wanted.set())
         self.wanted.set()
 
@@ -74,6 +75,7 @@ class ViewerPage:
         self.rendered = 0
         self.stop = threading.Event()
         self.views: dict[int, ClientView] = {}
+        self.workers: list[threading.Thread] = []
         self.server = viser.ViserServer(host=host, port=port, label="gra-mi view", verbose=False)
         self.server.scene.set_up_direction("+y")
         # No share button: viser's share link tunnels the page to a public URL, which a shared machine must not do.
@@ -82,7 +84,7 @@ class ViewerPage:
         self._rig()
         self.server.on_client_connect(self._connect)
         self.server.on_client_disconnect(self._disconnect)
-        threading.Thread(target=self._precompute, daemon=True, name="visibility").start()
+        self.start_worker(self._precompute, "visibility")
 
     # ---------------------------------------------------------------- page
     def _controls(self) -> None:
@@ -202,7 +204,7 @@ class ViewerPage:
 
     def _start_playing(self) -> None:
         if self.play.value:
-            threading.Thread(target=self._play, daemon=True, name="play").start()
+            self.start_worker(self._play, "play")
 
     def _play(self) -> None:
         period = 1.0 / float(self.session.ls.sequence.fps or 24.0)
@@ -251,6 +253,18 @@ class ViewerPage:
         self.rendered += 1
         self.timings.content = f"view {self.rendered}, {width}×{height}: **{timings['total']:.0f} ms** on the server ({parts})"
 
+    def start_worker(self, target, name: str) -> None:
+        """A background thread of the page, joined by :meth:`close`."""
+        worker = threading.Thread(target=target, daemon=True, name=name)
+        self.workers = [w for w in self.workers if w.is_alive()] + [worker]
+        worker.start()
+
     def close(self) -> None:
+        """Stop the page and wait for its threads: one that still traces or renders when Python exits finds Mitsuba
+        torn down (a Ctrl-C in the first seconds once ended in tracebacks and a C++ abort)."""
         self.stop.set()
         self.server.stop()
+        for worker in self.workers:
+            worker.join(timeout=WORKER_JOIN_S)
+            if worker.is_alive():
+                logger.warning("thread %s still running after %d s; exiting anyway", worker.name, WORKER_JOIN_S)

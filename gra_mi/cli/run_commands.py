@@ -8,7 +8,8 @@ from pathlib import Path
 
 from gra_mi.cli.options import CommandConfig, Restartable
 from gra_mi.core.config import option
-from gra_mi.core.errors import GraMiInputError, GraMiParameterError
+from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive
+from gra_mi.core.guard import names_of
 from gra_mi.eval.protocol import EvalConfig, EvalInputs, evaluate
 from gra_mi.render.transport import LightTransport
 from gra_mi.stage.envmap import EnvmapOptions
@@ -130,8 +131,13 @@ class ViewCommand(CommandConfig):
         super().validate()
         if sum(x is not None for x in (self.run, self.capture, self.scene)) != 1:
             raise GraMiParameterError("run", "give one of: a run folder, --capture, or --scene")
+        if self.run is not None and (given := [n for n in ("fit", "relightnet") if getattr(self, n) is not None]):
+            raise GraMiParameterError(given[0], "a run folder brings its own fit/ and relightnet/: give --capture with it instead")
         if not 0 < self.port < 65536:
             raise GraMiParameterError("port", f"must be in 1..65535, got {self.port}")
+        if self.seconds is not None:
+            require_positive({"seconds": self.seconds})
+        names_of(self.envmap, "envmap")  # the page offers maps by name
         if self.max_size < 16 or self.uv_resolution < 8:
             raise GraMiParameterError(
                 "max_size", f"--max-size must be >= 16 and --uv-resolution >= 8, got {self.max_size}, {self.uv_resolution}"
@@ -149,18 +155,23 @@ def run_view(c: ViewCommand) -> None:
     with socket.socket() as probe:  # say a busy port plainly, before loading anything
         try:
             probe.bind((c.host, c.port))
+        except socket.gaierror as exc:  # before OSError: it is one
+            raise GraMiParameterError("host", f"'{c.host}' is not an address of this machine ({exc.strerror})") from None
         except OSError as exc:
             raise GraMiParameterError("port", f"cannot listen on {c.host}:{c.port} ({exc.strerror}): give another --port") from None
     extra = {"envmaps": c.envmap, "vis_cache": c.vis_cache, "uv_resolution": c.uv_resolution}
+    named = frozenset(name for name in ("fit", "relightnet") if getattr(c, name) is not None)
     if c.run is not None:
         sources = ViewSources.of_run(c.run, **extra)
     elif c.capture is not None:
         if not (c.capture / "scene.xml").is_file():
             raise GraMiInputError(c.capture, "not a capture folder: no scene.xml")
-        sources = ViewSources(c.capture / "scene.xml", c.capture, c.fit, c.relightnet, **extra)
+        sources = ViewSources(c.capture / "scene.xml", c.capture, c.fit, c.relightnet, **extra, named=named)
     else:
-        sources = ViewSources(c.scene, None, c.fit, c.relightnet, **extra)
+        sources = ViewSources(c.scene, None, c.fit, c.relightnet, **extra, named=named)
     session = ViewerSession(sources, c.envmaps, str(torch_device()), c.transport)
+    for path in c.envmap:  # the maps named here are checked now (the session loads a map when it is first chosen)
+        session.envmap(path.stem)
     for notice in session.notices:
         print(f"gra-mi view: note: {notice}")
     page = ViewerPage(session, c.host, c.port, c.max_size)
