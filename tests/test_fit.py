@@ -57,6 +57,43 @@ def test_fit_recovers_known_maps(onebounce_capture, tmp_path):
     assert losses[-1] <= losses[0]
 
 
+def test_albedo_headroom_of_the_normal_equations():
+    from gra_mi.fit.headroom import AlbedoHeadroom
+
+    den = np.ones((100, 3))
+    num = np.tile(np.linspace(0.0, 2.0, 100)[:, None], (1, 3))  # least-squares albedo 0 … 2, half of it above 1
+    headroom = AlbedoHeadroom.of(num, np.where(np.arange(100)[:, None] == 0, 0.0, den))  # texel 0 unseen
+    assert headroom.over == pytest.approx(50 / 99) and headroom.high == pytest.approx(np.quantile(num[1:, 0], 0.95))
+    assert "--led-intensity 7.6 or more" in headroom.warning(4.0)
+    assert AlbedoHeadroom.of(num * 0.4, den).warning(4.0) is None and AlbedoHeadroom.of(num, den * 0) is None
+
+
+def test_images_brighter_than_the_stage_can_light_are_said(onebounce_capture, tmp_path):
+    """Images 10x brighter than the capture's LEDs can light any surface (an import with --led-intensity too low):
+    the fit clips the albedo at 1 and used to finish without a word. The report now says so first, with the intensity
+    that would hold the images."""
+    import shutil
+
+    from gra_mi.core.io import read_exr, write_exr
+    from gra_mi.fit.materials import FitConfig, run_fit
+
+    config = FitConfig(solver="closed-form", roughness_candidates=5, irls_iterations=0)
+    bright = tmp_path / "bright"
+    shutil.copytree(onebounce_capture, bright)
+    for path in (bright / "images").rglob("*.exr"):
+        image = read_exr(path)
+        image[..., :3] *= 10.0
+        write_exr(path, image)
+    for capture, out in ((onebounce_capture, tmp_path / "fit"), (bright, tmp_path / "fit_bright")):
+        run_fit(capture, out, config)
+    plain, scaled = (json.loads((tmp_path / name / "fit.json").read_text()) for name in ("fit", "fit_bright"))
+    assert plain["warnings"] == [] and plain["albedo_headroom"]["over"] == 0.0
+    # 10x, and a little more: the highlights, fitted at a roughness of their own, are subtracted at their scale
+    assert 10 <= scaled["albedo_headroom"]["high"] / plain["albedo_headroom"]["high"] < 11
+    assert len(scaled["warnings"]) == 1 and "--led-intensity" in scaled["warnings"][0]
+    assert (tmp_path / "fit_bright" / "fit_report.md").read_text().splitlines()[2].startswith("**Warning:** ")
+
+
 def test_fit_cli_resumes_from_checkpoint(onebounce_capture, tmp_path):
     out = run_cli("fit", str(onebounce_capture), "--out", str(tmp_path / "fit"), "--roughness-candidates", "5", "--irls-iterations", "1")
     assert out.returncode == 0, out.stderr

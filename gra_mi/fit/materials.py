@@ -45,6 +45,7 @@ from gra_mi.core.progress import progress
 from gra_mi.core.provenance import claim_output
 from gra_mi.core.runtime import columns
 from gra_mi.fit.grid import GridSums, refine_on_grid
+from gra_mi.fit.headroom import AlbedoHeadroom
 from gra_mi.fit.levels import fit_levels
 from gra_mi.fit.maps import DEFAULT_ALBEDO, DEFAULT_ROUGHNESS, LevelStart
 from gra_mi.fit.optimize import Evidence
@@ -246,6 +247,7 @@ class MaterialFitter:
         ensure_mitsuba()
         self.capture = capture
         self.config = config
+        self.headroom: AlbedoHeadroom | None = None  # the least-squares albedo's reach past 1 (fit/headroom.py)
         self.ls = capture.load_scene()
         self.stage = self.ls.stage
         resolution = config.resolution or capture.uv_resolution
@@ -545,6 +547,7 @@ class MaterialFitter:
                 np.add.at(num, texels, w * d * (o - s))
                 np.add.at(den, texels, w * d * d)
             num, den = self.ranks.sum(num), self.ranks.sum(den)
+            self.headroom = AlbedoHeadroom.of(num, den) if it == 0 else self.headroom  # before the clip hides a wrong scale
             with np.errstate(invalid="ignore", divide="ignore"):
                 albedo = np.where(den > 0, np.clip(num / den, 0.0, 1.0), DEFAULT_ALBEDO)
             per_view = self._irls_residuals(views, albedo)

@@ -9,6 +9,7 @@ held-out cameras with the fitted maps against the captured images.
 from __future__ import annotations
 
 import json
+import logging
 from dataclasses import asdict
 from pathlib import Path
 
@@ -18,6 +19,8 @@ from gra_mi.capture.dataset import load_observation
 from gra_mi.core.io import atomic_write_text, pyplot, read_exr, save_figure, write_exr, write_png
 from gra_mi.core.metrics import compare, mean_l1, subject_mask
 from gra_mi.core.progress import progress
+
+logger = logging.getLogger(__name__)
 
 SCORED_MIN_CAMERAS = 3
 
@@ -176,6 +179,8 @@ def write_fit_outputs(fitter, result, out: Path, config) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     _write_maps(fitter.atlas, result, out)
     record = fit_record(fitter, result, out, config)
+    for said in record["warnings"]:
+        logger.warning(said)
     _plot_convergence(result, record["map_curve"], out / "convergence.png")
     if _true_maps(fitter) is not None:
         _plot_maps_vs_truth(fitter, result, out / "maps_vs_truth.png")
@@ -233,6 +238,8 @@ def fit_record(fitter, result, out: Path, config) -> dict:
         "well_seen_texels": int(np.sum(result.observed_cameras >= SCORED_MIN_CAMERAS)),
         "without_highlights": None if ev is None else [int(np.sum(seen & (ev.highlights == 0))), int(seen.sum())],
         "per_view_l1": result.per_view_l1,
+        "albedo_headroom": None if fitter.headroom is None else asdict(fitter.headroom),
+        "warnings": [said] if (said := fitter.headroom and fitter.headroom.warning(fitter.stage.max_led_intensity)) else [],
     }
 
 
@@ -257,6 +264,7 @@ def fit_markdown(r: dict) -> str:
         + (", filled from their neighbours" if r["without_highlights"] is not None else ", kept at the defaults"),
         f"- texels seen by ≥ {k} cameras (scored below): {r['well_seen_texels']}",
     ]
+    lines[2:2] = [line for said in r.get("warnings", []) for line in (f"**Warning:** {said}.", "")]  # first under the title
     if r["albedo_gain"] is not None:
         lines.append(
             f"- brightness calibration: albedo × ({', '.join(f'{g:.3f}' for g in r['albedo_gain'])}) (R, G, B) so that the training "
