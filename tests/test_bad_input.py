@@ -176,6 +176,7 @@ def inputs(path_traced_fit, tmp_path_factory):
     write_exr(root / "albedo_nan.exr", np.full((16, 16, 3), np.nan, np.float32))
     write_exr(root / "albedo_rect.exr", np.full((16, 8, 3), 0.5, np.float32))
     write_exr(root / "albedo.exr", np.full((16, 16, 3), 0.5, np.float32))
+    write_exr(root / "one_texel.exr", np.full((1, 1, 3), 0.5, np.float32))  # no texel centre inside a body's UV layout
     write_exr(root / "mask.exr", np.ones((16, 16, 1), np.float32))
     (root / "not_exr.exr").write_text("hello")
     (root / "pattern_strings.json").write_text(json.dumps({"intensities": ["a"] * 64}))
@@ -312,6 +313,8 @@ OPTION_CASES = [
     # relight
     ("relight-uv-zero", ["relight", TINY, "--olat", "0", "--uv-resolution", "0"], ["--uv-resolution"]),
     ("relight-uv-negative", ["relight", TINY, "--olat", "0", "--uv-resolution", "-3"], ["--uv-resolution"]),
+    ("relight-uv-tiny", ["relight", TINY, "--olat", "0", "--uv-resolution", "4"], ["--uv-resolution", ">= 8"]),
+    ("relight-albedo-one-texel", ["relight", TINY, "--olat", "0", "--albedo", "{root}/one_texel.exr"], ["--albedo", "no texel centre"]),
     ("relight-exposure-nan", ["relight", TINY, "--olat", "0", "--exposure", "nan"], ["--exposure"]),
     ("relight-exposure-zero", ["relight", TINY, "--olat", "0", "--exposure", "0"], ["--exposure"]),
     ("relight-no-light", ["relight", TINY], ["--envmap"]),

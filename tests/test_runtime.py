@@ -117,7 +117,7 @@ def test_cli_defaults_are_the_configs_defaults(command, config_path):
 @pytest.mark.parametrize(
     ("argv", "flag"),
     [
-        (["relight", "scene.xml", "--olat", "0", "--uv-resolution", "0"], "--uv-resolution: must be >= 1"),
+        (["relight", "scene.xml", "--olat", "0", "--uv-resolution", "0"], "--uv-resolution: must be >= 8"),
         (["relight", "scene.xml", "--olat", "0", "--exposure", "nan"], "--exposure: must be a finite number"),
         (["refine", "data", "--model", "m", "--sequence", "s", "--shift", "nan"], "--shift: must be a finite number"),
         (["refine", "data", "--model", "m", "--sequence", "s", "--steps", "0"], "--steps: must be a finite number > 0"),

@@ -24,6 +24,7 @@ from gra_mi.core.io import atomic_path, atomic_write_text, write_exr, write_mp4_
 from gra_mi.core.progress import progress
 from gra_mi.core.runtime import torch_device
 from gra_mi.core.shard import Shard, record_shard_count
+from gra_mi.render.atlas import MIN_RESOLUTION
 from gra_mi.render.composite import PlatformCompositor
 from gra_mi.render.light_path import LightPath
 from gra_mi.render.runtime import ensure_mitsuba
@@ -68,8 +69,8 @@ class RelightConfig:
             raise GraMiParameterError("stage", f"expected one of {STAGES}, got '{self.stage}'")
         if self.lighting_model not in LIGHTING_MODELS:
             raise GraMiParameterError("lighting_model", f"expected one of {', '.join(LIGHTING_MODELS)}, got '{self.lighting_model}'")
-        if self.uv_resolution < 1:
-            raise GraMiParameterError("uv_resolution", f"must be >= 1, got {self.uv_resolution}")
+        if self.uv_resolution < MIN_RESOLUTION:
+            raise GraMiParameterError("uv_resolution", f"must be >= {MIN_RESOLUTION}, got {self.uv_resolution}")
         if self.exposure is not None and not (np.isfinite(self.exposure) and self.exposure > 0):
             raise GraMiParameterError("exposure", f"must be a positive number, got {self.exposure}")
 

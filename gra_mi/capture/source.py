@@ -17,6 +17,7 @@ from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_pos
 from gra_mi.core.guard import path_component
 from gra_mi.core.limits import require_memory
 from gra_mi.core.schema import rigid_rotation
+from gra_mi.render.atlas import MIN_RESOLUTION
 
 TEXEL_BYTES = 64  # per texel of an imported capture's atlas: positions, normals, masks, the maps (a lower bound)
 MIN_HELD = 0.5  # of a camera's pinhole view that its distorted image must hold (an ordinary lens loses its corners at most)
@@ -59,7 +60,9 @@ class ImportConfig:
     gap in what they need)."""
 
     def validate(self) -> None:
-        require_positive({"scale": self.scale, "led_intensity": self.led_intensity, "uv_resolution": self.uv_resolution})
+        require_positive({"scale": self.scale, "led_intensity": self.led_intensity})
+        if self.uv_resolution < MIN_RESOLUTION:
+            raise GraMiParameterError("uv_resolution", f"must be >= {MIN_RESOLUTION}, got {self.uv_resolution}")
         if not 0 <= self.min_iou <= 1:
             raise GraMiParameterError("min_iou", f"must be in [0, 1], got {self.min_iou}")
         if self.up not in ("auto", *UP_AXES):

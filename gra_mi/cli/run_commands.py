@@ -11,6 +11,7 @@ from gra_mi.core.config import option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive
 from gra_mi.core.guard import names_of
 from gra_mi.eval.protocol import EvalConfig, EvalInputs, evaluate
+from gra_mi.render.atlas import MIN_RESOLUTION
 from gra_mi.render.transport import LightTransport
 from gra_mi.stage.envmap import EnvmapOptions
 
@@ -138,10 +139,10 @@ class ViewCommand(CommandConfig):
         if self.seconds is not None:
             require_positive({"seconds": self.seconds})
         names_of(self.envmap, "envmap")  # the page offers maps by name
-        if self.max_size < 16 or self.uv_resolution < 8:
-            raise GraMiParameterError(
-                "max_size", f"--max-size must be >= 16 and --uv-resolution >= 8, got {self.max_size}, {self.uv_resolution}"
-            )
+        if self.max_size < 16:
+            raise GraMiParameterError("max_size", f"must be >= 16, got {self.max_size}")
+        if self.uv_resolution < MIN_RESOLUTION:
+            raise GraMiParameterError("uv_resolution", f"must be >= {MIN_RESOLUTION}, got {self.uv_resolution}")
 
 
 def run_view(c: ViewCommand) -> None:

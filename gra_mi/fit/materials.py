@@ -53,6 +53,7 @@ from gra_mi.fit.prior import SurfaceGraph
 from gra_mi.fit.ranks import FitRanks
 from gra_mi.fit.report import write_fit_outputs
 from gra_mi.fit.views import ViewStore
+from gra_mi.render.atlas import MIN_RESOLUTION
 from gra_mi.render.runtime import ensure_mitsuba
 from gra_mi.render.transport import LightTransport
 
@@ -152,8 +153,8 @@ class FitConfig:
             raise GraMiParameterError("irls_iterations", f"must be >= 0, got {self.irls_iterations}")
         if self.frame_step < 1:
             raise GraMiParameterError("frame_step", f"must be >= 1, got {self.frame_step}")
-        if self.resolution is not None and self.resolution < 1:
-            raise GraMiParameterError("resolution", f"must be >= 1, got {self.resolution}")
+        if self.resolution is not None and self.resolution < MIN_RESOLUTION:
+            raise GraMiParameterError("resolution", f"must be >= {MIN_RESOLUTION}, got {self.resolution}")
         if self.batch_views < 0:
             raise GraMiParameterError("batch_views", f"must be >= 0 (0: every view each step), got {self.batch_views}")
         if self.levels is not None:
@@ -163,8 +164,10 @@ class FitConfig:
         require_memory("levels" if self.levels else "resolution", largest**2 * FIT_BYTES_PER_TEXEL, f"a {largest}² UV fit")
 
     def _validate_levels(self, levels: list[int]) -> None:
-        if not levels or any(r < 8 for r in levels) or any(b <= a for a, b in zip(levels, levels[1:], strict=False)):
-            raise GraMiParameterError("levels", f"expected increasing UV resolutions of at least 8, e.g. 256,512,1024; got {levels}")
+        if not levels or any(r < MIN_RESOLUTION for r in levels) or any(b <= a for a, b in zip(levels, levels[1:], strict=False)):
+            raise GraMiParameterError(
+                "levels", f"expected increasing UV resolutions of at least {MIN_RESOLUTION}, e.g. 256,512,1024; got {levels}"
+            )
         if self.resolution is not None and self.resolution != levels[-1]:
             raise GraMiParameterError(
                 "levels", f"the last level ({levels[-1]}) is the fitted resolution; --uv-resolution says {self.resolution}"

@@ -38,6 +38,9 @@ def texel_uvs(resolution: int) -> np.ndarray:
     return np.stack([u.ravel(), v.ravel()], axis=1)
 
 
+MIN_RESOLUTION = 8  # the smallest UV texture a stage takes: below it a body's layout holds few texel centres, or none
+
+
 @dataclass
 class UVAtlas:
     """Texel → (triangle, barycentrics) for the texels the mesh's UV atlas covers."""

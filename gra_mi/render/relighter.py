@@ -75,9 +75,14 @@ class Relighter:
         self.transport = transport or LightTransport()
         self.transport.validate()
         self.ls = ls
-        if albedo is not None:
-            resolution = albedo.shape[0]
+        given = albedo if albedo is not None else roughness  # a map's resolution is the atlas's (the default albedo's too)
+        resolution = given.shape[0] if given is not None else resolution
         self.atlas = UVAtlas.build(ls.sequence.faces, ls.sequence.uvs, resolution)
+        if self.atlas.num_texels == 0:
+            name = "albedo" if albedo is not None else "roughness" if roughness is not None else "uv_resolution"
+            raise GraMiParameterError(
+                name, f"a {resolution}² UV texture has no texel centre inside the subject's UV layout: give a larger one"
+            )
         if albedo is None:
             colors = (
                 ls.sequence.vertex_colors
