@@ -38,7 +38,8 @@ class ImportConfig:
     up: str = field(default="auto", metadata=option(choices=("auto", *UP_AXES)))
     """The source frame's up axis; auto: level to every camera's image x axis, signed by their image up (reported)."""
     led_intensity: float = 4.0
-    """Radiant intensity (W/sr) of a fully driven LED (the source does not say; sets the albedo's scale only)."""
+    """Radiant intensity (W/sr) of a fully driven LED, in the images' units (the source does not say; sets the albedo's
+    scale only: too low, and `gra-mi fit` warns that the albedo reaches past 1, naming the intensity that holds it)."""
     uv_resolution: int = 256
     """UV resolution of the maps fitted to the capture."""
     min_iou: float = 0.5
