@@ -54,6 +54,34 @@ def test_ground_truth_estimator_agrees_with_mitsuba_path(llvm_variant):
     assert relative_rmse(ours, reference, mask) < 0.5 * relative_rmse(plain, reference, mask)
 
 
+def test_the_truth_renders_many_samples_in_passes(llvm_variant, monkeypatch):
+    """Past 2^32 samples over the film one Mitsuba render crashed (a capture with --indirect-spp 1048576): the truth
+    renders in passes of at most PASS_SAMPLES, each integrator with the same seeds pass by pass, averaged by their
+    counts. Here 16 spp in 3 passes of 6, 6 and 4: the passes' own renders, summed, are the image."""
+    import mitsuba as mi
+
+    from gra_mi.stage import scene as stage_scene
+
+    ls, _ = _lit_tiny_scene()
+    width, height = ls.scene.sensors()[0].film().crop_size()
+    monkeypatch.setattr(stage_scene, "PASS_SAMPLES", int(width * height) * 6)
+    renderer = GroundTruthRenderer(spp=16, indirect_spp=16)
+    image = renderer.render(ls.scene, 0, seed=1)
+
+    def passes(integrator):
+        return (
+            sum(
+                n * np.array(mi.render(ls.scene, sensor=0, integrator=integrator, spp=n, seed=3 + k), np.float64)
+                for k, n in enumerate((6, 6, 4))
+            )
+            / 16
+        )
+
+    expected = passes(renderer.direct)
+    expected[..., :3] += passes(renderer.path)[..., :3] - passes(renderer.first_bounce)[..., :3]
+    np.testing.assert_allclose(image, expected, rtol=1e-5, atol=1e-6)
+
+
 def test_noise_against_a_reference_of_4x_the_samples_is_the_images_own(llvm_variant):
     """The capture's noise figure: against a reference of 4× the samples, with the reference's own noise (1/4 of the
     variance) divided out, it agrees with the figure against 64× the samples (whose own noise moves it < 1 %); left

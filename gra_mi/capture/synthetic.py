@@ -40,7 +40,7 @@ from gra_mi.stage.envmap import downsample_envmap, led_fidelity, load_envmap
 from gra_mi.stage.envmap_library import write_envmap_set
 from gra_mi.stage.framing import frame_subject
 from gra_mi.stage.lightstage import default_lightstage, olat_pattern
-from gra_mi.stage.scene import LightstageScene, subject_scene_xml, write_rig
+from gra_mi.stage.scene import MAX_SPP, LightstageScene, subject_scene_xml, write_rig
 from gra_mi.subject.anny_body import anny_sequence
 from gra_mi.subject.sequence import load_sequence, save_sequence, tiny_subject
 
@@ -310,9 +310,9 @@ class CaptureConfig:
             raise GraMiParameterError("renderer", f"expected 'path' or 'onebounce', got '{self.renderer}'")
         for name in ("spp", "indirect_spp"):
             value = getattr(self, name)
-            if value is not None and (value < 1 or 4 ** round(math.log(value, 4)) != value):
+            if value is not None and (value < 1 or value > MAX_SPP or 4 ** round(math.log(value, 4)) != value):
                 raise GraMiParameterError(
-                    name, f"must be a power of 4 (the low-discrepancy sampler's counts: 4, 16, 64, 256, ...), got {value}"
+                    name, f"must be a power of 4 up to {MAX_SPP} (the low-discrepancy sampler's counts: 4, 16, 64, 256, ...), got {value}"
                 )
         unknown = sorted(set(self.without) - set(ABLATABLE_EFFECTS))
         if unknown or (self.without and self.renderer != "path"):

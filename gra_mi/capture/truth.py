@@ -20,6 +20,7 @@ from gra_mi.core.guard import scratch_directory
 from gra_mi.core.io import write_exr
 from gra_mi.core.metrics import relative_rmse
 from gra_mi.render.runtime import ensure_mitsuba
+from gra_mi.stage.scene import render_mean
 
 logger = logging.getLogger(__name__)
 
@@ -54,13 +55,11 @@ class GroundTruthRenderer:
 
     def render(self, scene, sensor: int, seed: int, factor: int = 1) -> np.ndarray:
         """(H, W, 4) linear RGB + alpha; ``factor`` multiplies both sample counts (the noise reference)."""
-        import mitsuba as mi
 
-        image = np.array(mi.render(scene, sensor=sensor, integrator=self.direct, spp=self.spp * factor, seed=seed), dtype=np.float64)
-        if self.max_depth > 2 and self.indirect_spp > 0:
+        image = render_mean(scene, sensor, self.direct, self.spp * factor, seed)
+        if self.max_depth > 2 and self.indirect_spp > 0:  # the same seeds: the first bounce the two share cancels
             spp = self.indirect_spp * factor
-            later = np.array(mi.render(scene, sensor=sensor, integrator=self.path, spp=spp, seed=seed), dtype=np.float64)
-            first = np.array(mi.render(scene, sensor=sensor, integrator=self.first_bounce, spp=spp, seed=seed), dtype=np.float64)
+            later, first = (render_mean(scene, sensor, integrator, spp, seed) for integrator in (self.path, self.first_bounce))
             image[..., :3] += later[..., :3] - first[..., :3]
         return image.astype(np.float32)
 
@@ -212,6 +211,5 @@ def render_envmap_truth(
     for name in cameras:
         if name not in sensors:
             raise GraMiParameterError("cameras", f"no camera '{name}' in {capture.folder / 'scene_gt.xml'}; it has {', '.join(sensors)}")
-        image = mi.render(scene, sensor=sensors[name], integrator=integrator, spp=spp, seed=seed + frame)
-        out[name] = np.array(image, dtype=np.float32)
+        out[name] = render_mean(scene, sensors[name], integrator, spp, seed + frame).astype(np.float32)
     return out

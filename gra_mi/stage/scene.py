@@ -408,13 +408,9 @@ def render_in_passes(scene, index: int, integrator, spp: int | None, seed: int, 
 
     sensor = scene.sensors()[index]
     total = int(spp or sensor.sampler().sample_count())
-    width, height = sensor.film().crop_size()
-    per_pass = max(1, min(total, PASS_SAMPLES // max(int(width) * int(height), 1)))
-    passes = -(-total // per_pass)
+    plan = sample_passes(total, sensor, seed)
     image, film, channels = 0.0, 0.0, None
-    for k in progress(range(passes), description=f"{name}: {passes} passes") if passes > 1 else range(passes):
-        count = min(per_pass, total - k * per_pass)
-        pass_seed = seed if passes == 1 else (seed * passes + k) % 2**32
+    for count, pass_seed in progress(plan, description=f"{name}: {len(plan)} passes") if len(plan) > 1 else plan:
         try:
             image += count * np.array(mi.render(scene, sensor=index, integrator=integrator, spp=count, seed=pass_seed), np.float64)
         except Exception as exc:  # Mitsuba's render errors come wrapped in its custom-op's; its own message is the first
@@ -424,6 +420,27 @@ def render_in_passes(scene, index: int, integrator, spp: int | None, seed: int, 
         if len(channels) > 4:  # AOVs: the film itself (every channel) is kept beside the developed image
             film += count * np.array(sensor.film().bitmap(), np.float64)
     return (image / total).astype(np.float32), (film / total).astype(np.float32) if len(channels) > 4 else None, channels
+
+
+def sample_passes(total: int, sensor, seed: int) -> list[tuple[int, int]]:
+    """(samples per pixel, seed) of each pass of a ``total``-spp render of ``sensor``'s film: at most
+    :data:`PASS_SAMPLES` samples over the film each. The plan depends on its arguments alone, so two integrators
+    rendered pass by pass with one plan see the same samples (a difference of their images cancels what they share)."""
+    width, height = sensor.film().crop_size()
+    per_pass = max(1, min(total, PASS_SAMPLES // max(int(width) * int(height), 1)))
+    passes = -(-total // per_pass)
+    return [(min(per_pass, total - k * per_pass), seed if passes == 1 else (seed * passes + k) % 2**32) for k in range(passes)]
+
+
+def render_mean(scene, sensor: int, integrator, spp: int, seed: int) -> np.ndarray:
+    """``mi.render``'s image (float64) at ``spp``, rendered in the passes of :func:`sample_passes`."""
+    import mitsuba as mi
+
+    plan = sample_passes(spp, scene.sensors()[sensor], seed)
+    total = sum(
+        count * np.array(mi.render(scene, sensor=sensor, integrator=integrator, spp=count, seed=s), np.float64) for count, s in plan
+    )
+    return total / spp
 
 
 def root_message(exc: BaseException) -> str:
