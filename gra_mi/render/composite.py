@@ -23,7 +23,7 @@ import numpy as np
 from gra_mi.core.errors import GraMiParameterError, require_positive
 from gra_mi.render.runtime import ensure_mitsuba
 from gra_mi.stage.envmap import background_plate
-from gra_mi.stage.scene import camera_sensor_dict
+from gra_mi.stage.scene import MAX_SPP, camera_sensor_dict, render_mean
 from gra_mi.subject.sequence import extent
 
 
@@ -42,6 +42,8 @@ class PlatformConfig:
 
     def validate(self) -> None:
         require_positive({"radius": self.radius, "thickness": self.thickness, "spp": self.spp})
+        if self.spp > MAX_SPP:
+            raise GraMiParameterError("spp", f"must be in [1, {MAX_SPP}], got {self.spp}")
         if not 0.0 <= self.reflectance <= 1.0:
             raise GraMiParameterError("reflectance", f"must be in [0, 1], got {self.reflectance}")
 
@@ -96,7 +98,7 @@ def platform_layer(sequence, frame: int, camera, envmap: np.ndarray, config: Pla
         }
     )
     integrator = mi.load_dict({"type": "path", "max_depth": 4, "hide_emitters": True})
-    return np.array(mi.render(scene, integrator=integrator, spp=config.spp, seed=seed + frame), dtype=np.float32)
+    return render_mean(scene, 0, integrator, config.spp, seed + frame).astype(np.float32)
 
 
 def composite_on_platform(subject: np.ndarray, layer: np.ndarray, plate: np.ndarray) -> np.ndarray:

@@ -12,7 +12,7 @@ import mitsuba as mi
 import numpy as np
 
 from gra_mi.core.io import write_exr
-from gra_mi.stage.scene import camera_xml
+from gra_mi.stage.scene import camera_xml, render_mean
 from gra_mi.subject.sequence import write_ply
 
 
@@ -82,7 +82,7 @@ def path_reference(
         '<boolean name="raw" value="true"/></texture></bsdf></shape></scene>'
     )
     scene = mi.load_string(xml)
-    return np.array(mi.render(scene, integrator=mi.load_dict({"type": "path", "max_depth": max_depth}), spp=spp, seed=seed), np.float64)
+    return render_mean(scene, 0, mi.load_dict({"type": "path", "max_depth": max_depth}), spp, seed)
 
 
 def bounce_errors(one: np.ndarray, more: np.ndarray, path_one: np.ndarray, path_more: np.ndarray, block: int = 8) -> dict:
