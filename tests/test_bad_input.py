@@ -401,6 +401,8 @@ OPTION_CASES = [
     ("capture-preset", ["capture", "--preset", "huge"], ["--preset"]),
     ("capture-lightings-olat", ["capture", "--preset", "olat", "--training-lightings", "64"], ["--training-lightings", "OLATs"]),
     ("capture-lightings-zero", ["capture", "--preset", "tiny", "--training-lightings", "0"], ["--training-lightings", ">= 1"]),
+    ("capture-lightings-memory", ["capture", "--preset", "small", "--training-lightings", "10000000"], ["--training-lightings", "GiB"]),
+    ("capture-spp-huge", ["capture", "--preset", "tiny", "--indirect-spp", "4194304"], ["--indirect-spp", "up to 1048576"]),
     ("capture-margin-unframed", ["capture", "--preset", "tiny", "--framing-margin", "0.1"], ["--framing-margin", "not framed"]),
     ("capture-margin-too-wide", ["capture", "--preset", "small", "--framing-margin", "0.5"], ["--framing-margin", "[0, 0.5)"]),
     # train-relightnet

@@ -32,6 +32,7 @@ from gra_mi.capture.wrinkles import pose_capture_wrinkles, wrinkle_normal_map
 from gra_mi.core.config import comma_list, option
 from gra_mi.core.errors import GraMiParameterError
 from gra_mi.core.io import atomic_write_text, write_exr, write_png
+from gra_mi.core.limits import require_memory
 from gra_mi.core.progress import progress
 from gra_mi.core.provenance import claim_output
 from gra_mi.core.shard import Shard
@@ -42,7 +43,7 @@ from gra_mi.stage.framing import frame_subject
 from gra_mi.stage.lightstage import default_lightstage, olat_pattern
 from gra_mi.stage.scene import MAX_SPP, LightstageScene, subject_scene_xml, write_rig
 from gra_mi.subject.anny_body import anny_sequence
-from gra_mi.subject.sequence import load_sequence, save_sequence, tiny_subject
+from gra_mi.subject.sequence import WHOLE_FRAME_BYTES, load_sequence, save_sequence, tiny_subject
 
 logger = logging.getLogger(__name__)
 
@@ -332,6 +333,9 @@ class CaptureConfig:
                 )
             if self.training_lightings < 1:
                 raise GraMiParameterError("training_lightings", f"must be >= 1, got {self.training_lightings}")
+            run = self.resolved()  # a synthetic capture's subject sequence is made whole in memory
+            frames = run.frames_per_clip * len(run.train_clips) + run.test_frames() * len(run.test_clips)
+            require_memory("training_lightings", frames * WHOLE_FRAME_BYTES[run.subject], f"a sequence of {frames:,} frames")
         if self.framing_margin is not None:
             if not preset.framed:
                 raise GraMiParameterError("framing_margin", f"the {preset.name} preset's cameras are not framed on the subject")

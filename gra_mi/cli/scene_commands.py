@@ -22,7 +22,7 @@ from gra_mi.stage.envmap_library import write_envmap_set
 from gra_mi.stage.lightstage import RigLayout, load_calibration, load_pattern, olat_pattern
 from gra_mi.stage.scene import RenderConfig, render_to_folder, write_rig, write_scene_file
 from gra_mi.subject.anny_body import MOTION_CLIPS, anny_frames
-from gra_mi.subject.sequence import SequenceLayout, tiny_subject, write_sequence
+from gra_mi.subject.sequence import WHOLE_FRAME_BYTES, SequenceLayout, tiny_subject, write_sequence
 
 RIG_OPTIONS = ("num_leds", "radius", "num_cameras", "camera_distance", "width", "height", "max_led_intensity")
 
@@ -48,7 +48,6 @@ def run_rig(c: RigCommand) -> None:
     print(f"wrote rig with {stage.num_leds} LEDs and {len(stage.cameras)} cameras to {folder}")
 
 
-TINY_FRAME_BYTES = 131072  # the peak of making the tiny subject, per frame (measured: 109 kB)
 ENVMAP_BYTES_PER_PIXEL = 512  # the peak of baking one map (measured: about 400 bytes a pixel, the sky's directions)
 
 
@@ -112,7 +111,7 @@ class SubjectCommand(CommandConfig):
         if ignored:
             raise GraMiParameterError(ignored[0], f"is not an option of --kind {self.kind} (see `gra-mi subject --help`)")
         if self.kind == "tiny":  # held in memory whole, then written
-            require_memory("frames", self.frames * TINY_FRAME_BYTES, f"{self.frames:,} frames of the tiny subject")
+            require_memory("frames", self.frames * WHOLE_FRAME_BYTES["tiny"], f"{self.frames:,} frames of the tiny subject")
 
 
 def run_subject(c: SubjectCommand) -> None:
