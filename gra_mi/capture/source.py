@@ -12,7 +12,7 @@ import numpy as np
 from gra_mi.capture.lens import held_fraction
 from gra_mi.capture.mesh_frames import MeshFrames
 from gra_mi.capture.source_files import normalised_gains, read_led_gains
-from gra_mi.core.config import comma_list, option
+from gra_mi.core.config import name_list, option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive
 from gra_mi.core.guard import path_component
 from gra_mi.core.limits import require_memory
@@ -28,9 +28,9 @@ UP_AXES = {"+x": (1, 0, 0), "-x": (-1, 0, 0), "+y": (0, 1, 0), "-y": (0, -1, 0),
 class ImportConfig:
     """What every import route shares (:func:`import_capture`)."""
 
-    cameras: list[str] | None = field(default=None, metadata=option(parse=comma_list))
+    cameras: list[str] | None = field(default=None, metadata=option(parse=name_list))
     """Cameras to import, comma-separated (Cam01,Cam05,...). Default: all."""
-    eval_cameras: list[str] | None = field(default=None, metadata=option(parse=comma_list))
+    eval_cameras: list[str] | None = field(default=None, metadata=option(parse=name_list))
     """Cameras held out for novel-view evaluation, comma-separated. Default: two, spread over the rig."""
     scale: float = 1.0
     """Image scale after the pixels are made square (0.25: a quarter of the size; a full HumanOLAT pose is ~13,700

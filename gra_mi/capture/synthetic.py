@@ -29,7 +29,7 @@ import numpy as np
 from gra_mi.capture.dataset import Capture, FrameLighting
 from gra_mi.capture.truth import NOISE_REFERENCE_FACTOR, ground_truth_renderers, measure_ground_truth_noise
 from gra_mi.capture.wrinkles import pose_capture_wrinkles, wrinkle_normal_map
-from gra_mi.core.config import comma_list, option
+from gra_mi.core.config import name_list, option
 from gra_mi.core.errors import GraMiParameterError
 from gra_mi.core.io import atomic_write_text, write_exr, write_png
 from gra_mi.core.limits import require_memory
@@ -292,7 +292,7 @@ class CaptureConfig:
     score is measured against, more (held_out_spp, held_out_indirect_spp)."""
     indirect_spp: int | None = None
     """Path samples per pixel of the interreflections (a power of 4). Default: the preset's."""
-    without: list[str] = field(default_factory=list, metadata=option(parse=comma_list))
+    without: list[str] = field(default_factory=list, metadata=option(parse=name_list))
     """Effects to leave out of the path-traced ground truth, comma-separated: sheen, wrinkles, interreflection.
     Fitting such captures shows what each effect costs the one-bounce fit (docs/results/fit.md)."""
     measure_noise: bool = True

@@ -18,7 +18,7 @@ from gra_mi.core.limits import require_memory
 from gra_mi.core.shard import ShardOptions
 from gra_mi.render.scene_file import is_lightstage_scene, parse_defines, render_scene_file
 from gra_mi.stage.envmap import EnvmapOptions
-from gra_mi.stage.envmap_library import write_envmap_set
+from gra_mi.stage.envmap_library import BAKE_BYTES_PER_PIXEL, write_envmap_set
 from gra_mi.stage.lightstage import RigLayout, load_calibration, load_pattern, olat_pattern
 from gra_mi.stage.scene import RenderConfig, render_to_folder, write_rig, write_scene_file
 from gra_mi.subject.anny_body import MOTION_CLIPS, anny_frames
@@ -48,9 +48,6 @@ def run_rig(c: RigCommand) -> None:
     print(f"wrote rig with {stage.num_leds} LEDs and {len(stage.cameras)} cameras to {folder}")
 
 
-ENVMAP_BYTES_PER_PIXEL = 512  # the peak of baking one map (measured: about 400 bytes a pixel, the sky's directions)
-
-
 @dataclass(kw_only=True)
 class EnvmapsCommand(CommandConfig):
     out: Path
@@ -69,7 +66,7 @@ class EnvmapsCommand(CommandConfig):
                 raise GraMiParameterError(split, "must be >= 0")
         if self.height < 4:
             raise GraMiParameterError("height", f"must be >= 4 (lat-long rows), got {self.height}")
-        require_memory("height", ENVMAP_BYTES_PER_PIXEL * 2 * self.height**2, f"a {2 * self.height}x{self.height} map")
+        require_memory("height", BAKE_BYTES_PER_PIXEL * 2 * self.height**2, f"a {2 * self.height}x{self.height} map")
 
 
 def run_envmaps(c: EnvmapsCommand) -> None:

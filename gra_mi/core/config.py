@@ -71,6 +71,17 @@ def comma_list(text: str) -> list[str]:
     return [t.strip() for t in text.split(",") if t.strip()]
 
 
+def name_list(text: str) -> list[str]:
+    """:func:`comma_list` of names (cameras, maps, effects): a name given twice is refused (it would be scored, listed
+    or held out twice, or once where the user counted two)."""
+    import argparse
+
+    names = comma_list(text)
+    if twice := sorted({n for n in names if names.count(n) > 1}):
+        raise argparse.ArgumentTypeError(f"{', '.join(repr(n) for n in twice)} given twice in '{text}'")
+    return names
+
+
 def changed_options(config, names: Iterable[str] | None = None) -> list[str]:
     """The fields of ``config`` (or the ``names`` among them) set to something other than their defaults: options that
     another choice of the same command would ignore, to be refused rather than dropped unsaid."""

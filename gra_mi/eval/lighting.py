@@ -24,9 +24,10 @@ import numpy as np
 
 from gra_mi.capture.truth import TRUTH_VERSION, render_envmap_truth
 from gra_mi.core.color import display_exposure
-from gra_mi.core.config import comma_list, option
+from gra_mi.core.config import name_list, option
 from gra_mi.core.errors import GraMiParameterError
 from gra_mi.core.io import atomic_write_text, pyplot, read_exr, save_figure, to_srgb8, write_exr
+from gra_mi.core.limits import require_memory
 from gra_mi.core.metrics import compare, subject_mask
 from gra_mi.core.progress import progress
 from gra_mi.core.runtime import torch_device
@@ -34,7 +35,8 @@ from gra_mi.core.shard import Shard
 from gra_mi.render.runtime import ensure_mitsuba
 from gra_mi.render.transport import LightTransport
 from gra_mi.stage.envmap import envmap_to_leds
-from gra_mi.stage.envmap_library import REFERENCE_MAPS, reference_map
+from gra_mi.stage.envmap_library import BAKE_BYTES_PER_PIXEL, REFERENCE_MAPS, reference_map
+from gra_mi.stage.scene import MAX_SPP
 
 logger = logging.getLogger(__name__)
 
@@ -43,11 +45,11 @@ TRUTH_SPP = 256
 
 @dataclass
 class EnvmapAccuracyConfig:
-    maps: list[str] = field(default_factory=lambda: ["sun", "studio", "interior", "night"], metadata=option(parse=comma_list))
+    maps: list[str] = field(default_factory=lambda: ["sun", "studio", "interior", "night"], metadata=option(parse=name_list))
     """Reference maps to relight under, comma-separated, among sun, studio, interior, night (envmap_library.reference_map)."""
     frame: int | None = None
     """Subject frame (default: the first frame of the first test sequence)."""
-    cameras: list[str] | None = field(default=None, metadata=option(parse=comma_list))
+    cameras: list[str] | None = field(default=None, metadata=option(parse=name_list))
     """Cameras to score, comma-separated names (default: the capture's held-out cameras)."""
     spp: int = TRUTH_SPP
     """Samples per pixel of the path-traced truth."""
@@ -60,10 +62,11 @@ class EnvmapAccuracyConfig:
         unknown = sorted(set(self.maps) - set(REFERENCE_MAPS))
         if unknown or not self.maps:
             raise GraMiParameterError("maps", f"expected names among {', '.join(REFERENCE_MAPS)}, got {', '.join(self.maps) or 'none'}")
-        if self.spp < 1:
-            raise GraMiParameterError("spp", f"must be >= 1, got {self.spp}")
+        if not 1 <= self.spp <= MAX_SPP:
+            raise GraMiParameterError("spp", f"must be in [1, {MAX_SPP}], got {self.spp}")
         if self.map_height < 8:
             raise GraMiParameterError("map_height", f"must be >= 8, got {self.map_height}")
+        require_memory("map_height", BAKE_BYTES_PER_PIXEL * 2 * self.map_height**2, f"a {2 * self.map_height}x{self.map_height} map")
 
 
 def _truth_files(out: Path, capture, env: np.ndarray, name: str, frame: int, cameras: list[str], spp: int):

@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from gra_mi.capture.dataset import Capture, load_fit_observation
-from gra_mi.core.config import comma_list, option
+from gra_mi.core.config import comma_list, name_list, option
 from gra_mi.core.errors import GraMiParameterError
 from gra_mi.core.io import atomic_path, read_checkpoint_npz
 from gra_mi.core.limits import require_memory
@@ -123,7 +123,7 @@ class FitConfig:
     """Closed form: L1 reweighting iterations after the least-squares solution (0: plain least squares)."""
     resolution: int | None = field(default=None, metadata=option(flag="--uv-resolution"))
     """UV resolution of the fitted maps (default: the capture's)."""
-    cameras: list[str] | None = field(default=None, metadata=option(parse=comma_list))
+    cameras: list[str] | None = field(default=None, metadata=option(parse=name_list))
     """Training cameras to fit on, comma-separated (a subset bounds the fit's memory on a large capture). Default: all."""
     frame_step: int = 1
     """Fit on every Nth training frame (lighting) only (1: all)."""

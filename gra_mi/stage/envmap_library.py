@@ -24,6 +24,8 @@ logger = logging.getLogger(__name__)
 SPLIT_SEED_BASE = {"train": 0, "test": 1_000_000}
 SUN_ANGULAR_RADIUS = math.radians(0.2667)
 
+BAKE_BYTES_PER_PIXEL = 512  # the peak of baking one map (measured: about 400 bytes a pixel, the sky's directions)
+
 
 def _bake(height: int, supersample: int, radiance_of) -> np.ndarray:
     """Box-filtered lat-long map of ``radiance_of(directions (..., 3)) -> (..., 3)``."""
