@@ -454,6 +454,11 @@ OPTION_CASES = [
     ("refine-mix-nan", [*REFINE, "--mix", "nan"], ["--mix"]),
     ("refine-frames", [*REFINE, "--frames", "-1"], ["--frames"]),
     ("refine-seed", [*REFINE, "--seed", "-1"], ["--seed"]),
+    ("refiner-data-synthetic-option", ["refiner-data", "{cap}", "--fit", "{fit}", "--subjects", "3"], ["--subjects", "--synthetic only"]),
+    ("refiner-data-capture-option", ["refiner-data", "--synthetic", "--zoom", "2"], ["--zoom", "--synthetic makes its own"]),
+    ("refiner-data-synthetic-capture", ["refiner-data", "{cap}", "--synthetic"], ["--synthetic", "drop the capture"]),
+    ("refiner-data-synthetic-memory", ["refiner-data", "--synthetic", "--resolution", "100000"], ["--resolution", "GiB"]),
+    ("refiner-data-memory", ["refiner-data", "{cap}", "--fit", "{fit}", "--zoom", "1000"], ["sequences", "GiB"]),
     ("refine-filter-alone", [*REFINE, "--filter-radius", "8"], ["--filter-radius", "with --deflicker only"]),
     ("refine-platform-alone", [*REFINE, "--platform-spp", "4"], ["--platform-spp", "with --composite only"]),
     (

@@ -8,8 +8,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from gra_mi.cli.options import CommandConfig, Restartable
-from gra_mi.core.config import option, options_need_switch
+from gra_mi.core.config import changed_options, option, options_need_switch
 from gra_mi.core.errors import GraMiParameterError, require_positive
+from gra_mi.core.limits import require_memory
 from gra_mi.core.shard import ShardOptions
 from gra_mi.refiner.config import RefinerConfig
 from gra_mi.refiner.data import CaptureSequencesConfig
@@ -39,6 +40,11 @@ def run_train_relightnet(c: TrainRelightnetCommand) -> None:
     from gra_mi.relightnet.train import train_relightnet
 
     print(f"done: open {train_relightnet(c.capture, c.fit, c.out, c.train, c.overwrite)}")
+
+
+SYNTHETIC_OPTIONS = ("subjects", "sequences", "resolution")
+SYNTHETIC_FRAMES = 17  # a synthetic training sequence: one window
+SYNTHETIC_BYTES_PER_PIXEL = 256  # the peak of making a synthetic sequence, per pixel and frame (measured: 50–62 bytes)
 
 
 @dataclass(kw_only=True)
@@ -71,6 +77,15 @@ class RefinerDataCommand(Restartable):
             raise GraMiParameterError("resolution", f"must be a multiple of 16, got {self.resolution}")
         if not self.synthetic and (self.capture is None or self.fit is None):
             raise GraMiParameterError("capture", "give a capture folder and --fit (or --synthetic)")
+        if not self.synthetic and (given := changed_options(self, SYNTHETIC_OPTIONS)):
+            raise GraMiParameterError(given[0], "takes effect with --synthetic only: add --synthetic, or leave it out")
+        if self.synthetic:  # the synthetic sequences read test_length and env_height alone, and no capture
+            if any(getattr(self, n) is not None for n in ("capture", "fit", "relightnet")):
+                raise GraMiParameterError("synthetic", "makes sequences of its own: drop the capture, --fit and --relightnet")
+            if given := changed_options(self.sequences_config, ("scale", "zoom", "train_length", "train_cameras")):
+                raise GraMiParameterError(given[0], "is an option of a capture's sequences: --synthetic makes its own")
+            frames = max(SYNTHETIC_FRAMES, self.sequences_config.test_length)  # one sequence is made at a time
+            require_memory("resolution", frames * self.resolution**2 * SYNTHETIC_BYTES_PER_PIXEL, f"a sequence of {frames} frames")
 
 
 def run_refiner_data(c: RefinerDataCommand) -> None:
@@ -80,7 +95,7 @@ def run_refiner_data(c: RefinerDataCommand) -> None:
     if c.synthetic:
         subjects = {s: (c.sequences, 1, 1) for s in range(c.subjects)}
         length, env_height = c.sequences_config.test_length, c.sequences_config.env_height
-        ds = synthetic_dataset(c.out, subjects, 17, c.resolution, c.resolution, env_height, length, overwrite=c.overwrite)
+        ds = synthetic_dataset(c.out, subjects, SYNTHETIC_FRAMES, c.resolution, c.resolution, env_height, length, overwrite=c.overwrite)
     else:
         shard = c.shards.resolved()
         ds = dataset_from_capture(

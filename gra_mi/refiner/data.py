@@ -18,6 +18,7 @@ import torch.nn.functional as F
 from gra_mi.capture.dataset import load_observation
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive
 from gra_mi.core.io import atomic_path
+from gra_mi.core.limits import require_memory_for
 from gra_mi.core.progress import progress
 from gra_mi.core.provenance import claim_output
 from gra_mi.core.runtime import torch_device
@@ -152,8 +153,9 @@ def dataset_from_capture(
     out, shard = Path(out), shard or Shard()
     capture, relighter, model = _coarse_stages(capture_dir, fit_dir, relightnet_dir, cache_dir or out / "cache")
     inputs = {"capture": capture_dir, "fit": fit_dir, "relightnet": relightnet_dir}
-    claim_output(out, "refiner-data", inputs, config.record(), overwrite=overwrite, shard=shard)
     jobs = _sequence_jobs(capture, config)
+    _check_memory(capture, relighter.ls.stage, jobs, config)
+    claim_output(out, "refiner-data", inputs, config.record(), overwrite=overwrite, shard=shard)
     if shard.whole:
         raw = [_raw_sequence(capture, relighter, model, job, config) for job in progress(jobs, description="refiner sequences")]
     else:
@@ -168,6 +170,22 @@ def dataset_from_capture(
     )
     shutil.rmtree(out / "parts", ignore_errors=True)
     return dataset
+
+
+SEQUENCE_BYTES_PER_PIXEL = 32  # a delivered frame's coarse and target images (RGBA float32), its box's the same
+
+
+def _check_memory(capture, stage, jobs: list[tuple], config: CaptureSequencesConfig) -> None:
+    """The dataset is held whole before it is written: its frames (a box up to the frame's size × zoom²) and their
+    envmaps, against the machine's memory, before anything is rendered."""
+    total = 0.0
+    for _, cam, _, length, _, _ in jobs:
+        camera = stage.camera(cam)
+        pixels = camera.width * camera.height * config.scale**2
+        total += length * (pixels * SEQUENCE_BYTES_PER_PIXEL * (1 + config.zoom**2) + 2 * config.env_height**2 * 12)
+    frames = sum(job[3] for job in jobs)
+    what = f"{len(jobs)} sequences of {frames:,} frames in all (with these --scale, --zoom, --env-height and lengths)"
+    require_memory_for(capture.folder, "", total, what)
 
 
 def _raw_sequence(capture, relighter, model, job, config: CaptureSequencesConfig) -> tuple:
