@@ -412,6 +412,8 @@ OPTION_CASES = [
     ("rn-dropout", [*RN, "--env-dropout", "1.5"], ["--env-dropout"]),
     ("rn-dropout-nan", [*RN, "--env-dropout", "nan"], ["--env-dropout"]),
     ("rn-validate-every", [*RN, "--validate-every", "0"], ["--validate-every"]),
+    ("rn-env-height-memory", [*RN, "--env-height", "100000"], ["--env-height", "GiB"]),
+    ("rn-base-channels-wide", [*RN, "--base-channels", "1000"], ["--base-channels", "at most 128"]),
     ("rn-checkpoint-every", [*RN, "--checkpoint-every", "0"], ["--checkpoint-every"]),
     ("rn-channels", [*RN, "--base-channels", "0"], ["--base-channels"]),
     ("rn-patch", [*RN, "--patch", "-1"], ["--patch"]),

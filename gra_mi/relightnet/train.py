@@ -40,6 +40,8 @@ from gra_mi.render.transport import LightTransport
 
 logger = logging.getLogger(__name__)
 
+ENV_BYTES_PER_PIXEL = 512  # an envmap of the encoder: baked from the LEDs, its tokens, their positions and Adam's state
+
 
 @dataclass
 class TrainConfig:
@@ -114,6 +116,12 @@ class TrainConfig:
             raise GraMiParameterError("patch", f"must be 1, 2 or 4, got {self.patch}")
         if self.env_height % 4:
             raise GraMiParameterError("env_height", f"must be a multiple of 4, got {self.env_height}")
+        require_memory(
+            "env_height", ENV_BYTES_PER_PIXEL * 2 * self.env_height**2, f"a {2 * self.env_height}x{self.env_height} envmap's encoder"
+        )
+        widest = RelightNetConfig.max_channels
+        if self.base_channels > widest:  # channels double per level up to the widest: more at the top is never used
+            raise GraMiParameterError("base_channels", f"must be at most {widest} (the UNet's widest level), got {self.base_channels}")
 
     def learning_rate(self, step: int) -> float:
         warmup = max(1, self.steps // 20)
