@@ -446,6 +446,8 @@ OPTION_CASES = [
     ("tr-seed", [*TR, "--seed", "-3"], ["--seed"]),
     ("tr-selection-steps", [*TR, "--selection-steps", "0"], ["--selection-steps"]),
     ("tr-data-missing", ["train-refiner", "{root}/nodata"], ["nodata"]),
+    ("tr-lora-rank-wide", [*TR, "--lora-rank", "100000"], ["--lora-rank", "[0, 256]"]),
+    ("tr-tiny-vae-weights", [*TR, "--vae-weights", "{root}/albedo.exr"], ["--vae-weights", "real sizes"]),
     ("tr-weights-missing", [*TR, "--size", "1.3B", "--weights", "{root}/noweights"], ["noweights"]),
     ("refine-shift-nan", [*REFINE, "--shift", "nan"], ["--shift"]),
     ("refine-shift-zero", [*REFINE, "--shift", "0"], ["--shift"]),

@@ -113,8 +113,11 @@ class RefinerConfig:
         layers = TRANSFORMER_CONFIGS[self.size]["num_layers"]
         if self.env_blocks is not None and any(not 0 <= b < layers for b in self.env_blocks):
             bad("env_blocks", f"{self.env_blocks} must be block indices in [0, {layers})")
-        if self.lora_rank < 0:
-            bad("lora_rank", f"must be >= 0 (0: no LoRA), got {self.lora_rank}")
+        width = TRANSFORMER_CONFIGS[self.size]["num_attention_heads"] * TRANSFORMER_CONFIGS[self.size]["attention_head_dim"]
+        if not 0 <= self.lora_rank <= width:  # a rank beyond the layers' width is no low-rank update (and costs its square)
+            bad("lora_rank", f"must be in [0, {width}] (0: no LoRA; {width}: the {self.size} DiT's width), got {self.lora_rank}")
+        if self.size == "tiny" and (given := [n for n in ("weights", "vae_weights", "prompt_embeds") if getattr(self, n)]):
+            bad(given[0], "is for the real sizes (1.3B, 14B): the tiny refiner loads no weights")
         if not (math.isfinite(self.residual_scale) and self.residual_scale >= 0):
             bad("residual_scale", f"must be >= 0 (0: flow on the latents), got {self.residual_scale}")
         if not 0 <= self.seed < 2**32:
