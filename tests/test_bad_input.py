@@ -346,6 +346,8 @@ OPTION_CASES = [
     ("relight-platform-spp", ["relight", TINY, "--olat", "0", "--platform-spp", "0"], ["--platform-spp"]),
     ("relight-platform-radius", ["relight", TINY, "--olat", "0", "--platform-radius", "-1"], ["--platform-radius"]),
     ("relight-platform-reflectance", ["relight", TINY, "--olat", "0", "--platform-reflectance", "1.5"], ["--platform-reflectance"]),
+    ("relight-bounce-rays-alone", ["relight", TINY, "--olat", "0", "--bounce-rays", "64"], ["--bounce-rays", "--bounces 2"]),
+    ("fit-bounce-smoothing-alone", ["fit", "{cap}", "--bounce-smoothing", "3"], ["--bounce-smoothing", "--bounces 2"]),
     ("relight-platform-alone", ["relight", TINY, "--olat", "0", "--platform-radius", "2"], ["--platform-radius", "with --composite only"]),
     ("relight-relightnet-missing", ["relight", TINY, "--olat", "0", "--stage", "relightnet"], ["--relightnet"]),
     # render

@@ -166,7 +166,7 @@ def run_demo(preset_name: str, out: Path, overwrite: bool = False, transport: Li
     """Run every stage on ``preset_name`` into ``out`` with ``transport``'s bounces of light in every stage that shades
     texels; write demo.json (the stages' records) and report.md from it."""
     transport = transport or LightTransport()
-    transport.validate()
+    transport.validate(fixed=True)
 
     if preset_name not in PRESETS:
         raise GraMiParameterError("preset", f"unknown preset '{preset_name}', expected one of {sorted(PRESETS)}")

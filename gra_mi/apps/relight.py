@@ -64,7 +64,7 @@ class RelightConfig:
     transport: LightTransport = field(default_factory=LightTransport)
 
     def validate(self) -> None:
-        self.transport.validate()
+        self.transport.validate(fixed=True)
         if self.stage not in STAGES:
             raise GraMiParameterError("stage", f"expected one of {STAGES}, got '{self.stage}'")
         if self.lighting_model not in LIGHTING_MODELS:

@@ -58,7 +58,7 @@ class EnvmapAccuracyConfig:
     transport: LightTransport = field(default_factory=LightTransport)
 
     def validate(self) -> None:
-        self.transport.validate()
+        self.transport.validate(fixed=True)
         unknown = sorted(set(self.maps) - set(REFERENCE_MAPS))
         if unknown or not self.maps:
             raise GraMiParameterError("maps", f"expected names among {', '.join(REFERENCE_MAPS)}, got {', '.join(self.maps) or 'none'}")

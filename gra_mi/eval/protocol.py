@@ -81,7 +81,7 @@ class EvalConfig:
     transport: LightTransport = field(default_factory=LightTransport)
 
     def validate(self) -> None:
-        self.transport.validate()
+        self.transport.validate(fixed=True)
         if self.library_envmaps < 0:
             raise GraMiParameterError("library_envmaps", f"must be >= 0, got {self.library_envmaps}")
         require_memory("library_envmaps", self.library_envmaps * DRIVE_BYTES, f"{self.library_envmaps:,} library maps' LED drives")

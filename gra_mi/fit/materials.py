@@ -136,7 +136,7 @@ class FitConfig:
     transport: LightTransport = field(default_factory=LightTransport)
 
     def validate(self) -> None:
-        self.transport.validate()
+        self.transport.validate(fixed=True)
         if self.solver not in SOLVERS:
             raise GraMiParameterError("solver", f"expected one of {', '.join(SOLVERS)}, got {self.solver!r}")
         if self.iterations < 0:

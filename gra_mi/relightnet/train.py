@@ -91,7 +91,7 @@ class TrainConfig:
     as the metrics see them (an error in a shadow weighs what it looks like); "linear": radiance itself."""
 
     def validate(self) -> None:
-        self.transport.validate()
+        self.transport.validate(fixed=True)
         positive = {"steps": self.steps, "checkpoint_every": self.checkpoint_every, "log_every": self.log_every}
         positive |= {"base_channels": self.base_channels, "env_height": self.env_height, "batch_size": self.batch_size}
         positive |= {"validate_every": self.validate_every, "selection_views": self.selection_views}

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from gra_mi.core.config import changed_options
 from gra_mi.core.errors import GraMiParameterError
 
 MAX_BOUNCES = 8
@@ -33,7 +34,11 @@ class LightTransport:
     same surface within this many texels (near in space, facing alike), cutting the noise of its K-ray estimate;
     0 leaves each texel's own estimate."""
 
-    def validate(self) -> None:
+    def validate(self, fixed: bool = False) -> None:
+        """Each field in range; ``fixed``: the bounces cannot change later (every command but the viewer, whose page
+        has a control for them), so ray counts and smoothing given with one bounce would be ignored: refused."""
+        if fixed and self.bounces == 1 and (given := changed_options(self, ("bounce_rays", "bounce_smoothing"))):
+            raise GraMiParameterError(given[0], "takes effect with --bounces 2 or more only: add --bounces 2, or leave it out")
         if isinstance(self.bounces, bool) or not isinstance(self.bounces, int) or not 1 <= self.bounces <= MAX_BOUNCES:
             raise GraMiParameterError("bounces", f"expected an integer in [1, {MAX_BOUNCES}], got {self.bounces!r}")
         if isinstance(self.bounce_rays, bool) or not isinstance(self.bounce_rays, int) or not 1 <= self.bounce_rays <= MAX_RAYS:
