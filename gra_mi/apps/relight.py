@@ -199,7 +199,7 @@ def relight_batch(
     for f in frames:
         if not 0 <= f < ls.sequence.num_frames:
             raise GraMiParameterError("frames", f"frame {f} out of range [0, {ls.sequence.num_frames})")
-    cams = [ls.stage.camera(c) for c in (cameras or [0])]
+    cams = list({cam.name: cam for cam in (ls.stage.camera(c) for c in (cameras or [0]))}.values())  # 'cam00,0': once
     model, relighter = _stage_model(ls, config, maps or SubjectMaps())
     if model is None and not config.save_uv:  # RelightNet and --save-uv use the whole UV texture: trace every texel
         relighter.only_for([cam.name for cam in cams])
