@@ -184,6 +184,8 @@ def inputs(path_traced_fit, tmp_path_factory):
     (root / "pattern_short.json").write_text(json.dumps({"intensities": [0.1] * 5}))
     (root / "pattern_nan.json").write_text('{"intensities": [NaN' + ", 0.1" * 63 + "]}")
     (root / "pattern_negative.json").write_text(json.dumps({"intensities": [-1.0] * 64}))
+    (root / "pattern_huge.json").write_text(json.dumps({"intensities": [1e30] * 64}))  # beyond float32 once × W/sr
+    np.save(root / "pattern_complex.npy", np.ones((64, 3), np.complex64))
     (root / "pattern_no_key.json").write_text(json.dumps({"leds": [0.1] * 64}))
     (root / "pattern_off.json").write_text(json.dumps({"intensities": [0.0] * 64}))
     np.save(root / "pattern_3d.npy", np.ones((2, 64, 3)))
@@ -638,6 +640,8 @@ DATA_CASES = [
     ("pattern-short", ["render", TINY, "--pattern", "{root}/pattern_short.json"], ["pattern_short.json", "64"]),
     ("pattern-nan", ["relight", TINY, "--pattern", "{root}/pattern_nan.json"], ["pattern_nan.json"]),
     ("pattern-negative", ["relight", TINY, "--pattern", "{root}/pattern_negative.json"], ["pattern_negative.json"]),
+    ("pattern-huge", ["relight", TINY, "--pattern", "{root}/pattern_huge.json"], ["pattern_huge.json", "at most"]),
+    ("pattern-complex", ["relight", TINY, "--pattern", "{root}/pattern_complex.npy"], ["pattern_complex.npy", "complex numbers"]),
     ("pattern-no-key", ["relight", TINY, "--pattern", "{root}/pattern_no_key.json"], ["pattern_no_key.json", "intensities"]),
     ("pattern-3d", ["relight", TINY, "--pattern", "{root}/pattern_3d.npy"], ["pattern_3d.npy"]),
     ("scene-broken", ["relight", "{root}/broken.xml", "--olat", "0"], ["broken.xml", "malformed XML"]),

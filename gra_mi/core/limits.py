@@ -11,6 +11,7 @@ from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 
 MEMORY_SHARE = 0.9  # of the machine's physical memory a single allocation may plan on
 DRIVE_BYTES = 2048 * 3 * 8  # one lighting's LED drive (float64 RGB) on a rig of up to 2,048 LEDs
+MAX_INTENSITY = 1e20  # W/sr: above it, intensity × BRDF × 1/d² leaves float32 (NaN renders), far past any real lamp
 
 
 def machine_memory() -> int:

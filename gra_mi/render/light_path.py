@@ -24,7 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from gra_mi.core.errors import GraMiInputError
-from gra_mi.render.point_light import MAX_INTENSITY, PointLight
+from gra_mi.core.limits import MAX_INTENSITY
+from gra_mi.render.point_light import PointLight
 
 KINDS = ("point", "spot")
 PER_KEYFRAME = ("intensity", "direction", "target", "cutoff_angle", "beam_width")

@@ -20,6 +20,7 @@ import mitsuba as mi
 import numpy as np
 
 from gra_mi.core.errors import GraMiParameterError
+from gra_mi.core.limits import MAX_INTENSITY
 from gra_mi.core.runtime import opaque
 from gra_mi.render import brdf
 from gra_mi.render.atlas import TexelGeometry
@@ -30,7 +31,6 @@ from gra_mi.stage.envmap import leds_to_envmap
 logger = logging.getLogger(__name__)
 
 
-MAX_INTENSITY = 1e20  # W/sr: above it, intensity × BRDF × 1/d² leaves float32 (NaN renders), far past any real lamp
 MIN_CONDITIONING_DISTANCE = 1e-3  # metres: a light closer to an LED than this (or its radius) counts as that far
 
 

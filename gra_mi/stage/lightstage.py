@@ -21,7 +21,7 @@ import numpy as np
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive
 from gra_mi.core.guard import path_component
 from gra_mi.core.io import atomic_write_text, read_json
-from gra_mi.core.limits import require_memory
+from gra_mi.core.limits import MAX_INTENSITY, require_memory
 
 CALIBRATION_FORMAT = "gra-mi-lightstage/1"
 
@@ -299,15 +299,24 @@ def uniform_pattern(stage: Lightstage, fraction: float = 1.0) -> np.ndarray:
 def validate_pattern(stage: Lightstage, pattern: np.ndarray, source: str = "pattern") -> np.ndarray:
     """Check an arbitrary LED intensity pattern: (L,) grey or (L, 3) RGB, finite, non-negative."""
     try:
-        pattern = np.asarray(pattern, dtype=np.float64)
+        given = np.asarray(pattern)
+        real = given.astype(np.float64) if not np.iscomplexobj(given) else None
     except (ValueError, TypeError):  # strings, ragged rows
         raise GraMiInputError(source, "expected a list of numbers (one per LED) or of [r, g, b] rows of numbers") from None
+    if real is None:  # converting would drop the imaginary part unsaid
+        raise GraMiInputError(source, "expected real LED intensities, got complex numbers")
+    pattern = real
     if pattern.ndim == 1:
         pattern = np.repeat(pattern[:, None], 3, axis=1)
     if pattern.shape != (stage.num_leds, 3):
         raise GraMiInputError(source, f"expected ({stage.num_leds},) or ({stage.num_leds}, 3) LED intensities, got {pattern.shape}")
     if not np.all(np.isfinite(pattern)) or np.any(pattern < 0):
         raise GraMiInputError(source, "LED intensities must be finite and non-negative")
+    if pattern.max(initial=0.0) * stage.max_led_intensity > MAX_INTENSITY:
+        limit = MAX_INTENSITY / stage.max_led_intensity
+        raise GraMiInputError(
+            source, f"LED drives must be at most {limit:g} (× {stage.max_led_intensity:g} W/sr: float32's range), got {pattern.max():g}"
+        )
     return pattern
 
 
