@@ -186,6 +186,8 @@ def inputs(path_traced_fit, tmp_path_factory):
     (root / "pattern_negative.json").write_text(json.dumps({"intensities": [-1.0] * 64}))
     (root / "pattern_huge.json").write_text(json.dumps({"intensities": [1e30] * 64}))  # beyond float32 once × W/sr
     np.save(root / "pattern_complex.npy", np.ones((64, 3), np.complex64))
+    (root / "pattern_binary.json").write_bytes(b"v/1\x01\x80\xff" * 8)  # an image named .json
+    (root / "pattern_twice.json").write_text('{"intensities": [0.1], "intensities": [0.2]}')
     (root / "pattern_no_key.json").write_text(json.dumps({"leds": [0.1] * 64}))
     (root / "pattern_off.json").write_text(json.dumps({"intensities": [0.0] * 64}))
     np.save(root / "pattern_3d.npy", np.ones((2, 64, 3)))
@@ -641,6 +643,13 @@ DATA_CASES = [
     ("pattern-nan", ["relight", TINY, "--pattern", "{root}/pattern_nan.json"], ["pattern_nan.json"]),
     ("pattern-negative", ["relight", TINY, "--pattern", "{root}/pattern_negative.json"], ["pattern_negative.json"]),
     ("pattern-huge", ["relight", TINY, "--pattern", "{root}/pattern_huge.json"], ["pattern_huge.json", "at most"]),
+    ("pattern-binary", ["relight", TINY, "--pattern", "{root}/pattern_binary.json"], ["pattern_binary.json", "not UTF-8 text"]),
+    (
+        "pattern-key-twice",
+        ["relight", TINY, "--pattern", "{root}/pattern_twice.json"],
+        ["pattern_twice.json", "given twice, with two values"],
+    ),
+    ("lights-binary", ["relight", TINY, "--lights", "{root}/pattern_binary.json"], ["pattern_binary.json", "not UTF-8 text"]),
     ("pattern-complex", ["relight", TINY, "--pattern", "{root}/pattern_complex.npy"], ["pattern_complex.npy", "complex numbers"]),
     ("pattern-no-key", ["relight", TINY, "--pattern", "{root}/pattern_no_key.json"], ["pattern_no_key.json", "intensities"]),
     ("pattern-3d", ["relight", TINY, "--pattern", "{root}/pattern_3d.npy"], ["pattern_3d.npy"]),

@@ -235,6 +235,6 @@ def test_relight_cli_moving_lights_video_and_conditioning(tmp_path):
     missing = run_cli("relight", str(TINY), "--lights", str(tmp_path / "sweep.json"), "--frames", "0:6", "--out", str(tmp_path / "x"))
     assert missing.returncode == 2 and "sweep.json" in missing.stderr and "[4, 5]" in missing.stderr
     (tmp_path / "broken.json").write_text('{"lights": [')
-    for name, said in (("absent.json", "not found"), ("broken.json", "not valid JSON")):
+    for name, said in (("absent.json", "not found"), ("broken.json", "malformed JSON")):
         bad = run_cli("relight", str(TINY), "--lights", str(tmp_path / name), "--out", str(tmp_path / "y"))
         assert bad.returncode == 2 and name in bad.stderr and said in bad.stderr and "Traceback" not in bad.stderr, bad.stderr

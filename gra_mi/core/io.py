@@ -46,16 +46,28 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
 
 
 def read_json(path: str | Path, hint: str = ""):
-    """Parse a JSON file; a missing or malformed file is a :class:`GraMiInputError` naming it."""
+    """Parse a JSON file; a missing, malformed or binary file, or an object with one key given twice with two values
+    (which one was meant? Python's parser keeps the last unsaid), is a :class:`GraMiInputError` naming it."""
     import json
 
     path = Path(path)
     if not path.is_file():
         raise GraMiInputError(path, f"file not found{hint}")
+
+    def one_value_per_key(pairs: list) -> dict:
+        found: dict = {}
+        for key, value in pairs:
+            if key in found and found[key] != value:
+                raise GraMiInputError(path, f"malformed JSON: the key '{key}' is given twice, with two values")
+            found[key] = value
+        return found
+
     try:
-        return json.loads(path.read_text())
+        return json.loads(path.read_text(), object_pairs_hook=one_value_per_key)
     except json.JSONDecodeError as exc:
         raise GraMiInputError(path, f"malformed JSON ({exc})") from None
+    except UnicodeDecodeError as exc:  # an image or an archive named .json
+        raise GraMiInputError(path, f"malformed JSON: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
 
 
 def pyplot():

@@ -17,13 +17,13 @@ light with one keyframe stands still. Frames outside a light's first and last ke
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from gra_mi.core.errors import GraMiInputError
+from gra_mi.core.io import read_json
 from gra_mi.core.limits import MAX_INTENSITY
 from gra_mi.render.point_light import PointLight
 
@@ -117,12 +117,7 @@ class LightPath:
     @classmethod
     def load(cls, path: str | Path) -> LightPath:
         path = Path(path)
-        if not path.is_file():
-            raise GraMiInputError(path, "light path file not found")
-        try:
-            data = json.loads(path.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise GraMiInputError(path, f"not valid JSON ({exc})") from None
+        data = read_json(path, hint=" (a light path file)")
         items = data.get("lights") if isinstance(data, dict) else None
         if not isinstance(items, list) or not items:
             raise GraMiInputError(path, 'expected {"lights": [ ... ]} with at least one light', field="lights")
