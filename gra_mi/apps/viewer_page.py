@@ -263,8 +263,8 @@ class ViewerPage:
         """Stop the page and wait for its threads: one that still traces or renders when Python exits finds Mitsuba
         torn down (a Ctrl-C in the first seconds once ended in tracebacks and a C++ abort)."""
         self.stop.set()
-        self.server.stop()
-        for worker in self.workers:
+        for worker in self.workers:  # each finishes its frame or view while the server can still take what it sends
             worker.join(timeout=WORKER_JOIN_S)
             if worker.is_alive():
                 logger.warning("thread %s still running after %d s; exiting anyway", worker.name, WORKER_JOIN_S)
+        self.server.stop()
