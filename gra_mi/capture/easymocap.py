@@ -38,7 +38,7 @@ from gra_mi.capture.source import ImportConfig, Source
 from gra_mi.capture.source_files import CalibCamera, add_numbered, image_size, read_points
 from gra_mi.capture.transforms import UNITS, TransformsOptions
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
-from gra_mi.core.io import read_json
+from gra_mi.core.io import read_json, read_text
 from gra_mi.core.schema import Count, Record, intrinsic_matrix, matrix, parse, rigid_rotation
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".avif", ".exr")
@@ -61,7 +61,7 @@ def read_opencv_yaml(path: Path) -> dict:
     """An OpenCV FileStorage YAML file: ``!!opencv-matrix`` entries as arrays, ``names`` as a list, numbers as floats."""
     if not path.is_file():
         raise GraMiInputError(path, "missing: EasyMocap's calibration (intri.yml and extri.yml)")
-    text, values = path.read_text(), {}
+    text, values = read_text(path, "an OpenCV FileStorage YAML file"), {}
     names = re.search(r"^names:\s*\n((?:\s+-\s*.*\n?)+)", text, re.MULTILINE)
     if names:
         values["names"] = [n.strip().strip("\"'") for n in re.findall(r"-\s*(.+)", names.group(1))]

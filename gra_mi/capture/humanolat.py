@@ -45,7 +45,7 @@ from gra_mi.capture.source_files import (
 )
 from gra_mi.core.color import srgb_encode
 from gra_mi.core.errors import GraMiInputError, require_positive
-from gra_mi.core.io import atomic_path, atomic_write_text, read_exr
+from gra_mi.core.io import atomic_path, atomic_write_text, read_exr, read_text
 from gra_mi.core.progress import progress
 from gra_mi.core.schema import Finite, NonNegative, Positive, Record, intrinsic_matrix, matrix, parse, rigid_rotation
 from gra_mi.core.shard import Shard
@@ -179,8 +179,9 @@ def read_spiral(path: Path, leds: int) -> np.ndarray:
     """The firing order as 0-based LED indices, checked against the LED count."""
     if not path.is_file():
         raise GraMiInputError(path, "missing: HumanOLAT's OLAT firing order (shared/LSX3_light_z_spiral.txt)")
+    text = read_text(path, "one LED index per line")  # outside the try: its error is a ValueError too
     try:
-        order = np.array([int(w) for w in path.read_text().split()], int) - 1
+        order = np.array([int(w) for w in text.split()], int) - 1
     except ValueError:
         raise GraMiInputError(path, "expected one 1-based LED index per line") from None
     if len(order) != leds or order.min(initial=0) < 0 or order.max(initial=0) >= leds:

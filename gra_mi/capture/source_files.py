@@ -13,7 +13,7 @@ import numpy as np
 from gra_mi.capture.lens import LensDistortion
 from gra_mi.core.color import srgb_decode_levels, srgb_encode
 from gra_mi.core.errors import GraMiInputError
-from gra_mi.core.io import atomic_path, atomic_write_text, read_exr
+from gra_mi.core.io import atomic_path, atomic_write_text, read_exr, read_text
 
 
 @dataclass
@@ -42,7 +42,7 @@ def read_points(path: Path) -> np.ndarray:
     if not path.is_file():
         raise GraMiInputError(path, "missing: HumanOLAT's LED positions (shared/LSX_light_positions_aligned.pc)")
     points = []
-    for k, line in enumerate(path.read_text().splitlines()):
+    for k, line in enumerate(read_text(path, "lines 'v x y z'").splitlines()):
         words = line.split()
         if words[:1] != ["v"]:
             continue
@@ -67,10 +67,7 @@ def read_led_gains(path: Path, numbers: list[int]) -> np.ndarray:
     those LEDs and channels, so that ``--led-intensity`` stays the mean LED's and only the gains' ratios count."""
     if not path.is_file():
         raise GraMiInputError(path, "missing, or not a file: the LED gains (--led-gains)")
-    try:
-        lines = path.read_text(encoding="utf-8-sig").splitlines()  # a spreadsheet's export may start with a BOM
-    except (OSError, UnicodeDecodeError) as exc:
-        raise GraMiInputError(path, f"not a text file of LED gains ({exc})") from None
+    lines = read_text(path, "LED gains, one line per LED").splitlines()
     gains = []
     for k, line in enumerate(lines):
         words = line.split("#")[0].split()
@@ -145,7 +142,7 @@ def read_obj(path: Path) -> ObjMesh:
     if not path.is_file():
         raise GraMiInputError(path, "missing: the pose's mesh (model/model.obj)")
     positions, uvs, faces, face_uvs = [], [], [], []
-    for k, line in enumerate(path.read_text().splitlines()):
+    for k, line in enumerate(read_text(path, "a Wavefront OBJ mesh").splitlines()):
         words = line.split()
         if not words:
             continue

@@ -45,6 +45,15 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
             tmp_path.unlink()
 
 
+def read_text(path: Path, what: str) -> str:
+    """A text file a source gives (UTF-8, a leading BOM dropped: a spreadsheet's export); a binary file (an image or an
+    archive under a text file's name) is a :class:`GraMiInputError` naming it and ``what`` was expected."""
+    try:
+        return path.read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise GraMiInputError(path, f"not a text file ({exc.reason} at byte {exc.start}): expected {what}") from None
+
+
 def read_json(path: str | Path, hint: str = ""):
     """Parse a JSON file; a missing, malformed or binary file, or an object with one key given twice with two values
     (which one was meant? Python's parser keeps the last unsaid), is a :class:`GraMiInputError` naming it."""
