@@ -60,6 +60,11 @@ COMMANDS: dict[str, Command] = {
     "envmaps": Command("scene", "Write procedural HDR environment maps (skies and rooms) as EXR + PNG, split by seed."),
     "subject": Command("scene", "Write an animated tracked mesh sequence (sequence.npz + per-frame PLYs).", mitsuba=False),
     "scene": Command("scene", "Write a Mitsuba scene file that puts a subject sequence into a rig.", mitsuba=False),
+    "from-scene": Command(
+        "scene",
+        "A gra-mi lightstage from a Mitsuba scene you wrote: its perspective sensors as the cameras, point emitters as "
+        "the LEDs, the subject mesh and its material's albedo and roughness (then relight, view, export).",
+    ),
     "view": Command(
         "run", "Relight the avatar live in a browser: envmaps, OLATs, a draggable point light (viser; prints its URL).", torch=True
     ),

@@ -1,4 +1,5 @@
-"""Commands that build the stage and its data: ``rig``, ``envmaps``, ``subject``, ``scene``, ``render``, ``capture``."""
+"""Commands that build the stage and its data: ``rig``, ``envmaps``, ``subject``, ``scene``, ``from-scene``, ``render``,
+``capture``, ``import``."""
 
 from __future__ import annotations
 
@@ -7,14 +8,16 @@ from pathlib import Path
 
 from gra_mi.capture.easymocap import EasymocapOptions, import_easymocap
 from gra_mi.capture.humanolat import HumanolatOptions, import_humanolat, write_humanolat
+from gra_mi.capture.scene_stage import stage_from_scene, write_scene_stage
 from gra_mi.capture.source import ImportConfig
 from gra_mi.capture.synthetic import PRESETS, CaptureConfig, generate_capture
 from gra_mi.capture.transforms import TransformsOptions, import_transforms
 from gra_mi.cli.options import CommandConfig, Restartable
 from gra_mi.core.config import changed_options, comma_list, option
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError, require_positive
-from gra_mi.core.guard import names_of
+from gra_mi.core.guard import names_of, scene_references
 from gra_mi.core.limits import require_memory
+from gra_mi.core.provenance import claim_output
 from gra_mi.core.shard import ShardOptions
 from gra_mi.render.scene_file import is_lightstage_scene, parse_defines, render_scene_file
 from gra_mi.stage.envmap import EnvmapOptions
@@ -137,6 +140,38 @@ class SceneCommand(CommandConfig):
 def run_scene(c: SceneCommand) -> None:
 
     print(f"wrote {write_scene_file(c.out, c.rig, c.subject, c.spp)}")
+
+
+@dataclass(kw_only=True)
+class FromSceneCommand(Restartable):
+    scene: Path = field(metadata=option(positional=True))
+    """Your Mitsuba 3 scene: perspective sensors (the cameras), point emitters (the LEDs: their intensities become
+    lighting.json), a mesh with texture coordinates (the shape id="subject", or the only shape)."""
+    define: list[str] = field(default_factory=list, metadata=option(flag="-D", repeat=True, metavar="NAME=VALUE"))
+    """Set a parameter the scene declares or uses, as Mitsuba's own tool takes it (repeatable)."""
+    out: Path
+    """Folder to write: scene.xml, rig/, subject/, lighting.json, albedo.exr and roughness.exr (where the subject's
+    material holds them), notes.md (what was left out)."""
+    spp: int = 64
+    """Default samples per pixel written into the scene."""
+
+    def validate(self) -> None:
+        super().validate()
+        parse_defines(self.define)
+        require_positive({"spp": self.spp})
+
+
+def run_from_scene(c: FromSceneCommand) -> None:
+    stage = stage_from_scene(c.scene, parse_defines(c.define))  # refused before the folder is claimed
+    inputs = {"scene": c.scene} | {f"scene's {ref.name} ({ref})": ref for ref in scene_references(c.scene)}
+    claim_output(c.out, "from-scene", inputs, {"define": sorted(c.define), "spp": c.spp}, overwrite=c.overwrite, restart=True)
+    write_scene_stage(stage, c.out, c.spp)
+    for note in stage.notes:
+        print(f"note: {note}")
+    maps = "".join(f" --{name} {c.out / (name + '.exr')}" for name in stage.maps)
+    lighting = f"--pattern {c.out / 'lighting.json'}" if stage.drive.max() > 0 else "--olat 0"
+    print(f"wrote {c.out / 'scene.xml'}: {len(stage.stage.cameras)} cameras, {stage.stage.num_leds} LEDs, "
+          f"{stage.sequence.num_vertices} vertices. Relight it with:\n  gra-mi relight {c.out / 'scene.xml'} {lighting}{maps}")  # fmt: skip
 
 
 @dataclass(kw_only=True)

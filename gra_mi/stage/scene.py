@@ -210,7 +210,8 @@ def lightstage_parts_missing(missing: list[str]) -> str:
         "mesh sequence folder: sequence.npz with UVs and per-frame PLYs, from `gra-mi subject` or an import), "
         f'<default name="{keys.PARAM_CALIBRATION}"> (a rig\'s calibration.json, `gra-mi rig`), a shape '
         f'id="{keys.SUBJECT_ID}" and point emitters {keys.led_id(0)}... for the LEDs; `gra-mi scene --rig R --subject S` '
-        "writes such a scene. To render this scene as it is, with its own lights: `gra-mi render SCENE`"
+        "writes such a scene, `gra-mi from-scene SCENE --out DIR` one of a scene you wrote (its sensors, point-emitter LEDs "
+        "and subject mesh). To render this scene as it is, with its own lights: `gra-mi render SCENE`"
     )
 
 

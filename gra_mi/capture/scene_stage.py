@@ -1,0 +1,262 @@
+"""A gra-mi lightstage from a Mitsuba scene a user wrote (``gra-mi from-scene``).
+
+gra-mi's UV-space stages (``relight``, ``view``, ``export``, RelightNet) need a rig calibration and a tracked mesh
+sequence beside the scene file. A user's own scene holds the same things in Mitsuba's words: its ``perspective``
+sensors are the rig's cameras, its ``point`` emitters the LEDs (their intensities the scene's own lighting, kept as
+an LED drive), its subject a mesh with texture coordinates, and the subject's material may hold the albedo and
+roughness maps gra-mi relights with. Everything is read from the scene as Mitsuba loaded it (world-space vertices,
+the sensors' fields of view and principal points, the emitters' own ``sample_direction``), so whatever way the file
+spells a transform or a field of view, the stage is what Mitsuba renders. What the stage cannot hold is refused by
+name (a ``thinlens`` sensor's depth of field, an area or environment light), or, where it only leaves something out
+(a floor, a prop), said in the notes the command prints and writes.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from gra_mi.capture.placement import generate_atlas
+from gra_mi.capture.source import ImportConfig
+from gra_mi.capture.source_files import one_uv_tile
+from gra_mi.core.errors import GraMiInputError
+from gra_mi.core.io import atomic_write_text, write_exr
+from gra_mi.render.scene_file import load_scene_file, select_sensors, sensor_name
+from gra_mi.render.scene_lights import emitter_label, plugin_name, point_lights
+from gra_mi.stage import scene_keys as keys
+from gra_mi.stage.lightstage import Camera, Lightstage, lightstage_from_dict, lightstage_to_dict
+from gra_mi.stage.scene import subject_scene_xml, write_rig
+from gra_mi.subject.geometry import split_uv_seams, vertex_normals
+from gra_mi.subject.sequence import MeshSequence, save_sequence, validate_sequence
+
+# Mitsuba class → the parameters holding (albedo, roughness) in gra-mi's sense (roughness r: GGX α = r², as gra-mi's)
+MATERIAL_MAPS = {
+    "SmoothDiffuse": ("reflectance", None),
+    "GraMicrofacet": ("albedo", "roughness"),
+    "Principled": ("base_color", "roughness"),
+}
+WRAPPERS = {"TwoSidedBRDF": "brdf_0"}  # a material around the one that holds the maps
+DEFAULT_MAP_RESOLUTION = 256  # maps of constants and procedural textures; a bitmap keeps its own size
+MAX_MAP_RESOLUTION = 4096
+RIGID_TOLERANCE = 1e-4
+
+
+@dataclass
+class SceneStage:
+    """What a user's scene gives gra-mi: the rig, a one-frame subject, the scene's LED drive and material maps."""
+
+    stage: Lightstage
+    sequence: MeshSequence
+    drive: np.ndarray  # (L, 3) the scene's own LED intensities / stage.max_led_intensity
+    maps: dict[str, np.ndarray] = field(default_factory=dict)  # "albedo" (R, R, 3), "roughness" (R, R, 1)
+    notes: list[str] = field(default_factory=list)  # what the stage leaves out of the scene, said
+
+
+def stage_from_scene(path: str | Path, defines: dict[str, str] | None = None) -> SceneStage:
+    """Read the lightstage in the Mitsuba scene file ``path`` (``defines``: its ``-D`` parameters)."""
+    path = Path(path)
+    scene = load_scene_file(path, defines)
+    cameras = [camera_of(scene.sensors()[i], sensor_name(i, scene.sensors()[i], path), path) for i in select_sensors(path, scene, [])]
+    positions, intensities = _leds(scene, path)
+    shape, notes = _subject_shape(scene, path)
+    sequence = _one_frame_sequence(shape, path, notes)
+    low, high = sequence.vertices[0].min(axis=0), sequence.vertices[0].max(axis=0)
+    center = (low + high) / 2.0  # where an environment is seen from: the subject's middle
+    top = float(intensities.max())
+    data = lightstage_to_dict(Lightstage(positions, cameras, center, float(np.median(np.linalg.norm(positions - center, axis=1)))))
+    data["stage"]["max_led_intensity"] = top if top > 0 else 1.0
+    stage = lightstage_from_dict(data, source=str(path))  # the calibration's own checks: two LEDs at one place, ...
+    maps = material_maps(shape, path, notes)
+    if top <= 0:
+        notes.append("every LED is off in the scene (intensity 0): lighting.json drives none; relight with --envmap or --olat")
+    return SceneStage(stage, sequence, intensities / stage.max_led_intensity, maps, notes)
+
+
+def camera_of(sensor, name: str, path: Path) -> Camera:
+    """A ``perspective`` sensor as a pinhole camera in OpenCV's convention (its film's crop window is the image)."""
+    import mitsuba as mi
+
+    kind = sensor.class_name()
+    if kind != "PerspectiveCamera":
+        raise GraMiInputError(path, f"sensor '{name}' is a {kind}: gra-mi's cameras are pinholes, a <sensor type=\"perspective\"> "
+                              "(a thinlens's depth of field, an orthographic or spherical projection would be lost)")  # fmt: skip
+    params = mi.traverse(sensor)
+    width, height = (int(x) for x in sensor.film().size())
+    (crop_w, crop_h), (crop_x, crop_y) = sensor.film().crop_size(), sensor.film().crop_offset()
+    fx = 0.5 * width / np.tan(np.radians(0.5 * float(params["x_fov"][0])))
+    cx = width / 2.0 - float(params["principal_point_offset_x"][0]) * width - int(crop_x)
+    cy = height / 2.0 - float(params["principal_point_offset_y"][0]) * height - int(crop_y)
+    to_world = np.array(sensor.world_transform().matrix, np.float64).reshape(4, 4)
+    rotation = to_world[:3, :3]
+    if not np.allclose(rotation.T @ rotation, np.eye(3), atol=RIGID_TOLERANCE) or np.linalg.det(rotation) < 0:
+        raise GraMiInputError(path, f"sensor '{name}': its to_world scales, shears or mirrors the camera; give it a rotation "
+                              "and a translation only (a <lookat>)")  # fmt: skip
+    return Camera(name, int(crop_w), int(crop_h), fx, fx, cx, cy, to_world @ np.diag([-1.0, -1.0, 1.0, 1.0]))
+
+
+def _leds(scene, path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Positions and intensities (L, 3) of the scene's point emitters; any other emitter is refused, naming it."""
+    emitters = list(scene.emitters())
+    for i, emitter in enumerate(emitters):
+        if (kind := plugin_name(emitter)) != "point":
+            raise GraMiInputError(path, f"{emitter_label(i, emitter)} is a '{kind}' emitter: a gra-mi lightstage's LEDs are "
+                                  "point emitters (render this scene as it is with `gra-mi render`)")  # fmt: skip
+    if not emitters:
+        raise GraMiInputError(path, 'the scene has no emitter: a lightstage\'s LEDs are <emitter type="point"> in it')
+    positions, intensities = point_lights(emitters)
+    bad = ~np.isfinite(intensities).all(axis=1) | (intensities < 0).any(axis=1)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise GraMiInputError(path, f"{emitter_label(i, emitters[i])}: intensity {intensities[i].tolist()} must be finite and >= 0")
+    return positions, intensities
+
+
+def _subject_shape(scene, path: Path) -> tuple[object, list[str]]:
+    """The shape with id ``subject``, or the scene's only shape; the others are named as left out."""
+    shapes = list(scene.shapes())
+    chosen = [s for s in shapes if s.id() == keys.SUBJECT_ID]
+    if not chosen and len(shapes) == 1:
+        chosen = shapes
+    if not chosen:  # (Mitsuba itself refuses two objects with one id)
+        ids = ", ".join(f"'{s.id()}'" if s.id() else s.class_name() for s in shapes) or "none"
+        raise GraMiInputError(path, f"no shape has id '{keys.SUBJECT_ID}' among the scene's shapes ({ids}): give the body's "
+                              f'shape id="{keys.SUBJECT_ID}"')  # fmt: skip
+    subject = chosen[0]
+    label = f"shape '{subject.id()}'" if subject.id() else f"the {subject.class_name()} shape"
+    if not subject.is_mesh():
+        raise GraMiInputError(path, f"{label} is a {subject.class_name()}, not a mesh: the subject is a mesh with texture "
+                              "coordinates (obj, ply, serialized)")  # fmt: skip
+    notes = [
+        f"left out: shape '{s.id() or s.class_name()}' (a gra-mi lightstage holds the subject alone)" for s in shapes if s is not subject
+    ]
+    return subject, notes
+
+
+def _one_frame_sequence(shape, path: Path, notes: list[str]) -> MeshSequence:
+    """The subject mesh as Mitsuba holds it (world space, split at UV seams) as a one-frame sequence; its normals are
+    the ones Mitsuba shades with, or smooth ones where the mesh has none (``face_normals``)."""
+    import mitsuba as mi
+
+    params = mi.traverse(shape)
+    vertices = np.array(params["vertex_positions"], np.float64).reshape(-1, 3)
+    faces = np.array(params["faces"], np.int64).reshape(-1, 3).astype(np.int32)
+    if shape.has_vertex_normals():
+        normals = np.array(params["vertex_normals"], np.float64).reshape(-1, 3)
+    else:  # smooth across the UV seams: normals of the mesh welded by position
+        _, weld = np.unique(vertices, axis=0, return_inverse=True)
+        welded = np.zeros((weld.max() + 1, 3))
+        welded[weld] = vertices
+        normals = vertex_normals(welded, weld.reshape(-1)[faces])[weld.reshape(-1)]
+        notes.append("the subject has no vertex normals (face_normals): gra-mi shades it with smooth ones")
+    if shape.has_vertex_texcoords():
+        uvs = one_uv_tile(path, np.array(params["vertex_texcoords"], np.float64).reshape(-1, 2))
+    else:  # gra-mi's maps need a UV layout: one is generated, as an import does for a mesh without
+        atlas_uvs, face_uvs, said = generate_atlas(vertices, faces, ImportConfig().uv_resolution)
+        faces, position_of, uv_of = split_uv_seams(faces, face_uvs)
+        vertices, normals, uvs = vertices[position_of], normals[position_of], atlas_uvs[uv_of]
+        notes.append(f"the subject has no texture coordinates: its UV layout is {said}")
+    sequence = MeshSequence(faces, uvs.astype(np.float32), vertices[None].astype(np.float32), normals[None].astype(np.float32))
+    validate_sequence(sequence, str(path))
+    return sequence
+
+
+def children(node) -> dict:
+    """A scene object's parameters that are objects themselves (textures, nested materials), by name."""
+    import mitsuba as mi
+
+    class Collect(mi.TraversalCallback):
+        def __init__(self):
+            super().__init__()
+            self.found = {}
+
+        def put(self, name, value, *flags):
+            if isinstance(value, mi.Object):
+                self.found[name] = value
+
+    collect = Collect()
+    node.traverse(collect)
+    return collect.found
+
+
+def material_maps(shape, path: Path, notes: list[str]) -> dict[str, np.ndarray]:
+    """The subject material's albedo and roughness as square UV maps (a bitmap at its own size), where gra-mi reads its
+    kind (:data:`MATERIAL_MAPS`); otherwise none, said."""
+    if not shape.has_vertex_texcoords():
+        notes.append("its material's textures are not baked (on a mesh without texture coordinates they had none to follow)")
+        return {}
+    bsdf = shape.bsdf()
+    while _kind(bsdf) in WRAPPERS:
+        bsdf = children(bsdf)[WRAPPERS[_kind(bsdf)]]
+    kind = _kind(bsdf)
+    if kind not in MATERIAL_MAPS:
+        notes.append(f"the subject's material is a {kind}: no albedo or roughness taken from it (give "
+                     "`gra-mi relight --albedo/--roughness`)")  # fmt: skip
+        return {}
+    found = children(bsdf)
+    textures = {name: found[param] for name, param in zip(("albedo", "roughness"), MATERIAL_MAPS[kind], strict=True) if param in found}
+    resolution = min(MAX_MAP_RESOLUTION, max((_bitmap_side(t) for t in textures.values()), default=0) or DEFAULT_MAP_RESOLUTION)
+    maps = {name: bake_texture(texture, resolution, 3 if name == "albedo" else 1) for name, texture in textures.items()}
+    if "roughness" not in maps:
+        notes.append(f"the subject's {kind} has no roughness: relight uses gra-mi's default")
+    for name, image in maps.items():
+        if not np.isfinite(image).all() or image.min() < 0 or image.max() > 1:
+            notes.append(f"the subject's {name} holds values outside [0, 1]: clamped into it")
+            maps[name] = np.clip(np.nan_to_num(image, nan=0.0), 0.0, 1.0)
+    return maps
+
+
+def _kind(bsdf) -> str:
+    """Mitsuba's class name of a material; a Python plugin's (``gra_microfacet``) is its Python class's."""
+    return type(bsdf).__name__ if bsdf.class_name() == "BSDF" else bsdf.class_name()
+
+
+def _bitmap_side(texture) -> int:
+    import mitsuba as mi
+
+    params = mi.traverse(texture)
+    return max(np.array(params["data"]).shape[:2]) if "data" in params else 0
+
+
+def bake_texture(texture, resolution: int, channels: int) -> np.ndarray:
+    """A Mitsuba texture evaluated at the texel centres of a ``resolution``² UV map (row r at v = (r + ½) / R, as
+    gra-mi's maps and Mitsuba's bitmaps lie), (R, R, ``channels``) float32."""
+    import drjit as dr
+    import mitsuba as mi
+
+    u, v = np.meshgrid((np.arange(resolution) + 0.5) / resolution, (np.arange(resolution) + 0.5) / resolution)
+    si = dr.zeros(mi.SurfaceInteraction3f, resolution * resolution)
+    si.uv = mi.Point2f(u.ravel().astype(np.float32), v.ravel().astype(np.float32))
+    values = np.array(texture.eval(si) if channels == 3 else texture.eval_1(si), np.float32).reshape(channels, -1)
+    # a constant evaluates once for all lanes
+    return np.ascontiguousarray(np.broadcast_to(values, (channels, resolution * resolution)).T).reshape(resolution, resolution, channels)
+
+
+def write_scene_stage(stage: SceneStage, folder: Path, spp: int = 64) -> list[Path]:
+    """``folder``: scene.xml (a gra-mi lightstage scene), rig/, subject/, lighting.json (the scene's own LED drive),
+    albedo.exr / roughness.exr (where the material held them), notes.md. Returns what it wrote."""
+    write_rig(stage.stage, folder / "rig")
+    colours = _vertex_colours(stage)
+    save_sequence(MeshSequence(**{**stage.sequence.__dict__, "vertex_colors": colours}), folder / "subject")
+    atomic_write_text(folder / "scene.xml", subject_scene_xml("rig", "subject", spp=spp))
+    atomic_write_text(folder / "lighting.json", json.dumps({"intensities": np.round(stage.drive, 9).tolist()}) + "\n")
+    written = [folder / name for name in ("scene.xml", "rig", "subject", "lighting.json")]
+    for name, image in stage.maps.items():
+        write_exr(folder / f"{name}.exr", image)
+        written.append(folder / f"{name}.exr")
+    lines = ["# What gra-mi took from the scene", "", f"- {len(stage.stage.cameras)} cameras, {stage.stage.num_leds} LEDs"]
+    lines += [f"- {note}" for note in stage.notes]
+    atomic_write_text(folder / "notes.md", "\n".join(lines) + "\n")
+    return written + [folder / "notes.md"]
+
+
+def _vertex_colours(stage: SceneStage) -> np.ndarray:
+    """The albedo at each vertex's UV (nearest texel): what a stock Mitsuba render of the stage's scene shows."""
+    albedo = stage.maps.get("albedo")
+    if albedo is None:
+        return np.full((stage.sequence.num_vertices, 3), 0.5, np.float32)
+    side = albedo.shape[0]
+    ij = np.clip((stage.sequence.uvs * side).astype(int), 0, side - 1)
+    return albedo[ij[:, 1], ij[:, 0]].astype(np.float32)

@@ -1,0 +1,194 @@
+"""``gra-mi from-scene``: a lightstage made of a Mitsuba scene a user wrote, checked against Mitsuba's own reading of
+that scene (its sensors' projections, its bitmaps, its ``direct`` integrator's render) and fed what a user gets wrong.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gra_mi.cli import main
+from gra_mi.core.io import read_exr, write_exr
+
+from .conftest import SCENES
+from .test_bad_input import assert_refused, run
+
+SENSORS = """
+  <sensor type="perspective" id="front">
+    <float name="fov" value="35"/><string name="fov_axis" value="y"/>
+    <float name="principal_point_offset_x" value="0.04"/><float name="principal_point_offset_y" value="-0.03"/>
+    <transform name="to_world"><lookat origin="0.3, 1.1, 2.4" target="0, 1, 0" up="0, 1, 0"/></transform>
+    <film type="hdrfilm"><integer name="width" value="96"/><integer name="height" value="72"/>
+      <string name="pixel_format" value="rgba"/><rfilter type="box"/></film>
+  </sensor>
+  <sensor type="perspective" id="side">
+    <float name="fov" value="30"/>
+    <transform name="to_world"><lookat origin="-2.2, 1.3, 0.6" target="0, 1, 0" up="0, 1, 0"/></transform>
+    <film type="hdrfilm"><integer name="width" value="120"/><integer name="height" value="80"/>
+      <integer name="crop_offset_x" value="20"/><integer name="crop_offset_y" value="6"/>
+      <integer name="crop_width" value="70"/><integer name="crop_height" value="60"/>
+      <string name="pixel_format" value="rgba"/><rfilter type="box"/></film>
+  </sensor>
+  <sensor type="perspective" id="tele">
+    <string name="focal_length" value="85mm"/>
+    <transform name="to_world"><rotate y="1" angle="180"/><translate x="0.2" y="1.1" z="3.5"/></transform>
+    <film type="hdrfilm"><integer name="width" value="48"/><integer name="height" value="64"/></film>
+  </sensor>"""
+MATERIAL = """<bsdf type="gra_microfacet"><texture type="bitmap" name="albedo"><string name="filename" value="albedo_in.exr"/></texture>
+      <texture type="bitmap" name="roughness"><string name="filename" value="rough_in.exr"/><boolean name="raw" value="true"/></texture></bsdf>"""
+
+
+def _leds(count: int = 24) -> str:
+    """Point LEDs on a 2 m sphere around the subject, every fifth one off, the others of random colours."""
+    rng = np.random.default_rng(0)
+    directions = rng.normal(size=(count, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    lines = []
+    for k, d in enumerate(directions):
+        p, i = np.array([0, 1, 0]) + 2.0 * d, rng.uniform(0.2, 1.0, 3) * (k % 5 != 0)
+        lines.append(f'<emitter type="point" id="L{k}"><point name="position" x="{p[0]}" y="{p[1]}" z="{p[2]}"/>'
+                     f'<rgb name="intensity" value="{i[0]}, {i[1]}, {i[2]}"/></emitter>')  # fmt: skip
+    return "\n  ".join(lines)
+
+
+def write_user_scene(folder: Path, sensors: str = SENSORS, lights: str | None = None, shapes: str | None = None) -> Path:
+    """A scene as a user writes it: the tiny body as an OBJ (its texture coordinates in OBJ's convention, which
+    Mitsuba flips on loading), two sensors spelt differently, point LEDs, a gra_microfacet material with bitmaps."""
+    from gra_mi.subject.sequence import load_sequence
+
+    folder.mkdir(parents=True, exist_ok=True)
+    seq = load_sequence(SCENES / "subjects" / "tiny")
+    lines = [f"v {a:.7f} {b:.7f} {c:.7f}" for a, b, c in seq.vertices[1]] + [f"vt {a:.7f} {1 - b:.7f}" for a, b in seq.uvs]
+    lines += [f"f {a + 1}/{a + 1} {b + 1}/{b + 1} {c + 1}/{c + 1}" for a, b, c in seq.faces]
+    (folder / "body.obj").write_text("\n".join(lines) + "\n")
+    u = (np.arange(64) + 0.5) / 64
+    albedo = np.stack(np.broadcast_arrays(0.2 + 0.6 * u[None, :], 0.3 + 0.5 * u[:, None], 0.4), axis=-1)
+    write_exr(folder / "albedo_in.exr", albedo.astype(np.float32))
+    write_exr(folder / "rough_in.exr", (0.3 + 0.4 * u[None, :] * u[:, None])[..., None].astype(np.float32))
+    body = f'<shape type="obj" id="subject"><string name="filename" value="body.obj"/>{MATERIAL}</shape>'
+    xml = f'<scene version="3.0.0">{sensors}\n  {_leds() if lights is None else lights}\n  {body if shapes is None else shapes}\n</scene>\n'
+    (folder / "user.xml").write_text(xml)
+    return folder / "user.xml"
+
+
+def test_cameras_project_as_mitsubas_sensors_do(plugins, tmp_path):
+    """Every world point lands on the pixel Mitsuba's own sensor puts it on: a y-axis field of view, principal point
+    offsets, a crop window, a 35 mm focal length, a transform of rotations and translations."""
+    import drjit as dr
+    import mitsuba as mi
+
+    from gra_mi.capture.scene_stage import stage_from_scene
+
+    path = write_user_scene(tmp_path)
+    stage = stage_from_scene(path)
+    points = np.random.default_rng(1).uniform([-0.5, 0.3, -0.5], [0.5, 1.7, 0.5], (400, 3))
+    for sensor, camera in zip(mi.load_file(str(path), parallel=False).sensors(), stage.stage.cameras, strict=True):
+        it = dr.zeros(mi.Interaction3f, len(points))
+        it.p = mi.Point3f(points.T.astype(np.float32))
+        ds, weight = sensor.sample_direction(it, mi.Point2f(0.5, 0.5))
+        seen = np.array(weight)[0] > 0
+        assert seen.sum() > 50
+        ours = camera.project(points)[:, :2]
+        assert np.abs(np.array(ds.uv).T[seen] - ours[seen]).max() < 2e-3, camera.name
+    assert [(c.name, c.width, c.height) for c in stage.stage.cameras] == [("front", 96, 72), ("side", 70, 60), ("tele", 48, 64)]
+
+
+def test_material_maps_are_the_bitmaps_and_the_drive_the_scenes_leds(plugins, tmp_path):
+    from gra_mi.capture.scene_stage import stage_from_scene
+
+    stage = stage_from_scene(write_user_scene(tmp_path))
+    np.testing.assert_array_equal(stage.maps["albedo"], read_exr(tmp_path / "albedo_in.exr")[..., :3])
+    np.testing.assert_array_equal(stage.maps["roughness"], read_exr(tmp_path / "rough_in.exr")[..., :1])
+    assert stage.stage.num_leds == 24 and stage.drive.max() == pytest.approx(1.0)
+    assert (stage.drive[::5] == 0).all() and (stage.drive.max(axis=1)[1:5] > 0).all()
+    assert not stage.notes
+
+
+def test_relit_stage_matches_mitsubas_render_of_the_users_scene(plugins, tmp_path, capsys):
+    """The written stage relit by gra-mi under the scene's own LEDs (lighting.json) against Mitsuba's ``direct``
+    rendering the user's file as it is (its sampling, visibility and texture look-ups, none of gra-mi's code but the
+    BSDF) and gra_onebounce on it (image space: the same light, no UV resampling)."""
+    import mitsuba as mi
+
+    path = write_user_scene(tmp_path / "user")
+    code, lines = run(["from-scene", path, "--out", tmp_path / "stage"], capsys)
+    assert code == 0, lines
+    stage = tmp_path / "stage"
+    assert {p.name for p in stage.iterdir()} >= {"scene.xml", "rig", "subject", "lighting.json", "albedo.exr", "roughness.exr", "notes.md"}
+    argv = ["relight", stage / "scene.xml", "--pattern", stage / "lighting.json", "--albedo", stage / "albedo.exr"]
+    code, lines = run([*argv, "--roughness", stage / "roughness.exr", "--cameras", "front,side", "--out", tmp_path / "r"], capsys)
+    assert code == 0, lines
+    scene = mi.load_file(str(path), parallel=False)
+    for index, name in enumerate(("front", "side")):
+        ours = read_exr(tmp_path / "r" / "lighting" / name / "frame_0000.exr")
+        for integrator, spp, median in (("direct", 1024, 0.08), ("gra_onebounce", 64, 0.03)):
+            truth = np.array(mi.render(scene, sensor=index, integrator=mi.load_dict({"type": integrator}), spp=spp))
+            covered = (ours[..., 3] > 0.5) & (truth[..., 3] > 0.999)
+            assert covered.sum() > 500
+            ratio = ours[..., :3][covered].sum() / truth[..., :3][covered].sum()
+            rel = np.abs(ours[..., :3] - truth[..., :3])[covered] / np.maximum(truth[..., :3][covered], 2e-2)
+            assert abs(ratio - 1) < 0.02 and np.median(rel) < median, (name, integrator, ratio, np.median(rel))
+
+
+def test_what_the_stage_leaves_out_is_said(plugins, tmp_path, capsys):
+    floor = '<shape type="rectangle" id="floor"><transform name="to_world"><rotate x="1" angle="-90"/></transform></shape>'
+    body = '<shape type="obj" id="subject"><string name="filename" value="body.obj"/><bsdf type="twosided"><bsdf type="diffuse"/></bsdf></shape>'
+    path = write_user_scene(tmp_path / "user", shapes=body + floor)
+    assert main(["from-scene", str(path), "--out", str(tmp_path / "stage")]) == 0
+    printed = capsys.readouterr().out
+    notes = (tmp_path / "stage" / "notes.md").read_text()
+    for said in ("left out: shape 'floor'", "SmoothDiffuse has no roughness"):
+        assert said in notes and said in printed
+    albedo = read_exr(tmp_path / "stage" / "albedo.exr")
+    assert albedo.shape == (256, 256, 3) and np.allclose(albedo, 0.5)  # diffuse's default reflectance, through twosided
+    assert not (tmp_path / "stage" / "roughness.exr").exists()
+
+
+def test_rerun_is_the_same_and_an_edited_scene_starts_over(plugins, tmp_path, capsys):
+    path = write_user_scene(tmp_path / "user")
+    out = tmp_path / "stage"
+    assert run(["from-scene", path, "--out", out], capsys)[0] == 0
+    first = json.loads((out / "lighting.json").read_text())
+    assert run(["from-scene", path, "--out", out], capsys)[0] == 0
+    write_user_scene(tmp_path / "user", lights='<emitter type="point"><point name="position" x="0" y="3" z="0"/></emitter>')
+    assert run(["from-scene", path, "--out", out], capsys)[0] == 0
+    assert len(json.loads((out / "lighting.json").read_text())["intensities"]) == 1 != len(first["intensities"])
+
+
+SPHERE = '<shape type="sphere" id="subject"/>'
+BAD = {
+    "thinlens": ({"sensors": '<sensor type="thinlens" id="dof"><float name="aperture_radius" value="0.01"/></sensor>'}, ("'dof'", "ThinLensCamera", "perspective")),
+    "area LED": ({"lights": '<shape type="sphere" id="panel"><emitter type="area"/></shape>'}, ("'area' emitter", "point emitters")),
+    "envmap": ({"lights": '<emitter type="constant" id="sky"/>'}, ("'sky'", "'constant'")),
+    "no light": ({"lights": ""}, ("no emitter",)),
+    "not a mesh": ({"shapes": SPHERE}, ("Sphere, not a mesh",)),
+    "two unnamed shapes": ({"shapes": '<shape type="obj"><string name="filename" value="body.obj"/></shape>' * 2}, ("no shape has id 'subject'",)),
+    "mirrored camera": ({"sensors": SENSORS.replace('<lookat origin="0.3', '<scale x="-1"/><lookat origin="0.3')}, ("'front'", "mirrors")),
+    "negative LED": ({"lights": '<emitter type="point"><point name="position" x="0" y="-1" z="0"/><rgb name="intensity" value="-1"/></emitter>'}, ("must be finite and >= 0",)),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("case", list(BAD))
+def test_what_a_lightstage_cannot_hold_is_refused_by_name(plugins, tmp_path, capsys, case):
+    parts, needles = BAD[case]
+    path = write_user_scene(tmp_path / "user", **parts)
+    assert_refused(["from-scene", path, "--out", tmp_path / "stage"], capsys, str(path), *needles, out=tmp_path / "stage")
+
+
+def test_a_mesh_without_uvs_gets_an_atlas_and_an_output_over_the_input_is_refused(plugins, tmp_path, capsys):
+    path = write_user_scene(tmp_path / "user")
+    obj = tmp_path / "user" / "body.obj"
+    lines = [" ".join(w.split("/")[0] for w in line.split()) for line in obj.read_text().splitlines() if not line.startswith("vt")]
+    obj.write_text("\n".join(lines) + "\n")
+    assert run(["from-scene", path, "--out", tmp_path / "stage"], capsys)[0] == 0
+    notes = (tmp_path / "stage" / "notes.md").read_text()
+    assert "its UV layout is generated (xatlas" in notes and "textures are not baked" in notes
+    assert not (tmp_path / "stage" / "albedo.exr").exists()
+    code, lines = run(["relight", tmp_path / "stage" / "scene.xml", "--olat", "1", "--out", tmp_path / "r"], capsys)
+    assert code == 0, lines
+    assert read_exr(tmp_path / "r" / "olat001" / "front" / "frame_0000.exr")[..., :3].max() > 0
+    assert_refused(["from-scene", path, "--out", tmp_path / "user"], capsys, "the scene input")
+    assert_refused(["from-scene", path, "--out", tmp_path / "x", "-D", "nothing=1"], capsys, "nothing", out=tmp_path / "x")
