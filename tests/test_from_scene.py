@@ -192,3 +192,56 @@ def test_a_mesh_without_uvs_gets_an_atlas_and_an_output_over_the_input_is_refuse
     assert read_exr(tmp_path / "r" / "olat001" / "front" / "frame_0000.exr")[..., :3].max() > 0
     assert_refused(["from-scene", path, "--out", tmp_path / "user"], capsys, "the scene input")
     assert_refused(["from-scene", path, "--out", tmp_path / "x", "-D", "nothing=1"], capsys, "nothing", out=tmp_path / "x")
+
+
+def _moving_scene(folder: Path, frames: int = 3, sensors: str = SENSORS) -> Path:
+    """The user scene with the body as one OBJ per frame (``body_$frame.obj``, the tiny subject's frames)."""
+    from gra_mi.subject.sequence import load_sequence
+
+    path = write_user_scene(folder, sensors=sensors)
+    seq = load_sequence(SCENES / "subjects" / "tiny")
+    body = (folder / "body.obj").read_text().splitlines()
+    for t in range(frames):
+        vertices = [f"v {a:.7f} {b:.7f} {c:.7f}" for a, b, c in seq.vertices[t]]
+        (folder / f"body_{t:04d}.obj").write_text("\n".join(vertices + [line for line in body if not line.startswith("v ")]) + "\n")
+    text = path.read_text().replace('value="body.obj"', 'value="body_$frame.obj"')
+    path.write_text(text.replace('<scene version="3.0.0">', '<scene version="3.0.0"><default name="frame" value="0000"/>'))
+    return path
+
+
+def test_a_moving_subject_comes_in_a_frame_at_a_time(plugins, tmp_path, capsys):
+    from gra_mi.subject.sequence import load_sequence
+
+    path = _moving_scene(tmp_path / "user")
+    assert run(["from-scene", path, "--frames", "0:3", "--fps", "30", "--out", tmp_path / "stage"], capsys)[0] == 0
+    ours, truth = load_sequence(tmp_path / "stage" / "subject"), load_sequence(SCENES / "subjects" / "tiny")
+    assert ours.num_frames == 3 and ours.fps == 30 and list(ours.frame_labels) == ["0000", "0001", "0002"]
+    for t in range(3):  # Mitsuba merges the OBJ's vertices that share a position and a UV: compare as point sets
+        apart = np.linalg.norm(ours.vertices[t][:, None] - truth.vertices[t][None], axis=-1)
+        assert apart.min(axis=1).max() < 1e-6 and apart.min(axis=0).max() < 1e-6
+    code, lines = run(["relight", tmp_path / "stage" / "scene.xml", "--olat", "1", "--frames", "0:3", "--out", tmp_path / "r"], capsys)
+    assert code == 0, lines
+    first, last = (read_exr(tmp_path / "r" / "olat001" / "front" / f"frame_{t:04d}.exr") for t in (0, 2))
+    assert not np.allclose(first, last)  # the body moved
+
+
+def test_what_moves_besides_the_subject_is_refused_naming_the_frame(plugins, tmp_path, capsys):
+    path = _moving_scene(
+        tmp_path / "user", sensors=SENSORS.replace('up="0, 1, 0"/></transform>', 'up="0, 1, 0"/><translate x="$frame"/></transform>', 1)
+    )
+    assert_refused(
+        ["from-scene", path, "--frames", "0:3", "--out", tmp_path / "a"], capsys, "frame=0001", "sensor 'front'", "rig stays fixed"
+    )
+    path = _moving_scene(tmp_path / "user2")
+    obj = tmp_path / "user2" / "body_0002.obj"
+    obj.write_text("\n".join(line for line in obj.read_text().splitlines()[:-1]) + "\n")  # a triangle fewer
+    assert_refused(["from-scene", path, "--frames", "0:3", "--out", tmp_path / "b"], capsys, "frame=0002", "faces differ")
+    for argv, needle in (
+        (["--frames", "3:1"], "A < B"),
+        (["--frames", "0000,0000"], "twice"),
+        (["--frame-parameter", "step"], "takes effect with --frames"),
+        (["--fps", "12"], "takes effect with --frames"),
+        (["--frames", "0:2", "-D", "frame=0001"], "--frames sets per frame"),
+        (["--frames", "0:2", "--frame-parameter", "nothing"], "nothing"),
+    ):
+        assert_refused(["from-scene", path, *argv, "--out", tmp_path / "c"], capsys, needle, out=tmp_path / "c")

@@ -14,6 +14,7 @@ name (a ``thinlens`` sensor's depth of field, an area or environment light), or,
 from __future__ import annotations
 
 import json
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -22,15 +23,16 @@ import numpy as np
 from gra_mi.capture.placement import generate_atlas
 from gra_mi.capture.source import ImportConfig
 from gra_mi.capture.source_files import one_uv_tile
-from gra_mi.core.errors import GraMiInputError
+from gra_mi.core.config import comma_list
+from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.io import atomic_write_text, write_exr
 from gra_mi.render.scene_file import load_scene_file, select_sensors, sensor_name
 from gra_mi.render.scene_lights import emitter_label, plugin_name, point_lights
 from gra_mi.stage import scene_keys as keys
 from gra_mi.stage.lightstage import Camera, Lightstage, lightstage_from_dict, lightstage_to_dict
-from gra_mi.stage.scene import subject_scene_xml, write_rig
+from gra_mi.stage.scene import scene_defaults, subject_scene_xml, write_rig
 from gra_mi.subject.geometry import split_uv_seams, vertex_normals
-from gra_mi.subject.sequence import MeshSequence, save_sequence, validate_sequence
+from gra_mi.subject.sequence import MeshSequence, SequenceLayout, validate_sequence, write_sequence
 
 # Mitsuba class → the parameters holding (albedo, roughness) in gra-mi's sense (roughness r: GGX α = r², as gra-mi's)
 MATERIAL_MAPS = {
@@ -42,29 +44,84 @@ WRAPPERS = {"TwoSidedBRDF": "brdf_0"}  # a material around the one that holds th
 DEFAULT_MAP_RESOLUTION = 256  # maps of constants and procedural textures; a bitmap keeps its own size
 MAX_MAP_RESOLUTION = 4096
 RIGID_TOLERANCE = 1e-4
+MAX_FRAMES = 1_000_000
 
 
 @dataclass
 class SceneStage:
-    """What a user's scene gives gra-mi: the rig, a one-frame subject, the scene's LED drive and material maps."""
+    """What a user's scene gives gra-mi: the rig, the subject (its first frame), the scene's LED drive, its material's
+    maps, and the subject's later frames (read as they are written)."""
 
     stage: Lightstage
-    sequence: MeshSequence
+    sequence: MeshSequence  # the first frame
     drive: np.ndarray  # (L, 3) the scene's own LED intensities / stage.max_led_intensity
     maps: dict[str, np.ndarray] = field(default_factory=dict)  # "albedo" (R, R, 3), "roughness" (R, R, 1)
     notes: list[str] = field(default_factory=list)  # what the stage leaves out of the scene, said
+    later: LaterFrames | None = None
+
+    @property
+    def num_frames(self) -> int:
+        return 1 + (len(self.later.values) if self.later else 0)
+
+    def frames(self) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+        """(vertices, normals) of every frame, the later ones loaded one at a time."""
+        yield self.sequence.vertices[0], self.sequence.normals[0]
+        if self.later:
+            yield from self.later
 
 
-def stage_from_scene(path: str | Path, defines: dict[str, str] | None = None) -> SceneStage:
-    """Read the lightstage in the Mitsuba scene file ``path`` (``defines``: its ``-D`` parameters)."""
-    path = Path(path)
-    scene = load_scene_file(path, defines)
-    cameras = [camera_of(scene.sensors()[i], sensor_name(i, scene.sensors()[i], path), path) for i in select_sensors(path, scene, [])]
-    positions, intensities = _leds(scene, path)
+@dataclass
+class RawMesh:
+    """The subject as one load of the scene holds it: world space, split at UV seams by Mitsuba."""
+
+    vertices: np.ndarray  # (V, 3)
+    faces: np.ndarray  # (F, 3) int32
+    normals: np.ndarray | None  # Mitsuba's vertex normals; None with face_normals
+    texcoords: np.ndarray | None
+
+    @classmethod
+    def of(cls, shape) -> RawMesh:
+        import mitsuba as mi
+
+        params = mi.traverse(shape)
+        get = {name: np.array(params[key], np.float64) for name, key in (("v", "vertex_positions"), ("n", "vertex_normals"),
+               ("t", "vertex_texcoords")) if key in params and np.array(params[key]).size}  # fmt: skip
+        faces = np.array(params["faces"], np.int64).reshape(-1, 3).astype(np.int32)
+        return cls(
+            get["v"].reshape(-1, 3), faces, get["n"].reshape(-1, 3) if "n" in get else None, get["t"].reshape(-1, 2) if "t" in get else None
+        )
+
+    def shading_normals(self) -> np.ndarray:
+        """Mitsuba's normals, or smooth ones across the UV seams (of the mesh welded by position)."""
+        if self.normals is not None:
+            return self.normals
+        _, weld = np.unique(self.vertices, axis=0, return_inverse=True)
+        welded = np.zeros((weld.max() + 1, 3))
+        welded[weld.reshape(-1)] = self.vertices
+        return vertex_normals(welded, weld.reshape(-1)[self.faces])[weld.reshape(-1)]
+
+
+def stage_from_scene(
+    path: str | Path, defines: dict[str, str] | None = None, frames: list[str] | None = None, parameter: str = "frame", fps: float = 24.0
+) -> SceneStage:
+    """Read the lightstage in the Mitsuba scene file ``path`` (``defines``: its ``-D`` parameters). ``frames``: values
+    of the scene's ``parameter`` to load it at, one per frame of a moving subject (the first now, the later ones as
+    :meth:`SceneStage.frames` reads them)."""
+    path, frames = Path(path), frames or []
+    scene = load_scene_file(path, {**(defines or {}), **({parameter: frames[0]} if frames else {})})
+    cameras, positions, intensities = _rig(scene, path)
     shape, notes = _subject_shape(scene, path)
-    sequence = _one_frame_sequence(shape, path, notes)
-    low, high = sequence.vertices[0].min(axis=0), sequence.vertices[0].max(axis=0)
-    center = (low + high) / 2.0  # where an environment is seen from: the subject's middle
+    mesh = RawMesh.of(shape)
+    faces, uvs, position_of = _layout(mesh, path, notes)
+    if mesh.normals is None:
+        notes.append("the subject has no vertex normals (face_normals): gra-mi shades it with smooth ones")
+    vertices, normals = mesh.vertices[position_of], mesh.shading_normals()[position_of]
+    labels = frames[:1] or [""]
+    sequence = MeshSequence(
+        faces, uvs.astype(np.float32), vertices[None].astype(np.float32), normals[None].astype(np.float32), fps, labels, origin=str(path)
+    )
+    validate_sequence(sequence, str(path))
+    center = (vertices.min(axis=0) + vertices.max(axis=0)) / 2.0  # where an environment is seen from: the subject's middle
     top = float(intensities.max())
     data = lightstage_to_dict(Lightstage(positions, cameras, center, float(np.median(np.linalg.norm(positions - center, axis=1)))))
     data["stage"]["max_led_intensity"] = top if top > 0 else 1.0
@@ -72,7 +129,84 @@ def stage_from_scene(path: str | Path, defines: dict[str, str] | None = None) ->
     maps = material_maps(shape, path, notes)
     if top <= 0:
         notes.append("every LED is off in the scene (intensity 0): lighting.json drives none; relight with --envmap or --olat")
-    return SceneStage(stage, sequence, intensities / stage.max_led_intensity, maps, notes)
+    later = (
+        LaterFrames(path, defines or {}, parameter, frames, mesh, position_of, (cameras, positions, intensities)) if frames[1:] else None
+    )
+    return SceneStage(stage, sequence, intensities / stage.max_led_intensity, maps, notes, later)
+
+
+def frame_values(text: str, path: Path, parameter: str) -> list[str]:
+    """``--frames``: 'A:B' (B excluded), each value zero-padded to the width of the parameter's default
+    (``<default name="frame" value="0000"/>``: 0000, 0001, …), or a comma list of values as the scene takes them."""
+    if ":" not in text:
+        values = comma_list(text)
+        if not values or len(set(values)) != len(values):
+            return _refuse_frames(text, "selects no frame" if not values else "gives a frame twice")
+        return values
+    a, _, b = text.partition(":")
+    if not (a.strip().isdigit() and b.strip().isdigit()) or int(b) <= int(a):
+        return _refuse_frames(text, "expected A:B with integers A < B (B excluded), or a comma list of values")
+    if int(b) - int(a) > MAX_FRAMES:
+        return _refuse_frames(text, f"selects more than {MAX_FRAMES:,} frames")
+    default = scene_defaults(path).get(parameter, "")
+    width = len(default) if default.isdigit() else 0
+    return [f"{i:0{width}d}" for i in range(int(a), int(b))]
+
+
+def _refuse_frames(text: str, problem: str) -> list[str]:
+    raise GraMiParameterError("frames", f"'{text}' {problem}")
+
+
+@dataclass
+class LaterFrames:
+    """The subject's frames after the first: the scene loaded at each value of its frame parameter, the rig and the
+    mesh's topology checked against the first's (a rig stays fixed; only the subject moves)."""
+
+    path: Path
+    defines: dict[str, str]
+    parameter: str
+    all_values: list[str]
+    first: RawMesh
+    position_of: np.ndarray
+    rig: tuple
+
+    @property
+    def values(self) -> list[str]:
+        return self.all_values[1:]
+
+    def __iter__(self) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+        for value in self.values:
+            where = f"{self.parameter}={value}"
+            scene = load_scene_file(self.path, {**self.defines, self.parameter: value})
+            _same_rig(self.rig, _rig(scene, self.path), self.path, where, f"{self.parameter}={self.all_values[0]}")
+            mesh = RawMesh.of(_subject_shape(scene, self.path)[0])
+            for name in ("faces", "texcoords"):
+                ours, first = getattr(mesh, name), getattr(self.first, name)
+                if (ours is None) != (first is None) or (
+                    ours is not None and (ours.shape != first.shape or not np.array_equal(ours, first))
+                ):
+                    raise GraMiInputError(self.path, f"with {where} the subject's {name} differ from the first frame's: a tracked "
+                                          "mesh keeps its vertices, triangles and UVs, only its positions move")  # fmt: skip
+            yield mesh.vertices[self.position_of].astype(np.float32), mesh.shading_normals()[self.position_of].astype(np.float32)
+
+
+def _rig(scene, path: Path) -> tuple[list[Camera], np.ndarray, np.ndarray]:
+    sensors = scene.sensors()
+    cameras = [camera_of(sensors[i], sensor_name(i, sensors[i], path), path) for i in select_sensors(path, scene, [])]
+    return (cameras, *_leds(scene, path))
+
+
+def _same_rig(first: tuple, now: tuple, path: Path, where: str, at_first: str) -> None:
+    (cams_a, pos_a, int_a), (cams_b, pos_b, int_b) = first, now
+    if [c.name for c in cams_a] != [c.name for c in cams_b]:
+        raise GraMiInputError(path, f"with {where} the scene's sensors are not the ones at {at_first}: a rig stays fixed")
+    for a, b in zip(cams_a, cams_b, strict=True):
+        if not np.allclose(np.r_[a.camera_to_world.ravel(), a.fx, a.cx, a.cy, a.width, a.height],
+                           np.r_[b.camera_to_world.ravel(), b.fx, b.cx, b.cy, b.width, b.height], rtol=0, atol=1e-6):  # fmt: skip
+            raise GraMiInputError(path, f"with {where} sensor '{a.name}' is not where or what it is at {at_first}: a rig stays fixed")
+    if pos_a.shape != pos_b.shape or not (np.allclose(pos_a, pos_b, rtol=0, atol=1e-6) and np.allclose(int_a, int_b, rtol=1e-6)):
+        raise GraMiInputError(path, f"with {where} the LEDs are not the ones at {at_first}: a rig stays fixed (light the "
+                              "subject per frame with `gra-mi relight --lights`)")  # fmt: skip
 
 
 def camera_of(sensor, name: str, path: Path) -> Camera:
@@ -135,32 +269,15 @@ def _subject_shape(scene, path: Path) -> tuple[object, list[str]]:
     return subject, notes
 
 
-def _one_frame_sequence(shape, path: Path, notes: list[str]) -> MeshSequence:
-    """The subject mesh as Mitsuba holds it (world space, split at UV seams) as a one-frame sequence; its normals are
-    the ones Mitsuba shades with, or smooth ones where the mesh has none (``face_normals``)."""
-    import mitsuba as mi
-
-    params = mi.traverse(shape)
-    vertices = np.array(params["vertex_positions"], np.float64).reshape(-1, 3)
-    faces = np.array(params["faces"], np.int64).reshape(-1, 3).astype(np.int32)
-    if shape.has_vertex_normals():
-        normals = np.array(params["vertex_normals"], np.float64).reshape(-1, 3)
-    else:  # smooth across the UV seams: normals of the mesh welded by position
-        _, weld = np.unique(vertices, axis=0, return_inverse=True)
-        welded = np.zeros((weld.max() + 1, 3))
-        welded[weld] = vertices
-        normals = vertex_normals(welded, weld.reshape(-1)[faces])[weld.reshape(-1)]
-        notes.append("the subject has no vertex normals (face_normals): gra-mi shades it with smooth ones")
-    if shape.has_vertex_texcoords():
-        uvs = one_uv_tile(path, np.array(params["vertex_texcoords"], np.float64).reshape(-1, 2))
-    else:  # gra-mi's maps need a UV layout: one is generated, as an import does for a mesh without
-        atlas_uvs, face_uvs, said = generate_atlas(vertices, faces, ImportConfig().uv_resolution)
-        faces, position_of, uv_of = split_uv_seams(faces, face_uvs)
-        vertices, normals, uvs = vertices[position_of], normals[position_of], atlas_uvs[uv_of]
-        notes.append(f"the subject has no texture coordinates: its UV layout is {said}")
-    sequence = MeshSequence(faces, uvs.astype(np.float32), vertices[None].astype(np.float32), normals[None].astype(np.float32))
-    validate_sequence(sequence, str(path))
-    return sequence
+def _layout(mesh: RawMesh, path: Path, notes: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(faces, UVs, the raw vertex of each vertex): the mesh's own UVs, or a layout generated for a mesh without (as an
+    import generates one), split at its seams."""
+    if mesh.texcoords is not None:
+        return mesh.faces, one_uv_tile(path, mesh.texcoords), np.arange(len(mesh.vertices))
+    atlas_uvs, face_uvs, said = generate_atlas(mesh.vertices, mesh.faces, ImportConfig().uv_resolution)
+    faces, position_of, uv_of = split_uv_seams(mesh.faces, face_uvs)
+    notes.append(f"the subject has no texture coordinates: its UV layout is {said}")
+    return faces, atlas_uvs[uv_of], position_of
 
 
 def children(node) -> dict:
@@ -238,8 +355,10 @@ def write_scene_stage(stage: SceneStage, folder: Path, spp: int = 64) -> list[Pa
     """``folder``: scene.xml (a gra-mi lightstage scene), rig/, subject/, lighting.json (the scene's own LED drive),
     albedo.exr / roughness.exr (where the material held them), notes.md. Returns what it wrote."""
     write_rig(stage.stage, folder / "rig")
-    colours = _vertex_colours(stage)
-    save_sequence(MeshSequence(**{**stage.sequence.__dict__, "vertex_colors": colours}), folder / "subject")
+    seq = stage.sequence
+    labels = stage.later.all_values if stage.later else seq.frame_labels
+    layout = SequenceLayout(seq.faces, seq.uvs, stage.num_frames, seq.fps, labels, _vertex_colours(stage))
+    write_sequence(folder / "subject", layout, stage.frames(), source=seq.origin)
     atomic_write_text(folder / "scene.xml", subject_scene_xml("rig", "subject", spp=spp))
     atomic_write_text(folder / "lighting.json", json.dumps({"intensities": np.round(stage.drive, 9).tolist()}) + "\n")
     written = [folder / name for name in ("scene.xml", "rig", "subject", "lighting.json")]

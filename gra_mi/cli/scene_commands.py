@@ -8,7 +8,7 @@ from pathlib import Path
 
 from gra_mi.capture.easymocap import EasymocapOptions, import_easymocap
 from gra_mi.capture.humanolat import HumanolatOptions, import_humanolat, write_humanolat
-from gra_mi.capture.scene_stage import stage_from_scene, write_scene_stage
+from gra_mi.capture.scene_stage import frame_values, stage_from_scene, write_scene_stage
 from gra_mi.capture.source import ImportConfig
 from gra_mi.capture.synthetic import PRESETS, CaptureConfig, generate_capture
 from gra_mi.capture.transforms import TransformsOptions, import_transforms
@@ -154,24 +154,40 @@ class FromSceneCommand(Restartable):
     material holds them), notes.md (what was left out)."""
     spp: int = 64
     """Default samples per pixel written into the scene."""
+    frames: str | None = None
+    """A moving subject: load the scene once per value of --frame-parameter, 'A:B' (B excluded; zero-padded as the
+    parameter's default is, <default name="frame" value="0000"/> gives 0000, 0001, ...) or a comma list of values as
+    the scene takes them. The sensors, LEDs and the mesh's triangles and UVs must stay the same. Default: the scene as
+    it is, one frame."""
+    frame_parameter: str = "frame"
+    """The scene parameter that selects the subject's frame (e.g. in <string name="filename" value="body_$frame.ply"/>)."""
+    fps: float = 24.0
+    """Frames per second of the subject's motion (relight's videos play at it)."""
 
     def validate(self) -> None:
         super().validate()
         parse_defines(self.define)
-        require_positive({"spp": self.spp})
+        require_positive({"spp": self.spp, "fps": self.fps})
+        if self.frames is None and (given := changed_options(self, ("frame_parameter", "fps"))):
+            raise GraMiParameterError(given[0], "takes effect with --frames only: add --frames, or leave it out")
+        if self.frames is not None and self.frame_parameter in parse_defines(self.define):
+            raise GraMiParameterError("define", f"sets {self.frame_parameter}, which --frames sets per frame: leave one out")
 
 
 def run_from_scene(c: FromSceneCommand) -> None:
-    stage = stage_from_scene(c.scene, parse_defines(c.define))  # refused before the folder is claimed
+    frames = frame_values(c.frames, c.scene, c.frame_parameter) if c.frames is not None else None
+    # the first frame is read (and refused) before the folder is claimed; the later ones as they are written
+    stage = stage_from_scene(c.scene, parse_defines(c.define), frames, c.frame_parameter, c.fps)
     inputs = {"scene": c.scene} | {f"scene's {ref.name} ({ref})": ref for ref in scene_references(c.scene)}
-    claim_output(c.out, "from-scene", inputs, {"define": sorted(c.define), "spp": c.spp}, overwrite=c.overwrite, restart=True)
+    said = {"define": sorted(c.define), "spp": c.spp, "frames": c.frames, "frame_parameter": c.frame_parameter, "fps": c.fps}
+    claim_output(c.out, "from-scene", inputs, said, overwrite=c.overwrite, restart=True)
     write_scene_stage(stage, c.out, c.spp)
     for note in stage.notes:
         print(f"note: {note}")
     maps = "".join(f" --{name} {c.out / (name + '.exr')}" for name in stage.maps)
     lighting = f"--pattern {c.out / 'lighting.json'}" if stage.drive.max() > 0 else "--olat 0"
     print(f"wrote {c.out / 'scene.xml'}: {len(stage.stage.cameras)} cameras, {stage.stage.num_leds} LEDs, "
-          f"{stage.sequence.num_vertices} vertices. Relight it with:\n  gra-mi relight {c.out / 'scene.xml'} {lighting}{maps}")  # fmt: skip
+          f"{stage.sequence.num_vertices} vertices, {stage.num_frames} frame(s). Relight it with:\n  gra-mi relight {c.out / 'scene.xml'} {lighting}{maps}")  # fmt: skip
 
 
 @dataclass(kw_only=True)
