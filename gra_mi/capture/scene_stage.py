@@ -314,8 +314,14 @@ def material_maps(shape, path: Path, notes: list[str]) -> dict[str, np.ndarray]:
         return {}
     found = children(bsdf)
     textures = {name: found[param] for name, param in zip(("albedo", "roughness"), MATERIAL_MAPS[kind], strict=True) if param in found}
-    resolution = min(MAX_MAP_RESOLUTION, max((_bitmap_side(t) for t in textures.values()), default=0) or DEFAULT_MAP_RESOLUTION)
-    maps = {name: bake_texture(texture, resolution, 3 if name == "albedo" else 1) for name, texture in textures.items()}
+    largest = max((_bitmap_side(t) for t in textures.values()), default=0)
+    resolution = min(MAX_MAP_RESOLUTION, largest or DEFAULT_MAP_RESOLUTION)
+    if largest > MAX_MAP_RESOLUTION:
+        notes.append(f"the subject's maps are baked at {MAX_MAP_RESOLUTION}² (its largest bitmap has {largest} texels a side)")
+    maps = {name: bake_texture(texture, resolution, 3 if name == "albedo" else 1, shape) for name, texture in textures.items()}
+    if kind == "Principled":
+        notes.append("the subject's principled material gives its base colour and roughness; its metallic, specular, sheen, "
+                     "clearcoat and transmission are not gra-mi's model (Lambert + GGX, F0 = 0.04)")  # fmt: skip
     if "roughness" not in maps:
         notes.append(f"the subject's {kind} has no roughness: relight uses gra-mi's default")
     for name, image in maps.items():
@@ -337,15 +343,21 @@ def _bitmap_side(texture) -> int:
     return max(np.array(params["data"]).shape[:2]) if "data" in params else 0
 
 
-def bake_texture(texture, resolution: int, channels: int) -> np.ndarray:
+def bake_texture(texture, resolution: int, channels: int, shape=None) -> np.ndarray:
     """A Mitsuba texture evaluated at the texel centres of a ``resolution``² UV map (row r at v = (r + ½) / R, as
-    gra-mi's maps and Mitsuba's bitmaps lie), (R, R, ``channels``) float32."""
+    gra-mi's maps and Mitsuba's bitmaps lie), (R, R, ``channels``) float32. With the ``shape`` it lies on, a texel
+    inside the mesh's UV layout is evaluated at the surface point there (``eval_parameterization``: a texture of
+    vertex attributes, or of positions, needs it); one outside, at its UV alone."""
     import drjit as dr
     import mitsuba as mi
 
     u, v = np.meshgrid((np.arange(resolution) + 0.5) / resolution, (np.arange(resolution) + 0.5) / resolution)
+    uv = mi.Point2f(u.ravel().astype(np.float32), v.ravel().astype(np.float32))
     si = dr.zeros(mi.SurfaceInteraction3f, resolution * resolution)
-    si.uv = mi.Point2f(u.ravel().astype(np.float32), v.ravel().astype(np.float32))
+    si.uv = uv
+    if shape is not None:
+        on = shape.eval_parameterization(uv)
+        si = dr.select(on.is_valid(), on, si)
     values = np.array(texture.eval(si) if channels == 3 else texture.eval_1(si), np.float32).reshape(channels, -1)
     # a constant evaluates once for all lanes
     return np.ascontiguousarray(np.broadcast_to(values, (channels, resolution * resolution)).T).reshape(resolution, resolution, channels)
