@@ -49,12 +49,12 @@ class EasymocapOptions:
     """What an EasyMocap rig needs besides its calibration and images (:func:`import_easymocap`)."""
 
     lighting: Path | None = None
-    """easymocap: JSON with each frame's split and lighting (uniform, led, envmap or pattern; docs/data-format.md).
-    --mesh, --leds, --units and --mesh-units are read as for transforms."""
+    """easymocap, mitsuba: JSON with each frame's split and lighting (uniform, led, envmap or pattern;
+    docs/data-format.md). easymocap reads --mesh, --leds, --units and --mesh-units as transforms does."""
 
     def validate(self) -> None:
         if self.lighting is None:
-            raise GraMiParameterError("lighting", "an EasyMocap rig needs each frame's lighting (--lighting FILE.json)")
+            raise GraMiParameterError("lighting", "the capture needs each frame's lighting (--lighting FILE.json)")
 
 
 def read_opencv_yaml(path: Path) -> dict:
@@ -139,7 +139,7 @@ def _camera(intri: dict, extri: dict, name: str, images: dict[int, Path], folder
     return CalibCamera(intrinsic, c2w, dist.tolist(), lens=lens), (width, height)
 
 
-def _images(folder: Path, name: str, kind: str = "images", required: bool = True) -> dict[int, Path]:
+def camera_images(folder: Path, name: str, kind: str = "images", required: bool = True) -> dict[int, Path]:
     """Frame number → file of one camera (``images/<cam>/`` or ``mask/<cam>/``)."""
     found = {}
     for path in sorted((folder / kind / name).glob("*")):
@@ -186,6 +186,31 @@ def _lighting(path: Path, i: int, entry: LightingEntry, leds: int) -> tuple[str,
     return kind, ("pattern", file) if kind == "pattern" else file
 
 
+def lighting_frames(path: Path, leds: int, default_pose: int | None = None) -> list:
+    """The source's frames as a lighting file lists them: (image number, FrameLighting, the importer's drive). An entry
+    without ``mesh_frame`` shows ``default_pose``, or the mesh frame of its own number (None)."""
+    lighting = read_json(path)
+    entries = lighting.get("frames") if isinstance(lighting, dict) else None
+    if not isinstance(entries, list) or not entries:
+        raise GraMiInputError(path, "expected an object with a non-empty 'frames' list", field="frames")
+    frames, listed = [], {}
+    for i, raw in enumerate(entries):
+        entry = parse(LightingEntry, raw, path, f"frames[{i}]")
+        number, split = entry.frame, entry.split
+        if number in listed:  # one image, two lightings: one would relabel the other
+            raise GraMiInputError(path, f"frame {number} is listed twice (entries {listed[number]} and {i})", field=f"frames[{i}].frame")
+        listed[number] = i
+        kind, drive = _lighting(path, i, entry, leds)
+        pose = entry.mesh_frame if entry.mesh_frame is not None else number if default_pose is None else default_pose
+        sequence = entry.sequence
+        if kind == "envmap":
+            lit = FrameLighting(i, split, sequence, "envmap", f"envmaps/{Path(drive).name}", pose=pose)
+        else:
+            lit = FrameLighting(i, split, sequence, "pattern", None, f"patterns/frame_{number:06d}.json", pose=pose)
+        frames.append((number, lit, drive))
+    return frames
+
+
 def read_easymocap(folder: Path, options: EasymocapOptions, files: TransformsOptions) -> Source:
     intri, extri = read_opencv_yaml(folder / "intri.yml"), read_opencv_yaml(folder / "extri.yml")
     names = intri.get("names") or extri.get("names")
@@ -195,33 +220,14 @@ def read_easymocap(folder: Path, options: EasymocapOptions, files: TransformsOpt
         raise GraMiParameterError("mesh" if files.mesh is None else "leds", "an EasyMocap rig needs --mesh (a folder of OBJ) and --leds")
     units = UNITS[files.units]
     leds = read_points(files.leds) * units
-    images = [_images(folder, n) for n in names]
+    images = [camera_images(folder, n) for n in names]
     cameras = [_camera(intri, extri, n, found, folder) for n, found in zip(names, images, strict=True)]
-    lighting = read_json(options.lighting)
-    entries = lighting.get("frames") if isinstance(lighting, dict) else None
-    if not isinstance(entries, list) or not entries:
-        raise GraMiInputError(options.lighting, "expected an object with a non-empty 'frames' list", field="frames")
-    frames, listed = [], {}
-    for i, raw in enumerate(entries):
-        entry = parse(LightingEntry, raw, options.lighting, f"frames[{i}]")
-        number, split = entry.frame, entry.split
-        if number in listed:  # one image, two lightings: one would relabel the other
-            raise GraMiInputError(
-                options.lighting, f"frame {number} is listed twice (entries {listed[number]} and {i})", field=f"frames[{i}].frame"
-            )
-        listed[number] = i
-        kind, drive = _lighting(options.lighting, i, entry, len(leds))
-        pose, sequence = entry.mesh_frame if entry.mesh_frame is not None else number, entry.sequence
-        if kind == "envmap":
-            lit = FrameLighting(i, split, sequence, "envmap", f"envmaps/{Path(drive).name}", pose=pose)
-        else:
-            lit = FrameLighting(i, split, sequence, "pattern", None, f"patterns/frame_{number:06d}.json", pose=pose)
-        frames.append((number, lit, drive))
+    frames = lighting_frames(options.lighting, len(leds))
     meshes = read_meshes(files.mesh, max(f.mesh_frame for _, f, _ in frames) + 1)
     return Source(
         folder, "easymocap", folder / "extri.yml", [f"cam{n}" for n in names], [c for c, _ in cameras], [s for _, s in cameras],
         images, units, leds, meshes, [None] * len(names), frames, mesh_units=UNITS[files.mesh_units],
-        frame_masks=[_images(folder, n, "mask", required=False) for n in names], leds_path=files.leds, mesh_files=[files.mesh],
+        frame_masks=[camera_images(folder, n, "mask", required=False) for n in names], leds_path=files.leds, mesh_files=[files.mesh],
     )  # fmt: skip
 
 

@@ -88,6 +88,7 @@ def write_report(
             "count": len(source.leds),
             "left_out": record["left_out_leds"],
             "gains": record["gains"],
+            "intensity": record.get("led_intensity"),
             "estimate": record.get("gain_estimate"),
         },
         "solved_frames": record.get("solved_frames", []),
@@ -105,7 +106,9 @@ def import_markdown(r: dict, source_format: str) -> str:
         "# Import report",
         "",
         f"Source: {source_format}. {len(r['cameras'])} cameras, {r['frames']['imported']} lightings each; {leds['count']} "
-        f"LEDs, the OLATs of {len(leds['left_out'])} left out; LED gains {leds['gains']}. UV atlas: {r['uv_atlas']}.",
+        f"LEDs, the OLATs of {len(leds['left_out'])} left out; LED gains {leds['gains']}"
+        + (f"; a fully driven LED's intensity {leds['intensity']}" if leds.get("intensity") else "")
+        + f". UV atlas: {r['uv_atlas']}.",
         "",
         f"Up in the source: {f['up_source']} ({'estimated from the cameras' if f['up_estimated'] else 'given'}, "
         f"{f['up_off_axis_deg']:.2f}° off its nearest axis). LED sphere: radius {f['led_sphere_radius_m']:.3f} m, the LEDs "

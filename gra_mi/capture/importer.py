@@ -50,6 +50,7 @@ from gra_mi.capture.source_files import (
     write_led_gains,
     write_mask,
 )
+from gra_mi.core.config import changed_options
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.guard import staging_folder
 from gra_mi.core.io import atomic_write_text, write_exr
@@ -155,7 +156,7 @@ def import_capture(
     # a changed source restarts the staging (its images would mix two exports); --overwrite empties it too
     claim_output(staging, command, inputs, said, overwrite=overwrite, shard=shard, restart=shard.whole)
     solved = apply_solved_drives(source, [p for p in plans if p.camera.name in train_cameras], staging / "import" / "solved_drives.json")
-    stage = build_stage(source, frame, plans, config.led_intensity, gains)
+    stage = build_stage(source, frame, plans, led_intensity(source, config), gains)
     if config.estimate_led_gains and not any(_lit_alone(stage, entry, drive) for _, entry, drive in source.frames):
         raise GraMiParameterError(
             "estimate_led_gains", f"{source.folder} has no frame lit by one LED alone (an OLAT): gains are measured on OLATs"
@@ -163,7 +164,7 @@ def import_capture(
     _write_stage_files(staging, stage, source, frame, subject)
     plot_solved_drives(stage, source.frames, staging / "import" / "solved_drives.png")
     record = {"format": source.format, "folder": str(source.folder), "transform": frame.matrix(), "solved_frames": solved, **record}
-    record |= {"gains": _gains_said(config.led_gains, gains), "left_out_leds": source.left_out, "uv_atlas": subject.atlas, "images": {}}
+    record |= _lights_said(source, config, stage, gains) | {"left_out_leds": source.left_out, "uv_atlas": subject.atlas, "images": {}}
     record["checked_frame"] = next(f.frame for k, f, _ in source.frames if k == key)  # the masks' overlays show it
     frames = [replace(f, missing=missing.get(k, [])) for k, f, _ in source.frames]
     capture = Capture(staging, source.format, "captured", config.uv_resolution, train_cameras, eval_cameras, frames, source=record)
@@ -298,11 +299,23 @@ def _camera_plans(source: Source, frame: WorldFrame, config: ImportConfig) -> li
     return [plan_camera(source, names.index(c), frame, config.scale) for c in chosen]
 
 
-def _gains_said(path: Path | None, gains: np.ndarray | None) -> str:
+def led_intensity(source: Source, config: ImportConfig) -> float:
+    """A fully driven LED's W/sr: --led-intensity where given, else what the source states (a Mitsuba scene's point
+    emitters), else the option's default."""
+    given = bool(changed_options(config, ("led_intensity",)))
+    return config.led_intensity if given or source.stated_intensity is None else source.stated_intensity
+
+
+def _lights_said(source: Source, config: ImportConfig, stage: Lightstage, gains: np.ndarray | None) -> dict:
+    """The report's words for where the LEDs' intensity and gains come from."""
+    given = changed_options(config, ("led_intensity",)) or source.stated_intensity is None
+    said = {
+        "led_intensity": f"{stage.max_led_intensity:.4g} W/sr ({'--led-intensity' if given else 'the mean of the source' + chr(39) + 's ' + source.gains_field})"
+    }
     if gains is None:
-        return "assumed equal (none given: --led-gains)"
-    said = path or "the source's pl_intensity"
-    return f"from {said}, normalised to a mean of 1 (from {gains.min():.3f} to {gains.max():.3f})"
+        return said | {"gains": "assumed equal (none given: --led-gains)"}
+    stated = config.led_gains or f"the source's {source.gains_field}"
+    return said | {"gains": f"from {stated}, normalised to a mean of 1 (from {gains.min():.3f} to {gains.max():.3f})"}
 
 
 def _lit_alone(stage: Lightstage, entry, drive) -> bool:

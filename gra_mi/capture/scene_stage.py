@@ -109,8 +109,8 @@ def stage_from_scene(
     :meth:`SceneStage.frames` reads them)."""
     path, frames = Path(path), frames or []
     scene = load_scene_file(path, {**(defines or {}), **({parameter: frames[0]} if frames else {})})
-    cameras, positions, intensities = _rig(scene, path)
-    shape, notes = _subject_shape(scene, path)
+    cameras, positions, intensities = scene_rig(scene, path)
+    shape, notes = subject_shape(scene, path)
     mesh = RawMesh.of(shape)
     faces, uvs, position_of = _layout(mesh, path, notes)
     if mesh.normals is None:
@@ -178,8 +178,8 @@ class LaterFrames:
         for value in self.values:
             where = f"{self.parameter}={value}"
             scene = load_scene_file(self.path, {**self.defines, self.parameter: value})
-            _same_rig(self.rig, _rig(scene, self.path), self.path, where, f"{self.parameter}={self.all_values[0]}")
-            mesh = RawMesh.of(_subject_shape(scene, self.path)[0])
+            _same_rig(self.rig, scene_rig(scene, self.path), self.path, where, f"{self.parameter}={self.all_values[0]}")
+            mesh = RawMesh.of(subject_shape(scene, self.path)[0])
             for name in ("faces", "texcoords"):
                 ours, first = getattr(mesh, name), getattr(self.first, name)
                 if (ours is None) != (first is None) or (
@@ -190,7 +190,7 @@ class LaterFrames:
             yield mesh.vertices[self.position_of].astype(np.float32), mesh.shading_normals()[self.position_of].astype(np.float32)
 
 
-def _rig(scene, path: Path) -> tuple[list[Camera], np.ndarray, np.ndarray]:
+def scene_rig(scene, path: Path) -> tuple[list[Camera], np.ndarray, np.ndarray]:
     sensors = scene.sensors()
     cameras = [camera_of(sensors[i], sensor_name(i, sensors[i], path), path) for i in select_sensors(path, scene, [])]
     return (cameras, *_leds(scene, path))
@@ -248,7 +248,7 @@ def _leds(scene, path: Path) -> tuple[np.ndarray, np.ndarray]:
     return positions, intensities
 
 
-def _subject_shape(scene, path: Path) -> tuple[object, list[str]]:
+def subject_shape(scene, path: Path) -> tuple[object, list[str]]:
     """The shape with id ``subject``, or the scene's only shape; the others are named as left out."""
     shapes = list(scene.shapes())
     chosen = [s for s in shapes if s.id() == keys.SUBJECT_ID]

@@ -38,8 +38,9 @@ class ImportConfig:
     up: str = field(default="auto", metadata=option(choices=("auto", *UP_AXES)))
     """The source frame's up axis; auto: level to every camera's image x axis, signed by their image up (reported)."""
     led_intensity: float = 4.0
-    """Radiant intensity (W/sr) of a fully driven LED, in the images' units (the source does not say; sets the albedo's
-    scale only: too low, and `gra-mi fit` warns that the albedo reaches past 1, naming the intensity that holds it)."""
+    """Radiant intensity (W/sr) of a fully driven LED (the mean LED's), in the images' units: it sets the albedo's
+    scale only (too low, and `gra-mi fit` warns that the albedo reaches past 1, naming the intensity that holds it).
+    Default: 4, or what the source states (mitsuba: the mean intensity of the scene's point emitters)."""
     uv_resolution: int = 256
     """UV resolution of the maps fitted to the capture."""
     min_iou: float = 0.5
@@ -79,7 +80,7 @@ class Source:
     :func:`gra_mi.capture.easymocap.read_easymocap`) fills it; the rest of the import is the same for every source."""
 
     folder: Path
-    format: str  # "humanolat", "transforms", "easymocap"
+    format: str  # "humanolat", "transforms", "easymocap", "mitsuba"
     calib_path: Path  # what a camera error names
     names: list[str]  # camera names
     calib: list  # CalibCamera per camera: K / width, camera-to-world (OpenCV axes) in the source's units
@@ -103,6 +104,8 @@ class Source:
     leds_path: Path | None = None  # what an LED error names (None: the calibration)
     led_numbers: list[int] | None = None  # the source's number of each LED in ``leds`` (None: 0, 1, …), for --led-gains
     stated_gains: np.ndarray | None = None  # (L, 3) gains the source itself states (transforms.json's pl_intensity)
+    gains_field: str = "pl_intensity"  # where the source states them, as an error names it
+    stated_intensity: float | None = None  # the LEDs' mean W/sr at full drive, where the source states it (a Mitsuba scene)
     mesh_files: list[Path] = field(default_factory=list)  # the mesh file(s) or folder read (for provenance)
 
     def check(self) -> None:
@@ -198,9 +201,11 @@ class Source:
         either and ``estimate``) are refused."""
         numbers = self.led_numbers or list(range(len(self.leds)))
         if path is not None and self.stated_gains is not None:
-            raise GraMiParameterError("led_gains", f"{self.calib_path} states the LEDs' gains itself (pl_intensity): give one or the other")
+            raise GraMiParameterError(
+                "led_gains", f"{self.calib_path} states the LEDs' gains itself ({self.gains_field}): give one or the other"
+            )
         if estimate and (path is not None or self.stated_gains is not None):
-            said = path if path is not None else f"{self.calib_path}'s pl_intensity"
+            said = path if path is not None else f"{self.calib_path}'s {self.gains_field}"
             raise GraMiParameterError("estimate_led_gains", f"the gains are given ({said}): estimate them or give them, not both")
         if path is not None:
             return read_led_gains(path, numbers)

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from gra_mi.capture.easymocap import EasymocapOptions, import_easymocap
 from gra_mi.capture.humanolat import HumanolatOptions, import_humanolat, write_humanolat
+from gra_mi.capture.mitsuba_capture import MitsubaOptions, import_mitsuba
 from gra_mi.capture.scene_stage import frame_values, stage_from_scene, write_scene_stage
 from gra_mi.capture.source import ImportConfig
 from gra_mi.capture.synthetic import PRESETS, CaptureConfig, generate_capture
@@ -297,10 +298,12 @@ def run_capture(c: CaptureCommand) -> None:
 
 @dataclass(kw_only=True)
 class ImportCommand(Restartable):
-    source: str = field(metadata=option(positional=True, choices=("humanolat", "transforms", "easymocap")))
+    source: str = field(metadata=option(positional=True, choices=("humanolat", "transforms", "easymocap", "mitsuba")))
     """The source's layout. humanolat: a subject folder of the HumanOLAT dataset (TMT22/HumanOLAT), one pose.
     transforms: a folder with a NeRF / nerfstudio transforms.json (or transforms_train/_test.json) and --mesh.
     easymocap: a calibrated rig (intri.yml, extri.yml, images/<cam>/) with --mesh, --leds and --lighting.
+    mitsuba: a stage written as a Mitsuba scene (scene.xml: perspective sensors, point-emitter LEDs, the shape
+    id="subject"), images/<sensor id>/ and --lighting.
     A lens distortion the calibration states (transforms: camera_model with k1…k4, p1, p2; easymocap: dist_<cam>) is
     undone: every image becomes the pinhole camera's with the same K."""
     folder: Path = field(metadata=option(positional=True))
@@ -311,17 +314,26 @@ class ImportCommand(Restartable):
     humanolat: HumanolatOptions = field(default_factory=HumanolatOptions)
     transforms: TransformsOptions = field(default_factory=TransformsOptions)
     easymocap: EasymocapOptions = field(default_factory=EasymocapOptions)
+    mitsuba: MitsubaOptions = field(default_factory=MitsubaOptions)
     shards: ShardOptions = field(default_factory=ShardOptions)
 
     def validate(self) -> None:
         self.config.validate()
         self.shards.validate()
-        read = {"humanolat": ["humanolat"], "transforms": ["transforms"], "easymocap": ["transforms", "easymocap"]}[self.source]
-        for name in ("humanolat", "transforms", "easymocap"):  # another route's option would be ignored unsaid
+        routes = ("humanolat", "transforms", "easymocap", "mitsuba")
+        read = {
+            "humanolat": ["humanolat"],
+            "transforms": ["transforms"],
+            "easymocap": ["transforms", "easymocap"],
+            "mitsuba": ["easymocap", "mitsuba"],
+        }
+        read = read[self.source]
+        for name in routes:  # another route's option would be ignored unsaid
             if name not in read and (given := changed_options(getattr(self, name))):
                 raise GraMiParameterError(given[0], f"is a {name} option: `gra-mi import {self.source}` does not read it")
         for name in read:
-            getattr(self, name).validate()
+            if hasattr(getattr(self, name), "validate"):
+                getattr(self, name).validate()
 
 
 def run_import(c: ImportCommand) -> None:
@@ -332,8 +344,10 @@ def run_import(c: ImportCommand) -> None:
         capture = import_humanolat(c.folder, c.out, c.config, c.humanolat, c.overwrite, shard, gains)
     elif c.source == "transforms":
         capture = import_transforms(c.folder, c.out, c.config, c.transforms, c.overwrite, shard, gains)
-    else:
+    elif c.source == "easymocap":
         capture = import_easymocap(c.folder, c.out, c.config, c.easymocap, c.transforms, c.overwrite, shard, gains)
+    else:
+        capture = import_mitsuba(c.folder, c.out, c.config, c.mitsuba, c.easymocap.lighting, c.overwrite, shard, gains)
     if capture is None:
         print(f"shard {shard}: its images are in {c.out / 'images'}; the shard that finishes last writes capture.json")
         return

@@ -1,0 +1,132 @@
+"""A capture whose rig is a Mitsuba scene (``gra-mi import mitsuba``), into gra-mi's capture layout through the import
+every source shares (:func:`gra_mi.capture.importer.import_capture`).
+
+The stage a user describes as a Mitsuba scene — its ``perspective`` sensors the calibrated cameras, its ``point``
+emitters the LEDs, the shape ``id="subject"`` the tracked mesh — with the photographs taken on it::
+
+    DIR/scene.xml                                          the stage (or --scene FILE); lengths in metres
+    DIR/images/<sensor id>/<frame, 6 digits>.{exr,png,jpg,avif}   the photographs (masked, or with alpha, or masks below)
+    DIR/mask/<sensor id>/<frame, 6 digits>.png             optional masks
+
+Each photograph's lighting comes from ``--lighting``, EasyMocap's file (:func:`gra_mi.capture.easymocap.lighting_frames`:
+``led`` numbers the scene's point emitters in their order). The scene is read as Mitsuba loads it
+(:mod:`gra_mi.capture.scene_stage`): a camera is what its sensor renders, scaled to its photographs' size (same
+aspect). Point emitters whose intensities differ state the LEDs' gains (normalised to their mean); equal ones, or all 0,
+state none; their mean intensity is the LEDs' (``--led-intensity`` unless given): photographs in the scene's units
+(a radiometric calibration, or renders of the scene) give albedos in absolute terms. A static subject (a scene without ``--frame-parameter``) is in every photograph. A moving one: a photograph
+shows the mesh frame of its number, or its lighting entry's ``mesh_frame``; mesh frame k loads the scene with the
+parameter set to k (zero-padded as its default is), its mesh's triangles the first's.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from gra_mi.capture.easymocap import camera_images, lighting_frames
+from gra_mi.capture.importer import import_capture
+from gra_mi.capture.scene_stage import RawMesh, scene_rig, subject_shape
+from gra_mi.capture.source import ImportConfig, Source
+from gra_mi.capture.source_files import CalibCamera, ObjMesh, image_size
+from gra_mi.core.errors import GraMiInputError
+from gra_mi.core.guard import scene_references
+from gra_mi.render.runtime import ensure_mitsuba
+from gra_mi.render.scene_file import load_scene_file
+from gra_mi.stage.lightstage import Camera
+from gra_mi.stage.scene import scene_defaults
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(kw_only=True)
+class MitsubaOptions:
+    """What a capture on a Mitsuba stage needs besides its images and --lighting (:func:`import_mitsuba`)."""
+
+    scene: Path | None = None
+    """mitsuba: the stage's scene file (perspective sensors, point-emitter LEDs, the shape id="subject"). Default:
+    FOLDER/scene.xml."""
+    frame_parameter: str = "frame"
+    """mitsuba: the scene parameter that selects the subject's mesh frame (a lighting entry's mesh_frame; e.g. in
+    <string name="filename" value="body_$frame.ply"/>)."""
+
+
+class SceneMeshes:
+    """The subject of a scene at each mesh frame, as :class:`~gra_mi.capture.mesh_frames.MeshFrames` gives a file's:
+    ``first`` whole, every frame's positions on demand (the scene loaded at that frame, its topology checked)."""
+
+    def __init__(self, path: Path, parameter: str, count: int, moving: bool):
+        self.path, self.parameter, self.count, self.moving = path, parameter, count, moving
+        default = scene_defaults(path).get(parameter, "")
+        self.width = len(default) if default.isdigit() else 0
+        if count > 1 and not moving:
+            raise GraMiInputError(path, f"the lighting names {count} mesh frames, but the scene has no parameter '{parameter}' to "
+                                  "select them (--frame-parameter; e.g. <string name=\"filename\" value=\"body_$frame.ply\"/>)")  # fmt: skip
+        self._first = self._load(0)
+        mesh = self._first
+        uvs = mesh.texcoords if mesh.texcoords is not None else np.zeros((0, 2))
+        self.first = ObjMesh(mesh.vertices, uvs, mesh.faces, mesh.faces if mesh.texcoords is not None else None)
+
+    def __len__(self) -> int:
+        return self.count
+
+    def positions(self, k: int) -> np.ndarray:
+        if k == 0:
+            return self._first.vertices
+        mesh = self._load(k)
+        if mesh.vertices.shape != self._first.vertices.shape or not np.array_equal(mesh.faces, self._first.faces):
+            raise GraMiInputError(self.path, f"with {self.parameter}={self._value(k)} the subject has another topology than at "
+                                  f"{self._value(0)}: a tracked mesh keeps its vertices and triangles")  # fmt: skip
+        return mesh.vertices
+
+    def _value(self, k: int) -> str:
+        return f"{k:0{self.width}d}"
+
+    def _load(self, k: int) -> RawMesh:
+        scene = load_scene_file(self.path, {self.parameter: self._value(k)} if self.moving else None)
+        shape, left_out = subject_shape(scene, self.path)
+        if k == 0 and left_out:
+            logger.warning("%s: %s", self.path, "; ".join(left_out))
+        return RawMesh.of(shape)
+
+
+def read_mitsuba(folder: Path, options: MitsubaOptions, lighting: Path) -> Source:
+    path = options.scene or folder / "scene.xml"
+    ensure_mitsuba()
+    cameras, leds, intensities = scene_rig(load_scene_file(path), path)
+    names = [c.name for c in cameras]
+    images = [camera_images(folder, n) for n in names]
+    calib, sizes = zip(*(_calib(c, found, path) for c, found in zip(cameras, images, strict=True)), strict=True)
+    moving = options.frame_parameter in scene_defaults(path) or f"${options.frame_parameter}" in path.read_text(errors="replace")
+    frames = lighting_frames(lighting, len(leds), None if moving else 0)  # a static subject: every image shows its one mesh
+    meshes = SceneMeshes(path, options.frame_parameter, max(f.mesh_frame for _, f, _ in frames) + 1, moving)
+    stated = None if np.ptp(intensities) == 0 else intensities  # equal (or all off): no gains stated
+    return Source(
+        folder, "mitsuba", path, names, list(calib), list(sizes), images, 1.0, leds, meshes, [None] * len(names), frames,
+        mesh_units=1.0, frame_masks=[camera_images(folder, n, "mask", required=False) for n in names], leds_path=path,
+        mesh_files=[path, *scene_references(path)], stated_gains=stated, gains_field="point emitters' intensities",
+        stated_intensity=float(intensities.mean()) if intensities.max() > 0 else None,
+    )  # fmt: skip
+
+
+def _calib(camera: Camera, images: dict[int, Path], path: Path) -> tuple[CalibCamera, tuple[int, int]]:
+    """The sensor as the calibration of its photographs: K over the image width (a film of another size, same aspect,
+    scales it exactly), the camera-to-world."""
+    width, height = image_size(next(iter(images.values())))
+    if abs(width / height - camera.width / camera.height) * height > 1.0:
+        raise GraMiInputError(path, f"sensor '{camera.name}' renders {camera.width}x{camera.height}, its photographs are "
+                              f"{width}x{height}: another aspect ratio (give the film the photographs' size)")  # fmt: skip
+    k = np.array([[camera.fx, 0, camera.cx], [0, camera.fy, camera.cy], [0, 0, camera.width]]) / camera.width
+    return CalibCamera(k, camera.camera_to_world[:3, :4].copy(), [0.0] * 5), (width, height)
+
+
+def import_mitsuba(
+    folder: str | Path, out: str | Path, config: ImportConfig, options: MitsubaOptions, lighting: Path, overwrite: bool = False,
+    shard=None, estimate_gains=None,
+):  # fmt: skip
+    config.validate()
+    source = read_mitsuba(Path(folder), options, lighting)
+    said = {"scene": str(source.calib_path), "frame_parameter": options.frame_parameter}
+    return import_capture(source, Path(out), config, said, overwrite, options, shard, estimate_gains)
