@@ -309,9 +309,8 @@ def led_intensity(source: Source, config: ImportConfig) -> float:
 def _lights_said(source: Source, config: ImportConfig, stage: Lightstage, gains: np.ndarray | None) -> dict:
     """The report's words for where the LEDs' intensity and gains come from."""
     given = changed_options(config, ("led_intensity",)) or source.stated_intensity is None
-    said = {
-        "led_intensity": f"{stage.max_led_intensity:.4g} W/sr ({'--led-intensity' if given else 'the mean of the source' + chr(39) + 's ' + source.gains_field})"
-    }
+    where = "--led-intensity" if given else f"the mean of the source's {source.gains_field}"
+    said = {"led_intensity": f"{stage.max_led_intensity:.4g} W/sr ({where})"}
     if gains is None:
         return said | {"gains": "assumed equal (none given: --led-gains)"}
     stated = config.led_gains or f"the source's {source.gains_field}"
