@@ -38,6 +38,7 @@ SENSORS = """
     <transform name="to_world"><rotate y="1" angle="180"/><translate x="0.2" y="1.1" z="3.5"/></transform>
     <film type="hdrfilm"><integer name="width" value="48"/><integer name="height" value="64"/></film>
   </sensor>"""
+RGBA_SENSORS = SENSORS.replace('value="64"/></film>', 'value="64"/><string name="pixel_format" value="rgba"/></film>')  # alpha: masks
 MATERIAL = """<bsdf type="gra_microfacet"><texture type="bitmap" name="albedo"><string name="filename" value="albedo_in.exr"/></texture>
       <texture type="bitmap" name="roughness"><string name="filename" value="rough_in.exr"/><boolean name="raw" value="true"/></texture></bsdf>"""
 
@@ -196,11 +197,11 @@ def test_a_mesh_without_uvs_gets_an_atlas_and_an_output_over_the_input_is_refuse
     assert_refused(["from-scene", path, "--out", tmp_path / "x", "-D", "nothing=1"], capsys, "nothing", out=tmp_path / "x")
 
 
-def _moving_scene(folder: Path, frames: int = 3, sensors: str = SENSORS) -> Path:
+def _moving_scene(folder: Path, frames: int = 3, sensors: str = SENSORS, lights: str | None = None) -> Path:
     """The user scene with the body as one OBJ per frame (``body_$frame.obj``, the tiny subject's frames)."""
     from gra_mi.subject.sequence import load_sequence
 
-    path = write_user_scene(folder, sensors=sensors)
+    path = write_user_scene(folder, sensors=sensors, lights=lights)
     seq = load_sequence(SCENES / "subjects" / "tiny")
     body = (folder / "body.obj").read_text().splitlines()
     for t in range(frames):
@@ -267,15 +268,16 @@ def test_gra_mis_own_scene_round_trips_with_its_vertex_colours(plugins, tmp_path
     assert original[..., :3].max() > 0 and np.abs(stage - original).max() < 1e-3 * original[..., :3].max()
 
 
-def _photograph(scene_path: Path, folder: Path, lighting: list[dict], intensities: np.ndarray) -> None:
+def _photograph(scene_path: Path, folder: Path, lighting: list[dict], intensities: np.ndarray, moving: bool = False) -> None:
     """Photographs of the user's stage as a capture takes them: each lighting entry rendered by Mitsuba's ``direct``
-    from every sensor, its LEDs (the scene's point emitters, in order) at the entry's drive × their intensities."""
+    from every sensor, its LEDs (the scene's point emitters, in order) at the entry's drive × their intensities; a
+    ``moving`` subject at the mesh frame of the entry's number (the scene's ``frame``)."""
     import mitsuba as mi
 
-    scene = mi.load_file(str(scene_path), parallel=False)
-    params = mi.traverse(scene)
-    keys = [k for k in params.keys() if k.endswith("intensity.value")]
     for entry in lighting:
+        scene = mi.load_file(str(scene_path), parallel=False, **({"frame": f"{entry['frame']:04d}"} if moving else {}))
+        params = mi.traverse(scene)
+        keys = [k for k in params.keys() if k.endswith("intensity.value")]
         drive = np.full(len(keys), entry["uniform"]) if "uniform" in entry else np.eye(len(keys))[entry["led"]]
         for key, d, i in zip(keys, drive, intensities, strict=True):
             params[key] = mi.Color3f(*(float(x) for x in d * i))
@@ -293,9 +295,7 @@ def test_photographs_on_a_stage_written_as_a_mitsuba_scene_import(plugins, tmp_p
     from gra_mi.stage.lightstage import load_calibration
 
     folder = tmp_path / "capture"
-    sensors = SENSORS.replace('<film type="hdrfilm"><integer name="width" value="48"/><integer name="height" value="64"/>',
-                              '<film type="hdrfilm"><integer name="width" value="48"/><integer name="height" value="64"/><string name="pixel_format" value="rgba"/>')  # fmt: skip
-    path = write_user_scene(folder, sensors=sensors, lights=_leds(off_every=0))
+    path = write_user_scene(folder, sensors=RGBA_SENSORS, lights=_leds(off_every=0))
     path.rename(folder / "scene.xml")
     stage = stage_from_scene(folder / "scene.xml")
     lighting = (
@@ -355,3 +355,25 @@ def test_broken_captures_on_a_mitsuba_stage_stop_with_one_line(plugins, tmp_path
     text = (folder / "scene.xml").read_text()
     (folder / "scene.xml").write_text(re.sub(r'<rgb name="intensity" value="[^"]*"/>', '<rgb name="intensity" value="0"/>', text, count=1))
     assert_refused(base, capsys, "LED 0's gain", out=tmp_path / "cap")
+
+
+def test_photographs_of_a_moving_subject_on_a_mitsuba_stage_import(plugins, tmp_path, capsys):
+    from gra_mi.capture.scene_stage import stage_from_scene
+    from gra_mi.subject.sequence import load_sequence
+
+    folder = tmp_path / "capture"
+    _moving_scene(folder, sensors=RGBA_SENSORS, lights=_leds(off_every=0)).rename(folder / "scene.xml")
+    stage = stage_from_scene(folder / "scene.xml")
+    lighting = [{"frame": 0, "uniform": 1.0}, {"frame": 1, "led": 3}, {"frame": 2, "uniform": 0.5, "split": "test"}]
+    _photograph(folder / "scene.xml", folder, lighting, stage.drive * stage.stage.max_led_intensity, moving=True)
+    (tmp_path / "lighting.json").write_text(json.dumps({"frames": lighting}))
+    argv = ["import", "mitsuba", folder, "--lighting", tmp_path / "lighting.json", "--eval-cameras", "tele", "--out", tmp_path / "cap"]
+    code, lines = run(argv, capsys)
+    assert code == 0, lines
+    report = json.loads((tmp_path / "cap" / "import_report.json").read_text())
+    assert all(c["mask_iou"] >= 0.95 for c in report["cameras"]), report["cameras"]
+    imported, truth = load_sequence(tmp_path / "cap" / "subject"), load_sequence(SCENES / "subjects" / "tiny")
+    assert imported.num_frames == 3
+    for t in (1, 2):  # the import's rigid move aside, each frame moved as the truth's did
+        moved, true_move = imported.vertices[t] - imported.vertices[0], truth.vertices[t] - truth.vertices[0]
+        assert np.linalg.norm(moved, axis=1).max() == pytest.approx(np.linalg.norm(true_move, axis=1).max(), rel=1e-3)
