@@ -145,7 +145,20 @@ def likely_mistake(
     if scores[best] >= 0.5:  # explanations one view cannot tell apart (calibration or mesh units) are all named
         alike = [said for said in scores if scores[said] >= scores[best] - 0.03]
         return f"likely {' or '.join(alike)} (IoU {scores[best]:.2f} if so)"
+    if margin := _margin_around(sequence, plan.camera, mask, pose):
+        return margin
     return "no single convention mistake explains it: check the calibration's units, axes and camera order against the images"
+
+
+def _margin_around(sequence: MeshSequence, camera: Camera, mask: np.ndarray, pose: int) -> str | None:
+    """The words for a mask that holds the whole reprojected mesh and more (the calibration is right; the mask is too
+    big), else None."""
+    seen, inside = mask_iou(sequence, camera, mask, pose)[1], mask > 0.5
+    if not seen.any() or (seen & inside).sum() < 0.97 * seen.sum() or inside.sum() < 1.15 * seen.sum():
+        return None
+    return (f"the mesh lies inside the mask, which is {100 * (inside.sum() / seen.sum() - 1):.0f} % larger: the calibration "
+            "fits, the mask holds more than the subject (taken from pixels that are not black: a soft edge, a glow, a noise "
+            "floor or another object): give masks (mask files, or images with alpha)")  # fmt: skip
 
 
 def reprojection_checks(
