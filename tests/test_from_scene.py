@@ -382,3 +382,16 @@ def test_photographs_of_a_moving_subject_on_a_mitsuba_stage_import(plugins, tmp_
     for path in (folder / "images" / "tele").iterdir():
         write_exr(path, read_exr(path)[..., :3])
     assert_refused([*argv[:-1], tmp_path / "cap2"], capsys, "camera tele", "the mesh lies inside the mask", "the calibration fits")
+
+
+def test_a_moving_stage_whose_rig_moves_with_the_frame_is_refused(plugins, tmp_path, capsys):
+    folder = tmp_path / "capture"
+    sensors = RGBA_SENSORS.replace('up="0, 1, 0"/></transform>', 'up="0, 1, 0"/><translate x="$frame"/></transform>', 1)
+    _moving_scene(folder, sensors=sensors, lights=_leds(off_every=0)).rename(folder / "scene.xml")
+    for name, (w, h) in (("front", (96, 72)), ("side", (70, 60)), ("tele", (48, 64))):
+        for frame in (0, 1):
+            write_exr(folder / "images" / name / f"{frame:06d}.exr", np.ones((h, w, 4), np.float32))
+    lighting = tmp_path / "lighting.json"
+    lighting.write_text(json.dumps({"frames": [{"frame": 0, "uniform": 1.0}, {"frame": 1, "led": 3}]}))
+    argv = ["import", "mitsuba", folder, "--lighting", lighting, "--out", tmp_path / "cap"]
+    assert_refused(argv, capsys, "frame=0001", "sensor 'front'", "rig stays fixed", out=tmp_path / "cap")

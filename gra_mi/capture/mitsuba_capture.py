@@ -28,13 +28,13 @@ import numpy as np
 
 from gra_mi.capture.easymocap import camera_images, lighting_frames
 from gra_mi.capture.importer import import_capture
-from gra_mi.capture.scene_stage import RawMesh, scene_rig, subject_shape
+from gra_mi.capture.scene_stage import RawMesh, same_rig, scene_rig, subject_shape
 from gra_mi.capture.source import ImportConfig, Source
 from gra_mi.capture.source_files import CalibCamera, ObjMesh, image_size
 from gra_mi.core.errors import GraMiInputError
 from gra_mi.core.guard import scene_references
 from gra_mi.render.runtime import ensure_mitsuba
-from gra_mi.render.scene_file import load_scene_file
+from gra_mi.render.scene_file import load_scene_file, scene_parameters
 from gra_mi.stage.lightstage import Camera
 from gra_mi.stage.scene import scene_defaults
 
@@ -57,8 +57,8 @@ class SceneMeshes:
     """The subject of a scene at each mesh frame, as :class:`~gra_mi.capture.mesh_frames.MeshFrames` gives a file's:
     ``first`` whole, every frame's positions on demand (the scene loaded at that frame, its topology checked)."""
 
-    def __init__(self, path: Path, parameter: str, count: int, moving: bool):
-        self.path, self.parameter, self.count, self.moving = path, parameter, count, moving
+    def __init__(self, path: Path, parameter: str, count: int, moving: bool, rig: tuple):
+        self.path, self.parameter, self.count, self.moving, self.rig = path, parameter, count, moving, rig
         default = scene_defaults(path).get(parameter, "")
         self.width = len(default) if default.isdigit() else 0
         if count > 1 and not moving:
@@ -86,6 +86,8 @@ class SceneMeshes:
 
     def _load(self, k: int) -> RawMesh:
         scene = load_scene_file(self.path, {self.parameter: self._value(k)} if self.moving else None)
+        if self.moving:  # the calibration is the scene's at its defaults: a rig stays fixed
+            same_rig(self.rig, scene_rig(scene, self.path), self.path, f"{self.parameter}={self._value(k)}", "its defaults")
         shape, left_out = subject_shape(scene, self.path)
         if k == 0 and left_out:
             logger.warning("%s: %s", self.path, "; ".join(left_out))
@@ -99,9 +101,9 @@ def read_mitsuba(folder: Path, options: MitsubaOptions, lighting: Path) -> Sourc
     names = [c.name for c in cameras]
     images = [camera_images(folder, n) for n in names]
     calib, sizes = zip(*(_calib(c, found, path) for c, found in zip(cameras, images, strict=True)), strict=True)
-    moving = options.frame_parameter in scene_defaults(path) or f"${options.frame_parameter}" in path.read_text(errors="replace")
+    moving = options.frame_parameter in scene_parameters(path)
     frames = lighting_frames(lighting, len(leds), None if moving else 0)  # a static subject: every image shows its one mesh
-    meshes = SceneMeshes(path, options.frame_parameter, max(f.mesh_frame for _, f, _ in frames) + 1, moving)
+    meshes = SceneMeshes(path, options.frame_parameter, max(f.mesh_frame for _, f, _ in frames) + 1, moving, (cameras, leds, intensities))
     stated = None if np.ptp(intensities) == 0 else intensities  # equal (or all off): no gains stated
     return Source(
         folder, "mitsuba", path, names, list(calib), list(sizes), images, 1.0, leds, meshes, [None] * len(names), frames,

@@ -178,7 +178,7 @@ class LaterFrames:
         for value in self.values:
             where = f"{self.parameter}={value}"
             scene = load_scene_file(self.path, {**self.defines, self.parameter: value})
-            _same_rig(self.rig, scene_rig(scene, self.path), self.path, where, f"{self.parameter}={self.all_values[0]}")
+            same_rig(self.rig, scene_rig(scene, self.path), self.path, where, f"{self.parameter}={self.all_values[0]}")
             mesh = RawMesh.of(subject_shape(scene, self.path)[0])
             for name in ("faces", "texcoords"):
                 ours, first = getattr(mesh, name), getattr(self.first, name)
@@ -196,7 +196,8 @@ def scene_rig(scene, path: Path) -> tuple[list[Camera], np.ndarray, np.ndarray]:
     return (cameras, *_leds(scene, path))
 
 
-def _same_rig(first: tuple, now: tuple, path: Path, where: str, at_first: str) -> None:
+def same_rig(first: tuple, now: tuple, path: Path, where: str, at_first: str) -> None:
+    """Refuse a rig (:func:`scene_rig`'s cameras, LED positions, intensities) that is not the one read ``at_first``."""
     (cams_a, pos_a, int_a), (cams_b, pos_b, int_b) = first, now
     if [c.name for c in cams_a] != [c.name for c in cams_b]:
         raise GraMiInputError(path, f"with {where} the scene's sensors are not the ones at {at_first}: a rig stays fixed")

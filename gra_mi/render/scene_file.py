@@ -46,10 +46,15 @@ def parse_defines(items: list[str]) -> dict[str, str]:
     return defines
 
 
+def scene_parameters(path: Path) -> set[str]:
+    """The parameters a scene file declares (``<default name=…>``) or uses (``$name``)."""
+    return set(scene_defaults(path)) | set(re.findall(r"\$([A-Za-z_][A-Za-z0-9_]*)", path.read_text(errors="replace")))
+
+
 def check_defines(path: Path, defines: dict[str, str]) -> None:
     """Every ``-D`` parameter must be one the scene declares (``<default name=…>``) or uses (``$name``): a misspelt
     name would otherwise be dropped without a word."""
-    declared = set(scene_defaults(path)) | set(re.findall(r"\$([A-Za-z_][A-Za-z0-9_]*)", path.read_text(errors="replace")))
+    declared = scene_parameters(path)
     unknown = sorted(set(defines) - declared)
     if unknown:
         said = ", ".join(sorted(declared)) or "none"
