@@ -26,7 +26,7 @@ from gra_mi.capture.source_files import one_uv_tile
 from gra_mi.core.config import comma_list
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.io import atomic_write_text, write_exr
-from gra_mi.render.scene_file import load_scene_file, select_sensors, sensor_name
+from gra_mi.render.scene_file import load_scene_file, scene_parameters, select_sensors, sensor_name
 from gra_mi.render.scene_lights import emitter_label, plugin_name, point_lights
 from gra_mi.stage import scene_keys as keys
 from gra_mi.stage.lightstage import Camera, Lightstage, lightstage_from_dict, lightstage_to_dict
@@ -138,6 +138,9 @@ def stage_from_scene(
 def frame_values(text: str, path: Path, parameter: str) -> list[str]:
     """``--frames``: 'A:B' (B excluded), each value zero-padded to the width of the parameter's default
     (``<default name="frame" value="0000"/>``: 0000, 0001, …), or a comma list of values as the scene takes them."""
+    if parameter not in (known := scene_parameters(path)):
+        raise GraMiParameterError("frame_parameter", f"{path} has no parameter '{parameter}' to set per frame (it has: "
+                                  f"{', '.join(sorted(known)) or 'none'}; e.g. <string name=\"filename\" value=\"body_${parameter}.ply\"/>)")  # fmt: skip
     if ":" not in text:
         values = comma_list(text)
         if not values or len(set(values)) != len(values):
