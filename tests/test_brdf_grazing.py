@@ -429,6 +429,17 @@ def test_bad_texels_are_defined_and_stay_in_their_lane(plugins, caplog, channel,
     assert np.all(value_[below] == 0) and np.all(density[below] == 0)
 
 
+def test_an_8_bit_albedo_is_not_warned_about(plugins, caplog, tmp_path):
+    """An sRGB PNG's texels are stored as levels (0–255) and decoded when looked up: not values outside [0, 1]."""
+    import mitsuba as mi
+    from PIL import Image
+
+    Image.fromarray(np.full((4, 4, 3), 200, np.uint8)).save(tmp_path / "albedo.png")
+    with caplog.at_level(logging.WARNING, logger="gra_mi.render.plugins.microfacet"):
+        mi.load_dict({"type": "gra_microfacet", "albedo": {"type": "bitmap", "filename": str(tmp_path / "albedo.png")}})
+    assert "outside [0, 1]" not in caplog.text, caplog.text
+
+
 def test_a_nan_texel_does_not_reach_other_pixels_of_a_path_traced_render(plugins):
     # Mitsuba's own `path` integrator over a floor whose albedo map holds NaN and Inf texels: the image is finite
     # and, away from those texels' own footprint, equal to the clean map's render.

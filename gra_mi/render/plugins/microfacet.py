@@ -53,7 +53,10 @@ def _warn_out_of_model(bsdf_id: str, name: str, texture) -> None:
     params = mi.traverse(texture)
     if "data" not in params:  # constants are checked by the sanitizers' clamps alone
         return
-    values = np.asarray(params["data"], dtype=np.float64)
+    values = np.asarray(params["data"])
+    if not np.issubdtype(values.dtype, np.floating):  # an 8- or 16-bit image's levels: decoded to [0, 1] when looked up
+        return
+    values = values.astype(np.float64)
     non_finite = int(np.count_nonzero(~np.isfinite(values)))
     finite = values[np.isfinite(values)]
     outside = int(np.count_nonzero((finite < 0) | (finite > 1)))
