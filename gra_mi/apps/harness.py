@@ -108,28 +108,28 @@ def direct_integrator(emitter_samples: int = 1, bsdf_samples: int = 0):
     return mi.load_dict({"type": "direct", "emitter_samples": emitter_samples, "bsdf_samples": bsdf_samples})
 
 
-def truth_of(scene, integrator, spp: int) -> tuple:
+def truth_of(scene, integrator, spp: int, sensor: int = 0) -> tuple:
     """(the truth: ``scene`` at ``spp`` samples, seed 1; the row of its own noise: the same again at seed 2, against it)."""
     import mitsuba as mi
     import numpy as np
 
     from gra_mi.render.near_field_cases import image_error
 
-    truth, again = (np.array(mi.render(scene, integrator=integrator, spp=spp, seed=seed)) for seed in (1, 2))
+    truth, again = (np.array(mi.render(scene, integrator=integrator, spp=spp, seed=seed, sensor=sensor)) for seed in (1, 2))
     error, bias = image_error(again, truth)
     return truth, ("the truth again, another seed (its own noise)", "–", f"{100 * error:.2f} %", f"{100 * bias:+.2f} %")
 
 
-def render_row(label: str, scene, integrator, spp: int, truth) -> tuple:
-    """A speed-against-error row for one integrator on ``scene``: (label, ms per image (the median of 3 renders
-    after one that compiles), mean relative error and bias of the mean against ``truth``)."""
+def render_row(label: str, scene, integrator, spp: int, truth, sensor: int = 0) -> tuple:
+    """A speed-against-error row for one integrator on ``scene`` (its ``sensor``): (label, ms per image (the median of
+    3 renders after one that compiles), mean relative error and bias of the mean against ``truth``)."""
     import mitsuba as mi
     import numpy as np
 
     from gra_mi.render.near_field_cases import image_error
 
     def render():
-        return np.array(mi.render(scene, integrator=integrator, spp=spp, seed=11))
+        return np.array(mi.render(scene, integrator=integrator, spp=spp, seed=11, sensor=sensor))
 
     seconds, image = timed(render, repeats=3, warmup=True)
     error, bias = image_error(image, truth)

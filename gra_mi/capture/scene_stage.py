@@ -3,7 +3,7 @@
 gra-mi's UV-space stages (``relight``, ``view``, ``export``, RelightNet) need a rig calibration and a tracked mesh
 sequence beside the scene file. A user's own scene holds the same things in Mitsuba's words: its ``perspective``
 sensors are the rig's cameras, its ``point`` emitters the LEDs (their intensities the scene's own lighting, kept as
-an LED drive), its subject a mesh with texture coordinates, and the subject's material may hold the albedo and
+an LED pattern), its subject a mesh with texture coordinates, and the subject's material may hold the albedo and
 roughness maps gra-mi relights with. Everything is read from the scene as Mitsuba loaded it (world-space vertices,
 the sensors' fields of view and principal points, the emitters' own ``sample_direction``), so whatever way the file
 spells a transform or a field of view, the stage is what Mitsuba renders. What the stage cannot hold is refused by
@@ -49,12 +49,12 @@ MAX_FRAMES = 1_000_000
 
 @dataclass
 class SceneStage:
-    """What a user's scene gives gra-mi: the rig, the subject (its first frame), the scene's LED drive, its material's
-    maps, and the subject's later frames (read as they are written)."""
+    """What a user's scene gives gra-mi: the rig, the subject (its first frame), the scene's LED intensities, its
+    material's maps, and the subject's later frames (read as they are written)."""
 
     stage: Lightstage
     sequence: MeshSequence  # the first frame
-    drive: np.ndarray  # (L, 3) the scene's own LED intensities / stage.max_led_intensity
+    intensities: np.ndarray  # (L, 3) the scene's own LED intensities (W/sr): a pattern, as gra-mi's pattern files hold them
     maps: dict[str, np.ndarray] = field(default_factory=dict)  # "albedo" (R, R, 3), "roughness" (R, R, 1)
     notes: list[str] = field(default_factory=list)  # what the stage leaves out of the scene, said
     later: LaterFrames | None = None
@@ -132,7 +132,7 @@ def stage_from_scene(
     later = (
         LaterFrames(path, defines or {}, parameter, frames, mesh, position_of, (cameras, positions, intensities)) if frames[1:] else None
     )
-    return SceneStage(stage, sequence, intensities / stage.max_led_intensity, maps, notes, later)
+    return SceneStage(stage, sequence, intensities, maps, notes, later)
 
 
 def frame_values(text: str, path: Path, parameter: str) -> list[str]:
@@ -368,7 +368,7 @@ def bake_texture(texture, resolution: int, channels: int, shape=None) -> np.ndar
 
 
 def write_scene_stage(stage: SceneStage, folder: Path, spp: int = 64) -> list[Path]:
-    """``folder``: scene.xml (a gra-mi lightstage scene), rig/, subject/, lighting.json (the scene's own LED drive),
+    """``folder``: scene.xml (a gra-mi lightstage scene), rig/, subject/, lighting.json (the scene's own LED intensities),
     albedo.exr / roughness.exr (where the material held them), notes.md. Returns what it wrote."""
     write_rig(stage.stage, folder / "rig")
     seq = stage.sequence
@@ -376,7 +376,7 @@ def write_scene_stage(stage: SceneStage, folder: Path, spp: int = 64) -> list[Pa
     layout = SequenceLayout(seq.faces, seq.uvs, stage.num_frames, seq.fps, labels, _vertex_colours(stage))
     write_sequence(folder / "subject", layout, stage.frames(), source=seq.origin)
     atomic_write_text(folder / "scene.xml", subject_scene_xml("rig", "subject", spp=spp))
-    atomic_write_text(folder / "lighting.json", json.dumps({"intensities": np.round(stage.drive, 9).tolist()}) + "\n")
+    atomic_write_text(folder / "lighting.json", json.dumps({"intensities": np.round(stage.intensities, 9).tolist()}) + "\n")
     written = [folder / name for name in ("scene.xml", "rig", "subject", "lighting.json")]
     for name, image in stage.maps.items():
         write_exr(folder / f"{name}.exr", image)

@@ -186,7 +186,7 @@ def run_from_scene(c: FromSceneCommand) -> None:
     for note in stage.notes:
         print(f"note: {note}")
     maps = "".join(f" --{name} {c.out / (name + '.exr')}" for name in stage.maps)
-    lighting = f"--pattern {c.out / 'lighting.json'}" if stage.drive.max() > 0 else "--olat 0"
+    lighting = f"--pattern {c.out / 'lighting.json'}" if stage.intensities.max() > 0 else "--olat 0"
     print(f"wrote {c.out / 'scene.xml'}: {len(stage.stage.cameras)} cameras, {stage.stage.num_leds} LEDs, "
           f"{stage.sequence.num_vertices} vertices, {stage.num_frames} frame(s). Relight it with:\n  gra-mi relight {c.out / 'scene.xml'} {lighting}{maps}")  # fmt: skip
 
