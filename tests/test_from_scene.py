@@ -180,7 +180,8 @@ BAD = {
     "not a mesh": ({"shapes": SPHERE}, ("Sphere, not a mesh",)),
     "two unnamed shapes": ({"shapes": '<shape type="obj"><string name="filename" value="body.obj"/></shape>' * 2}, ("no shape has id 'subject'",)),
     "mirrored camera": ({"sensors": SENSORS.replace('<lookat origin="0.3', '<scale x="-1"/><lookat origin="0.3')}, ("'front'", "mirrors")),
-    "negative LED": ({"lights": '<emitter type="point"><point name="position" x="0" y="-1" z="0"/><rgb name="intensity" value="-1"/></emitter>'}, ("must be finite and >= 0",)),
+    "negative LED": ({"lights": '<emitter type="point"><point name="position" x="0" y="-1" z="0"/><rgb name="intensity" value="-1"/></emitter>'}, ("must be finite, >= 0",)),
+    "blinding LED": ({"lights": '<emitter type="point"><point name="position" x="0" y="-1" z="0"/><rgb name="intensity" value="1e21"/></emitter>'}, ("<= 1e+20 W/sr",)),
 }  # fmt: skip
 
 
@@ -249,6 +250,9 @@ def test_what_moves_besides_the_subject_is_refused_naming_the_frame(plugins, tmp
     obj = tmp_path / "user2" / "body_0002.obj"
     obj.write_text("\n".join(line for line in obj.read_text().splitlines()[:-1]) + "\n")  # a triangle fewer
     assert_refused(["from-scene", path, "--frames", "0:3", "--out", tmp_path / "b"], capsys, "frame=0002", "faces differ")
+    (tmp_path / "user2" / "body_0001.obj").unlink()
+    assert_refused(["from-scene", path, "--frames", "0:3", "--out", tmp_path / "b"], capsys, "frame=0001", "body_0001.obj", "not found")
+    assert not (tmp_path / "b" / "scene.xml").exists()  # written last: a stage stopped at a frame is not one
     for argv, needle in (
         (["--frames", "3:1"], "A < B"),
         (["--frames", "0000,0000"], "twice"),

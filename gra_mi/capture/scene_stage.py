@@ -26,6 +26,7 @@ from gra_mi.capture.source_files import one_uv_tile
 from gra_mi.core.config import comma_list
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.io import atomic_write_text, write_exr
+from gra_mi.core.limits import MAX_INTENSITY
 from gra_mi.render.scene_file import load_scene_file, scene_parameters, select_sensors, sensor_name
 from gra_mi.render.scene_lights import emitter_label, plugin_name, point_lights
 from gra_mi.stage import scene_keys as keys
@@ -180,7 +181,10 @@ class LaterFrames:
     def __iter__(self) -> Iterator[tuple[np.ndarray, np.ndarray]]:
         for value in self.values:
             where = f"{self.parameter}={value}"
-            scene = load_scene_file(self.path, {**self.defines, self.parameter: value})
+            try:
+                scene = load_scene_file(self.path, {**self.defines, self.parameter: value})
+            except GraMiInputError as exc:  # the frames before it are written, scene.xml (written last) is not
+                raise GraMiInputError(exc.source, f"with {where}: {exc.problem}") from None
             same_rig(self.rig, scene_rig(scene, self.path), self.path, where, f"{self.parameter}={self.all_values[0]}")
             mesh = RawMesh.of(subject_shape(scene, self.path)[0])
             for name in ("faces", "texcoords"):
@@ -245,10 +249,12 @@ def _leds(scene, path: Path) -> tuple[np.ndarray, np.ndarray]:
     if not emitters:
         raise GraMiInputError(path, 'the scene has no emitter: a lightstage\'s LEDs are <emitter type="point"> in it')
     positions, intensities = point_lights(emitters)
-    bad = ~np.isfinite(intensities).all(axis=1) | (intensities < 0).any(axis=1)
+    bad = ~(np.isfinite(intensities) & (intensities >= 0) & (intensities <= MAX_INTENSITY)).all(axis=1)
     if bad.any():
         i = int(np.argmax(bad))
-        raise GraMiInputError(path, f"{emitter_label(i, emitters[i])}: intensity {intensities[i].tolist()} must be finite and >= 0")
+        raise GraMiInputError(
+            path, f"{emitter_label(i, emitters[i])}: intensity {intensities[i].tolist()} must be finite, >= 0 and <= {MAX_INTENSITY:g} W/sr"
+        )
     return positions, intensities
 
 

@@ -312,11 +312,8 @@ def validate_pattern(stage: Lightstage, pattern: np.ndarray, source: str = "patt
         raise GraMiInputError(source, f"expected ({stage.num_leds},) or ({stage.num_leds}, 3) LED intensities, got {pattern.shape}")
     if not np.all(np.isfinite(pattern)) or np.any(pattern < 0):
         raise GraMiInputError(source, "LED intensities must be finite and non-negative")
-    if pattern.max(initial=0.0) * stage.max_led_intensity > MAX_INTENSITY:
-        limit = MAX_INTENSITY / stage.max_led_intensity
-        raise GraMiInputError(
-            source, f"LED drives must be at most {limit:g} (× {stage.max_led_intensity:g} W/sr: float32's range), got {pattern.max():g}"
-        )
+    if pattern.max(initial=0.0) > MAX_INTENSITY:  # drives are W/sr (emitted = drive × gain), not fractions of the maximum
+        raise GraMiInputError(source, f"LED drives must be at most {MAX_INTENSITY:g} W/sr (float32's range), got {pattern.max():g}")
     return pattern
 
 
