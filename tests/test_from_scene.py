@@ -250,9 +250,10 @@ def test_what_moves_besides_the_subject_is_refused_naming_the_frame(plugins, tmp
     obj = tmp_path / "user2" / "body_0002.obj"
     obj.write_text("\n".join(line for line in obj.read_text().splitlines()[:-1]) + "\n")  # a triangle fewer
     assert_refused(["from-scene", path, "--frames", "0:3", "--out", tmp_path / "b"], capsys, "frame=0002", "faces differ")
+    assert run(["from-scene", path, "--frames", "0:2", "--out", tmp_path / "b"], capsys)[0] == 0  # a whole stage, then
     (tmp_path / "user2" / "body_0001.obj").unlink()
-    assert_refused(["from-scene", path, "--frames", "0:3", "--out", tmp_path / "b"], capsys, "frame=0001", "body_0001.obj", "not found")
-    assert not (tmp_path / "b" / "scene.xml").exists()  # written last: a stage stopped at a frame is not one
+    assert_refused(["from-scene", path, "--frames", "0:2", "--out", tmp_path / "b"], capsys, "frame=0001", "body_0001.obj", "not found")
+    assert not (tmp_path / "b" / "scene.xml").exists()  # the same run again, stopped at a frame: no stage
     for argv, needle in (
         (["--frames", "3:1"], "A < B"),
         (["--frames", "0000,0000"], "twice"),

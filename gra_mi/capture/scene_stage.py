@@ -375,22 +375,24 @@ def bake_texture(texture, resolution: int, channels: int, shape=None) -> np.ndar
 
 def write_scene_stage(stage: SceneStage, folder: Path, spp: int = 64) -> list[Path]:
     """``folder``: scene.xml (a gra-mi lightstage scene), rig/, subject/, lighting.json (the scene's own LED intensities),
-    albedo.exr / roughness.exr (where the material held them), notes.md. Returns what it wrote."""
+    albedo.exr / roughness.exr (where the material held them), notes.md. Returns what it wrote. scene.xml is written
+    last and removed first: a folder with one holds a whole stage (a rerun stopped at a bad frame leaves none)."""
+    (folder / "scene.xml").unlink(missing_ok=True)
     write_rig(stage.stage, folder / "rig")
     seq = stage.sequence
     labels = stage.later.all_values if stage.later else seq.frame_labels
     layout = SequenceLayout(seq.faces, seq.uvs, stage.num_frames, seq.fps, labels, _vertex_colours(stage))
     write_sequence(folder / "subject", layout, stage.frames(), source=seq.origin)
-    atomic_write_text(folder / "scene.xml", subject_scene_xml("rig", "subject", spp=spp))
     atomic_write_text(folder / "lighting.json", json.dumps({"intensities": np.round(stage.intensities, 9).tolist()}) + "\n")
-    written = [folder / name for name in ("scene.xml", "rig", "subject", "lighting.json")]
+    written = [folder / name for name in ("rig", "subject", "lighting.json")]
     for name, image in stage.maps.items():
         write_exr(folder / f"{name}.exr", image)
         written.append(folder / f"{name}.exr")
     lines = ["# What gra-mi took from the scene", "", f"- {len(stage.stage.cameras)} cameras, {stage.stage.num_leds} LEDs"]
     lines += [f"- {note}" for note in stage.notes]
     atomic_write_text(folder / "notes.md", "\n".join(lines) + "\n")
-    return written + [folder / "notes.md"]
+    atomic_write_text(folder / "scene.xml", subject_scene_xml("rig", "subject", spp=spp))
+    return [folder / "scene.xml", *written, folder / "notes.md"]
 
 
 def _vertex_colours(stage: SceneStage) -> np.ndarray:
