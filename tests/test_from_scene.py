@@ -361,7 +361,7 @@ def test_broken_captures_on_a_mitsuba_stage_stop_with_one_line(plugins, tmp_path
     for frame in (0, 1):  # twice the film's size: the same camera, scaled
         write_exr(folder / "images" / "tele" / f"{frame:06d}.exr", np.zeros((128, 96, 4), np.float32))
     lighting.write_text(json.dumps({"frames": [{"frame": 0, "uniform": 1.0}, {"frame": 1, "led": 24}]}))
-    assert_refused(base, capsys, "LED 24 out of range", out=tmp_path / "cap")
+    assert_refused(base, capsys, "LED 24 out of range: the stage has 24 LEDs", out=tmp_path / "cap")
     lighting.write_text(json.dumps({"frames": [{"frame": 0, "uniform": 1.0}, {"frame": 1, "led": 3, "mesh_frame": 1}]}))
     assert_refused(base, capsys, "2 mesh frames", "no parameter 'frame'", out=tmp_path / "cap")
     assert_refused([*base, "--mesh", folder / "body.obj"], capsys, "--mesh", "transforms option", out=tmp_path / "cap")

@@ -177,7 +177,9 @@ def _lighting(path: Path, i: int, entry: LightingEntry, leds: int) -> tuple[str,
         return "pattern", ("uniform", entry.uniform)
     if entry.led is not None:
         if entry.led >= leds:
-            raise GraMiInputError(path, f"LED {entry.led} out of range [0, {leds}) of --leds", field=f"{where}.led")
+            raise GraMiInputError(
+                path, f"LED {entry.led} out of range: the stage has {leds} LEDs, numbered 0 to {leds - 1}", field=f"{where}.led"
+            )
         return "pattern", entry.led
     kind = "envmap" if entry.envmap is not None else "pattern"
     file = path.parent / getattr(entry, kind)
