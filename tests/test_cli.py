@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -24,14 +26,26 @@ def run_cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "gra_mi.cli", *args], capture_output=True, text=True, env=env, cwd=cwd, timeout=600)
 
 
-def test_every_option_has_help():
+def _options(parser: argparse.ArgumentParser, name: str = "gra-mi"):
+    """(command, action) for every option of every command and subcommand (``import mitsuba``)."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub, p in action.choices.items():
+                yield from _options(p, f"{name} {sub}")
+        elif action.dest != "help":
+            yield name, action
+
+
+def test_every_option_has_help_and_says_its_default():
     parser = build_parser()
     sub = next(a for a in parser._actions if a.dest == "command")
     assert set(sub.choices) == set(COMMANDS)
-    for name, p in sub.choices.items():
-        for action in p._actions:
-            if action.dest != "help":
-                assert action.help and len(action.help) > 10, f"gra-mi {name} {action.option_strings}: no help"
+    for name, action in _options(parser):
+        assert action.help and len(action.help) > 10, f"{name} {action.option_strings}: no help"
+        takes_value = action.nargs != 0 and not isinstance(action, argparse.BooleanOptionalAction)
+        if takes_value and not action.required:  # a text that merely mentions "the default layout" hid it once
+            said = re.search(r"default:|default none|\(default\)", action.help, re.IGNORECASE)
+            assert said, f"{name} {action.option_strings or action.dest}: its help does not say its default"
 
 
 def test_help_runs():

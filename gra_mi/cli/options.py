@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import re
 import types
 import typing
 from collections.abc import Iterator
@@ -80,7 +81,8 @@ def _add_field(parser: argparse.ArgumentParser, f: dataclasses.Field, kind, spel
     convert = spelling.parse or (finite_float if item is float else item)
     required = default is dataclasses.MISSING
     unset = "none" if item in (Path, str) else "automatic"
-    shown = "" if required or "default" in text.lower() else f" Default: {unset if default is None else _shown(default)}."
+    said = re.search(r"default:|default none|\(default\)", text, re.IGNORECASE)  # the text states it (not "the default layout")
+    shown = "" if required or said else f" Default: {unset if default is None else _shown(default)}."
     common = {"type": convert, "choices": spelling.choices, "help": f"{text}{shown}".strip()}
     if spelling.repeat:
         common["action"] = "append"

@@ -135,7 +135,7 @@ class SceneCommand(CommandConfig):
     subject: Path
     """Sequence folder (from `gra-mi subject`)."""
     spp: int = 64
-    """Default samples per pixel written into the scene."""
+    """Samples per pixel the written scene renders with (its `spp` parameter; `-D spp=N` changes it at render time)."""
 
 
 def run_scene(c: SceneCommand) -> None:
@@ -154,7 +154,7 @@ class FromSceneCommand(Restartable):
     """Folder to write: scene.xml, rig/, subject/, lighting.json, albedo.exr and roughness.exr (where the subject's
     material holds them), notes.md (what was left out)."""
     spp: int = 64
-    """Default samples per pixel written into the scene."""
+    """Samples per pixel the written scene renders with (its `spp` parameter; `-D spp=N` changes it at render time)."""
     frames: str | None = None
     """A moving subject: load the scene once per value of --frame-parameter, 'A:B' (B excluded; zero-padded as the
     parameter's default is, <default name="frame" value="0000"/> gives 0000, 0001, ...) or a comma list of values as
