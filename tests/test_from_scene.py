@@ -289,19 +289,12 @@ def _photograph(scene_path: Path, folder: Path, lighting: list[dict], intensitie
     ``moving`` subject at the mesh frame of the entry's number (the scene's ``frame``)."""
     import mitsuba as mi
 
+    from gra_mi.capture.mitsuba_capture import write_photographs
+
     for entry in lighting:
         scene = mi.load_file(str(scene_path), parallel=False, **({"frame": f"{entry['frame']:04d}"} if moving else {}))
-        params = mi.traverse(scene)
-        keys = [k for k in params.keys() if k.endswith("intensity.value")]
-        drive = np.full(len(keys), entry["uniform"]) if "uniform" in entry else np.eye(len(keys))[entry["led"]]
-        for key, d, i in zip(keys, drive, intensities, strict=True):
-            params[key] = mi.Color3f(*(float(x) for x in d * i))
-        params.update()
-        for index, sensor in enumerate(scene.sensors()):
-            image = np.array(
-                mi.render(scene, params, sensor=index, integrator=mi.load_dict({"type": "direct"}), spp=64, seed=entry["frame"])
-            )
-            write_exr(folder / "images" / sensor.id() / f"{entry['frame']:06d}.exr", image)
+        drive = np.full(len(intensities), entry["uniform"]) if "uniform" in entry else np.eye(len(intensities))[entry["led"]]
+        write_photographs(scene, folder, entry["frame"], drive[:, None] * intensities, mi.load_dict({"type": "direct"}), 64)
 
 
 def test_photographs_on_a_stage_written_as_a_mitsuba_scene_import(plugins, tmp_path, capsys):

@@ -33,8 +33,10 @@ from gra_mi.capture.source import ImportConfig, Source
 from gra_mi.capture.source_files import CalibCamera, ObjMesh, image_size
 from gra_mi.core.errors import GraMiInputError
 from gra_mi.core.guard import scene_references
+from gra_mi.core.io import write_exr
 from gra_mi.render.runtime import ensure_mitsuba
-from gra_mi.render.scene_file import load_scene_file, scene_parameters
+from gra_mi.render.scene_file import load_scene_file, scene_parameters, sensor_name
+from gra_mi.render.scene_lights import set_point_lights
 from gra_mi.stage.lightstage import Camera
 from gra_mi.stage.scene import scene_defaults
 
@@ -132,3 +134,16 @@ def import_mitsuba(
     source = read_mitsuba(Path(folder), options, lighting)
     said = {"scene": str(source.calib_path), "frame_parameter": options.frame_parameter}
     return import_capture(source, Path(out), config, said, overwrite, options, shard, estimate_gains)
+
+
+def write_photographs(scene, folder: Path, number: int, emitted: np.ndarray, integrator, spp: int) -> None:
+    """Photographs as ``import mitsuba`` reads them, rendered from a loaded stage: ``scene`` lit by its point emitters
+    at ``emitted`` (L, 3) W/sr, every sensor rendered by ``integrator`` at ``spp`` (seed ``number``) into
+    ``folder/images/<sensor id>/<number, 6 digits>.exr`` (RGBA where the film has alpha: the subject's mask). A writer
+    for tests and benchmarks of the importer: what a calibrated capture on the stage would hold."""
+    import mitsuba as mi
+
+    set_point_lights(scene, emitted)
+    for index, sensor in enumerate(scene.sensors()):
+        image = np.array(mi.render(scene, sensor=index, integrator=integrator, spp=spp, seed=number))
+        write_exr(folder / "images" / sensor_name(index, sensor, folder) / f"{number:06d}.exr", image)

@@ -116,6 +116,30 @@ def point_lights(emitters: list) -> tuple[np.ndarray, np.ndarray]:
     return positions, intensities
 
 
+def set_point_lights(scene, intensities: np.ndarray) -> None:
+    """Drive a scene's point emitters (``scene.emitters()``'s order, as :func:`point_lights` reads them) at
+    ``intensities`` (P, 3) W/sr, each sampled in proportion to its power: a path tracer picks an OLAT's one lit LED,
+    not the dark ones."""
+    import mitsuba as mi
+
+    from gra_mi.stage.scene import led_sampling_weights
+
+    params = mi.traverse(scene)
+    owner = {
+        id(params.properties[key][2]): key[: -len("sampling_weight")] for key in params.keys() if key.split(".")[-1] == "sampling_weight"
+    }
+    emitters = list(scene.emitters())
+    if len(emitters) != len(intensities) or any(plugin_name(e) != "point" for e in emitters):
+        raise GraMiParameterError(
+            "intensities", f"expected one per point emitter of the scene, got {len(intensities)} for {len(emitters)} emitters"
+        )
+    for emitter, value, weight in zip(emitters, intensities, led_sampling_weights(intensities), strict=True):
+        prefix = owner[id(emitter)]
+        params[prefix + "intensity.value"] = mi.Color3f(*(float(x) for x in value))
+        params[prefix + "sampling_weight"] = float(weight)
+    params.update()
+
+
 def scene_lights(scene, source: str | None = None, dome_lights: int = DEFAULT_LIGHTS) -> SceneLights:
     """Classify and check the emitters of a loaded scene; ``source`` names the scene file in errors; environments are
     integrated onto a dome of ``dome_lights`` lights.
