@@ -403,3 +403,20 @@ def test_a_moving_stage_whose_rig_moves_with_the_frame_is_refused(plugins, tmp_p
     lighting.write_text(json.dumps({"frames": [{"frame": 0, "uniform": 1.0}, {"frame": 1, "led": 3}]}))
     argv = ["import", "mitsuba", folder, "--lighting", lighting, "--out", tmp_path / "cap"]
     assert_refused(argv, capsys, "frame=0001", "sensor 'front'", "rig stays fixed", out=tmp_path / "cap")
+
+
+def test_point_lights_set_are_what_mitsuba_emits(plugins):
+    """set_point_lights, which the photographs of a stage go through, read back through the emitters' own
+    sample_direction (point_lights); the count is checked."""
+    import mitsuba as mi
+
+    from gra_mi.core.errors import GraMiParameterError
+    from gra_mi.render.scene_lights import point_lights, set_point_lights
+
+    scene = mi.load_file(str(SCENES / "user_stage" / "scene.xml"), parallel=False)
+    emitted = np.zeros((40, 3))
+    emitted[7] = [3.0, 2.0, 1.0]
+    set_point_lights(scene, emitted)
+    np.testing.assert_allclose(point_lights(list(scene.emitters()))[1], emitted, atol=1e-6)
+    with pytest.raises(GraMiParameterError, match="one per point emitter"):
+        set_point_lights(scene, emitted[:39])
