@@ -176,11 +176,13 @@ def map_rows(fit: Path, truth: dict) -> tuple[list[tuple], dict]:
     return rows, sets
 
 
-def held_out_rows(capture_dir: Path, sets: dict, names: tuple[str, ...]) -> list[tuple]:
+def held_out_rows(capture_dir: Path, sets: dict, names: tuple[str, ...]) -> tuple[list[tuple], np.ndarray]:
     """Each held-out lighting (``names``, in the capture's order) relit from the held-out and a training camera with
-    each map set, with one bounce and with two (`--bounces 2`), against the photograph."""
+    each map set, with one bounce and with two (`--bounces 2`), against the photograph; and a picture: per lighting,
+    the held-out camera's photograph beside the fitted maps relit (2 bounces), each lighting at its photograph's
+    exposure."""
     from gra_mi.capture.dataset import Capture
-    from gra_mi.core.io import read_exr
+    from gra_mi.core.io import auto_exposure, read_exr
     from gra_mi.render.near_field_cases import image_error
     from gra_mi.render.relighter import Relighter
     from gra_mi.render.transport import LightTransport
@@ -193,7 +195,7 @@ def held_out_rows(capture_dir: Path, sets: dict, names: tuple[str, ...]) -> list
             ls, albedo=sets["fitted"]["albedo"], roughness=sets["fitted"]["roughness"], transport=LightTransport(bounces=bounces)
         )
         relighters |= {(label, bounces): first.with_maps(m["albedo"], m["roughness"]) for label, m in sets.items()}
-    rows = []
+    rows, panels = [], []
     for name, entry in zip(names, [f for f in capture.frames if f.split == "test"], strict=True):
         for camera in (HELD_OUT, capture.train_cameras[0]):
             truth = read_exr(capture.image_path(camera, entry.frame))
@@ -201,7 +203,9 @@ def held_out_rows(capture_dir: Path, sets: dict, names: tuple[str, ...]) -> list
                 view = relighter.render(entry.mesh_frame, camera, capture.lighting(ls.stage, entry))
                 error, bias = image_error(view.image, truth)
                 rows.append((name, camera, label, bounces, f"{100 * error:.1f} %", f"{100 * bias:+.1f} %"))
-    return rows
+                if (camera, label, bounces) == (HELD_OUT, "fitted", 2):
+                    panels.append(np.concatenate([truth[..., :3], view.image[..., :3]], axis=1) * auto_exposure(truth[..., :3]))
+    return rows, np.concatenate(panels, axis=1)
 
 
 def rows_of(columns: tuple, rows: list[tuple]) -> list[str]:
@@ -211,6 +215,8 @@ def rows_of(columns: tuple, rows: list[tuple]) -> list[str]:
 
 
 def fit_section(run: BenchmarkRun) -> str:
+    from gra_mi.core.io import write_png
+
     capture, fit, truth, seconds = import_and_fit(run)
     maps, sets = map_rows(fit, truth)
     lines = ["", "## Photographs on the stage, imported and fitted", "",
@@ -219,8 +225,13 @@ def fit_section(run: BenchmarkRun) -> str:
              f"{seconds['fit']:.0f} s (its default steps). The held-out camera is `{HELD_OUT}`.", ""]  # fmt: skip
     lines += rows_of(("maps", "texels scored", "albedo MAE", "albedo median relative error", "albedo bias", "roughness MAE"), maps)
     lines += ["", "Held-out lightings (error over the subject's pixels of the photograph, image_error):", ""]
+    rows, picture = held_out_rows(capture, sets, HELD_OUT_LIGHTINGS)
+    if (path := run.beside_page("from-scene.png")) is not None:
+        write_png(path, picture, exposure=1.0)
+        lines += [f"![{HELD_OUT}: the photograph, then the fitted maps relit (2 bounces), per held-out lighting: "
+                  f"{', '.join(HELD_OUT_LIGHTINGS)}](from-scene.png)", ""]  # fmt: skip
     columns = ("lighting", "camera", "maps", "bounces", "mean relative error", "bias of the mean")
-    lines += rows_of(columns, held_out_rows(capture, sets, HELD_OUT_LIGHTINGS))
+    lines += rows_of(columns, rows)
     return "\n".join(lines)
 
 
