@@ -151,6 +151,8 @@ def import_and_fit(run: BenchmarkRun) -> tuple[Path, Path, dict, dict[str, float
     scene, path_tracer = mi.load_file(str(path), parallel=False), mi.load_dict({"type": "path", "max_depth": 3})
     seconds = {}
     seconds["photographs"], _ = timed(lambda: [write_photographs(scene, path.parent, n, e, path_tracer, PHOTO_SPP) for n, e in frames])
+    for n, e in frames[-len(HELD_OUT_LIGHTINGS) :]:  # the held-out ones again, another seed: the photographs' own noise
+        write_photographs(scene, run.work / "again", n, e, path_tracer, PHOTO_SPP, seed=10_000 + n)
     config = ImportConfig(eval_cameras=[HELD_OUT], uv_resolution=stage.maps["albedo"].shape[0])
     seconds["import"], _ = timed(lambda: import_mitsuba(path.parent, run.work / "capture", config, MitsubaOptions(), lighting))
     seconds["fit"], _ = timed(lambda: run_fit(run.work / "capture", run.work / "fit", FitConfig()))
@@ -176,9 +178,10 @@ def map_rows(fit: Path, truth: dict) -> tuple[list[tuple], dict]:
     return rows, sets
 
 
-def held_out_rows(capture_dir: Path, sets: dict, names: tuple[str, ...]) -> tuple[list[tuple], np.ndarray]:
+def held_out_rows(capture_dir: Path, again_dir: Path, sets: dict, names: tuple[str, ...]) -> tuple[list[tuple], np.ndarray]:
     """Each held-out lighting (``names``, in the capture's order) relit from the held-out and a training camera with
-    each map set, with one bounce and with two (`--bounces 2`), against the photograph; and a picture: per lighting,
+    each map set, with one bounce and with two (`--bounces 2`), against the photograph, beside the photograph taken
+    again (``again_dir``, another seed); and a picture: per lighting,
     the held-out camera's photograph beside the fitted maps relit (2 bounces), each lighting at its photograph's
     exposure."""
     from gra_mi.capture.dataset import Capture
@@ -199,6 +202,11 @@ def held_out_rows(capture_dir: Path, sets: dict, names: tuple[str, ...]) -> tupl
     for name, entry in zip(names, [f for f in capture.frames if f.split == "test"], strict=True):
         for camera in (HELD_OUT, capture.train_cameras[0]):
             truth = read_exr(capture.image_path(camera, entry.frame))
+            again = read_exr(again_dir / "images" / camera / f"{entry.frame:06d}.exr")
+            error, bias = image_error(again, truth)
+            rows.append(
+                (name, camera, "the photograph again, another seed (its own noise)", "–", f"{100 * error:.1f} %", f"{100 * bias:+.1f} %")
+            )
             for (label, bounces), relighter in relighters.items():
                 view = relighter.render(entry.mesh_frame, camera, capture.lighting(ls.stage, entry))
                 error, bias = image_error(view.image, truth)
@@ -225,7 +233,7 @@ def fit_section(run: BenchmarkRun) -> str:
              f"{seconds['fit']:.0f} s (its default steps). The held-out camera is `{HELD_OUT}`.", ""]  # fmt: skip
     lines += rows_of(("maps", "texels scored", "albedo MAE", "albedo median relative error", "albedo bias", "roughness MAE"), maps)
     lines += ["", "Held-out lightings (error over the subject's pixels of the photograph, image_error):", ""]
-    rows, picture = held_out_rows(capture, sets, HELD_OUT_LIGHTINGS)
+    rows, picture = held_out_rows(capture, run.work / "again", sets, HELD_OUT_LIGHTINGS)
     if (path := run.beside_page("from-scene.png")) is not None:
         write_png(path, picture, exposure=1.0)
         lines += [f"![{HELD_OUT}: the photograph, then the fitted maps relit (2 bounces), per held-out lighting: "

@@ -136,14 +136,14 @@ def import_mitsuba(
     return import_capture(source, Path(out), config, said, overwrite, options, shard, estimate_gains)
 
 
-def write_photographs(scene, folder: Path, number: int, emitted: np.ndarray, integrator, spp: int) -> None:
+def write_photographs(scene, folder: Path, number: int, emitted: np.ndarray, integrator, spp: int, seed: int | None = None) -> None:
     """Photographs as ``import mitsuba`` reads them, rendered from a loaded stage: ``scene`` lit by its point emitters
-    at ``emitted`` (L, 3) W/sr, every sensor rendered by ``integrator`` at ``spp`` (seed ``number``) into
+    at ``emitted`` (L, 3) W/sr, every sensor rendered by ``integrator`` at ``spp`` (``seed``, default ``number``) into
     ``folder/images/<sensor id>/<number, 6 digits>.exr`` (RGBA where the film has alpha: the subject's mask). A writer
     for tests and benchmarks of the importer: what a calibrated capture on the stage would hold."""
     import mitsuba as mi
 
     set_point_lights(scene, emitted)
     for index, sensor in enumerate(scene.sensors()):
-        image = np.array(mi.render(scene, sensor=index, integrator=integrator, spp=spp, seed=number))
+        image = np.array(mi.render(scene, sensor=index, integrator=integrator, spp=spp, seed=number if seed is None else seed))
         write_exr(folder / "images" / sensor_name(index, sensor, folder) / f"{number:06d}.exr", image)
