@@ -129,10 +129,10 @@ def set_point_lights(scene, intensities: np.ndarray) -> None:
         id(params.properties[key][2]): key[: -len("sampling_weight")] for key in params.keys() if key.split(".")[-1] == "sampling_weight"
     }
     emitters = list(scene.emitters())
-    if len(emitters) != len(intensities) or any(plugin_name(e) != "point" for e in emitters):
-        raise GraMiParameterError(
-            "intensities", f"expected one per point emitter of the scene, got {len(intensities)} for {len(emitters)} emitters"
-        )
+    if others := [emitter_label(i, e) for i, e in enumerate(emitters) if plugin_name(e) != "point"]:
+        raise GraMiParameterError("scene", f"only point emitters are driven; {others[0]} is not one")
+    if len(emitters) != len(intensities):
+        raise GraMiParameterError("intensities", f"expected one per point emitter of the scene, got {len(intensities)} for {len(emitters)}")
     for emitter, value, weight in zip(emitters, intensities, led_sampling_weights(intensities), strict=True):
         prefix = owner[id(emitter)]
         params[prefix + "intensity.value"] = mi.Color3f(*(float(x) for x in value))
