@@ -9,8 +9,9 @@ further view of it is shaded and rasterised only), `gra_onebounce` on the user's
 conversion's own time is given above the table.
 
 Then the stage photographed, as a capture on it would be: the scene with its films at twice the size and a third
-sensor between the two (held out), path-traced at 3 bounces (the light between the body's parts, which gra-mi's one
-bounce leaves out) under all LEDs at once and each LED alone, imported with `gra-mi import mitsuba` and fitted with
+sensor between the two (held out), path-traced by Mitsuba's `path` at max_depth 3 (with the light reflected once
+more between the body's parts, glossy and diffuse, which gra-mi's one bounce leaves out and its `--bounces 2` adds
+diffusely) under all LEDs at once and each LED alone, imported with `gra-mi import mitsuba` and fitted with
 `gra-mi fit`. The fitted maps are scored against the scene's own (the albedo baked from its PNG, roughness 0.45) on
 the texels the training cameras see, beside a constant (the true maps' median); two held-out lightings (a key light,
 a rim light) are relit from the held-out and a training camera with the fitted, the constant and the true maps,
@@ -228,9 +229,12 @@ def fit_section(run: BenchmarkRun) -> str:
     capture, fit, truth, seconds = import_and_fit(run)
     maps, sets = map_rows(fit, truth)
     lines = ["", "## Photographs on the stage, imported and fitted", "",
-             f"Photographs: {len(list((capture / 'images' / HELD_OUT).glob('*.exr')))} lightings × 3 cameras, path-traced at "
+             f"Photographs: {len(list((capture / 'images' / HELD_OUT).glob('*.exr')))} lightings × 3 cameras, path-traced (max_depth 3) at "
              f"{PHOTO_SPP} spp in {seconds['photographs']:.0f} s; `import mitsuba` {seconds['import']:.0f} s; `fit` "
-             f"{seconds['fit']:.0f} s (its default steps). The held-out camera is `{HELD_OUT}`.", ""]  # fmt: skip
+             f"{seconds['fit']:.0f} s (its default steps). Training: all LEDs at once and each LED alone, from the scene's "
+             f"two cameras; held out: a key light and a rim light (LED patterns) and the camera `{HELD_OUT}`. The "
+             "photographs hold the light reflected once more between the body's parts, glossy and diffuse; gra-mi's "
+             "`--bounces 2` adds it diffusely.", ""]  # fmt: skip
     lines += rows_of(("maps", "texels scored", "albedo MAE", "albedo median relative error", "albedo bias", "roughness MAE"), maps)
     lines += ["", "Held-out lightings (error over the subject's pixels of the photograph, image_error):", ""]
     rows, picture = held_out_rows(capture, run.work / "again", sets, HELD_OUT_LIGHTINGS)
