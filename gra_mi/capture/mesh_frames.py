@@ -33,6 +33,11 @@ class MeshFrames:
     def __len__(self) -> int:
         return len(self.files)
 
+    def normals(self, k: int) -> None:
+        """A mesh file's normals are not kept: gra-mi computes them from the positions (a scene's are:
+        :class:`~gra_mi.capture.mitsuba_capture.SceneMeshes`)."""
+        return None
+
     def positions(self, k: int) -> np.ndarray:
         """(P, 3) float64 positions of mesh frame ``k``."""
         if k == 0:

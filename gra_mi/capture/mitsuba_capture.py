@@ -66,7 +66,7 @@ class SceneMeshes:
         if count > 1 and not moving:
             raise GraMiInputError(path, f"the lighting names {count} mesh frames, but the scene has no parameter '{parameter}' to "
                                   "select them (--frame-parameter; e.g. <string name=\"filename\" value=\"body_$frame.ply\"/>)")  # fmt: skip
-        self._first = self._load(0)
+        self._first, self._last = self._load(0), None
         mesh = self._first
         uvs = mesh.texcoords if mesh.texcoords is not None else np.zeros((0, 2))
         self.first = ObjMesh(mesh.vertices, uvs, mesh.faces, mesh.faces if mesh.texcoords is not None else None)
@@ -75,13 +75,26 @@ class SceneMeshes:
         return self.count
 
     def positions(self, k: int) -> np.ndarray:
+        return self._mesh(k).vertices
+
+    def normals(self, k: int) -> np.ndarray | None:
+        """Mitsuba's vertex normals of mesh frame ``k`` (its own, or those it computed: angle-weighted, not gra-mi's
+        area weighting), so that the capture shades as the scene renders; None where the subject has face normals (gra-mi
+        computes smooth ones when it writes the subject)."""
+        return self._mesh(k).normals
+
+    def _mesh(self, k: int) -> RawMesh:
+        """Mesh frame ``k``, its topology checked; the last one read is kept (positions, then normals)."""
         if k == 0:
-            return self._first.vertices
+            return self._first
+        if self._last is not None and self._last[0] == k:
+            return self._last[1]
         mesh = self._load(k)
         if mesh.vertices.shape != self._first.vertices.shape or not np.array_equal(mesh.faces, self._first.faces):
             raise GraMiInputError(self.path, f"with {self.parameter}={self._value(k)} the subject has another topology than at "
                                   f"{self._value(0)}: a tracked mesh keeps its vertices and triangles")  # fmt: skip
-        return mesh.vertices
+        self._last = (k, mesh)
+        return mesh
 
     def _value(self, k: int) -> str:
         return f"{k:0{self.width}d}"

@@ -171,6 +171,12 @@ class SubjectPlan:
     def vertices(self, source: Source, frame: WorldFrame, k: int) -> np.ndarray:
         return frame.apply(source.mesh_metres(source.meshes.positions(k)[self.position_of])).astype(np.float32)
 
+    def normals(self, source: Source, frame: WorldFrame, k: int) -> np.ndarray | None:
+        """The source's own vertex normals of mesh frame ``k``, turned into the world frame; None where it has none
+        (computed from the positions when written)."""
+        normals = source.meshes.normals(k)
+        return None if normals is None else (normals[self.position_of] @ frame.rotation.T).astype(np.float32)
+
     def posed(self, source: Source, frame: WorldFrame, k: int) -> MeshSequence:
         """Mesh frame ``k`` alone, as a one-frame sequence (what the reprojection check looks at)."""
         v = self.vertices(source, frame, k)[None]
@@ -179,7 +185,7 @@ class SubjectPlan:
     def write(self, source: Source, frame: WorldFrame, folder: Path) -> None:
         count = len(source.meshes)
         layout = SequenceLayout(self.faces, self.uvs, count, fps=1.0, frame_labels=[f"pose {k}" for k in range(count)])
-        frames = ((self.vertices(source, frame, k), None) for k in range(count))
+        frames = ((self.vertices(source, frame, k), self.normals(source, frame, k)) for k in range(count))
         write_sequence(folder, layout, frames, source=str(source.folder))
 
 
