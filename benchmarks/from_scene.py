@@ -26,7 +26,17 @@ from pathlib import Path
 
 import numpy as np
 
-from gra_mi.apps.harness import RENDER_COLUMNS, BenchmarkRun, direct_integrator, render_row, run_benchmark, table_page, timed, truth_of
+from gra_mi.apps.harness import (
+    RENDER_COLUMNS,
+    BenchmarkRun,
+    direct_integrator,
+    markdown_table,
+    render_row,
+    run_benchmark,
+    table_page,
+    timed,
+    truth_of,
+)
 
 SCENE = Path(__file__).resolve().parent.parent / "scenes" / "user_stage" / "scene.xml"
 TRUTH_SPP = 4096
@@ -217,12 +227,6 @@ def held_out_rows(capture_dir: Path, again_dir: Path, sets: dict, names: tuple[s
     return rows, np.concatenate(panels, axis=1)
 
 
-def rows_of(columns: tuple, rows: list[tuple]) -> list[str]:
-    return ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)] + [
-        "| " + " | ".join(str(c) for c in row) + " |" for row in rows
-    ]
-
-
 def fit_section(run: BenchmarkRun) -> str:
     from gra_mi.core.io import write_png
 
@@ -235,7 +239,7 @@ def fit_section(run: BenchmarkRun) -> str:
              f"two cameras; held out: a key light and a rim light (LED patterns) and the camera `{HELD_OUT}`. The "
              "photographs hold the light reflected once more between the body's parts, glossy and diffuse; gra-mi's "
              "`--bounces 2` adds it diffusely.", ""]  # fmt: skip
-    lines += rows_of(("maps", "texels scored", "albedo MAE", "albedo median relative error", "albedo bias", "roughness MAE"), maps)
+    lines += markdown_table(("maps", "texels scored", "albedo MAE", "albedo median relative error", "albedo bias", "roughness MAE"), maps)
     lines += ["", "Held-out lightings (error over the subject's pixels of the photograph, image_error):", ""]
     rows, picture = held_out_rows(capture, run.work / "again", sets, HELD_OUT_LIGHTINGS)
     if (path := run.beside_page("from-scene.png")) is not None:
@@ -243,7 +247,7 @@ def fit_section(run: BenchmarkRun) -> str:
         lines += [f"![{HELD_OUT}: the photograph, then the fitted maps relit (2 bounces), per held-out lighting: "
                   f"{', '.join(HELD_OUT_LIGHTINGS)}](from-scene.png)", ""]  # fmt: skip
     columns = ("lighting", "camera", "maps", "bounces", "mean relative error", "bias of the mean")
-    lines += rows_of(columns, rows)
+    lines += markdown_table(columns, rows)
     return "\n".join(lines)
 
 

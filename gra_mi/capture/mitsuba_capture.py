@@ -28,7 +28,7 @@ import numpy as np
 
 from gra_mi.capture.easymocap import camera_images, lighting_frames
 from gra_mi.capture.importer import import_capture
-from gra_mi.capture.scene_stage import RawMesh, same_rig, scene_rig, subject_shape
+from gra_mi.capture.scene_stage import RawMesh, load_frame, scene_rig, subject_shape
 from gra_mi.capture.source import ImportConfig, Source
 from gra_mi.capture.source_files import CalibCamera, ObjMesh, image_size
 from gra_mi.core.errors import GraMiInputError
@@ -84,35 +84,29 @@ class SceneMeshes:
         return self._mesh(k).normals
 
     def _mesh(self, k: int) -> RawMesh:
-        """Mesh frame ``k``, its topology checked; the last one read is kept (positions, then normals)."""
+        """Mesh frame ``k``, its rig and topology checked; the last one read is kept (positions, then normals)."""
         if k == 0:
             return self._first
-        if self._last is not None and self._last[0] == k:
-            return self._last[1]
-        mesh = self._load(k)
-        if mesh.vertices.shape != self._first.vertices.shape or not np.array_equal(mesh.faces, self._first.faces):
-            raise GraMiInputError(self.path, f"with {self.parameter}={self._value(k)} the subject has another topology than at "
-                                  f"{self._value(0)}: a tracked mesh keeps its vertices and triangles")  # fmt: skip
-        self._last = (k, mesh)
-        return mesh
+        if self._last is None or self._last[0] != k:
+            self._last = (k, self._load(k, self._first))
+        return self._last[1]
 
     def _value(self, k: int) -> str:
         return f"{k:0{self.width}d}"
 
-    def _load(self, k: int) -> RawMesh:
-        scene = load_scene_file(self.path, {self.parameter: self._value(k)} if self.moving else None)
-        if self.moving:  # the calibration is the scene's at its defaults: a rig stays fixed
-            same_rig(self.rig, scene_rig(scene, self.path), self.path, f"{self.parameter}={self._value(k)}", "its defaults")
-        shape, left_out = subject_shape(scene, self.path)
-        if k == 0 and left_out:
-            logger.warning("%s: %s", self.path, "; ".join(left_out))
-        return RawMesh.of(shape)
+    def _load(self, k: int, first: RawMesh | None = None) -> RawMesh:
+        """The calibration is the scene's at its defaults: the rig at every mesh frame is checked against it."""
+        defines = {self.parameter: self._value(k)} if self.moving else {}
+        return load_frame(self.path, defines, f"{self.parameter}={self._value(k)}", self.rig, "its defaults", first)
 
 
 def read_mitsuba(folder: Path, options: MitsubaOptions, lighting: Path) -> Source:
     path = options.scene or folder / "scene.xml"
     ensure_mitsuba()
-    cameras, leds, intensities = scene_rig(load_scene_file(path), path)
+    scene = load_scene_file(path)
+    cameras, leds, intensities = scene_rig(scene, path)
+    if left_out := subject_shape(scene, path)[1]:
+        logger.warning("%s: %s", path, "; ".join(left_out))
     names = [c.name for c in cameras]
     images = [camera_images(folder, n) for n in names]
     calib, sizes = zip(*(_calib(c, found, path) for c, found in zip(cameras, images, strict=True)), strict=True)

@@ -180,21 +180,31 @@ class LaterFrames:
 
     def __iter__(self) -> Iterator[tuple[np.ndarray, np.ndarray]]:
         for value in self.values:
-            where = f"{self.parameter}={value}"
-            try:
-                scene = load_scene_file(self.path, {**self.defines, self.parameter: value})
-            except GraMiInputError as exc:  # the frames before it are written, scene.xml (written last) is not
-                raise GraMiInputError(exc.source, f"with {where}: {exc.problem}") from None
-            same_rig(self.rig, scene_rig(scene, self.path), self.path, where, f"{self.parameter}={self.all_values[0]}")
-            mesh = RawMesh.of(subject_shape(scene, self.path)[0])
-            for name in ("faces", "texcoords"):
-                ours, first = getattr(mesh, name), getattr(self.first, name)
-                if (ours is None) != (first is None) or (
-                    ours is not None and (ours.shape != first.shape or not np.array_equal(ours, first))
-                ):
-                    raise GraMiInputError(self.path, f"with {where} the subject's {name} differ from the first frame's: a tracked "
-                                          "mesh keeps its vertices, triangles and UVs, only its positions move")  # fmt: skip
+            defines, at_first = {**self.defines, self.parameter: value}, f"{self.parameter}={self.all_values[0]}"
+            mesh = load_frame(self.path, defines, f"{self.parameter}={value}", self.rig, at_first, self.first)
             yield mesh.vertices[self.position_of].astype(np.float32), mesh.shading_normals()[self.position_of].astype(np.float32)
+
+
+def load_frame(path: Path, defines: dict[str, str], where: str, rig: tuple, at_first: str, first: RawMesh | None = None) -> RawMesh:
+    """The subject of the scene ``path`` loaded with ``defines`` (``where`` says them in errors), the scene's rig
+    checked against ``rig`` (read ``at_first``) and, given the ``first`` frame's mesh, its topology against that: a
+    rig stays fixed, a tracked mesh keeps its vertices, triangles and UVs; only positions move."""
+    try:
+        scene = load_scene_file(path, defines)
+    except GraMiInputError as exc:  # a later frame's file: the frames before it may be written already
+        raise GraMiInputError(exc.source, f"with {where}: {exc.problem}") from None
+    same_rig(rig, scene_rig(scene, path), path, where, at_first)
+    mesh = RawMesh.of(subject_shape(scene, path)[0])
+    if first is None:
+        return mesh
+    for name, exact in (("faces", True), ("texcoords", True), ("vertices", False)):  # positions move, the rest stays
+        ours, theirs = getattr(mesh, name), getattr(first, name)
+        if (ours is None) != (theirs is None) or (
+            ours is not None and (ours.shape != theirs.shape or (exact and not np.array_equal(ours, theirs)))
+        ):
+            raise GraMiInputError(path, f"with {where} the subject's {name} differ from the first frame's: a tracked mesh "
+                                  "keeps its vertices, triangles and UVs, only its positions move")  # fmt: skip
+    return mesh
 
 
 def scene_rig(scene, path: Path) -> tuple[list[Camera], np.ndarray, np.ndarray]:
