@@ -8,6 +8,10 @@ further view of it is shaded and rasterised only), `gra_onebounce` on the user's
 1024 spp. Error: mean relative error and the bias of the mean over the subject's pixels (image_error). The
 conversion's own time is given above the table.
 
+Then the same stage in a set (a floor, a room's wall, a lamp, a pole before a camera): gra-mi's relight of the stage
+`from-scene` writes with the set, and of the stage without it (what it wrote before it kept the set), against Mitsuba's
+`direct` on the file with the set, scored where each camera sees the subject first.
+
 Then the stage photographed, as a capture on it would be: the scene with its films at twice the size and a third
 sensor between the two (held out), path-traced by Mitsuba's `path` at max_depth 3 (with the light reflected once
 more between the body's parts, glossy and diffuse, which gra-mi's one bounce leaves out and its `--bounces 2` adds
@@ -33,6 +37,7 @@ from gra_mi.apps.harness import (
     markdown_table,
     render_row,
     run_benchmark,
+    subject_pixels,
     table_page,
     timed,
     truth_of,
@@ -51,6 +56,15 @@ HELD_OUT_SENSOR = f"""
         <film type="hdrfilm"><integer name="width" value="320"/><integer name="height" value="240"/>
             <string name="pixel_format" value="rgba"/></film>
     </sensor>
+"""
+
+
+SET_SHAPES = """    <shape type="rectangle" id="floor"><transform name="to_world"><scale value="3"/><rotate x="1" angle="-90"/>
+        <translate y="0.44"/></transform></shape>
+    <shape type="rectangle" id="wall"><transform name="to_world"><scale value="3"/><translate z="-2.4"/></transform></shape>
+    <shape type="sphere" id="lamp"><point name="center" x="0.75" y="1.85" z="0.45"/><float name="radius" value="0.18"/></shape>
+    <shape type="cylinder" id="pole"><point name="p0" x="0.1" y="0.44" z="1.3"/><point name="p1" x="0.1" y="2.2" z="1.3"/>
+        <float name="radius" value="0.03"/></shape>
 """
 
 
@@ -110,6 +124,53 @@ def relight_section(run: BenchmarkRun) -> str:
     ]
     return table_page("Results: a user's own stage, relit by gra-mi and by Mitsuba", "from_scene.py", run.stamp("scenes/user_stage"),
                       rows, notes, columns=("camera", *RENDER_COLUMNS))  # fmt: skip
+
+
+def set_scene(folder: Path) -> Path:
+    """The user's stage with a set: a floor just under the feet, a wall behind the LEDs (a room's), a lamp between the
+    key LEDs and the body and a pole in front of the camera `front`."""
+    import shutil
+
+    folder.mkdir(parents=True, exist_ok=True)
+    for name in ("body.obj", "albedo.png"):
+        shutil.copyfile(SCENE.parent / name, folder / name)
+    (folder / "scene.xml").write_text(SCENE.read_text().replace("</scene>", SET_SHAPES + "</scene>"))
+    return folder / "scene.xml"
+
+
+def set_section(run: BenchmarkRun) -> str:
+    """gra-mi's relight of the stage with its set and of the stage without it against Mitsuba on the file with the set,
+    scored on the pixels where each camera sees the subject first (whole pixels: the set's borders left out)."""
+    import mitsuba as mi
+    from scipy.ndimage import binary_erosion
+
+    from gra_mi.capture.scene_stage import stage_from_scene, write_scene_stage
+    from gra_mi.render.near_field_cases import image_error
+
+    path = set_scene(run.work / "set_user")
+    write_scene_stage(stage_from_scene(path), run.work / "set_stage")
+    _, bare = stage_of(run)
+    scene = mi.load_file(str(path), parallel=False)
+    names, rows = [sensor.id() for sensor in scene.sensors()], []
+    for index, name in enumerate(names):
+        truth, again = (
+            np.array(mi.render(scene, integrator=direct_integrator(), spp=TRUTH_SPP, seed=seed, sensor=index)) for seed in (1, 2)
+        )
+        truth[..., 3] = binary_erosion(subject_pixels(scene, index))  # image_error scores where the truth's alpha is 1
+        for label, folder in (
+            ("with its set", run.work / "set_stage"),
+            ("without its set (as from-scene wrote it before: no shadows, nothing hidden)", bare),
+        ):
+            row = relight_rows(folder, name, names[index - 1], truth)[0]
+            rows.append((name, f"gra-mi relight of the stage {label}, a new frame", *row[1:]))
+        rows.append((name, *render_row("Mitsuba direct, 1024 spp", scene, direct_integrator(), 1024, truth, sensor=index)))
+        error, bias = image_error(again, truth)
+        rows.append((name, "the truth again, another seed (its own noise)", "–", f"{100 * error:.2f} %", f"{100 * bias:+.2f} %"))
+    lines = ["", "## The same stage in a set", "", "The scene with a floor just under the feet, a room's wall behind the "
+             "LEDs, a lamp between the key LEDs and the body and a pole in front of the camera `front` (scored where "
+             "each camera sees the subject first: Mitsuba's own sensor rays; whole pixels). `from-scene` keeps them as "
+             "the stage's set: they shadow the subject and hide it.", ""]  # fmt: skip
+    return "\n".join(lines + markdown_table(("camera", *RENDER_COLUMNS), rows))
 
 
 def photographed_stage(folder: Path) -> Path:
@@ -252,7 +313,7 @@ def fit_section(run: BenchmarkRun) -> str:
 
 
 def measure(run: BenchmarkRun) -> str:
-    return relight_section(run) + "\n" + fit_section(run)
+    return relight_section(run) + "\n" + set_section(run) + "\n" + fit_section(run)
 
 
 if __name__ == "__main__":

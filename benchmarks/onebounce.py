@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from gra_mi.apps.harness import BenchmarkRun, envmap_drives, run_benchmark, table_page, timed
+from gra_mi.core.runtime import segment
 
 
 def relative_rmse(image: np.ndarray, reference: np.ndarray, mask: np.ndarray) -> float:
@@ -78,7 +79,7 @@ def visibility_rows(ls, relighter, stage, repeats: int) -> tuple[list, int, obje
         dirs.append(d[facing])
         maxts.append(dist[facing] * (1 - 1e-4) - 1e-4)
     origins, dirs, maxts = (np.concatenate(a).astype(np.float32) for a in (origins, dirs, maxts))
-    ray = mi.Ray3f(mi.Point3f(*origins.T), mi.Vector3f(*dirs.T), mi.Float(maxts))
+    ray = segment(mi.Point3f(*origins.T), mi.Vector3f(*dirs.T), mi.Float(maxts))
     dr.eval(ray)
     t_raw, _ = timed(lambda: dr.eval(ls.scene.ray_test(ray, coherent=True)), repeats)
     t_trace, _ = timed(lambda: compute_visibility(ls.scene, geom, LedLayout.of(stage)), repeats)

@@ -153,7 +153,7 @@ def test_what_the_stage_leaves_out_is_said(plugins, tmp_path, capsys):
     assert main(["from-scene", str(path), "--out", str(tmp_path / "stage")]) == 0
     printed = capsys.readouterr().out
     notes = (tmp_path / "stage" / "notes.md").read_text()
-    for said in ("left out: shape 'floor'", "SmoothDiffuse has no roughness"):
+    for said in ("kept as the set: shape 'floor'", "SmoothDiffuse has no roughness"):
         assert said in notes and said in printed
     albedo = read_exr(tmp_path / "stage" / "albedo.exr")
     assert albedo.shape == (256, 256, 3) and np.allclose(albedo, 0.5)  # diffuse's default reflectance, through twosided

@@ -86,11 +86,8 @@ def test_visibility_matches_one_ray_per_pair(tiny):
     d /= dist[:, None]
     facing = (np.sum(nn * d, 1) > 0) & (np.sum(gg * d, 1) > 0)
     origin = pp + gg * RAY_EPSILON
-    ray = mi.Ray3f(
-        mi.Point3f(*origin.T.astype(np.float32)),
-        mi.Vector3f(*d.T.astype(np.float32)),
-        mi.Float((dist * (1 - RAY_EPSILON) - RAY_EPSILON).astype(np.float32)),
-    )
+    ray = mi.Ray3f(mi.Point3f(*origin.T.astype(np.float32)), mi.Vector3f(*d.T.astype(np.float32)))
+    ray.maxt = mi.Float((dist * (1 - RAY_EPSILON) - RAY_EPSILON).astype(np.float32))  # (Ray3f's third argument is its time)
     blocked = np.array(tiny.scene.ray_test(ray))
     expected = (facing & ~blocked).reshape(len(texels), len(leds))
     ours = np.stack([(bits[k // 32, texels] >> (k % 32)) & 1 for k in range(len(leds))], axis=1).astype(bool)

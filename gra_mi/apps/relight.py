@@ -30,8 +30,9 @@ from gra_mi.render.light_path import LightPath
 from gra_mi.render.runtime import ensure_mitsuba
 from gra_mi.render.transport import LightTransport
 from gra_mi.stage.envmap import background_plate, envmap_to_leds, led_fidelity
+from gra_mi.stage.lighting_checks import lighting_warnings
 from gra_mi.stage.lightstage import olat_pattern, validate_pattern
-from gra_mi.stage.scene import LightstageScene, composite_over, lighting_warnings
+from gra_mi.stage.scene import LightstageScene, composite_over
 
 logger = logging.getLogger(__name__)
 

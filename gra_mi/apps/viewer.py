@@ -237,7 +237,7 @@ class ViewerSession:
         import mitsuba as mi
 
         ray = self.ls.camera_rays(camera)
-        si = self.ls.scene.ray_intersect(ray, ray_flags=mi.RayFlags.Minimal, coherent=True)
+        si = self.ls.subject_hits(ray, mi.RayFlags.Minimal)
         forward = [float(v) for v in camera.rotation[:, 2]]
         depth = dr.select(si.is_valid(), si.t * dr.dot(ray.d, mi.Vector3f(forward)), 1e4)
         return np.asarray(depth, np.float32).reshape(camera.height, camera.width)

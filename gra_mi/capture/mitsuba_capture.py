@@ -28,7 +28,7 @@ import numpy as np
 
 from gra_mi.capture.easymocap import camera_images, lighting_frames
 from gra_mi.capture.importer import import_capture
-from gra_mi.capture.scene_stage import RawMesh, load_frame, scene_rig, subject_shape
+from gra_mi.capture.scene_stage import RawMesh, load_frame, scene_rig, shape_label, subject_shape
 from gra_mi.capture.source import ImportConfig, Source
 from gra_mi.capture.source_files import CalibCamera, ObjMesh, image_size
 from gra_mi.core.errors import GraMiInputError
@@ -104,15 +104,17 @@ def read_mitsuba(folder: Path, options: MitsubaOptions, lighting: Path) -> Sourc
     path = options.scene or folder / "scene.xml"
     ensure_mitsuba()
     scene = load_scene_file(path)
-    cameras, leds, intensities = scene_rig(scene, path)
-    if left_out := subject_shape(scene, path)[1]:
-        logger.warning("%s: %s", path, "; ".join(left_out))
+    rig = scene_rig(scene, path)
+    cameras, leds, intensities, _ = rig
+    if others := subject_shape(scene, path)[1]:
+        logger.warning("%s: left out: %s (an import holds the subject alone: their shadows on it are read as its albedo)", path,
+                       ", ".join(shape_label(s) for s in others))  # fmt: skip
     names = [c.name for c in cameras]
     images = [camera_images(folder, n) for n in names]
     calib, sizes = zip(*(_calib(c, found, path) for c, found in zip(cameras, images, strict=True)), strict=True)
     moving = options.frame_parameter in scene_parameters(path)
     frames = lighting_frames(lighting, len(leds), None if moving else 0)  # a static subject: every image shows its one mesh
-    meshes = SceneMeshes(path, options.frame_parameter, max(f.mesh_frame for _, f, _ in frames) + 1, moving, (cameras, leds, intensities))
+    meshes = SceneMeshes(path, options.frame_parameter, max(f.mesh_frame for _, f, _ in frames) + 1, moving, rig)
     stated = None if np.ptp(intensities) == 0 else intensities  # equal (or all off): no gains stated
     return Source(
         folder, "mitsuba", path, names, list(calib), list(sizes), images, 1.0, leds, meshes, [None] * len(names), frames,

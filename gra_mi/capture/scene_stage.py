@@ -8,7 +8,9 @@ roughness maps gra-mi relights with. Everything is read from the scene as Mitsub
 the sensors' fields of view and principal points, the emitters' own ``sample_direction``), so whatever way the file
 spells a transform or a field of view, the stage is what Mitsuba renders. What the stage cannot hold is refused by
 name (a ``thinlens`` sensor's depth of field, an area or environment light), or, where it only leaves something out
-(a floor, a prop), said in the notes the command prints and writes.
+(a shape the set cannot hold: a curve, an SDF grid), said in the notes the command prints and writes. The scene's other
+shapes (a floor, a wall, props) are kept as the stage's set: they shadow the subject and hide it from cameras, as in
+the user's scene.
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ from gra_mi.stage import scene_keys as keys
 from gra_mi.stage.lightstage import Camera, Lightstage, lightstage_from_dict, lightstage_to_dict
 from gra_mi.stage.scene import scene_defaults, subject_scene_xml, write_rig
 from gra_mi.subject.geometry import split_uv_seams, vertex_normals
-from gra_mi.subject.sequence import MeshSequence, SequenceLayout, validate_sequence, write_sequence
+from gra_mi.subject.sequence import MeshSequence, SequenceLayout, validate_sequence, write_ply, write_sequence
 
 # Mitsuba class → the parameters holding (albedo, roughness) in gra-mi's sense (roughness r: GGX α = r², as gra-mi's)
 MATERIAL_MAPS = {
@@ -48,6 +50,19 @@ RIGID_TOLERANCE = 1e-4
 MAX_FRAMES = 1_000_000
 
 
+ANALYTIC_SHAPES = {"Rectangle": "rectangle", "Disk": "disk", "Sphere": "sphere", "Cylinder": "cylinder"}  # class → XML type
+
+
+@dataclass
+class SetShape:
+    """A shape of the set: a mesh (world space) or one of Mitsuba's analytic shapes placed by its ``to_world``."""
+
+    label: str  # as the user's scene names it
+    kind: str  # "ply" (a mesh) or the analytic shape's XML type
+    mesh: RawMesh | None = None
+    to_world: np.ndarray | None = None  # (4, 4)
+
+
 @dataclass
 class SceneStage:
     """What a user's scene gives gra-mi: the rig, the subject (its first frame), the scene's LED intensities, its
@@ -59,6 +74,7 @@ class SceneStage:
     maps: dict[str, np.ndarray] = field(default_factory=dict)  # "albedo" (R, R, 3), "roughness" (R, R, 1)
     notes: list[str] = field(default_factory=list)  # what the stage leaves out of the scene, said
     later: LaterFrames | None = None
+    set_shapes: list[SetShape] = field(default_factory=list)  # the scene's other shapes: shadows and occluders
 
     @property
     def num_frames(self) -> int:
@@ -110,8 +126,10 @@ def stage_from_scene(
     :meth:`SceneStage.frames` reads them)."""
     path, frames = Path(path), frames or []
     scene = load_scene_file(path, {**(defines or {}), **({parameter: frames[0]} if frames else {})})
-    cameras, positions, intensities = scene_rig(scene, path)
-    shape, notes = subject_shape(scene, path)
+    rig = scene_rig(scene, path)
+    cameras, positions, intensities, _ = rig
+    shape, others = subject_shape(scene, path)
+    set_shapes, notes = scene_set(others)
     mesh = RawMesh.of(shape)
     faces, uvs, position_of = _layout(mesh, path, notes)
     if mesh.normals is None:
@@ -130,10 +148,8 @@ def stage_from_scene(
     maps = material_maps(shape, path, notes)
     if top <= 0:
         notes.append("every LED is off in the scene (intensity 0): lighting.json drives none; relight with --envmap or --olat")
-    later = (
-        LaterFrames(path, defines or {}, parameter, frames, mesh, position_of, (cameras, positions, intensities)) if frames[1:] else None
-    )
-    return SceneStage(stage, sequence, intensities, maps, notes, later)
+    later = LaterFrames(path, defines or {}, parameter, frames, mesh, position_of, rig) if frames[1:] else None
+    return SceneStage(stage, sequence, intensities, maps, notes, later, set_shapes)
 
 
 def frame_values(text: str, path: Path, parameter: str) -> list[str]:
@@ -207,15 +223,19 @@ def load_frame(path: Path, defines: dict[str, str], where: str, rig: tuple, at_f
     return mesh
 
 
-def scene_rig(scene, path: Path) -> tuple[list[Camera], np.ndarray, np.ndarray]:
+def scene_rig(scene, path: Path) -> tuple[list[Camera], np.ndarray, np.ndarray, np.ndarray]:
+    """What stays fixed while the subject moves: the cameras, the LEDs' positions and intensities, and the set (the
+    bounds of every other shape, (N, 6))."""
     sensors = scene.sensors()
     cameras = [camera_of(sensors[i], sensor_name(i, sensors[i], path), path) for i in select_sensors(path, scene, [])]
-    return (cameras, *_leds(scene, path))
+    others = subject_shape(scene, path)[1]
+    bounds = np.array([[*s.bbox().min, *s.bbox().max] for s in others], np.float64).reshape(-1, 6)
+    return (cameras, *_leds(scene, path), bounds)
 
 
 def same_rig(first: tuple, now: tuple, path: Path, where: str, at_first: str) -> None:
-    """Refuse a rig (:func:`scene_rig`'s cameras, LED positions, intensities) that is not the one read ``at_first``."""
-    (cams_a, pos_a, int_a), (cams_b, pos_b, int_b) = first, now
+    """Refuse a rig (:func:`scene_rig`'s cameras, LED positions, intensities, set) that is not the one read ``at_first``."""
+    (cams_a, pos_a, int_a, set_a), (cams_b, pos_b, int_b, set_b) = first, now
     if [c.name for c in cams_a] != [c.name for c in cams_b]:
         raise GraMiInputError(path, f"with {where} the scene's sensors are not the ones at {at_first}: a rig stays fixed")
     for a, b in zip(cams_a, cams_b, strict=True):
@@ -225,6 +245,9 @@ def same_rig(first: tuple, now: tuple, path: Path, where: str, at_first: str) ->
     if pos_a.shape != pos_b.shape or not (np.allclose(pos_a, pos_b, rtol=0, atol=1e-6) and np.allclose(int_a, int_b, rtol=1e-6)):
         raise GraMiInputError(path, f"with {where} the LEDs are not the ones at {at_first}: a rig stays fixed (light the "
                               "subject per frame with `gra-mi relight --lights`)")  # fmt: skip
+    if set_a.shape != set_b.shape or not np.allclose(set_a, set_b, rtol=0, atol=1e-6):
+        raise GraMiInputError(path, f"with {where} the shapes besides the subject (the set) are not where they are at {at_first}: "
+                              "the set stays still; only the subject moves")  # fmt: skip
 
 
 def camera_of(sensor, name: str, path: Path) -> Camera:
@@ -268,8 +291,8 @@ def _leds(scene, path: Path) -> tuple[np.ndarray, np.ndarray]:
     return positions, intensities
 
 
-def subject_shape(scene, path: Path) -> tuple[object, list[str]]:
-    """The shape with id ``subject``, or the scene's only shape; the others are named as left out."""
+def subject_shape(scene, path: Path) -> tuple[object, list]:
+    """The shape with id ``subject``, or the scene's only shape, and the scene's other shapes."""
     shapes = list(scene.shapes())
     chosen = [s for s in shapes if s.id() == keys.SUBJECT_ID]
     if not chosen and len(shapes) == 1:
@@ -283,10 +306,35 @@ def subject_shape(scene, path: Path) -> tuple[object, list[str]]:
     if not subject.is_mesh():
         raise GraMiInputError(path, f"{label} is a {subject.class_name()}, not a mesh: the subject is a mesh with texture "
                               "coordinates (obj, ply, serialized)")  # fmt: skip
-    notes = [
-        f"left out: shape '{s.id() or s.class_name()}' (a gra-mi lightstage holds the subject alone)" for s in shapes if s is not subject
-    ]
-    return subject, notes
+    return subject, [s for s in shapes if s is not subject]
+
+
+def shape_label(shape) -> str:
+    return f"shape '{shape.id()}'" if shape.id() else f"a {shape.class_name()} shape"
+
+
+def scene_set(others: list) -> tuple[list[SetShape], list[str]]:
+    """The scene's other shapes as the stage's set, as they stand at the first frame (the set stays still; a later
+    frame's is checked against it), and what is said about them: kept, or left out (a kind the set cannot hold)."""
+    import mitsuba as mi
+
+    kept, notes = [], []
+    for shape in others:
+        params = mi.traverse(shape)
+        kind = ANALYTIC_SHAPES.get(shape.class_name())
+        if "faces" in params:
+            kept.append(SetShape(shape_label(shape), "ply", mesh=RawMesh.of(shape)))
+        elif kind and "to_world" in params:  # exact: Mitsuba's own shape, its whole placement in one matrix
+            kept.append(SetShape(shape_label(shape), kind, to_world=np.array(params["to_world"].matrix, np.float64).reshape(4, 4)))
+        else:
+            notes.append(f"left out: {shape_label(shape)}, a {shape.class_name()} (the set holds meshes, rectangles, disks, spheres "
+                         "and cylinders), so its shadows are not in gra-mi's renders")  # fmt: skip
+            continue
+        notes.append(f"kept as the set: {shape_label(shape)} ({set_name(len(kept) - 1)} in scene.xml)")
+    if kept:
+        notes.append("the set shadows the subject and hides it from the cameras; the light it reflects onto the subject is not "
+                     "modelled, and scene.xml gives it a grey diffuse material")  # fmt: skip
+    return kept, notes
 
 
 def _layout(mesh: RawMesh, path: Path, notes: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -401,8 +449,41 @@ def write_scene_stage(stage: SceneStage, folder: Path, spp: int = 64) -> list[Pa
     lines = ["# What gra-mi took from the scene", "", f"- {len(stage.stage.cameras)} cameras, {stage.stage.num_leds} LEDs"]
     lines += [f"- {note}" for note in stage.notes]
     atomic_write_text(folder / "notes.md", "\n".join(lines) + "\n")
-    atomic_write_text(folder / "scene.xml", subject_scene_xml("rig", "subject", spp=spp))
-    return [folder / "scene.xml", *written, folder / "notes.md"]
+    set_xml = _write_set(stage, folder / "set")
+    atomic_write_text(folder / "scene.xml", subject_scene_xml("rig", "subject", spp=spp, set_xml=set_xml))
+    return [
+        folder / "scene.xml",
+        *written,
+        *([folder / "set"] if any(s.mesh is not None for s in stage.set_shapes) else []),
+        folder / "notes.md",
+    ]
+
+
+def _write_set(stage: SceneStage, folder: Path) -> str:
+    """The scene.xml elements of the set (ids of gra-mi's own: a user's id may be any text), its meshes written as
+    ``folder``/set_NNN.ply (world space, as the scene held them; a rerun's old ones removed)."""
+    for old in folder.glob("set_*.ply"):
+        old.unlink()
+    elements = []
+    for i, shape in enumerate(stage.set_shapes):
+        name = set_name(i)
+        if shape.mesh is None:
+            matrix = " ".join(f"{v:.9g}" for v in shape.to_world.ravel())
+            elements.append(f'<shape type="{shape.kind}" id="{name}"><transform name="to_world"><matrix value="{matrix}"/></transform>'
+                            '<bsdf type="diffuse"/></shape>')  # fmt: skip
+            continue
+        mesh = shape.mesh
+        folder.mkdir(parents=True, exist_ok=True)
+        uvs = mesh.texcoords if mesh.texcoords is not None else np.zeros((len(mesh.vertices), 2))
+        write_ply(folder / f"{name}.ply", mesh.vertices, mesh.shading_normals(), uvs, mesh.faces)
+        flat = "true" if mesh.normals is None else "false"  # a cube's faces stay flat
+        elements.append(f'<shape type="ply" id="{name}"><string name="filename" value="{folder.name}/{name}.ply"/>'
+                        f'<boolean name="face_normals" value="{flat}"/><bsdf type="diffuse"/></shape>')  # fmt: skip
+    return "\n    ".join(elements)
+
+
+def set_name(index: int) -> str:
+    return f"set_{index:03d}"
 
 
 def _vertex_colours(stage: SceneStage) -> np.ndarray:

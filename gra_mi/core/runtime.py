@@ -184,6 +184,17 @@ def columns(value) -> np.ndarray:
     return np.stack([np.asarray(value[i]) for i in range(len(value))], axis=1)
 
 
+def segment(origin, direction, maxt):
+    """A ray that stops at ``maxt`` (a shadow ray's segment to a light or a camera). ``mi.Ray3f(o, d, x)`` would not do:
+    its third argument is the ray's *time*, and the ray then runs on past the light, where a floor or another body
+    part would shadow what the light does reach."""
+    import mitsuba as mi
+
+    ray = mi.Ray3f(origin, direction)
+    ray.maxt = maxt
+    return ray
+
+
 def opaque(kind, values):
     """A Mitsuba vector type (``mi.Point3f``, ``mi.Color3f``, ``mi.Float``) holding ``values`` as opaque device variables.
 

@@ -66,7 +66,7 @@ def _sample_corners(ls, camera, atlas, xs, ys, samples: int, geometry, min_view_
     x = mi.Float(dr.gather(mi.UInt32, mi.UInt32(xs.astype(np.uint32)), pixel)) + (mi.Float(sub % samples) + 0.5) / samples
     y = mi.Float(dr.gather(mi.UInt32, mi.UInt32(ys.astype(np.uint32)), pixel)) + (mi.Float(sub // samples) + 0.5) / samples
     ray = camera.rays_through(x, y)
-    si = ls.scene.ray_intersect(ray, ray_flags=mi.RayFlags.UV, coherent=True)
+    si = ls.subject_hits(ray)
     r = atlas.resolution
     u, v = si.uv.x * r - 0.5, si.uv.y * r - 0.5
     u0, v0 = mi.Int32(dr.floor(u)), mi.Int32(dr.floor(v))

@@ -209,13 +209,13 @@ def _camera_visible(scene, camera, geom) -> np.ndarray:
     import drjit as dr
     import mitsuba as mi
 
-    from gra_mi.core.runtime import opaque
+    from gra_mi.core.runtime import opaque, segment
 
     to_cam = opaque(mi.Point3f, camera.position) - geom.position
     dist = dr.norm(to_cam)
     d = to_cam / dist
     facing = dr.dot(geom.geo_normal, d) > 0
-    ray = mi.Ray3f(geom.position + geom.geo_normal * 1e-4, d, dist * (1 - 1e-4))
+    ray = segment(geom.position + geom.geo_normal * 1e-4, d, dist * (1 - 1e-4))
     return np.asarray(facing & ~scene.ray_test(ray, coherent=False, active=facing))
 
 

@@ -167,12 +167,13 @@ class TexelGeometry:
     position: mi.Point3f
     normal: mi.Vector3f  # interpolated shading normal
     geo_normal: mi.Vector3f  # the triangle's normal
-    digest: str  # hash of the frame's vertices and of the atlas's texels (keys the visibility cache)
+    digest: str  # hash of the frame's vertices, the atlas's texels and the set (keys the visibility and bounce caches)
 
     @classmethod
-    def from_frame(cls, atlas: UVAtlas, vertices: np.ndarray, normals: np.ndarray) -> TexelGeometry:
+    def from_frame(cls, atlas: UVAtlas, vertices: np.ndarray, normals: np.ndarray, surroundings: str = "") -> TexelGeometry:
         """Interpolate the frame's mesh at the texels, on the Dr.Jit device (on a GPU the NumPy version of this cost
-        more than tracing the frame's visibility)."""
+        more than tracing the frame's visibility). ``surroundings``: a hash of what else the rays meet (the scene's set:
+        :attr:`~gra_mi.stage.scene.LightstageScene.set_digest`), part of the digest."""
         vertices = np.ascontiguousarray(vertices, dtype=np.float32)
         faces, bary = atlas.on_device()
         verts = mi.Point3f(*vertices.T)
@@ -191,6 +192,7 @@ class TexelGeometry:
         key = hashlib.sha1(vertices.tobytes())
         key.update(np.ascontiguousarray(atlas.texel_index, np.int64).tobytes())
         key.update(np.ascontiguousarray(atlas.faces, np.int64).tobytes())
+        key.update(surroundings.encode())
         return cls(mi.Point3f(p), mi.Vector3f(n), mi.Vector3f(ng), key.hexdigest()[:16])
 
 

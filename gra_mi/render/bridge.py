@@ -46,10 +46,9 @@ def uv_features(atlas, coarse: np.ndarray, normals: list[np.ndarray], view_dir: 
 def camera_uv_grid(ls, camera, device: str = "cpu"):
     """Where each pixel centre of ``camera`` lands in UV, as a ``grid_sample`` grid (1, H, W, 2) in [-1, 1], and
     a (1, 1, H, W) mask of pixels that hit the subject. Geometry only: computed once per frame and camera."""
-    import mitsuba as mi
 
     h, w = camera.height, camera.width
-    si = ls.scene.ray_intersect(ls.camera_rays(camera), ray_flags=mi.RayFlags.UV, coherent=True)
+    si = ls.subject_hits(ls.camera_rays(camera))
     uv = np.array(si.uv).T.reshape(h, w, 2)
     valid = np.array(si.is_valid()).reshape(h, w)
     grid = to_torch(2.0 * uv - 1.0, device)[None]

@@ -21,7 +21,7 @@ import numpy as np
 
 from gra_mi.core.errors import GraMiParameterError
 from gra_mi.core.limits import MAX_INTENSITY
-from gra_mi.core.runtime import opaque
+from gra_mi.core.runtime import opaque, segment
 from gra_mi.render import brdf
 from gra_mi.render.atlas import TexelGeometry
 from gra_mi.render.shading import local_view
@@ -119,7 +119,7 @@ def point_light_visibility(scene: mi.Scene, geom: TexelGeometry, light: PointLig
         above = (dr.dot(geom.normal, d) > 0) & (dr.dot(geom.geo_normal, d) > 0)
         # Sample points on the far side of the light's sphere are hidden by the light itself.
         front = dr.dot(d, opaque(mi.Vector3f, q - light.position)) <= 0 if light.radius > 0 else mi.Bool(True)
-        ray = mi.Ray3f(geom.position + geom.geo_normal * RAY_EPSILON, d, dist * (1 - RAY_EPSILON) - RAY_EPSILON)
+        ray = segment(geom.position + geom.geo_normal * RAY_EPSILON, d, dist * (1 - RAY_EPSILON) - RAY_EPSILON)
         blocked = scene.ray_test(ray, active=above & front)
         usable += dr.select(front, 1.0, 0.0)
         seen += dr.select(above & front & ~blocked, 1.0, 0.0)
@@ -184,7 +184,7 @@ def conditioning_pattern(stage, scene: mi.Scene, light: PointLight) -> np.ndarra
     # onward to the LED must be free (the stage centre itself lies inside the subject).
     start = c + t_hit[idx, None] * d[idx]
     remaining = np.linalg.norm(stage.led_positions[idx] - start, axis=1)
-    ray = mi.Ray3f(
+    ray = segment(
         mi.Point3f(*start.T.astype(np.float32)), mi.Vector3f(*d[idx].T.astype(np.float32)), mi.Float(remaining.astype(np.float32))
     )
     hits[idx] = ~np.array(scene.ray_test(ray))

@@ -30,7 +30,7 @@ def rasterize_to_camera(ls, camera, texture: np.ndarray, mask: np.ndarray | None
     strata = (np.arange(samples) + 0.5) / samples
     for oy in strata:
         for ox in strata:
-            si = ls.scene.ray_intersect(ls.camera_rays(camera, (ox, oy)), ray_flags=mi.RayFlags.UV, coherent=True)
+            si = ls.subject_hits(ls.camera_rays(camera, (ox, oy)))
             valid = si.is_valid()
             values = tex.eval(si.uv, valid)
             # Normalise by the interpolated mask: chart borders keep their own colour.

@@ -123,7 +123,7 @@ class Relighter:
     def geometry(self, frame: int) -> TexelGeometry:
         if frame not in self._geometry:
             seq = self.ls.sequence
-            self._geometry = {frame: TexelGeometry.from_frame(self.atlas, seq.vertices[frame], seq.normals[frame])}
+            self._geometry = {frame: TexelGeometry.from_frame(self.atlas, seq.vertices[frame], seq.normals[frame], self.ls.set_digest)}
         return self._geometry[frame]
 
     def visibility(self, frame: int, far_field: bool | None = None, led_intensities: np.ndarray | None = None):

@@ -13,6 +13,7 @@ import mitsuba as mi
 import numpy as np
 
 from gra_mi.core.io import atomic_path
+from gra_mi.core.runtime import segment
 from gra_mi.render.atlas import TexelGeometry
 from gra_mi.render.leds import LedLayout
 
@@ -28,7 +29,7 @@ def compute_visibility(
 
     Rays are traced LED-major (all texels for one LED, then the next) in groups of up to 32 LEDs per kernel, which
     keeps them coherent; pairs below the texel's horizon (shading or geometric) trace nothing. Far field, each ray goes
-    towards the LED's direction from the stage centre, unbounded. ``texels``: trace only these (sorted indices);
+    towards the LED's direction from the stage centre, as far as the LED is from the centre. ``texels``: trace only these (sorted indices);
     the others' bits stay 0 (:func:`texels_seen_by`: a job's cameras cannot see them). ``lit``: trace only these LEDs
     (an OLAT's one; None: every LED); the others' bits stay 0, which shades the same while they are off.
     """
@@ -38,6 +39,8 @@ def compute_visibility(
     bits = dr.zeros(mi.UInt32, words * m)
     targets, _ = leds.as_lights(np.zeros((num_leds, 3)))
     target_arr = mi.Point3f(*targets.T.astype(np.float32))
+    # Far field, a ray still ends at its LED's distance from the centre: a set beyond the LEDs (a room) shadows nothing.
+    reach_arr = mi.Float(np.linalg.norm(leds.positions - leds.center, axis=1).astype(np.float32))
     subset = None if texels is None else mi.UInt32(np.asarray(texels, np.uint32))
     count = m if texels is None else len(texels)
     lit = np.arange(num_leds) if lit is None else np.asarray(lit, np.int64)
@@ -59,7 +62,7 @@ def compute_visibility(
         ng = dr.gather(mi.Vector3f, geom.geo_normal, t)
         if far_field:
             d = mi.Vector3f(target)
-            dist = mi.Float(dr.inf)
+            dist = dr.gather(mi.Float, reach_arr, k)
         else:
             offset = target - p
             dist = dr.norm(offset)
@@ -67,7 +70,7 @@ def compute_visibility(
         facing = (dr.dot(n, d) > 0) & (dr.dot(ng, d) > 0)
         origin = p + ng * RAY_EPSILON
         maxt = dist if far_field else dist * (1.0 - RAY_EPSILON) - RAY_EPSILON
-        ray = mi.Ray3f(origin, d, maxt)
+        ray = segment(origin, d, maxt)
         blocked = scene.ray_test(ray, coherent=True, active=facing)
         word = dr.select(facing & ~blocked, mi.UInt32(1) << j, mi.UInt32(0))
         dr.scatter_reduce(dr.ReduceOp.Add, bits, word, t + w * m)

@@ -11,6 +11,8 @@ scene, so ``mi.load_file`` plus Mitsuba's own ``direct`` or ``path`` integrator 
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import logging
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
@@ -144,11 +146,14 @@ def xml_attribute(text: str) -> str:
     return escape(str(text), {'"': "&quot;"})
 
 
-def subject_scene_xml(rig_dir: str, subject_dir: str, frame: int = 0, spp: int = 64, bsdf_xml: str = PREVIEW_BSDF) -> str:
+def subject_scene_xml(
+    rig_dir: str, subject_dir: str, frame: int = 0, spp: int = 64, bsdf_xml: str = PREVIEW_BSDF, set_xml: str = ""
+) -> str:
     """A lightstage scene: the rig's LEDs and cameras plus the subject mesh of frame ``$frame``.
 
     Paths are relative to the scene file. By default the subject uses Mitsuba's ``diffuse`` BSDF with the
-    sequence's per-vertex base colour, so stock integrators render it as is; ``bsdf_xml`` replaces it. Paths may
+    sequence's per-vertex base colour, so stock integrators render it as is; ``bsdf_xml`` replaces it. ``set_xml``: other
+    shapes (the set: they shadow the subject and hide it, see :meth:`LightstageScene.subject_hits`). Paths may
     hold any character (``&``, ``<``, quotes): they are escaped as XML attribute values.
     """
     rig_dir, subject_dir = xml_attribute(rig_dir), xml_attribute(subject_dir)
@@ -170,7 +175,7 @@ def subject_scene_xml(rig_dir: str, subject_dir: str, frame: int = 0, spp: int =
         <string name="filename" value="${keys.PARAM_SUBJECT}/frames/frame_${keys.PARAM_FRAME}.ply"/>
         <boolean name="face_normals" value="false"/>
         {bsdf_xml}
-    </shape>
+    </shape>{chr(10) + "    " + set_xml if set_xml else ""}
 </scene>
 """
 
@@ -213,6 +218,9 @@ def lightstage_parts_missing(missing: list[str]) -> str:
         "writes such a scene, `gra-mi from-scene SCENE --out DIR` one of a scene you wrote (its sensors, point-emitter LEDs "
         "and subject mesh). To render this scene as it is, with its own lights: `gra-mi render SCENE`"
     )
+
+
+SET_GEOMETRY = ("vertex_positions", "faces", "to_world")  # a set shape's parameters that move or reshape it
 
 
 @dataclass
@@ -288,6 +296,37 @@ class LightstageScene:
     def subject_shape(self):
         """The tracked mesh's Mitsuba shape (id :data:`~gra_mi.stage.scene_keys.SUBJECT_ID`)."""
         return next(s for s in self.scene.shapes() if s.id() == keys.SUBJECT_ID)
+
+    @functools.cached_property
+    def set_digest(self) -> str:
+        """A hash of the scene's other shapes (the set), as they shadow the subject and hide it: their kind, bounds and
+        geometry, not their materials. It keys what is traced against them (visibility, bounce operators), so a cache
+        traced without a wall is not served to a scene with one. The set stays still; only the subject moves."""
+        import mitsuba as mi
+
+        digest, others = hashlib.sha1(), [s for s in self.scene.shapes() if s.id() != keys.SUBJECT_ID]
+        if not others:
+            return ""  # the subject alone: the keys of caches traced before there was a set
+        for shape in others:
+            box = shape.bbox()
+            digest.update(f"{shape.class_name()}:{shape.id()}:{list(box.min)}:{list(box.max)}".encode())
+            params = mi.traverse(shape)
+            for key in sorted(k for k in params.keys() if k in SET_GEOMETRY):
+                value = params[key]
+                value = value.matrix if hasattr(value, "matrix") else value  # a to_world (AffineTransform4f)
+                digest.update(np.ascontiguousarray(np.array(value), np.float32).tobytes())
+        return digest.hexdigest()[:16]
+
+    def subject_hits(self, ray, flags=None, coherent: bool = True):
+        """The rays' first hits, valid (``is_valid()``) only where that hit is the subject. Other shapes of a scene
+        (a floor, props, a wall: the set) hide the subject from a camera and shadow it, but carry no texture of its:
+        a ray that meets them first sees no subject."""
+        import drjit as dr
+        import mitsuba as mi
+
+        si = self.scene.ray_intersect(ray, ray_flags=mi.RayFlags.UV if flags is None else flags, coherent=coherent)
+        si.t = dr.select(si.shape == mi.ShapePtr(self.subject_shape()), si.t, dr.inf)
+        return si
 
     def set_frame(self, frame: int) -> bool:
         """Move the subject to ``frame`` (positions and normals; ``params.update`` rebuilds the BVH). Idempotent: the
@@ -524,6 +563,8 @@ def render_to_folder(
         pattern = drive(ls.stage)
         ls.set_pattern(pattern)
         intensities = validate_pattern(ls.stage, pattern) * ls.stage.gains
+    from gra_mi.stage.lighting_checks import lighting_warnings  # it reads a loaded scene: this module's class
+
     for warning in lighting_warnings(ls, intensities):
         logger.warning("%s: %s", light_name, warning)
     image = render(ls, cam.name, config.integrator, config.spp, config.seed)
@@ -534,53 +575,3 @@ def render_to_folder(
         composite = composite_over(image, stage_background_plate(envmap, cam, ls.stage))
         write_png(stem.with_name(stem.name + "_composite.png"), composite, exposure=None)
     return stem
-
-
-AXES = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], np.float64)
-
-
-def points_inside_subject(ls: LightstageScene, points: np.ndarray) -> np.ndarray:
-    """Which points lie inside the subject's mesh at the current frame: rays along ±x, ±y, ±z (at least five of
-    six) leave it through a back face. A light there lights nothing."""
-    import drjit as dr
-    import mitsuba as mi
-
-    points = np.asarray(points, np.float64).reshape(-1, 3)
-    origins, directions = np.repeat(points, len(AXES), axis=0), np.tile(AXES, (len(points), 1))
-    ray = mi.Ray3f(mi.Point3f(*(origins.T.astype(np.float32))), mi.Vector3f(*(directions.T.astype(np.float32))))
-    si = ls.scene.ray_intersect(ray)
-    leaving = si.is_valid() & (dr.dot(si.n, ray.d) > 0)
-    return np.asarray(leaving, bool).reshape(len(points), len(AXES)).sum(axis=1) >= len(AXES) - 1
-
-
-def lighting_warnings(ls: LightstageScene, intensities: np.ndarray, near_lights=None, far_field: bool = False) -> list[str]:
-    """What makes a lighting of the current frame light nothing, or not as meant, in words: every LED off, lit LEDs
-    inside the subject (a rig too small or off centre), a near-field light inside the subject. Far field, LEDs inside
-    the subject still light it, from their directions, but at the irradiance such a small rig makes at full drive.
-    ``near_lights``: one near-field light (anything with a ``position``) or a list."""
-    said = []
-    lit = np.flatnonzero(np.asarray(intensities).max(axis=1) > 0)
-    near = [] if near_lights is None else [near_lights] if hasattr(near_lights, "position") else list(near_lights)
-    if near:
-        inside = points_inside_subject(ls, np.array([light.position for light in near]))
-        for light, hidden in zip(near, inside, strict=True):
-            if hidden:
-                said.append(
-                    f"the light at {np.round(light.position, 3).tolist()} m is inside the subject at frame {ls.frame}: it lights nothing"
-                )
-    elif not len(lit):
-        said.append("every LED is off: the render is black")
-    if len(lit):
-        inside = int(points_inside_subject(ls, ls.stage.led_positions[lit]).sum())
-        if inside and far_field:
-            radius = float(np.median(ls.stage.led_distances()))
-            said.append(
-                f"{inside} of {len(lit)} lit LEDs are inside the subject at frame {ls.frame}: the rig ({radius:.2f} m) is smaller than the "
-                "subject; far field lights from the LEDs' directions, at the irradiance of LEDs this close at full drive, "
-                "so the render is far brighter than the same map on a real stage (check the rig's radius and centre)"
-            )
-        elif inside:
-            said.append(
-                f"{inside} of {len(lit)} lit LEDs are inside the subject at frame {ls.frame}: they light nothing (check the rig's radius and centre)"
-            )
-    return said
