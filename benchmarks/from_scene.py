@@ -37,7 +37,6 @@ from gra_mi.apps.harness import (
     markdown_table,
     render_row,
     run_benchmark,
-    subject_pixels,
     table_page,
     timed,
     truth_of,
@@ -146,6 +145,7 @@ def set_section(run: BenchmarkRun) -> str:
 
     from gra_mi.capture.scene_stage import stage_from_scene, write_scene_stage
     from gra_mi.render.near_field_cases import image_error
+    from gra_mi.render.scene_file import subject_pixels
 
     path = set_scene(run.work / "set_user")
     write_scene_stage(stage_from_scene(path), run.work / "set_stage")

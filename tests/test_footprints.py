@@ -39,6 +39,7 @@ def plane(variant):
     pose = np.eye(4)
     pose[:3, :3], pose[:3, 3] = rotation_y(17.0), [0.613, -0.071, -2.37]
     camera = Camera("tilted", 41, 31, 29.3, 28.7, 20.31, 15.17, pose)
+
     def subject_hits(ray, flags=mi.RayFlags.UV, coherent=True):  # the plane is the scene's only shape: the subject
         return scene.ray_intersect(ray, ray_flags=flags, coherent=coherent)
 

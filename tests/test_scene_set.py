@@ -6,14 +6,15 @@ camera) casts no shadow."""
 from __future__ import annotations
 
 import json
+import logging
 import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from gra_mi.apps.harness import subject_pixels
 from gra_mi.core.io import read_exr
+from gra_mi.render.scene_file import subject_pixels
 
 from .conftest import SCENES
 from .test_bad_input import assert_refused, run
@@ -166,3 +167,56 @@ def test_a_set_shape_the_stage_cannot_hold_is_left_out_and_said(plugins, tmp_pat
     notes = (tmp_path / "stage" / "notes.md").read_text()
     assert "left out: shape 'hair'" in notes and "its shadows are not in gra-mi's renders" in notes
     assert not (tmp_path / "stage" / "set").exists() and "set_000" not in (tmp_path / "stage" / "scene.xml").read_text()
+
+
+def test_photographs_of_a_stage_in_a_set_import_with_the_set_and_fit(plugins, tmp_path, capsys, caplog):
+    """Photographs of a user's stage with a floor and a lamp (their pixels in the photographs' alpha too; the subject's
+    masks beside them): `import mitsuba` carries the set into the capture's scene in the capture's frame, and the fit
+    explains its shadows. The same capture without its set fits an albedo far too dark (the LEDs the floor hides would
+    light the subject)."""
+    from gra_mi.core.io import read_exr_channels
+    from gra_mi.stage.lightstage import load_calibration
+
+    from .test_from_scene import RGBA_SENSORS, _leds, _photograph
+
+    caplog.set_level(logging.INFO)
+    folder = tmp_path / "capture"
+    lamp = '<shape type="sphere" id="lamp"><point name="center" x="0.5" y="1.9" z="0.5"/><float name="radius" value="0.2"/></shape>'
+    floor = FLOOR.replace('translate y="0.02"', 'translate y="0.44"')  # just under the feet
+    write_user_scene(folder, sensors=RGBA_SENSORS, lights=_leds(off_every=0), shapes=BODY + floor + lamp).rename(folder / "scene.xml")
+    from gra_mi.capture.scene_stage import stage_from_scene
+
+    stage = stage_from_scene(folder / "scene.xml")
+    lighting = [{"frame": 0, "uniform": 1.0}] + [{"frame": k, "led": k} for k in range(1, 20)] + [{"frame": 20, "split": "test", "led": 20}]
+    _photograph(folder / "scene.xml", folder, lighting, stage.intensities)
+    assert (folder / "mask" / "front" / "000000.png").is_file()
+    (tmp_path / "lighting.json").write_text(json.dumps({"frames": lighting}))
+    argv = ["import", "mitsuba", folder, "--lighting", tmp_path / "lighting.json", "--eval-cameras", "tele", "--uv-resolution", "64"]
+    code, lines = run([*argv, "--out", tmp_path / "cap"], capsys)
+    assert code == 0, lines
+    assert "kept as the set: shape 'lamp'" in caplog.text
+    text = (tmp_path / "cap" / "scene.xml").read_text()
+    assert 'type="sphere" id="set_' in text and 'type="rectangle" id="set_' in text
+    # the lamp where the capture's frame puts the scene's (0.5, 1.9, 0.5): the import's move of the LEDs applied to it
+    imported = load_calibration(tmp_path / "cap" / "rig" / "calibration.json")
+    move = imported.led_positions[0] - stage.stage.led_positions[0]
+    np.testing.assert_allclose(
+        imported.led_positions - stage.stage.led_positions, np.broadcast_to(move, imported.led_positions.shape), atol=1e-5
+    )
+    import mitsuba as mi
+
+    shapes = {s.class_name(): s for s in mi.load_file(str(tmp_path / "cap" / "scene.xml"), parallel=False).shapes()}
+    np.testing.assert_allclose(np.array(shapes["Sphere"].bbox().center()), np.array([0.5, 1.9, 0.5]) + move, atol=1e-5)
+    bare = tmp_path / "cap_without_set"
+    shutil.copytree(tmp_path / "cap", bare)
+    (bare / "scene.xml").write_text("\n".join(line for line in text.splitlines() if 'id="set_' not in line) + "\n")
+    truth = read_exr(folder / "albedo_in.exr")[..., :3]
+    ratios = {}
+    for name, cap in (("with", tmp_path / "cap"), ("without", bare)):
+        assert run(["fit", cap, "--out", tmp_path / f"fit_{name}"], capsys)[0] == 0
+        fitted = read_exr(tmp_path / f"fit_{name}" / "albedo.exr")[..., :3]
+        seen = read_exr_channels(tmp_path / f"fit_{name}" / "confidence.exr")["views"] > 0
+        assert seen.sum() > 500
+        ratios[name] = fitted[seen].mean(axis=0) / truth[seen].mean(axis=0)
+    np.testing.assert_allclose(ratios["with"], 1.0, atol=0.06)
+    assert (ratios["without"] < 0.5).all(), ratios

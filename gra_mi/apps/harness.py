@@ -120,22 +120,6 @@ def truth_of(scene, integrator, spp: int, sensor: int = 0) -> tuple:
     return truth, ("the truth again, another seed (its own noise)", "–", f"{100 * error:.2f} %", f"{100 * bias:+.2f} %")
 
 
-def subject_pixels(scene, sensor: int = 0, subject_id: str = "subject"):
-    """(H, W) bool: the pixels whose centre ray, as Mitsuba's own sensor makes it, meets the subject before anything
-    else (a scene with a set: the pixels a render of the subject alone is scored on)."""
-    import mitsuba as mi
-    import numpy as np
-
-    subject = next(s for s in scene.shapes() if s.id() == subject_id)
-    camera = scene.sensors()[sensor]
-    w, h = camera.film().crop_size()
-    y, x = np.mgrid[0:h, 0:w]
-    film = mi.Point2f(((x.ravel() + 0.5) / w).astype(np.float32), ((y.ravel() + 0.5) / h).astype(np.float32))
-    ray, _ = camera.sample_ray(0.0, 0.5, film, mi.Point2f(0.5, 0.5))
-    si = scene.ray_intersect(ray)
-    return np.array(si.is_valid() & (si.shape == mi.ShapePtr(subject))).reshape(h, w)
-
-
 def render_row(label: str, scene, integrator, spp: int, truth, sensor: int = 0) -> tuple:
     """A speed-against-error row for one integrator on ``scene`` (its ``sensor``): (label, ms per image (the median of
     3 renders after one that compiles), mean relative error and bias of the mean against ``truth``)."""

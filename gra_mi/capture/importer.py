@@ -39,6 +39,7 @@ from gra_mi.capture.placement import (
     world_frame,
 )
 from gra_mi.capture.reprojection import frame_mask, reprojection_checks
+from gra_mi.capture.scene_stage import write_set
 from gra_mi.capture.source import ImportConfig, Source
 from gra_mi.capture.source_files import (
     MIN_RELATIVE_GAIN,
@@ -378,7 +379,9 @@ def _write_stage_files(out: Path, stage: Lightstage, source: Source, frame: Worl
     write_rig(stage, out / "rig")
     if not (out / "subject" / "sequence.npz").is_file():
         subject.write(source, frame, out / "subject")
-    atomic_write_text(out / "scene.xml", subject_scene_xml("rig", "subject"))
+    scale = np.diag([*[source.mesh_units or source.units] * 3, 1.0])  # the set is in the meshes' units
+    set_xml = write_set(source.set_shapes, out / "set", np.array(frame.matrix()) @ scale)
+    atomic_write_text(out / "scene.xml", subject_scene_xml("rig", "subject", set_xml=set_xml))
     for _, entry, drive in source.frames:
         if entry.kind == "envmap":  # the source's map, copied in so the capture stands on its own
             target = out / entry.envmap

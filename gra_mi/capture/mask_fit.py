@@ -39,7 +39,8 @@ def check_images_fit_masks(source: Source, plans: list[CameraPlan], key: int) ->
         path = source.images[plan.index][key]
         rgb, _, alpha = read_image(path)
         mask = masks[plan.camera.name]
-        if alpha is None and (rgb.max(axis=-1) == 0).mean() < MASKED_BACKGROUND:
+        # an image with a background (a scene's set shows in its pixels and its alpha): checked by its outlines
+        if source.set_shapes or (alpha is None and (rgb.max(axis=-1) == 0).mean() < MASKED_BACKGROUND):
             if mask.shape == rgb.shape[:2]:
                 _check_outline(plan.camera.name, path, edge_strength(rgb), outlines)
             continue

@@ -28,14 +28,14 @@ import numpy as np
 
 from gra_mi.capture.easymocap import camera_images, lighting_frames
 from gra_mi.capture.importer import import_capture
-from gra_mi.capture.scene_stage import RawMesh, load_frame, scene_rig, shape_label, subject_shape
+from gra_mi.capture.scene_stage import RawMesh, load_frame, scene_rig, scene_set, subject_shape
 from gra_mi.capture.source import ImportConfig, Source
-from gra_mi.capture.source_files import CalibCamera, ObjMesh, image_size
+from gra_mi.capture.source_files import CalibCamera, ObjMesh, image_size, write_mask
 from gra_mi.core.errors import GraMiInputError
 from gra_mi.core.guard import scene_references
 from gra_mi.core.io import write_exr
 from gra_mi.render.runtime import ensure_mitsuba
-from gra_mi.render.scene_file import load_scene_file, scene_parameters, sensor_name
+from gra_mi.render.scene_file import load_scene_file, scene_parameters, sensor_name, subject_pixels
 from gra_mi.render.scene_lights import set_point_lights
 from gra_mi.stage.lightstage import Camera
 from gra_mi.stage.scene import scene_defaults
@@ -106,11 +106,16 @@ def read_mitsuba(folder: Path, options: MitsubaOptions, lighting: Path) -> Sourc
     scene = load_scene_file(path)
     rig = scene_rig(scene, path)
     cameras, leds, intensities, _ = rig
-    if others := subject_shape(scene, path)[1]:
-        logger.warning("%s: left out: %s (an import holds the subject alone: their shadows on it are read as its albedo)", path,
-                       ", ".join(shape_label(s) for s in others))  # fmt: skip
+    set_shapes, notes = scene_set(subject_shape(scene, path)[1])
+    for note in notes:
+        logger.info("%s: %s", path, note)
     names = [c.name for c in cameras]
     images = [camera_images(folder, n) for n in names]
+    frame_masks = [camera_images(folder, n, "mask", required=False) for n in names]
+    if set_shapes and not all(frame_masks):
+        logger.warning("%s: the scene holds shapes besides the subject (%s): where they are in view, the photographs' alpha "
+                       "covers them too; give the subject's masks as mask/<sensor id>/<frame>.png", path,
+                       ", ".join(shape.label for shape in set_shapes))  # fmt: skip
     calib, sizes = zip(*(_calib(c, found, path) for c, found in zip(cameras, images, strict=True)), strict=True)
     moving = options.frame_parameter in scene_parameters(path)
     frames = lighting_frames(lighting, len(leds), None if moving else 0)  # a static subject: every image shows its one mesh
@@ -118,7 +123,7 @@ def read_mitsuba(folder: Path, options: MitsubaOptions, lighting: Path) -> Sourc
     stated = None if np.ptp(intensities) == 0 else intensities  # equal (or all off): no gains stated
     return Source(
         folder, "mitsuba", path, names, list(calib), list(sizes), images, 1.0, leds, meshes, [None] * len(names), frames,
-        mesh_units=1.0, frame_masks=[camera_images(folder, n, "mask", required=False) for n in names], leds_path=path,
+        mesh_units=1.0, frame_masks=frame_masks, leds_path=path, set_shapes=set_shapes,
         mesh_files=[path, *scene_references(path)], stated_gains=stated, gains_field="point emitters' intensities",
         stated_intensity=float(intensities.mean()) if intensities.max() > 0 else None,
     )  # fmt: skip
@@ -148,11 +153,16 @@ def import_mitsuba(
 def write_photographs(scene, folder: Path, number: int, emitted: np.ndarray, integrator, spp: int, seed: int | None = None) -> None:
     """Photographs as ``import mitsuba`` reads them, rendered from a loaded stage: ``scene`` lit by its point emitters
     at ``emitted`` (L, 3) W/sr, every sensor rendered by ``integrator`` at ``spp`` (``seed``, default ``number``) into
-    ``folder/images/<sensor id>/<number, 6 digits>.exr`` (RGBA where the film has alpha: the subject's mask). A writer
-    for tests and benchmarks of the importer: what a calibrated capture on the stage would hold."""
+    ``folder/images/<sensor id>/<number, 6 digits>.exr`` (RGBA where the film has alpha: the subject's mask, where the
+    scene holds the subject alone). With other shapes (a set), whose pixels the alpha covers too, the subject's masks go
+    to ``folder/mask/<sensor id>/<number>.png`` (where Mitsuba's sensor rays meet it first). A writer for tests and
+    benchmarks of the importer: what a calibrated capture on the stage would hold."""
     import mitsuba as mi
 
     set_point_lights(scene, emitted)
     for index, sensor in enumerate(scene.sensors()):
         image = np.array(mi.render(scene, sensor=index, integrator=integrator, spp=spp, seed=number if seed is None else seed))
-        write_exr(folder / "images" / sensor_name(index, sensor, folder) / f"{number:06d}.exr", image)
+        name = sensor_name(index, sensor, folder)
+        write_exr(folder / "images" / name / f"{number:06d}.exr", image)
+        if len(scene.shapes()) > 1:
+            write_mask(folder / "mask" / name / f"{number:06d}.png", subject_pixels(scene, index))

@@ -449,7 +449,7 @@ def write_scene_stage(stage: SceneStage, folder: Path, spp: int = 64) -> list[Pa
     lines = ["# What gra-mi took from the scene", "", f"- {len(stage.stage.cameras)} cameras, {stage.stage.num_leds} LEDs"]
     lines += [f"- {note}" for note in stage.notes]
     atomic_write_text(folder / "notes.md", "\n".join(lines) + "\n")
-    set_xml = _write_set(stage, folder / "set")
+    set_xml = write_set(stage.set_shapes, folder / "set")
     atomic_write_text(folder / "scene.xml", subject_scene_xml("rig", "subject", spp=spp, set_xml=set_xml))
     return [
         folder / "scene.xml",
@@ -459,23 +459,27 @@ def write_scene_stage(stage: SceneStage, folder: Path, spp: int = 64) -> list[Pa
     ]
 
 
-def _write_set(stage: SceneStage, folder: Path) -> str:
-    """The scene.xml elements of the set (ids of gra-mi's own: a user's id may be any text), its meshes written as
-    ``folder``/set_NNN.ply (world space, as the scene held them; a rerun's old ones removed)."""
+def write_set(shapes: list[SetShape], folder: Path, to_stage: np.ndarray | None = None) -> str:
+    """The scene.xml elements of the set ``shapes`` (ids of gra-mi's own: a user's id may be any text), its meshes
+    written as ``folder``/set_NNN.ply (a rerun's old ones removed). ``to_stage``: a 4 × 4 rigid transform (and scale)
+    from the shapes' world to the stage's (an import's world frame); None: as they are."""
     for old in folder.glob("set_*.ply"):
         old.unlink()
+    m = np.eye(4) if to_stage is None else np.asarray(to_stage, np.float64)
     elements = []
-    for i, shape in enumerate(stage.set_shapes):
+    for i, shape in enumerate(shapes):
         name = set_name(i)
         if shape.mesh is None:
-            matrix = " ".join(f"{v:.9g}" for v in shape.to_world.ravel())
+            matrix = " ".join(f"{v:.9g}" for v in (m @ shape.to_world).ravel())
             elements.append(f'<shape type="{shape.kind}" id="{name}"><transform name="to_world"><matrix value="{matrix}"/></transform>'
                             '<bsdf type="diffuse"/></shape>')  # fmt: skip
             continue
         mesh = shape.mesh
         folder.mkdir(parents=True, exist_ok=True)
         uvs = mesh.texcoords if mesh.texcoords is not None else np.zeros((len(mesh.vertices), 2))
-        write_ply(folder / f"{name}.ply", mesh.vertices, mesh.shading_normals(), uvs, mesh.faces)
+        normals = mesh.shading_normals() @ np.linalg.inv(m[:3, :3])  # normals transform by the inverse transpose
+        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+        write_ply(folder / f"{name}.ply", mesh.vertices @ m[:3, :3].T + m[:3, 3], normals, uvs, mesh.faces)
         flat = "true" if mesh.normals is None else "false"  # a cube's faces stay flat
         elements.append(f'<shape type="ply" id="{name}"><string name="filename" value="{folder.name}/{name}.ply"/>'
                         f'<boolean name="face_normals" value="{flat}"/><bsdf type="diffuse"/></shape>')  # fmt: skip

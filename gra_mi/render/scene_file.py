@@ -83,6 +83,21 @@ def sensor_name(index: int, sensor, source: Path | None = None) -> str:
     return path_component(sensor.id() or f"sensor{index}", source, f"sensor {index} id")
 
 
+def subject_pixels(scene, sensor: int = 0, subject_id: str = keys.SUBJECT_ID) -> np.ndarray:
+    """(H, W) bool: the pixels of the scene's ``sensor`` whose centre ray, as Mitsuba's own sensor makes it, meets the
+    shape ``subject_id`` before anything else (a scene with a set: the subject's mask, the pixels it is scored on)."""
+    import mitsuba as mi
+
+    subject = next(s for s in scene.shapes() if s.id() == subject_id)
+    camera = scene.sensors()[sensor]
+    w, h = camera.film().crop_size()
+    y, x = np.mgrid[0:h, 0:w]
+    film = mi.Point2f(((x.ravel() + 0.5) / w).astype(np.float32), ((y.ravel() + 0.5) / h).astype(np.float32))
+    ray, _ = camera.sample_ray(0.0, 0.5, film, mi.Point2f(0.5, 0.5))
+    si = scene.ray_intersect(ray)
+    return np.array(si.is_valid() & (si.shape == mi.ShapePtr(subject))).reshape(h, w)
+
+
 def select_sensors(path: Path, scene, wanted: list[str]) -> list[int]:
     """Indices of the sensors named (by id or index) in ``wanted``; all of them when it is empty."""
     sensors = list(scene.sensors())
