@@ -292,7 +292,7 @@ def _leds(scene, path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def subject_shape(scene, path: Path) -> tuple[object, list]:
-    """The shape with id ``subject``, or the scene's only shape, and the scene's other shapes."""
+    """The shape with id ``subject``, or the scene's only shape, and the scene's other shapes (in :func:`shape_order`)."""
     shapes = list(scene.shapes())
     chosen = [s for s in shapes if s.id() == keys.SUBJECT_ID]
     if not chosen and len(shapes) == 1:
@@ -306,7 +306,14 @@ def subject_shape(scene, path: Path) -> tuple[object, list]:
     if not subject.is_mesh():
         raise GraMiInputError(path, f"{label} is a {subject.class_name()}, not a mesh: the subject is a mesh with texture "
                               "coordinates (obj, ply, serialized)")  # fmt: skip
-    return subject, [s for s in shapes if s is not subject]
+    return subject, sorted((s for s in shapes if s is not subject), key=shape_order)
+
+
+def shape_order(shape) -> tuple:
+    """A shape's place in a stable order: Mitsuba's list of a scene's shapes is not in the file's order, nor in the
+    same order from one load to the next."""
+    box = shape.bbox()
+    return (shape.id(), shape.class_name(), *box.min, *box.max)
 
 
 def shape_label(shape) -> str:

@@ -304,7 +304,8 @@ class LightstageScene:
         traced without a wall is not served to a scene with one. The set stays still; only the subject moves."""
         import mitsuba as mi
 
-        digest, others = hashlib.sha1(), [s for s in self.scene.shapes() if s.id() != keys.SUBJECT_ID]
+        digest = hashlib.sha1()
+        others = sorted((s for s in self.scene.shapes() if s.id() != keys.SUBJECT_ID), key=lambda s: (s.id(), list(s.bbox().min)))
         if not others:
             return ""  # the subject alone: the keys of caches traced before there was a set
         for shape in others:
