@@ -326,7 +326,9 @@ class LightstageScene:
         import mitsuba as mi
 
         si = self.scene.ray_intersect(ray, ray_flags=mi.RayFlags.UV if flags is None else flags, coherent=coherent)
-        si.t = dr.select(si.shape == mi.ShapePtr(self.subject_shape()), si.t, dr.inf)
+        on_subject = si.shape == mi.ShapePtr(self.subject_shape())
+        si.t = dr.select(on_subject, si.t, dr.inf)
+        si.uv = dr.select(on_subject, si.uv, 0.0)  # as a miss's: a set's UVs are not the subject's
         return si
 
     def set_frame(self, frame: int) -> bool:
