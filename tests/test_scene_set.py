@@ -195,6 +195,10 @@ def test_photographs_of_a_stage_in_a_set_import_with_the_set_and_fit(plugins, tm
     code, lines = run([*argv, "--out", tmp_path / "cap"], capsys)
     assert code == 0, lines
     assert "kept as the set: shape 'lamp'" in caplog.text
+    report = json.loads((tmp_path / "cap" / "import_report.json").read_text())
+    assert (
+        sorted(report["set"]) == ["shape 'floor'", "shape 'lamp'"] and "shape 'lamp'" in (tmp_path / "cap" / "import_report.md").read_text()
+    )
     text = (tmp_path / "cap" / "scene.xml").read_text()
     assert 'type="sphere" id="set_' in text and 'type="rectangle" id="set_' in text
     # the lamp where the capture's frame puts the scene's (0.5, 1.9, 0.5): the import's move of the LEDs applied to it

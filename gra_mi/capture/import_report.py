@@ -95,6 +95,7 @@ def write_report(
         "linearity": _linearity_of_a_complete_camera(out, source, plans, first, workers),
         "frames": {"imported": sum(1 for _ in (out / "images" / plans[0].camera.name).glob("frame_*.exr"))},
         "uv_atlas": record["uv_atlas"],
+        "set": [shape.label for shape in source.set_shapes],
     }
     atomic_write_text(out / "import_report.json", json.dumps(report, indent=1) + "\n")
     atomic_write_text(out / "import_report.md", import_markdown(report, source.format))
@@ -126,6 +127,9 @@ def import_markdown(r: dict, source_format: str) -> str:
         lines.append(
             f"| {c['camera']} | {c['mask_iou']:.3f} | {100 * c['saturated_fraction']:.2f} % | {c['anisotropy']:.4f} | {error} | {lens} |"
         )
+    if r.get("set"):
+        lines += ["", f"The set (the scene's other shapes, in scene.xml as set_000 …): {', '.join(r['set'])}. They shadow the subject "
+                  "and hide it from the cameras in every later stage; the light they reflect onto it is not modelled."]  # fmt: skip
     gaps = [
         f"{c['camera']} ({len(c['missing_frames'])}: {', '.join(map(str, c['missing_frames'][:8]))}{' …' if len(c['missing_frames']) > 8 else ''})"
         for c in r["cameras"]
@@ -155,29 +159,36 @@ def import_markdown(r: dict, source_format: str) -> str:
                 "order or LED file spoils the fit wherever they light.",
             ]
     lines += _solved_frames_lines(r.get("solved_frames", []))
-    if r["linearity"] is not None:
-        lin = r["linearity"]
-        lines += [
-            "",
-            f"Linearity ({lin['camera']}): the sum of the {lin['olats']} OLATs over the white frame is {lin['olats_over_white']:.3f} "
-            "over the subject (1: a linear sensor and a subject that held still, whatever the LEDs' gains). A single OLAT "
-            f"takes a median of {lin['olat_levels']:.0f} distinct values there: held-out OLATs are only as fine a truth as that "
-            "(docs/results/envmap-frames.md measures what that costs a synthetic pose).",
-        ]
-        if "steady_change" in lin:
-            moved = lin["steady_change"] > STEADY_CHANGE
-            lines += [
-                "",
-                f"{'**Moved or drifted**: ' if moved else ''}the {lin['steady_frames']} full-bright frames through the OLATs differ from "
-                f"the first by up to {100 * lin['steady_change']:.1f} % (image {lin['steady_worst']:06d}) over the subject"
-                + (": the subject moved or the LEDs drifted during the OLATs, which the fit takes for one still pose." if moved else "."),
-            ]
+    lines += _linearity_lines(r["linearity"])
     lines += [
         "",
         "Overlays (green: the mask, magenta: the mesh reprojected, white: both): "
         + " ".join(f"![{c['camera']}](import/overlay_{c['camera']}.png)" for c in r["cameras"]),
     ]
     return "\n".join(lines) + "\n"
+
+
+def _linearity_lines(lin: dict | None) -> list[str]:
+    """The linearity check (the OLATs' sum over the white frame) and, where the source has them, the full-bright frames'
+    steadiness through the OLATs."""
+    if lin is None:
+        return []
+    lines = [
+        "",
+        f"Linearity ({lin['camera']}): the sum of the {lin['olats']} OLATs over the white frame is {lin['olats_over_white']:.3f} "
+        "over the subject (1: a linear sensor and a subject that held still, whatever the LEDs' gains). A single OLAT "
+        f"takes a median of {lin['olat_levels']:.0f} distinct values there: held-out OLATs are only as fine a truth as that "
+        "(docs/results/envmap-frames.md measures what that costs a synthetic pose).",
+    ]
+    if "steady_change" in lin:
+        moved = lin["steady_change"] > STEADY_CHANGE
+        lines += [
+            "",
+            f"{'**Moved or drifted**: ' if moved else ''}the {lin['steady_frames']} full-bright frames through the OLATs differ from "
+            f"the first by up to {100 * lin['steady_change']:.1f} % (image {lin['steady_worst']:06d}) over the subject"
+            + (": the subject moved or the LEDs drifted during the OLATs, which the fit takes for one still pose." if moved else "."),
+        ]
+    return lines
 
 
 def _solved_frames_lines(rows: list[dict]) -> list[str]:
