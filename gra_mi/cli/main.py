@@ -63,7 +63,8 @@ COMMANDS: dict[str, Command] = {
     "from-scene": Command(
         "scene",
         "A gra-mi lightstage from a Mitsuba scene you wrote: its perspective sensors as the cameras, point emitters as "
-        "the LEDs, the subject mesh and its material's albedo and roughness (then relight, view, export).",
+        "the LEDs, the subject mesh and its material's albedo and roughness, the other shapes as the set (then relight, view, "
+        "export).",
     ),
     "view": Command(
         "run", "Relight the avatar live in a browser: envmaps, OLATs, a draggable point light (viser; prints its URL).", torch=True
