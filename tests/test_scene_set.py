@@ -126,6 +126,14 @@ def test_shadow_rays_stop_at_their_light(plugins, tmp_path):
             seen.append(carried(ls, relighter, geom))
         assert seen[0].any(), what
         np.testing.assert_array_equal(seen[0], seen[1], err_msg=what)
+    # what lies inside the rig still shadows, far field too: a floor under the feet puts out the LEDs far below it
+    below = np.flatnonzero((stage.led_positions - center)[:, 1] < -0.5 * np.linalg.norm(stage.led_positions - center, axis=1))
+    lit = []
+    for name, shapes in (("open", ""), ("floored", FLOOR.replace('translate y="0.02"', 'translate y="0.44"'))):
+        relighter = Relighter(LightstageScene.load(_tiny_stage(tmp_path / name, shapes)), 64)
+        bits, m = np.array(relighter.visibility(0, far_field=True)), relighter.atlas.num_texels
+        lit.append(sum(int(((bits[(k // 32) * m : (k // 32 + 1) * m] >> (k % 32)) & 1).sum()) for k in below))
+    assert below.size and lit[0] > 0 and lit[1] == 0, lit
     assert mi.Ray3f(mi.Point3f(0, 0, 0), mi.Vector3f(0, 0, 1), 0.5).maxt[0] > 1e30  # (why: the third argument is the time)
 
 

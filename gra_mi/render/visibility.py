@@ -13,7 +13,7 @@ import mitsuba as mi
 import numpy as np
 
 from gra_mi.core.io import atomic_path
-from gra_mi.core.runtime import segment
+from gra_mi.core.runtime import opaque, segment
 from gra_mi.render.atlas import TexelGeometry
 from gra_mi.render.leds import LedLayout
 
@@ -29,7 +29,7 @@ def compute_visibility(
 
     Rays are traced LED-major (all texels for one LED, then the next) in groups of up to 32 LEDs per kernel, which
     keeps them coherent; pairs below the texel's horizon (shading or geometric) trace nothing. Far field, each ray goes
-    towards the LED's direction from the stage centre, as far as the LED is from the centre. ``texels``: trace only these (sorted indices);
+    towards the LED's direction from the stage centre, until it leaves the LED's sphere about the centre. ``texels``: trace only these (sorted indices);
     the others' bits stay 0 (:func:`texels_seen_by`: a job's cameras cannot see them). ``lit``: trace only these LEDs
     (an OLAT's one; None: every LED); the others' bits stay 0, which shades the same while they are off.
     """
@@ -39,8 +39,10 @@ def compute_visibility(
     bits = dr.zeros(mi.UInt32, words * m)
     targets, _ = leds.as_lights(np.zeros((num_leds, 3)))
     target_arr = mi.Point3f(*targets.T.astype(np.float32))
-    # Far field, a ray still ends at its LED's distance from the centre: a set beyond the LEDs (a room) shadows nothing.
+    # Far field, a ray ends where it leaves the sphere through its LED about the centre: what lies inside it (the body,
+    # a floor) shadows, a set beyond the LEDs (a room) does not.
     reach_arr = mi.Float(np.linalg.norm(leds.positions - leds.center, axis=1).astype(np.float32))
+    centre = opaque(mi.Point3f, leds.center)
     subset = None if texels is None else mi.UInt32(np.asarray(texels, np.uint32))
     count = m if texels is None else len(texels)
     lit = np.arange(num_leds) if lit is None else np.asarray(lit, np.int64)
@@ -62,7 +64,7 @@ def compute_visibility(
         ng = dr.gather(mi.Vector3f, geom.geo_normal, t)
         if far_field:
             d = mi.Vector3f(target)
-            dist = dr.gather(mi.Float, reach_arr, k)
+            dist = _sphere_exit(p - centre, d, dr.gather(mi.Float, reach_arr, k))
         else:
             offset = target - p
             dist = dr.norm(offset)
@@ -76,6 +78,14 @@ def compute_visibility(
         dr.scatter_reduce(dr.ReduceOp.Add, bits, word, t + w * m)
         dr.eval(bits)
     return bits
+
+
+def _sphere_exit(offset, d, radius):
+    """How far a ray from ``offset`` (from the sphere's centre) along unit ``d`` runs before it leaves the sphere of
+    ``radius``; from outside the sphere, unbounded (a rig smaller than the subject: nothing to stop at)."""
+    b = dr.dot(d, offset)
+    c = dr.squared_norm(offset) - radius * radius
+    return dr.select(c < 0, -b + dr.safe_sqrt(b * b - c), dr.inf)
 
 
 def texels_seen_by(geom: TexelGeometry, cameras, margin: float = 8.0) -> np.ndarray:
