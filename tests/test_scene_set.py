@@ -11,7 +11,6 @@ import shutil
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from gra_mi.core.io import read_exr
 from gra_mi.render.scene_file import subject_pixels
@@ -165,11 +164,10 @@ def test_a_set_that_moves_with_the_frames_is_refused_naming_the_frame(plugins, t
     assert run(["from-scene", still, "--frames", "0:3", "--out", tmp_path / "b"], capsys)[0] == 0
 
 
-@pytest.mark.parametrize("kind", ["bsplinecurve"])
-def test_a_set_shape_the_stage_cannot_hold_is_left_out_and_said(plugins, tmp_path, capsys, kind):
+def test_a_set_shape_the_stage_cannot_hold_is_left_out_and_said(plugins, tmp_path, capsys):
     (tmp_path / "user").mkdir()
     (tmp_path / "user" / "hair.txt").write_text("0 1.5 0.2 0.01\n0.1 1.6 0.2 0.01\n0.2 1.6 0.3 0.01\n0.3 1.5 0.3 0.01\n")
-    curve = f'<shape type="{kind}" id="hair"><string name="filename" value="hair.txt"/></shape>'
+    curve = '<shape type="bsplinecurve" id="hair"><string name="filename" value="hair.txt"/></shape>'
     path = write_user_scene(tmp_path / "user", shapes=BODY + curve)
     assert run(["from-scene", path, "--out", tmp_path / "stage"], capsys)[0] == 0
     notes = (tmp_path / "stage" / "notes.md").read_text()

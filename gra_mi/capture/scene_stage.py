@@ -33,7 +33,7 @@ from gra_mi.render.scene_file import load_scene_file, scene_parameters, select_s
 from gra_mi.render.scene_lights import emitter_label, plugin_name, point_lights
 from gra_mi.stage import scene_keys as keys
 from gra_mi.stage.lightstage import Camera, Lightstage, lightstage_from_dict, lightstage_to_dict
-from gra_mi.stage.scene import scene_defaults, subject_scene_xml, write_rig
+from gra_mi.stage.scene import scene_defaults, shape_order, subject_scene_xml, write_rig
 from gra_mi.subject.geometry import split_uv_seams, vertex_normals
 from gra_mi.subject.sequence import MeshSequence, SequenceLayout, validate_sequence, write_ply, write_sequence
 
@@ -307,13 +307,6 @@ def subject_shape(scene, path: Path) -> tuple[object, list]:
         raise GraMiInputError(path, f"{label} is a {subject.class_name()}, not a mesh: the subject is a mesh with texture "
                               "coordinates (obj, ply, serialized)")  # fmt: skip
     return subject, sorted((s for s in shapes if s is not subject), key=shape_order)
-
-
-def shape_order(shape) -> tuple:
-    """A shape's place in a stable order: Mitsuba's list of a scene's shapes is not in the file's order, nor in the
-    same order from one load to the next."""
-    box = shape.bbox()
-    return (shape.id(), shape.class_name(), *box.min, *box.max)
 
 
 def shape_label(shape) -> str:

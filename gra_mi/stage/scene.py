@@ -223,6 +223,13 @@ def lightstage_parts_missing(missing: list[str]) -> str:
 SET_GEOMETRY = ("vertex_positions", "faces", "to_world")  # a set shape's parameters that move or reshape it
 
 
+def shape_order(shape) -> tuple:
+    """A shape's place in a stable order: Mitsuba's list of a scene's shapes is not in the file's order, nor in the
+    same order from one load to the next."""
+    box = shape.bbox()
+    return (shape.id(), shape.class_name(), *box.min, *box.max)
+
+
 @dataclass
 class LightstageScene:
     """A loaded lightstage scene whose frame and lighting can be changed in place."""
@@ -305,7 +312,7 @@ class LightstageScene:
         import mitsuba as mi
 
         digest = hashlib.sha1()
-        others = sorted((s for s in self.scene.shapes() if s.id() != keys.SUBJECT_ID), key=lambda s: (s.id(), list(s.bbox().min)))
+        others = sorted((s for s in self.scene.shapes() if s.id() != keys.SUBJECT_ID), key=shape_order)
         if not others:
             return ""  # the subject alone: the keys of caches traced before there was a set
         for shape in others:
