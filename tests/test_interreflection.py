@@ -118,7 +118,7 @@ def test_light_only_adds_and_scales_linearly(tiny):
 
 
 def test_operator_cache_on_disk_is_reused_and_bad_files_are_traced_again(tiny, tmp_path, monkeypatch):
-    from gra_mi.render import relighter as relighter_module
+    from gra_mi.render import bounce
     from gra_mi.render.bounce import BounceOperator
 
     leds = uniform_pattern(tiny.stage, 0.5)
@@ -133,7 +133,7 @@ def test_operator_cache_on_disk_is_reused_and_bad_files_are_traced_again(tiny, t
     def no_trace(*a, **k):
         raise AssertionError("traced although the cache holds the frame")
 
-    monkeypatch.setattr(relighter_module, "trace_operator", no_trace)
+    monkeypatch.setattr(bounce, "trace_operator", no_trace)
     np.testing.assert_array_equal(relighters(tiny, 64, bounces=(2,), cache_dir=tmp_path)[2].render(2, 1, leds).image, image)
     monkeypatch.undo()
     path.write_bytes(path.read_bytes()[:100])  # cut short: traced again, the same

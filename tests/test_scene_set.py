@@ -54,7 +54,7 @@ def test_a_set_shadows_and_hides_the_subject_as_mitsuba_renders_the_users_scene(
     code, lines = run(["from-scene", path, "--out", tmp_path / "stage"], capsys)
     assert code == 0, lines
     notes = (tmp_path / "stage" / "notes.md").read_text()
-    for said in ("kept as the set: shape 'floor'", "shape 'pillar'", "shape '../lamp shade'", "not modelled"):
+    for said in ("kept as the set: shape 'floor'", "shape 'pillar'", "shape '../lamp shade'", "reflects light onto it"):
         assert said in notes
     assert len(list((tmp_path / "stage" / "set").iterdir())) == 1  # the cube as a PLY; the rectangle and sphere exact
     stage = tmp_path / "stage"

@@ -61,6 +61,13 @@ class SetShape:
     kind: str  # "ply" (a mesh) or the analytic shape's XML type
     mesh: RawMesh | None = None
     to_world: np.ndarray | None = None  # (4, 4)
+    reflectance: tuple = (0.5, 0.5, 0.5)  # its BSDF's diffuse reflectance, the mean over its surface (set_material)
+    two_sided: bool = False  # whether its BSDF reflects from both sides
+
+    def bsdf_xml(self) -> str:
+        rgb = ", ".join(f"{v:.6g}" for v in self.reflectance)
+        diffuse = f'<bsdf type="diffuse"><rgb name="reflectance" value="{rgb}"/></bsdf>'
+        return f'<bsdf type="twosided">{diffuse}</bsdf>' if self.two_sided else diffuse
 
 
 @dataclass
@@ -129,7 +136,7 @@ def stage_from_scene(
     rig = scene_rig(scene, path)
     cameras, positions, intensities, _ = rig
     shape, others = subject_shape(scene, path)
-    set_shapes, notes = scene_set(others)
+    set_shapes, notes = scene_set(scene, others)
     mesh = RawMesh.of(shape)
     faces, uvs, position_of = _layout(mesh, path, notes)
     if mesh.normals is None:
@@ -313,7 +320,7 @@ def shape_label(shape) -> str:
     return f"shape '{shape.id()}'" if shape.id() else f"a {shape.class_name()} shape"
 
 
-def scene_set(others: list) -> tuple[list[SetShape], list[str]]:
+def scene_set(scene, others: list) -> tuple[list[SetShape], list[str]]:
     """The scene's other shapes as the stage's set, as they stand at the first frame (the set stays still; a later
     frame's is checked against it), and what is said about them: kept, or left out (a kind the set cannot hold)."""
     import mitsuba as mi
@@ -323,18 +330,39 @@ def scene_set(others: list) -> tuple[list[SetShape], list[str]]:
         params = mi.traverse(shape)
         kind = ANALYTIC_SHAPES.get(shape.class_name())
         if "faces" in params:
-            kept.append(SetShape(shape_label(shape), "ply", mesh=RawMesh.of(shape)))
+            kept.append(SetShape(shape_label(shape), "ply", RawMesh.of(shape), None, *set_material(scene, shape)))
         elif kind and "to_world" in params:  # exact: Mitsuba's own shape, its whole placement in one matrix
-            kept.append(SetShape(shape_label(shape), kind, to_world=np.array(params["to_world"].matrix, np.float64).reshape(4, 4)))
+            to_world = np.array(params["to_world"].matrix, np.float64).reshape(4, 4)
+            kept.append(SetShape(shape_label(shape), kind, None, to_world, *set_material(scene, shape)))
         else:
             notes.append(f"left out: {shape_label(shape)}, a {shape.class_name()} (the set holds meshes, rectangles, disks, spheres "
                          "and cylinders), so its shadows are not in gra-mi's renders")  # fmt: skip
             continue
         notes.append(f"kept as the set: {shape_label(shape)} ({set_name(len(kept) - 1)} in scene.xml)")
     if kept:
-        notes.append("the set shadows the subject and hides it from the cameras; the light it reflects onto the subject is not "
-                     "modelled, and scene.xml gives it a grey diffuse material")  # fmt: skip
+        notes.append("the set shadows the subject and hides it from the cameras, and reflects light onto it with two bounces; "
+                     "scene.xml gives each shape a diffuse material of its BSDF's mean diffuse reflectance (a texture's mean "
+                     "colour, a glossy BSDF's diffuse part)")  # fmt: skip
     return kept, notes
+
+
+def set_material(scene, shape, samples: int = 1024) -> tuple[tuple[float, float, float], bool]:
+    """(the mean diffuse reflectance of ``shape``'s BSDF over its surface, whether it reflects from both sides): Mitsuba's
+    ``eval_diffuse_reflectance`` at points spread over the shape (found by rays, so that textures and vertex colours
+    are read where they lie), as the light the set reflects is modelled (Lambertian)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    i = dr.arange(mi.Float, samples)
+    golden = i * 0.6180339887
+    ps = shape.sample_position(0.0, mi.Point2f((i + 0.5) / samples, golden - dr.floor(golden)))
+    si = scene.ray_intersect(mi.Ray3f(ps.p + ps.n * 1e-3, -ps.n))
+    on_shape = si.is_valid() & (si.shape == mi.ShapePtr(shape))
+    bsdf = shape.bsdf()
+    rho = dr.select(on_shape, bsdf.eval_diffuse_reflectance(si, on_shape), 0.0)  # (a constant comes back one wide)
+    rho = np.array(rho, np.float64).reshape(3, -1)[:, np.array(on_shape)]
+    mean = rho.mean(axis=1) if rho.shape[1] else np.full(3, 0.5)
+    return tuple(float(v) for v in np.clip(mean, 0.0, 1.0)), bool(mi.has_flag(bsdf.flags(), mi.BSDFFlags.BackSide))
 
 
 def _layout(mesh: RawMesh, path: Path, notes: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -472,7 +500,7 @@ def write_set(shapes: list[SetShape], folder: Path, to_stage: np.ndarray | None 
         if shape.mesh is None:
             matrix = " ".join(f"{v:.9g}" for v in (m @ shape.to_world).ravel())
             elements.append(f'<shape type="{shape.kind}" id="{name}"><transform name="to_world"><matrix value="{matrix}"/></transform>'
-                            '<bsdf type="diffuse"/></shape>')  # fmt: skip
+                            f'{shape.bsdf_xml()}</shape>')  # fmt: skip
             continue
         mesh = shape.mesh
         folder.mkdir(parents=True, exist_ok=True)
@@ -482,7 +510,7 @@ def write_set(shapes: list[SetShape], folder: Path, to_stage: np.ndarray | None 
         write_ply(folder / f"{name}.ply", mesh.vertices @ m[:3, :3].T + m[:3, 3], normals, uvs, mesh.faces)
         flat = "true" if mesh.normals is None else "false"  # a cube's faces stay flat
         elements.append(f'<shape type="ply" id="{name}"><string name="filename" value="{folder.name}/{name}.ply"/>'
-                        f'<boolean name="face_normals" value="{flat}"/><bsdf type="diffuse"/></shape>')  # fmt: skip
+                        f'<boolean name="face_normals" value="{flat}"/>{shape.bsdf_xml()}</shape>')  # fmt: skip
     return "\n    ".join(elements)
 
 

@@ -12,7 +12,12 @@ per unit T after b bounces is U = Σ_{j < b−1} (a ⊙ P)^j (a ⊙ E), and a te
 a(x) T(ω_view) (P U)(x). Both ends of every extra segment are the diffuse layer (Lambert with its Fresnel
 transmission); the specular lobes of later bounces are left out (docs/accuracy.md measures what that costs).
 
-Only texels whose hemisphere sees the body trace rays. A point of the body above a texel's tangent plane is exactly
+Rays that first hit the set (the scene's other shapes: a floor, a wall) bring the light the set reflects, as a
+Lambertian surface of its BSDF's diffuse reflectance at the hit (Mitsuba's ``eval_diffuse_reflectance``; a one-sided
+BSDF seen from behind reflects nothing), lit by the LEDs and near lights it sees (:class:`SetHits`). The light the body
+sends to the set and back is left out.
+
+Only texels whose hemisphere sees the body (or the set) trace rays. A point of the body above a texel's tangent plane is exactly
 what one of its rays can hit (the first surface along the segment to that point lies above the plane too), so comparing
 the plane with the vertices of the body's convex hull decides it, exactly and without a ray: the top of the head and
 most of the chest and back trace nothing and receive nothing.
@@ -22,7 +27,7 @@ from __future__ import annotations
 
 import hashlib
 import zipfile
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import drjit as dr
@@ -30,14 +35,79 @@ import mitsuba as mi
 import numpy as np
 
 from gra_mi.core.io import atomic_path
+from gra_mi.core.runtime import concat
 from gra_mi.render import brdf
 from gra_mi.render.atlas import SurfaceFilter, TexelGeometry, UVAtlas
 from gra_mi.render.lattice import lattice_point
+from gra_mi.render.leds import LedLayout
 from gra_mi.render.shading import local_view
 from gra_mi.render.transport import DEFAULT_RAYS
 from gra_mi.render.visibility import RAY_EPSILON
 
 CHUNK_RAYS = 1 << 20  # rays per kernel: bounds the surface interactions held at once (~100 MB)
+
+
+SET_CELL = 0.01
+"""Metres: the smallest cell of the set whose reflected light is computed once (:attr:`SetHits.cells`)."""
+SET_CELL_ANGLE = 0.05
+"""Radians: a cell of the set is at most this wide as its rays' texels see it, and as its nearest LED sees it
+(:meth:`SetHits.cells`): far finer than the rays' own spacing, and than the light's changes over the set."""
+SET_VECTORS = ("direction", "position", "normal", "geo_normal", "reflectance")
+SET_FIELDS = ("receivers", "distance", *SET_VECTORS)
+
+
+@dataclass
+class SetHits:
+    """The rays of a bounce operator that first hit the set, on a side of it that reflects: the set sends back along
+    each the light it takes in from the LEDs and near lights (:meth:`~gra_mi.render.relighter.Relighter.set_light`),
+    times its diffuse reflectance."""
+
+    receivers: np.ndarray  # (S,) uint32: the texel whose ray it is
+    distance: np.ndarray  # (S,) float32: how far the ray ran
+    direction: np.ndarray  # (S, 3) float32: the ray's unit direction (world), from the receiver toward the set
+    position: np.ndarray  # (S, 3) float32: where it hits the set
+    normal: np.ndarray  # (S, 3) float32: the set's shading normal there, turned toward the receiver
+    geo_normal: np.ndarray  # (S, 3) float32: its geometric normal, turned the same way
+    reflectance: np.ndarray  # (S, 3) float32: its BSDF's diffuse reflectance there
+
+    @classmethod
+    def empty(cls) -> SetHits:
+        return cls(np.zeros(0, np.uint32), np.zeros(0, np.float32), *(np.zeros((0, 3), np.float32) for _ in SET_VECTORS))
+
+    @classmethod
+    def joined(cls, parts: list[SetHits]) -> SetHits:
+        return cls(*(np.concatenate([getattr(p, f) for p in parts]) for f in SET_FIELDS))
+
+    @property
+    def count(self) -> int:
+        return int(self.receivers.size)
+
+    def subset(self, keep: np.ndarray) -> SetHits:
+        return SetHits(*(getattr(self, f)[keep] for f in SET_FIELDS))
+
+    def cells(self, leds: LedLayout) -> tuple[TexelGeometry, mi.UInt32]:
+        """The hits grouped in cells (and by their normals), and each hit's cell: the light the set reflects is computed
+        once per cell, at one of its hits, as texels of their own. A cell is :data:`SET_CELL` wide near its rays' texels
+        or near an LED, and twice as wide each time both are twice as far (:data:`SET_CELL_ANGLE`): a floor under a body
+        is hit by millions of rays at 512² and far fewer cells, the body's shadow by its feet stays sharp to a
+        centimetre, and so does the light pooled under a low LED."""
+        from scipy.spatial import cKDTree
+
+        cached = self.__dict__.setdefault("_cells", {})
+        if leds.digest in cached:
+            return cached[leds.digest]
+        reach = np.minimum(self.distance, cKDTree(leds.positions).query(self.position)[0]) if self.count else self.distance
+        level = np.ceil(np.log2(np.maximum(SET_CELL_ANGLE * reach / SET_CELL, 1.0)))
+        where = np.floor(self.position / (SET_CELL * 2.0 ** level[:, None]))
+        key = np.concatenate([level[:, None], where, np.round(self.normal * 4)], axis=1).astype(np.int64)
+        _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+        p, n, ng = (np.ascontiguousarray(getattr(self, f)[first]) for f in ("position", "normal", "geo_normal"))
+        digest = hashlib.sha1(b"set cells")
+        for values in (p, n, ng):
+            digest.update(np.ascontiguousarray(values, np.float32).tobytes())
+        geom = TexelGeometry(mi.Point3f(*p.T), mi.Vector3f(*n.T), mi.Vector3f(*ng.T), digest.hexdigest()[:16])
+        cached[leds.digest] = (geom, mi.UInt32(inverse.reshape(-1).astype(np.uint32)))
+        return cached[leds.digest]
 
 
 @dataclass
@@ -52,6 +122,7 @@ class BounceOperator:
     rays: int
     traced: int  # texels that traced rays (their hemisphere sees the body)
     domain: np.ndarray | None = None  # the texels it answers for (:meth:`restricted`); None: every texel
+    set_hits: SetHits = field(default_factory=SetHits.empty)  # the rays that hit the set
 
     @property
     def entries(self) -> int:
@@ -59,7 +130,21 @@ class BounceOperator:
 
     @property
     def nbytes(self) -> int:
-        return int(self.receivers.nbytes + self.sources.nbytes + self.direction.nbytes)
+        return int(self.receivers.nbytes + self.sources.nbytes + self.direction.nbytes) + sum(
+            getattr(self.set_hits, f).nbytes for f in SET_FIELDS
+        )
+
+    def rays_to_gather(self) -> tuple[mi.UInt32, mi.Vector3f, mi.UInt32 | None]:
+        """(receivers, directions, where each one's light is) of every ray that brings light, sorted by receiver (each
+        texel's sum then adds its rays in one order: the same image every run). Light along the rays comes for those
+        that hit the body, then those that hit the set (:func:`light_along_rays`); None: in that order already."""
+        if getattr(self, "_gathered", (None,))[0] != mi.variant():
+            r = np.concatenate([self.receivers, self.set_hits.receivers]).astype(np.uint32)
+            order = np.argsort(r, kind="stable") if self.set_hits.count else np.arange(len(r))
+            d = np.ascontiguousarray(np.concatenate([self.direction, self.set_hits.direction])[order].T)
+            where = mi.UInt32(order.astype(np.uint32)) if self.set_hits.count else None
+            self._gathered = (mi.variant(), mi.UInt32(r[order]), mi.Vector3f(*d), where)
+        return self._gathered[1:]
 
     def device(self) -> tuple[mi.UInt32, mi.UInt32, mi.Vector3f]:
         """(receivers, sources, directions) as Dr.Jit arrays, uploaded once per variant."""
@@ -71,9 +156,10 @@ class BounceOperator:
     def gather_diffuse(self, geom: TexelGeometry, light: mi.Color3f) -> mi.Color3f:
         """(1/K) Σ_k T(cosθx,k) L_k per texel: the light along each ray (``light``, per entry) that the receiving
         texel's diffuse layer takes in, per unit albedo and T(ω_view) (0 where a texel traced nothing)."""
-        if self.entries == 0:  # a body that never sees itself (a convex one)
+        if self.entries + self.set_hits.count == 0:  # a body that sees neither itself (a convex one) nor a set
             return dr.zeros(mi.Color3f, self.num_texels)
-        r, _, d = self.device()
+        r, d, where = self.rays_to_gather()
+        light = light if where is None else dr.gather(mi.Color3f, light, where)
         cos_x = dr.dot(d, dr.gather(mi.Vector3f, geom.normal, r))
         out = dr.zeros(mi.Color3f, self.num_texels)
         dr.scatter_reduce(dr.ReduceOp.Add, out, light * (brdf.diffuse_transmission(cos_x) / self.rays), r)
@@ -82,9 +168,10 @@ class BounceOperator:
     def specular_response(self, geom: TexelGeometry, viewer, roughness: mi.Float, light: mi.Color3f) -> mi.Color3f:
         """(π/K) Σ_k f_spec(ω_view, ω_k) L_k per texel: the receivers' specular lobe lit by the light along their rays
         (the cosine-distributed rays' estimate of ∫ f_spec L cos dω), toward ``viewer`` (a camera position)."""
-        if self.entries == 0:
+        if self.entries + self.set_hits.count == 0:
             return dr.zeros(mi.Color3f, self.num_texels)
-        r, _, d = self.device()
+        r, d, where = self.rays_to_gather()
+        light = light if where is None else dr.gather(mi.Color3f, light, where)
         frame = mi.Frame3f(dr.gather(mi.Vector3f, geom.normal, r))
         wi = local_view(frame, dr.gather(mi.Point3f, geom.position, r), viewer)
         wo = frame.to_local(d)
@@ -99,7 +186,9 @@ class BounceOperator:
         """The entries of the rays of ``receivers`` only (a job's cameras need no others)."""
         keep = np.isin(self.receivers, receivers)
         picked = (self.receivers[keep], self.sources[keep], self.direction[keep])
-        return BounceOperator(*picked, self.num_texels, self.rays, self.traced, np.unique(np.asarray(receivers, np.int64)))
+        domain = np.unique(np.asarray(receivers, np.int64))
+        on_set = self.set_hits.subset(np.isin(self.set_hits.receivers, receivers))
+        return BounceOperator(*picked, self.num_texels, self.rays, self.traced, domain, on_set)
 
     def smoothed(self, atlas: UVAtlas, geom: TexelGeometry, received: mi.Color3f, radius: int) -> mi.Color3f:
         """``received`` (per texel, e.g. :meth:`gather_diffuse`'s) averaged over the same surface within ``radius``
@@ -149,8 +238,9 @@ class BounceOperator:
     def save(self, path: Path) -> None:
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as fh:
+                on_set = {f"set_{f}": getattr(self.set_hits, f) for f in SET_FIELDS}
                 np.savez(fh, receivers=self.receivers, sources=self.sources, direction=self.direction,
-                         meta=np.array([self.num_texels, self.rays, self.traced], np.int64))  # fmt: skip
+                         meta=np.array([self.num_texels, self.rays, self.traced], np.int64), **on_set)  # fmt: skip
 
     @classmethod
     def load(cls, path: Path, num_texels: int, rays: int) -> BounceOperator | None:
@@ -158,18 +248,24 @@ class BounceOperator:
         try:
             with np.load(path, allow_pickle=False) as data:
                 meta = data["meta"]
-                op = cls(data["receivers"], data["sources"], data["direction"], int(meta[0]), int(meta[1]), int(meta[2]))
+                # A file from before the set was traced has none: its key says there was no set (operator_key)
+                on_set = SetHits(*(data[f"set_{f}"] for f in SET_FIELDS)) if "set_receivers" in data else SetHits.empty()
+                op = cls(data["receivers"], data["sources"], data["direction"], int(meta[0]), int(meta[1]), int(meta[2]), None, on_set)
         except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
             return None
-        entries = op.receivers.size
+        entries, hits = op.receivers.size, op.set_hits
         shapes = op.sources.shape == (entries,) and op.direction.shape == (entries, 3) and op.receivers.ndim == 1
-        in_range = shapes and (entries == 0 or int(max(op.sources.max(), op.receivers.max())) < num_texels)
+        shapes &= hits.receivers.ndim == 1 and hits.distance.shape == (hits.count,)
+        shapes &= all(getattr(hits, f).shape == (hits.count, 3) for f in SET_VECTORS)
+        receivers = np.concatenate([op.receivers, hits.receivers]) if shapes else np.zeros(0)
+        in_range = shapes and (receivers.size == 0 or int(max(op.sources.max(initial=0), receivers.max())) < num_texels)
         return op if (in_range and op.num_texels == num_texels and op.rays == rays) else None
 
 
 def texels_that_see_the_body(geom: TexelGeometry, vertices: np.ndarray) -> np.ndarray:
-    """Indices of the texels some point of the body lies above the tangent plane (geometric normal) of: the only ones
-    a ray can bring light after the first bounce to. Exact, from the vertices of the body's convex hull."""
+    """Indices of the texels some point of the body (or the set) lies above the tangent plane (geometric normal) of: the
+    only ones a ray can bring light after the first bounce to. Exact, from the vertices of the convex hull of
+    ``vertices`` (the body's, and the corners of the set's bounding boxes: :func:`set_corners`)."""
     from scipy.spatial import ConvexHull, QhullError
 
     vertices = np.asarray(vertices, np.float64)
@@ -192,8 +288,8 @@ def trace_operator(
     texels: np.ndarray, rays: int = DEFAULT_RAYS, seed: int = 0,
 ) -> BounceOperator:  # fmt: skip
     """Trace ``rays`` cosine-distributed rays from each of ``texels`` (a shifted Fibonacci lattice per texel: stratified
-    and deterministic) and keep those that first hit ``subject`` (its ``faces`` and per-vertex ``uvs``) from its front.
-    Other shapes of the scene block rays but bounce no light (they have no texels)."""
+    and deterministic) and keep those that first hit ``subject`` (its ``faces`` and per-vertex ``uvs``) from its front,
+    and those that first hit another shape of the scene (the set) on a side that reflects (:class:`SetHits`)."""
     texels = np.asarray(texels, np.uint32)
     mesh = (
         mi.UInt32(atlas.nearest_texel().astype(np.uint32)),
@@ -201,13 +297,14 @@ def trace_operator(
         [mi.UInt32(np.ascontiguousarray(faces[:, k], np.uint32)) for k in range(3)],
     )
     per_chunk = max(CHUNK_RAYS // rays, 1)
-    parts = [np.zeros(0, np.uint32), np.zeros(0, np.uint32), np.zeros((0, 3), np.float32)]
+    parts = [np.zeros(0, np.uint32), np.zeros(0, np.uint32), np.zeros((0, 3), np.float32), SetHits.empty()]
     chunks = [parts]
     for start in range(0, len(texels), per_chunk):
         chunk = texels[start : start + per_chunk]
         chunks.append(_trace_chunk(scene, mi.ShapePtr(subject), geom, atlas.resolution, mesh, chunk, rays, seed))
     receivers, sources, direction = (np.concatenate([c[k] for c in chunks]) for k in range(3))
-    return BounceOperator(receivers, sources, direction, dr.width(geom.position), rays, len(texels))
+    on_set = SetHits.joined([c[3] for c in chunks])
+    return BounceOperator(receivers, sources, direction, dr.width(geom.position), rays, len(texels), None, on_set)
 
 
 def _trace_chunk(scene, subject_ptr, geom, resolution, mesh, chunk, rays, seed):
@@ -226,8 +323,10 @@ def _trace_chunk(scene, subject_ptr, geom, resolution, mesh, chunk, rays, seed):
     local = mi.warp.square_to_cosine_hemisphere(lattice_point(mi.Float(k), rays, shift))
     d = frame.to_world(local)
     above = (dr.dot(d, ng) > 0) & (local.z > 0)
-    pi = scene.ray_intersect_preliminary(mi.Ray3f(p + ng * RAY_EPSILON, d), coherent=False, active=above)
+    origin = mi.Point3f(p + ng * RAY_EPSILON)
+    pi = scene.ray_intersect_preliminary(mi.Ray3f(origin, d), coherent=False, active=above)
     hit = above & pi.is_valid() & (pi.shape == subject_ptr)
+    on_set = _set_hits(scene, t, origin, d, above & pi.is_valid() & (pi.shape != subject_ptr))
     # The hit's UV from its triangle's barycentrics (no full surface interaction: only the texel is needed).
     b1, b2 = pi.prim_uv.x, pi.prim_uv.y
     corner = [dr.gather(mi.Point2f, uv_table, dr.gather(mi.UInt32, f, pi.prim_index, hit), hit) for f in face_columns]
@@ -240,31 +339,101 @@ def _trace_chunk(scene, subject_ptr, geom, resolution, mesh, chunk, rays, seed):
     keep = dr.compress(hit)
     out = (dr.gather(mi.UInt32, t, keep), dr.gather(mi.UInt32, source, keep), dr.gather(mi.Vector3f, d, keep))
     dr.eval(*out)
-    return np.array(out[0]), np.array(out[1]), np.array(out[2]).T.reshape(-1, 3).astype(np.float32)
+    return np.array(out[0]), np.array(out[1]), _rows(out[2]), on_set
 
 
-def light_along_rays(op: BounceOperator, geom: TexelGeometry, albedo: mi.Color3f, first: tuple, bounces: int) -> mi.Color3f:
-    """L_k: the radiance arriving along each ray after up to ``bounces`` bounces in all. ``first`` = (diffuse per
-    unit albedo, specular) that each ray's source texel sends toward the receiver under the one-bounce lighting;
-    the later bounces' light leaves the sources through their diffuse layer only."""
+def _rows(v) -> np.ndarray:
+    return np.array(v, np.float32).T.reshape(-1, 3)
+
+
+def _set_hits(scene: mi.Scene, texel: mi.UInt32, origin: mi.Point3f, d: mi.Vector3f, on_set: mi.Bool) -> SetHits:
+    """The rays ``on_set`` (first hits on the set), traced again for their full surface interaction (only these: a body
+    without a set traces nothing more), and kept where the set's BSDF reflects light back toward the ray's texel."""
+    lanes = dr.compress(on_set)
+    if dr.width(lanes) == 0:
+        return SetHits.empty()
+    o, direction = dr.gather(mi.Point3f, origin, lanes), dr.gather(mi.Vector3f, d, lanes)
+    si = scene.ray_intersect(mi.Ray3f(o, direction), ray_flags=mi.RayFlags.All, coherent=False)
+    bsdf = si.bsdf()
+    front = mi.Frame3f.cos_theta(si.wi) > 0
+    # A one-sided BSDF (Mitsuba's diffuse) is black from behind; a two-sided one reflects on both sides.
+    reflects = si.is_valid() & (front | mi.has_flag(bsdf.flags(), mi.BSDFFlags.BackSide))
+    side = dr.select(front, 1.0, -1.0)
+    reflectance = bsdf.eval_diffuse_reflectance(si, reflects)
+    keep = dr.compress(reflects & (dr.max(reflectance) > 0))
+    fields = (
+        dr.gather(mi.UInt32, texel, dr.gather(mi.UInt32, lanes, keep)), dr.gather(mi.Float, si.t, keep), dr.gather(mi.Vector3f, direction, keep),
+        dr.gather(mi.Point3f, si.p, keep), dr.gather(mi.Vector3f, mi.Vector3f(si.sh_frame.n * side), keep),
+        dr.gather(mi.Vector3f, mi.Vector3f(si.n * side), keep), dr.gather(mi.Color3f, reflectance, keep),
+    )  # fmt: skip
+    dr.eval(*fields)
+    return SetHits(np.array(fields[0], np.uint32), np.array(fields[1], np.float32), *(_rows(f) for f in fields[2:]))
+
+
+def set_corners(scene: mi.Scene, subject: mi.Shape) -> np.ndarray:
+    """(8 S, 3) the corners of the bounding boxes of the scene's shapes besides ``subject``: with the body's vertices,
+    points whose hull holds everything a ray can hit."""
+    boxes = [s.bbox() for s in scene.shapes() if s.id() != subject.id()]
+    return np.array([[(b.min if (k >> a) & 1 == 0 else b.max)[a] for a in range(3)] for b in boxes for k in range(8)], np.float64).reshape(
+        -1, 3
+    )
+
+
+def set_materials_digest(scene: mi.Scene, subject: mi.Shape) -> str:
+    """A hash of the set's shapes with everything Mitsuba exposes of them (BSDF parameters, textures, vertex
+    attributes): what the light the set reflects depends on, beyond the geometry the frame's digest holds."""
+    from gra_mi.stage.scene import shape_order
+
+    digest = hashlib.sha1()
+    for shape in sorted((s for s in scene.shapes() if s.id() != subject.id()), key=shape_order):
+        digest.update(f"{shape.class_name()}:{shape.bsdf().class_name()}".encode())
+        params = mi.traverse(shape)
+        for key in sorted(params.keys()):
+            digest.update(key.encode())
+            value = params[key]
+            value = value.matrix if hasattr(value, "matrix") else value
+            try:
+                digest.update(np.ascontiguousarray(np.array(value), np.float32).tobytes())
+            except (TypeError, ValueError):  # not numeric: its text
+                digest.update(repr(value).encode())
+    return digest.hexdigest()[:16]
+
+
+def light_along_rays(
+    op: BounceOperator, geom: TexelGeometry, albedo: mi.Color3f, first: tuple, bounces: int, from_set: mi.Color3f | None = None
+) -> mi.Color3f:
+    """L_k: the radiance arriving along each ray after up to ``bounces`` bounces in all, for the rays that hit the body
+    and then those that hit the set (:meth:`BounceOperator.rays_to_gather`). ``first`` = (diffuse per unit albedo,
+    specular) that each body ray's source texel sends toward the receiver under the one-bounce lighting; the later
+    bounces' light leaves the sources through their diffuse layer only. ``from_set``: what the set sends back along
+    its rays (None: nothing)."""
+    from_set = dr.zeros(mi.Color3f, op.set_hits.count) if from_set is None else from_set
     if op.entries == 0:
-        return dr.zeros(mi.Color3f, 0)
+        return from_set
     _, s, d = op.device()
     source_albedo = dr.gather(mi.Color3f, albedo, s)
     light = source_albedo * first[0] + first[1]
     # Held, not left lazy: the scatters and gathers that read it (gather_diffuse, the smoothing, a later bounce) would
     # each compute it inside their own kernels.
+    light = _with_set(light, from_set)
     dr.eval(light)
     if bounces > 2:
         # T(cosθy) toward the receiver, times the source's albedo: how a source's own indirect light leaves toward x.
         toward = source_albedo * brdf.diffuse_transmission(-dr.dot(d, dr.gather(mi.Vector3f, geom.normal, s)))
         term = light
         for _ in range(bounces - 2):
-            term = toward * dr.gather(mi.Color3f, op.gather_diffuse(geom, term), s)
+            term = _with_set(toward * dr.gather(mi.Color3f, op.gather_diffuse(geom, term), s), dr.zeros(mi.Color3f, op.set_hits.count))
             light += term
             dr.eval(term, light)
     return light
 
 
-def operator_key(geom: TexelGeometry, rays: int, seed: int) -> str:
-    return hashlib.sha1(f"{geom.digest}_{rays}_{seed}".encode()).hexdigest()[:16]
+def _with_set(body: mi.Color3f, on_set: mi.Color3f) -> mi.Color3f:
+    return body if dr.width(on_set) == 0 else concat(mi.Color3f, [body, on_set])
+
+
+def operator_key(geom: TexelGeometry, rays: int, seed: int, set_materials: str = "") -> str:
+    """The cache key of a frame's operator: its geometry (the set's included), the rays, and the set's materials
+    (:func:`set_materials_digest`; "" with no set, the key of operators traced before the set reflected light)."""
+    extra = f"_{set_materials}" if set_materials else ""
+    return hashlib.sha1(f"{geom.digest}_{rays}_{seed}{extra}".encode()).hexdigest()[:16]

@@ -163,6 +163,18 @@ class PreparedBRDF:
         return self.albedo * diffuse + spec
 
 
+class PreparedLambert:
+    """A Lambertian surface with :class:`PreparedBRDF`'s interface, seen along its normal: the set's floor or wall as
+    the light after the first bounce leaves it (:mod:`gra_mi.render.bounce`). ``eval_parts`` gives (cosθo / π, 0)."""
+
+    def __init__(self, wi):
+        self.front = wi.z > 0
+
+    def eval_parts(self, wo):
+        diffuse = dr.select(self.front & (wo.z > 0), wo.z * dr.inv_pi, 0.0)
+        return mi.Color3f(diffuse), mi.Color3f(0.0)
+
+
 def eval_cos(albedo, roughness, wi, wo):
     """f(ωi, ωo) · cosθo: what Mitsuba's ``BSDF.eval`` returns. ``albedo`` is RGB, ``roughness`` scalar."""
     return PreparedBRDF(albedo, roughness, wi).eval_cos(wo)

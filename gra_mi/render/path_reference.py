@@ -56,11 +56,11 @@ def _emitter(position, intensity) -> str:
 
 def path_reference(
     relighter, frame: int, camera, led_intensities: np.ndarray, near_lights=(), max_depth: int = 3, spp: int = 256, folder: Path | str = ".",
-    seed: int = 0,
+    seed: int = 0, set_xml: str = "",
 ) -> np.ndarray:  # fmt: skip
     """(H, W, 4) Mitsuba ``path`` render of ``relighter``'s frame, maps and LEDs (near field) plus point ``near_lights``
     (radius 0), from ``camera`` (a :class:`~gra_mi.stage.lightstage.Camera` or the rig's name/index). Writes its
-    scene's files (the frame's PLY, the maps) into ``folder``."""
+    scene's files (the frame's PLY, the maps) into ``folder``. ``set_xml``: the set's shapes, as Mitsuba XML."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     ls, seq = relighter.ls, relighter.ls.sequence
@@ -79,7 +79,7 @@ def path_reference(
         f'<shape type="ply"><string name="filename" value="{folder / "frame.ply"}"/><boolean name="face_normals" value="false"/>'
         f'<bsdf type="gra_microfacet"><texture type="bitmap" name="albedo"><string name="filename" value="{folder / "albedo.exr"}"/></texture>'
         f'<texture type="bitmap" name="roughness"><string name="filename" value="{folder / "roughness.exr"}"/>'
-        '<boolean name="raw" value="true"/></texture></bsdf></shape></scene>'
+        f'<boolean name="raw" value="true"/></texture></bsdf></shape>{set_xml}</scene>'
     )
     scene = mi.load_string(xml)
     return render_mean(scene, 0, mi.load_dict({"type": "path", "max_depth": max_depth}), spp, seed)

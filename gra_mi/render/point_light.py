@@ -132,11 +132,15 @@ def shade_point_light(
     geom: TexelGeometry, fraction: mi.Float, light: PointLight, roughness: np.ndarray, camera_position
 ) -> tuple[np.ndarray, np.ndarray]:
     """(diffuse per unit albedo, specular) of every texel lit by the point light: I/d² · f cos · visible fraction.
-    ``camera_position``: any viewer :func:`~gra_mi.render.shading.local_view` takes (a camera, along each normal,
+    ``roughness`` None: a Lambertian surface (the set). ``camera_position``: any viewer :func:`~gra_mi.render.shading.local_view` takes (a camera, along each normal,
     per-lane directions)."""
     frame = mi.Frame3f(geom.normal)
     wi = local_view(frame, geom.position, camera_position)
-    material = brdf.PreparedBRDF(mi.Color3f(1.0), mi.Float(np.asarray(roughness, np.float32)), wi)
+    material = (
+        brdf.PreparedLambert(wi)
+        if roughness is None
+        else brdf.PreparedBRDF(mi.Color3f(1.0), mi.Float(np.asarray(roughness, np.float32)), wi)
+    )
     offset = opaque(mi.Point3f, light.position) - geom.position
     inv_d2 = dr.rcp(dr.maximum(dr.squared_norm(offset), 1e-8))
     wo = frame.to_local(offset * dr.sqrt(inv_d2))

@@ -19,12 +19,13 @@ import numpy as np
 
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.io import read_exr
+from gra_mi.render import bounce
 from gra_mi.render.atlas import TexelGeometry, UVAtlas
-from gra_mi.render.bounce import BounceOperator, light_along_rays, operator_key, texels_that_see_the_body, trace_operator
+from gra_mi.render.bounce import BounceOperator, SetHits, light_along_rays
 from gra_mi.render.leds import LedLayout
 from gra_mi.render.point_light import PointLight, as_light_list, point_light_visibility, shade_point_light
 from gra_mi.render.rasterize import RASTER_SAMPLES, rasterize_to_camera
-from gra_mi.render.shading import TexelLedLoop, TexelShading, led_cell_roughness, shade_texels
+from gra_mi.render.shading import ALONG_NORMAL, TexelLedLoop, TexelShading, led_cell_roughness, shade_texels
 from gra_mi.render.transport import BOUNCE_LEDS, LightTransport
 from gra_mi.render.visibility import VisibilityCache, texels_seen_by
 from gra_mi.stage.scene import LightstageScene
@@ -99,6 +100,7 @@ class Relighter:
         self.roughness = self.atlas.gather(roughness)[:, 0]
         self.far_field = far_field
         self.cache = VisibilityCache(cache_dir, keep=visibility_keep)
+        self.set_cache = VisibilityCache(cache_dir, keep=visibility_keep)  # of the points where bounce rays hit the set
         self._geometry: dict[int, TexelGeometry] = {}
         self._point_light_vis: dict[tuple, object] = {}
         self._operators: dict[str, BounceOperator] = {}  # the last frames' bounce operators (bounces > 1)
@@ -162,23 +164,28 @@ class Relighter:
     def bounce_operator(self, frame: int) -> BounceOperator:
         """The frame's texel-to-texel bounce operator: from memory, the cache folder, or traced (and kept in both)."""
         geom = self.geometry(frame)
-        key = operator_key(geom, self.transport.bounce_rays, 0)
+        key = bounce.operator_key(geom, self.transport.bounce_rays, 0, self._set_materials())
         if key not in self._operators:
             folder = self.cache.folder
             path = None if folder is None else folder / f"bounce_{key}.npz"
             op = None if path is None else BounceOperator.load(path, dr.width(geom.position), self.transport.bounce_rays)
             if op is None:
                 self.ls.set_frame(frame)
-                texels = texels_that_see_the_body(geom, self.ls.sequence.vertices[frame])
-                seq = self.ls.sequence
-                op = trace_operator(
-                    self.ls.scene, self.ls.subject_shape(), geom, self.atlas, seq.uvs, seq.faces, texels, self.transport.bounce_rays
-                )
+                seq, subject = self.ls.sequence, self.ls.subject_shape()
+                reachable = np.concatenate([seq.vertices[frame], bounce.set_corners(self.ls.scene, subject)])
+                texels = bounce.texels_that_see_the_body(geom, reachable)
+                rays = self.transport.bounce_rays
+                op = bounce.trace_operator(self.ls.scene, subject, geom, self.atlas, seq.uvs, seq.faces, texels, rays)
                 if path is not None:
                     op.save(path)
             self._operators = {k: v for k, v in list(self._operators.items())[-1:]}  # this frame and the one before
             self._operators[key] = op
         return self._operators[key]
+
+    def _set_materials(self) -> str:
+        if not hasattr(self, "_set_materials_digest"):  # the set stays still: one hash per relighter
+            self._set_materials_digest = bounce.set_materials_digest(self.ls.scene, self.ls.subject_shape()) if self.ls.set_digest else ""
+        return self._set_materials_digest
 
     def job_operator(self, frame: int) -> BounceOperator:
         """The frame's bounce operator, reduced (after :meth:`only_for`) to the rays whose light can reach what the job's
@@ -208,7 +215,9 @@ class Relighter:
         if self._indirect is None or self._indirect[0] != key:
             op, geom = self.job_operator(frame), self.geometry(frame)
             first = self.light_toward_receivers(frame, op, led_intensities, lights, fractions, far_field)
-            light = light_along_rays(op, geom, mi.Color3f(*self.albedo.T.astype(np.float32)), first, self.transport.bounces)
+            from_set = self.set_light(frame, op.set_hits, led_intensities, lights, far_field)
+            albedo = mi.Color3f(*self.albedo.T.astype(np.float32))
+            light = light_along_rays(op, geom, albedo, first, self.transport.bounces, from_set)
             diffuse = op.smoothed(self.atlas, geom, op.gather_diffuse(geom, light), self.transport.bounce_smoothing)
             dr.eval(light, diffuse)
             self._indirect = (key, (op, light, np.array(diffuse).T.reshape(-1, 3)))
@@ -241,6 +250,29 @@ class Relighter:
                 d, sp = shade_point_light(at_sources, dr.gather(mi.Float, fraction, s), light, self.roughness[sources], toward)
                 diffuse, spec = diffuse + mi.Color3f(*d.T), spec + mi.Color3f(*sp.T)
         return diffuse, spec
+
+    def set_light(self, frame: int, hits: SetHits, led_intensities, lights: list[PointLight], far_field: bool) -> mi.Color3f:
+        """Per ray that hits the set: the radiance the set sends back along it, Lambertian with its diffuse reflectance,
+        under every LED that is on (fewer standing for them would light a floor from below its horizon) and the near
+        lights, each where the set sees it (the body shadows the floor); once per cell of the set (:attr:`SetHits.cells`)."""
+        if hits.count == 0:
+            return dr.zeros(mi.Color3f, 0)
+        leds = self.leds(far_field)
+        geom, cell = hits.cells(leds)
+        light = dr.zeros(mi.Color3f, dr.width(geom.position))
+
+        def scene_at_frame():
+            self.ls.set_frame(frame)
+            return self.ls.scene
+
+        if np.max(led_intensities) > 0:
+            vis = self.set_cache.get(scene_at_frame, geom, leds, None, np.flatnonzero(np.max(led_intensities, axis=1) > 0))
+            count = dr.width(geom.position)
+            light, _ = TexelLedLoop.build(geom, vis, np.arange(count), leds, led_intensities, ALONG_NORMAL, hold=False).run(None)
+        for near in lights:
+            diffuse, _ = shade_point_light(geom, point_light_visibility(scene_at_frame(), geom, near), near, None, ALONG_NORMAL)
+            light += mi.Color3f(*diffuse.T)
+        return dr.gather(mi.Color3f, light, cell) * mi.Color3f(*hits.reflectance.T)
 
     def only_for(self, cameras) -> None:
         """Render only from these cameras from now on (a batch relight, an evaluation): a new frame's visibility is

@@ -179,7 +179,7 @@ class TexelLedLoop:
     def run(self, roughness: mi.Float | tuple, roughness_derivative: bool = False):
         """(diffuse per unit albedo, specular) per texel of the subset, and ∂ specular / ∂ roughness if asked.
         ``roughness`` as a tuple (a fit's candidate values): the specular part as a tuple, one per value, from one walk
-        over the LEDs (no derivative then)."""
+        over the LEDs (no derivative then); None: a Lambertian surface (:func:`_led_sum`)."""
         grid = isinstance(roughness, tuple)
         if grid and roughness_derivative:
             raise ValueError("the roughness derivative is for one roughness per texel, not a tuple of candidates")
@@ -290,7 +290,7 @@ def _led_sum(m, words, visibility, led_pos, led_int, p, frame, wi, roughness, fa
     Each lane loops over its own visible LEDs only (about a fifth of them on a body), instead of all LEDs masked.
     Returns (diffuse per unit albedo, specular), and ∂ specular / ∂ roughness with ``roughness_derivative``.
     ``roughness`` as a tuple (of scalars or per-lane values): the specular part for each, as a tuple, from one walk
-    over the LEDs (the diffuse part does not depend on it). ``led_base``: per lane, where its LEDs start in ``led_pos``
+    over the LEDs (the diffuse part does not depend on it); None: Lambert's cosθ / π (the specular part 0). ``led_base``: per lane, where its LEDs start in ``led_pos``
     and ``led_int`` (:meth:`TexelLedLoop.concat`).
     """
     t = dr.arange(mi.UInt32, m)  # texel index
@@ -299,7 +299,9 @@ def _led_sum(m, words, visibility, led_pos, led_int, p, frame, wi, roughness, fa
     stride = dr.opaque(mi.UInt32, m)
     grid = isinstance(roughness, tuple)
     # per-texel terms hoisted out of the loop, one material per roughness
-    materials = [brdf.PreparedBRDF(mi.Color3f(1.0), r, wi) for r in (roughness if grid else (roughness,))]
+    # roughness None: a Lambertian surface (the set, as the light after the first bounce leaves it)
+    prepared = [brdf.PreparedBRDF(mi.Color3f(1.0), r, wi) for r in (roughness if grid else (roughness,))] if roughness is not None else []
+    materials = prepared or [brdf.PreparedLambert(wi)]
     material = materials[0]
     diffuse = mi.Color3f(0.0)  # Σ diffuse part per unit albedo (the model is linear in albedo)
     specs = [mi.Color3f(0.0) for _ in materials]  # Σ specular part, per roughness

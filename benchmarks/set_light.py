@@ -1,0 +1,184 @@
+"""The light the set reflects onto the subject (``--bounces 2`` in a scene with a floor): accuracy against Mitsuba's own
+``path`` on the same shapes, and its cost on the demo's body, side by side in one run.
+
+1. Accuracy: the anny body walking, standing on a floor 2 mm under its feet (grey 0.5 as a stage floor, and white 0.8)
+   in the default 331-LED rig, under the `interior` envmap on the LEDs and under a near light by the knee (LEDs off).
+   gra-mi at UV 256² with K rays per texel, against ``path`` at max_depth 2 and 3 with the same mesh, maps and floor;
+   beside one bounce and two bounces whose floor reflects nothing (what gra-mi rendered before the set reflected light).
+   Reference noise: the same ``path`` render with another seed.
+2. Cost: per new frame, the bounce operator with and without the floor (its hits on the floor, their cells, the
+   cells' visibility); per view of a cached frame under a new envmap, one bounce, two without and two with the floor.
+
+    .venv/bin/python benchmarks/set_light.py [--quick] [--write docs/results/set-light.md]
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from gra_mi.apps.harness import BenchmarkRun, run_benchmark, side_by_side
+
+SPP = 512
+FLOORS = {"grey 0.5": 0.5, "white 0.8": 0.8}
+CAMERAS = ("cam00", "cam05")
+
+
+def floor_xml(reflectance: float) -> str:
+    return (f'<shape type="rectangle" id="floor"><transform name="to_world"><scale value="4"/><rotate x="1" angle="-90"/>'
+            f'<translate y="-0.002"/></transform><bsdf type="diffuse"><rgb name="reflectance" value="{reflectance}"/></bsdf></shape>')  # fmt: skip
+
+
+def stages(folder: Path, frames: int):
+    """The walk in the small rig, as a plain scene and as scenes on each floor (and on a black one)."""
+    from gra_mi.stage.lightstage import default_lightstage
+    from gra_mi.stage.scene import LightstageScene, rig_scene
+    from gra_mi.subject.anny_body import anny_sequence
+
+    plain = rig_scene(folder / "walk", anny_sequence(["walk"], frames_per_clip=2 * frames), default_lightstage(width=216, height=312))
+    scenes = {"none": LightstageScene.load(plain, spp=1)}
+    for name, value in {**FLOORS, "black": 0.0}.items():
+        path = plain.with_name(f"scene_{value:g}.xml")
+        path.write_text(plain.read_text().replace("</scene>", f"{floor_xml(value)}</scene>"))
+        scenes[name] = LightstageScene.load(path, spp=1)
+    return scenes
+
+
+def lightings(ls):
+    from gra_mi.render.point_light import PointLight
+    from gra_mi.stage.envmap import envmap_to_leds
+    from gra_mi.stage.envmap_library import reference_map
+
+    leds = envmap_to_leds(reference_map("interior", 64), ls.stage).radiant_intensity(ls.stage)
+    lamp = PointLight(np.array([0.35, 0.35, 0.35]), np.full(3, 0.3), radius=0.0)
+    return {"interior (LEDs)": (leds, []), "near light by the knee": (np.zeros_like(leds), [lamp])}
+
+
+def accuracy_rows(scenes, folder: Path, rays_list, frame: int) -> list[dict]:
+    from gra_mi.render.path_reference import bounce_errors, path_reference
+    from gra_mi.render.relighter import Relighter
+    from gra_mi.render.transport import LightTransport
+
+    rows = []
+    for floor, value in FLOORS.items():
+        ls, black = scenes[floor], scenes["black"]
+        one = Relighter(ls, 256)
+        for lighting, (leds, near) in lightings(ls).items():
+            for cam in CAMERAS:
+                refs = [path_reference(one, frame, cam, leds, near, d, SPP, folder / "path", set_xml=floor_xml(value)) for d in (2, 3)]
+                again = path_reference(one, frame, cam, leds, near, 3, SPP, folder / "path", seed=1, set_xml=floor_xml(value))
+                image_one = one.render(frame, cam, leds, near).image
+                row = {"floor": floor, "lighting": lighting, "camera": cam, "noise": bounce_errors(refs[0], again, *refs)["bias_more"]}
+                dark = Relighter(black, 256, transport=LightTransport(bounces=2)).render(frame, cam, leds, near).image
+                row["black"] = bounce_errors(image_one, dark, *refs)
+                for rays in rays_list:
+                    two = Relighter(ls, 256, transport=LightTransport(bounces=2, bounce_rays=rays)).render(frame, cam, leds, near).image
+                    rows.append(row | {"rays": rays, **bounce_errors(image_one, two, *refs)})
+    return rows
+
+
+def _frame_costs(scenes, resolution: int, frame: int, leds: np.ndarray, repeats: int) -> dict:
+    import drjit as dr
+
+    from gra_mi.render.relighter import Relighter
+    from gra_mi.render.transport import LightTransport
+
+    rel = {
+        "one": Relighter(scenes["none"], resolution),
+        "two": Relighter(scenes["none"], resolution, transport=LightTransport(bounces=2)),
+        "floor": Relighter(scenes["grey 0.5"], resolution, transport=LightTransport(bounces=2)),
+    }
+    for r in rel.values():
+        r.only_for([CAMERAS[0]])  # as `gra-mi relight` renders one camera
+    hits = rel["floor"].bounce_operator(frame).set_hits
+    cells, _ = hits.cells(rel["floor"].leds())
+
+    def set_visibility():
+        rel["floor"].set_cache = type(rel["floor"].set_cache)()
+        return rel["floor"].set_light(frame, hits, leds, [], False)
+
+    def new_operator(name):
+        rel[name]._operators.clear()
+        return rel[name].bounce_operator(frame)
+
+    trace = side_by_side({"two": lambda: new_operator("two"), "floor": lambda: new_operator("floor"), "set": set_visibility}, repeats)
+    change = iter(range(1, 10**9))  # a new lighting per call: nothing after the first bounce is reused
+    views = side_by_side({k: lambda r=r: r.render(frame, CAMERAS[0], leds * (1 + 1e-6 * next(change))) for k, r in rel.items()}, repeats)
+    ops = {k: rel[k].bounce_operator(frame) for k in ("two", "floor")}
+    return {
+        "resolution": resolution, "frame": frame, "entries": ops["two"].entries, "traced": (ops["two"].traced, ops["floor"].traced),
+        "hits": hits.count, "cells": dr.width(cells.position), "mb": (ops["two"].nbytes / 2**20, ops["floor"].nbytes / 2**20),
+        "op_ms": (1e3 * trace["two"], 1e3 * trace["floor"]), "set_ms": 1e3 * trace["set"],
+        "view_ms": tuple(1e3 * views[k] for k in ("one", "two", "floor")),
+    }  # fmt: skip
+
+
+def cost_rows(scenes, resolutions, frames: int, repeats: int) -> list[dict]:
+    leds = lightings(scenes["none"])["interior (LEDs)"][0]
+    return [_frame_costs(scenes, r, f, leds, repeats) for r in resolutions for f in range(0, 2 * frames, 2)]
+
+
+def markdown(accuracy: list[dict], cost: list[dict], stamp: str) -> str:
+    pct = lambda x: "–" if not np.isfinite(x) else f"{100 * x:+.2f} %"  # noqa: E731
+    lines = [
+        "# The light the set reflects onto the subject",
+        "",
+        f"Generated by `benchmarks/set_light.py` ({stamp}).",
+        "",
+        "## Against Mitsuba's `path` on a floor",
+        "",
+        "The anny body walking (frame 2), on a floor 2 mm under its feet, in the default 331-LED rig at 216×312; the "
+        "body's own colours, roughness 0.5 (gra-mi's default maps), UV 256², the default smoothing. `path` at "
+        f"{SPP} spp with `gra_microfacet`, the same maps and the same floor (Mitsuba `diffuse`). *bias*: Σ render / Σ "
+        "`path` (max_depth 3) − 1 over the pixels all renders cover (the floor's pixels are not the subject's); *black "
+        "floor*: two bounces whose floor reflects nothing, as gra-mi rendered a set before; *blocks*: 8×8 blocks where "
+        "Mitsuba's one bounce is ≥ 10 % darker than max_depth 3, the largest error there; *noise*: a second `path` "
+        "render (another seed) against the first.",
+        "",
+        "| floor | lighting | camera | K | bias 1 bounce | 2 bounces, black floor | 2 bounces | blocks | block error 1 / black / 2 | noise |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    size = lambda x: "–" if not np.isfinite(x) else f"{100 * x:.1f} %"  # noqa: E731
+    for r in accuracy:
+        blocks = f"{size(r['dark_block_error_one'])} / {size(r['black']['dark_block_error_more'])} / {size(r['dark_block_error_more'])}"
+        lines.append(
+            f"| {r['floor']} | {r['lighting']} | {r['camera']} | {r['rays']} | {pct(r['bias_one'])} | {pct(r['black']['bias_more'])} | "
+            f"{pct(r['bias_more'])} | {r['dark_blocks']} | {blocks if r['dark_blocks'] else '–'} | {pct(r['noise'])} |"
+        )
+    lines += [
+        "",
+        "## Cost on the demo's body",
+        "",
+        "The same walk on the grey floor against no floor, K = 32 (the default), `interior` on every LED, near field, "
+        f"as `gra-mi relight` renders one camera ({CAMERAS[0]}); medians over repeats, side by side in one run. *operator "
+        "ms*: a new frame's bounce operator, without / with the floor (its rays that hit the floor are traced again for "
+        "their surface); *floor hits*: those rays; *cells*: where the floor's light is computed (SetHits.cells); *floor "
+        "light ms*: the cells' LED visibility and LED sum for a new frame; *view ms*: a cached frame under a new lighting.",
+        "",
+        "| UV | frame | texels tracing, no floor / floor | body entries | floor hits | cells | MB | operator ms | floor light ms | view ms: 1 bounce / 2 / 2 on the floor |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in cost:
+        lines.append(
+            f"| {r['resolution']}² | {r['frame']} | {r['traced'][0]:,} / {r['traced'][1]:,} | {r['entries']:,} | {r['hits']:,} | {r['cells']:,} | "
+            f"{r['mb'][0]:.1f} / {r['mb'][1]:.1f} | {r['op_ms'][0]:.0f} / {r['op_ms'][1]:.0f} | {r['set_ms']:.0f} | "
+            + " / ".join(f"{v:.0f}" for v in r["view_ms"]) + " |"
+        )  # fmt: skip
+    return "\n".join(lines) + "\n"
+
+
+def measure(run: BenchmarkRun) -> str:
+    quick = run.args.quick
+    scenes = stages(run.work, 2 if quick else 3)
+    accuracy = accuracy_rows(scenes, run.work, [32] if quick else [8, 32, 128], frame=2)
+    cost = cost_rows(scenes, [256] if quick else [256, 512], 1 if quick else 3, 2 if quick else 5)
+    return markdown(accuracy, cost, run.stamp("walk on a floor + small rig"))
+
+
+def arguments(parser) -> None:
+    parser.add_argument("--quick", action="store_true", help="K = 32 only, UV 256², one frame, 2 repeats.")
+
+
+if __name__ == "__main__":
+    run_benchmark(__doc__, measure, arguments=arguments)

@@ -1,0 +1,122 @@
+"""The light the set reflects onto the subject (two bounces): a floor under the tiny subject against Mitsuba's own ``path``
+on the same shapes, under the LEDs and under a near light; which side of a set reflects; a bounce cache that knows the
+set's colours."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+
+from gra_mi.stage.lightstage import uniform_pattern
+
+from .test_interreflection import relighters, smooth_maps
+from .test_scene_set import _tiny_stage
+
+FLOOR_Y = 0.44  # 1 cm below the tiny subject's lowest point
+ORANGE = '<bsdf type="diffuse"><rgb name="reflectance" value="0.9, 0.6, 0.3"/></bsdf>'
+
+
+def _floor(bsdf: str = ORANGE, facing_up: bool = True) -> str:
+    angle = -90 if facing_up else 90
+    return (f'<shape type="rectangle" id="floor"><transform name="to_world"><scale value="3"/><rotate x="1" angle="{angle}"/>'
+            f'<translate y="{FLOOR_Y}"/></transform>{bsdf}</shape>')  # fmt: skip
+
+
+def _on_floor(folder, floor: str, bounces=(1, 2), rays: int = 32, **kwargs):
+    from gra_mi.stage.scene import LightstageScene
+
+    ls = LightstageScene.load(_tiny_stage(folder, floor), frame=2)
+    albedo, roughness = smooth_maps(128)
+    return relighters(ls, 128, bounces, rays, albedo, roughness, **kwargs)
+
+
+def _added_by_channel(one, two, path_one, path_two) -> np.ndarray:
+    """Per channel: the light two bounces add over one, against what ``path`` adds, over the pixels all four cover."""
+    covered = np.all([im[..., 3] > 0.999 for im in (one, two, path_one, path_two)], axis=0)
+    ours = (two - one)[..., :3][covered].sum(axis=0)
+    return ours / (path_two - path_one)[..., :3][covered].sum(axis=0)
+
+
+def test_a_floor_lights_the_subject_from_below_as_mitsuba_path_does(plugins, tmp_path):
+    """An orange floor 1 cm under the subject: one bounce misses a fifth or more of the light Mitsuba's ``path`` finds
+    with max_depth 3; two bounces find it, in total and in its colour, under the LEDs and under a near light by the
+    floor (LEDs off)."""
+    from gra_mi.render.path_reference import bounce_errors, path_reference
+    from gra_mi.render.point_light import PointLight
+
+    floor = _floor()
+    rel = _on_floor(tmp_path / "stage", floor)
+    assert rel[2].bounce_operator(2).set_hits.count > 1000
+    off = np.zeros((rel[1].ls.stage.num_leds, 3))
+    lamp = PointLight(np.array([0.25, 0.55, 0.4]), np.full(3, 0.3), radius=0.0)
+    for name, leds, near in (("leds", uniform_pattern(rel[1].ls.stage, 0.5), []), ("lamp", off, [lamp])):
+        for cam in (0, 1):
+            one, two = (rel[b].render(2, cam, leds, near).image for b in (1, 2))
+            refs = [path_reference(rel[1], 2, cam, leds, near, d, 256, tmp_path / name, set_xml=floor) for d in (2, 3)]
+            e = bounce_errors(one, two, *refs)
+            # a near light's pool of light on the floor is found by fewer rays: a looser bound (measured: within 2.6 %)
+            assert e["bias_one"] < -0.15 and abs(e["bias_more"]) < (0.015 if name == "leds" else 0.035), (name, cam, e)
+            np.testing.assert_allclose(_added_by_channel(one, two, *refs), 1.0, atol=0.08, err_msg=f"{name} {cam}")
+
+
+def test_a_set_reflects_from_the_sides_its_bsdf_does(plugins, tmp_path):
+    """Mitsuba's ``diffuse`` is black from behind: a floor facing down reflects nothing up to the subject. Wrapped in
+    ``twosided`` it reflects from either side, as the same floor facing up does."""
+    up = _on_floor(tmp_path / "up", _floor(), bounces=(2,))[2]
+    down = _on_floor(tmp_path / "down", _floor(facing_up=False), bounces=(2,))[2]
+    both = _on_floor(tmp_path / "both", _floor(f'<bsdf type="twosided">{ORANGE}</bsdf>', facing_up=False), bounces=(2,))[2]
+    assert down.bounce_operator(2).set_hits.count == 0
+    assert both.bounce_operator(2).set_hits.count == up.bounce_operator(2).set_hits.count > 1000
+    pattern = uniform_pattern(up.ls.stage, 0.5)
+    image = {k: r.render(2, 0, pattern).image for k, r in (("up", up), ("down", down), ("both", both))}
+    # (the same to float precision: a hit's position rounds differently on the flipped rectangle, and its cell with it)
+    np.testing.assert_allclose(image["both"], image["up"], rtol=0.01, atol=1e-3)
+    assert image["up"][..., :3].sum() > 1.1 * image["down"][..., :3].sum()
+
+
+@pytest.mark.parametrize("variant", ["llvm_ad_rgb"], indirect=True)
+def test_a_bounce_cache_traced_with_one_floor_colour_is_not_served_with_another(plugins, tmp_path):
+    """The bounce operator holds the set's reflectance, so its cache key holds the set's materials: a grey floor's
+    operator is not served to the orange floor (the geometry is the same), and is served again to the grey one."""
+    grey = _floor('<bsdf type="diffuse"><rgb name="reflectance" value="0.5"/></bsdf>')
+    pattern = None
+    images = []
+    for k, floor in enumerate((grey, _floor(), grey)):
+        rel = _on_floor(tmp_path / f"s{k}", floor, bounces=(2,), cache_dir=tmp_path / "cache")[2]
+        pattern = uniform_pattern(rel.ls.stage, 0.5) if pattern is None else pattern
+        images.append(rel.render(2, 0, pattern).image)
+        assert len(list((tmp_path / "cache").glob("bounce_*.npz"))) == (1 if k == 0 else 2)
+    np.testing.assert_array_equal(images[2], images[0])
+    red, blue = (images[1] - images[0])[..., 0].sum(), (images[1] - images[0])[..., 2].sum()
+    assert red > 0 > blue  # orange (0.9, 0.6, 0.3) against grey 0.5
+
+
+def test_from_scene_gives_the_set_its_own_colours(plugins, tmp_path, capsys):
+    """The set reflects light now, so ``from-scene`` writes each set shape's own diffuse reflectance (a texture's mean,
+    read where it lies on the shape) and sidedness, not a grey one: the stage's floor reflects as the user's does."""
+    from gra_mi.capture.scene_stage import set_material
+    from gra_mi.stage.scene import LightstageScene
+
+    from .test_bad_input import run
+    from .test_from_scene import write_user_scene
+    from .test_scene_set import BODY
+
+    checker = ('<texture type="checkerboard" name="reflectance"><rgb name="color0" value="0.1, 0.2, 0.3"/>'
+               '<rgb name="color1" value="0.9, 0.8, 0.7"/></texture>')  # fmt: skip
+    floor = _floor('<bsdf type="twosided"><bsdf type="diffuse"><rgb name="reflectance" value="0.8, 0.4, 0.2"/></bsdf></bsdf>')
+    prop = ('<shape type="cube" id="crate"><transform name="to_world"><scale value="0.1"/><translate x="0.8" y="0.6"/></transform>'
+            f'<bsdf type="diffuse">{checker}</bsdf></shape>')  # fmt: skip
+    path = write_user_scene(tmp_path / "user", shapes=BODY + floor.replace(f'value="{FLOOR_Y}"', 'value="0.3"') + prop)
+    code, lines = run(["from-scene", path, "--out", tmp_path / "stage"], capsys)
+    assert code == 0, lines
+    assert "mean diffuse reflectance" in (tmp_path / "stage" / "notes.md").read_text()
+    ls = LightstageScene.load(tmp_path / "stage" / "scene.xml")
+    found = {s.id(): set_material(ls.scene, s) for s in ls.scene.shapes() if s.id() != "subject"}
+    notes = (tmp_path / "stage" / "notes.md").read_text()
+    named = dict(re.findall(r"kept as the set: shape '(\w+)' \((set_\d+) in scene.xml\)", notes))
+    crate, floor = found[named["crate"]], found[named["floor"]]
+    np.testing.assert_allclose(floor[0], (0.8, 0.4, 0.2), atol=1e-3)
+    np.testing.assert_allclose(crate[0], (0.5, 0.5, 0.5), atol=0.03)  # the checkerboard's mean
+    assert floor[1] and not crate[1]  # the floor's twosided, the crate's one-sided diffuse
