@@ -134,16 +134,18 @@ def markdown(accuracy: list[dict], cost: list[dict], stamp: str) -> str:
         "`path` (max_depth 3) − 1 over the pixels all renders cover (the floor's pixels are not the subject's); *black "
         "floor*: two bounces whose floor reflects nothing, as gra-mi rendered a set before; *blocks*: 8×8 blocks where "
         "Mitsuba's one bounce is ≥ 10 % darker than max_depth 3, the largest error there; *noise*: a second `path` "
-        "render (another seed) against the first.",
+        "render (another seed) against the first; *own*: gra-mi's one bounce against `path` max_depth 2 (UV resampling at "
+        "256², no bounce involved: a near light's hard shadows are a texel wide).",
         "",
-        "| floor | lighting | camera | K | bias 1 bounce | 2 bounces, black floor | 2 bounces | blocks | block error 1 / black / 2 | noise |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| floor | lighting | camera | K | own | bias 1 bounce | 2 bounces, black floor | 2 bounces | blocks | block error 1 / black / 2 | noise |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     size = lambda x: "–" if not np.isfinite(x) else f"{100 * x:.1f} %"  # noqa: E731
     for r in accuracy:
         blocks = f"{size(r['dark_block_error_one'])} / {size(r['black']['dark_block_error_more'])} / {size(r['dark_block_error_more'])}"
         lines.append(
-            f"| {r['floor']} | {r['lighting']} | {r['camera']} | {r['rays']} | {pct(r['bias_one'])} | {pct(r['black']['bias_more'])} | "
+            f"| {r['floor']} | {r['lighting']} | {r['camera']} | {r['rays']} | {pct(r['bias_one_vs_path_one'])} | {pct(r['bias_one'])} | "
+            f"{pct(r['black']['bias_more'])} | "
             f"{pct(r['bias_more'])} | {r['dark_blocks']} | {blocks if r['dark_blocks'] else '–'} | {pct(r['noise'])} |"
         )
     lines += [
