@@ -41,23 +41,11 @@ from gra_mi.apps.harness import (
     timed,
     truth_of,
 )
+from gra_mi.eval.photographed_stage import HELD_OUT, HELD_OUT_LIGHTINGS, PHOTO_SPP, photograph, photographed_stage, stage_lightings
 
 SCENE = Path(__file__).resolve().parent.parent / "scenes" / "user_stage" / "scene.xml"
 TRUTH_SPP = 4096
 DIRECT_SPP = (16, 64, 256, 1024)
-PHOTO_SPP = 128
-HELD_OUT = "between"
-HELD_OUT_LIGHTINGS = ("key", "rim")
-HELD_OUT_SENSOR = f"""
-    <sensor type="perspective" id="{HELD_OUT}">
-        <float name="fov" value="30"/>
-        <transform name="to_world"><lookat origin="1.6, 1.2, 2.0" target="0, 1, 0" up="0, 1, 0"/></transform>
-        <film type="hdrfilm"><integer name="width" value="320"/><integer name="height" value="240"/>
-            <string name="pixel_format" value="rgba"/></film>
-    </sensor>
-"""
-
-
 SET_SHAPES = """    <shape type="rectangle" id="floor"><transform name="to_world"><scale value="3"/><rotate x="1" angle="-90"/>
         <translate y="0.44"/></transform></shape>
     <shape type="rectangle" id="wall"><transform name="to_world"><scale value="3"/><translate z="-2.4"/></transform></shape>
@@ -173,58 +161,19 @@ def set_section(run: BenchmarkRun) -> str:
     return "\n".join(lines + markdown_table(("camera", *RENDER_COLUMNS), rows))
 
 
-def photographed_stage(folder: Path) -> Path:
-    """The user's stage as a capture photographs it: its films at twice the size, a held-out sensor between the two."""
-    import shutil
-
-    folder.mkdir(parents=True, exist_ok=True)
-    for name in ("body.obj", "albedo.png"):
-        shutil.copyfile(SCENE.parent / name, folder / name)
-    text = SCENE.read_text()
-    for size, doubled in (("160", "320"), ("120", "240")):
-        text = text.replace(f'value="{size}"/>', f'value="{doubled}"/>')
-    (folder / "scene.xml").write_text(text.replace("\n    <emitter", HELD_OUT_SENSOR + "\n    <emitter", 1))
-    return folder / "scene.xml"
-
-
-def lightings(folder: Path, stage, intensities: np.ndarray) -> tuple[Path, list[tuple[int, np.ndarray]]]:
-    """``folder/lighting.json`` (EasyMocap's) and each frame's emitted intensities: all LEDs, each LED alone (training);
-    a key light (3 LEDs, the rest at 5 %) and a rim light (the LEDs behind), held out, as patterns in W/sr: emitted =
-    value × gain, the gains the scene's intensities over their mean (as `import mitsuba` states them)."""
-    import json
-
-    mean, count = float(intensities.mean()), len(intensities)
-    toward = stage.led_positions - stage.center
-    key = np.full(count, 0.05 * mean)
-    key[np.argsort(-toward @ np.array([1.0, 0.3, 1.0]))[:3]] = mean
-    rim = np.where(toward[:, 2] < -0.3, mean, 0.0)
-    entries = [{"frame": 0, "uniform": 1.0}] + [{"frame": 1 + k, "led": k} for k in range(count)]
-    emitted = [intensities] + [np.eye(count)[k][:, None] * intensities for k in range(count)]
-    for name, values in zip(HELD_OUT_LIGHTINGS, (key, rim), strict=True):
-        (folder / f"{name}.json").write_text(json.dumps({"intensities": values.tolist()}))
-        entries.append({"frame": len(entries), "split": "test", "pattern": f"{name}.json"})
-        emitted.append(values[:, None] / mean * intensities)
-    (folder / "lighting.json").write_text(json.dumps({"frames": entries}))
-    return folder / "lighting.json", list(enumerate(emitted))
-
-
 def import_and_fit(run: BenchmarkRun) -> tuple[Path, Path, dict, dict[str, float]]:
     """(capture, fit folder, the scene's true maps, seconds per step) of photographs of the stage."""
-    import mitsuba as mi
-
-    from gra_mi.capture.mitsuba_capture import MitsubaOptions, import_mitsuba, write_photographs
+    from gra_mi.capture.mitsuba_capture import MitsubaOptions, import_mitsuba
     from gra_mi.capture.scene_stage import stage_from_scene
     from gra_mi.capture.source import ImportConfig
     from gra_mi.fit.materials import FitConfig, run_fit
 
-    path = photographed_stage(run.work / "photos")
+    path = photographed_stage(SCENE, run.work / "photos")
     stage = stage_from_scene(path)
-    lighting, frames = lightings(path.parent, stage.stage, stage.intensities)
-    scene, path_tracer = mi.load_file(str(path), parallel=False), mi.load_dict({"type": "path", "max_depth": 3})
+    lighting, frames = stage_lightings(path.parent, stage.stage, stage.intensities)
     seconds = {}
-    seconds["photographs"], _ = timed(lambda: [write_photographs(scene, path.parent, n, e, path_tracer, PHOTO_SPP) for n, e in frames])
-    for n, e in frames[-len(HELD_OUT_LIGHTINGS) :]:  # the held-out ones again, another seed: the photographs' own noise
-        write_photographs(scene, run.work / "again", n, e, path_tracer, PHOTO_SPP, seed=10_000 + n)
+    seconds["photographs"], _ = timed(lambda: photograph(path, frames))
+    photograph(path, frames[-len(HELD_OUT_LIGHTINGS) :], run.work / "again", seed=10_000)  # the held-out ones' own noise
     config = ImportConfig(eval_cameras=[HELD_OUT], uv_resolution=stage.maps["albedo"].shape[0])
     seconds["import"], _ = timed(lambda: import_mitsuba(path.parent, run.work / "capture", config, MitsubaOptions(), lighting))
     seconds["fit"], _ = timed(lambda: run_fit(run.work / "capture", run.work / "fit", FitConfig()))

@@ -4,6 +4,7 @@ set's colours."""
 
 from __future__ import annotations
 
+import json
 import re
 
 import numpy as np
@@ -120,3 +121,43 @@ def test_from_scene_gives_the_set_its_own_colours(plugins, tmp_path, capsys):
     np.testing.assert_allclose(floor[0], (0.8, 0.4, 0.2), atol=1e-3)
     np.testing.assert_allclose(crate[0], (0.5, 0.5, 0.5), atol=0.03)  # the checkerboard's mean
     assert floor[1] and not crate[1]  # the floor's twosided, the crate's one-sided diffuse
+
+
+def test_photographs_on_a_white_floor_fit_with_two_bounces(plugins, tmp_path, capsys):
+    """Photographs path-traced (``path``, max_depth 3) on a stage with a white floor under the feet: the floor's light
+    is in them. A one-bounce fit explains it with a brighter albedo; a two-bounce fit, whose floor reflects as the
+    scene's does, finds the true albedo (measured: 39–55 % too bright against 1.5 % in the mean)."""
+    import mitsuba as mi
+
+    from gra_mi.capture.mitsuba_capture import write_photographs
+    from gra_mi.capture.scene_stage import stage_from_scene
+    from gra_mi.core.io import read_exr, read_exr_channels
+
+    from .test_bad_input import run
+    from .test_from_scene import RGBA_SENSORS, _leds, write_user_scene
+    from .test_scene_set import BODY, FLOOR
+
+    folder = tmp_path / "capture"
+    white = '<bsdf type="diffuse"><rgb name="reflectance" value="0.8"/></bsdf></shape>'
+    floor = FLOOR.replace('translate y="0.02"', 'translate y="0.44"').replace("</shape>", white)
+    write_user_scene(folder, sensors=RGBA_SENSORS, lights=_leds(off_every=0), shapes=BODY + floor).rename(folder / "scene.xml")
+    intensities = stage_from_scene(folder / "scene.xml").intensities
+    lighting = [{"frame": 0, "uniform": 1.0}] + [{"frame": k, "led": k} for k in range(1, 20)] + [{"frame": 20, "split": "test", "led": 20}]
+    for entry in lighting:
+        drive = np.full(len(intensities), entry["uniform"]) if "uniform" in entry else np.eye(len(intensities))[entry["led"]]
+        scene = mi.load_file(str(folder / "scene.xml"), parallel=False)
+        write_photographs(scene, folder, entry["frame"], drive[:, None] * intensities, mi.load_dict({"type": "path", "max_depth": 3}), 128)
+    (tmp_path / "lighting.json").write_text(json.dumps({"frames": lighting}))
+    argv = ["import", "mitsuba", folder, "--lighting", tmp_path / "lighting.json", "--eval-cameras", "tele", "--uv-resolution", "64"]
+    assert run([*argv, "--out", tmp_path / "cap"], capsys)[0] == 0
+    truth = read_exr(folder / "albedo_in.exr")[..., :3]
+    found = {}
+    for bounces in (1, 2):
+        assert run(["fit", tmp_path / "cap", "--bounces", bounces, "--out", tmp_path / f"fit{bounces}"], capsys)[0] == 0
+        fitted = read_exr(tmp_path / f"fit{bounces}" / "albedo.exr")[..., :3]
+        seen = read_exr_channels(tmp_path / f"fit{bounces}" / "confidence.exr")["views"] > 0
+        assert seen.sum() > 500
+        found[bounces] = (fitted[seen].mean(axis=0) / truth[seen].mean(axis=0), np.median(np.abs(fitted[seen] / truth[seen] - 1)))
+    assert (found[1][0] > 1.25).all() and found[1][1] > 0.25, found
+    np.testing.assert_allclose(found[2][0], 1.0, atol=0.05, err_msg=str(found))
+    assert found[2][1] < 0.08, found

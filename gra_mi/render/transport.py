@@ -24,8 +24,8 @@ walks ~10× fewer LEDs (docs/results/interreflection.md measures what it changes
 class LightTransport:
     bounces: int = 1
     """Bounces of light: 1 is the paper's one-bounce model; 2 adds the light the body reflects onto itself once (an
-    armpit, the inner thighs, a hand by the hip; docs/accuracy.md, "Interreflections"), 3 or more adds further
-    diffuse bounces. Each extra bounce costs one texel-to-texel operator per frame, traced once and cached."""
+    armpit, the inner thighs, a hand by the hip; docs/accuracy.md, "Interreflections") and the light the scene's set
+    (a floor, a wall) reflects onto it, 3 or more adds further diffuse bounces. Each extra bounce costs one texel-to-texel operator per frame, traced once and cached."""
     bounce_rays: int = DEFAULT_RAYS
     """Rays per texel of that operator (with --bounces >= 2): more rays, less noise in the light after the first
     bounce, a longer trace per new frame."""
