@@ -101,7 +101,7 @@ def _frame_costs(scenes, resolution: int, frame: int, leds: np.ndarray, repeats:
     for r in rel.values():
         r.only_for([CAMERAS[0]])  # as `gra-mi relight` renders one camera
     hits = rel["floor"].bounce_operator(frame).set_hits
-    cells, _ = hits.cells(rel["floor"].leds())
+    cells, _ = hits.geometry
 
     def set_visibility():
         rel["floor"].set_cache = type(rel["floor"].set_cache)()
@@ -164,7 +164,7 @@ def markdown(accuracy: list[dict], cost: list[dict], stamp: str) -> str:
         "The same walk on the grey floor against no floor, K = 32 (the default), `interior` on every LED, near field, "
         f"as `gra-mi relight` renders one camera ({CAMERAS[0]}); medians over repeats, side by side in one run. *operator "
         "ms*: a new frame's bounce operator, without / with the floor (its rays that hit the floor are traced again for "
-        "their surface); *floor hits*: those rays; *cells*: where the floor's light is computed (SetHits.cells); *floor "
+        "their surface); *floor hits*: those rays; *cells*: where the floor's light is computed (SetHits.grouped); *floor "
         "light ms*: the cells' LED visibility and LED sum for a new frame; *view ms*: a cached frame under a new lighting.",
         "",
         "| UV | frame | texels tracing, no floor / floor | body entries | floor hits | cells | MB | operator ms | floor light ms | view ms: 1 bounce / 2 / 2 on the floor |",

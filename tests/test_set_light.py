@@ -75,6 +75,9 @@ def test_a_set_reflects_from_the_sides_its_bsdf_does(plugins, tmp_path):
     # (the same to float precision: a hit's position rounds differently on the flipped rectangle, and its cell with it)
     np.testing.assert_allclose(image["both"], image["up"], rtol=0.01, atol=1e-3)
     assert image["up"][..., :3].sum() > 1.1 * image["down"][..., :3].sum()
+    up.only_for([up.ls.stage.cameras[0].name])  # a job culled to its camera: its rays and their cells only, the same image
+    assert up.job_operator(2).set_hits.count < up.bounce_operator(2).set_hits.count
+    np.testing.assert_allclose(up.render(2, 0, pattern).image, image["up"], rtol=1e-5, atol=1e-6)
 
 
 @pytest.mark.parametrize("variant", ["llvm_ad_rgb"], indirect=True)

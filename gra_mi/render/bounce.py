@@ -28,6 +28,7 @@ from __future__ import annotations
 import hashlib
 import zipfile
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 import drjit as dr
@@ -39,7 +40,6 @@ from gra_mi.core.runtime import concat
 from gra_mi.render import brdf
 from gra_mi.render.atlas import SurfaceFilter, TexelGeometry, UVAtlas
 from gra_mi.render.lattice import lattice_point
-from gra_mi.render.leds import LedLayout
 from gra_mi.render.shading import local_view
 from gra_mi.render.transport import DEFAULT_RAYS
 from gra_mi.render.visibility import RAY_EPSILON
@@ -48,66 +48,70 @@ CHUNK_RAYS = 1 << 20  # rays per kernel: bounds the surface interactions held at
 
 
 SET_CELL = 0.01
-"""Metres: the smallest cell of the set whose reflected light is computed once (:attr:`SetHits.cells`)."""
+"""Metres: the smallest cell of the set whose reflected light is computed once (:meth:`SetHits.grouped`)."""
 SET_CELL_ANGLE = 0.05
 """Radians: a cell of the set is at most this wide as its rays' texels see it, and as its nearest LED sees it
-(:meth:`SetHits.cells`): far finer than the rays' own spacing, and than the light's changes over the set."""
-SET_VECTORS = ("direction", "position", "normal", "geo_normal", "reflectance")
-SET_FIELDS = ("receivers", "distance", *SET_VECTORS)
+(:meth:`SetHits.grouped`): far finer than the rays' own spacing, and than the light's changes over the set."""
+SET_FIELDS = ("receivers", "direction", "cell", "reflectance", "cell_position", "cell_normal", "cell_geo_normal")
+RAW_HITS = ("receivers", "distance", "direction", "position", "normal", "geo_normal", "reflectance")
 
 
 @dataclass
 class SetHits:
     """The rays of a bounce operator that first hit the set, on a side of it that reflects: the set sends back along
     each the light it takes in from the LEDs and near lights (:meth:`~gra_mi.render.relighter.Relighter.set_light`),
-    times its diffuse reflectance."""
+    times its diffuse reflectance. That light is computed once per cell of the set, at one of its hits."""
 
     receivers: np.ndarray  # (S,) uint32: the texel whose ray it is
-    distance: np.ndarray  # (S,) float32: how far the ray ran
     direction: np.ndarray  # (S, 3) float32: the ray's unit direction (world), from the receiver toward the set
-    position: np.ndarray  # (S, 3) float32: where it hits the set
-    normal: np.ndarray  # (S, 3) float32: the set's shading normal there, turned toward the receiver
-    geo_normal: np.ndarray  # (S, 3) float32: its geometric normal, turned the same way
-    reflectance: np.ndarray  # (S, 3) float32: its BSDF's diffuse reflectance there
+    cell: np.ndarray  # (S,) uint32: the cell it hit
+    reflectance: np.ndarray  # (S, 3) float32: the set's BSDF's diffuse reflectance where it hit
+    cell_position: np.ndarray  # (C, 3) float32: a hit in each cell
+    cell_normal: np.ndarray  # (C, 3) float32: the set's shading normal there, turned toward that hit's receiver
+    cell_geo_normal: np.ndarray  # (C, 3) float32: its geometric normal, turned the same way
 
     @classmethod
     def empty(cls) -> SetHits:
-        return cls(np.zeros(0, np.uint32), np.zeros(0, np.float32), *(np.zeros((0, 3), np.float32) for _ in SET_VECTORS))
+        vectors = [np.zeros((0, 3), np.float32) for _ in range(4)]
+        return cls(np.zeros(0, np.uint32), vectors[0], np.zeros(0, np.uint32), *vectors[1:], np.zeros((0, 3), np.float32))
 
     @classmethod
-    def joined(cls, parts: list[SetHits]) -> SetHits:
-        return cls(*(np.concatenate([getattr(p, f) for p in parts]) for f in SET_FIELDS))
+    def grouped(cls, raw: dict[str, np.ndarray], led_positions: np.ndarray | None) -> SetHits:
+        """The hits (``raw``: :data:`RAW_HITS`) grouped in cells, by place and normal. A cell is :data:`SET_CELL` wide
+        near its rays' texels or near an LED, and twice as wide each time both are twice as far
+        (:data:`SET_CELL_ANGLE`): a floor under a body is hit by millions of rays at 512² and far fewer cells, the
+        body's shadow by its feet stays sharp to a centimetre, and so does the light pooled under a low LED."""
+        from scipy.spatial import cKDTree
+
+        reach = raw["distance"]
+        if led_positions is not None and len(led_positions) and len(reach):
+            reach = np.minimum(reach, cKDTree(led_positions).query(raw["position"])[0])
+        level = np.ceil(np.log2(np.maximum(SET_CELL_ANGLE * reach / SET_CELL, 1.0)))
+        where = np.floor(raw["position"] / (SET_CELL * 2.0 ** level[:, None]))
+        key = np.concatenate([level[:, None], where, np.round(raw["normal"] * 4)], axis=1).astype(np.int64)
+        _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+        cells = (raw[f][first] for f in ("position", "normal", "geo_normal"))
+        return cls(raw["receivers"], raw["direction"], inverse.reshape(-1).astype(np.uint32), raw["reflectance"], *cells)
 
     @property
     def count(self) -> int:
         return int(self.receivers.size)
 
     def subset(self, keep: np.ndarray) -> SetHits:
-        return SetHits(*(getattr(self, f)[keep] for f in SET_FIELDS))
+        """The hits ``keep`` selects, and only their cells."""
+        used, cell = np.unique(self.cell[keep], return_inverse=True)
+        cells = (getattr(self, f)[used] for f in SET_FIELDS[4:])
+        return SetHits(self.receivers[keep], self.direction[keep], cell.reshape(-1).astype(np.uint32), self.reflectance[keep], *cells)
 
-    def cells(self, leds: LedLayout) -> tuple[TexelGeometry, mi.UInt32]:
-        """The hits grouped in cells (and by their normals), and each hit's cell: the light the set reflects is computed
-        once per cell, at one of its hits, as texels of their own. A cell is :data:`SET_CELL` wide near its rays' texels
-        or near an LED, and twice as wide each time both are twice as far (:data:`SET_CELL_ANGLE`): a floor under a body
-        is hit by millions of rays at 512² and far fewer cells, the body's shadow by its feet stays sharp to a
-        centimetre, and so does the light pooled under a low LED."""
-        from scipy.spatial import cKDTree
-
-        cached = self.__dict__.setdefault("_cells", {})
-        if leds.digest in cached:
-            return cached[leds.digest]
-        reach = np.minimum(self.distance, cKDTree(leds.positions).query(self.position)[0]) if self.count else self.distance
-        level = np.ceil(np.log2(np.maximum(SET_CELL_ANGLE * reach / SET_CELL, 1.0)))
-        where = np.floor(self.position / (SET_CELL * 2.0 ** level[:, None]))
-        key = np.concatenate([level[:, None], where, np.round(self.normal * 4)], axis=1).astype(np.int64)
-        _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
-        p, n, ng = (np.ascontiguousarray(getattr(self, f)[first]) for f in ("position", "normal", "geo_normal"))
+    @cached_property
+    def geometry(self) -> tuple[TexelGeometry, mi.UInt32]:
+        """The cells as texels of their own (for the LED visibility and the LED loop), and each hit's cell."""
+        p, n, ng = (np.ascontiguousarray(getattr(self, f), np.float32) for f in SET_FIELDS[4:])
         digest = hashlib.sha1(b"set cells")
         for values in (p, n, ng):
-            digest.update(np.ascontiguousarray(values, np.float32).tobytes())
+            digest.update(values.tobytes())
         geom = TexelGeometry(mi.Point3f(*p.T), mi.Vector3f(*n.T), mi.Vector3f(*ng.T), digest.hexdigest()[:16])
-        cached[leds.digest] = (geom, mi.UInt32(inverse.reshape(-1).astype(np.uint32)))
-        return cached[leds.digest]
+        return geom, mi.UInt32(self.cell)
 
 
 @dataclass
@@ -255,8 +259,10 @@ class BounceOperator:
             return None
         entries, hits = op.receivers.size, op.set_hits
         shapes = op.sources.shape == (entries,) and op.direction.shape == (entries, 3) and op.receivers.ndim == 1
-        shapes &= hits.receivers.ndim == 1 and hits.distance.shape == (hits.count,)
-        shapes &= all(getattr(hits, f).shape == (hits.count, 3) for f in SET_VECTORS)
+        cells = len(hits.cell_position)
+        shapes &= hits.receivers.ndim == 1 and hits.cell.shape == (hits.count,) and int(hits.cell.max(initial=0)) < max(cells, 1)
+        shapes &= all(getattr(hits, f).shape == (hits.count, 3) for f in ("direction", "reflectance"))
+        shapes &= all(getattr(hits, f).shape == (cells, 3) for f in SET_FIELDS[4:])
         receivers = np.concatenate([op.receivers, hits.receivers]) if shapes else np.zeros(0)
         in_range = shapes and (receivers.size == 0 or int(max(op.sources.max(initial=0), receivers.max())) < num_texels)
         return op if (in_range and op.num_texels == num_texels and op.rays == rays) else None
@@ -285,11 +291,12 @@ def texels_that_see_the_body(geom: TexelGeometry, vertices: np.ndarray) -> np.nd
 
 def trace_operator(
     scene: mi.Scene, subject: mi.Shape, geom: TexelGeometry, atlas: UVAtlas, uvs: np.ndarray, faces: np.ndarray,
-    texels: np.ndarray, rays: int = DEFAULT_RAYS, seed: int = 0,
+    texels: np.ndarray, rays: int = DEFAULT_RAYS, seed: int = 0, led_positions: np.ndarray | None = None,
 ) -> BounceOperator:  # fmt: skip
     """Trace ``rays`` cosine-distributed rays from each of ``texels`` (a shifted Fibonacci lattice per texel: stratified
     and deterministic) and keep those that first hit ``subject`` (its ``faces`` and per-vertex ``uvs``) from its front,
-    and those that first hit another shape of the scene (the set) on a side that reflects (:class:`SetHits`)."""
+    and those that first hit another shape of the scene (the set) on a side that reflects (:class:`SetHits`, its cells
+    sized by the distance to the nearest of ``led_positions``)."""
     texels = np.asarray(texels, np.uint32)
     mesh = (
         mi.UInt32(atlas.nearest_texel().astype(np.uint32)),
@@ -297,13 +304,13 @@ def trace_operator(
         [mi.UInt32(np.ascontiguousarray(faces[:, k], np.uint32)) for k in range(3)],
     )
     per_chunk = max(CHUNK_RAYS // rays, 1)
-    parts = [np.zeros(0, np.uint32), np.zeros(0, np.uint32), np.zeros((0, 3), np.float32), SetHits.empty()]
+    parts = [np.zeros(0, np.uint32), np.zeros(0, np.uint32), np.zeros((0, 3), np.float32), _no_raw_hits()]
     chunks = [parts]
     for start in range(0, len(texels), per_chunk):
         chunk = texels[start : start + per_chunk]
         chunks.append(_trace_chunk(scene, mi.ShapePtr(subject), geom, atlas.resolution, mesh, chunk, rays, seed))
     receivers, sources, direction = (np.concatenate([c[k] for c in chunks]) for k in range(3))
-    on_set = SetHits.joined([c[3] for c in chunks])
+    on_set = SetHits.grouped({f: np.concatenate([c[3][f] for c in chunks]) for f in RAW_HITS}, led_positions)
     return BounceOperator(receivers, sources, direction, dr.width(geom.position), rays, len(texels), None, on_set)
 
 
@@ -346,12 +353,19 @@ def _rows(v) -> np.ndarray:
     return np.array(v, np.float32).T.reshape(-1, 3)
 
 
-def _set_hits(scene: mi.Scene, texel: mi.UInt32, origin: mi.Point3f, d: mi.Vector3f, on_set: mi.Bool) -> SetHits:
+def _no_raw_hits() -> dict[str, np.ndarray]:
+    return {
+        f: np.zeros((0, 3) if f not in ("receivers", "distance") else 0, np.uint32 if f == "receivers" else np.float32) for f in RAW_HITS
+    }
+
+
+def _set_hits(scene: mi.Scene, texel: mi.UInt32, origin: mi.Point3f, d: mi.Vector3f, on_set: mi.Bool) -> dict[str, np.ndarray]:
     """The rays ``on_set`` (first hits on the set), traced again for their full surface interaction (only these: a body
-    without a set traces nothing more), and kept where the set's BSDF reflects light back toward the ray's texel."""
+    without a set traces nothing more), and kept where the set's BSDF reflects light back toward the ray's texel:
+    :data:`RAW_HITS`."""
     lanes = dr.compress(on_set)
     if dr.width(lanes) == 0:
-        return SetHits.empty()
+        return _no_raw_hits()
     o, direction = dr.gather(mi.Point3f, origin, lanes), dr.gather(mi.Vector3f, d, lanes)
     si = scene.ray_intersect(mi.Ray3f(o, direction), ray_flags=mi.RayFlags.All, coherent=False)
     bsdf = si.bsdf()
@@ -367,7 +381,8 @@ def _set_hits(scene: mi.Scene, texel: mi.UInt32, origin: mi.Point3f, d: mi.Vecto
         dr.gather(mi.Vector3f, mi.Vector3f(si.n * side), keep), dr.gather(mi.Color3f, reflectance, keep),
     )  # fmt: skip
     dr.eval(*fields)
-    return SetHits(np.array(fields[0], np.uint32), np.array(fields[1], np.float32), *(_rows(f) for f in fields[2:]))
+    values = (np.array(fields[0], np.uint32), np.array(fields[1], np.float32), *(_rows(f) for f in fields[2:]))
+    return dict(zip(RAW_HITS, values, strict=True))
 
 
 def set_corners(scene: mi.Scene, subject: mi.Shape) -> np.ndarray:
@@ -433,7 +448,8 @@ def _with_set(body: mi.Color3f, on_set: mi.Color3f) -> mi.Color3f:
 
 
 def operator_key(geom: TexelGeometry, rays: int, seed: int, set_materials: str = "") -> str:
-    """The cache key of a frame's operator: its geometry (the set's included), the rays, and the set's materials
-    (:func:`set_materials_digest`; "" with no set, the key of operators traced before the set reflected light)."""
+    """The cache key of a frame's operator: its geometry (the set's included), the rays, and what else its set hits
+    hold (:func:`set_materials_digest` and the LEDs that size its cells; "" with no set, the key of operators traced
+    before the set reflected light)."""
     extra = f"_{set_materials}" if set_materials else ""
     return hashlib.sha1(f"{geom.digest}_{rays}_{seed}{extra}".encode()).hexdigest()[:16]

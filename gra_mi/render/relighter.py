@@ -175,7 +175,8 @@ class Relighter:
                 reachable = np.concatenate([seq.vertices[frame], bounce.set_corners(self.ls.scene, subject)])
                 texels = bounce.texels_that_see_the_body(geom, reachable)
                 rays = self.transport.bounce_rays
-                op = bounce.trace_operator(self.ls.scene, subject, geom, self.atlas, seq.uvs, seq.faces, texels, rays)
+                leds = self.ls.stage.led_positions
+                op = bounce.trace_operator(self.ls.scene, subject, geom, self.atlas, seq.uvs, seq.faces, texels, rays, 0, leds)
                 if path is not None:
                     op.save(path)
             self._operators = {k: v for k, v in list(self._operators.items())[-1:]}  # this frame and the one before
@@ -184,7 +185,10 @@ class Relighter:
 
     def _set_materials(self) -> str:
         if not hasattr(self, "_set_materials_digest"):  # the set stays still: one hash per relighter
-            self._set_materials_digest = bounce.set_materials_digest(self.ls.scene, self.ls.subject_shape()) if self.ls.set_digest else ""
+            key = ""
+            if self.ls.set_digest:  # the set's materials, and the LEDs that size its cells
+                key = bounce.set_materials_digest(self.ls.scene, self.ls.subject_shape()) + "_" + self.leds(False).digest
+            self._set_materials_digest = key
         return self._set_materials_digest
 
     def job_operator(self, frame: int) -> BounceOperator:
@@ -254,11 +258,11 @@ class Relighter:
     def set_light(self, frame: int, hits: SetHits, led_intensities, lights: list[PointLight], far_field: bool) -> mi.Color3f:
         """Per ray that hits the set: the radiance the set sends back along it, Lambertian with its diffuse reflectance,
         under every LED that is on (fewer standing for them would light a floor from below its horizon) and the near
-        lights, each where the set sees it (the body shadows the floor); once per cell of the set (:attr:`SetHits.cells`)."""
+        lights, each where the set sees it (the body shadows the floor); once per cell of the set (:meth:`SetHits.grouped`)."""
         if hits.count == 0:
             return dr.zeros(mi.Color3f, 0)
         leds = self.leds(far_field)
-        geom, cell = hits.cells(leds)
+        geom, cell = hits.geometry
         light = dr.zeros(mi.Color3f, dr.width(geom.position))
 
         def scene_at_frame():
