@@ -164,3 +164,13 @@ def test_photographs_on_a_white_floor_fit_with_two_bounces(plugins, tmp_path, ca
     assert (found[1][0] > 1.25).all() and found[1][1] > 0.25, found
     np.testing.assert_allclose(found[2][0], 1.0, atol=0.05, err_msg=str(found))
     assert found[2][1] < 0.08, found
+
+
+def test_cells_group_the_hits_as_an_exact_sort_does():
+    """The set's cells come from a hash of each hit's cell key, checked: the same groups as NumPy's exact row sort."""
+    from gra_mi.render.bounce import _distinct_rows
+
+    key = np.random.default_rng(3).integers(-6, 6, (50_000, 7))
+    first, inverse = _distinct_rows(key)
+    assert len(first) == len(np.unique(key, axis=0))  # as many cells as distinct keys
+    assert (key[first][inverse] == key).all()  # each hit in the cell of its own key
