@@ -116,8 +116,8 @@ class SetHits:
 
 def _distinct_rows(key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(the first row of each distinct row of ``key``, each row's distinct row), as ``np.unique(key, axis=0)`` gives
-    them but 15× faster: the rows hashed to one integer (FNV-1a), checked against their group's first row (a collision,
-    most unlikely, falls back to the exact sort)."""
+    them but about 10× faster: the rows hashed to one integer (FNV-1a), checked against their group's first row (a
+    collision, most unlikely, falls back to the exact sort)."""
     h = np.full(len(key), 0xCBF29CE484222325, np.uint64)
     with np.errstate(over="ignore"):
         for column in key.T:
@@ -126,8 +126,13 @@ def _distinct_rows(key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     inverse = inverse.reshape(-1)
     if not (key[first][inverse] == key).all():
         _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
-        inverse = inverse.reshape(-1)
-    return first, inverse
+        return first, inverse.reshape(-1)
+    # In the keys' order, as the exact sort gives them: neighbouring cells' shadow rays then run side by side (in the
+    # hashes' order the cells' visibility traced 2× slower).
+    order = np.lexsort(key[first].T[::-1])
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    return first[order], rank[inverse]
 
 
 @dataclass
