@@ -64,7 +64,8 @@ def test_albedo_headroom_of_the_normal_equations():
     num = np.tile(np.linspace(0.0, 2.0, 100)[:, None], (1, 3))  # least-squares albedo 0 … 2, half of it above 1
     headroom = AlbedoHeadroom.of(num, np.where(np.arange(100)[:, None] == 0, 0.0, den))  # texel 0 unseen
     assert headroom.over == pytest.approx(50 / 99) and headroom.high == pytest.approx(np.quantile(num[1:, 0], 0.95))
-    assert "--led-intensity 7.6 or more" in headroom.warning(4.0)
+    assert "--led-intensity 7.6 or more" in headroom.warning(4.0) and "--bounces 2" not in headroom.warning(4.0)
+    assert "set (a floor, walls)" in headroom.warning(4.0, set_left_out=True)  # one bounce in a set: that first
     assert AlbedoHeadroom.of(num * 0.4, den).warning(4.0) is None and AlbedoHeadroom.of(num, den * 0) is None
 
 

@@ -161,6 +161,9 @@ def test_photographs_on_a_white_floor_fit_with_two_bounces(plugins, tmp_path, ca
         seen = read_exr_channels(tmp_path / f"fit{bounces}" / "confidence.exr")["views"] > 0
         assert seen.sum() > 500
         found[bounces] = (fitted[seen].mean(axis=0) / truth[seen].mean(axis=0), np.median(np.abs(fitted[seen] / truth[seen] - 1)))
+        warnings = json.loads((tmp_path / f"fit{bounces}" / "fit.json").read_text())["warnings"]
+        # the one-bounce fit's albedo reaches past 1: it says why (the set's light) before a wrong LED intensity
+        assert (len(warnings) == 1 and "fit with --bounces 2" in warnings[0]) if bounces == 1 else warnings == [], warnings
     assert (found[1][0] > 1.25).all() and found[1][1] > 0.25, found
     np.testing.assert_allclose(found[2][0], 1.0, atol=0.05, err_msg=str(found))
     assert found[2][1] < 0.08, found

@@ -32,13 +32,20 @@ class AlbedoHeadroom:
         largest = (num[seen] / den[seen]).max(axis=1)
         return cls(float((largest > 1.0).mean()), float(np.quantile(largest, HIGH_QUANTILE)))
 
-    def warning(self, led_intensity: float) -> str | None:
-        """What to tell the user where the images are brighter than the stated LEDs can make any surface."""
+    def warning(self, led_intensity: float, set_left_out: bool = False) -> str | None:
+        """What to tell the user where the images are brighter than the stated LEDs can make any surface.
+        ``set_left_out``: the fit models one bounce in a scene with a set, whose light (a floor's) the images hold."""
         if self.over <= OVER_SHARE or self.high <= 1.0:
             return None
+        cause = (
+            "The capture's scene has a set (a floor, walls) whose light reaches the subject after the first bounce, which "
+            "one bounce leaves to the albedo: fit with --bounces 2. If the albedo still exceeds 1, re-import"
+            if set_left_out
+            else "Re-import"
+        )
         return (
             f"{100 * self.over:.0f} % of the observed texels' albedo would exceed 1 ({HIGH_QUANTILE:.0%} of them below "
             f"{self.high:.2f}): the images are brighter than LEDs of {led_intensity:g} W/sr at full drive can light any surface, "
-            f"so the albedo is clipped at 1 and relights come out too dark. Re-import with --led-intensity "
+            f"so the albedo is clipped at 1 and relights come out too dark. {cause} with --led-intensity "
             f"{led_intensity * self.high:.3g} or more (the source's LED intensity in the images' units), or scale the images"
         )

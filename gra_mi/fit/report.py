@@ -239,8 +239,15 @@ def fit_record(fitter, result, out: Path, config) -> dict:
         "without_highlights": None if ev is None else [int(np.sum(seen & (ev.highlights == 0))), int(seen.sum())],
         "per_view_l1": result.per_view_l1,
         "albedo_headroom": None if fitter.headroom is None else asdict(fitter.headroom),
-        "warnings": [said] if (said := fitter.headroom and fitter.headroom.warning(fitter.stage.max_led_intensity)) else [],
+        "warnings": [said]
+        if (said := fitter.headroom and fitter.headroom.warning(fitter.stage.max_led_intensity, _set_left_out(fitter, config)))
+        else [],
     }
+
+
+def _set_left_out(fitter, config) -> bool:
+    """Whether the fit models one bounce in a scene with a set, whose light the photographs hold."""
+    return config.transport.bounces == 1 and bool(fitter.ls.set_digest)
 
 
 def _batch_said(cfg: dict) -> str:
