@@ -1,6 +1,6 @@
 """The light the set reflects onto the subject (two bounces): a floor under the tiny subject against Mitsuba's own ``path``
 on the same shapes, under the LEDs and under a near light; which side of a set reflects; a bounce cache that knows the
-set's colours."""
+set's colours; `from-scene` keeping them; photographs taken on a floor fitted; the set's cells."""
 
 from __future__ import annotations
 
@@ -41,7 +41,7 @@ def _added_by_channel(one, two, path_one, path_two) -> np.ndarray:
 
 
 def test_a_floor_lights_the_subject_from_below_as_mitsuba_path_does(plugins, tmp_path):
-    """An orange floor 1 cm under the subject: one bounce misses a fifth or more of the light Mitsuba's ``path`` finds
+    """An orange floor 1 cm under the subject: one bounce misses 15 % or more of the light Mitsuba's ``path`` finds
     with max_depth 3; two bounces find it, in total and in its colour, under the LEDs and under a near light by the
     floor (LEDs off)."""
     from gra_mi.render.path_reference import bounce_errors, path_reference
