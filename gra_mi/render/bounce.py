@@ -17,10 +17,10 @@ Lambertian surface of its BSDF's diffuse reflectance at the hit (Mitsuba's ``eva
 BSDF seen from behind reflects nothing), lit by the LEDs and near lights it sees (:class:`SetHits`). The light the body
 sends to the set and back is left out.
 
-Only texels whose hemisphere sees the body (or the set) trace rays. A point of the body above a texel's tangent plane is exactly
-what one of its rays can hit (the first surface along the segment to that point lies above the plane too), so comparing
-the plane with the vertices of the body's convex hull decides it, exactly and without a ray: the top of the head and
-most of the chest and back trace nothing and receive nothing.
+Only texels whose hemisphere sees the body (or the set) trace rays. A point of the body above a texel's tangent plane
+is exactly what one of its rays can hit (the first surface along the segment to that point lies above the plane too),
+so comparing the plane with the vertices of the body's convex hull (and the corners of the set's boxes) decides it,
+exactly and without a ray: the top of the head and most of the chest and back trace nothing and receive nothing.
 """
 
 from __future__ import annotations
