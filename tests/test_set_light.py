@@ -177,3 +177,20 @@ def test_cells_group_the_hits_as_an_exact_sort_does():
     first, inverse = _distinct_rows(key)
     assert len(first) == len(np.unique(key, axis=0))  # as many cells as distinct keys
     assert (key[first][inverse] == key).all()  # each hit in the cell of its own key
+
+
+def test_a_set_texture_with_nan_texels_gives_the_mean_of_the_others(llvm_variant, tmp_path):
+    """A user's floor texture with a NaN texel: its colour is the mean of the finite ones, never "nan" in scene.xml."""
+    import mitsuba as mi
+
+    from gra_mi.capture.scene_stage import set_material
+    from gra_mi.core.io import write_exr
+
+    texture = np.full((8, 8, 3), 0.4, np.float32)
+    texture[0, :] = np.nan
+    write_exr(tmp_path / "floor.exr", texture)
+    bitmap = {"type": "bitmap", "filename": str(tmp_path / "floor.exr"), "filter_type": "nearest"}
+    scene = mi.load_dict({"type": "scene", "floor": {"type": "rectangle", "bsdf": {"type": "diffuse", "reflectance": bitmap}}})
+    rgb, two_sided = set_material(scene, list(scene.shapes())[0])
+    np.testing.assert_allclose(rgb, 0.4, atol=1e-3)
+    assert not two_sided

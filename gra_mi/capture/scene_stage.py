@@ -361,6 +361,7 @@ def set_material(scene, shape, samples: int = 1024) -> tuple[tuple[float, float,
     bsdf = shape.bsdf()
     rho = dr.select(on_shape, bsdf.eval_diffuse_reflectance(si, on_shape), 0.0)  # (a constant comes back one wide)
     rho = np.array(rho, np.float64).reshape(3, -1)[:, np.array(on_shape)]
+    rho = rho[:, np.isfinite(rho).all(axis=0)]  # a texture's NaN or infinite texels say nothing of its colour
     mean = rho.mean(axis=1) if rho.shape[1] else np.full(3, 0.5)
     return tuple(float(v) for v in np.clip(mean, 0.0, 1.0)), bool(mi.has_flag(bsdf.flags(), mi.BSDFFlags.BackSide))
 
