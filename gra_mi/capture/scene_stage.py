@@ -51,6 +51,7 @@ MAX_FRAMES = 1_000_000
 
 
 ANALYTIC_SHAPES = {"Rectangle": "rectangle", "Disk": "disk", "Sphere": "sphere", "Cylinder": "cylinder"}  # class → XML type
+GLOSSY_SAID = 0.05  # a set shape whose BSDF reflects more than this share of light glossily is named in the notes
 
 
 @dataclass
@@ -61,8 +62,9 @@ class SetShape:
     kind: str  # "ply" (a mesh) or the analytic shape's XML type
     mesh: RawMesh | None = None
     to_world: np.ndarray | None = None  # (4, 4)
-    reflectance: tuple = (0.5, 0.5, 0.5)  # its BSDF's diffuse reflectance, the mean over its surface (set_material)
+    reflectance: tuple = (0.5, 0.5, 0.5)  # its BSDF's diffuse albedo, the mean over its surface and directions (set_material)
     two_sided: bool = False  # whether its BSDF reflects from both sides
+    glossy: float = 0.0  # the mean albedo of its BSDF's other lobes: light the set does not reflect onto the subject
 
     def bsdf_xml(self) -> str:
         rgb = ", ".join(f"{v:.6g}" for v in self.reflectance)
@@ -339,31 +341,48 @@ def scene_set(scene, others: list) -> tuple[list[SetShape], list[str]]:
                          "and cylinders), so its shadows are not in gra-mi's renders")  # fmt: skip
             continue
         notes.append(f"kept as the set: {shape_label(shape)} ({set_name(len(kept) - 1)} in scene.xml)")
+        if kept[-1].glossy > GLOSSY_SAID:
+            notes.append(f"{shape_label(shape)}'s BSDF reflects {kept[-1].glossy:.0%} of the light it receives glossily (a "
+                         "metal, a coat): that light is not reflected onto the subject, which renders darker near it than in "
+                         "your scene (docs/results/set-light.md)")  # fmt: skip
     if kept:
         notes.append("the set shadows the subject and hides it from the cameras, and reflects light onto it with two bounces; "
-                     "scene.xml gives each shape a diffuse material of its BSDF's mean diffuse reflectance (a texture's mean "
-                     "colour, a glossy BSDF's diffuse part)")  # fmt: skip
+                     "scene.xml gives each shape a diffuse material of its BSDF's mean diffuse albedo (a texture's mean "
+                     "colour; a plastic's diffuse lobe under its coat; a metal's none)")  # fmt: skip
     return kept, notes
 
 
-def set_material(scene, shape, samples: int = 1024) -> tuple[tuple[float, float, float], bool]:
-    """(the mean diffuse reflectance of ``shape``'s BSDF over its surface, whether it reflects from both sides): Mitsuba's
-    ``eval_diffuse_reflectance`` at points spread over the shape (found by rays, so that textures and vertex colours
-    are read where they lie), as the light the set reflects is modelled (Lambertian)."""
+def set_material(scene, shape, samples: int = 1024) -> tuple[tuple[float, float, float], bool, float]:
+    """(the mean diffuse albedo of ``shape``'s BSDF over its surface and the directions it is seen from, whether it
+    reflects from both sides, the mean albedo of its other lobes): :func:`~gra_mi.render.bounce.albedo` at points spread
+    over the shape (found by rays, so that textures and vertex colours are read where they lie), seen from
+    cosine-distributed directions. The set reflects its diffuse light only (a glossy lobe's is left out, said)."""
     import drjit as dr
     import mitsuba as mi
 
+    from gra_mi.render.bounce import albedo
+    from gra_mi.render.lattice import lattice_point
+
     i = dr.arange(mi.Float, samples)
-    golden = i * 0.6180339887
-    ps = shape.sample_position(0.0, mi.Point2f((i + 0.5) / samples, golden - dr.floor(golden)))
+    ps = shape.sample_position(0.0, lattice_point(i, samples))
     si = scene.ray_intersect(mi.Ray3f(ps.p + ps.n * 1e-3, -ps.n))
     on_shape = si.is_valid() & (si.shape == mi.ShapePtr(shape))
+    si.wi = mi.warp.square_to_cosine_hemisphere(lattice_point(i, samples, mi.Point2f(0.5, 0.25)))  # (its front side)
     bsdf = shape.bsdf()
-    rho = dr.select(on_shape, bsdf.eval_diffuse_reflectance(si, on_shape), 0.0)  # (a constant comes back one wide)
-    rho = np.array(rho, np.float64).reshape(3, -1)[:, np.array(on_shape)]
-    rho = rho[:, np.isfinite(rho).all(axis=0)]  # a texture's NaN or infinite texels say nothing of its colour
-    mean = rho.mean(axis=1) if rho.shape[1] else np.full(3, 0.5)
-    return tuple(float(v) for v in np.clip(mean, 0.0, 1.0)), bool(mi.has_flag(bsdf.flags(), mi.BSDFFlags.BackSide))
+    diffuse, every = (_finite_mean(albedo(bsdf, si, on_shape, 16, only), on_shape) for only in (True, False))
+    glossy = float(max(0.0, np.mean(every) - np.mean(diffuse))) if diffuse is not None else 0.0
+    rgb = np.full(3, 0.5) if diffuse is None else np.clip(diffuse, 0.0, 1.0)
+    return tuple(float(v) for v in rgb), bool(mi.has_flag(bsdf.flags(), mi.BSDFFlags.BackSide)), glossy
+
+
+def _finite_mean(rho, on_shape) -> np.ndarray | None:
+    """The mean RGB of ``rho`` over the lanes ``on_shape`` whose values are finite (a texture's NaN or infinite texels
+    say nothing of its colour); None where there are none."""
+    import drjit as dr
+
+    rho = np.array(dr.select(on_shape, rho, 0.0), np.float64).reshape(3, -1)[:, np.array(on_shape)]  # (a constant: one wide)
+    rho = rho[:, np.isfinite(rho).all(axis=0)]
+    return rho.mean(axis=1) if rho.shape[1] else None
 
 
 def _layout(mesh: RawMesh, path: Path, notes: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -13,9 +13,10 @@ a(x) T(ω_view) (P U)(x). Both ends of every extra segment are the diffuse layer
 transmission); the specular lobes of later bounces are left out (docs/accuracy.md measures what that costs).
 
 Rays that first hit the set (the scene's other shapes: a floor, a wall) bring the light the set reflects, as a
-Lambertian surface of its BSDF's diffuse reflectance at the hit (Mitsuba's ``eval_diffuse_reflectance``; a one-sided
-BSDF seen from behind reflects nothing), lit by the LEDs and near lights it sees (:class:`SetHits`). The light the body
-sends to the set and back is left out.
+Lambertian surface of its BSDF's diffuse albedo toward the ray (:func:`albedo`: a diffuse BSDF's reflectance, a
+plastic's diffuse lobe under its coat; a one-sided BSDF seen from behind reflects nothing), lit by the LEDs and near
+lights it sees (:class:`SetHits`). The set's glossy reflection (a metal's, a plastic's coat) and the light the body
+sends to the set and back are left out.
 
 Only texels whose hemisphere sees the body (or the set) trace rays. A point of the body above a texel's tangent plane
 is exactly what one of its rays can hit (the first surface along the segment to that point lies above the plane too),
@@ -39,11 +40,12 @@ from gra_mi.core.io import atomic_path
 from gra_mi.core.runtime import concat
 from gra_mi.render import brdf
 from gra_mi.render.atlas import SurfaceFilter, TexelGeometry, UVAtlas
-from gra_mi.render.lattice import lattice_point
+from gra_mi.render.lattice import fraction, lattice_point
 from gra_mi.render.shading import local_view
 from gra_mi.render.transport import DEFAULT_RAYS
 from gra_mi.render.visibility import RAY_EPSILON
 
+PLASTIC_STEP = 0.7548776662466927  # 1/ρ (the plastic number): a 1-D lattice's step, independent of 1/φ's
 CHUNK_RAYS = 1 << 20  # rays per kernel: bounds the surface interactions held at once (~100 MB)
 
 
@@ -52,6 +54,10 @@ SET_CELL = 0.01
 SET_CELL_ANGLE = 0.05
 """Radians: a cell of the set is at most this wide as its rays' texels see it, and as its nearest LED sees it
 (:meth:`SetHits.grouped`): far finer than the rays' own spacing, and than the light's changes over the set."""
+SET_ALBEDO_SAMPLES = 8
+"""BSDF samples per set hit for its diffuse albedo (:func:`albedo`): a Lambertian BSDF's is exact at any count;
+a coated one's noise averages out over a texel's rays."""
+SET_ALBEDO_VERSION = "diffuse-albedo"  # in the cache key: operators cached with eval_diffuse_reflectance are not served
 SET_FIELDS = ("receivers", "direction", "cell", "reflectance", "cell_position", "cell_normal", "cell_geo_normal")
 RAW_HITS = ("receivers", "distance", "direction", "position", "normal", "geo_normal", "reflectance")
 
@@ -60,12 +66,12 @@ RAW_HITS = ("receivers", "distance", "direction", "position", "normal", "geo_nor
 class SetHits:
     """The rays of a bounce operator that first hit the set, on a side of it that reflects: the set sends back along
     each the light it takes in from the LEDs and near lights (:meth:`~gra_mi.render.relighter.Relighter.set_light`),
-    times its diffuse reflectance. That light is computed once per cell of the set, at one of its hits."""
+    times its diffuse albedo. That light is computed once per cell of the set, at one of its hits."""
 
     receivers: np.ndarray  # (S,) uint32: the texel whose ray it is
     direction: np.ndarray  # (S, 3) float32: the ray's unit direction (world), from the receiver toward the set
     cell: np.ndarray  # (S,) uint32: the cell it hit
-    reflectance: np.ndarray  # (S, 3) float32: the set's BSDF's diffuse reflectance where it hit
+    reflectance: np.ndarray  # (S, 3) float32: the set's BSDF's diffuse albedo where it hit, toward the receiver
     cell_position: np.ndarray  # (C, 3) float32: a hit in each cell
     cell_normal: np.ndarray  # (C, 3) float32: the set's shading normal there, turned toward that hit's receiver
     cell_geo_normal: np.ndarray  # (C, 3) float32: its geometric normal, turned the same way
@@ -394,7 +400,7 @@ def _set_hits(scene: mi.Scene, texel: mi.UInt32, origin: mi.Point3f, d: mi.Vecto
     # A one-sided BSDF (Mitsuba's diffuse) is black from behind; a two-sided one reflects on both sides.
     reflects = si.is_valid() & (front | mi.has_flag(bsdf.flags(), mi.BSDFFlags.BackSide))
     side = dr.select(front, 1.0, -1.0)
-    reflectance = bsdf.eval_diffuse_reflectance(si, reflects)
+    reflectance = albedo(bsdf, si, reflects, SET_ALBEDO_SAMPLES)
     keep = dr.compress(reflects & (dr.max(reflectance) > 0))
     fields = (
         dr.gather(mi.UInt32, texel, dr.gather(mi.UInt32, lanes, keep)), dr.gather(mi.Float, si.t, keep), dr.gather(mi.Vector3f, direction, keep),
@@ -404,6 +410,35 @@ def _set_hits(scene: mi.Scene, texel: mi.UInt32, origin: mi.Point3f, d: mi.Vecto
     dr.eval(*fields)
     values = (np.array(fields[0], np.uint32), np.array(fields[1], np.float32), *(_rows(f) for f in fields[2:]))
     return dict(zip(RAW_HITS, values, strict=True))
+
+
+def albedo(bsdf: mi.BSDF, si: mi.SurfaceInteraction3f, active: mi.Bool, samples: int, diffuse_only: bool = True) -> mi.Color3f:
+    """The light ``bsdf`` reflects toward ``si.wi`` per unit of light arriving evenly from every direction: its
+    directional albedo, the integral of f cosθ over the directions it reflects from (transmitted and passed-through
+    light left out), at ``samples`` points of a shifted lattice per lane. ``diffuse_only``: its diffuse lobes' (Mitsuba's
+    ``eval`` with only those enabled, over cosine-distributed directions: a diffuse BSDF's reflectance exactly, at any
+    count; a plastic's diffuse lobe under its coat); otherwise every lobe's (``bsdf.sample``'s weights: a metal's too).
+    (Mitsuba's ``eval_diffuse_reflectance`` falls back to π f(ω, n) for BSDFs without a diffuse lobe: a polished metal's
+    peak, 100 at α 0.05 facing its normal, or nothing seen obliquely.)"""
+    lanes = dr.width(si.p)
+    rng = mi.PCG32(lanes, mi.UInt64(0), dr.arange(mi.UInt64, lanes))
+    shift, lobe_shift = mi.Point2f(rng.next_float32(), rng.next_float32()), rng.next_float32()
+    context, total = mi.BSDFContext(), mi.Color3f(0.0)
+    side = dr.sign(mi.Frame3f.cos_theta(si.wi))
+    if diffuse_only:
+        context.type_mask = mi.BSDFFlags.DiffuseReflection
+    for k in range(samples):
+        point = lattice_point(mi.Float(k), samples, shift)
+        if diffuse_only:  # cosine-distributed on the side it is seen from: eval (f cosθ) / pdf (cosθ / π)
+            wo = mi.warp.square_to_cosine_hemisphere(point)
+            wo = mi.Vector3f(wo.x, wo.y, wo.z * side)
+            weight = bsdf.eval(context, si, wo, active) * (dr.pi / dr.abs(wo.z))
+        else:
+            lobe = fraction(lobe_shift + k * PLASTIC_STEP)  # (the lobe choice and the direction: two independent lattices)
+            bs, weight = bsdf.sample(context, si, lobe, point, active)
+            wo = bs.wo
+        total += dr.select(active & (mi.Frame3f.cos_theta(wo) * side > 0), weight, 0.0)  # (a NaN texel's stays NaN: dropped)
+    return total / samples
 
 
 def set_corners(scene: mi.Scene, subject: mi.Shape) -> np.ndarray:
@@ -420,7 +455,7 @@ def set_materials_digest(scene: mi.Scene, subject: mi.Shape) -> str:
     attributes): what the light the set reflects depends on, beyond the geometry the frame's digest holds."""
     from gra_mi.stage.scene import shape_order
 
-    digest = hashlib.sha1()
+    digest = hashlib.sha1(SET_ALBEDO_VERSION.encode())
     for shape in sorted((s for s in scene.shapes() if s.id() != subject.id()), key=shape_order):
         digest.update(f"{shape.class_name()}:{shape.bsdf().class_name()}".encode())
         params = mi.traverse(shape)

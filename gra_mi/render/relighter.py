@@ -256,7 +256,7 @@ class Relighter:
         return diffuse, spec
 
     def set_light(self, frame: int, hits: SetHits, led_intensities, lights: list[PointLight], far_field: bool) -> mi.Color3f:
-        """Per ray that hits the set: the radiance the set sends back along it, Lambertian with its diffuse reflectance,
+        """Per ray that hits the set: the radiance the set sends back along it, Lambertian with its diffuse albedo,
         under every LED that is on (fewer standing for them would light a floor from below its horizon) and the near
         lights, each where the set sees it (the body shadows the floor); once per cell of the set (:meth:`SetHits.grouped`)."""
         if hits.count == 0:
