@@ -44,11 +44,11 @@ GLOSSY_FLOORS = {
 
 def set_models() -> dict:
     """How the set's reflectance at a hit is found: gra-mi's (its diffuse lobes' albedo) and two alternatives."""
-    from gra_mi.render import bounce
+    from gra_mi.render.bounce import albedo  # (the function itself: the models stand in for bounce.albedo one at a time)
 
     return {
-        "diffuse albedo (gra-mi)": bounce.albedo,
-        "every lobe's albedo, spread evenly": lambda bsdf, si, active, samples: bounce.albedo(bsdf, si, active, samples, False),
+        "diffuse albedo (gra-mi)": albedo,
+        "every lobe's albedo, spread evenly": lambda bsdf, si, active, samples: albedo(bsdf, si, active, samples, False),
         "eval_diffuse_reflectance (before)": lambda bsdf, si, active, samples: bsdf.eval_diffuse_reflectance(si, active),
     }
 

@@ -263,7 +263,8 @@ def test_the_set_albedo_matches_float64_references(llvm_variant):
 def test_a_glossy_floor_reflects_its_diffuse_light_and_is_said_to(plugins, tmp_path, capsys):
     """A glossy plastic floor under the tiny subject, lit by the LEDs: two bounces add its diffuse light, close to what
     ``path`` adds with the coat's reflection (measured: −3.1 to −3.3 % over the subject). A metal floor reflects no
-    diffuse light: it has no hits to trace (its light is left out), and `from-scene` names it in the notes."""
+    diffuse light: it has no hits to trace (its light is left out), and `from-scene` names it in the notes, as it names a
+    half-transparent screen (opaque in the stage)."""
     from gra_mi.render.path_reference import bounce_errors, path_reference
 
     from .test_bad_input import run
@@ -280,7 +281,12 @@ def test_a_glossy_floor_reflects_its_diffuse_light_and_is_said_to(plugins, tmp_p
         assert e["bias_one"] < -0.2 and abs(e["bias_more"]) < 0.05, (cam, e)
     metal = _floor('<bsdf type="roughconductor"><float name="alpha" value="0.3"/></bsdf>')
     assert _on_floor(tmp_path / "metal", metal, bounces=(2,))[2].bounce_operator(2).set_hits.count == 0
-    path = write_user_scene(tmp_path / "user", shapes=BODY + metal.replace(f'value="{FLOOR_Y}"', 'value="0.3"'))
+    screen = ('<shape type="rectangle" id="screen"><transform name="to_world"><scale value="0.2"/><translate x="0.8" y="0.9"/>'
+              '</transform><bsdf type="mask"><float name="opacity" value="0.5"/><bsdf type="diffuse"/></bsdf></shape>')  # fmt: skip
+    path = write_user_scene(tmp_path / "user", shapes=BODY + metal.replace(f'value="{FLOOR_Y}"', 'value="0.3"') + screen)
     code, lines = run(["from-scene", path, "--out", tmp_path / "stage"], capsys)
     assert code == 0, lines
-    assert "shape 'floor''s BSDF reflects 96% of the light it receives glossily" in (tmp_path / "stage" / "notes.md").read_text()
+    notes = (tmp_path / "stage" / "notes.md").read_text()
+    assert "shape 'floor''s BSDF reflects 96% of the light it receives glossily" in notes
+    assert "shape 'screen' lets light through in your scene (an opacity mask, glass); in the stage it is opaque" in notes
+    assert "shape 'floor' lets light through" not in notes and "shape 'screen''s BSDF reflects" not in notes

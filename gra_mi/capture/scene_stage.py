@@ -341,6 +341,9 @@ def scene_set(scene, others: list) -> tuple[list[SetShape], list[str]]:
                          "and cylinders), so its shadows are not in gra-mi's renders")  # fmt: skip
             continue
         notes.append(f"kept as the set: {shape_label(shape)} ({set_name(len(kept) - 1)} in scene.xml)")
+        if mi.has_flag(shape.bsdf().flags(), mi.BSDFFlags.Null | mi.BSDFFlags.Transmission):
+            notes.append(f"{shape_label(shape)} lets light through in your scene (an opacity mask, glass); in the stage it is "
+                         "opaque: it shadows the subject fully and hides it from the cameras")  # fmt: skip
         if kept[-1].glossy > GLOSSY_SAID:
             notes.append(f"{shape_label(shape)}'s BSDF reflects {kept[-1].glossy:.0%} of the light it receives glossily (a "
                          "metal, a coat): that light is not reflected onto the subject, which renders darker near it than in "
