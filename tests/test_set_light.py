@@ -264,7 +264,8 @@ def test_a_glossy_floor_reflects_its_diffuse_light_and_is_said_to(plugins, tmp_p
     """A glossy plastic floor under the tiny subject, lit by the LEDs: two bounces add its diffuse light, close to what
     ``path`` adds with the coat's reflection (measured: −3.1 to −3.3 % over the subject). A metal floor reflects no
     diffuse light: it has no hits to trace (its light is left out), and `from-scene` names it in the notes, as it names a
-    half-transparent screen (opaque in the stage)."""
+    half-transparent screen (opaque in the stage) and a material that reflects more than it receives (kept at 1)."""
+    from gra_mi.core.io import write_exr
     from gra_mi.render.path_reference import bounce_errors, path_reference
 
     from .test_bad_input import run
@@ -283,10 +284,17 @@ def test_a_glossy_floor_reflects_its_diffuse_light_and_is_said_to(plugins, tmp_p
     assert _on_floor(tmp_path / "metal", metal, bounces=(2,))[2].bounce_operator(2).set_hits.count == 0
     screen = ('<shape type="rectangle" id="screen"><transform name="to_world"><scale value="0.2"/><translate x="0.8" y="0.9"/>'
               '</transform><bsdf type="mask"><float name="opacity" value="0.5"/><bsdf type="diffuse"/></bsdf></shape>')  # fmt: skip
-    path = write_user_scene(tmp_path / "user", shapes=BODY + metal.replace(f'value="{FLOOR_Y}"', 'value="0.3"') + screen)
+    # (Mitsuba refuses an RGB reflectance over 1 itself; a texture's texels it takes as they are)
+    write_exr(tmp_path / "bright.exr", np.tile(np.float32([1.5, 0.5, 0.5]), (4, 4, 1)))
+    bright = f'<bsdf type="diffuse"><texture type="bitmap" name="reflectance"><string name="filename" value="{tmp_path / "bright.exr"}"/></texture></bsdf>'
+    glowing = screen.replace('id="screen"', 'id="glowing"').replace('x="0.8"', 'x="-0.8"')
+    glowing = glowing.replace('<bsdf type="mask"><float name="opacity" value="0.5"/><bsdf type="diffuse"/></bsdf>', bright)
+    path = write_user_scene(tmp_path / "user", shapes=BODY + metal.replace(f'value="{FLOOR_Y}"', 'value="0.3"') + screen + glowing)
     code, lines = run(["from-scene", path, "--out", tmp_path / "stage"], capsys)
     assert code == 0, lines
     notes = (tmp_path / "stage" / "notes.md").read_text()
     assert "shape 'floor''s BSDF reflects 96% of the light it receives glossily" in notes
     assert "shape 'screen' lets light through in your scene (an opacity mask, glass); in the stage it is opaque" in notes
     assert "shape 'floor' lets light through" not in notes and "shape 'screen''s BSDF reflects" not in notes
+    assert "shape 'glowing''s BSDF reflects more light than it receives (diffuse albedo 1.5 > 1" in notes
+    assert '<rgb name="reflectance" value="1, 0.5, 0.5"/>' in (tmp_path / "stage" / "scene.xml").read_text()

@@ -332,22 +332,17 @@ def scene_set(scene, others: list) -> tuple[list[SetShape], list[str]]:
         params = mi.traverse(shape)
         kind = ANALYTIC_SHAPES.get(shape.class_name())
         if "faces" in params:
-            kept.append(SetShape(shape_label(shape), "ply", RawMesh.of(shape), None, *set_material(scene, shape)))
+            placed = ("ply", RawMesh.of(shape), None)
         elif kind and "to_world" in params:  # exact: Mitsuba's own shape, its whole placement in one matrix
-            to_world = np.array(params["to_world"].matrix, np.float64).reshape(4, 4)
-            kept.append(SetShape(shape_label(shape), kind, None, to_world, *set_material(scene, shape)))
+            placed = (kind, None, np.array(params["to_world"].matrix, np.float64).reshape(4, 4))
         else:
             notes.append(f"left out: {shape_label(shape)}, a {shape.class_name()} (the set holds meshes, rectangles, disks, spheres "
                          "and cylinders), so its shadows are not in gra-mi's renders")  # fmt: skip
             continue
+        rgb, two_sided, glossy = set_material(scene, shape)
+        kept.append(SetShape(shape_label(shape), *placed, tuple(min(v, 1.0) for v in rgb), two_sided, glossy))
         notes.append(f"kept as the set: {shape_label(shape)} ({set_name(len(kept) - 1)} in scene.xml)")
-        if mi.has_flag(shape.bsdf().flags(), mi.BSDFFlags.Null | mi.BSDFFlags.Transmission):
-            notes.append(f"{shape_label(shape)} lets light through in your scene (an opacity mask, glass); in the stage it is "
-                         "opaque: it shadows the subject fully and hides it from the cameras")  # fmt: skip
-        if kept[-1].glossy > GLOSSY_SAID:
-            notes.append(f"{shape_label(shape)}'s BSDF reflects {kept[-1].glossy:.0%} of the light it receives glossily (a "
-                         "metal, a coat): that light is not reflected onto the subject, which renders darker near it than in "
-                         "your scene (docs/results/set-light.md)")  # fmt: skip
+        notes += material_notes(shape, rgb, glossy)
     if kept:
         notes.append("the set shadows the subject and hides it from the cameras, and reflects light onto it with two bounces; "
                      "scene.xml gives each shape a diffuse material of its BSDF's mean diffuse albedo (a texture's mean "
@@ -355,10 +350,29 @@ def scene_set(scene, others: list) -> tuple[list[SetShape], list[str]]:
     return kept, notes
 
 
+def material_notes(shape, rgb: tuple, glossy: float) -> list[str]:
+    """What the stage's diffuse stand-in of a set shape's BSDF leaves out, said: light it lets through, light it reflects
+    glossily (more than :data:`GLOSSY_SAID`), light beyond what it receives (a reflectance over 1, kept at 1)."""
+    import mitsuba as mi
+
+    label, notes = shape_label(shape), []
+    if mi.has_flag(shape.bsdf().flags(), mi.BSDFFlags.Null | mi.BSDFFlags.Transmission):
+        notes.append(f"{label} lets light through in your scene (an opacity mask, glass); in the stage it is opaque: it "
+                     "shadows the subject fully and hides it from the cameras")  # fmt: skip
+    if glossy > GLOSSY_SAID:
+        notes.append(f"{label}'s BSDF reflects {glossy:.0%} of the light it receives glossily (a metal, a coat): that light "
+                     "is not reflected onto the subject, which renders darker near it than in your scene "
+                     "(docs/results/set-light-glossy.md)")  # fmt: skip
+    if max(rgb) > 1.0:
+        notes.append(f"{label}'s BSDF reflects more light than it receives (diffuse albedo {max(rgb):.3g} > 1, not a "
+                     "physical material): the stage keeps 1")  # fmt: skip
+    return notes
+
+
 def set_material(scene, shape, samples: int = 1024) -> tuple[tuple[float, float, float], bool, float]:
-    """(the mean diffuse albedo of ``shape``'s BSDF over its surface and the directions it is seen from, whether it
-    reflects from both sides, the mean albedo of its other lobes): :func:`~gra_mi.render.bounce.albedo` at points spread
-    over the shape (found by rays, so that textures and vertex colours are read where they lie), seen from
+    """(the mean diffuse albedo of ``shape``'s BSDF over its surface and the directions it is seen from, not clipped;
+    whether it reflects from both sides; the mean albedo of its other lobes): :func:`~gra_mi.render.bounce.albedo` at
+    points spread over the shape (found by rays, so that textures and vertex colours are read where they lie), seen from
     cosine-distributed directions. The set reflects its diffuse light only (a glossy lobe's is left out, said)."""
     import drjit as dr
     import mitsuba as mi
@@ -374,7 +388,7 @@ def set_material(scene, shape, samples: int = 1024) -> tuple[tuple[float, float,
     bsdf = shape.bsdf()
     diffuse, every = (_finite_mean(albedo(bsdf, si, on_shape, 16, only), on_shape) for only in (True, False))
     glossy = float(max(0.0, np.mean(every) - np.mean(diffuse))) if diffuse is not None else 0.0
-    rgb = np.full(3, 0.5) if diffuse is None else np.clip(diffuse, 0.0, 1.0)
+    rgb = np.full(3, 0.5) if diffuse is None else np.maximum(diffuse, 0.0)
     return tuple(float(v) for v in rgb), bool(mi.has_flag(bsdf.flags(), mi.BSDFFlags.BackSide)), glossy
 
 
