@@ -15,8 +15,9 @@ transmission); the specular lobes of later bounces are left out (docs/accuracy.m
 Rays that first hit the set (the scene's other shapes: a floor, a wall) bring the light the set reflects, as a
 Lambertian surface of its BSDF's diffuse albedo toward the ray (:func:`albedo`: a diffuse BSDF's reflectance, a
 plastic's diffuse lobe under its coat; a one-sided BSDF seen from behind reflects nothing), lit by the LEDs and near
-lights it sees (:class:`SetHits`). The set's glossy reflection (a metal's, a plastic's coat) and the light the body
-sends to the set and back are left out.
+lights it sees (:class:`SetHits`), plus its glossy lobes' light, Mitsuba's own BSDF evaluated at the hit toward each
+light (:class:`SetGlossyLobe`; a delta lobe, a mirror's, is left out). The light the body sends to the set and back is
+left out.
 
 Only texels whose hemisphere sees the body (or the set) trace rays. A point of the body above a texel's tangent plane
 is exactly what one of its rays can hit (the first surface along the segment to that point lies above the plane too),
@@ -57,29 +58,33 @@ SET_CELL_ANGLE = 0.05
 SET_ALBEDO_SAMPLES = 8
 """BSDF samples per set hit for its diffuse albedo (:func:`albedo`): a Lambertian BSDF's is exact at any count;
 a coated one's noise averages out over a texel's rays."""
-SET_ALBEDO_VERSION = "diffuse-albedo"  # in the cache key: operators cached with eval_diffuse_reflectance are not served
-SET_FIELDS = ("receivers", "direction", "cell", "reflectance", "cell_position", "cell_normal", "cell_geo_normal")
-RAW_HITS = ("receivers", "distance", "direction", "position", "normal", "geo_normal", "reflectance")
+SET_ALBEDO_VERSION = "diffuse-albedo+glossy"  # in the cache key: operators cached with eval_diffuse_reflectance
+SET_HIT_FIELDS = ("receivers", "direction", "cell", "reflectance", "glossy")
+SET_CELL_FIELDS = ("cell_position", "cell_normal", "cell_geo_normal")
+SET_FIELDS = SET_HIT_FIELDS + SET_CELL_FIELDS
+RAW_HITS = ("receivers", "distance", "direction", "position", "normal", "geo_normal", "reflectance", "glossy")
 
 
 @dataclass
 class SetHits:
     """The rays of a bounce operator that first hit the set, on a side of it that reflects: the set sends back along
     each the light it takes in from the LEDs and near lights (:meth:`~gra_mi.render.relighter.Relighter.set_light`),
-    times its diffuse albedo. That light is computed once per cell of the set, at one of its hits."""
+    times its diffuse albedo; that light is computed once per cell of the set, at one of its hits. A hit on a BSDF with
+    a glossy lobe adds that lobe's light toward each light, per hit (:class:`SetGlossyLobe`)."""
 
     receivers: np.ndarray  # (S,) uint32: the texel whose ray it is
     direction: np.ndarray  # (S, 3) float32: the ray's unit direction (world), from the receiver toward the set
     cell: np.ndarray  # (S,) uint32: the cell it hit
     reflectance: np.ndarray  # (S, 3) float32: the set's BSDF's diffuse albedo where it hit, toward the receiver
+    glossy: np.ndarray  # (S,) bool: whether that BSDF has a glossy lobe (evaluated toward each light: SetGlossyLobe)
     cell_position: np.ndarray  # (C, 3) float32: a hit in each cell
     cell_normal: np.ndarray  # (C, 3) float32: the set's shading normal there, turned toward that hit's receiver
     cell_geo_normal: np.ndarray  # (C, 3) float32: its geometric normal, turned the same way
 
     @classmethod
     def empty(cls) -> SetHits:
-        vectors = [np.zeros((0, 3), np.float32) for _ in range(4)]
-        return cls(np.zeros(0, np.uint32), vectors[0], np.zeros(0, np.uint32), *vectors[1:], np.zeros((0, 3), np.float32))
+        vectors = [np.zeros((0, 3), np.float32) for _ in range(5)]
+        return cls(np.zeros(0, np.uint32), vectors[0], np.zeros(0, np.uint32), vectors[1], np.zeros(0, bool), *vectors[2:])
 
     @classmethod
     def grouped(cls, raw: dict[str, np.ndarray], led_positions: np.ndarray | None) -> SetHits:
@@ -97,7 +102,7 @@ class SetHits:
         key = np.concatenate([level[:, None], where, np.round(raw["normal"] * 4)], axis=1).astype(np.int64)
         first, inverse = _distinct_rows(key)
         cells = (raw[f][first] for f in ("position", "normal", "geo_normal"))
-        return cls(raw["receivers"], raw["direction"], inverse.astype(np.uint32), raw["reflectance"], *cells)
+        return cls(raw["receivers"], raw["direction"], inverse.astype(np.uint32), raw["reflectance"], raw["glossy"], *cells)
 
     @property
     def count(self) -> int:
@@ -106,13 +111,14 @@ class SetHits:
     def subset(self, keep: np.ndarray) -> SetHits:
         """The hits ``keep`` selects, and only their cells."""
         used, cell = np.unique(self.cell[keep], return_inverse=True)
-        cells = (getattr(self, f)[used] for f in SET_FIELDS[4:])
-        return SetHits(self.receivers[keep], self.direction[keep], cell.reshape(-1).astype(np.uint32), self.reflectance[keep], *cells)
+        cells = (getattr(self, f)[used] for f in SET_CELL_FIELDS)
+        cell = cell.reshape(-1).astype(np.uint32)
+        return SetHits(self.receivers[keep], self.direction[keep], cell, self.reflectance[keep], self.glossy[keep], *cells)
 
     @cached_property
     def geometry(self) -> tuple[TexelGeometry, mi.UInt32]:
         """The cells as texels of their own (for the LED visibility and the LED loop), and each hit's cell."""
-        p, n, ng = (np.ascontiguousarray(getattr(self, f), np.float32) for f in SET_FIELDS[4:])
+        p, n, ng = (np.ascontiguousarray(getattr(self, f), np.float32) for f in SET_CELL_FIELDS)
         digest = hashlib.sha1(b"set cells")
         for values in (p, n, ng):
             digest.update(values.tobytes())
@@ -288,8 +294,10 @@ class BounceOperator:
         shapes = op.sources.shape == (entries,) and op.direction.shape == (entries, 3) and op.receivers.ndim == 1
         cells = len(hits.cell_position)
         shapes &= hits.receivers.ndim == 1 and hits.cell.shape == (hits.count,) and int(hits.cell.max(initial=0)) < max(cells, 1)
-        shapes &= all(getattr(hits, f).shape == (hits.count, 3) for f in ("direction", "reflectance"))
-        shapes &= all(getattr(hits, f).shape == (cells, 3) for f in SET_FIELDS[4:])
+        shapes &= all(getattr(hits, f).shape == (hits.count, 3) for f in ("direction", "reflectance")) and hits.glossy.shape == (
+            hits.count,
+        )
+        shapes &= all(getattr(hits, f).shape == (cells, 3) for f in SET_CELL_FIELDS)
         receivers = np.concatenate([op.receivers, hits.receivers]) if shapes else np.zeros(0)
         in_range = shapes and (receivers.size == 0 or int(max(op.sources.max(initial=0), receivers.max())) < num_texels)
         return op if (in_range and op.num_texels == num_texels and op.rays == rays) else None
@@ -381,9 +389,8 @@ def _rows(v) -> np.ndarray:
 
 
 def _no_raw_hits() -> dict[str, np.ndarray]:
-    return {
-        f: np.zeros((0, 3) if f not in ("receivers", "distance") else 0, np.uint32 if f == "receivers" else np.float32) for f in RAW_HITS
-    }
+    kinds = {"receivers": np.uint32, "glossy": bool}
+    return {f: np.zeros(0 if f in ("receivers", "distance", "glossy") else (0, 3), kinds.get(f, np.float32)) for f in RAW_HITS}
 
 
 def _set_hits(scene: mi.Scene, texel: mi.UInt32, origin: mi.Point3f, d: mi.Vector3f, on_set: mi.Bool) -> dict[str, np.ndarray]:
@@ -401,14 +408,21 @@ def _set_hits(scene: mi.Scene, texel: mi.UInt32, origin: mi.Point3f, d: mi.Vecto
     reflects = si.is_valid() & (front | mi.has_flag(bsdf.flags(), mi.BSDFFlags.BackSide))
     side = dr.select(front, 1.0, -1.0)
     reflectance = albedo(bsdf, si, reflects, SET_ALBEDO_SAMPLES)
-    keep = dr.compress(reflects & (dr.max(reflectance) > 0))
+    glossy = has_glossy_lobe(bsdf)
+    # (a NaN texel's albedo is NaN: such a hit says nothing, and is dropped)
+    keep = dr.compress(reflects & dr.all(dr.isfinite(reflectance)) & ((dr.max(reflectance) > 0) | glossy))
     fields = (
         dr.gather(mi.UInt32, texel, dr.gather(mi.UInt32, lanes, keep)), dr.gather(mi.Float, si.t, keep), dr.gather(mi.Vector3f, direction, keep),
         dr.gather(mi.Point3f, si.p, keep), dr.gather(mi.Vector3f, mi.Vector3f(si.sh_frame.n * side), keep),
-        dr.gather(mi.Vector3f, mi.Vector3f(si.n * side), keep), dr.gather(mi.Color3f, reflectance, keep),
+        dr.gather(mi.Vector3f, mi.Vector3f(si.n * side), keep), dr.gather(mi.Color3f, reflectance, keep), dr.gather(mi.Bool, glossy, keep),
     )  # fmt: skip
     dr.eval(*fields)
-    values = (np.array(fields[0], np.uint32), np.array(fields[1], np.float32), *(_rows(f) for f in fields[2:]))
+    values = (
+        np.array(fields[0], np.uint32),
+        np.array(fields[1], np.float32),
+        *(_rows(f) for f in fields[2:-1]),
+        np.array(fields[-1], bool),
+    )
     return dict(zip(RAW_HITS, values, strict=True))
 
 
@@ -439,6 +453,41 @@ def albedo(bsdf: mi.BSDF, si: mi.SurfaceInteraction3f, active: mi.Bool, samples:
             wo = bs.wo
         total += dr.select(active & (mi.Frame3f.cos_theta(wo) * side > 0), weight, 0.0)  # (a NaN texel's stays NaN: dropped)
     return total / samples
+
+
+def has_glossy_lobe(bsdf: mi.BSDF) -> mi.Bool:
+    """Whether a set hit's BSDF has a glossy lobe, whose light the set sends toward each light (:class:`SetGlossyLobe`).
+    A delta lobe (a mirror, smooth glass) is left out: a point light's reflection in it is met by no ray."""
+    return mi.has_flag(bsdf.flags(), mi.BSDFFlags.GlossyReflection)
+
+
+class SetGlossyLobe:
+    """The glossy lobes of the set's BSDF at its hits, as a material of the LED loop (``front``, ``eval_parts``):
+    Mitsuba's own ``eval`` (f cosθ) with only the glossy lobes enabled, at each hit's surface, in its cell's frame."""
+
+    def __init__(self, si: mi.SurfaceInteraction3f):
+        self.si, self.bsdf = si, si.bsdf()
+        self.context = mi.BSDFContext()
+        self.context.type_mask = mi.BSDFFlags.GlossyReflection
+        self.front = si.is_valid() & (mi.Frame3f.cos_theta(si.wi) > 0)
+
+    def eval_parts(self, wo: mi.Vector3f) -> tuple[mi.Color3f, mi.Color3f]:
+        return mi.Color3f(0.0), self.bsdf.eval(self.context, self.si, wo, self.front)
+
+
+def glossy_surfaces(
+    scene: mi.Scene, hits: SetHits, frame_geom: TexelGeometry, cells: TexelGeometry
+) -> tuple[np.ndarray, mi.SurfaceInteraction3f]:
+    """(the glossy hits, their surfaces): each such ray traced again from its texel (the same origin as the operator's
+    trace, the same direction, so the same hit), its surface put in its cell's frame (the frame the LED loop's
+    directions are in), seen from the receiver."""
+    index = np.flatnonzero(hits.glossy)
+    r, d = mi.UInt32(hits.receivers[index]), mi.Vector3f(*np.ascontiguousarray(hits.direction[index].T))
+    origin = dr.gather(mi.Point3f, frame_geom.position, r) + dr.gather(mi.Vector3f, frame_geom.geo_normal, r) * RAY_EPSILON
+    si = scene.ray_intersect(mi.Ray3f(origin, d), ray_flags=mi.RayFlags.All, coherent=False)
+    si.sh_frame = mi.Frame3f(dr.gather(mi.Vector3f, cells.normal, mi.UInt32(hits.cell[index])))
+    si.wi = si.sh_frame.to_local(-d)
+    return index, si
 
 
 def set_corners(scene: mi.Scene, subject: mi.Shape) -> np.ndarray:

@@ -129,14 +129,14 @@ def point_light_visibility(scene: mi.Scene, geom: TexelGeometry, light: PointLig
 
 
 def shade_point_light(
-    geom: TexelGeometry, fraction: mi.Float, light: PointLight, roughness: np.ndarray, camera_position
+    geom: TexelGeometry, fraction: mi.Float, light: PointLight, roughness: np.ndarray, camera_position, material=None
 ) -> tuple[np.ndarray, np.ndarray]:
     """(diffuse per unit albedo, specular) of every texel lit by the point light: I/d² · f cos · visible fraction.
     ``roughness`` None: a Lambertian surface (the set). ``camera_position``: any viewer :func:`~gra_mi.render.shading.local_view` takes (a camera, along each normal,
-    per-lane directions)."""
+    per-lane directions). ``material``: another material per texel (as :meth:`TexelLedLoop.run` takes one)."""
     frame = mi.Frame3f(geom.normal)
     wi = local_view(frame, geom.position, camera_position)
-    material = (
+    material = material or (
         brdf.PreparedLambert(wi)
         if roughness is None
         else brdf.PreparedBRDF(mi.Color3f(1.0), mi.Float(np.asarray(roughness, np.float32)), wi)

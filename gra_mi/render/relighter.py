@@ -8,6 +8,7 @@ lighting → :func:`gra_mi.uvspace.shade_texels` → :func:`gra_mi.uvspace.raste
 from __future__ import annotations
 
 import copy
+import dataclasses
 import hashlib
 import logging
 from dataclasses import dataclass
@@ -21,7 +22,7 @@ from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.io import read_exr
 from gra_mi.render import bounce
 from gra_mi.render.atlas import TexelGeometry, UVAtlas
-from gra_mi.render.bounce import BounceOperator, SetHits, light_along_rays
+from gra_mi.render.bounce import BounceOperator, SetGlossyLobe, SetHits, glossy_surfaces, light_along_rays
 from gra_mi.render.leds import LedLayout
 from gra_mi.render.point_light import PointLight, as_light_list, point_light_visibility, shade_point_light
 from gra_mi.render.rasterize import RASTER_SAMPLES, rasterize_to_camera
@@ -258,25 +259,53 @@ class Relighter:
     def set_light(self, frame: int, hits: SetHits, led_intensities, lights: list[PointLight], far_field: bool) -> mi.Color3f:
         """Per ray that hits the set: the radiance the set sends back along it, Lambertian with its diffuse albedo,
         under every LED that is on (fewer standing for them would light a floor from below its horizon) and the near
-        lights, each where the set sees it (the body shadows the floor); once per cell of the set (:meth:`SetHits.grouped`)."""
+        lights, each where the set sees it (the body shadows the floor); once per cell of the set (:meth:`SetHits.grouped`).
+        A BSDF's glossy lobes add their light per hit, toward each light (:meth:`_set_glossy_light`)."""
         if hits.count == 0:
             return dr.zeros(mi.Color3f, 0)
         leds = self.leds(far_field)
         geom, cell = hits.geometry
         light = dr.zeros(mi.Color3f, dr.width(geom.position))
-
-        def scene_at_frame():
-            self.ls.set_frame(frame)
-            return self.ls.scene
-
+        vis, fractions = None, []
         if np.max(led_intensities) > 0:
-            vis = self.set_cache.get(scene_at_frame, geom, leds, None, np.flatnonzero(np.max(led_intensities, axis=1) > 0))
+            vis = self.set_cache.get(lambda: self._scene_at(frame), geom, leds, None, np.flatnonzero(np.max(led_intensities, axis=1) > 0))
             count = dr.width(geom.position)
             light, _ = TexelLedLoop.build(geom, vis, np.arange(count), leds, led_intensities, ALONG_NORMAL, hold=False).run(None)
         for near in lights:
-            diffuse, _ = shade_point_light(geom, point_light_visibility(scene_at_frame(), geom, near), near, None, ALONG_NORMAL)
+            fractions.append(point_light_visibility(self._scene_at(frame), geom, near))
+            diffuse, _ = shade_point_light(geom, fractions[-1], near, None, ALONG_NORMAL)
             light += mi.Color3f(*diffuse.T)
-        return dr.gather(mi.Color3f, light, cell) * mi.Color3f(*hits.reflectance.T)
+        per_hit = dr.gather(mi.Color3f, light, cell) * mi.Color3f(*hits.reflectance.T)
+        if hits.glossy.any():
+            per_hit += self._set_glossy_light(frame, hits, (vis, leds, led_intensities), list(zip(lights, fractions, strict=True)))
+        return per_hit
+
+    def _scene_at(self, frame: int) -> mi.Scene:
+        self.ls.set_frame(frame)
+        return self.ls.scene
+
+    def _set_glossy_light(self, frame: int, hits: SetHits, led_light: tuple, near: list) -> mi.Color3f:
+        """Per hit, the light the set's glossy lobes send back along the rays that hit a glossy BSDF (0 along the others):
+        Mitsuba's own ``eval`` of the BSDF at the hit, toward each LED that is on and each near light, through its
+        cell's visibility (the same as its diffuse light's)."""
+        geom, _ = hits.geometry
+        index, si = glossy_surfaces(self._scene_at(frame), hits, self.geometry(frame), geom)
+        lobe, cells = SetGlossyLobe(si), hits.cell[index]
+        glossy = dr.zeros(mi.Color3f, len(index))
+        vis, leds, led_intensities = led_light
+        # Each light seen from the hit itself (a lobe is sharper than a cell is small, under a near light), through the
+        # visibility of its cell.
+        if vis is not None:
+            loop = TexelLedLoop.build(geom, vis, cells, leds, led_intensities, ALONG_NORMAL, hold=False)
+            glossy = dataclasses.replace(loop, position=si.p).run(None, material=lobe)[1]
+        c = mi.UInt32(cells)
+        at_hits = TexelGeometry(si.p, *(dr.gather(mi.Vector3f, a, c) for a in (geom.normal, geom.geo_normal)), "")
+        for light, fraction in near:
+            _, spec = shade_point_light(at_hits, dr.gather(mi.Float, fraction, c), light, None, ALONG_NORMAL, material=lobe)
+            glossy += mi.Color3f(*spec.T)
+        per_hit = dr.zeros(mi.Color3f, hits.count)
+        dr.scatter(per_hit, glossy, mi.UInt32(index.astype(np.uint32)))
+        return per_hit
 
     def only_for(self, cameras) -> None:
         """Render only from these cameras from now on (a batch relight, an evaluation): a new frame's visibility is

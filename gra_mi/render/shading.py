@@ -176,10 +176,12 @@ class TexelLedLoop:
             joined("frame"), joined("wi"), loops[0].far_field, indirect, base,
         )  # fmt: skip
 
-    def run(self, roughness: mi.Float | tuple, roughness_derivative: bool = False):
+    def run(self, roughness: mi.Float | tuple, roughness_derivative: bool = False, material=None):
         """(diffuse per unit albedo, specular) per texel of the subset, and ∂ specular / ∂ roughness if asked.
         ``roughness`` as a tuple (a fit's candidate values): the specular part as a tuple, one per value, from one walk
-        over the LEDs (no derivative then); None: a Lambertian surface (:func:`_led_sum`)."""
+        over the LEDs (no derivative then); None: a Lambertian surface (:func:`_led_sum`). ``material``: another
+        material per lane instead (``front`` and ``eval_parts(wo)`` as :class:`~gra_mi.render.brdf.PreparedBRDF` has
+        them: a set's glossy lobe, :class:`~gra_mi.render.bounce.SetGlossyLobe`)."""
         grid = isinstance(roughness, tuple)
         if grid and roughness_derivative:
             raise ValueError("the roughness derivative is for one roughness per texel, not a tuple of candidates")
@@ -189,7 +191,7 @@ class TexelLedLoop:
         else:
             parts = _led_sum(
                 self.count, self.words, self.visibility, self.led_pos, self.led_int, self.position, self.frame, self.wi,
-                roughness, self.far_field, roughness_derivative, self.led_base,
+                roughness, self.far_field, roughness_derivative, self.led_base, material,
             )  # fmt: skip
             # Together: each output of a loop evaluated on its own (a NumPy read, an AD pass) runs the whole loop again.
             dr.eval(*parts)
@@ -283,7 +285,7 @@ def _packed_bits(visibility, m, lanes, on, count, size, n):
 
 
 @dr.syntax
-def _led_sum(m, words, visibility, led_pos, led_int, p, frame, wi, roughness, far_field, roughness_derivative=False, led_base=None):
+def _led_sum(m, words, visibility, led_pos, led_int, p, frame, wi, roughness, far_field, roughness_derivative=False, led_base=None, material=None):  # fmt: skip
     """Σ over the LEDs that are on *and* visible from each texel, walking the set bits of its visibility words
     (:func:`lane_visibility`: only the LEDs that are on have bits; ``led_pos`` and ``led_int`` are theirs).
 
@@ -301,7 +303,7 @@ def _led_sum(m, words, visibility, led_pos, led_int, p, frame, wi, roughness, fa
     # per-texel terms hoisted out of the loop, one material per roughness
     # roughness None: a Lambertian surface (the set, as the light after the first bounce leaves it)
     prepared = [brdf.PreparedBRDF(mi.Color3f(1.0), r, wi) for r in (roughness if grid else (roughness,))] if roughness is not None else []
-    materials = prepared or [brdf.PreparedLambert(wi)]
+    materials = [material] if material is not None else (prepared or [brdf.PreparedLambert(wi)])
     material = materials[0]
     diffuse = mi.Color3f(0.0)  # Σ diffuse part per unit albedo (the model is linear in albedo)
     specs = [mi.Color3f(0.0) for _ in materials]  # Σ specular part, per roughness
