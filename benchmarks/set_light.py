@@ -42,14 +42,22 @@ GLOSSY_FLOORS = {
 }  # fmt: skip
 
 
+GLOSSY_SPP = 1024  # a glossy floor's highlights are rarer paths: `path` at 256 spp was 3 % dark on the tiny rig
+
+
 def set_models() -> dict:
-    """How the set's reflectance at a hit is found: gra-mi's (its diffuse lobes' albedo) and two alternatives."""
-    from gra_mi.render.bounce import albedo  # (the function itself: the models stand in for bounce.albedo one at a time)
+    """How the set's light at a hit is found, as (its Lambertian reflectance, whether its glossy lobes add their own):
+    gra-mi's, and the ways measured against it."""
+    from gra_mi.render.bounce import albedo, has_glossy_lobe  # (the functions themselves: the models stand in for them)
+
+    def none(bsdf):
+        return has_glossy_lobe(bsdf) & False
 
     return {
-        "diffuse albedo (gra-mi)": albedo,
-        "every lobe's albedo, spread evenly": lambda bsdf, si, active, samples: albedo(bsdf, si, active, samples, False),
-        "eval_diffuse_reflectance (before)": lambda bsdf, si, active, samples: bsdf.eval_diffuse_reflectance(si, active),
+        "diffuse albedo + glossy lobes toward each light (gra-mi)": (albedo, has_glossy_lobe),
+        "diffuse albedo only": (albedo, none),
+        "every lobe's albedo, spread evenly": (lambda bsdf, si, active, samples: albedo(bsdf, si, active, samples, False), none),
+        "eval_diffuse_reflectance (before)": (lambda bsdf, si, active, samples: bsdf.eval_diffuse_reflectance(si, active), none),
     }
 
 
@@ -288,10 +296,12 @@ def fit_section(work: Path) -> list[str]:
 
 
 def glossy_rows(folder: Path) -> list[dict]:
-    """Floors of other BSDFs under the walk, two bounces with each way of finding the set's reflectance, against
-    ``path`` (max_depth 3) on the same floor: per floor, lighting and camera, the biases and the floor's hits."""
+    """Floors of other BSDFs under the walk, two bounces with each way of finding the set's light, against ``path``
+    (max_depth 3) on the same floor, and ``path`` again with another seed: per floor, lighting and camera, the biases,
+    the floor's hits and what the floor's light costs per lighting."""
     from unittest import mock
 
+    from gra_mi.apps.harness import side_by_side
     from gra_mi.render import bounce
     from gra_mi.render.path_reference import bounce_errors, path_reference
     from gra_mi.render.relighter import Relighter
@@ -303,40 +313,60 @@ def glossy_rows(folder: Path) -> list[dict]:
         one = Relighter(ls, 256)
         for lighting, (leds, near) in lightings(ls).items():
             for cam in CAMERAS:
-                refs = [path_reference(one, 2, cam, leds, near, d, SPP, folder / "path", set_xml=floor_xml(bsdf)) for d in (2, 3)]
+                refs = [
+                    path_reference(one, 2, cam, leds, near, 3, GLOSSY_SPP, folder / "path", seed=s, set_xml=floor_xml(bsdf)) for s in (0, 1)
+                ]
                 image_one = one.render(2, cam, leds, near).image
                 row = {
                     "floor": floor,
                     "lighting": lighting,
                     "camera": cam,
-                    "one": (bounce_errors(image_one, image_one, *refs)["bias_one"], 0),
+                    "one": bounce_errors(image_one, image_one, *refs[:1] * 2)["bias_one"],
                 }
-                for name, model in set_models().items():
-                    with mock.patch.object(bounce, "albedo", model):
+                row["noise"] = (bounce_errors(image_one, refs[1], *refs[:1] * 2)["bias_more"],)
+                for name, (reflectance, glossy) in set_models().items():
+                    with mock.patch.object(bounce, "albedo", reflectance), mock.patch.object(bounce, "has_glossy_lobe", glossy):
                         two = Relighter(ls, 256, transport=LightTransport(bounces=2))
-                        e = bounce_errors(image_one, two.render(2, cam, leds, near).image, *refs)
-                    row[name] = (e["bias_more"], two.bounce_operator(2).set_hits.count)
+                        e = bounce_errors(image_one, two.render(2, cam, leds, near).image, *refs[:1] * 2)
+                        hits = two.bounce_operator(2).set_hits
+                        if lighting == "interior (LEDs)" and cam == CAMERAS[0]:
+                            ms = (
+                                1e3
+                                * side_by_side({"set": lambda t=two, h=hits, lit=leds: t.set_light(2, h, lit, [], t.far_field)}, 3)["set"]
+                            )
+                    row[name] = (e["bias_more"], hits.count, int(hits.glossy.sum()), ms)
                 rows.append(row)
     return rows
 
 
+def _pct(x: float) -> str:
+    return f"{100 * x:+.1f} %"
+
+
+def _span(rows: list[dict], key: str) -> str:
+    """The range of ``key``'s bias over ``rows``."""
+    values = [r[key][0] for r in rows]
+    return f"{_pct(min(values))} … {_pct(max(values))}"
+
+
 def glossy_page(run: BenchmarkRun) -> str:
     models = list(set_models())
-    pct = lambda x: f"{100 * x:+.1f} %"  # noqa: E731
+    stamp = run.stamp("walk on a floor + small rig")  # (before the measurement: the tree as it ran)
     rows = glossy_rows(run.work)
     lines = [
         "# The light a glossy set reflects onto the subject",
         "",
-        f"Generated by `benchmarks/set_light.py --glossy` ({run.stamp('walk on a floor + small rig')}).",
+        f"Generated by `benchmarks/set_light.py --glossy` ({stamp}).",
         "",
-        "The walk of set-light.md (frame 2, the default 331-LED rig, UV 256², K = 32) on a floor of three BSDFs, two "
-        f"bounces against Mitsuba's `path` (max_depth 3, {SPP} spp) on the same floor: the bias of Σ render / Σ `path` − 1 "
-        "over the pixels all renders cover, and the floor's hits in the bounce operator. The set reflects as a Lambertian "
-        "surface; the columns are three ways of finding its reflectance at a hit: *diffuse albedo* (gra-mi: its diffuse "
-        "lobes' directional albedo toward the ray; a metal has none, so its floor is not traced), *every lobe's albedo* "
-        "(a glossy lobe's light spread evenly: exact under even light), *eval_diffuse_reflectance* (Mitsuba's, which "
-        "gra-mi used before: π f(ω, n) for a BSDF without a diffuse lobe, unbounded: 100 for a polished metal seen along "
-        "its normal).",
+        "The walk of set-light.md (frame 2, the default 331-LED rig, UV 256², K = 32, the default smoothing) on a floor of "
+        f"three BSDFs, two bounces against Mitsuba's `path` (max_depth 3, {GLOSSY_SPP} spp) on the same floor: the bias "
+        "of Σ render / Σ `path` − 1 over the pixels all renders cover. *noise*: `path` with another seed against the first. "
+        "The columns are ways of finding the floor's light at a hit: *diffuse albedo + glossy lobes* (gra-mi: a "
+        "Lambertian surface of its diffuse lobes' directional albedo toward the ray, plus Mitsuba's own BSDF evaluated "
+        "at the hit with only its glossy lobes, toward each LED and near light), *diffuse albedo only* (the glossy light "
+        "left out), *every lobe's albedo, spread evenly* (a Lambertian surface of the whole albedo: exact under even "
+        "light), *eval_diffuse_reflectance* (Mitsuba's, which gra-mi used before: π f(ω, n) for a BSDF without a "
+        "diffuse lobe, unbounded: 100 for a polished metal seen along its normal).",
         "",
         "The range of the bias over the two lightings and two cameras:",
         "",
@@ -344,22 +374,21 @@ def glossy_page(run: BenchmarkRun) -> str:
     summary = []
     for floor in GLOSSY_FLOORS:
         mine = [r for r in rows if r["floor"] == floor]
-        summary.append((floor, *(f"{pct(min(r[m][0] for r in mine))} … {pct(max(r[m][0] for r in mine))}" for m in ["one", *models])))
-    lines += markdown_table(("floor", "1 bounce", *models), summary)
+        summary.append((floor, *(_span(mine, key) for key in ("one", *models, "noise"))))
+    lines += markdown_table(("floor", "1 bounce", *models, "noise"), summary)
+    first = [r for r in rows if r["lighting"] == "interior (LEDs)" and r["camera"] == CAMERAS[0]]
     lines += [
         "",
-        "gra-mi reflects the diffuse lobes only: a coated floor's coat adds nothing, and a metal floor's light is left out "
-        "(`from-scene` names such shapes in its notes). Spreading the glossy light evenly is exact only where light "
-        "arrives evenly from every direction; under the map's ceiling, with the body above the floor, it does not, and the "
-        "metal floor came out too bright with it; `eval_diffuse_reflectance` has no bound at all. A metal's light needs "
-        "its BSDF evaluated toward each LED "
-        "from each hit: not modelled.",
+        f"The floor's hits in the bounce operator (those on a glossy BSDF) and its light per lighting (`interior`, "
+        f"{CAMERAS[0]}'s job; the floor's LED visibility cached; median of 3):",
         "",
     ]
-    table = [
-        (r["floor"], r["lighting"], r["camera"], pct(r["one"][0]), *(f"{pct(r[m][0])} ({r[m][1]:,} hits)" for m in models)) for r in rows
-    ]
-    lines += markdown_table(("floor", "lighting", "camera", "1 bounce", *(f"2 bounces: {m}" for m in models)), table)
+    lines += markdown_table(
+        ("floor", *models), [(r["floor"], *(f"{r[m][1]:,} ({r[m][2]:,}), {r[m][3]:.0f} ms" for m in models)) for r in first]
+    )
+    lines += [""]
+    table = [(r["floor"], r["lighting"], r["camera"], *(_pct(r[key][0]) for key in ("one", *models, "noise"))) for r in rows]
+    lines += markdown_table(("floor", "lighting", "camera", "1 bounce", *(f"2 bounces: {m}" for m in models), "noise"), table)
     return "\n".join(lines) + "\n"
 
 
@@ -377,7 +406,7 @@ def measure(run: BenchmarkRun) -> str:
 def arguments(parser) -> None:
     parser.add_argument("--quick", action="store_true", help="K = 32 only, UV 256², one frame, 2 repeats.")
     parser.add_argument("--glossy", action="store_true", help="Only floors of glossy BSDFs, each way of finding the set's "
-                        "reflectance against `path` (its own page: docs/results/set-light-glossy.md).")  # fmt: skip
+                        "light against `path`, and its cost (its own page: docs/results/set-light-glossy.md).")  # fmt: skip
 
 
 if __name__ == "__main__":
