@@ -321,7 +321,7 @@ def glossy_rows(folder: Path) -> list[dict]:
                     "floor": floor,
                     "lighting": lighting,
                     "camera": cam,
-                    "one": bounce_errors(image_one, image_one, *refs[:1] * 2)["bias_one"],
+                    "one": (bounce_errors(image_one, image_one, *refs[:1] * 2)["bias_one"],),
                 }
                 row["noise"] = (bounce_errors(image_one, refs[1], *refs[:1] * 2)["bias_more"],)
                 for name, (reflectance, glossy) in set_models().items():

@@ -314,3 +314,17 @@ def test_a_glossy_floor_lights_the_subject_as_mitsuba_path_does(plugins, tmp_pat
     assert "shape 'floor' lets light through" not in notes and "shape 'screen''s BSDF reflects" not in notes
     assert "shape 'glowing''s BSDF reflects more light than it receives (diffuse albedo 1.5 > 1" in notes
     assert '<rgb name="reflectance" value="1, 0.5, 0.5"/>' in (tmp_path / "stage" / "scene.xml").read_text()
+
+
+def test_a_glossy_floor_with_nan_roughness_texels_renders_finite(plugins, tmp_path):
+    """A metal floor whose roughness map has NaN texels: its glossy light there is none, never NaN in the render."""
+    from gra_mi.core.io import write_exr
+
+    alpha = np.full((8, 8, 1), 0.3, np.float32)
+    alpha[::2] = np.nan
+    write_exr(tmp_path / "alpha.exr", alpha)
+    texture = f'<texture type="bitmap" name="alpha"><string name="filename" value="{tmp_path / "alpha.exr"}"/><boolean name="raw" value="true"/></texture>'
+    rel = _on_floor(tmp_path / "stage", _floor(f'<bsdf type="roughconductor">{texture}</bsdf>'), bounces=(2,))[2]
+    assert rel.bounce_operator(2).set_hits.glossy.sum() > 1000
+    image = rel.render(2, 0, uniform_pattern(rel.ls.stage, 0.5)).image
+    assert np.isfinite(image).all() and image[..., :3].sum() > 0

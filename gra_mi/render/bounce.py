@@ -472,7 +472,8 @@ class SetGlossyLobe:
         self.front = si.is_valid() & (mi.Frame3f.cos_theta(si.wi) > 0)
 
     def eval_parts(self, wo: mi.Vector3f) -> tuple[mi.Color3f, mi.Color3f]:
-        return mi.Color3f(0.0), self.bsdf.eval(self.context, self.si, wo, self.front)
+        value = self.bsdf.eval(self.context, self.si, wo, self.front)
+        return mi.Color3f(0.0), dr.select(dr.isfinite(value), value, 0.0)  # (a NaN texel of a roughness map: no light)
 
 
 def glossy_surfaces(
