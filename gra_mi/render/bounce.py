@@ -294,9 +294,8 @@ class BounceOperator:
         shapes = op.sources.shape == (entries,) and op.direction.shape == (entries, 3) and op.receivers.ndim == 1
         cells = len(hits.cell_position)
         shapes &= hits.receivers.ndim == 1 and hits.cell.shape == (hits.count,) and int(hits.cell.max(initial=0)) < max(cells, 1)
-        shapes &= all(getattr(hits, f).shape == (hits.count, 3) for f in ("direction", "reflectance")) and hits.glossy.shape == (
-            hits.count,
-        )
+        shapes &= all(getattr(hits, f).shape == (hits.count, 3) for f in ("direction", "reflectance"))
+        shapes &= hits.glossy.shape == (hits.count,)
         shapes &= all(getattr(hits, f).shape == (cells, 3) for f in SET_CELL_FIELDS)
         receivers = np.concatenate([op.receivers, hits.receivers]) if shapes else np.zeros(0)
         in_range = shapes and (receivers.size == 0 or int(max(op.sources.max(initial=0), receivers.max())) < num_texels)
