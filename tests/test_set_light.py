@@ -317,7 +317,7 @@ def test_a_glossy_floor_lights_the_subject_as_mitsuba_path_does(plugins, tmp_pat
 
 
 def test_a_glossy_floor_with_nan_roughness_texels_renders_finite(plugins, tmp_path):
-    """A metal floor whose roughness map has NaN texels: its glossy light there is none, never NaN in the render."""
+    """A metal floor whose roughness map has NaN texels renders finite; its hits' glossy marks survive the cache file."""
     from gra_mi.core.io import write_exr
 
     alpha = np.full((8, 8, 1), 0.3, np.float32)
@@ -325,6 +325,9 @@ def test_a_glossy_floor_with_nan_roughness_texels_renders_finite(plugins, tmp_pa
     write_exr(tmp_path / "alpha.exr", alpha)
     texture = f'<texture type="bitmap" name="alpha"><string name="filename" value="{tmp_path / "alpha.exr"}"/><boolean name="raw" value="true"/></texture>'
     rel = _on_floor(tmp_path / "stage", _floor(f'<bsdf type="roughconductor">{texture}</bsdf>'), bounces=(2,))[2]
-    assert rel.bounce_operator(2).set_hits.glossy.sum() > 1000
+    op = rel.bounce_operator(2)
+    assert op.set_hits.glossy.sum() > 1000
+    op.save(tmp_path / "op.npz")  # the glossy marks go to the cache file and come back
+    np.testing.assert_array_equal(type(op).load(tmp_path / "op.npz", op.num_texels, op.rays).set_hits.glossy, op.set_hits.glossy)
     image = rel.render(2, 0, uniform_pattern(rel.ls.stage, 0.5)).image
     assert np.isfinite(image).all() and image[..., :3].sum() > 0
