@@ -309,10 +309,10 @@ def test_a_glossy_floor_lights_the_subject_as_mitsuba_path_does(plugins, tmp_pat
     code, lines = run(["from-scene", path, "--out", tmp_path / "stage"], capsys)
     assert code == 0, lines
     notes = (tmp_path / "stage" / "notes.md").read_text()
-    assert "shape 'floor''s BSDF reflects 96% of the light it receives glossily" in notes
+    assert "the BSDF of shape 'floor' reflects 96% of the light it receives glossily" in notes
     assert "shape 'screen' lets light through in your scene (an opacity mask, glass); in the stage it is opaque" in notes
-    assert "shape 'floor' lets light through" not in notes and "shape 'screen''s BSDF reflects" not in notes
-    assert "shape 'glowing''s BSDF reflects more light than it receives (diffuse albedo 1.5 > 1" in notes
+    assert "shape 'floor' lets light through" not in notes and "the BSDF of shape 'screen' reflects" not in notes
+    assert "the BSDF of shape 'glowing' reflects more light than it receives (diffuse albedo 1.5 > 1" in notes
     assert '<rgb name="reflectance" value="1, 0.5, 0.5"/>' in (tmp_path / "stage" / "scene.xml").read_text()
 
 

@@ -360,12 +360,12 @@ def material_notes(shape, rgb: tuple, glossy: float) -> list[str]:
         notes.append(f"{label} lets light through in your scene (an opacity mask, glass); in the stage it is opaque: it "
                      "shadows the subject fully and hides it from the cameras")  # fmt: skip
     if glossy > GLOSSY_SAID:
-        notes.append(f"{label}'s BSDF reflects {glossy:.0%} of the light it receives glossily (a metal, a coat), and "
+        notes.append(f"the BSDF of {label} reflects {glossy:.0%} of the light it receives glossily (a metal, a coat), and "
                      "scene.xml gives it a diffuse stand-in: its glossy light is not reflected onto the subject, which "
                      "renders darker near it than in your scene; gra-mi evaluates a glossy BSDF a set shape holds in "
                      "scene.xml toward each light, so put yours there to have it (docs/guides/scene-files.md)")  # fmt: skip
     if max(rgb) > 1.0:
-        notes.append(f"{label}'s BSDF reflects more light than it receives (diffuse albedo {max(rgb):.3g} > 1, not a "
+        notes.append(f"the BSDF of {label} reflects more light than it receives (diffuse albedo {max(rgb):.3g} > 1, not a "
                      "physical material): the stage keeps 1")  # fmt: skip
     return notes
 
