@@ -99,8 +99,8 @@ def test_a_bounce_cache_traced_with_one_floor_colour_is_not_served_with_another(
 
 
 def test_from_scene_gives_the_set_its_own_colours(plugins, tmp_path, capsys):
-    """The set reflects light now, so ``from-scene`` writes each set shape's own diffuse reflectance (a texture's mean,
-    read where it lies on the shape) and sidedness, not a grey one: the stage's floor reflects as the user's does."""
+    """The set reflects light now, so ``from-scene`` carries each set shape's own BSDF into the stage (a checkerboard
+    texture as it is, a two-sided diffuse), not a grey one: the stage's floor reflects as the user's does."""
     from gra_mi.capture.scene_stage import set_material
     from gra_mi.stage.scene import LightstageScene
 
@@ -116,11 +116,12 @@ def test_from_scene_gives_the_set_its_own_colours(plugins, tmp_path, capsys):
     path = write_user_scene(tmp_path / "user", shapes=BODY + floor.replace(f'value="{FLOOR_Y}"', 'value="0.3"') + prop)
     code, lines = run(["from-scene", path, "--out", tmp_path / "stage"], capsys)
     assert code == 0, lines
-    assert "mean diffuse albedo" in (tmp_path / "stage" / "notes.md").read_text()
+    assert (tmp_path / "stage" / "notes.md").read_text().count("with its own BSDF") == 2
+    assert "checkerboard" in (tmp_path / "stage" / "scene.xml").read_text()
     ls = LightstageScene.load(tmp_path / "stage" / "scene.xml")
     found = {s.id(): set_material(ls.scene, s) for s in ls.scene.shapes() if s.id() != "subject"}
     notes = (tmp_path / "stage" / "notes.md").read_text()
-    named = dict(re.findall(r"kept as the set: shape '(\w+)' \((set_\d+) in scene.xml\)", notes))
+    named = dict(re.findall(r"kept as the set: shape '(\w+)' \((set_\d+) in scene.xml", notes))
     crate, floor = found[named["crate"]], found[named["floor"]]
     np.testing.assert_allclose(floor[0], (0.8, 0.4, 0.2), atol=1e-3)
     np.testing.assert_allclose(crate[0], (0.5, 0.5, 0.5), atol=0.03)  # the checkerboard's mean
@@ -260,22 +261,15 @@ def test_the_set_albedo_matches_float64_references(llvm_variant):
     assert 0.99 < _albedo(polished, 1.0, False).min() <= _albedo(polished, 1.0, False).max() <= 1.0 + 1e-4
 
 
-def test_a_glossy_floor_lights_the_subject_as_mitsuba_path_does(plugins, tmp_path, capsys):
+def test_a_glossy_floor_lights_the_subject_as_mitsuba_path_does(plugins, tmp_path):
     """A coated (rough plastic) and a rough metal floor under the tiny subject: two bounces bring their diffuse light and
     their glossy lobes' (Mitsuba's own BSDF at each hit, toward each LED and the near light), as ``path`` does at 4,096
     spp (measured: +1.0 % on the coated floor, +0.9 % on the metal one under the LEDs; before, the metal floor was 16 %
-    dark, and with its glossy light left out as dark as one bounce). `from-scene` gives a glossy BSDF a diffuse
-    stand-in and says so, as it says a half-transparent screen is opaque in the stage and a material that reflects
-    more than it receives is kept at 1."""
-    from gra_mi.core.io import write_exr
+    dark, and with its glossy light left out as dark as one bounce)."""
     from gra_mi.render.path_reference import bounce_errors, path_reference
     from gra_mi.render.point_light import PointLight
     from gra_mi.render.relighter import Relighter
     from gra_mi.render.transport import LightTransport
-
-    from .test_bad_input import run
-    from .test_from_scene import write_user_scene
-    from .test_scene_set import BODY
 
     lamp = PointLight(np.array([0.25, 0.55, 0.4]), np.full(3, 0.3), radius=0.0)
     floors = {
@@ -297,23 +291,6 @@ def test_a_glossy_floor_lights_the_subject_as_mitsuba_path_does(plugins, tmp_pat
                 ref = path_reference(rel[1], 2, cam, pattern, near, 3, 4096, tmp_path / f"{name}_path", set_xml=floor)
                 e = bounce_errors(one, two, ref, ref)
                 assert e["bias_one"] < -0.2 and abs(e["bias_more"]) < 0.03, (name, case, cam, e)
-    metal = _floor(floors["metal"])
-    screen = ('<shape type="rectangle" id="screen"><transform name="to_world"><scale value="0.2"/><translate x="0.8" y="0.9"/>'
-              '</transform><bsdf type="mask"><float name="opacity" value="0.5"/><bsdf type="diffuse"/></bsdf></shape>')  # fmt: skip
-    # (Mitsuba refuses an RGB reflectance over 1 itself; a texture's texels it takes as they are)
-    write_exr(tmp_path / "bright.exr", np.tile(np.float32([1.5, 0.5, 0.5]), (4, 4, 1)))
-    bright = f'<bsdf type="diffuse"><texture type="bitmap" name="reflectance"><string name="filename" value="{tmp_path / "bright.exr"}"/></texture></bsdf>'
-    glowing = screen.replace('id="screen"', 'id="glowing"').replace('x="0.8"', 'x="-0.8"')
-    glowing = glowing.replace('<bsdf type="mask"><float name="opacity" value="0.5"/><bsdf type="diffuse"/></bsdf>', bright)
-    path = write_user_scene(tmp_path / "user", shapes=BODY + metal.replace(f'value="{FLOOR_Y}"', 'value="0.3"') + screen + glowing)
-    code, lines = run(["from-scene", path, "--out", tmp_path / "stage"], capsys)
-    assert code == 0, lines
-    notes = (tmp_path / "stage" / "notes.md").read_text()
-    assert "the BSDF of shape 'floor' reflects 96% of the light it receives glossily" in notes
-    assert "shape 'screen' lets light through in your scene (an opacity mask, glass); in the stage it is opaque" in notes
-    assert "shape 'floor' lets light through" not in notes and "the BSDF of shape 'screen' reflects" not in notes
-    assert "the BSDF of shape 'glowing' reflects more light than it receives (diffuse albedo 1.5 > 1" in notes
-    assert '<rgb name="reflectance" value="1, 0.5, 0.5"/>' in (tmp_path / "stage" / "scene.xml").read_text()
 
 
 def test_a_glossy_floor_with_nan_roughness_texels_renders_finite(plugins, tmp_path):
@@ -331,3 +308,82 @@ def test_a_glossy_floor_with_nan_roughness_texels_renders_finite(plugins, tmp_pa
     np.testing.assert_array_equal(type(op).load(tmp_path / "op.npz", op.num_texels, op.rays).set_hits.glossy, op.set_hits.glossy)
     image = rel.render(2, 0, uniform_pattern(rel.ls.stage, 0.5)).image
     assert np.isfinite(image).all() and image[..., :3].sum() > 0
+
+
+def test_from_scene_carries_each_set_shapes_own_bsdf(plugins, tmp_path, capsys):
+    """`from-scene` writes each set shape's own BSDF into the stage as the user's file has it: a metal floor whose
+    roughness is a <default> parameter, a coat defined once and referred to, a texture beside the scene (copied into the
+    stage's set/ folder, brighter than 1 as the user's is). A shape the file does not name (no id) gets a diffuse
+    stand-in, said with what it leaves out (its glossy light); a half-transparent screen is said to be opaque."""
+    from gra_mi.capture.scene_stage import set_material
+    from gra_mi.core.io import write_exr
+    from gra_mi.stage.scene import LightstageScene
+
+    from .test_bad_input import run
+    from .test_from_scene import write_user_scene
+    from .test_scene_set import BODY
+
+    place = '<transform name="to_world"><scale value="0.1"/><translate x="{}" y="0.9"/></transform>'
+    shapes = [
+        '<default name="rough" value="0.3"/><bsdf type="roughplastic" id="coat"><float name="alpha" value="0.2"/></bsdf>',
+        _floor('<bsdf type="roughconductor"><float name="alpha" value="$rough"/></bsdf>').replace(f'value="{FLOOR_Y}"', 'value="0.3"'),
+        f'<shape type="cube" id="crate">{place.format(0.8)}<ref id="coat"/></shape>',
+        f'<shape type="rectangle" id="glowing">{place.format(-0.8)}<bsdf type="diffuse"><texture type="bitmap" name="reflectance">'
+        '<string name="filename" value="bright.exr"/></texture></bsdf></shape>',
+        f'<shape type="rectangle" id="screen">{place.format(0.5)}<bsdf type="mask"><float name="opacity" value="0.5"/><bsdf type="diffuse"/></bsdf></shape>',
+        f'<shape type="rectangle">{place.format(-0.5)}<bsdf type="roughconductor"/></shape>',
+    ]  # fmt: skip
+    (tmp_path / "user").mkdir()
+    write_exr(tmp_path / "user" / "bright.exr", np.tile(np.float32([1.5, 0.5, 0.5]), (4, 4, 1)))
+    path = write_user_scene(tmp_path / "user", shapes=BODY + "".join(shapes))
+    code, lines = run(["from-scene", path, "--out", tmp_path / "stage"], capsys)
+    assert code == 0, lines
+    notes, xml = ((tmp_path / "stage" / name).read_text() for name in ("notes.md", "scene.xml"))
+    named = dict(re.findall(r"kept as the set: shape '(\w+)' \((set_\d+) in scene.xml, with its own BSDF\)", notes))
+    assert sorted(named) == ["crate", "floor", "glowing", "screen"], notes
+    assert "the BSDF of a Rectangle shape is not carried into scene.xml (its element is not in the scene file itself" in notes
+    assert re.search(r"the BSDF of a Rectangle shape reflects (99|100)% of the light it receives glossily", notes)
+    assert "shape 'screen' lets light through in your scene (an opacity mask, glass); in the stage it is opaque" in notes
+    assert "more light than it receives" not in notes  # (the texture is carried as it is)
+    assert 'type="roughplastic"' in xml and 'id="coat"' not in xml and "$rough" not in xml
+    assert (tmp_path / "stage" / "set" / f"{named['glowing']}_000_bright.exr").is_file()
+    ls = LightstageScene.load(tmp_path / "stage" / "scene.xml")
+    found = {s.id(): set_material(ls.scene, s) for s in ls.scene.shapes() if s.id() != "subject"}
+    assert found[named["floor"]][2] > 0.9 and 0.03 < found[named["crate"]][2] < 0.2  # a metal's, a coat's glossy light
+    np.testing.assert_allclose(found[named["glowing"]][0], (1.5, 0.5, 0.5), rtol=1e-4)
+
+
+def test_a_set_bsdf_that_cannot_be_carried_says_why(llvm_variant, tmp_path):
+    """Each way a set shape's BSDF element cannot be carried gives its reason (the stand-in then takes its place): a
+    <ref> to nothing, <ref>s in a cycle, a parameter without a default, a texture that is not there, a BSDF Mitsuba
+    refuses. A shape with no BSDF gets none (Mitsuba's default diffuse, which the stand-in is); two shapes that share
+    one by <ref> each carry a copy without its id; an absolute texture path is found where it is."""
+    from gra_mi.capture.scene_bsdf import CarriedBSDF, carried_bsdf
+    from gra_mi.core.io import write_exr
+
+    write_exr(tmp_path / "tex.exr", np.full((2, 2, 3), 0.5, np.float32))
+    cases = {
+        "nothing": '<shape type="sphere" id="a"><ref id="missing"/></shape>',
+        "cycle": '<texture type="checkerboard" id="t1"><ref name="color0" id="t2"/></texture>'
+        '<texture type="checkerboard" id="t2"><ref name="color0" id="t1"/></texture>'
+        '<shape type="sphere" id="a"><bsdf type="diffuse"><ref name="reflectance" id="t1"/></bsdf></shape>',
+        "parameter": '<shape type="sphere" id="a"><bsdf type="roughconductor"><float name="alpha" value="$alpha"/></bsdf></shape>',
+        "file": '<shape type="sphere" id="a"><bsdf type="diffuse"><texture type="bitmap" name="reflectance">'
+        '<string name="filename" value="gone.exr"/></texture></bsdf></shape>',
+        "refused": '<shape type="sphere" id="a"><bsdf type="no_such_bsdf"/></shape>',
+        "none": '<shape type="sphere" id="a"/>',
+        "shared": f'<bsdf type="diffuse" id="b"><texture type="bitmap" name="reflectance"><string name="filename" value="{tmp_path / "tex.exr"}"/>'
+        '</texture></bsdf><shape type="sphere" id="a"><ref id="b"/></shape><shape type="sphere" id="c"><ref id="b"/></shape>',
+    }  # fmt: skip
+    found = {}
+    for name, body in cases.items():
+        (tmp_path / f"{name}.xml").write_text(f'<scene version="3.0.0">{body}</scene>')
+        found[name] = carried_bsdf(tmp_path / f"{name}.xml", "a", {})
+    assert "refers to 'missing', which the scene file does not define" in found["nothing"]
+    assert "cycle" in found["cycle"] and "$alpha" in found["parameter"] and "gone.exr, which is not found" in found["file"]
+    assert found["refused"].startswith("Mitsuba could not load it alone")
+    assert found["none"] is None
+    shared = [found["shared"], carried_bsdf(tmp_path / "shared.xml", "c", {})]
+    assert all(isinstance(c, CarriedBSDF) and 'id="b"' not in c.xml() for c in shared)
+    assert list(shared[0].files.values()) == [(tmp_path / "tex.exr").resolve()]
+    assert isinstance(carried_bsdf(tmp_path / "parameter.xml", "a", {"alpha": "0.2"}), CarriedBSDF)  # a --define

@@ -106,7 +106,7 @@ def read_mitsuba(folder: Path, options: MitsubaOptions, lighting: Path) -> Sourc
     scene = load_scene_file(path)
     rig = scene_rig(scene, path)
     cameras, leds, intensities, _ = rig
-    set_shapes, notes = scene_set(scene, subject_shape(scene, path)[1])
+    set_shapes, notes = scene_set(scene, subject_shape(scene, path)[1], (path, {}))
     for note in notes:
         logger.info("%s: %s", path, note)
     names = [c.name for c in cameras]

@@ -16,6 +16,7 @@ the user's scene.
 from __future__ import annotations
 
 import json
+import shutil
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from gra_mi.capture.placement import generate_atlas
+from gra_mi.capture.scene_bsdf import CarriedBSDF, carried_bsdf
 from gra_mi.capture.source import ImportConfig
 from gra_mi.capture.source_files import one_uv_tile
 from gra_mi.core.config import comma_list
@@ -64,9 +66,13 @@ class SetShape:
     to_world: np.ndarray | None = None  # (4, 4)
     reflectance: tuple = (0.5, 0.5, 0.5)  # its BSDF's diffuse albedo, the mean over its surface and directions (set_material)
     two_sided: bool = False  # whether its BSDF reflects from both sides
-    glossy: float = 0.0  # the mean albedo of its BSDF's other lobes: light the set does not reflect onto the subject
+    glossy: float = 0.0  # the mean albedo of its BSDF's other lobes
+    carried: CarriedBSDF | None = None  # its own BSDF from the scene file; None: the diffuse stand-in above
 
-    def bsdf_xml(self) -> str:
+    def bsdf_xml(self, files_at: str = "") -> str:
+        """Its own BSDF (its files named ``files_at`` + their name), or a diffuse stand-in of its mean diffuse albedo."""
+        if self.carried is not None:
+            return self.carried.xml(lambda name: f"{files_at}{name}")
         rgb = ", ".join(f"{v:.6g}" for v in self.reflectance)
         diffuse = f'<bsdf type="diffuse"><rgb name="reflectance" value="{rgb}"/></bsdf>'
         return f'<bsdf type="twosided">{diffuse}</bsdf>' if self.two_sided else diffuse
@@ -138,7 +144,7 @@ def stage_from_scene(
     rig = scene_rig(scene, path)
     cameras, positions, intensities, _ = rig
     shape, others = subject_shape(scene, path)
-    set_shapes, notes = scene_set(scene, others)
+    set_shapes, notes = scene_set(scene, others, (path, {**(defines or {}), **({parameter: frames[0]} if frames else {})}))
     mesh = RawMesh.of(shape)
     faces, uvs, position_of = _layout(mesh, path, notes)
     if mesh.normals is None:
@@ -322,9 +328,11 @@ def shape_label(shape) -> str:
     return f"shape '{shape.id()}'" if shape.id() else f"a {shape.class_name()} shape"
 
 
-def scene_set(scene, others: list) -> tuple[list[SetShape], list[str]]:
+def scene_set(scene, others: list, source: tuple[Path, dict] | None = None) -> tuple[list[SetShape], list[str]]:
     """The scene's other shapes as the stage's set, as they stand at the first frame (the set stays still; a later
-    frame's is checked against it), and what is said about them: kept, or left out (a kind the set cannot hold)."""
+    frame's is checked against it), and what is said about them: kept, or left out (a kind the set cannot hold).
+    ``source``: (the scene file, its defines), whose elements give each shape its own BSDF where they can be carried
+    (:func:`~gra_mi.capture.scene_bsdf.carried_bsdf`); a diffuse stand-in otherwise."""
     import mitsuba as mi
 
     kept, notes = [], []
@@ -340,33 +348,40 @@ def scene_set(scene, others: list) -> tuple[list[SetShape], list[str]]:
                          "and cylinders), so its shadows are not in gra-mi's renders")  # fmt: skip
             continue
         rgb, two_sided, glossy = set_material(scene, shape)
-        kept.append(SetShape(shape_label(shape), *placed, tuple(min(v, 1.0) for v in rgb), two_sided, glossy))
-        notes.append(f"kept as the set: {shape_label(shape)} ({set_name(len(kept) - 1)} in scene.xml)")
-        notes += material_notes(shape, rgb, glossy)
+        carried = carried_bsdf(source[0], shape.id(), source[1]) if source else "no scene file was given"
+        own = carried if isinstance(carried, CarriedBSDF) else None
+        kept.append(SetShape(shape_label(shape), *placed, tuple(min(v, 1.0) for v in rgb), two_sided, glossy, own))
+        with_bsdf = ", with its own BSDF" if own else ""
+        notes.append(f"kept as the set: {shape_label(shape)} ({set_name(len(kept) - 1)} in scene.xml{with_bsdf})")
+        notes += material_notes(shape, rgb, glossy, carried)
     if kept:
-        notes.append("the set shadows the subject and hides it from the cameras, and reflects light onto it with two bounces; "
-                     "scene.xml gives each shape a diffuse material of its BSDF's mean diffuse albedo (a texture's mean "
-                     "colour; a plastic's diffuse lobe under its coat; a metal's none)")  # fmt: skip
+        notes.append("the set shadows the subject and hides it from the cameras, and reflects light onto it with two bounces "
+                     "(a BSDF's diffuse lobes, and its glossy lobes toward each light)")  # fmt: skip
     return kept, notes
 
 
-def material_notes(shape, rgb: tuple, glossy: float) -> list[str]:
-    """What the stage's diffuse stand-in of a set shape's BSDF leaves out, said: light it lets through, light it reflects
-    glossily (more than :data:`GLOSSY_SAID`), light beyond what it receives (a reflectance over 1, kept at 1)."""
+def material_notes(shape, rgb: tuple, glossy: float, carried) -> list[str]:
+    """What the stage's set shape leaves out of the user's, said: light it lets through (opaque in the stage); where its
+    own BSDF is not ``carried`` (a reason), the diffuse stand-in's loss: its glossy light (more than
+    :data:`GLOSSY_SAID`), its texture's light over 1 (kept at 1)."""
     import mitsuba as mi
 
     label, notes = shape_label(shape), []
     if mi.has_flag(shape.bsdf().flags(), mi.BSDFFlags.Null | mi.BSDFFlags.Transmission):
         notes.append(f"{label} lets light through in your scene (an opacity mask, glass); in the stage it is opaque: it "
                      "shadows the subject fully and hides it from the cameras")  # fmt: skip
+    if isinstance(carried, CarriedBSDF):
+        return notes
+    if isinstance(carried, str):
+        notes.append(f"the BSDF of {label} is not carried into scene.xml ({carried}): a diffuse of its mean diffuse "
+                     f"albedo {', '.join(f'{min(v, 1.0):.3g}' for v in rgb)} stands in")  # fmt: skip
     if glossy > GLOSSY_SAID:
-        notes.append(f"the BSDF of {label} reflects {glossy:.0%} of the light it receives glossily (a metal, a coat), and "
-                     "scene.xml gives it a diffuse stand-in: its glossy light is not reflected onto the subject, which "
-                     "renders darker near it than in your scene; gra-mi evaluates a glossy BSDF a set shape holds in "
-                     "scene.xml toward each light, so put yours there to have it (docs/guides/scene-files.md)")  # fmt: skip
+        notes.append(f"the BSDF of {label} reflects {glossy:.0%} of the light it receives glossily (a metal, a coat), which "
+                     "the stand-in does not: the subject renders darker near it than in your scene; put the BSDF in "
+                     "scene.xml to have that light (docs/guides/scene-files.md)")  # fmt: skip
     if max(rgb) > 1.0:
         notes.append(f"the BSDF of {label} reflects more light than it receives (diffuse albedo {max(rgb):.3g} > 1, not a "
-                     "physical material): the stage keeps 1")  # fmt: skip
+                     "physical material): the stand-in keeps 1")  # fmt: skip
     return notes
 
 
@@ -529,16 +544,19 @@ def write_set(shapes: list[SetShape], folder: Path, to_stage: np.ndarray | None 
     """The scene.xml elements of the set ``shapes`` (ids of gra-mi's own: a user's id may be any text), its meshes
     written as ``folder``/set_NNN.ply (a rerun's old ones removed). ``to_stage``: a 4 × 4 rigid transform (and scale)
     from the shapes' world to the stage's (an import's world frame); None: as they are."""
-    for old in folder.glob("set_*.ply"):
+    for old in folder.glob("set_*"):  # (meshes and the files of carried BSDFs)
         old.unlink()
     m = np.eye(4) if to_stage is None else np.asarray(to_stage, np.float64)
     elements = []
     for i, shape in enumerate(shapes):
         name = set_name(i)
+        for file_name, source in (shape.carried.files if shape.carried else {}).items():
+            folder.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(source, folder / f"{name}_{file_name}")
         if shape.mesh is None:
             matrix = " ".join(f"{v:.9g}" for v in (m @ shape.to_world).ravel())
             elements.append(f'<shape type="{shape.kind}" id="{name}"><transform name="to_world"><matrix value="{matrix}"/></transform>'
-                            f'{shape.bsdf_xml()}</shape>')  # fmt: skip
+                            f'{shape.bsdf_xml(f"{folder.name}/{name}_")}</shape>')  # fmt: skip
             continue
         mesh = shape.mesh
         folder.mkdir(parents=True, exist_ok=True)
@@ -548,7 +566,7 @@ def write_set(shapes: list[SetShape], folder: Path, to_stage: np.ndarray | None 
         write_ply(folder / f"{name}.ply", mesh.vertices @ m[:3, :3].T + m[:3, 3], normals, uvs, mesh.faces)
         flat = "true" if mesh.normals is None else "false"  # a cube's faces stay flat
         elements.append(f'<shape type="ply" id="{name}"><string name="filename" value="{folder.name}/{name}.ply"/>'
-                        f'<boolean name="face_normals" value="{flat}"/>{shape.bsdf_xml()}</shape>')  # fmt: skip
+                        f'<boolean name="face_normals" value="{flat}"/>{shape.bsdf_xml(f"{folder.name}/{name}_")}</shape>')  # fmt: skip
     return "\n    ".join(elements)
 
 

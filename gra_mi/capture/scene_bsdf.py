@@ -1,0 +1,126 @@
+"""A set shape's own BSDF, carried from the user's scene file into the stage's ``scene.xml`` (``from-scene``, ``import
+mitsuba``): Mitsuba cannot write a loaded BSDF back as XML, so the shape's element is taken from the file as the user
+wrote it. Its ``<ref>``s are inlined, its ``$names`` replaced by the file's ``<default>``s and the command's
+``--define``s, and the files it reads (textures) found as Mitsuba finds them, to be copied beside the stage. What
+cannot be carried (a shape without an id, one from an ``<include>``d file, a file that is missing) is said, and a
+diffuse stand-in takes its place (:func:`gra_mi.capture.scene_stage.set_material`).
+"""
+
+from __future__ import annotations
+
+import copy
+import re
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass, field
+from pathlib import Path
+
+MAX_REF_DEPTH = 16  # <ref>s inside <ref>s: deeper is a cycle
+
+
+@dataclass
+class CarriedBSDF:
+    """A BSDF element ready for the stage's scene.xml, and the files it reads (each written as ``set/<name>``)."""
+
+    element: ET.Element
+    files: dict[str, Path] = field(default_factory=dict)  # the name in the stage's set folder → the user's file
+
+    def xml(self, where=None) -> str:
+        """The element, each file named ``where(name)`` (a path relative to scene.xml; default: the user's own file)."""
+        element = copy.deepcopy(self.element)
+        for node in element.iter():
+            if node.get("name") == "filename" and node.get("value") in self.files:
+                node.set("value", str(where(node.get("value")) if where else self.files[node.get("value")]))
+        return ET.tostring(element, encoding="unicode")
+
+    def loads(self) -> str | None:
+        """None where Mitsuba loads the element as it is; otherwise its error."""
+        import mitsuba as mi
+
+        element = ET.fromstring(self.xml())
+        element.set("version", "3.0.0")
+        try:
+            mi.load_string(ET.tostring(element, encoding="unicode"))
+        except Exception as error:  # Mitsuba raises RuntimeError, and others from its plugins
+            return f"Mitsuba could not load it alone: {str(error).splitlines()[-1][:200]}"
+        return None
+
+
+def carried_bsdf(scene_file: Path, shape_id: str, defines: dict[str, str]) -> CarriedBSDF | str | None:
+    """The BSDF the user's ``scene_file`` gives the shape ``shape_id``; None where it gives none (Mitsuba's default
+    diffuse, which the stand-in is exactly); otherwise why it cannot be carried."""
+    try:
+        root = ET.parse(scene_file).getroot()
+    except (OSError, ET.ParseError) as error:
+        return f"its scene file could not be read again ({error})"
+    shapes = [s for s in root.iter("shape") if s.get("id") == shape_id]
+    if len(shapes) != 1:
+        return "its element is not in the scene file itself: it has no id, or comes from an <include>d file"
+    by_id = {node.get("id"): node for node in root.iter() if node.get("id") and node.tag != "ref"}
+    try:
+        bsdf = _own_bsdf(shapes[0], by_id)
+        element = None if bsdf is None else _inlined(bsdf, by_id, 0)
+    except ValueError as error:
+        return str(error)
+    if element is None:
+        return None
+    defaults = {d.get("name"): d.get("value", "") for d in root.iter("default")} | dict(defines)
+    files: dict[str, Path] = {}
+    for node in element.iter():
+        node.attrib.pop("id", None)  # (two shapes may share it: ids must stay unique in scene.xml)
+        for key, value in node.attrib.items():
+            node.set(key, _substituted(value, defaults))
+        unknown = re.findall(r"[$]\w+", "".join(node.attrib.values()))
+        if unknown:
+            return f"it uses a parameter without a default ({', '.join(unknown)})"
+        if node.get("name") == "filename" and node.get("value"):
+            found = _found(scene_file, node.get("value"))
+            if found is None:
+                return f"it reads {node.get('value')}, which is not found beside the scene file"
+            name = f"{len(files):03d}_{found.name}"
+            files[name] = found
+            node.set("value", name)
+    carried = CarriedBSDF(element, files)
+    return carried.loads() or carried
+
+
+def _own_bsdf(shape: ET.Element, by_id: dict[str, ET.Element]) -> ET.Element | None:
+    """The shape's ``<bsdf>`` child, or the ``<bsdf>`` its ``<ref>`` names; None: it has none."""
+    for child in shape:
+        target = by_id.get(child.get("id", "")) if child.tag == "ref" else child
+        if target is None:
+            raise ValueError(f"it refers to '{child.get('id')}', which the scene file does not define")
+        if target.tag == "bsdf":
+            return target
+    return None
+
+
+def _inlined(node: ET.Element, by_id: dict[str, ET.Element], depth: int) -> ET.Element:
+    """A copy of ``node`` with every ``<ref id=…>`` inside it replaced by a copy of the object it names (its ``name``
+    kept)."""
+    if depth > MAX_REF_DEPTH:
+        raise ValueError("its <ref>s refer to each other in a cycle")
+    out = ET.Element(node.tag, dict(node.attrib))
+    for child in node:
+        if child.tag == "ref":
+            target = by_id.get(child.get("id", ""))
+            if target is None:
+                raise ValueError(f"it refers to '{child.get('id')}', which the scene file does not define")
+            inlined = _inlined(target, by_id, depth + 1)
+            if child.get("name"):
+                inlined.set("name", child.get("name"))
+            out.append(inlined)
+        else:
+            out.append(_inlined(child, by_id, depth))
+    return out
+
+
+def _substituted(value: str, defaults: dict[str, str]) -> str:
+    for name in sorted(defaults, key=len, reverse=True):  # ($frame before $f)
+        value = value.replace(f"${name}", defaults[name])
+    return value
+
+
+def _found(scene_file: Path, value: str) -> Path | None:
+    """A file a scene names, as Mitsuba finds it: as given where absolute, else beside the scene file."""
+    path = Path(value) if Path(value).is_absolute() else scene_file.parent / value
+    return path.resolve() if path.is_file() else None
