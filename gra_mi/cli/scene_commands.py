@@ -148,12 +148,13 @@ class FromSceneCommand(Restartable):
     scene: Path = field(metadata=option(positional=True))
     """Your Mitsuba 3 scene: perspective sensors (the cameras), point emitters (the LEDs: their intensities become
     lighting.json), a mesh with texture coordinates (the shape id="subject", or the only shape); its other shapes (a floor,
-    props) become the stage's set, which shadows the subject and hides it."""
+    props) become the stage's set, with their own BSDFs, which shadows the subject, hides it and (with --bounces 2)
+    reflects light onto it."""
     define: list[str] = field(default_factory=list, metadata=option(flag="-D", repeat=True, metavar="NAME=VALUE"))
     """Set a parameter the scene declares or uses, as Mitsuba's own tool takes it (repeatable)."""
     out: Path
     """Folder to write: scene.xml, rig/, subject/, lighting.json, albedo.exr and roughness.exr (where the subject's
-    material holds them), set/ (the set's meshes), notes.md (what was kept and left out)."""
+    material holds them), set/ (the set's meshes and its BSDFs' textures), notes.md (what was kept and left out)."""
     spp: int = 64
     """Samples per pixel the written scene renders with (its `spp` parameter; `-D spp=N` changes it at render time)."""
     frames: str | None = None
