@@ -329,6 +329,7 @@ def glossy_rows(folder: Path) -> list[dict]:
                         two = Relighter(ls, 256, transport=LightTransport(bounces=2))
                         e = bounce_errors(image_one, two.render(2, cam, leds, near).image, *refs[:1] * 2)
                         hits = two.bounce_operator(2).set_hits
+                        ms = None  # (timed once per floor: under `interior`, for the first camera's job)
                         if lighting == "interior (LEDs)" and cam == CAMERAS[0]:
                             ms = (
                                 1e3

@@ -9,6 +9,7 @@ diffuse stand-in takes its place (:func:`gra_mi.capture.scene_stage.set_material
 from __future__ import annotations
 
 import copy
+import functools
 import re
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
@@ -49,13 +50,13 @@ def carried_bsdf(scene_file: Path, shape_id: str, defines: dict[str, str]) -> Ca
     """The BSDF the user's ``scene_file`` gives the shape ``shape_id``; None where it gives none (Mitsuba's default
     diffuse, which the stand-in is exactly); otherwise why it cannot be carried."""
     try:
-        root = ET.parse(scene_file).getroot()
+        stat = Path(scene_file).stat()
+        root, by_id = _parsed(Path(scene_file).resolve(), stat.st_mtime_ns, stat.st_size)
     except (OSError, ET.ParseError) as error:
         return f"its scene file could not be read again ({error})"
     shapes = [s for s in root.iter("shape") if s.get("id") == shape_id]
     if len(shapes) != 1:
         return "its element is not in the scene file itself: it has no id, or comes from an <include>d file"
-    by_id = {node.get("id"): node for node in root.iter() if node.get("id") and node.tag != "ref"}
     try:
         bsdf = _own_bsdf(shapes[0], by_id)
         element = None if bsdf is None else _inlined(bsdf, by_id, 0)
@@ -81,6 +82,14 @@ def carried_bsdf(scene_file: Path, shape_id: str, defines: dict[str, str]) -> Ca
             node.set("value", name)
     carried = CarriedBSDF(element, files)
     return carried.loads() or carried
+
+
+@functools.lru_cache(maxsize=4)
+def _parsed(path: Path, mtime_ns: int, size: int) -> tuple[ET.Element, dict[str, ET.Element]]:
+    """The scene file's elements and its objects by id, parsed once for all its set shapes (an edited file again;
+    never changed here: :func:`_inlined` copies what it takes)."""
+    root = ET.parse(path).getroot()
+    return root, {node.get("id"): node for node in root.iter() if node.get("id") and node.tag != "ref"}
 
 
 def _own_bsdf(shape: ET.Element, by_id: dict[str, ET.Element]) -> ET.Element | None:
