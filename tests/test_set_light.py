@@ -313,8 +313,10 @@ def test_a_glossy_floor_with_nan_roughness_texels_renders_finite(plugins, tmp_pa
 def test_from_scene_carries_each_set_shapes_own_bsdf(plugins, tmp_path, capsys):
     """`from-scene` writes each set shape's own BSDF into the stage as the user's file has it: a metal floor whose
     roughness is a <default> parameter, a coat defined once and referred to, a texture beside the scene (copied into the
-    stage's set/ folder, brighter than 1 as the user's is). A shape the file does not name (no id) gets a diffuse
-    stand-in, said with what it leaves out (its glossy light); a half-transparent screen is said to be opaque."""
+    stage's set/ folder, brighter than 1 as the user's is), a sphere without an id (found by its place). Two id-less
+    rectangles in one place with different BSDFs cannot be told apart: each gets a diffuse stand-in, said, as does a
+    metal rectangle from an <include>d file, with what it leaves out (its glossy light); a half-transparent screen is
+    said to be opaque."""
     from gra_mi.capture.scene_stage import set_material
     from gra_mi.core.io import write_exr
     from gra_mi.stage.scene import LightstageScene
@@ -331,17 +333,24 @@ def test_from_scene_carries_each_set_shapes_own_bsdf(plugins, tmp_path, capsys):
         f'<shape type="rectangle" id="glowing">{place.format(-0.8)}<bsdf type="diffuse"><texture type="bitmap" name="reflectance">'
         '<string name="filename" value="bright.exr"/></texture></bsdf></shape>',
         f'<shape type="rectangle" id="screen">{place.format(0.5)}<bsdf type="mask"><float name="opacity" value="0.5"/><bsdf type="diffuse"/></bsdf></shape>',
-        f'<shape type="rectangle">{place.format(-0.5)}<bsdf type="roughconductor"/></shape>',
+        f'<shape type="sphere">{place.format(0.2)}<bsdf type="roughconductor"><float name="alpha" value="0.4"/></bsdf></shape>',
+        f'<shape type="rectangle">{place.format(-0.5)}<bsdf type="diffuse"/></shape>',
+        f'<shape type="rectangle">{place.format(-0.5)}<bsdf type="plastic"/></shape>',
+        '<include filename="included.xml"/>',
     ]  # fmt: skip
     (tmp_path / "user").mkdir()
     write_exr(tmp_path / "user" / "bright.exr", np.tile(np.float32([1.5, 0.5, 0.5]), (4, 4, 1)))
+    included = f'<shape type="rectangle">{place.format(-0.2)}<bsdf type="roughconductor"/></shape>'
+    (tmp_path / "user" / "included.xml").write_text(f'<scene version="3.0.0">{included}</scene>')
     path = write_user_scene(tmp_path / "user", shapes=BODY + "".join(shapes))
     code, lines = run(["from-scene", path, "--out", tmp_path / "stage"], capsys)
     assert code == 0, lines
     notes, xml = ((tmp_path / "stage" / name).read_text() for name in ("notes.md", "scene.xml"))
     named = dict(re.findall(r"kept as the set: shape '(\w+)' \((set_\d+) in scene.xml, with its own BSDF\)", notes))
     assert sorted(named) == ["crate", "floor", "glowing", "screen"], notes
-    assert "the BSDF of a Rectangle shape is not carried into scene.xml (its element is not in the scene file itself" in notes
+    assert "kept as the set: a Sphere shape (set_" in notes and '<float name="alpha" value="0.4"' in xml
+    assert notes.count("the BSDF of a Rectangle shape is not carried into scene.xml (2 shapes without an id") == 2
+    assert "not carried into scene.xml (its element is not in the scene file itself: it comes from an <include>d" in notes
     assert re.search(r"the BSDF of a Rectangle shape reflects (99|100)% of the light it receives glossily", notes)
     assert "shape 'screen' lets light through in your scene (an opacity mask, glass); in the stage it is opaque" in notes
     assert "more light than it receives" not in notes  # (the texture is carried as it is)

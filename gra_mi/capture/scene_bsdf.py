@@ -1,9 +1,11 @@
 """A set shape's own BSDF, carried from the user's scene file into the stage's ``scene.xml`` (``from-scene``, ``import
 mitsuba``): Mitsuba cannot write a loaded BSDF back as XML, so the shape's element is taken from the file as the user
-wrote it. Its ``<ref>``s are inlined, its ``$names`` replaced by the file's ``<default>``s and the command's
-``--define``s, and the files it reads (textures) found as Mitsuba finds them, to be copied beside the stage. What
-cannot be carried (a shape without an id, one from an ``<include>``d file, a file that is missing) is said, and a
-diffuse stand-in takes its place (:func:`gra_mi.capture.scene_stage.set_material`).
+wrote it. A shape is found there by its id, or, without one, as the one id-less shape of the file that loads alone as
+the same kind of shape in the same place. Its ``<ref>``s are inlined, its ``$names`` replaced by the file's
+``<default>``s and the command's ``--define``s, and the files it reads (textures) found as Mitsuba finds them, to be
+copied beside the stage. What cannot be carried (a shape from an ``<include>``d file, id-less twins in one place with
+different BSDFs, a file that is missing) is said, and a diffuse stand-in takes its place
+(:func:`gra_mi.capture.scene_stage.set_material`).
 """
 
 from __future__ import annotations
@@ -14,6 +16,8 @@ import re
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
+
+import numpy as np
 
 MAX_REF_DEPTH = 16  # <ref>s inside <ref>s: deeper is a cycle
 
@@ -46,25 +50,24 @@ class CarriedBSDF:
         return None
 
 
-def carried_bsdf(scene_file: Path, shape_id: str, defines: dict[str, str]) -> CarriedBSDF | str | None:
-    """The BSDF the user's ``scene_file`` gives the shape ``shape_id``; None where it gives none (Mitsuba's default
-    diffuse, which the stand-in is exactly); otherwise why it cannot be carried."""
+def carried_bsdf(scene_file: Path, shape, defines: dict[str, str]) -> CarriedBSDF | str | None:
+    """The BSDF the user's ``scene_file`` gives ``shape`` (a loaded Mitsuba shape, or the id of one); None where it
+    gives none (Mitsuba's default diffuse, which the stand-in is exactly); otherwise why it cannot be carried."""
     try:
         stat = Path(scene_file).stat()
         root, by_id = _parsed(Path(scene_file).resolve(), stat.st_mtime_ns, stat.st_size)
     except (OSError, ET.ParseError) as error:
         return f"its scene file could not be read again ({error})"
-    shapes = [s for s in root.iter("shape") if s.get("id") == shape_id]
-    if len(shapes) != 1:
-        return "its element is not in the scene file itself: it has no id, or comes from an <include>d file"
+    defaults = {d.get("name"): d.get("value", "") for d in root.iter("default")} | dict(defines)
     try:
-        bsdf = _own_bsdf(shapes[0], by_id)
+        key = (Path(scene_file).resolve(), stat.st_mtime_ns, stat.st_size, tuple(sorted(defaults.items())))
+        element = _shape_element(key, root, by_id, shape)
+        bsdf = _own_bsdf(element, by_id)
         element = None if bsdf is None else _inlined(bsdf, by_id, 0)
     except ValueError as error:
         return str(error)
     if element is None:
         return None
-    defaults = {d.get("name"): d.get("value", "") for d in root.iter("default")} | dict(defines)
     files: dict[str, Path] = {}
     for node in element.iter():
         node.attrib.pop("id", None)  # (two shapes may share it: ids must stay unique in scene.xml)
@@ -90,6 +93,62 @@ def _parsed(path: Path, mtime_ns: int, size: int) -> tuple[ET.Element, dict[str,
     never changed here: :func:`_inlined` copies what it takes)."""
     root = ET.parse(path).getroot()
     return root, {node.get("id"): node for node in root.iter() if node.get("id") and node.tag != "ref"}
+
+
+def _shape_element(key: tuple, root: ET.Element, by_id: dict, shape) -> ET.Element:
+    """The element of ``shape`` in the file: by its id; without one, the file's one id-less top-level shape (not one of a
+    shapegroup) that loads alone as the same kind of shape with the same bounds. Id-less twins (the same kind, the same
+    place) do, where their BSDFs are written alike."""
+    shape_id = shape if isinstance(shape, str) else shape.id()
+    if shape_id:
+        found = [s for s in root.iter("shape") if s.get("id") == shape_id]
+        if len(found) != 1:
+            raise ValueError("its element is not in the scene file itself: it comes from an <include>d file")
+        return found[0]
+    seen = (shape.class_name(), *shape.bbox().min, *shape.bbox().max)
+    twins = [s for s, placed in _id_less_places(*key) if _same_place(placed, seen)]
+    if not twins:
+        raise ValueError("its element is not in the scene file itself: it comes from an <include>d file")
+    written = {ET.tostring(_inlined(b, by_id, 0)) if (b := _own_bsdf(s, by_id)) is not None else b"" for s in twins}
+    if len(written) > 1:
+        raise ValueError(f"{len(twins)} shapes without an id in the scene file are of its kind in its place, with "
+                         "different BSDFs: give each an id")  # fmt: skip
+    return twins[0]
+
+
+@functools.lru_cache(maxsize=4)
+def _id_less_places(path: Path, mtime_ns: int, size: int, defaults: tuple) -> list[tuple[ET.Element, tuple | None]]:
+    """Each id-less top-level shape element of the file, and where it is (:func:`_placed`): loaded once per file."""
+    root = _parsed(path, mtime_ns, size)[0]
+    return [(s, _placed(s, path, dict(defaults))) for s in root.findall("shape") if not s.get("id")]
+
+
+def _placed(element: ET.Element, scene_file: Path, defaults: dict) -> tuple | None:
+    """(class name, bounds) of the shape ``element`` loaded alone (its own parameters, no BSDF); None where it does not
+    load so."""
+    import mitsuba as mi
+
+    alone = ET.Element("shape", dict(element.attrib))
+    for child in element:
+        if child.tag not in ("bsdf", "ref", "emitter", "medium", "texture"):
+            alone.append(copy.deepcopy(child))
+    for node in alone.iter():
+        for key, value in node.attrib.items():
+            node.set(key, _substituted(value, defaults))
+        if node.get("name") == "filename" and node.get("value"):
+            node.set("value", str(_found(scene_file, node.get("value")) or node.get("value")))
+    try:
+        loaded = mi.load_string(f'<scene version="3.0.0">{ET.tostring(alone, encoding="unicode")}</scene>').shapes()[0]
+    except Exception:  # Mitsuba raises RuntimeError, and others from its plugins: this element is not the shape
+        return None
+    return (loaded.class_name(), *loaded.bbox().min, *loaded.bbox().max)
+
+
+def _same_place(placed: tuple | None, seen: tuple) -> bool:
+    if placed is None or placed[0] != seen[0]:
+        return False
+    a, b = np.array(placed[1:], np.float64), np.array(seen[1:], np.float64)
+    return bool(np.allclose(a, b, rtol=1e-5, atol=1e-5 * max(1.0, float(np.abs(b).max()))))
 
 
 def _own_bsdf(shape: ET.Element, by_id: dict[str, ET.Element]) -> ET.Element | None:

@@ -348,7 +348,7 @@ def scene_set(scene, others: list, source: tuple[Path, dict] | None = None) -> t
                          "and cylinders), so its shadows are not in gra-mi's renders")  # fmt: skip
             continue
         rgb, two_sided, glossy = set_material(scene, shape)
-        carried = carried_bsdf(source[0], shape.id(), source[1]) if source else "no scene file was given"
+        carried = carried_bsdf(source[0], shape, source[1]) if source else "no scene file was given"
         own = carried if isinstance(carried, CarriedBSDF) else None
         kept.append(SetShape(shape_label(shape), *placed, tuple(min(v, 1.0) for v in rgb), two_sided, glossy, own))
         with_bsdf = ", with its own BSDF" if own else ""
