@@ -101,7 +101,7 @@ def test_a_bounce_cache_traced_with_one_floor_colour_is_not_served_with_another(
 def test_from_scene_gives_the_set_its_own_colours(plugins, tmp_path, capsys):
     """The set reflects light now, so ``from-scene`` carries each set shape's own BSDF into the stage (a checkerboard
     texture as it is, a two-sided diffuse), not a grey one: the stage's floor reflects as the user's does."""
-    from gra_mi.capture.scene_stage import set_material
+    from gra_mi.capture.set_albedo import set_material
     from gra_mi.stage.scene import LightstageScene
 
     from .test_bad_input import run
@@ -185,7 +185,7 @@ def test_a_set_texture_with_nan_texels_gives_the_mean_of_the_others(llvm_variant
     """A user's floor texture with a NaN texel: its colour is the mean of the finite ones, never "nan" in scene.xml."""
     import mitsuba as mi
 
-    from gra_mi.capture.scene_stage import set_material
+    from gra_mi.capture.set_albedo import set_material
     from gra_mi.core.io import write_exr
 
     texture = np.full((8, 8, 3), 0.4, np.float32)
@@ -317,7 +317,7 @@ def test_from_scene_carries_each_set_shapes_own_bsdf(plugins, tmp_path, capsys):
     rectangles in one place with different BSDFs cannot be told apart: each gets a diffuse stand-in, said, as does a
     metal rectangle from an <include>d file, with what it leaves out (its glossy light); a half-transparent screen is
     said to be opaque."""
-    from gra_mi.capture.scene_stage import set_material
+    from gra_mi.capture.set_albedo import set_material
     from gra_mi.core.io import write_exr
     from gra_mi.stage.scene import LightstageScene
 

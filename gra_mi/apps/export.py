@@ -105,10 +105,12 @@ def off_centre_cameras(cameras: list) -> list[str]:
 def export_avatar(
     out: Path, seq: MeshSequence, albedo: np.ndarray, roughness: np.ndarray, frames: list[int] | None = None,
     rig: Lightstage | None = None, envmap: np.ndarray | None = None, led_intensities: np.ndarray | None = None,
+    set_parts: list | None = None,
 ) -> ExportReport:  # fmt: skip
     """Write ``out`` in the format its suffix names and validate it. ``frames``: the sequence's frames to export, in
     order (default: all). The rig's cameras and its lit LEDs travel in both formats; an environment map in USD only
-    (glTF's punctual lights cannot hold one): asking for it in a .glb is an error, not a silent drop."""
+    (glTF's punctual lights cannot hold one): asking for it in a .glb is an error, not a silent drop. ``set_parts``: a
+    scene's set (:func:`gra_mi.apps.set_export.read_set`), in both formats."""
     if frames is not None and not frames:
         raise GraMiParameterError("frames", "selects no frame")
     if frames is not None and (bad := [f for f in frames if not 0 <= f < seq.num_frames]):
@@ -119,11 +121,11 @@ def export_avatar(
             raise GraMiInputError(out, "glTF has no environment light: export the environment map to .usd* (a DomeLight)")
         leds = None if led_intensities is None else (rig.led_positions, led_intensities)
         cameras = rig.cameras if rig is not None else None
-        report = validate_glb(export_glb(out, seq, albedo, roughness, frames, cameras, leds))
+        report = validate_glb(export_glb(out, seq, albedo, roughness, frames, cameras, leds, set_parts))
         return replace(report, warnings=report.warnings + off_centre_cameras(cameras or []))
     if suffix not in USD_SUFFIXES:
         raise GraMiInputError(out, f"unknown format '{suffix}': expected one of {', '.join(USD_SUFFIXES + GLTF_SUFFIXES)}")
     lighting = None
     if envmap is not None or led_intensities is not None:
         lighting = UsdLighting(envmap=envmap, stage=rig, led_intensities=led_intensities)
-    return validate_usd(export_usd(out, seq, albedo, roughness, frames, rig.cameras if rig is not None else None, lighting))
+    return validate_usd(export_usd(out, seq, albedo, roughness, frames, rig.cameras if rig is not None else None, lighting, set_parts))

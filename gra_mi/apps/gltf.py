@@ -5,6 +5,8 @@
   metallic 0 in B. glTF's roughness is perceptual (α = r²), the same convention as gra-mi's;
 - the other frames as morph targets (position and normal deltas), with an animation that steps through them at the
   sequence's frame rate;
+- optionally a scene's set (a floor, walls, props; :mod:`gra_mi.apps.set_export`) as static meshes, each with a
+  constant double-sided metallic-roughness material;
 - optionally a rig's cameras (perspective, looking along −Z with +Y up as glTF's do; glTF has no principal point, so
   a camera whose centre is off the image's is said in the export's warnings) and the LEDs that are on as
   ``KHR_lights_punctual`` point lights, in candela: 683 lm/W × the LED's W/sr, which Blender's importer turns back
@@ -134,13 +136,30 @@ def _add_rig(gltf: dict, cameras: list[Camera], leds: tuple[np.ndarray, np.ndarr
     gltf["scenes"][0]["nodes"] += list(range(first, len(gltf["nodes"])))
 
 
+def _add_set(gltf: dict, buf: _Buffer, parts: list) -> None:
+    """The set's shapes as meshes of the scene beside the avatar, each with its own preview material."""
+    for part in parts:
+        attributes = {
+            "POSITION": buf.accessor(part.vertices, "VEC3", FLOAT, ARRAY_BUFFER, minmax=True),
+            "NORMAL": buf.accessor(part.normals, "VEC3", FLOAT, ARRAY_BUFFER),
+        }
+        indices = buf.accessor(part.faces.astype(np.uint32).reshape(-1, 1), "SCALAR", UINT, ELEMENT_ARRAY_BUFFER)
+        pbr = {"baseColorFactor": [*part.base_color, 1.0], "metallicFactor": part.metallic, "roughnessFactor": part.roughness}
+        gltf["materials"].append({"name": part.name, "pbrMetallicRoughness": pbr, "doubleSided": True})
+        primitive = {"attributes": attributes, "indices": indices, "material": len(gltf["materials"]) - 1, "mode": 4}
+        gltf["meshes"].append({"name": part.name, "primitives": [primitive]})
+        gltf["nodes"].append({"name": part.name, "mesh": len(gltf["meshes"]) - 1})
+        gltf["scenes"][0]["nodes"].append(len(gltf["nodes"]) - 1)
+
+
 def export_glb(
     path: str | Path, seq: MeshSequence, albedo: np.ndarray, roughness: np.ndarray, frames: list[int] | None = None,
-    cameras: list[Camera] | None = None, leds: tuple[np.ndarray, np.ndarray] | None = None,
+    cameras: list[Camera] | None = None, leds: tuple[np.ndarray, np.ndarray] | None = None, set_parts: list | None = None,
 ) -> Path:  # fmt: skip
     """Write ``path`` (.glb). ``frames``: the sequence's frames to animate, in order (default: all); the first is the
     mesh, the others its morph targets, and the animation's time 0 is the first (``extras.gra_mi.source_frames``).
-    ``cameras``: a rig's cameras; ``leds``: (positions, W/sr intensities (L, 3)) of a rig's LEDs under a pattern."""
+    ``cameras``: a rig's cameras; ``leds``: (positions, W/sr intensities (L, 3)) of a rig's LEDs under a pattern;
+    ``set_parts``: a scene's set (:func:`gra_mi.apps.set_export.read_set`)."""
     frames = list(range(seq.num_frames)) if frames is None else list(frames)
     check_glb_size(seq, len(frames), frames[0])
     buf = _Buffer()
@@ -195,6 +214,7 @@ def export_glb(
         mesh["weights"] = [0.0] * len(targets)
         gltf["animations"] = [_stepping_through(buf, len(frames), seq.fps)]
     gltf["nodes"][0]["extras"] = {"gra_mi": {"source_frames": frames}}  # the sequence's frame at each step
+    _add_set(gltf, buf, set_parts or [])
     _add_rig(gltf, cameras or [], leds)
     while len(buf.data) % 4:
         buf.data += b"\0"

@@ -8,6 +8,8 @@ What a pipeline TD gets (docs/export.md):
   ``UsdPreviewSurface``: ``diffuseColor`` from the albedo (16-bit PNG, ``sourceColorSpace = sRGB``), ``roughness``
   from the roughness map (16-bit PNG, ``raw``; perceptual, α = r², as gra-mi's), ``metallic`` 0 and ``ior`` 1.5, the
   specular model's F0 = 0.04.
+- ``/Set`` (optional, ``export --set``): a scene's set (a floor, walls, props) as static ``Mesh``\ es under
+  ``/Set/Geometry``, each bound to a constant ``UsdPreviewSurface`` under ``/Set/Looks`` (:mod:`gra_mi.apps.set_export`).
 - ``/Capture`` (optional): the calibration's cameras as ``Camera`` prims (focal length and apertures in millimetres
   of a 36 mm wide film; the principal point as aperture offsets), an environment map as a ``DomeLight`` (lat-long,
   OpenEXR's convention = gra-mi's, with +Y up) and the LEDs that are on under a pattern as ``SphereLight``\\ s.
@@ -129,6 +131,35 @@ def _mesh(stage, path: str, seq: MeshSequence, frames: list[int]):
     return mesh
 
 
+def _set_prims(stage, parts: list) -> None:
+    """The set's shapes as static meshes, each with its preview material (double-sided: a set shape's back may show)."""
+    from pxr import Sdf, UsdGeom, UsdShade, Vt
+
+    UsdGeom.Xform.Define(stage, "/Set")
+    UsdGeom.Xform.Define(stage, "/Set/Geometry")  # (typed: a typeless parent breaks the hierarchy for importers)
+    UsdGeom.Scope.Define(stage, "/Set/Looks")
+    for part in parts:
+        mesh = UsdGeom.Mesh.Define(stage, f"/Set/Geometry/{part.name}")
+        mesh.CreateSubdivisionSchemeAttr("none")
+        mesh.CreateOrientationAttr("rightHanded")
+        mesh.CreateDoubleSidedAttr(True)
+        mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(part.faces), 3, np.int32)))
+        mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(part.faces.ravel()))
+        mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(part.vertices))
+        mesh.CreateNormalsAttr(Vt.Vec3fArray.FromNumpy(part.normals))
+        mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
+        mesh.CreateExtentAttr(Vt.Vec3fArray.FromNumpy(np.stack([part.vertices.min(axis=0), part.vertices.max(axis=0)])))
+        material = UsdShade.Material.Define(stage, f"/Set/Looks/{part.name}")
+        surface = UsdShade.Shader.Define(stage, f"/Set/Looks/{part.name}/PreviewSurface")
+        surface.CreateIdAttr("UsdPreviewSurface")
+        surface.CreateInput("diffuseColor", Sdf.ValueTypeNames.Color3f).Set(tuple(part.base_color))
+        surface.CreateInput("roughness", Sdf.ValueTypeNames.Float).Set(part.roughness)
+        surface.CreateInput("metallic", Sdf.ValueTypeNames.Float).Set(part.metallic)
+        surface.CreateOutput("surface", Sdf.ValueTypeNames.Token)
+        material.CreateSurfaceOutput().ConnectToSource(surface.ConnectableAPI(), "surface")
+        UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(material)
+
+
 def usd_camera_parameters(camera: Camera) -> dict[str, float]:
     """USD ``Camera`` attributes for an OpenCV pinhole: a 36 mm wide film, so focal length = fx · 36 / W; the principal
     point as aperture offsets (USD's film y runs up, image rows down)."""
@@ -176,7 +207,7 @@ def _lights(stage, root: str, textures: Path, lighting: UsdLighting) -> None:
             UsdGeom.Xformable(light).AddTranslateOp().Set(Gf.Vec3d(*lighting.stage.led_positions[led].tolist()))
 
 
-def _write_stage(layer_path: Path, textures: Path, seq, albedo, roughness, frames, cameras, lighting) -> None:
+def _write_stage(layer_path: Path, textures: Path, seq, albedo, roughness, frames, cameras, lighting, set_parts) -> None:
     from pxr import Kind, Usd, UsdGeom, UsdShade
 
     stage = Usd.Stage.CreateNew(str(layer_path))
@@ -192,6 +223,8 @@ def _write_stage(layer_path: Path, textures: Path, seq, albedo, roughness, frame
     mesh = _mesh(stage, "/Avatar/Body", seq, frames)
     material = _material(stage, "/Avatar", textures, albedo, roughness)
     UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(material)
+    if set_parts:
+        _set_prims(stage, set_parts)
     if cameras or lighting is not None:
         UsdGeom.Scope.Define(stage, "/Capture")
         _cameras(stage, "/Capture", cameras or [])
@@ -207,11 +240,11 @@ def textures_beside(path: Path) -> Path:
 
 def export_usd(
     path: str | Path, seq: MeshSequence, albedo: np.ndarray, roughness: np.ndarray, frames: list[int] | None = None,
-    cameras: list[Camera] | None = None, lighting: UsdLighting | None = None,
+    cameras: list[Camera] | None = None, lighting: UsdLighting | None = None, set_parts: list | None = None,
 ) -> Path:  # fmt: skip
     """Write ``path`` (.usda / .usdc / .usd: the layer plus a ``<stem>_textures/`` folder beside it; .usdz: one package).
     ``frames``: the sequence's frames, in order, as time codes 0, 1, … (default: all); the mesh's ``gra_mi:sourceFrame``
-    says which frame each time code shows."""
+    says which frame each time code shows. ``set_parts``: a scene's set (:func:`gra_mi.apps.set_export.read_set`)."""
     path = Path(path)
     if path.suffix.lower() not in USD_SUFFIXES:
         raise GraMiInputError(path, f"not a USD file name: expected one of {', '.join(USD_SUFFIXES)}")
@@ -221,7 +254,7 @@ def export_usd(
         textures = work / ("textures" if packaged else f"{path.stem}_textures")  # unpackaged: one folder per file
         textures.mkdir()
         layer = work / ("avatar.usdc" if packaged else f"avatar{path.suffix.lower()}")
-        _write_stage(layer, textures, seq, albedo, roughness, frames, cameras, lighting)
+        _write_stage(layer, textures, seq, albedo, roughness, frames, cameras, lighting, set_parts)
         with atomic_path(path) as out:
             if packaged:  # the layer first, then its textures under their own names (USD's zip writer aligns them)
                 from pxr import Sdf

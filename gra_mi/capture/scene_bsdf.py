@@ -5,7 +5,7 @@ the same kind of shape in the same place. Its ``<ref>``s are inlined, its ``$nam
 ``<default>``s and the command's ``--define``s, and the files it reads (textures) found as Mitsuba finds them, to be
 copied beside the stage. What cannot be carried (a shape from an ``<include>``d file, id-less twins in one place with
 different BSDFs, a file that is missing) is said, and a diffuse stand-in takes its place
-(:func:`gra_mi.capture.scene_stage.set_material`).
+(:func:`gra_mi.capture.set_albedo.set_material`).
 """
 
 from __future__ import annotations

@@ -25,6 +25,7 @@ import numpy as np
 
 from gra_mi.capture.placement import generate_atlas
 from gra_mi.capture.scene_bsdf import CarriedBSDF, carried_bsdf
+from gra_mi.capture.set_albedo import set_material
 from gra_mi.capture.source import ImportConfig
 from gra_mi.capture.source_files import one_uv_tile
 from gra_mi.core.config import comma_list
@@ -383,39 +384,6 @@ def material_notes(shape, rgb: tuple, glossy: float, carried) -> list[str]:
         notes.append(f"the BSDF of {label} reflects more light than it receives (diffuse albedo {max(rgb):.3g} > 1, not a "
                      "physical material): the stand-in keeps 1")  # fmt: skip
     return notes
-
-
-def set_material(scene, shape, samples: int = 1024) -> tuple[tuple[float, float, float], bool, float]:
-    """(the mean diffuse albedo of ``shape``'s BSDF over its surface and the directions it is seen from, not clipped;
-    whether it reflects from both sides; the mean albedo of its other lobes): :func:`~gra_mi.render.bounce.albedo` at
-    points spread over the shape (found by rays, so that textures and vertex colours are read where they lie), seen from
-    cosine-distributed directions. The set reflects its diffuse light only (a glossy lobe's is left out, said)."""
-    import drjit as dr
-    import mitsuba as mi
-
-    from gra_mi.render.bounce import albedo
-    from gra_mi.render.lattice import lattice_point
-
-    i = dr.arange(mi.Float, samples)
-    ps = shape.sample_position(0.0, lattice_point(i, samples))
-    si = scene.ray_intersect(mi.Ray3f(ps.p + ps.n * 1e-3, -ps.n))
-    on_shape = si.is_valid() & (si.shape == mi.ShapePtr(shape))
-    si.wi = mi.warp.square_to_cosine_hemisphere(lattice_point(i, samples, mi.Point2f(0.5, 0.25)))  # (its front side)
-    bsdf = shape.bsdf()
-    diffuse, every = (_finite_mean(albedo(bsdf, si, on_shape, 16, only), on_shape) for only in (True, False))
-    glossy = float(max(0.0, np.mean(every) - np.mean(diffuse))) if diffuse is not None else 0.0
-    rgb = np.full(3, 0.5) if diffuse is None else np.maximum(diffuse, 0.0)
-    return tuple(float(v) for v in rgb), bool(mi.has_flag(bsdf.flags(), mi.BSDFFlags.BackSide)), glossy
-
-
-def _finite_mean(rho, on_shape) -> np.ndarray | None:
-    """The mean RGB of ``rho`` over the lanes ``on_shape`` whose values are finite (a texture's NaN or infinite texels
-    say nothing of its colour); None where there are none."""
-    import drjit as dr
-
-    rho = np.array(dr.select(on_shape, rho, 0.0), np.float64).reshape(3, -1)[:, np.array(on_shape)]  # (a constant: one wide)
-    rho = rho[:, np.isfinite(rho).all(axis=0)]
-    return rho.mean(axis=1) if rho.shape[1] else None
 
 
 def _layout(mesh: RawMesh, path: Path, notes: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

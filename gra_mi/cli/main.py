@@ -118,9 +118,8 @@ COMMANDS: dict[str, Command] = {
     ),
     "export": Command(
         "texture",
-        "Export the avatar as USD (.usdz/.usda/.usdc: animated mesh, UsdPreviewSurface, cameras, lights) or glTF (.glb), "
-        "checked by the format's validator.",
-        mitsuba=False,
+        "Export the avatar as USD (.usdz/.usda/.usdc: animated mesh, UsdPreviewSurface, cameras, lights, a scene's set) or "
+        "glTF (.glb), checked by the format's validator.",
     ),
     "train-relightnet": Command(
         "learned",

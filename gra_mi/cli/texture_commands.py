@@ -89,6 +89,10 @@ class ExportCommand(CommandConfig):
     """A rig calibration (calibration.json, or a capture or rig folder holding one) whose cameras are written (USD
     Cameras; glTF perspective cameras, which cannot hold a principal point off the image's centre: said when so), and
     whose LEDs --pattern lights."""
+    set_scene: Path | None = field(default=None, metadata=option(flag="--set"))
+    """A lightstage scene (scene.xml, e.g. from `gra-mi from-scene`) whose set (its shapes besides the subject: a floor,
+    walls, props) is written beside the avatar: static meshes in world space, each with a preview of its BSDF (base
+    colour, roughness, metallic; said per shape), in both formats."""
     envmap: Path | None = None
     """USD only: an environment map to hand over as a DomeLight (lat-long, read like `relight --envmap`)."""
     pattern: Path | None = None
@@ -120,6 +124,7 @@ def _rig_calibration(path: Path):
 
 def run_export(c: ExportCommand) -> int:
     from gra_mi.apps.export import export_avatar
+    from gra_mi.apps.set_export import read_set
     from gra_mi.render.relighter import load_texture
 
     albedo, roughness = load_texture(c.albedo, 3, "albedo"), load_texture(c.roughness, 1, "roughness")
@@ -129,8 +134,11 @@ def run_export(c: ExportCommand) -> int:
     seq = load_sequence(c.subject, every_frame=False)  # the frames exported are checked, not every frame
     frames = select(c.frames, seq.num_frames, "frames", integers=True)
     check_frames(seq, [f for f in frames if 0 <= f < seq.num_frames])
-    report = export_avatar(c.out, seq, albedo, roughness, frames, rig, envmap, leds)
+    set_parts, set_notes = read_set(c.set_scene) if c.set_scene is not None else (None, [])
+    report = export_avatar(c.out, seq, albedo, roughness, frames, rig, envmap, leds, set_parts)
     print(f"wrote {report.summary()}")
+    for line in set_notes:
+        print(f"  set: {line}")
     for line in report.errors + report.warnings:
         print(f"  {line}")
     if leds is not None and c.out.suffix.lower() != ".glb":

@@ -61,7 +61,7 @@ def reexport_in_blender(asset: Path, out: Path, timeout: float = 600.0) -> Path:
 
 
 def inventory_in_blender(asset: Path, out: Path, light_intensity_scale: float = 1.0, timeout: float = 600.0) -> dict:
-    """The cameras and lights Blender imports from ``asset``, in gra-mi's world (:func:`blender_job.inventory`);
+    """The cameras, lights and meshes Blender imports from ``asset``, in gra-mi's world (:func:`blender_job.inventory`);
     ``light_intensity_scale``: the USD importer's option of that name."""
     out.parent.mkdir(parents=True, exist_ok=True)
     job = {"asset": str(Path(asset).resolve()), "inventory": str(out.resolve()), "light_intensity_scale": light_intensity_scale}

@@ -7,8 +7,8 @@ convention), ``camera`` (OpenCV ``camera_to_world`` in gra-mi's world, ``fx fy c
 ``lambert`` (swap the imported Principled BSDF for a Diffuse BSDF on the same base colour), ``out`` (RGBA EXR) and
 ``report`` (JSON: Blender's version, the frame shown, the imported mesh's vertices at that frame in gra-mi's world).
 A job with ``reexport`` (a .glb or .usd* path) instead writes the imported asset back out with Blender's exporters;
-one with ``inventory`` (a JSON path) writes the cameras and lights Blender imported, in gra-mi's world (a USD's with
-``light_intensity_scale``, the importer's option of that name).
+one with ``inventory`` (a JSON path) writes the cameras, lights and meshes Blender imported, in gra-mi's world (a USD's
+with ``light_intensity_scale``, the importer's option of that name).
 
 Conventions handled here, each checked by tests/test_export.py against Mitsuba:
 - Blender is Z up; both importers turn a Y-up file by (x, y, z) → (x, −z, y);
@@ -156,8 +156,26 @@ def inventory(path: str) -> None:
             lights.append(
                 {"name": obj.name, "type": data.type, "position": list(world.translation), "energy": data.energy, "color": list(data.color)}
             )
+    meshes = [mesh_entry(obj, to_gra_mi) for obj in bpy.context.scene.objects if obj.type == "MESH"]
     with open(path, "w") as fh:
-        json.dump({"blender": bpy.app.version_string, "cameras": cameras, "lights": lights}, fh)
+        json.dump({"blender": bpy.app.version_string, "cameras": cameras, "lights": lights, "meshes": meshes}, fh)
+
+
+def mesh_entry(obj, to_gra_mi) -> dict:
+    """A mesh's name, its bounds in gra-mi's world, and its material's Principled BSDF inputs that are not textured."""
+    world = to_gra_mi @ obj.matrix_world
+    points = [world @ v.co for v in obj.data.vertices]
+    entry = {"name": obj.name, "min": [min(p[i] for p in points) for i in range(3)], "max": [max(p[i] for p in points) for i in range(3)]}
+    material = obj.active_material
+    nodes = material.node_tree.nodes if material is not None and material.node_tree is not None else []
+    for node in nodes:
+        if node.type == "BSDF_PRINCIPLED":
+            for name in ("Base Color", "Roughness", "Metallic"):
+                socket = node.inputs[name]
+                if not socket.is_linked:
+                    value = socket.default_value
+                    entry[name] = list(value)[:3] if name == "Base Color" else float(value)
+    return entry
 
 
 def main(job_path: str) -> None:

@@ -1,0 +1,164 @@
+"""The set of a lightstage scene (its shapes besides the subject: a floor, walls, props) for ``gra-mi export --set``:
+each shape as a static triangle mesh in world space, with a preview material (base colour, roughness, metallic) of
+its Mitsuba BSDF, which USD's ``UsdPreviewSurface`` and glTF's metallic-roughness material both hold.
+
+A BSDF is more than three numbers, so the preview is a summary, said in the export's notes:
+
+- base colour: the mean diffuse albedo of its BSDF over its surface and the directions it is seen from
+  (:func:`~gra_mi.capture.set_albedo.shape_albedos`: a texture's mean colour, a plastic's diffuse lobe under its coat);
+  for a metal (no diffuse light, more than 5 % glossy), the albedo of all its lobes, as metallic 1;
+- roughness: the BSDF's own (``roughness``, perceptual; ``alpha``, ``alpha_u``/``alpha_v`` as √α; a texture's mean), 0
+  for a smooth glossy BSDF, 1 for one without a glossy lobe.
+
+Rectangles, disks, spheres and cylinders, Mitsuba's analytic shapes, are tessellated (64 segments around; a sphere an
+icosphere of 642 vertices); meshes are written as Mitsuba holds them.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from gra_mi.capture.scene_stage import ANALYTIC_SHAPES, GLOSSY_SAID, RawMesh, shape_label
+from gra_mi.capture.set_albedo import shape_albedos
+
+SEGMENTS = 64  # around a disk or a cylinder
+METAL_DIFFUSE = 0.02  # a BSDF whose diffuse albedo stays below this, and whose glossy share is above GLOSSY_SAID, is a metal
+
+
+@dataclass(frozen=True)
+class SetPart:
+    """One set shape: a triangle mesh in world space and its preview material."""
+
+    name: str  # the shape's id in the scene (set_NNN for a gra-mi stage)
+    vertices: np.ndarray  # (V, 3) float32
+    normals: np.ndarray  # (V, 3) float32, unit
+    faces: np.ndarray  # (F, 3) int32, counter-clockwise seen from the front
+    base_color: tuple[float, float, float]
+    roughness: float  # perceptual (α = r²)
+    metallic: float
+
+
+def read_set(scene_xml: Path) -> tuple[list[SetPart], list[str]]:
+    """The set of the lightstage scene ``scene_xml`` (a variant chosen), and a note per shape: its preview, or why it is
+    left out."""
+    from gra_mi.stage import scene_keys as keys
+    from gra_mi.stage.scene import LightstageScene, shape_order
+
+    ls = LightstageScene.load(scene_xml, every_frame=False)
+    parts, notes, used = [], [], set()
+    for k, shape in enumerate(sorted((s for s in ls.scene.shapes() if s.id() != keys.SUBJECT_ID), key=shape_order)):
+        triangles = shape_triangles(shape)
+        label = shape_label(shape)
+        if triangles is None:
+            notes.append(f"left out: {label}, a {shape.class_name()} (the set holds meshes, rectangles, disks, spheres, cylinders)")
+            continue
+        base, roughness, metallic = preview_material(ls.scene, shape)
+        parts.append(SetPart(_prim_name(shape.id(), k, used), *triangles, base, roughness, metallic))
+        named = parts[-1].name if parts[-1].name == shape.id() else f"{parts[-1].name} ({label})"
+        notes.append(f"{named}: its {shape.bsdf().class_name()} previewed as base colour "
+                     f"{', '.join(f'{v:.3g}' for v in base)}, roughness {roughness:.3g}, metallic {metallic:g}")  # fmt: skip
+    return parts, notes
+
+
+def _prim_name(shape_id: str, index: int, used: set[str]) -> str:
+    """A name USD's prim paths take, not yet ``used`` (added to it): the shape's id in letters, digits and _, else
+    set_NNN; a second shape whose id reads the same gets _2, _3, …"""
+    name = re.sub(r"\W", "_", shape_id, flags=re.ASCII)
+    name = name if name and not name[0].isdigit() else f"set_{index:03d}"
+    unique, n = name, 1
+    while unique in used:
+        n += 1
+        unique = f"{name}_{n}"
+    used.add(unique)
+    return unique
+
+
+def shape_triangles(shape) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """(vertices, normals, faces) of a set shape in world space; None for a kind the set does not hold."""
+    import mitsuba as mi
+
+    params = mi.traverse(shape)
+    if "faces" in params:
+        mesh = RawMesh.of(shape)
+        normals = mesh.shading_normals()
+        return mesh.vertices.astype(np.float32), _unit(normals).astype(np.float32), mesh.faces.astype(np.int32)
+    kind = ANALYTIC_SHAPES.get(shape.class_name())
+    if kind is None or "to_world" not in params:
+        return None
+    vertices, normals, faces = UNIT_SHAPES[kind]()
+    m = np.array(params["to_world"].matrix, np.float64).reshape(4, 4)
+    if np.linalg.det(m[:3, :3]) < 0:  # a mirroring placement turns the winding around
+        faces = faces[:, ::-1]
+    normals = _unit(normals @ np.linalg.inv(m[:3, :3]))  # normals transform by the inverse transpose
+    return (vertices @ m[:3, :3].T + m[:3, 3]).astype(np.float32), normals.astype(np.float32), faces.astype(np.int32)
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-12)
+
+
+def _rectangle():
+    vertices = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float64)
+    return vertices, np.tile([0.0, 0.0, 1.0], (4, 1)), np.array([[0, 1, 2], [0, 2, 3]])
+
+
+def _disk():
+    a = np.linspace(0.0, 2.0 * np.pi, SEGMENTS, endpoint=False)
+    ring = np.stack([np.cos(a), np.sin(a), np.zeros_like(a)], axis=1)
+    i = np.arange(SEGMENTS)
+    faces = np.stack([np.zeros_like(i), 1 + i, 1 + (i + 1) % SEGMENTS], axis=1)
+    return np.vstack([[0.0, 0.0, 0.0], ring]), np.tile([0.0, 0.0, 1.0], (SEGMENTS + 1, 1)), faces
+
+
+def _sphere():
+    import trimesh
+
+    ico = trimesh.creation.icosphere(subdivisions=3)
+    return np.asarray(ico.vertices, np.float64), _unit(np.asarray(ico.vertices, np.float64)), np.asarray(ico.faces)
+
+
+def _cylinder():
+    """Mitsuba's: radius 1 about the z axis from z = 0 to 1, open at both ends."""
+    a = np.linspace(0.0, 2.0 * np.pi, SEGMENTS, endpoint=False)
+    ring = np.stack([np.cos(a), np.sin(a), np.zeros_like(a)], axis=1)
+    i, j = np.arange(SEGMENTS), (np.arange(SEGMENTS) + 1) % SEGMENTS
+    faces = np.concatenate([np.stack([i, j, SEGMENTS + j], 1), np.stack([i, SEGMENTS + j, SEGMENTS + i], 1)])
+    return np.vstack([ring, ring + [0.0, 0.0, 1.0]]), np.vstack([ring, ring]), faces
+
+
+UNIT_SHAPES = {"rectangle": _rectangle, "disk": _disk, "sphere": _sphere, "cylinder": _cylinder}
+
+
+def preview_material(scene, shape) -> tuple[tuple[float, float, float], float, float]:
+    """(base colour, roughness, metallic) of a set shape's BSDF (the module's summary)."""
+    diffuse, every = shape_albedos(scene, shape)
+    diffuse = np.full(3, 0.5) if diffuse is None else np.maximum(diffuse, 0.0)
+    every = diffuse if every is None else np.maximum(every, diffuse)
+    glossy = float(np.mean(every - diffuse))
+    own = bsdf_roughness(shape.bsdf())
+    if glossy <= GLOSSY_SAID:
+        base, roughness, metallic = diffuse, 1.0 if own is None else own, 0.0
+    elif diffuse.max() < METAL_DIFFUSE:
+        base, roughness, metallic = every, 0.0 if own is None else own, 1.0
+    else:
+        base, roughness, metallic = diffuse, 0.0 if own is None else own, 0.0
+    return tuple(float(v) for v in np.clip(base, 0.0, 1.0)), float(np.clip(roughness, 0.0, 1.0)), metallic
+
+
+def bsdf_roughness(bsdf) -> float | None:
+    """The perceptual roughness a BSDF's parameters give (the mean over its lobes and texels); None where it has none."""
+    import mitsuba as mi
+
+    params = mi.traverse(bsdf)
+    found = []
+    for key in params.keys():
+        last = re.sub(r"\.(value|data)$", "", key).rsplit(".", 1)[-1]
+        if last in ("alpha", "alpha_u", "alpha_v", "roughness"):
+            value = float(np.nanmean(np.array(params[key], np.float64)))
+            found.append(value if last == "roughness" else np.sqrt(max(value, 0.0)))
+    found = [v for v in found if np.isfinite(v)]
+    return float(np.mean(found)) if found else None

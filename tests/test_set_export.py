@@ -1,0 +1,182 @@
+"""`gra-mi export --set`: a scene's set (a floor, props) beside the avatar, as Mitsuba holds each shape (its surface,
+its facing) and a preview of its BSDF, accepted by the formats' own validators, and imported so by Blender."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pxr = pytest.importorskip("pxr")
+
+PLACE = '<transform name="to_world"><scale value="{s}"/><translate x="{x}" y="{y}" z="{z}"/></transform>'
+SHAPES = {  # the user's id → its element (from-scene names them set_NNN in its order)
+    "floor": '<shape type="rectangle" id="floor"><transform name="to_world"><rotate x="1" angle="-90"/><scale value="2"/></transform>'
+    '<bsdf type="roughconductor"><float name="alpha" value="0.25"/></bsdf></shape>',
+    "ball": f'<shape type="sphere" id="ball">{PLACE.format(s=0.1, x=0.5, y=0.3, z=0.2)}<bsdf type="roughplastic">'
+    '<rgb name="diffuse_reflectance" value="0.8, 0.2, 0.1"/></bsdf></shape>',
+    "pole": f'<shape type="cylinder" id="pole">{PLACE.format(s=0.05, x=-0.5, y=0.5, z=0)}<bsdf type="twosided"><bsdf type="diffuse">'
+    '<rgb name="reflectance" value="0.3"/></bsdf></bsdf></shape>',
+    "lamp": f'<shape type="disk" id="lamp">{PLACE.format(s=0.2, x=-0.5, y=1.0, z=0.3)}<bsdf type="principled">'
+    '<float name="roughness" value="0.6"/></bsdf></shape>',
+    "crate": f'<shape type="cube" id="crate">{PLACE.format(s=0.1, x=0.6, y=0.15, z=-0.4)}<bsdf type="roughconductor">'
+    '<texture type="bitmap" name="alpha"><string name="filename" value="alpha.exr"/><boolean name="raw" value="true"/></texture>'
+    "</bsdf></shape>",
+}  # fmt: skip
+EXPECTED = {  # (metallic, roughness) of each preview
+    "floor": (1.0, 0.5),
+    "ball": (0.0, np.sqrt(0.1)),  # roughplastic's default α
+    "pole": (0.0, 1.0),
+    "lamp": (0.0, 0.6),  # principled's roughness is perceptual already
+    "crate": (1.0, np.sqrt(0.2)),  # the mean of the texture's α (0.04 and 0.36)
+}
+
+
+@pytest.fixture(scope="module")
+def stage_with_set(tmp_path_factory):
+    """A lightstage with the set of SHAPES, from `from-scene`; its set as the export reads it, the shapes by user id."""
+    from gra_mi.apps.set_export import read_set
+    from gra_mi.cli.main import main
+    from gra_mi.core.io import write_exr
+    from gra_mi.core.runtime import choose_variant
+
+    from .test_from_scene import write_user_scene
+    from .test_scene_set import BODY
+
+    folder = tmp_path_factory.mktemp("set_export")
+    (folder / "user").mkdir()
+    alpha = np.where(np.indices((2, 2)).sum(axis=0) % 2 == 0, 0.04, 0.36)[..., None].astype(np.float32)
+    write_exr(folder / "user" / "alpha.exr", alpha)
+    path = write_user_scene(folder / "user", shapes=BODY + "".join(SHAPES.values()))
+    assert main(["from-scene", str(path), "--out", str(folder / "stage")]) == 0
+    choose_variant("llvm_ad_rgb")
+    notes = (folder / "stage" / "notes.md").read_text()
+    ids = dict(line.split("shape '")[1].split("' (")[0:2] for line in notes.splitlines() if line.startswith("- kept as the set: shape"))
+    by_user = {user: at.split(" ")[0] for user, at in ids.items()}  # the user's id → set_NNN
+    parts, said = read_set(folder / "stage" / "scene.xml")
+    return folder, {user: next(p for p in parts if p.name == name) for user, name in by_user.items()}, said
+
+
+def _stage_scene(folder):
+    from gra_mi.stage.scene import LightstageScene
+
+    return LightstageScene.load(folder / "stage" / "scene.xml").scene
+
+
+def test_each_set_part_lies_on_mitsubas_shape_and_faces_its_way(stage_with_set):
+    """Every triangle's centre lies on the Mitsuba shape it stands for, its winding facing as Mitsuba's normal there (a
+    ray back along the triangle's normal meets the shape at once, front side first); the triangles' area is the shape's
+    (Mitsuba's surface_area, within the tessellation's 1 %), and the vertex normals face as the triangles do."""
+    import mitsuba as mi
+
+    folder, parts, _ = stage_with_set
+    scene = _stage_scene(folder)
+    shapes = {s.id(): s for s in scene.shapes()}
+    assert sorted(parts) == sorted(SHAPES)
+    for user, part in parts.items():
+        shape = shapes[part.name]
+        corners = part.vertices.astype(np.float64)[part.faces]
+        cross = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+        area = 0.5 * np.linalg.norm(cross, axis=1)
+        assert area.sum() == pytest.approx(float(shape.surface_area()[0]), rel=0.01), user
+        facing = cross / np.linalg.norm(cross, axis=1, keepdims=True)
+        centre = corners.mean(axis=1)
+        start = centre + 1e-3 * facing
+        ray = mi.Ray3f(mi.Point3f(*start.T.astype(np.float32)), mi.Vector3f(*(-facing).T.astype(np.float32)))
+        si = scene.ray_intersect(ray)
+        assert np.all(np.array(si.shape == mi.ShapePtr(shape))), user
+        t, n = np.array(si.t), np.array(si.n).T
+        assert np.all(t < 2e-3), (user, float(t.max()))  # the centre is on the surface (within a tessellation's sag)
+        assert np.all(np.sum(n * facing, axis=1) > 0.98), user  # and the triangle faces as Mitsuba's normal
+        vertex_normals = part.normals[part.faces].mean(axis=1)
+        assert np.all(np.sum(vertex_normals * facing, axis=1) > 0), user
+
+
+def test_each_preview_summarises_its_bsdf(stage_with_set):
+    """Metal, roughness and colour per BSDF: a rough metal is metallic with √α; a plastic's base colour is its diffuse
+    lobe's albedo under the coat (the hue of its reflectance, darker); a diffuse its reflectance, rough 1; a principled
+    its own roughness; a textured α its mean. Each shape is said in the notes."""
+    folder, parts, said = stage_with_set
+    for user, (metallic, roughness) in EXPECTED.items():
+        assert parts[user].metallic == metallic and parts[user].roughness == pytest.approx(roughness, rel=1e-4), user
+    np.testing.assert_allclose(parts["pole"].base_color, 0.3, rtol=1e-4)
+    ball = np.array(parts["ball"].base_color)
+    np.testing.assert_allclose(ball / ball[0], np.array([0.8, 0.2, 0.1]) / 0.8, rtol=0.01)
+    assert 0.5 < ball[0] < 0.8
+    assert min(parts["floor"].base_color) > 0.85  # roughconductor's default: a perfect mirror, less what α masks
+    assert len(said) == len(SHAPES) and all("previewed as base colour" in line for line in said)
+
+
+def test_the_set_exports_to_usd_and_gltf_as_their_validators_and_readers_want(stage_with_set, tmp_path):
+    """USD (usd-core's validators) and glTF (the Khronos validator, where node has it) accept the avatar with its set;
+    USD's prims hold each part's points and its preview material, bound."""
+    from pxr import Usd, UsdGeom, UsdShade
+
+    from gra_mi.apps.export import export_avatar, gltf_validator
+    from gra_mi.subject.sequence import tiny_subject
+
+    _, parts, _ = stage_with_set
+    albedo, roughness = np.full((8, 8, 3), 0.5, np.float32), np.full((8, 8, 1), 0.5, np.float32)
+    avatar = (tiny_subject(2), albedo, roughness)
+    for name in ("a.usdz", "a.usda", "a.glb"):
+        report = export_avatar(tmp_path / name, *avatar, set_parts=list(parts.values()))
+        assert report.errors == [] and report.warnings == [], report
+        assert name != "a.glb" or gltf_validator() is None or report.validator.startswith("glTF-Validator")
+    stage = Usd.Stage.Open(str(tmp_path / "a.usda"))
+    for part in parts.values():
+        mesh = UsdGeom.Mesh.Get(stage, f"/Set/Geometry/{part.name}")
+        np.testing.assert_allclose(np.array(mesh.GetPointsAttr().Get()), part.vertices)
+        material = UsdShade.MaterialBindingAPI(mesh.GetPrim()).ComputeBoundMaterial()[0]
+        surface = material.ComputeSurfaceSource()[0]
+        np.testing.assert_allclose(tuple(surface.GetInput("diffuseColor").Get()), part.base_color, rtol=1e-6)
+        assert surface.GetInput("metallic").Get() == part.metallic
+
+
+def test_prim_names_from_any_id_are_unique_and_usable():
+    """Ids a user's scene may hold (a path, spaces, a leading digit, none, two that read alike) become distinct names
+    USD's prim paths take."""
+    from pxr import Sdf
+
+    from gra_mi.apps.set_export import _prim_name
+
+    used: set[str] = set()
+    names = [_prim_name(i, k, used) for k, i in enumerate(["../x", "/abs", "a b", "a_b", "1st", "", "set_006", "ünï"])]
+    assert len(set(names)) == len(names) and all(Sdf.Path.IsValidIdentifier(n) for n in names), names
+
+
+def test_export_set_refuses_what_is_not_a_lightstage_scene(tmp_path, capsys):
+    from gra_mi.cli.main import main
+    from gra_mi.core.io import write_exr
+    from gra_mi.subject.sequence import save_sequence, tiny_subject
+
+    save_sequence(tiny_subject(2), tmp_path / "subject")
+    write_exr(tmp_path / "albedo.exr", np.full((8, 8, 3), 0.5, np.float32))
+    (tmp_path / "plain.xml").write_text('<scene version="3.0.0"><shape type="sphere"/></scene>')
+    (tmp_path / "broken.xml").write_text('<scene version="3.0.0"><shape type="sph')
+    base = ["export", "--out", str(tmp_path / "a.usdz"), "--subject", str(tmp_path / "subject")]
+    base += ["--albedo", str(tmp_path / "albedo.exr"), "--roughness", str(tmp_path / "albedo.exr")]
+    for scene, said in (("plain.xml", "plain.xml"), ("broken.xml", "broken.xml"), ("gone.xml", "not found")):
+        assert main([*base, "--set", str(tmp_path / scene)]) == 2
+        assert said in capsys.readouterr().err
+    assert not (tmp_path / "a.usdz").exists()
+
+
+@pytest.mark.skipif(__import__("gra_mi.eval.blender", fromlist=["x"]).find_blender() is None, reason="no Blender (bpy)")
+@pytest.mark.parametrize("name", ["a.glb", "a.usda"])
+def test_blender_imports_the_set_where_it_stands_with_its_preview(stage_with_set, tmp_path, name):
+    """Blender's own importers: each part where Mitsuba's shape stands (its bounds in gra-mi's world) with the
+    preview's base colour, roughness and metallic on its Principled BSDF."""
+    from gra_mi.apps.export import export_avatar
+    from gra_mi.eval.blender import inventory_in_blender
+    from gra_mi.subject.sequence import tiny_subject
+
+    _, parts, _ = stage_with_set
+    maps = (np.full((8, 8, 3), 0.5, np.float32), np.full((8, 8, 1), 0.5, np.float32))
+    export_avatar(tmp_path / name, tiny_subject(2), *maps, set_parts=list(parts.values()))
+    seen = {m["name"]: m for m in inventory_in_blender(tmp_path / name, tmp_path / "inventory.json")["meshes"]}
+    for part in parts.values():
+        mesh = seen[part.name]
+        np.testing.assert_allclose(mesh["min"], part.vertices.min(axis=0), atol=1e-5)
+        np.testing.assert_allclose(mesh["max"], part.vertices.max(axis=0), atol=1e-5)
+        np.testing.assert_allclose(mesh["Base Color"], part.base_color, atol=1e-5)
+        assert mesh["Roughness"] == pytest.approx(part.roughness, abs=1e-5)
+        assert mesh["Metallic"] == pytest.approx(part.metallic, abs=1e-6)
