@@ -143,7 +143,29 @@ def test_prim_names_from_any_id_are_unique_and_usable():
     assert len(set(names)) == len(names) and all(Sdf.Path.IsValidIdentifier(n) for n in names), names
 
 
-def test_export_set_refuses_what_is_not_a_lightstage_scene(tmp_path, capsys):
+def test_a_stage_folder_without_a_set_and_nan_roughness(stage_with_set, tmp_path):
+    """A stage folder reads as its scene.xml; a stage whose scene holds the subject alone says that no set is written;
+    a roughness texture's NaN texels are left out of its mean."""
+    import mitsuba as mi
+
+    from gra_mi.apps.set_export import bsdf_roughness, read_set
+    from gra_mi.cli.main import main
+    from gra_mi.core.io import write_exr
+
+    from .test_from_scene import write_user_scene
+    from .test_scene_set import BODY
+
+    folder, parts, _ = stage_with_set
+    assert [p.name for p in read_set(folder / "stage")[0]] == sorted(p.name for p in parts.values())
+    (tmp_path / "user").mkdir()
+    assert main(["from-scene", str(write_user_scene(tmp_path / "user", shapes=BODY)), "--out", str(tmp_path / "stage")]) == 0
+    assert read_set(tmp_path / "stage") == ([], ["the scene holds no shape besides the subject: no set is written"])
+    write_exr(tmp_path / "alpha.exr", np.array([[[np.nan], [0.25]]], np.float32))
+    bsdf = mi.load_dict({"type": "roughconductor", "alpha": {"type": "bitmap", "filename": str(tmp_path / "alpha.exr"), "raw": True}})
+    assert bsdf_roughness(bsdf) == pytest.approx(0.5, rel=1e-6)
+
+
+def test_export_set_says_each_shape_and_refuses_what_is_not_a_lightstage_scene(stage_with_set, tmp_path, capsys):
     from gra_mi.cli.main import main
     from gra_mi.core.io import write_exr
     from gra_mi.subject.sequence import save_sequence, tiny_subject
@@ -158,6 +180,9 @@ def test_export_set_refuses_what_is_not_a_lightstage_scene(tmp_path, capsys):
         assert main([*base, "--set", str(tmp_path / scene)]) == 2
         assert said in capsys.readouterr().err
     assert not (tmp_path / "a.usdz").exists()
+    assert main([*base, "--set", str(stage_with_set[0] / "stage")]) == 0
+    told = capsys.readouterr().out
+    assert "0 errors" in told and all(f"set: {p.name}: its " in told for p in stage_with_set[1].values()), told
 
 
 @pytest.mark.skipif(__import__("gra_mi.eval.blender", fromlist=["x"]).find_blender() is None, reason="no Blender (bpy)")

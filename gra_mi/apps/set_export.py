@@ -43,12 +43,13 @@ class SetPart:
 
 
 def read_set(scene_xml: Path) -> tuple[list[SetPart], list[str]]:
-    """The set of the lightstage scene ``scene_xml`` (a variant chosen), and a note per shape: its preview, or why it is
-    left out."""
+    """The set of the lightstage scene ``scene_xml`` (or the folder holding it as scene.xml; a variant chosen), and a
+    note per shape: its preview, or why it is left out."""
     from gra_mi.stage import scene_keys as keys
     from gra_mi.stage.scene import LightstageScene, shape_order
 
-    ls = LightstageScene.load(scene_xml, every_frame=False)
+    scene_xml = Path(scene_xml)
+    ls = LightstageScene.load(scene_xml / "scene.xml" if scene_xml.is_dir() else scene_xml, every_frame=False)
     parts, notes, used = [], [], set()
     for k, shape in enumerate(sorted((s for s in ls.scene.shapes() if s.id() != keys.SUBJECT_ID), key=shape_order)):
         triangles = shape_triangles(shape)
@@ -61,7 +62,7 @@ def read_set(scene_xml: Path) -> tuple[list[SetPart], list[str]]:
         named = parts[-1].name if parts[-1].name == shape.id() else f"{parts[-1].name} ({label})"
         notes.append(f"{named}: its {shape.bsdf().class_name()} previewed as base colour "
                      f"{', '.join(f'{v:.3g}' for v in base)}, roughness {roughness:.3g}, metallic {metallic:g}")  # fmt: skip
-    return parts, notes
+    return parts, notes or ["the scene holds no shape besides the subject: no set is written"]
 
 
 def _prim_name(shape_id: str, index: int, used: set[str]) -> str:
@@ -158,7 +159,9 @@ def bsdf_roughness(bsdf) -> float | None:
     for key in params.keys():
         last = re.sub(r"\.(value|data)$", "", key).rsplit(".", 1)[-1]
         if last in ("alpha", "alpha_u", "alpha_v", "roughness"):
-            value = float(np.nanmean(np.array(params[key], np.float64)))
-            found.append(value if last == "roughness" else np.sqrt(max(value, 0.0)))
-    found = [v for v in found if np.isfinite(v)]
+            values = np.array(params[key], np.float64).ravel()
+            values = values[np.isfinite(values)]  # (a texture's NaN texels say nothing of it)
+            if values.size:
+                value = float(values.mean())
+                found.append(value if last == "roughness" else np.sqrt(max(value, 0.0)))
     return float(np.mean(found)) if found else None

@@ -90,9 +90,9 @@ class ExportCommand(CommandConfig):
     Cameras; glTF perspective cameras, which cannot hold a principal point off the image's centre: said when so), and
     whose LEDs --pattern lights."""
     set_scene: Path | None = field(default=None, metadata=option(flag="--set"))
-    """A lightstage scene (scene.xml, e.g. from `gra-mi from-scene`) whose set (its shapes besides the subject: a floor,
-    walls, props) is written beside the avatar: static meshes in world space, each with a preview of its BSDF (base
-    colour, roughness, metallic; said per shape), in both formats."""
+    """A lightstage scene (scene.xml, or the folder holding it, e.g. from `gra-mi from-scene`) whose set (its shapes
+    besides the subject: a floor, walls, props) is written beside the avatar: static meshes in world space, each with
+    a preview of its BSDF (base colour, roughness, metallic; said per shape), in both formats."""
     envmap: Path | None = None
     """USD only: an environment map to hand over as a DomeLight (lat-long, read like `relight --envmap`)."""
     pattern: Path | None = None
