@@ -160,6 +160,11 @@ def test_a_stage_folder_without_a_set_and_nan_roughness(stage_with_set, tmp_path
     (tmp_path / "user").mkdir()
     assert main(["from-scene", str(write_user_scene(tmp_path / "user", shapes=BODY)), "--out", str(tmp_path / "stage")]) == 0
     assert read_set(tmp_path / "stage") == ([], ["the scene holds no shape besides the subject: no set is written"])
+    xml = (tmp_path / "stage" / "scene.xml").read_text()  # a panel light added by hand: its light is said to stay behind
+    panel = '<shape type="rectangle" id="panel"><emitter type="area"><rgb name="radiance" value="5"/></emitter></shape>'
+    (tmp_path / "stage" / "scene.xml").write_text(xml.replace("</scene>", panel + "</scene>"))
+    (part,), (said,) = read_set(tmp_path / "stage")
+    assert part.base_color == (0.0, 0.0, 0.0) and "its area light is not carried" in said  # (Mitsuba's lamp: black)
     write_exr(tmp_path / "alpha.exr", np.array([[[np.nan], [0.25]]], np.float32))
     bsdf = mi.load_dict({"type": "roughconductor", "alpha": {"type": "bitmap", "filename": str(tmp_path / "alpha.exr"), "raw": True}})
     assert bsdf_roughness(bsdf) == pytest.approx(0.5, rel=1e-6)

@@ -62,6 +62,8 @@ def read_set(scene_xml: Path) -> tuple[list[SetPart], list[str]]:
         named = parts[-1].name if parts[-1].name == shape.id() else f"{parts[-1].name} ({label})"
         notes.append(f"{named}: its {shape.bsdf().class_name()} previewed as base colour "
                      f"{', '.join(f'{v:.3g}' for v in base)}, roughness {roughness:.3g}, metallic {metallic:g}")  # fmt: skip
+        if shape.emitter() is not None:
+            notes[-1] += "; its area light is not carried (the export's lights: --pattern's LEDs, --envmap)"
     return parts, notes or ["the scene holds no shape besides the subject: no set is written"]
 
 
