@@ -396,3 +396,30 @@ def test_a_set_bsdf_that_cannot_be_carried_says_why(llvm_variant, tmp_path):
     assert all(isinstance(c, CarriedBSDF) and 'id="b"' not in c.xml() for c in shared)
     assert list(shared[0].files.values()) == [(tmp_path / "tex.exr").resolve()]
     assert isinstance(carried_bsdf(tmp_path / "parameter.xml", "a", {"alpha": "0.2"}), CarriedBSDF)  # a --define
+
+
+def test_from_scene_carries_the_bsdfs_of_an_old_mitsuba_file(plugins, tmp_path, capsys):
+    """A scene of Mitsuba 0.5 (as many published scenes are): shapes without ids, parameters in camelCase, which
+    Mitsuba upgrades as it loads the file. Each set shape's BSDF is carried in the stage's 3.0.0 names, and loads."""
+    from gra_mi.stage.scene import LightstageScene
+
+    from .test_bad_input import run
+    from .test_from_scene import write_user_scene
+    from .test_scene_set import BODY
+
+    plastic = '<bsdf type="roughplastic"><float name="intIOR" value="1.6"/><rgb name="diffuseReflectance" value="0.2 0.3 0.4"/></bsdf>'
+    shapes = [
+        _floor(plastic).replace(' id="floor"', ""),
+        '<shape type="sphere"><transform name="to_world"><scale value="0.1"/><translate x="0.8" y="0.9"/></transform>'
+        '<boolean name="flipNormals" value="false"/><bsdf type="roughconductor"><float name="alphaU" value="0.1"/>'
+        '<float name="alphaV" value="0.3"/></bsdf></shape>',
+    ]  # fmt: skip
+    path = write_user_scene(tmp_path / "user", shapes=BODY + "".join(shapes))
+    path.write_text(path.read_text().replace('version="3.0.0"', 'version="0.5.0"'))
+    code, lines = run(["from-scene", path, "--out", tmp_path / "stage"], capsys)
+    assert code == 0, lines
+    notes, xml = ((tmp_path / "stage" / name).read_text() for name in ("notes.md", "scene.xml"))
+    assert notes.count(", with its own BSDF)") == 2 and "not carried" not in notes, notes
+    assert 'name="int_ior"' in xml and 'name="alpha_u"' in xml and "intIOR" not in xml
+    shapes = LightstageScene.load(tmp_path / "stage" / "scene.xml").scene.shapes()
+    assert {"RoughPlastic", "RoughConductor"} <= {s.bsdf().class_name() for s in shapes}

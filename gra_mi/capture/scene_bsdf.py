@@ -91,8 +91,23 @@ def carried_bsdf(scene_file: Path, shape, defines: dict[str, str]) -> CarriedBSD
 def _parsed(path: Path, mtime_ns: int, size: int) -> tuple[ET.Element, dict[str, ET.Element]]:
     """The scene file's elements and its objects by id, parsed once for all its set shapes (an edited file again;
     never changed here: :func:`_inlined` copies what it takes)."""
-    root = ET.parse(path).getroot()
+    root = _upgraded(ET.parse(path).getroot())
     return root, {node.get("id"): node for node in root.iter() if node.get("id") and node.tag != "ref"}
+
+
+def _upgraded(root: ET.Element) -> ET.Element:
+    """A file of Mitsuba 0.x (``version`` before 2.0.0) in the names of the stage's 3.0.0, as Mitsuba upgrades it when
+    it loads one: parameters in snake_case (``intIOR`` → ``int_ior``; a ``<default>``'s name is the file's own), and
+    ``<lookAt>`` as ``<lookat>``."""
+    version = tuple(int(v) if v.isdigit() else 0 for v in root.get("version", "3.0.0").split("."))
+    if version >= (2, 0, 0):
+        return root
+    for node in root.iter():
+        if node.tag == "lookAt":
+            node.tag = "lookat"
+        if node.get("name") and node.tag != "default":
+            node.set("name", re.sub(r"(?<=[a-z0-9])(?=[A-Z])", "_", node.get("name")).lower())
+    return root
 
 
 def _shape_element(key: tuple, root: ET.Element, by_id: dict, shape) -> ET.Element:
