@@ -136,10 +136,10 @@ def test_prim_names_from_any_id_are_unique_and_usable():
     USD's prim paths take."""
     from pxr import Sdf
 
-    from gra_mi.apps.set_export import _prim_name
+    from gra_mi.apps.usd import prim_name
 
     used: set[str] = set()
-    names = [_prim_name(i, k, used) for k, i in enumerate(["../x", "/abs", "a b", "a_b", "1st", "", "set_006", "ünï"])]
+    names = [prim_name(i, f"set_{k:03d}", used) for k, i in enumerate(["../x", "/abs", "a b", "a_b", "1st", "", "set_006", "ünï"])]
     assert len(set(names)) == len(names) and all(Sdf.Path.IsValidIdentifier(n) for n in names), names
 
 

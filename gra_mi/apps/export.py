@@ -102,15 +102,40 @@ def off_centre_cameras(cameras: list) -> list[str]:
     return said
 
 
+def check_glb_spots(out: Path, tracks: list) -> None:
+    """Refuse a spot wider than a hemisphere in a .glb (glTF's outer cone angle is at most 90°), before writing."""
+    for track in tracks:
+        widest = max((state.cutoff_angle for state in track.states if state.is_spot), default=0.0)
+        if widest > 90.0:
+            raise GraMiInputError(out, f"light '{track.name}' is a spot of cutoff {widest:g}°, wider than glTF's spot lights "
+                                  "reach (90°): export it to .usd* (a SphereLight with a cone of any angle)")  # fmt: skip
+
+
+def glb_light_losses(tracks: list) -> list[str]:
+    """What a .glb's punctual lights lose of a light path's: a light's radius (they are points) and, where they change
+    over the exported frames, its intensity, colour and cone (glTF animates a light's node, not the light)."""
+    said = []
+    for track in tracks:
+        lost = [f"its {track.states[0].radius:g} m radius (glTF's lights are points)"] if track.states[0].radius > 0 else []
+        changing = [name for name, read in (("intensity and colour", lambda s: s.intensity),
+                    ("cone", lambda s: (s.cutoff_angle, s.beam_width or 0.0))) if track.varies(read)]  # fmt: skip
+        if changing:
+            lost.append(f"its changing {' and '.join(changing)} (glTF cannot animate a light's: the first frame's is written)")
+        if lost:
+            said.append(f"light '{track.name}': the .glb leaves out {'; '.join(lost)}")
+    return said
+
+
 def export_avatar(
     out: Path, seq: MeshSequence, albedo: np.ndarray, roughness: np.ndarray, frames: list[int] | None = None,
     rig: Lightstage | None = None, envmap: np.ndarray | None = None, led_intensities: np.ndarray | None = None,
-    set_parts: list | None = None,
+    set_parts: list | None = None, tracks: list | None = None,
 ) -> ExportReport:  # fmt: skip
     """Write ``out`` in the format its suffix names and validate it. ``frames``: the sequence's frames to export, in
     order (default: all). The rig's cameras and its lit LEDs travel in both formats; an environment map in USD only
     (glTF's punctual lights cannot hold one): asking for it in a .glb is an error, not a silent drop. ``set_parts``: a
-    scene's set (:func:`gra_mi.apps.set_export.read_set`), in both formats."""
+    scene's set (:func:`gra_mi.apps.set_export.read_set`), and ``tracks``, a light path's lights at each exported frame
+    (:func:`gra_mi.apps.export_lights.light_tracks`), in both formats."""
     if frames is not None and not frames:
         raise GraMiParameterError("frames", "selects no frame")
     if frames is not None and (bad := [f for f in frames if not 0 <= f < seq.num_frames]):
@@ -119,13 +144,14 @@ def export_avatar(
     if suffix in GLTF_SUFFIXES:
         if envmap is not None:
             raise GraMiInputError(out, "glTF has no environment light: export the environment map to .usd* (a DomeLight)")
+        check_glb_spots(out, tracks or [])
         leds = None if led_intensities is None else (rig.led_positions, led_intensities)
         cameras = rig.cameras if rig is not None else None
-        report = validate_glb(export_glb(out, seq, albedo, roughness, frames, cameras, leds, set_parts))
-        return replace(report, warnings=report.warnings + off_centre_cameras(cameras or []))
+        report = validate_glb(export_glb(out, seq, albedo, roughness, frames, cameras, leds, set_parts, tracks))
+        return replace(report, warnings=report.warnings + off_centre_cameras(cameras or []) + glb_light_losses(tracks or []))
     if suffix not in USD_SUFFIXES:
         raise GraMiInputError(out, f"unknown format '{suffix}': expected one of {', '.join(USD_SUFFIXES + GLTF_SUFFIXES)}")
     lighting = None
-    if envmap is not None or led_intensities is not None:
-        lighting = UsdLighting(envmap=envmap, stage=rig, led_intensities=led_intensities)
+    if envmap is not None or led_intensities is not None or tracks:
+        lighting = UsdLighting(envmap=envmap, stage=rig, led_intensities=led_intensities, tracks=tracks)
     return validate_usd(export_usd(out, seq, albedo, roughness, frames, rig.cameras if rig is not None else None, lighting, set_parts))

@@ -10,7 +10,8 @@
 - optionally a rig's cameras (perspective, looking along −Z with +Y up as glTF's do; glTF has no principal point, so
   a camera whose centre is off the image's is said in the export's warnings) and the LEDs that are on as
   ``KHR_lights_punctual`` point lights, in candela: 683 lm/W × the LED's W/sr, which Blender's importer turns back
-  into the watts a point light of that intensity emits (4π × W/sr).
+  into the watts a point light of that intensity emits (4π × W/sr); a light path's moving point and spot lights too,
+  their nodes keyed in the avatar's animation.
 """
 
 from __future__ import annotations
@@ -152,14 +153,63 @@ def _add_set(gltf: dict, buf: _Buffer, parts: list) -> None:
         gltf["scenes"][0]["nodes"].append(len(gltf["nodes"]) - 1)
 
 
+def _add_moving_lights(gltf: dict, buf: _Buffer, tracks: list, fps: float) -> None:
+    """A light path's lights as ``KHR_lights_punctual`` point and spot lights (a spot's outer cone its cutoff, its inner
+    its full beam), each on a node whose translation and rotation step through the exported frames in the avatar's own
+    animation (one timeline: importers play one animation per scene; LINEAR between frames); the first frame's
+    intensity, colour and cone (glTF cannot animate a light's)."""
+    from gra_mi.apps.export_lights import light_to_world, rotation_quaternion
+
+    if not tracks:
+        return
+    extension = gltf.setdefault("extensions", {}).setdefault("KHR_lights_punctual", {"lights": []})
+    if "KHR_lights_punctual" not in gltf.setdefault("extensionsUsed", []):
+        gltf["extensionsUsed"].append("KHR_lights_punctual")
+    times = (np.arange(len(tracks[0].states), dtype=np.float32) / fps).reshape(-1, 1)
+    performance = gltf["animations"][0] if gltf.get("animations") else None  # (two frames or more: the avatar's)
+    channels, samplers = ([], []) if performance is None else (performance["channels"], performance["samplers"])
+    for track in tracks:
+        first = track.states[0]
+        peak = float(first.intensity.max())
+        light = {"name": track.name, "type": "spot" if track.is_spot else "point", "intensity": peak * LUMENS_PER_WATT}
+        light["color"] = (first.intensity / peak if peak > 0 else np.ones(3)).tolist()
+        if track.is_spot:
+            outer = math.radians(first.cutoff_angle)
+            light["spot"] = {"innerConeAngle": min(math.radians(first.beam_width), outer * (1 - 1e-6)), "outerConeAngle": outer}
+        extension["lights"].append(light)
+        places = [light_to_world(state) for state in track.states]
+        node = {
+            "name": track.name,
+            "translation": places[0][:3, 3].tolist(),
+            "extensions": {"KHR_lights_punctual": {"light": len(extension["lights"]) - 1}},
+        }
+        if track.is_spot:
+            node["rotation"] = rotation_quaternion(places[0]).tolist()
+        gltf["nodes"].append(node)
+        gltf["scenes"][0]["nodes"].append(len(gltf["nodes"]) - 1)
+        if performance is None:
+            continue
+        moves = {"translation": np.array([m[:3, 3] for m in places], np.float32), "rotation": None}
+        if track.is_spot:
+            moves["rotation"] = np.array([rotation_quaternion(m) for m in places], np.float32)
+        for path, values in moves.items():
+            if values is None:
+                continue
+            samplers.append({"input": buf.accessor(times, "SCALAR", FLOAT, None, minmax=True),
+                             "output": buf.accessor(values, "VEC3" if path == "translation" else "VEC4", FLOAT, None),
+                             "interpolation": "LINEAR"})  # fmt: skip
+            channels.append({"sampler": len(samplers) - 1, "target": {"node": len(gltf["nodes"]) - 1, "path": path}})
+
+
 def export_glb(
     path: str | Path, seq: MeshSequence, albedo: np.ndarray, roughness: np.ndarray, frames: list[int] | None = None,
     cameras: list[Camera] | None = None, leds: tuple[np.ndarray, np.ndarray] | None = None, set_parts: list | None = None,
+    tracks: list | None = None,
 ) -> Path:  # fmt: skip
     """Write ``path`` (.glb). ``frames``: the sequence's frames to animate, in order (default: all); the first is the
     mesh, the others its morph targets, and the animation's time 0 is the first (``extras.gra_mi.source_frames``).
-    ``cameras``: a rig's cameras; ``leds``: (positions, W/sr intensities (L, 3)) of a rig's LEDs under a pattern;
-    ``set_parts``: a scene's set (:func:`gra_mi.apps.set_export.read_set`)."""
+    ``cameras``: a rig's cameras; ``leds``: (positions, W/sr (L, 3)) of a rig's LEDs under a pattern; ``set_parts``: a
+    scene's set (:mod:`~gra_mi.apps.set_export`); ``tracks``: a light path's lights (:mod:`~gra_mi.apps.export_lights`)."""
     frames = list(range(seq.num_frames)) if frames is None else list(frames)
     check_glb_size(seq, len(frames), frames[0])
     buf = _Buffer()
@@ -216,6 +266,7 @@ def export_glb(
     gltf["nodes"][0]["extras"] = {"gra_mi": {"source_frames": frames}}  # the sequence's frame at each step
     _add_set(gltf, buf, set_parts or [])
     _add_rig(gltf, cameras or [], leds)
+    _add_moving_lights(gltf, buf, tracks or [], seq.fps)
     while len(buf.data) % 4:
         buf.data += b"\0"
     gltf["buffers"] = [{"byteLength": len(buf.data)}]

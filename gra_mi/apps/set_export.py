@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gra_mi.apps.usd import prim_name
 from gra_mi.capture.scene_stage import ANALYTIC_SHAPES, GLOSSY_SAID, RawMesh, shape_label
 from gra_mi.capture.set_albedo import shape_albedos
 
@@ -58,26 +59,13 @@ def read_set(scene_xml: Path) -> tuple[list[SetPart], list[str]]:
             notes.append(f"left out: {label}, a {shape.class_name()} (the set holds meshes, rectangles, disks, spheres, cylinders)")
             continue
         base, roughness, metallic = preview_material(ls.scene, shape)
-        parts.append(SetPart(_prim_name(shape.id(), k, used), *triangles, base, roughness, metallic))
+        parts.append(SetPart(prim_name(shape.id(), f"set_{k:03d}", used), *triangles, base, roughness, metallic))
         named = parts[-1].name if parts[-1].name == shape.id() else f"{parts[-1].name} ({label})"
         notes.append(f"{named}: its {shape.bsdf().class_name()} previewed as base colour "
                      f"{', '.join(f'{v:.3g}' for v in base)}, roughness {roughness:.3g}, metallic {metallic:g}")  # fmt: skip
         if shape.emitter() is not None:
             notes[-1] += "; its area light is not carried (the export's lights: --pattern's LEDs, --envmap)"
     return parts, notes or ["the scene holds no shape besides the subject: no set is written"]
-
-
-def _prim_name(shape_id: str, index: int, used: set[str]) -> str:
-    """A name USD's prim paths take, not yet ``used`` (added to it): the shape's id in letters, digits and _, else
-    set_NNN; a second shape whose id reads the same gets _2, _3, …"""
-    name = re.sub(r"\W", "_", shape_id, flags=re.ASCII)
-    name = name if name and not name[0].isdigit() else f"set_{index:03d}"
-    unique, n = name, 1
-    while unique in used:
-        n += 1
-        unique = f"{name}_{n}"
-    used.add(unique)
-    return unique
 
 
 def shape_triangles(shape) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:

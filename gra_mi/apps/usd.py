@@ -12,7 +12,8 @@ What a pipeline TD gets (docs/export.md):
   ``/Set/Geometry``, each bound to a constant ``UsdPreviewSurface`` under ``/Set/Looks`` (:mod:`gra_mi.apps.set_export`).
 - ``/Capture`` (optional): the calibration's cameras as ``Camera`` prims (focal length and apertures in millimetres
   of a 36 mm wide film; the principal point as aperture offsets), an environment map as a ``DomeLight`` (lat-long,
-  OpenEXR's convention = gra-mi's, with +Y up) and the LEDs that are on under a pattern as ``SphereLight``\\ s.
+  OpenEXR's convention = gra-mi's, with +Y up), the LEDs that are on under a pattern as ``SphereLight``\\ s, and a
+  light path's moving lights as time-sampled ``SphereLight``\\ s (a spot with the ``ShapingAPI``).
 
 Y is up and one unit is a metre (``upAxis``, ``metersPerUnit``), as gra-mi's world frame. USD's texture coordinates
 start at the bottom-left of an image and gra-mi's row 0 is v = 0, so ``st = (u, 1 − v)`` with the same image.
@@ -21,6 +22,7 @@ start at the bottom-left of an image and gra-mi's row 0 is v = 0, so ``st = (u, 
 from __future__ import annotations
 
 import math
+import re
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -49,6 +51,20 @@ class UsdLighting:
     envmap: np.ndarray | None = None  # (H, W, 3) linear radiance, gra-mi's lat-long convention
     stage: Lightstage | None = None
     led_intensities: np.ndarray | None = None  # (L, 3) W/sr
+    tracks: list | None = None  # a light path's lights at each exported frame (gra_mi.apps.export_lights.LightTrack)
+
+
+def prim_name(text: str, fallback: str, used: set[str]) -> str:
+    """A name USD's prim paths take, not yet ``used`` (added to it): ``text`` (a user's id or name) in letters, digits
+    and _, else ``fallback``; a second that reads the same gets _2, _3, …"""
+    name = re.sub(r"\W", "_", text, flags=re.ASCII)
+    name = name if name and not name[0].isdigit() else fallback
+    unique, n = name, 1
+    while unique in used:
+        n += 1
+        unique = f"{name}_{n}"
+    used.add(unique)
+    return unique
 
 
 def _gf_matrix(m: np.ndarray):
@@ -207,6 +223,34 @@ def _lights(stage, root: str, textures: Path, lighting: UsdLighting) -> None:
             UsdGeom.Xformable(light).AddTranslateOp().Set(Gf.Vec3d(*lighting.stage.led_positions[led].tolist()))
 
 
+def _moving_lights(stage, root: str, tracks: list) -> None:
+    """A light path's lights as ``SphereLight``\\ s (a spot with the ``ShapingAPI``: its cone angle the cutoff, its
+    softness the share of the cone outside the full beam), time-sampled at each exported frame: transform, intensity,
+    colour, cone. A light without a radius is a 1 cm sphere marked ``treatAsPoint``."""
+    from pxr import Gf, UsdGeom, UsdLux
+
+    from gra_mi.apps.export_lights import light_to_world
+
+    used: set[str] = set()
+    for track in tracks:
+        light = UsdLux.SphereLight.Define(stage, f"{root}/Lights/{prim_name(track.name, 'light', used)}")
+        light.GetPrim().SetDisplayName(track.name)
+        radius = track.states[0].radius or LED_RADIUS_M
+        light.CreateRadiusAttr(radius)
+        light.CreateTreatAsPointAttr(track.states[0].radius == 0)
+        place, power, color = UsdGeom.Xformable(light).AddTransformOp(), light.CreateIntensityAttr(), light.CreateColorAttr()
+        shaping = UsdLux.ShapingAPI.Apply(light.GetPrim()) if track.is_spot else None
+        for time, state in enumerate(track.states):
+            peak = float(state.intensity.max())
+            place.Set(_gf_matrix(light_to_world(state)), float(time))
+            power.Set(peak / (math.pi * radius**2), float(time))
+            color.Set(Gf.Vec3f(*(state.intensity / peak if peak > 0 else np.ones(3)).tolist()), float(time))
+            if shaping is not None:
+                shaping.CreateShapingConeAngleAttr().Set(float(state.cutoff_angle), float(time))
+                softness = 1.0 - state.beam_width / state.cutoff_angle
+                shaping.CreateShapingConeSoftnessAttr().Set(float(softness), float(time))
+
+
 def _write_stage(layer_path: Path, textures: Path, seq, albedo, roughness, frames, cameras, lighting, set_parts) -> None:
     from pxr import Kind, Usd, UsdGeom, UsdShade
 
@@ -230,6 +274,7 @@ def _write_stage(layer_path: Path, textures: Path, seq, albedo, roughness, frame
         _cameras(stage, "/Capture", cameras or [])
         if lighting is not None:
             _lights(stage, "/Capture", textures, lighting)
+            _moving_lights(stage, "/Capture", lighting.tracks or [])
     stage.GetRootLayer().Save()
 
 

@@ -118,8 +118,8 @@ COMMANDS: dict[str, Command] = {
     ),
     "export": Command(
         "texture",
-        "Export the avatar as USD (.usdz/.usda/.usdc: animated mesh, UsdPreviewSurface, cameras, lights, a scene's set) or "
-        "glTF (.glb), checked by the format's validator.",
+        "Export the avatar as USD (.usdz/.usda/.usdc: animated mesh, UsdPreviewSurface, cameras, LEDs, moving lights, a "
+        "scene's set) or glTF (.glb), checked by the format's validator.",
     ),
     "train-relightnet": Command(
         "learned",

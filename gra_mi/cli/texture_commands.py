@@ -93,6 +93,10 @@ class ExportCommand(CommandConfig):
     """A lightstage scene (scene.xml, or the folder holding it, e.g. from `gra-mi from-scene`) whose set (its shapes
     besides the subject: a floor, walls, props) is written beside the avatar: static meshes in world space, each with
     a preview of its BSDF (base colour, roughness, metallic; said per shape), in both formats."""
+    lights: Path | None = None
+    """A light path JSON (as `relight --lights` takes: point and spot lights at keyframes; docs/data-format.md) whose
+    lights are written sampled at every exported frame: USD SphereLights (a spot with a cone), glTF point and spot
+    lights whose nodes move (a .glb cannot animate a light's intensity or cone, nor hold its radius: said)."""
     envmap: Path | None = None
     """USD only: an environment map to hand over as a DomeLight (lat-long, read like `relight --envmap`)."""
     pattern: Path | None = None
@@ -124,7 +128,9 @@ def _rig_calibration(path: Path):
 
 def run_export(c: ExportCommand) -> int:
     from gra_mi.apps.export import export_avatar
+    from gra_mi.apps.export_lights import light_tracks
     from gra_mi.apps.set_export import read_set
+    from gra_mi.render.light_path import LightPath
     from gra_mi.render.relighter import load_texture
 
     albedo, roughness = load_texture(c.albedo, 3, "albedo"), load_texture(c.roughness, 1, "roughness")
@@ -135,7 +141,8 @@ def run_export(c: ExportCommand) -> int:
     frames = select(c.frames, seq.num_frames, "frames", integers=True)
     check_frames(seq, [f for f in frames if 0 <= f < seq.num_frames])
     set_parts, set_notes = read_set(c.set_scene) if c.set_scene is not None else (None, [])
-    report = export_avatar(c.out, seq, albedo, roughness, frames, rig, envmap, leds, set_parts)
+    tracks = light_tracks(LightPath.load(c.lights), frames) if c.lights is not None else None
+    report = export_avatar(c.out, seq, albedo, roughness, frames, rig, envmap, leds, set_parts, tracks)
     print(f"wrote {report.summary()}")
     for line in set_notes:
         print(f"  set: {line}")

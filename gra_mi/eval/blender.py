@@ -60,11 +60,16 @@ def reexport_in_blender(asset: Path, out: Path, timeout: float = 600.0) -> Path:
     return out
 
 
-def inventory_in_blender(asset: Path, out: Path, light_intensity_scale: float = 1.0, timeout: float = 600.0) -> dict:
+def inventory_in_blender(
+    asset: Path, out: Path, light_intensity_scale: float = 1.0, timeout: float = 600.0, at: tuple[int, float] | None = None
+) -> dict:
     """The cameras, lights and meshes Blender imports from ``asset``, in gra-mi's world (:func:`blender_job.inventory`);
-    ``light_intensity_scale``: the USD importer's option of that name."""
+    ``light_intensity_scale``: the USD importer's option of that name; ``at``: (the exported frame, the sequence's
+    fps) to read them at (moving lights)."""
     out.parent.mkdir(parents=True, exist_ok=True)
     job = {"asset": str(Path(asset).resolve()), "inventory": str(out.resolve()), "light_intensity_scale": light_intensity_scale}
+    if at is not None:
+        job |= {"frame": at[0], "fps": at[1]}
     _run_job(job, out.with_name(f"{out.name}.job.json"), timeout)
     return json.loads(out.read_text())
 

@@ -8,7 +8,7 @@ convention), ``camera`` (OpenCV ``camera_to_world`` in gra-mi's world, ``fx fy c
 ``report`` (JSON: Blender's version, the frame shown, the imported mesh's vertices at that frame in gra-mi's world).
 A job with ``reexport`` (a .glb or .usd* path) instead writes the imported asset back out with Blender's exporters;
 one with ``inventory`` (a JSON path) writes the cameras, lights and meshes Blender imported, in gra-mi's world (a USD's
-with ``light_intensity_scale``, the importer's option of that name).
+with ``light_intensity_scale``, the importer's option of that name), at the exported ``frame`` where the job names one.
 
 Conventions handled here, each checked by tests/test_export.py against Mitsuba:
 - Blender is Z up; both importers turn a Y-up file by (x, y, z) → (x, −z, y);
@@ -152,13 +152,21 @@ def inventory(path: str) -> None:
             c2w = world @ OPENCV_TO_OPENGL.inverted()
             cameras.append({"name": obj.name, "camera_to_world": [list(row) for row in c2w], "angle_y": obj.data.angle_y})
         elif obj.type == "LIGHT":
-            data = obj.data
-            lights.append(
-                {"name": obj.name, "type": data.type, "position": list(world.translation), "energy": data.energy, "color": list(data.color)}
-            )
+            lights.append(light_entry(obj, world))
     meshes = [mesh_entry(obj, to_gra_mi) for obj in bpy.context.scene.objects if obj.type == "MESH"]
     with open(path, "w") as fh:
         json.dump({"blender": bpy.app.version_string, "cameras": cameras, "lights": lights, "meshes": meshes}, fh)
+
+
+def light_entry(obj, world) -> dict:
+    """A light's type, position, power (W) and colour; a spot's cone (Blender's full angle and blend) and the
+    direction it shines along (its −Z), in gra-mi's world (``world``: its matrix there)."""
+    data = obj.data
+    entry = {"name": obj.name, "type": data.type, "position": list(world.translation), "energy": data.energy, "color": list(data.color)}
+    if data.type == "SPOT":
+        shine = world.to_3x3() @ mathutils.Vector((0.0, 0.0, -1.0))
+        entry |= {"spot_size": data.spot_size, "spot_blend": data.spot_blend, "direction": list(shine.normalized())}
+    return entry
 
 
 def mesh_entry(obj, to_gra_mi) -> dict:
@@ -185,6 +193,8 @@ def main(job_path: str) -> None:
         reexport(job["reexport"])
         return
     if "inventory" in job:
+        if "frame" in job:  # (lights that move: where they are at that sequence frame)
+            show_frame(bpy.context.scene, job["frame"], job["fps"], job["asset"].lower().endswith(".glb"))
         inventory(job["inventory"])
         return
     scene = bpy.context.scene
