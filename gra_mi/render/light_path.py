@@ -104,7 +104,7 @@ class LightPath:
             if outside:
                 raise GraMiInputError(
                     self.source, f"light '{light.name}' has keyframes for frames {int(light.frames[0])}..{int(light.frames[-1])}, "
-                    f"frame(s) {outside[:5]} are outside: add keyframes there or relight fewer --frames"
+                    f"frame(s) {outside[:5]} are outside: add keyframes there or give fewer --frames"
                 )  # fmt: skip
 
     @classmethod
