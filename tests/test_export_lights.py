@@ -128,6 +128,31 @@ def test_glb_lights_move_with_the_avatar_and_say_what_glTF_cannot_hold(exported)
                 np.testing.assert_allclose(_rotate(q, np.array([0.0, 0.0, -1.0])), state.direction, atol=1e-5)
 
 
+def test_a_path_light_named_as_an_led_keeps_apart_from_it(tmp_path):
+    """The LEDs a pattern lights (/Capture/Lights/ledNNNN) and a light path's lights (/Capture/PathLights) do not share
+    prims: a path light named led0001 beside a lit LED 1 leaves both."""
+    from pxr import Usd, UsdLux
+
+    from gra_mi.apps.export import export_avatar
+    from gra_mi.apps.export_lights import light_tracks
+    from gra_mi.render.light_path import LightPath
+    from gra_mi.stage.lightstage import default_lightstage, olat_pattern
+    from gra_mi.subject.sequence import tiny_subject
+
+    named = {"lights": [{"name": "led0001", "keyframes": [{"frame": 0, "position": [0, 2, 1]}]}]}
+    (tmp_path / "path.json").write_text(json.dumps(named))
+    rig = default_lightstage()
+    maps = (np.full((8, 8, 3), 0.5, np.float32), np.full((8, 8, 1), 0.5, np.float32))
+    tracks = light_tracks(LightPath.load(tmp_path / "path.json"), [0])
+    report = export_avatar(tmp_path / "a.usda", tiny_subject(1), *maps, rig=rig, led_intensities=olat_pattern(rig, 1), tracks=tracks)
+    assert report.errors == []
+    stage = Usd.Stage.Open(str(tmp_path / "a.usda"))
+    lights = sorted(str(p.GetPath()) for p in stage.Traverse() if p.IsA(UsdLux.SphereLight))
+    assert lights == ["/Capture/Lights/led0001", "/Capture/PathLights/led0001"]
+    led = UsdLux.SphereLight(stage.GetPrimAtPath("/Capture/Lights/led0001"))
+    assert not led.GetPrim().GetAttribute("xformOp:transform").IsValid()  # (the LED's own translate, not the path light's)
+
+
 def test_export_lights_refuses_what_a_format_or_the_path_cannot_hold(tmp_path, capsys):
     """A spot wider than a hemisphere goes to USD, not to a .glb (refused before writing, naming the light); frames
     outside a light's keyframes are refused, not extrapolated; a path file that is not one names its field."""

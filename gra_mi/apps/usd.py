@@ -233,7 +233,7 @@ def _moving_lights(stage, root: str, tracks: list) -> None:
 
     used: set[str] = set()
     for track in tracks:
-        light = UsdLux.SphereLight.Define(stage, f"{root}/Lights/{prim_name(track.name, 'light', used)}")
+        light = UsdLux.SphereLight.Define(stage, f"{root}/PathLights/{prim_name(track.name, 'light', used)}")
         light.GetPrim().SetDisplayName(track.name)
         radius = track.states[0].radius or LED_RADIUS_M
         light.CreateRadiusAttr(radius)
