@@ -210,3 +210,33 @@ def test_blender_imports_the_set_where_it_stands_with_its_preview(stage_with_set
         np.testing.assert_allclose(mesh["Base Color"], part.base_color, atol=1e-5)
         assert mesh["Roughness"] == pytest.approx(part.roughness, abs=1e-5)
         assert mesh["Metallic"] == pytest.approx(part.metallic, abs=1e-6)
+
+
+def test_an_avatar_exported_with_its_set_reads_back_as_the_avatar(stage_with_set, tmp_path):
+    """An export is a subject too (`--subject a.glb`): with a set beside it, the avatar is still the one read (USD: the
+    default prim; glTF: the node gra-mi's export marks); a .glb of several meshes none marked is refused, naming them."""
+    import json
+    import struct
+
+    from gra_mi.apps.export import export_avatar
+    from gra_mi.core.errors import GraMiInputError
+    from gra_mi.subject.sequence import load_sequence, tiny_subject
+
+    _, parts, _ = stage_with_set
+    seq = tiny_subject(3)
+    maps = (np.full((8, 8, 3), 0.5, np.float32), np.full((8, 8, 1), 0.5, np.float32))
+    for name in ("a.usdz", "a.glb"):
+        export_avatar(tmp_path / name, seq, *maps, set_parts=list(parts.values()))
+        np.testing.assert_allclose(load_sequence(tmp_path / name).vertices, seq.vertices, atol=1e-6)
+    data = (tmp_path / "a.glb").read_bytes()
+    length = struct.unpack_from("<I", data, 12)[0]
+    gltf = json.loads(data[20 : 20 + length])
+    del gltf["nodes"][0]["extras"]  # (a file from another tool: nothing says which mesh is the body)
+    text = json.dumps(gltf).encode()
+    text += b" " * (-len(text) % 4)
+    rest = data[20 + length :]
+    (tmp_path / "b.glb").write_bytes(
+        struct.pack("<4sII", b"glTF", 2, 20 + len(text) + len(rest)) + struct.pack("<I4s", len(text), b"JSON") + text + rest
+    )
+    with pytest.raises(GraMiInputError, match=r"expected one node with a mesh, found 6 \('avatar', 'set_000'"):
+        load_sequence(tmp_path / "b.glb")

@@ -243,12 +243,16 @@ def _node_matrix(node: dict) -> np.ndarray:
 
 
 def _mesh_node(gltf: dict, path: Path) -> tuple[int, np.ndarray]:
-    """(node index, its world matrix) of the one node that holds a mesh."""
+    """(node index, its world matrix) of the one node that holds a mesh, or, among several, the one gra-mi's export
+    marks as the avatar (``extras.gra_mi``: the others are a scene's set)."""
     nodes = gltf.get("nodes", [])
     parent = {child: k for k, node in enumerate(nodes) for child in node.get("children", [])}
     holders = [k for k, node in enumerate(nodes) if "mesh" in node]
+    marked = [k for k in holders if isinstance(nodes[k].get("extras"), dict) and "gra_mi" in nodes[k]["extras"]]
+    holders = marked if len(holders) > 1 and len(marked) == 1 else holders
     if len(holders) != 1:
-        raise GraMiInputError(path, f"expected one node with a mesh, found {len(holders)}; merge the body into one mesh", field="nodes")
+        names = ", ".join(repr(nodes[k].get("name", k)) for k in holders[:8])
+        raise GraMiInputError(path, f"expected one node with a mesh, found {len(holders)} ({names}); merge the body into one mesh", field="nodes")
     world, k = np.eye(4), holders[0]
     while k is not None:
         world = _node_matrix(nodes[k]) @ world
