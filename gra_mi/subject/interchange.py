@@ -252,7 +252,9 @@ def _mesh_node(gltf: dict, path: Path) -> tuple[int, np.ndarray]:
     holders = marked if len(holders) > 1 and len(marked) == 1 else holders
     if len(holders) != 1:
         names = ", ".join(repr(nodes[k].get("name", k)) for k in holders[:8])
-        raise GraMiInputError(path, f"expected one node with a mesh, found {len(holders)} ({names}); merge the body into one mesh", field="nodes")
+        raise GraMiInputError(
+            path, f"expected one node with a mesh, found {len(holders)} ({names}); merge the body into one mesh", field="nodes"
+        )
     world, k = np.eye(4), holders[0]
     while k is not None:
         world = _node_matrix(nodes[k]) @ world
