@@ -89,6 +89,9 @@ def test_each_set_part_lies_on_mitsubas_shape_and_faces_its_way(stage_with_set):
         assert np.all(np.sum(n * facing, axis=1) > 0.98), user  # and the triangle faces as Mitsuba's normal
         vertex_normals = part.normals[part.faces].mean(axis=1)
         assert np.all(np.sum(vertex_normals * facing, axis=1) > 0), user
+    flat = parts["crate"].normals[parts["crate"].faces]  # (a cube's faces stay flat, as Mitsuba shades them)
+    np.testing.assert_allclose(flat, np.repeat(flat[:, :1], 3, axis=1), atol=1e-6)
+    assert np.allclose(np.abs(flat[:, 0]).max(axis=1), 1.0, atol=1e-6)
 
 
 def test_each_preview_summarises_its_bsdf(stage_with_set):

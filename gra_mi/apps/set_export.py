@@ -11,7 +11,8 @@ A BSDF is more than three numbers, so the preview is a summary, said in the expo
   for a smooth glossy BSDF, 1 for one without a glossy lobe.
 
 Rectangles, disks, spheres and cylinders, Mitsuba's analytic shapes, are tessellated (64 segments around; a sphere an
-icosphere of 642 vertices); meshes are written as Mitsuba holds them.
+icosphere of 642 vertices); meshes are written as Mitsuba holds them (one of flat faces, a cube, with each triangle's
+corners its own).
 """
 
 from __future__ import annotations
@@ -75,8 +76,12 @@ def shape_triangles(shape) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     params = mi.traverse(shape)
     if "faces" in params:
         mesh = RawMesh.of(shape)
-        normals = mesh.shading_normals()
-        return mesh.vertices.astype(np.float32), _unit(normals).astype(np.float32), mesh.faces.astype(np.int32)
+        if mesh.normals is None:  # flat (face_normals, a cube): each triangle its own corners, facing its own way
+            corners = mesh.vertices[mesh.faces].reshape(-1, 3)
+            cross = np.cross(corners[1::3] - corners[0::3], corners[2::3] - corners[0::3])
+            faces = np.arange(len(corners), dtype=np.int32).reshape(-1, 3)
+            return corners.astype(np.float32), np.repeat(_unit(cross), 3, axis=0).astype(np.float32), faces
+        return mesh.vertices.astype(np.float32), _unit(mesh.normals).astype(np.float32), mesh.faces.astype(np.int32)
     kind = ANALYTIC_SHAPES.get(shape.class_name())
     if kind is None or "to_world" not in params:
         return None
