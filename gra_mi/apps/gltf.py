@@ -165,8 +165,9 @@ def _add_moving_lights(gltf: dict, buf: _Buffer, tracks: list, fps: float) -> No
     extension = gltf.setdefault("extensions", {}).setdefault("KHR_lights_punctual", {"lights": []})
     if "KHR_lights_punctual" not in gltf.setdefault("extensionsUsed", []):
         gltf["extensionsUsed"].append("KHR_lights_punctual")
-    times = (np.arange(len(tracks[0].states), dtype=np.float32) / fps).reshape(-1, 1)
     performance = gltf["animations"][0] if gltf.get("animations") else None  # (two frames or more: the avatar's)
+    if performance is not None:
+        times = buf.accessor((np.arange(len(tracks[0].states), dtype=np.float32) / fps).reshape(-1, 1), "SCALAR", FLOAT, None, minmax=True)
     channels, samplers = ([], []) if performance is None else (performance["channels"], performance["samplers"])
     for track in tracks:
         first = track.states[0]
@@ -195,8 +196,7 @@ def _add_moving_lights(gltf: dict, buf: _Buffer, tracks: list, fps: float) -> No
         for path, values in moves.items():
             if values is None:
                 continue
-            samplers.append({"input": buf.accessor(times, "SCALAR", FLOAT, None, minmax=True),
-                             "output": buf.accessor(values, "VEC3" if path == "translation" else "VEC4", FLOAT, None),
+            samplers.append({"input": times, "output": buf.accessor(values, "VEC3" if path == "translation" else "VEC4", FLOAT, None),
                              "interpolation": "LINEAR"})  # fmt: skip
             channels.append({"sampler": len(samplers) - 1, "target": {"node": len(gltf["nodes"]) - 1, "path": path}})
 
