@@ -89,11 +89,11 @@ class ExportCommand(CommandConfig):
     """A rig calibration (calibration.json, or a capture or rig folder holding one) whose cameras are written (USD
     Cameras; glTF perspective cameras, which cannot hold a principal point off the image's centre: said when so), and
     whose LEDs --pattern lights."""
-    set_scene: Path | None = field(default=None, metadata=option(flag="--set"))
+    set_scene: Path | None = field(default=None, metadata=option(flag="--set", metavar="SCENE"))
     """A lightstage scene (scene.xml, or the folder holding it, e.g. from `gra-mi from-scene`) whose set (its shapes
     besides the subject: a floor, walls, props) is written beside the avatar: static meshes in world space, each with
     a preview of its BSDF (base colour, roughness, metallic; said per shape), in both formats."""
-    lights: Path | None = None
+    lights: Path | None = field(default=None, metadata=option(metavar="PATH.json"))
     """A light path JSON (as `relight --lights` takes: point and spot lights at keyframes; docs/data-format.md) whose
     lights are written sampled at every exported frame: USD SphereLights (a spot with a cone), glTF point and spot
     lights whose nodes move (a .glb cannot animate a light's intensity or cone, nor hold its radius: said)."""
