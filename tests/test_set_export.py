@@ -96,16 +96,18 @@ def test_each_set_part_lies_on_mitsubas_shape_and_faces_its_way(stage_with_set):
 
 def test_each_preview_summarises_its_bsdf(stage_with_set):
     """Metal, roughness and colour per BSDF: a rough metal is metallic with √α; a plastic's base colour is its diffuse
-    lobe's albedo under the coat (the hue of its reflectance, darker); a diffuse its reflectance, rough 1; a principled
-    its own roughness; a textured α its mean. Each shape is said in the notes."""
+    lobe's albedo under the coat (the hue of its reflectance, darker); a diffuse its reflectance, rough 1, no specular
+    (ior 1); a principled its own parameters; a textured α its mean. Each shape is said in the notes."""
     folder, parts, said = stage_with_set
     for user, (metallic, roughness) in EXPECTED.items():
-        assert parts[user].metallic == metallic and parts[user].roughness == pytest.approx(roughness, rel=1e-4), user
-    np.testing.assert_allclose(parts["pole"].base_color, 0.3, rtol=1e-4)
-    ball = np.array(parts["ball"].base_color)
+        assert parts[user].preview.metallic == metallic and parts[user].preview.roughness == pytest.approx(roughness, rel=1e-4), user
+    np.testing.assert_allclose(parts["pole"].preview.base_color, 0.3, rtol=1e-4)
+    assert parts["pole"].preview.ior == 1.0 and all(parts[u].preview.ior == 1.5 for u in ("floor", "ball", "lamp", "crate"))
+    assert parts["lamp"].preview.base_color == (0.5, 0.5, 0.5)  # principled's own (its default) base colour
+    ball = np.array(parts["ball"].preview.base_color)
     np.testing.assert_allclose(ball / ball[0], np.array([0.8, 0.2, 0.1]) / 0.8, rtol=0.01)
     assert 0.5 < ball[0] < 0.8
-    assert min(parts["floor"].base_color) > 0.85  # roughconductor's default: a perfect mirror, less what α masks
+    assert min(parts["floor"].preview.base_color) > 0.85  # roughconductor's default: a perfect mirror, less what α masks
     assert len(said) == len(SHAPES) and all("previewed as base colour" in line for line in said)
 
 
@@ -130,8 +132,9 @@ def test_the_set_exports_to_usd_and_gltf_as_their_validators_and_readers_want(st
         np.testing.assert_allclose(np.array(mesh.GetPointsAttr().Get()), part.vertices)
         material = UsdShade.MaterialBindingAPI(mesh.GetPrim()).ComputeBoundMaterial()[0]
         surface = material.ComputeSurfaceSource()[0]
-        np.testing.assert_allclose(tuple(surface.GetInput("diffuseColor").Get()), part.base_color, rtol=1e-6)
-        assert surface.GetInput("metallic").Get() == part.metallic
+        np.testing.assert_allclose(tuple(surface.GetInput("diffuseColor").Get()), part.preview.base_color, rtol=1e-6)
+        assert surface.GetInput("metallic").Get() == part.preview.metallic
+        assert surface.GetInput("ior").Get() == part.preview.ior
 
 
 def test_prim_names_from_any_id_are_unique_and_usable():
@@ -167,7 +170,7 @@ def test_a_stage_folder_without_a_set_and_nan_roughness(stage_with_set, tmp_path
     panel = '<shape type="rectangle" id="panel"><emitter type="area"><rgb name="radiance" value="5"/></emitter></shape>'
     (tmp_path / "stage" / "scene.xml").write_text(xml.replace("</scene>", panel + "</scene>"))
     (part,), (said,) = read_set(tmp_path / "stage")
-    assert part.base_color == (0.0, 0.0, 0.0) and "its area light is not carried" in said  # (Mitsuba's lamp: black)
+    assert part.preview.base_color == (0.0, 0.0, 0.0) and "its area light is not carried" in said  # (Mitsuba's lamp: black)
     write_exr(tmp_path / "alpha.exr", np.array([[[np.nan], [0.25]]], np.float32))
     bsdf = mi.load_dict({"type": "roughconductor", "alpha": {"type": "bitmap", "filename": str(tmp_path / "alpha.exr"), "raw": True}})
     assert bsdf_roughness(bsdf) == pytest.approx(0.5, rel=1e-6)
@@ -210,9 +213,10 @@ def test_blender_imports_the_set_where_it_stands_with_its_preview(stage_with_set
         mesh = seen[part.name]
         np.testing.assert_allclose(mesh["min"], part.vertices.min(axis=0), atol=1e-5)
         np.testing.assert_allclose(mesh["max"], part.vertices.max(axis=0), atol=1e-5)
-        np.testing.assert_allclose(mesh["Base Color"], part.base_color, atol=1e-5)
-        assert mesh["Roughness"] == pytest.approx(part.roughness, abs=1e-5)
-        assert mesh["Metallic"] == pytest.approx(part.metallic, abs=1e-6)
+        np.testing.assert_allclose(mesh["Base Color"], part.preview.base_color, atol=1e-5)
+        assert mesh["Roughness"] == pytest.approx(part.preview.roughness, abs=1e-5)
+        assert mesh["Metallic"] == pytest.approx(part.preview.metallic, abs=1e-6)
+        assert mesh["IOR"] == pytest.approx(part.preview.ior, abs=1e-6)  # (1: no specular, the diffuse pole's)
 
 
 def test_an_avatar_exported_with_its_set_reads_back_as_the_avatar(stage_with_set, tmp_path):

@@ -123,6 +123,12 @@ def led_light_entries(positions: np.ndarray, intensities: np.ndarray) -> tuple[l
     return lights, nodes
 
 
+def _uses(gltf: dict, extension: str) -> None:
+    """Name ``extension`` in the file's ``extensionsUsed`` (once)."""
+    if extension not in gltf.setdefault("extensionsUsed", []):
+        gltf["extensionsUsed"].append(extension)
+
+
 def _add_rig(gltf: dict, cameras: list[Camera], leds: tuple[np.ndarray, np.ndarray] | None) -> None:
     """The cameras and lit LEDs as nodes of the scene beside the avatar."""
     entries, nodes = camera_entries(cameras)
@@ -130,8 +136,8 @@ def _add_rig(gltf: dict, cameras: list[Camera], leds: tuple[np.ndarray, np.ndarr
     if entries:
         gltf["cameras"] = entries
     if lights:
-        gltf["extensionsUsed"] = ["KHR_lights_punctual"]
-        gltf["extensions"] = {"KHR_lights_punctual": {"lights": lights}}
+        _uses(gltf, "KHR_lights_punctual")
+        gltf.setdefault("extensions", {})["KHR_lights_punctual"] = {"lights": lights}
     first = len(gltf["nodes"])
     gltf["nodes"] += nodes + light_nodes
     gltf["scenes"][0]["nodes"] += list(range(first, len(gltf["nodes"])))
@@ -145,8 +151,13 @@ def _add_set(gltf: dict, buf: _Buffer, parts: list) -> None:
             "NORMAL": buf.accessor(part.normals, "VEC3", FLOAT, ARRAY_BUFFER),
         }
         indices = buf.accessor(part.faces.astype(np.uint32).reshape(-1, 1), "SCALAR", UINT, ELEMENT_ARRAY_BUFFER)
-        pbr = {"baseColorFactor": [*part.base_color, 1.0], "metallicFactor": part.metallic, "roughnessFactor": part.roughness}
-        gltf["materials"].append({"name": part.name, "pbrMetallicRoughness": pbr, "doubleSided": True})
+        preview = part.preview
+        pbr = {"baseColorFactor": [*preview.base_color, 1.0], "metallicFactor": preview.metallic, "roughnessFactor": preview.roughness}
+        material = {"name": part.name, "pbrMetallicRoughness": pbr, "doubleSided": True}
+        if preview.ior != 1.5:  # (glTF's default; 1: no specular, a diffuse BSDF's)
+            material["extensions"] = {"KHR_materials_ior": {"ior": preview.ior}}
+            _uses(gltf, "KHR_materials_ior")
+        gltf["materials"].append(material)
         primitive = {"attributes": attributes, "indices": indices, "material": len(gltf["materials"]) - 1, "mode": 4}
         gltf["meshes"].append({"name": part.name, "primitives": [primitive]})
         gltf["nodes"].append({"name": part.name, "mesh": len(gltf["meshes"]) - 1})
@@ -163,8 +174,7 @@ def _add_moving_lights(gltf: dict, buf: _Buffer, tracks: list, fps: float) -> No
     if not tracks:
         return
     extension = gltf.setdefault("extensions", {}).setdefault("KHR_lights_punctual", {"lights": []})
-    if "KHR_lights_punctual" not in gltf.setdefault("extensionsUsed", []):
-        gltf["extensionsUsed"].append("KHR_lights_punctual")
+    _uses(gltf, "KHR_lights_punctual")
     performance = gltf["animations"][0] if gltf.get("animations") else None  # (two frames or more: the avatar's)
     if performance is not None:
         times = buf.accessor((np.arange(len(tracks[0].states), dtype=np.float32) / fps).reshape(-1, 1), "SCALAR", FLOAT, None, minmax=True)

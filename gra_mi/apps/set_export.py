@@ -4,11 +4,12 @@ its Mitsuba BSDF, which USD's ``UsdPreviewSurface`` and glTF's metallic-roughnes
 
 A BSDF is more than three numbers, so the preview is a summary, said in the export's notes:
 
-- base colour: the mean diffuse albedo of its BSDF over its surface and the directions it is seen from
+- a ``principled`` BSDF: its own base colour, roughness and metallic (a texture's mean), which are the preview's model;
+- otherwise the base colour is the mean diffuse albedo of its BSDF over its surface and the directions it is seen from
   (:func:`~gra_mi.capture.set_albedo.shape_albedos`: a texture's mean colour, a plastic's diffuse lobe under its coat);
   for a metal (no diffuse light, more than 5 % glossy), the albedo of all its lobes, as metallic 1;
 - roughness: the BSDF's own (``roughness``, perceptual; ``alpha``, ``alpha_u``/``alpha_v`` as √α; a texture's mean), 0
-  for a smooth glossy BSDF, 1 for one without a glossy lobe.
+  for a smooth glossy BSDF, 1 for one without a glossy lobe, which also gets no specular (``ior`` 1: F0 = 0).
 
 Rectangles, disks, spheres and cylinders, Mitsuba's analytic shapes, are tessellated (64 segments around; a sphere an
 icosphere of 642 vertices); meshes are written as Mitsuba holds them (one of flat faces, a cube, with each triangle's
@@ -32,6 +33,20 @@ METAL_DIFFUSE = 0.02  # a BSDF whose diffuse albedo stays below this, and whose 
 
 
 @dataclass(frozen=True)
+class Preview:
+    """A BSDF in the terms of UsdPreviewSurface and glTF's metallic-roughness material."""
+
+    base_color: tuple[float, float, float]
+    roughness: float  # perceptual (α = r²)
+    metallic: float
+    ior: float = 1.5  # F0 = ((ior − 1) / (ior + 1))²: 0.04; 1 for a BSDF without a glossy lobe (no specular at all)
+
+    def said(self) -> str:
+        specular = "" if self.ior != 1.0 else ", no specular"
+        return f"base colour {', '.join(f'{v:.3g}' for v in self.base_color)}, roughness {self.roughness:.3g}, metallic {self.metallic:g}{specular}"
+
+
+@dataclass(frozen=True)
 class SetPart:
     """One set shape: a triangle mesh in world space and its preview material."""
 
@@ -39,9 +54,7 @@ class SetPart:
     vertices: np.ndarray  # (V, 3) float32
     normals: np.ndarray  # (V, 3) float32, unit
     faces: np.ndarray  # (F, 3) int32, counter-clockwise seen from the front
-    base_color: tuple[float, float, float]
-    roughness: float  # perceptual (α = r²)
-    metallic: float
+    preview: Preview
 
 
 def read_set(scene_xml: Path) -> tuple[list[SetPart], list[str]]:
@@ -59,11 +72,9 @@ def read_set(scene_xml: Path) -> tuple[list[SetPart], list[str]]:
         if triangles is None:
             notes.append(f"left out: {label}, a {shape.class_name()} (the set holds meshes, rectangles, disks, spheres, cylinders)")
             continue
-        base, roughness, metallic = preview_material(ls.scene, shape)
-        parts.append(SetPart(prim_name(shape.id(), f"set_{k:03d}", used), *triangles, base, roughness, metallic))
+        parts.append(SetPart(prim_name(shape.id(), f"set_{k:03d}", used), *triangles, preview_material(ls.scene, shape)))
         named = parts[-1].name if parts[-1].name == shape.id() else f"{parts[-1].name} ({label})"
-        notes.append(f"{named}: its {shape.bsdf().class_name()} previewed as base colour "
-                     f"{', '.join(f'{v:.3g}' for v in base)}, roughness {roughness:.3g}, metallic {metallic:g}")  # fmt: skip
+        notes.append(f"{named}: its {shape.bsdf().class_name()} previewed as {parts[-1].preview.said()}")
         if shape.emitter() is not None:
             notes[-1] += "; its area light is not carried (the export's lights: --pattern's LEDs, --envmap)"
     return parts, notes or ["the scene holds no shape besides the subject: no set is written"]
@@ -129,20 +140,50 @@ def _cylinder():
 UNIT_SHAPES = {"rectangle": _rectangle, "disk": _disk, "sphere": _sphere, "cylinder": _cylinder}
 
 
-def preview_material(scene, shape) -> tuple[tuple[float, float, float], float, float]:
-    """(base colour, roughness, metallic) of a set shape's BSDF (the module's summary)."""
+def preview_material(scene, shape) -> Preview:
+    """The preview of a set shape's BSDF (the module's summary); a ``principled`` BSDF's own parameters, which are the
+    preview's model."""
+    own = principled_preview(shape.bsdf())
+    if own is not None:
+        return own
     diffuse, every = shape_albedos(scene, shape)
     diffuse = np.full(3, 0.5) if diffuse is None else np.maximum(diffuse, 0.0)
     every = diffuse if every is None else np.maximum(every, diffuse)
     glossy = float(np.mean(every - diffuse))
-    own = bsdf_roughness(shape.bsdf())
+    rough = bsdf_roughness(shape.bsdf())
     if glossy <= GLOSSY_SAID:
-        base, roughness, metallic = diffuse, 1.0 if own is None else own, 0.0
+        base, roughness, metallic, ior = diffuse, 1.0 if rough is None else rough, 0.0, 1.0
     elif diffuse.max() < METAL_DIFFUSE:
-        base, roughness, metallic = every, 0.0 if own is None else own, 1.0
+        base, roughness, metallic, ior = every, 0.0 if rough is None else rough, 1.0, 1.5
     else:
-        base, roughness, metallic = diffuse, 0.0 if own is None else own, 0.0
-    return tuple(float(v) for v in np.clip(base, 0.0, 1.0)), float(np.clip(roughness, 0.0, 1.0)), metallic
+        base, roughness, metallic, ior = diffuse, 0.0 if rough is None else rough, 0.0, 1.5
+    return Preview(tuple(float(v) for v in np.clip(base, 0.0, 1.0)), float(np.clip(roughness, 0.0, 1.0)), metallic, ior)
+
+
+def principled_preview(bsdf) -> Preview | None:
+    """A ``principled`` BSDF's (or one inside a ``twosided``'s) base colour, roughness and metallic, each a texture's
+    mean where it is one; None for another BSDF."""
+    import mitsuba as mi
+
+    params = mi.traverse(bsdf)
+    found = {}
+    for key in params.keys():
+        last = re.sub(r"\.(value|data)$", "", key).rsplit(".", 1)[-1]
+        if last in ("base_color", "metallic"):
+            values = np.array(params[key], np.float64)
+            values = values.reshape(-1, 3) if last == "base_color" and values.size % 3 == 0 and values.size > 1 else values.reshape(-1, 1)
+            values = values[np.isfinite(values).all(axis=1)]
+            found[last] = values.mean(axis=0) if len(values) else None
+    if found.get("base_color") is None:
+        return None
+    base = np.broadcast_to(found["base_color"], (3,))
+    metallic = float(found["metallic"][0]) if found.get("metallic") is not None else 0.0
+    roughness = bsdf_roughness(bsdf)
+    return Preview(
+        tuple(float(v) for v in np.clip(base, 0.0, 1.0)),
+        float(np.clip(0.5 if roughness is None else roughness, 0.0, 1.0)),
+        float(np.clip(metallic, 0.0, 1.0)),
+    )
 
 
 def bsdf_roughness(bsdf) -> float | None:

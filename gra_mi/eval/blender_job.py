@@ -178,7 +178,7 @@ def mesh_entry(obj, to_gra_mi) -> dict:
     nodes = material.node_tree.nodes if material is not None and material.node_tree is not None else []
     for node in nodes:
         if node.type == "BSDF_PRINCIPLED":
-            for name in ("Base Color", "Roughness", "Metallic"):
+            for name in ("Base Color", "Roughness", "Metallic", "IOR"):
                 socket = node.inputs[name]
                 if not socket.is_linked:
                     value = socket.default_value
