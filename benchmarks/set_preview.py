@@ -70,8 +70,8 @@ def measure(run: BenchmarkRun) -> str:
         f"included) at {run.args.spp} spp for every render. Each cell: mean relative error / bias of the mean against the "
         "truth.",
         "What the preview leaves out shows by kind: a texture becomes its mean colour (the checkerboard's error is its "
-        "pattern); a coat and a metal keep their highlight, which the diffuse stand-ins lose (−5 to −7 % and 8–15 % "
-        "error); a principled BSDF is its own preview; a mirror becomes principled's sharpest lobe. On a diffuse ball the "
+        "pattern); a coat and a metal keep their highlight, which the diffuse stand-ins lose (8–15 % error, a coat's light −7 %)"
+        "; a principled BSDF is its own preview; a mirror becomes principled's sharpest lobe. On a diffuse ball the "
         "preview's error is principled's Burley diffuse (its retro-reflection), not the preview: UsdPreviewSurface's and "
         "glTF's diffuse is Lambert's, the diffuse BSDF's own. A rough metal's base colour is its albedo over the "
         "directions it is seen from, which already holds its microfacets' masking, and principled (GGX; Mitsuba's "
