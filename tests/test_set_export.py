@@ -247,3 +247,23 @@ def test_an_avatar_exported_with_its_set_reads_back_as_the_avatar(stage_with_set
     )
     with pytest.raises(GraMiInputError, match=r"expected one node with a mesh, found 6 \('avatar', 'set_000'"):
         load_sequence(tmp_path / "b.glb")
+
+
+def test_a_principled_bsdf_previews_as_its_own_parameters(llvm_variant, tmp_path):
+    """A principled BSDF's base colour (a texture's mean per channel: a grey one of 12 texels is not read as 4 RGB
+    triples), metallic and roughness, inside a twosided too; another BSDF has none."""
+    import mitsuba as mi
+
+    from gra_mi.apps.set_export import principled_preview
+    from gra_mi.core.io import write_exr
+
+    write_exr(tmp_path / "grey.exr", np.where(np.arange(12).reshape(3, 4, 1) % 3 == 0, 0.1, 0.4).astype(np.float32))
+    write_exr(tmp_path / "rgb.exr", np.tile(np.float32([0.1, 0.2, 0.9]), (2, 2, 1)))
+    for name, base in (("grey.exr", (0.3, 0.3, 0.3)), ("rgb.exr", (0.1, 0.2, 0.9))):
+        bitmap = {"type": "bitmap", "filename": str(tmp_path / name), "raw": True}
+        preview = principled_preview(mi.load_dict({"type": "principled", "base_color": bitmap, "metallic": 0.3, "roughness": 0.2}))
+        np.testing.assert_allclose(preview.base_color, base, rtol=1e-6)
+        assert preview.metallic == pytest.approx(0.3) and preview.roughness == pytest.approx(0.2) and preview.ior == 1.5
+    inner = {"type": "principled", "base_color": {"type": "rgb", "value": [0.2, 0.4, 0.6]}, "roughness": 0.6}
+    np.testing.assert_allclose(principled_preview(mi.load_dict({"type": "twosided", "bsdf": inner})).base_color, (0.2, 0.4, 0.6), rtol=1e-6)
+    assert principled_preview(mi.load_dict({"type": "diffuse"})) is None

@@ -171,7 +171,7 @@ def principled_preview(bsdf) -> Preview | None:
         last = re.sub(r"\.(value|data)$", "", key).rsplit(".", 1)[-1]
         if last in ("base_color", "metallic"):
             values = np.array(params[key], np.float64)
-            values = values.reshape(-1, 3) if last == "base_color" and values.size % 3 == 0 and values.size > 1 else values.reshape(-1, 1)
+            values = values.reshape(-1, values.shape[-1]) if key.endswith(".data") else values.reshape(1, -1)  # (texels × channels)
             values = values[np.isfinite(values).all(axis=1)]
             found[last] = values.mean(axis=0) if len(values) else None
     if found.get("base_color") is None:
