@@ -8,7 +8,7 @@ What a pipeline TD gets (docs/export.md):
   ``UsdPreviewSurface``: ``diffuseColor`` from the albedo (16-bit PNG, ``sourceColorSpace = sRGB``), ``roughness``
   from the roughness map (16-bit PNG, ``raw``; perceptual, α = r², as gra-mi's), ``metallic`` 0 and ``ior`` 1.5, the
   specular model's F0 = 0.04.
-- ``/Set`` (optional, ``export --set``): a scene's set (a floor, walls, props) as static ``Mesh``\ es under
+- ``/Set`` (optional, ``export --set``): a scene's set (a floor, walls, props) as static ``Mesh``\\ es under
   ``/Set/Geometry``, each bound to a constant ``UsdPreviewSurface`` under ``/Set/Looks`` (:mod:`gra_mi.apps.set_export`).
 - ``/Capture`` (optional): the calibration's cameras as ``Camera`` prims (focal length and apertures in millimetres
   of a 36 mm wide film; the principal point as aperture offsets), an environment map as a ``DomeLight`` (lat-long,
