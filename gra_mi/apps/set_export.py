@@ -163,21 +163,11 @@ def preview_material(scene, shape) -> Preview:
 def principled_preview(bsdf) -> Preview | None:
     """A ``principled`` BSDF's (or one inside a ``twosided``'s) base colour, roughness and metallic, each a texture's
     mean where it is one; None for another BSDF."""
-    import mitsuba as mi
-
-    params = mi.traverse(bsdf)
-    found = {}
-    for key in params.keys():
-        last = re.sub(r"\.(value|data)$", "", key).rsplit(".", 1)[-1]
-        if last in ("base_color", "metallic"):
-            values = np.array(params[key], np.float64)
-            values = values.reshape(-1, values.shape[-1]) if key.endswith(".data") else values.reshape(1, -1)  # (texels × channels)
-            values = values[np.isfinite(values).all(axis=1)]
-            found[last] = values.mean(axis=0) if len(values) else None
-    if found.get("base_color") is None:
+    found = _parameter_means(bsdf, ("base_color", "metallic"))
+    if not found.get("base_color"):
         return None
-    base = np.broadcast_to(found["base_color"], (3,))
-    metallic = float(found["metallic"][0]) if found.get("metallic") is not None else 0.0
+    base = np.broadcast_to(found["base_color"][0], (3,))
+    metallic = float(found["metallic"][0][0]) if found.get("metallic") else 0.0
     roughness = bsdf_roughness(bsdf)
     return Preview(
         tuple(float(v) for v in np.clip(base, 0.0, 1.0)),
@@ -188,16 +178,26 @@ def principled_preview(bsdf) -> Preview | None:
 
 def bsdf_roughness(bsdf) -> float | None:
     """The perceptual roughness a BSDF's parameters give (the mean over its lobes and texels); None where it has none."""
+    found = _parameter_means(bsdf, ("alpha", "alpha_u", "alpha_v", "roughness"))
+    values = [
+        float(m.mean()) if name == "roughness" else np.sqrt(max(float(m.mean()), 0.0)) for name, means in found.items() for m in means
+    ]
+    return float(np.mean(values)) if values else None
+
+
+def _parameter_means(bsdf, names: tuple[str, ...]) -> dict[str, list[np.ndarray]]:
+    """Each of ``names`` among a BSDF's parameters (``mi.traverse``; nested lobes' too, by the last part of the key):
+    the mean per channel of each occurrence over its finite texels (a texture's NaN texels say nothing of it)."""
     import mitsuba as mi
 
     params = mi.traverse(bsdf)
-    found = []
+    found: dict[str, list[np.ndarray]] = {}
     for key in params.keys():
         last = re.sub(r"\.(value|data)$", "", key).rsplit(".", 1)[-1]
-        if last in ("alpha", "alpha_u", "alpha_v", "roughness"):
-            values = np.array(params[key], np.float64).ravel()
-            values = values[np.isfinite(values)]  # (a texture's NaN texels say nothing of it)
-            if values.size:
-                value = float(values.mean())
-                found.append(value if last == "roughness" else np.sqrt(max(value, 0.0)))
-    return float(np.mean(found)) if found else None
+        if last in names:
+            values = np.array(params[key], np.float64)
+            values = values.reshape(-1, values.shape[-1]) if key.endswith(".data") else values.reshape(1, -1)  # (texels × channels)
+            values = values[np.isfinite(values).all(axis=1)]
+            if len(values):
+                found.setdefault(last, []).append(values.mean(axis=0))
+    return found
