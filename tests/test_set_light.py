@@ -198,6 +198,31 @@ def test_a_set_texture_with_nan_texels_gives_the_mean_of_the_others(llvm_variant
     assert not two_sided and glossy < 1e-6
 
 
+def test_a_covered_set_shape_gives_its_own_albedo(llvm_variant):
+    """Two rectangles in one place (a ray meets only one of them) and a checkerboard rectangle under a larger grey one:
+    each gives its own BSDF's albedo, read where it lies, not the default (it was 0.5 for whichever the rays missed)."""
+    import mitsuba as mi
+
+    from gra_mi.capture.set_albedo import set_material
+
+    checker = {
+        "type": "checkerboard",
+        "color0": {"type": "rgb", "value": [0.1, 0.1, 0.1]},
+        "color1": {"type": "rgb", "value": [0.3, 0.3, 0.3]},
+    }
+    scene = mi.load_dict({
+        "type": "scene",
+        "white": {"type": "rectangle", "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.9, 0.8, 0.7]}}},
+        "metal": {"type": "rectangle", "bsdf": {"type": "conductor"}},
+        "cover": {"type": "rectangle", "to_world": mi.ScalarTransform4f().translate([5, 0, 0.0005]).scale(2.0), "bsdf": {"type": "diffuse"}},
+        "under": {"type": "rectangle", "to_world": mi.ScalarTransform4f().translate([5, 0, 0]), "bsdf": {"type": "diffuse", "reflectance": checker}},
+    })  # fmt: skip
+    found = {s.id(): set_material(scene, s) for s in scene.shapes()}
+    np.testing.assert_allclose(found["white"][0], (0.9, 0.8, 0.7), atol=1e-3)
+    assert np.allclose(found["metal"][0], 0.0) and found["metal"][2] > 0.99  # all of it glossy
+    np.testing.assert_allclose(found["under"][0], 0.2, atol=0.01)  # the checkerboard's mean
+
+
 def _albedo(bsdf: dict, cos_theta: float, diffuse_only: bool = True, lanes: int = 20_000) -> np.ndarray:
     """:func:`gra_mi.render.bounce.albedo` of ``bsdf`` seen at ``cos_theta`` from its normal, averaged over ``lanes``."""
     import drjit as dr
@@ -314,9 +339,9 @@ def test_from_scene_carries_each_set_shapes_own_bsdf(plugins, tmp_path, capsys):
     """`from-scene` writes each set shape's own BSDF into the stage as the user's file has it: a metal floor whose
     roughness is a <default> parameter, a coat defined once and referred to, a texture beside the scene (copied into the
     stage's set/ folder, brighter than 1 as the user's is), a sphere without an id (found by its place). Two id-less
-    rectangles in one place with different BSDFs cannot be told apart: each gets a diffuse stand-in, said, as does a
-    metal rectangle from an <include>d file, with what it leaves out (its glossy light); a half-transparent screen is
-    said to be opaque."""
+    rectangles in one place with different BSDFs cannot be told apart: each gets a diffuse stand-in, said, with what the
+    metal one leaves out (its glossy light); a metal rectangle from an <include>d file keeps its own; a half-transparent
+    screen is said to be opaque."""
     from gra_mi.capture.set_albedo import set_material
     from gra_mi.core.io import write_exr
     from gra_mi.stage.scene import LightstageScene
@@ -335,12 +360,12 @@ def test_from_scene_carries_each_set_shapes_own_bsdf(plugins, tmp_path, capsys):
         f'<shape type="rectangle" id="screen">{place.format(0.5)}<bsdf type="mask"><float name="opacity" value="0.5"/><bsdf type="diffuse"/></bsdf></shape>',
         f'<shape type="sphere">{place.format(0.2)}<bsdf type="roughconductor"><float name="alpha" value="0.4"/></bsdf></shape>',
         f'<shape type="rectangle">{place.format(-0.5)}<bsdf type="diffuse"/></shape>',
-        f'<shape type="rectangle">{place.format(-0.5)}<bsdf type="plastic"/></shape>',
+        f'<shape type="rectangle">{place.format(-0.5)}<bsdf type="conductor"/></shape>',
         '<include filename="included.xml"/>',
     ]  # fmt: skip
     (tmp_path / "user").mkdir()
     write_exr(tmp_path / "user" / "bright.exr", np.tile(np.float32([1.5, 0.5, 0.5]), (4, 4, 1)))
-    included = f'<shape type="rectangle">{place.format(-0.2)}<bsdf type="roughconductor"/></shape>'
+    included = f'<shape type="rectangle">{place.format(-0.2)}<bsdf type="roughconductor"><float name="alpha" value="0.15"/></bsdf></shape>'
     (tmp_path / "user" / "included.xml").write_text(f'<scene version="3.0.0">{included}</scene>')
     path = write_user_scene(tmp_path / "user", shapes=BODY + "".join(shapes))
     code, lines = run(["from-scene", path, "--out", tmp_path / "stage"], capsys)
@@ -350,8 +375,9 @@ def test_from_scene_carries_each_set_shapes_own_bsdf(plugins, tmp_path, capsys):
     assert sorted(named) == ["crate", "floor", "glowing", "screen"], notes
     assert "kept as the set: a Sphere shape (set_" in notes and '<float name="alpha" value="0.4"' in xml
     assert notes.count("the BSDF of a Rectangle shape is not carried into scene.xml (2 shapes without an id") == 2
-    assert "not carried into scene.xml (its element is not in the scene file itself: it comes from an <include>d" in notes
-    assert re.search(r"the BSDF of a Rectangle shape reflects (99|100)% of the light it receives glossily", notes)
+    assert len(re.findall(r"a Rectangle shape \(set_\d+ in scene.xml, with its own BSDF", notes)) == 1  # (the included)
+    assert '<float name="alpha" value="0.15"' in xml
+    assert re.search(r"the BSDF of a Rectangle shape reflects (99|100)% of the light it receives glossily", notes), notes
     assert "shape 'screen' lets light through in your scene (an opacity mask, glass); in the stage it is opaque" in notes
     assert "more light than it receives" not in notes  # (the texture is carried as it is)
     assert 'type="roughplastic"' in xml and 'id="coat"' not in xml and "$rough" not in xml
@@ -396,6 +422,46 @@ def test_a_set_bsdf_that_cannot_be_carried_says_why(llvm_variant, tmp_path):
     assert all(isinstance(c, CarriedBSDF) and 'id="b"' not in c.xml() for c in shared)
     assert list(shared[0].files.values()) == [(tmp_path / "tex.exr").resolve()]
     assert isinstance(carried_bsdf(tmp_path / "parameter.xml", "a", {"alpha": "0.2"}), CarriedBSDF)  # a --define
+
+
+def test_a_set_bsdf_is_found_in_the_files_a_scene_includes(llvm_variant, tmp_path):
+    """A scene's <include>s are read as Mitsuba reads them (the scene loads with Mitsuba first, so both agree): a file
+    named through a <default>, of Mitsuba 0.5 (its names upgraded), its texture found beside the loaded scene file; a
+    file inside it; a BSDF file included inside a shape. An included file edited after a first read is read again; a
+    file that includes itself, or a missing one, is said."""
+    import mitsuba as mi
+
+    from gra_mi.capture.scene_bsdf import CarriedBSDF, carried_bsdf
+    from gra_mi.core.io import write_exr
+
+    (tmp_path / "parts").mkdir()
+    write_exr(tmp_path / "tex.exr", np.full((2, 2, 3), 0.25, np.float32))
+    texture = '<texture type="bitmap" name="diffuseReflectance"><string name="filename" value="tex.exr"/></texture>'
+    (tmp_path / "parts" / "shapes.xml").write_text(
+        f'<scene version="0.5.0"><shape type="sphere" id="a"><bsdf type="roughplastic"><float name="intIOR" value="1.6"/>'
+        f'{texture}</bsdf></shape><include filename="parts/deeper.xml"/></scene>'
+    )
+    (tmp_path / "parts" / "deeper.xml").write_text(
+        '<scene version="3.0.0"><shape type="cube" id="c"><bsdf type="conductor"/></shape></scene>'
+    )
+    (tmp_path / "parts" / "coat.xml").write_text('<bsdf version="3.0.0" type="roughconductor"><float name="alpha" value="0.3"/></bsdf>')
+    main = tmp_path / "main.xml"
+    main.write_text('<scene version="3.0.0"><default name="part" value="parts"/><include filename="$part/shapes.xml"/>'
+                    '<shape type="disk" id="b"><include filename="parts/coat.xml"/></shape></scene>')  # fmt: skip
+    loaded = {s.id(): s.bsdf().class_name() for s in mi.load_file(str(main)).shapes()}
+    assert loaded == {"a": "RoughPlastic", "b": "RoughConductor", "c": "SmoothConductor"}
+    found = {name: carried_bsdf(main, name, {}) for name in "abc"}
+    assert all(isinstance(c, CarriedBSDF) for c in found.values()), found
+    assert 'name="int_ior"' in found["a"].xml() and list(found["a"].files.values()) == [(tmp_path / "tex.exr").resolve()]
+    assert 'type="roughconductor"' in found["b"].xml() and 'type="conductor"' in found["c"].xml()
+    (tmp_path / "parts" / "deeper.xml").write_text(
+        '<scene version="3.0.0"><shape type="cube" id="c"><bsdf type="plastic"/></shape></scene>'
+    )
+    assert 'type="plastic"' in carried_bsdf(main, "c", {}).xml()
+    (tmp_path / "loop.xml").write_text('<scene version="3.0.0"><include filename="loop.xml"/></scene>')
+    (tmp_path / "missing.xml").write_text('<scene version="3.0.0"><include filename="gone.xml"/></scene>')
+    assert "nest deeper than 15 files" in carried_bsdf(tmp_path / "loop.xml", "a", {})
+    assert "includes gone.xml, which is not found" in carried_bsdf(tmp_path / "missing.xml", "a", {})
 
 
 def test_from_scene_carries_the_bsdfs_of_an_old_mitsuba_file(plugins, tmp_path, capsys):

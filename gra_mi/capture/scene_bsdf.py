@@ -3,9 +3,9 @@ mitsuba``): Mitsuba cannot write a loaded BSDF back as XML, so the shape's eleme
 wrote it. A shape is found there by its id, or, without one, as the one id-less shape of the file that loads alone as
 the same kind of shape in the same place. Its ``<ref>``s are inlined, its ``$names`` replaced by the file's
 ``<default>``s and the command's ``--define``s, and the files it reads (textures) found as Mitsuba finds them, to be
-copied beside the stage. What cannot be carried (a shape from an ``<include>``d file, id-less twins in one place with
-different BSDFs, a file that is missing) is said, and a diffuse stand-in takes its place
-(:func:`gra_mi.capture.set_albedo.set_material`).
+copied beside the stage. The files the scene ``<include>``s are read in their places, as Mitsuba reads them. What
+cannot be carried (id-less twins in one place with different BSDFs, a file that is missing) is said, and a diffuse
+stand-in takes its place (:func:`gra_mi.capture.set_albedo.set_material`).
 """
 
 from __future__ import annotations
@@ -20,6 +20,8 @@ from pathlib import Path
 import numpy as np
 
 MAX_REF_DEPTH = 16  # <ref>s inside <ref>s: deeper is a cycle
+MAX_INCLUDE_DEPTH = 15  # Mitsuba's own limit on <include>s inside included files
+NOT_FOUND = "its element is not in the scene file or the files it includes"
 
 
 @dataclass
@@ -55,12 +57,11 @@ def carried_bsdf(scene_file: Path, shape, defines: dict[str, str]) -> CarriedBSD
     gives none (Mitsuba's default diffuse, which the stand-in is exactly); otherwise why it cannot be carried."""
     try:
         stat = Path(scene_file).stat()
-        root, by_id = _parsed(Path(scene_file).resolve(), stat.st_mtime_ns, stat.st_size)
-    except (OSError, ET.ParseError) as error:
+        key = (Path(scene_file).resolve(), stat.st_mtime_ns, stat.st_size, tuple(sorted(defines.items())))
+        root, by_id, defaults = _read(key)
+    except (OSError, ET.ParseError, ValueError) as error:
         return f"its scene file could not be read again ({error})"
-    defaults = {d.get("name"): d.get("value", "") for d in root.iter("default")} | dict(defines)
     try:
-        key = (Path(scene_file).resolve(), stat.st_mtime_ns, stat.st_size, tuple(sorted(defaults.items())))
         element = _shape_element(key, root, by_id, shape)
         bsdf = _own_bsdf(element, by_id)
         element = None if bsdf is None else _inlined(bsdf, by_id, 0)
@@ -87,12 +88,60 @@ def carried_bsdf(scene_file: Path, shape, defines: dict[str, str]) -> CarriedBSD
     return carried.loads() or carried
 
 
+def _read(key: tuple) -> tuple[ET.Element, dict[str, ET.Element], dict[str, str]]:
+    """:func:`_parsed`, parsed again where a file it includes has changed since."""
+    parsed = _parsed(*key)
+    if any(_stat(path) != stat for path, stat in parsed[3].items()):
+        _parsed.cache_clear()
+        _id_less_places.cache_clear()
+        parsed = _parsed(*key)
+    return parsed[:3]
+
+
 @functools.lru_cache(maxsize=4)
-def _parsed(path: Path, mtime_ns: int, size: int) -> tuple[ET.Element, dict[str, ET.Element]]:
-    """The scene file's elements and its objects by id, parsed once for all its set shapes (an edited file again;
-    never changed here: :func:`_inlined` copies what it takes)."""
+def _parsed(path: Path, mtime_ns: int, size: int, defines: tuple) -> tuple:
+    """The scene file's elements with its ``<include>``s in their places, its objects by id, its parameters (the first
+    ``<default>`` of each name, the command's ``--define``s over them) and the included files' stats; parsed once for
+    all its set shapes (never changed here: :func:`_inlined` copies what it takes)."""
     root = _upgraded(ET.parse(path).getroot())
-    return root, {node.get("id"): node for node in root.iter() if node.get("id") and node.tag != "ref"}
+    defaults = _defaults(root, dict(defines))
+    included: dict[Path, tuple] = {}
+    _include(root, path, defaults, included, 0)
+    defaults = _defaults(root, dict(defines))  # (an included file's <default>s too)
+    by_id = {node.get("id"): node for node in root.iter() if node.get("id") and node.tag != "ref"}
+    return root, by_id, defaults, included
+
+
+def _defaults(root: ET.Element, defines: dict[str, str]) -> dict[str, str]:
+    found: dict[str, str] = {}
+    for node in root.iter("default"):
+        found.setdefault(node.get("name"), node.get("value", ""))  # (Mitsuba keeps the first)
+    return found | defines
+
+
+def _include(node: ET.Element, scene_file: Path, defaults: dict, included: dict, depth: int) -> None:
+    """Each ``<include>`` under ``node`` replaced by what its file holds, as Mitsuba includes it: a ``<scene>``'s
+    elements in its place (another root element itself), in that file's own version's names; its file found as
+    Mitsuba's resolver finds it (beside the scene file that is loaded, for an included file's own names too)."""
+    for index, child in reversed(list(enumerate(node))):
+        if child.tag != "include":
+            _include(child, scene_file, defaults, included, depth)
+            continue
+        if depth >= MAX_INCLUDE_DEPTH:
+            raise ValueError(f"its <include>s nest deeper than {MAX_INCLUDE_DEPTH} files (one includes itself?)")
+        name = _substituted(child.get("filename", ""), defaults)
+        found = _found(scene_file, name)
+        if found is None:
+            raise ValueError(f"it includes {name}, which is not found beside the scene file")
+        included[found] = _stat(found)
+        root = _upgraded(ET.parse(found).getroot())
+        _include(root, scene_file, defaults, included, depth + 1)
+        node[index : index + 1] = list(root) if root.tag == "scene" else [root]
+
+
+def _stat(path: Path) -> tuple[int, int]:
+    stat = path.stat()
+    return stat.st_mtime_ns, stat.st_size
 
 
 def _upgraded(root: ET.Element) -> ET.Element:
@@ -118,12 +167,12 @@ def _shape_element(key: tuple, root: ET.Element, by_id: dict, shape) -> ET.Eleme
     if shape_id:
         found = [s for s in root.iter("shape") if s.get("id") == shape_id]
         if len(found) != 1:
-            raise ValueError("its element is not in the scene file itself: it comes from an <include>d file")
+            raise ValueError(NOT_FOUND)
         return found[0]
     seen = (shape.class_name(), *shape.bbox().min, *shape.bbox().max)
     twins = [s for s, placed in _id_less_places(*key) if _same_place(placed, seen)]
     if not twins:
-        raise ValueError("its element is not in the scene file itself: it comes from an <include>d file")
+        raise ValueError(NOT_FOUND)
     written = {ET.tostring(_inlined(b, by_id, 0)) if (b := _own_bsdf(s, by_id)) is not None else b"" for s in twins}
     if len(written) > 1:
         raise ValueError(f"{len(twins)} shapes without an id in the scene file are of its kind in its place, with "
@@ -132,10 +181,11 @@ def _shape_element(key: tuple, root: ET.Element, by_id: dict, shape) -> ET.Eleme
 
 
 @functools.lru_cache(maxsize=4)
-def _id_less_places(path: Path, mtime_ns: int, size: int, defaults: tuple) -> list[tuple[ET.Element, tuple | None]]:
-    """Each id-less top-level shape element of the file, and where it is (:func:`_placed`): loaded once per file."""
-    root = _parsed(path, mtime_ns, size)[0]
-    return [(s, _placed(s, path, dict(defaults))) for s in root.findall("shape") if not s.get("id")]
+def _id_less_places(path: Path, mtime_ns: int, size: int, defines: tuple) -> list[tuple[ET.Element, tuple | None]]:
+    """Each id-less top-level shape element of the file (its includes' too), and where it is (:func:`_placed`): loaded
+    once per file."""
+    root, _, defaults, _ = _parsed(path, mtime_ns, size, defines)
+    return [(s, _placed(s, path, defaults)) for s in root.findall("shape") if not s.get("id")]
 
 
 def _placed(element: ET.Element, scene_file: Path, defaults: dict) -> tuple | None:

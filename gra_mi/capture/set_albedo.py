@@ -11,7 +11,8 @@ import numpy as np
 def shape_albedos(scene, shape, samples: int = 1024) -> tuple[np.ndarray | None, np.ndarray | None]:
     """(the mean diffuse albedo of ``shape``'s BSDF, the mean albedo of all its lobes), RGB, not clipped; each None
     where no sample of it is finite. Points spread over the shape are found by rays (so that textures and vertex
-    colours are read where they lie) and seen from cosine-distributed directions on their front side."""
+    colours are read where they lie) and seen from cosine-distributed directions on their front side; a point another
+    shape covers (a twin in the same place, a box on the floor) is read at the sample itself."""
     import drjit as dr
     import mitsuba as mi
 
@@ -21,7 +22,11 @@ def shape_albedos(scene, shape, samples: int = 1024) -> tuple[np.ndarray | None,
     i = dr.arange(mi.Float, samples)
     ps = shape.sample_position(0.0, lattice_point(i, samples))
     si = scene.ray_intersect(mi.Ray3f(ps.p + ps.n * 1e-3, -ps.n))
-    on_shape = si.is_valid() & (si.shape == mi.ShapePtr(shape))
+    found = si.is_valid() & (si.shape == mi.ShapePtr(shape))
+    at_sample = mi.SurfaceInteraction3f(ps, dr.zeros(mi.Color0f))
+    at_sample.shape = mi.ShapePtr(shape)
+    si = dr.select(found, si, at_sample)
+    on_shape = dr.isfinite(ps.p.x) & (ps.pdf > 0)
     si.wi = mi.warp.square_to_cosine_hemisphere(lattice_point(i, samples, mi.Point2f(0.5, 0.25)))  # (its front side)
     diffuse, every = (_finite_mean(albedo(shape.bsdf(), si, on_shape, 16, only), on_shape) for only in (True, False))
     return diffuse, every
