@@ -73,9 +73,11 @@ def measure(run: BenchmarkRun) -> str:
         "pattern); a coat and a metal keep their highlight, which the diffuse stand-ins lose (8–15 % error, a coat's light −7 %)"
         "; a principled BSDF is its own preview; a mirror becomes principled's sharpest lobe. On a diffuse ball the "
         "preview's error is principled's Burley diffuse (its retro-reflection), not the preview: UsdPreviewSurface's and "
-        "glTF's diffuse is Lambert's, the diffuse BSDF's own. A rough metal's base colour is its albedo over the "
-        "directions it is seen from, which already holds its microfacets' masking, and principled (GGX; Mitsuba's "
-        "roughconductor is Beckmann by default) masks again: aluminium at α 0.25 renders 6 % dark.",
+        "glTF's diffuse is Lambert's, the diffuse BSDF's own. A metal's base colour (F0) is the one for which glTF's GGX "
+        "metal of its roughness reflects as much light as it does: its albedo itself, which holds its microfacets' "
+        "masking already, rendered 6 % dark here. Mitsuba's roughconductor is Beckmann by default, whose short tails "
+        "shadow less than GGX's at one α: aluminium at α 0.25 reflects more than any GGX metal of roughness 0.5, and "
+        "its base colour is white (clipped at 1).",
     ]
     columns = ("BSDF", "preview", "preview (principled)", "diffuse of the base colour", "grey diffuse 0.5", "noise")
     return table_page("The set's preview materials against the BSDFs they stand for", "set_preview.py",

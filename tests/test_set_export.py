@@ -267,3 +267,29 @@ def test_a_principled_bsdf_previews_as_its_own_parameters(llvm_variant, tmp_path
     inner = {"type": "principled", "base_color": {"type": "rgb", "value": [0.2, 0.4, 0.6]}, "roughness": 0.6}
     np.testing.assert_allclose(principled_preview(mi.load_dict({"type": "twosided", "bsdf": inner})).base_color, (0.2, 0.4, 0.6), rtol=1e-6)
     assert principled_preview(mi.load_dict({"type": "diffuse"})) is None
+
+
+def test_a_metals_preview_reflects_as_much_as_the_metal(llvm_variant):
+    """glTF's GGX metal's albedos (F = 1, and Schlick's rise (1 − cos)⁵) against their analytic values for a mirror (1 and
+    1/21) and against Mitsuba's principled metal (GGX, Schlick; its separable masking a little darker) at base colour 1
+    and 0. A GGX metal that reflects all the light its microfacets meet previews white; one that reflects half of it, a
+    little under 0.5 (Schlick's F rises toward grazing, its F does not)."""
+    import mitsuba as mi
+
+    from gra_mi.apps.set_export import metal_albedos, preview_material
+    from gra_mi.capture.set_albedo import shape_albedos
+
+    def plane(bsdf):
+        scene = mi.load_dict({"type": "scene", "plane": {"type": "rectangle", "bsdf": bsdf}})
+        return scene, scene.shapes()[0]
+
+    assert metal_albedos(0.0) == pytest.approx((1.0, 1 / 21), rel=0.02)
+    for roughness in (0.3, 0.55, 0.8):
+        full, edge = metal_albedos(roughness)
+        for base, expected, tolerance in ((1.0, full, 0.03 * full), (0.0, edge, 0.005)):
+            bsdf = {"type": "principled", "base_color": {"type": "rgb", "value": [base] * 3}, "metallic": 1.0, "roughness": roughness}
+            assert np.mean(shape_albedos(*plane(bsdf))[1]) == pytest.approx(expected, abs=tolerance), (roughness, base)
+    white = {"type": "roughconductor", "distribution": "ggx", "alpha": 0.3}  # (material "none": F = 1)
+    assert min(preview_material(*plane(white)).base_color) > 0.98
+    half = preview_material(*plane(white | {"specular_reflectance": {"type": "rgb", "value": [0.5] * 3}}))
+    assert half.metallic == 1.0 and 0.44 < min(half.base_color) <= max(half.base_color) < 0.5

@@ -7,7 +7,9 @@ A BSDF is more than three numbers, so the preview is a summary, said in the expo
 - a ``principled`` BSDF: its own base colour, roughness and metallic (a texture's mean), which are the preview's model;
 - otherwise the base colour is the mean diffuse albedo of its BSDF over its surface and the directions it is seen from
   (:func:`~gra_mi.capture.set_albedo.shape_albedos`: a texture's mean colour, a plastic's diffuse lobe under its coat);
-  for a metal (no diffuse light, more than 5 % glossy), the albedo of all its lobes, as metallic 1;
+  for a metal (no diffuse light, more than 5 % glossy), metallic 1 and the base colour (F0) for which glTF's metal BRDF
+  of its roughness reflects as much as all its lobes do (:func:`metal_albedos`: the light its microfacets shadow
+  from each other, and its Fresnel's rise toward grazing, are the renderer's to add);
 - roughness: the BSDF's own (``roughness``, perceptual; ``alpha``, ``alpha_u``/``alpha_v`` as √α; a texture's mean), 0
   for a smooth glossy BSDF, 1 for one without a glossy lobe, which also gets no specular (``ior`` 1: F0 = 0).
 
@@ -18,6 +20,7 @@ corners its own).
 
 from __future__ import annotations
 
+import functools
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -154,10 +157,37 @@ def preview_material(scene, shape) -> Preview:
     if glossy <= GLOSSY_SAID:
         base, roughness, metallic, ior = diffuse, 1.0 if rough is None else rough, 0.0, 1.0
     elif diffuse.max() < METAL_DIFFUSE:
-        base, roughness, metallic, ior = every, 0.0 if rough is None else rough, 1.0, 1.5
+        roughness = 0.0 if rough is None else float(np.clip(rough, 0.0, 1.0))
+        full, edge = metal_albedos(round(roughness, 3))
+        base, metallic, ior = (every - edge) / (full - edge), 1.0, 1.5
     else:
         base, roughness, metallic, ior = diffuse, 0.0 if rough is None else rough, 0.0, 1.5
     return Preview(tuple(float(v) for v in np.clip(base, 0.0, 1.0)), float(np.clip(roughness, 0.0, 1.0)), metallic, ior)
+
+
+@functools.lru_cache(maxsize=64)
+def metal_albedos(roughness: float, steps: int = 64) -> tuple[float, float]:
+    """(E1, E5): the mean albedo of glTF's metal BRDF (GGX, α = r², height-correlated Smith masking, Schlick's Fresnel
+    F0 + (1 − F0)(1 − cos)⁵) of this perceptual roughness with F = 1 and with F = (1 − cos)⁵, over cosine-distributed
+    view directions as :func:`shape_albedos` averages: one of base colour F0 reflects F0·E1 + (1 − F0)·E5. Midpoint
+    quadrature over the views and the GGX distribution of half vectors."""
+    alpha2 = max(roughness, 1e-3) ** 4
+    grid = (np.arange(steps) + 0.5) / steps
+    mu_o = np.sqrt(1.0 - grid)[:, None, None]  # (cosine-distributed views)
+    cos2_h = ((1.0 - grid) / (1.0 + (alpha2 - 1.0) * grid))[None, :, None]  # (GGX's θ_h)
+    cos_h, sin_h, phi = np.sqrt(cos2_h), np.sqrt(1.0 - cos2_h), 2.0 * np.pi * grid[None, None, :]
+    wo = np.stack(np.broadcast_arrays(np.sqrt(1.0 - mu_o**2), 0.0 * mu_o, mu_o))
+    h = np.stack(np.broadcast_arrays(sin_h * np.cos(phi), sin_h * np.sin(phi), cos_h))
+    o_dot_h = np.einsum("i...,i...->...", wo, h)
+    mu_i = 2.0 * o_dot_h * h[2] - wo[2]  # (the light direction: wo reflected about h)
+
+    def smith_lambda(mu):
+        return 0.5 * (np.sqrt(1.0 + alpha2 * (1.0 / np.maximum(mu, 1e-9) ** 2 - 1.0)) - 1.0)
+
+    masking = np.where((mu_i > 0) & (o_dot_h > 0), 1.0 / (1.0 + smith_lambda(mu_o) + smith_lambda(mu_i)), 0.0)
+    weight = masking * o_dot_h / (mu_o * h[2])  # f cosθ_i / pdf(h → ω_i)
+    edge = (1.0 - np.clip(o_dot_h, 0.0, 1.0)) ** 5
+    return float(weight.mean()), float((weight * edge).mean())
 
 
 def principled_preview(bsdf) -> Preview | None:
