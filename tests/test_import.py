@@ -1079,14 +1079,12 @@ def _with_matrix(text: str, name: str, m: np.ndarray) -> str:
     return re.sub(rf"{name}: !!opencv-matrix\n(?:\s+\w+: .*\n){{3}}\s+data: \[[^\]]*\]\n", _opencv_matrix(name, m), text)
 
 
-def through_lens(image: np.ndarray, k: np.ndarray, dist: np.ndarray) -> np.ndarray:
+def through_lens(image: np.ndarray, k_cv: np.ndarray, dist: np.ndarray) -> np.ndarray:
     """A pinhole image as a camera with OpenCV's ``dist`` takes it: each pixel sampled (bilinear, cv2.remap) where
-    OpenCV's undistortPoints puts its centre in the pinhole image (gra-mi's K: pixel centres at +0.5)."""
+    OpenCV's undistortPoints puts its centre in the pinhole image (``k_cv``: OpenCV's K, pixel centres on integers)."""
     import cv2
 
     h, w = image.shape[:2]
-    k_cv = k.copy()
-    k_cv[:2, 2] -= 0.5  # OpenCV's pixel centres are on integers
     pixels = np.stack(np.meshgrid(np.arange(w, dtype=float), np.arange(h, dtype=float)), axis=-1).reshape(-1, 1, 2)
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
     at = cv2.undistortPoints(pixels, k_cv, dist, P=k_cv, criteria=criteria).reshape(h, w, 2).astype(np.float32)
@@ -1109,7 +1107,7 @@ def write_easymocap(native, folder: Path, frames: list, dist: np.ndarray | None 
     names = [f"{i + 1:02d}" for i in range(len(stage.cameras))]
     intri = extri = "%YAML:1.0\n---\nnames:\n" + "".join(f'   - "{n}"\n' for n in names)
     for name, cam in zip(names, stage.cameras, strict=True):
-        k = np.array([[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1]])
+        k = np.array([[cam.fx, 0, cam.cx - 0.5], [0, cam.fy, cam.cy - 0.5], [0, 0, 1]])  # OpenCV's: pixel centres on integers
         intri += _opencv_matrix(f"K_{name}", k)
         intri += _opencv_matrix(f"dist_{name}", np.zeros((1, 5)) if dist is None else np.reshape(dist, (1, -1)))
         rot = cam.rotation.T  # world-to-camera
@@ -1163,6 +1161,23 @@ def test_an_easymocap_rig_with_a_moving_subject_imports(path_traced_fit, tmp_pat
     # the rig is the native one up to the import's rigid transform
     for p, q in zip(imported_stage.cameras, stage.cameras, strict=True):
         assert np.linalg.norm(p.position - imported_stage.center) == pytest.approx(np.linalg.norm(q.position - stage.center), abs=1e-5)
+    moved = np.array(json.loads((out / "capture.json").read_text())["source"]["transform"])  # (the import's, in metres)
+    _projects_as_opencv(tmp_path / "rig", imported_stage, seq.vertices[0], seq.vertices[0] @ moved[:3, :3].T + moved[:3, 3])
+
+
+def _projects_as_opencv(rig: Path, imported_stage, vertices: np.ndarray, imported_vertices: np.ndarray) -> None:
+    """Each imported camera puts the mesh where OpenCV's own projectPoints, reading the rig's files with its own
+    FileStorage, puts it in the source's frame: half a pixel apart, as OpenCV's pixel centres are on integers and
+    gra-mi's at +½ (the importer once took K as gra-mi's)."""
+    import cv2
+
+    intri, extri = (cv2.FileStorage(str(rig / name), cv2.FILE_STORAGE_READ) for name in ("intri.yml", "extri.yml"))
+    for k, camera in enumerate(imported_stage.cameras):
+        name = f"{k + 1:02d}"
+        k_cv, dist = intri.getNode(f"K_{name}").mat(), intri.getNode(f"dist_{name}").mat()
+        rvec, tvec = extri.getNode(f"R_{name}").mat(), extri.getNode(f"T_{name}").mat()
+        expected = cv2.projectPoints(vertices.astype(np.float64), rvec, tvec, k_cv, dist)[0].reshape(-1, 2) + 0.5
+        np.testing.assert_allclose(camera.project(imported_vertices)[:, :2], expected, atol=1e-3)
 
 
 def test_broken_easymocap_rigs_stop_with_one_line(path_traced_fit, tmp_path, capsys):

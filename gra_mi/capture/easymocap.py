@@ -3,8 +3,9 @@ through the import every source shares (:func:`gra_mi.capture.importer.import_ca
 (a moving subject, interleaved uniformly lit and environment-lit frames).
 
 ```
-DIR/intri.yml, DIR/extri.yml    OpenCV FileStorage YAML: names; K_<cam>, dist_<cam>; Rot_<cam> (or R_<cam>, Rodrigues)
-                                and T_<cam>: world-to-camera, x_cam = Rot · x_world + T
+DIR/intri.yml, DIR/extri.yml    OpenCV FileStorage YAML: names; K_<cam> (OpenCV's: pixel centres on integers),
+                                dist_<cam>; Rot_<cam> (or R_<cam>, Rodrigues) and T_<cam>: world-to-camera,
+                                x_cam = Rot · x_world + T
 DIR/images/<cam>/<frame, 6 digits>.{jpg,png,avif,exr}   as the cameras took them (dist_<cam> is undone), masked or with alpha
 DIR/mask/<cam>/<frame, 6 digits>.png                      optional masks
 ```
@@ -135,6 +136,7 @@ def _camera(intri: dict, extri: dict, name: str, images: dict[int, Path], folder
     c2w = np.concatenate([rot.T, -rot.T @ pose.T.reshape(3, 1)], axis=1)
     width, height = image_size(next(iter(images.values())))
     intrinsic = k.K / width
+    intrinsic[:2, 2] += 0.5 / width  # OpenCV's pixel centres are on integers (EasyMocap projects with it), gra-mi's at +½
     intrinsic[2] = [0, 0, 1]
     return CalibCamera(intrinsic, c2w, dist.tolist(), lens=lens), (width, height)
 
