@@ -50,7 +50,7 @@ class EasymocapOptions:
     """What an EasyMocap rig needs besides its calibration and images (:func:`import_easymocap`)."""
 
     lighting: Path | None = None
-    """easymocap, mitsuba: JSON with each frame's split and lighting (uniform, led, envmap or pattern;
+    """easymocap, colmap, mitsuba: JSON with each frame's split and lighting (uniform, led, envmap or pattern;
     docs/data-format.md). easymocap reads --mesh, --leds, --units and --mesh-units as transforms does."""
 
     def validate(self) -> None:

@@ -2,7 +2,7 @@
 stage reads (docs/data-format.md), in gra-mi's world frame, with an import report a user reads first.
 
 One module per source format reads its files into a :class:`Source` (:mod:`~gra_mi.capture.humanolat`,
-:mod:`~gra_mi.capture.transforms`, :mod:`~gra_mi.capture.easymocap`, with the files they share in
+:mod:`~gra_mi.capture.transforms`, :mod:`~gra_mi.capture.easymocap`, :mod:`~gra_mi.capture.colmap`, with the files they share in
 :mod:`~gra_mi.capture.source_files`); the format's quirks stay there. Then, here, for every format:
 :meth:`Source.check` (what gra-mi's readers would refuse, named against the source's files) → the frame
 (:func:`world_frame`: units to metres, the up axis, the LED sphere's centre, the floor) → the mesh reprojected over

@@ -77,10 +77,11 @@ class ImportConfig:
 class Source:
     """A capture as read, before anything is written: everything in the source's own frame and units. Each format's
     reader (:func:`gra_mi.capture.humanolat.read_humanolat`, :func:`gra_mi.capture.transforms.read_transforms`,
-    :func:`gra_mi.capture.easymocap.read_easymocap`) fills it; the rest of the import is the same for every source."""
+    :func:`gra_mi.capture.easymocap.read_easymocap`, :func:`gra_mi.capture.colmap.read_colmap`, …) fills it; the rest
+    of the import is the same for every source."""
 
     folder: Path
-    format: str  # "humanolat", "transforms", "easymocap", "mitsuba"
+    format: str  # "humanolat", "transforms", "easymocap", "colmap", "mitsuba"
     calib_path: Path  # what a camera error names
     names: list[str]  # camera names
     calib: list  # CalibCamera per camera: K / width, camera-to-world (OpenCV axes) in the source's units

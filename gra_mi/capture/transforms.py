@@ -47,15 +47,15 @@ class TransformsOptions:
     """What a transforms.json capture needs besides its JSON (:func:`import_transforms`)."""
 
     mesh: Path | None = None
-    """transforms, easymocap: the subject's mesh (OBJ or PLY; without UVs an atlas is generated), or a folder of one
+    """transforms, easymocap, colmap: the subject's mesh (OBJ or PLY; without UVs an atlas is generated), or a folder of one
     per mesh frame (a tracked sequence, one topology, in the names' numbered order: frame_2 before frame_10; frames
     name theirs with `mesh_frame`)."""
     units: str = field(default="m", metadata=option(choices=tuple(UNITS)))
-    """transforms, easymocap: the unit of the calibration's positions (camera translations, `pl_pos`, --leds)."""
+    """transforms, easymocap, colmap: the unit of the calibration's positions (camera translations, `pl_pos`, --leds)."""
     mesh_units: str = field(default="m", metadata=option(choices=tuple(UNITS)))
-    """transforms, easymocap: the unit of the mesh (HumanOLAT's model.obj: mm)."""
+    """transforms, easymocap, colmap: the unit of the mesh (HumanOLAT's model.obj: mm)."""
     leds: Path | None = None
-    """transforms, easymocap: the rig's LED positions (`v x y z` per line, in --units; light_idx indexes them). Default: the
+    """transforms, easymocap, colmap: the rig's LED positions (`v x y z` per line, in --units; light_idx indexes them). Default: the
     LEDs the frames name with light_idx and pl_pos."""
 
     def validate(self) -> None:

@@ -103,7 +103,7 @@ COMMANDS: dict[str, Command] = {
     "capture": Command("scene", "Generate a synthetic lightstage capture (images, masks, lighting, true maps)."),
     "import": Command(
         "scene",
-        "Import a real capture (HumanOLAT, transforms.json, EasyMocap, a stage written as a Mitsuba scene) into the capture layout, "
+        "Import a real capture (HumanOLAT, transforms.json, EasyMocap, a COLMAP-calibrated rig, a stage written as a Mitsuba scene) into the capture layout, "
         "with an import report to read first.",
     ),
     "fit": Command(

@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from gra_mi.capture.colmap import ColmapOptions, import_colmap
 from gra_mi.capture.easymocap import EasymocapOptions, import_easymocap
 from gra_mi.capture.humanolat import HumanolatOptions, import_humanolat, write_humanolat
 from gra_mi.capture.mitsuba_capture import MitsubaOptions, import_mitsuba
@@ -300,14 +301,16 @@ def run_capture(c: CaptureCommand) -> None:
 
 @dataclass(kw_only=True)
 class ImportCommand(Restartable):
-    source: str = field(metadata=option(positional=True, choices=("humanolat", "transforms", "easymocap", "mitsuba")))
+    source: str = field(metadata=option(positional=True, choices=("humanolat", "transforms", "easymocap", "colmap", "mitsuba")))
     """The source's layout. humanolat: a subject folder of the HumanOLAT dataset (TMT22/HumanOLAT), one pose.
     transforms: a folder with a NeRF / nerfstudio transforms.json (or transforms_train/_test.json) and --mesh.
     easymocap: a calibrated rig (intri.yml, extri.yml, images/<cam>/) with --mesh, --leds and --lighting.
+    colmap: a rig calibrated with COLMAP (sparse/0/cameras and images, .bin or .txt; images/<cam>/, the model's
+    image names' first folder) with --mesh, --leds and --lighting.
     mitsuba: a stage written as a Mitsuba scene (scene.xml: perspective sensors, point-emitter LEDs, the shape
     id="subject"), images/<sensor id>/ and --lighting.
-    A lens distortion the calibration states (transforms: camera_model with k1…k4, p1, p2; easymocap: dist_<cam>) is
-    undone: every image becomes the pinhole camera's with the same K."""
+    A lens distortion the calibration states (transforms: camera_model with k1…k4, p1, p2; easymocap: dist_<cam>;
+    colmap: its camera models) is undone: every image becomes the pinhole camera's with the same K."""
     folder: Path = field(metadata=option(positional=True))
     """The source folder (humanolat: SUBJECT_<id>, holding shared/ and POSE_<nn>/; transforms: the JSON's folder)."""
     out: Path
@@ -316,17 +319,19 @@ class ImportCommand(Restartable):
     humanolat: HumanolatOptions = field(default_factory=HumanolatOptions)
     transforms: TransformsOptions = field(default_factory=TransformsOptions)
     easymocap: EasymocapOptions = field(default_factory=EasymocapOptions)
+    colmap: ColmapOptions = field(default_factory=ColmapOptions)
     mitsuba: MitsubaOptions = field(default_factory=MitsubaOptions)
     shards: ShardOptions = field(default_factory=ShardOptions)
 
     def validate(self) -> None:
         self.config.validate()
         self.shards.validate()
-        routes = ("humanolat", "transforms", "easymocap", "mitsuba")
+        routes = ("humanolat", "transforms", "easymocap", "colmap", "mitsuba")
         read = {
             "humanolat": ["humanolat"],
             "transforms": ["transforms"],
             "easymocap": ["transforms", "easymocap"],
+            "colmap": ["transforms", "easymocap", "colmap"],
             "mitsuba": ["easymocap", "mitsuba"],
         }
         read = read[self.source]
@@ -348,6 +353,8 @@ def run_import(c: ImportCommand) -> None:
         capture = import_transforms(c.folder, c.out, c.config, c.transforms, c.overwrite, shard, gains)
     elif c.source == "easymocap":
         capture = import_easymocap(c.folder, c.out, c.config, c.easymocap, c.transforms, c.overwrite, shard, gains)
+    elif c.source == "colmap":
+        capture = import_colmap(c.folder, c.out, c.config, c.colmap, c.easymocap, c.transforms, c.overwrite, shard, gains)
     else:
         capture = import_mitsuba(c.folder, c.out, c.config, c.mitsuba, c.easymocap.lighting, c.overwrite, shard, gains)
     if capture is None:

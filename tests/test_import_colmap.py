@@ -1,0 +1,203 @@
+"""`gra-mi import colmap`: a rig calibrated with COLMAP, its model written by COLMAP itself (pycolmap, text and binary),
+each camera's frames in its own folder. The imported cameras put the mesh where COLMAP's own projection puts it; a lens
+the model states is undone; a model a user could hand over broken stops with one line naming the file and the field."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gra_mi.cli.main import main
+
+from .test_import import write_easymocap
+
+pycolmap = pytest.importorskip("pycolmap")
+
+
+def write_colmap(native, folder: Path, frames: list, model: str = "PINHOLE", dist=None, binary: bool = False):
+    """The rig of the capture ``native`` as COLMAP holds it after calibrating it (one registered image per camera, named
+    ``<cam>/000000.png``; pixel centres at +½, as gra-mi's), written by pycolmap into ``folder/sparse/0``, and each
+    camera's frames (taken through OpenCV's ``dist``, the model's own lens where it states one) in ``images/<cam>/``."""
+    from scipy.spatial.transform import Rotation
+
+    from gra_mi.stage.lightstage import load_calibration
+
+    write_easymocap(native, folder, frames, None if dist is None else np.asarray(dist, float))
+    for name in ("intri.yml", "extri.yml"):
+        (folder / name).unlink()
+    reconstruction = pycolmap.Reconstruction()
+    for k, cam in enumerate(load_calibration(native.folder / "rig" / "calibration.json").cameras):
+        camera = pycolmap.Camera.create_from_model_name(k + 1, model, cam.fx, cam.width, cam.height)
+        camera.params = [cam.fx, cam.fy, cam.cx, cam.cy, *([] if dist is None else dist)]
+        reconstruction.add_camera_with_trivial_rig(camera)
+        rot = cam.rotation.T  # world-to-camera
+        pose = pycolmap.Rigid3d(pycolmap.Rotation3d(Rotation.from_matrix(rot).as_quat()), -rot @ cam.position)
+        reconstruction.add_image_with_trivial_frame(pycolmap.Image(name=f"{k + 1:02d}/000000.png", camera_id=k + 1, image_id=k + 1), pose)
+    (folder / "sparse" / "0").mkdir(parents=True)
+    (reconstruction.write_binary if binary else reconstruction.write_text)(str(folder / "sparse" / "0"))
+    return reconstruction
+
+
+@pytest.fixture(scope="module")
+def inputs(path_traced_fit, tmp_path_factory):
+    """The native capture, and the mesh folder, LEDs and lighting file a COLMAP rig's import is given."""
+    from gra_mi.capture.dataset import Capture
+    from gra_mi.capture.source_files import write_obj, write_points
+    from gra_mi.stage.lightstage import load_calibration
+    from gra_mi.subject.sequence import load_sequence
+
+    root = tmp_path_factory.mktemp("colmap_inputs")
+    native = Capture.load(path_traced_fit / "cap")
+    stage, seq = load_calibration(native.folder / "rig" / "calibration.json"), load_sequence(native.folder / "subject")
+    frames = [native.frames[k] for k in (0, 1, len(native.frames) - 1)]
+    (root / "meshes").mkdir()
+    for k in range(seq.num_frames):
+        write_obj(root / "meshes", seq.vertices[k], seq.uvs, seq.faces, None)
+        (root / "meshes" / "model.obj").rename(root / "meshes" / f"frame_{k:04d}.obj")
+    write_points(root / "leds.pc", stage.led_positions)
+    lighting = [{"frame": f.frame, "split": f.split} | ({"uniform": 0.5} if f.kind == "uniform" else {"envmap": str(native.folder / f.envmap)})
+                for f in frames]  # fmt: skip
+    (root / "lighting.json").write_text(json.dumps({"frames": lighting}))
+    args = [
+        "--mesh",
+        str(root / "meshes"),
+        "--leds",
+        str(root / "leds.pc"),
+        "--lighting",
+        str(root / "lighting.json"),
+        "--uv-resolution",
+        "32",
+    ]
+    return native, seq, frames, args
+
+
+@pytest.mark.parametrize("binary", [False, True], ids=["text", "binary"])
+def test_a_colmap_rig_imports_where_colmap_projects_it(inputs, tmp_path, binary):
+    """The model in either of COLMAP's formats: the imported cameras put the subject's vertices where COLMAP's own
+    projection (pycolmap's Image.project_point) puts them in the model's frame, within a thousandth of a pixel; the
+    mesh lies on every camera's mask; the lightings are the ones the file names."""
+    from gra_mi.capture.dataset import Capture
+    from gra_mi.stage.lightstage import load_calibration
+
+    native, seq, frames, args = inputs
+    reconstruction = write_colmap(native, tmp_path / "rig", frames, binary=binary)
+    out = tmp_path / "imported"
+    assert main(["import", "colmap", str(tmp_path / "rig"), "--out", str(out), *args]) == 0
+    report = json.loads((out / "import_report.json").read_text())
+    assert [c["camera"] for c in report["cameras"]] == [f"{k + 1:02d}" for k in range(len(reconstruction.images))]
+    assert all(c["mask_iou"] >= 0.97 for c in report["cameras"]), report["cameras"]
+    assert [f.pose for f in Capture.load(out).frames] == [f.frame for f in frames]
+    moved = np.array(json.loads((out / "capture.json").read_text())["source"]["transform"])
+    vertices = seq.vertices[0].astype(np.float64)
+    for k, camera in enumerate(load_calibration(out / "rig" / "calibration.json").cameras):
+        expected = np.array([reconstruction.images[k + 1].project_point(v) for v in vertices])
+        np.testing.assert_allclose(camera.project(vertices @ moved[:3, :3].T + moved[:3, 3])[:, :2], expected, atol=1e-3)
+
+
+def test_a_lens_the_model_states_is_undone(inputs, tmp_path):
+    """A binary model of OPENCV cameras (k1, k2, p1, p2) whose images were taken through that lens: the import undoes
+    it, and the images match the pinhole truth about as closely as a pinhole rig's (8-bit PNGs, two bilinear
+    resamplings), the mesh on the masks."""
+    from gra_mi.capture.dataset import Capture, load_observation
+
+    native, _, frames, args = inputs
+    (tmp_path / "one.json").write_text(json.dumps({"frames": [{"frame": frames[0].frame, "uniform": 0.5}]}))
+    args = [*args[:4], "--lighting", str(tmp_path / "one.json"), *args[6:]]
+    errors = {}
+    for name, model, dist in (("pinhole", "PINHOLE", None), ("lens", "OPENCV", [-0.12, 0.05, 0.002, -0.003])):
+        write_colmap(native, tmp_path / name, frames[:1], model, dist, binary=True)
+        out = tmp_path / f"{name}_out"
+        assert main(["import", "colmap", str(tmp_path / name), "--out", str(out), *args]) == 0
+        report, capture = json.loads((out / "import_report.json").read_text()), Capture.load(out)
+        assert all(c["mask_iou"] >= 0.97 for c in report["cameras"]), report["cameras"]
+        assert all((c["lens"] is None) == (dist is None) for c in report["cameras"])
+        errors[name] = []
+        for k in range(len(report["cameras"])):
+            a, b = load_observation(capture, f"{k + 1:02d}", 0), load_observation(native, f"cam{k:02d}", frames[0].frame)
+            inside, seen, truth = b[..., 3] > 0.99, np.clip(a[..., :3], 0, 1), np.clip(b[..., :3], 0, 1)
+            errors[name].append(float(np.abs(seen - truth)[inside].mean() / truth[inside].mean()))
+    assert max(errors["lens"]) < max(errors["pinhole"]) + 0.015, errors
+
+
+def _model_text(folder: Path, kind: str) -> str:
+    return (folder / "sparse" / "0" / f"{kind}.txt").read_text()
+
+
+def test_a_broken_colmap_rig_stops_with_one_line(inputs, tmp_path, capsys):
+    """Each way a user's COLMAP rig can be wrong stops the import before anything is written, with one line naming
+    the file and what was expected: no model, a camera model gra-mi does not read, a wrong count of parameters, a
+    pose of NaN, an image of a camera the model lacks, a name that climbs out of the folder, one camera registered
+    at two places, images of another size than the model's, a truncated binary file, a camera without images, a
+    camera folder the model does not register."""
+    from .test_bad_input import assert_refused
+
+    native, _, frames, args = inputs
+    rig, out = tmp_path / "rig", tmp_path / "out"
+    write_colmap(native, rig, frames)
+    cameras, images = _model_text(rig, "cameras"), _model_text(rig, "images")
+    line = next(t for t in images.splitlines() if t and not t.startswith("#"))
+    fields = line.split()
+    camera = next(t for t in cameras.splitlines() if t.startswith("1 "))
+    _, _, width, height, *params = camera.split()
+    moved = " ".join(["999", *fields[1:5], str(float(fields[5]) + 0.5), *fields[6:9], "01/000001.png"])
+    cases = [
+        (cameras.replace(camera, f"1 FOV {width} {height} {' '.join(params)} 0.1"), images, ["cameras.txt", "camera 1", "FOV is not one gra-mi reads"]),
+        (cameras.replace(camera, f"1 OPENCV {width} {height} {' '.join(params)}"), images, ["cameras.txt", "camera 1", "OPENCV has 8 parameters"]),
+        (cameras.replace(camera, f"1 PINHOLE {width} {height} {params[0]} inf {' '.join(params[2:])}"), images, ["cameras.txt", "camera 1", "finite"]),
+        (cameras, images.replace(line, " ".join([fields[0], "nan", *fields[2:]])), ["images.txt", "not finite"]),
+        (cameras, images.replace(line, " ".join([*fields[:8], "99", fields[9]])), ["images.txt", "camera 99"]),
+        (cameras, images.replace(line, " ".join([*fields[:9], "../01/000000.png"])), ["images.txt", "relative folder"]),
+        (cameras, images + moved + "\n\n", ["images.txt", "'01/000001.png' and '01/000000.png'", "a rig's camera stays still"]),
+        (cameras.replace(camera, f"1 PINHOLE {2 * int(width)} {2 * int(height)} {' '.join(params)}"), images, ["images/01", "resize"]),
+    ]  # fmt: skip
+    for text_cameras, text_images, needles in cases:
+        (rig / "sparse" / "0" / "cameras.txt").write_text(text_cameras)
+        (rig / "sparse" / "0" / "images.txt").write_text(text_images)
+        assert_refused(["import", "colmap", rig, "--out", out, *args], capsys, *needles, out=out)
+    assert_refused(["import", "colmap", tmp_path / "nothing", "--out", out, *args], capsys, "no COLMAP model", out=out)
+    binary = tmp_path / "binary"
+    write_colmap(native, binary, frames[:1], binary=True)
+    data = (binary / "sparse" / "0" / "images.bin").read_bytes()
+    (binary / "sparse" / "0" / "images.bin").write_bytes(data[: len(data) // 2])
+    assert_refused(["import", "colmap", binary, "--out", out, *args], capsys, "images.bin", "truncated", out=out)
+    (binary / "sparse" / "0" / "images.bin").write_bytes(data)
+    for path in (binary / "images" / "02").iterdir():
+        path.unlink()
+    assert_refused(["import", "colmap", binary, "--out", out, *args], capsys, "images/02", "no images", out=out)
+    (binary / "images" / "02").rmdir()
+    (binary / "images" / "extra").mkdir()
+    (binary / "images" / "02").mkdir()
+    (binary / "images" / "extra" / "000000.png").write_bytes((binary / "images" / "01" / "000000.png").read_bytes())
+    assert_refused(["import", "colmap", binary, "--out", out, *args], capsys, "images", "extra: no image of the model", out=out)
+
+
+@pytest.mark.parametrize(
+    "model, params",
+    [
+        ("SIMPLE_PINHOLE", [420.0, 110.5, 150.25]),
+        ("PINHOLE", [420.0, 380.0, 110.5, 150.25]),
+        ("SIMPLE_RADIAL", [420.0, 110.5, 150.25, -0.08]),
+        ("RADIAL", [420.0, 110.5, 150.25, -0.08, 0.02]),
+        ("OPENCV", [420.0, 380.0, 110.5, 150.25, -0.1, 0.03, 0.002, -0.001]),
+        ("FULL_OPENCV", [420.0, 380.0, 110.5, 150.25, -0.1, 0.03, 0.002, -0.001, 0.01, 0.05, 0.01, 0.002]),
+        ("OPENCV_FISHEYE", [420.0, 380.0, 110.5, 150.25, 0.05, -0.01, 0.002, -0.0005]),
+    ],
+)
+def test_each_camera_model_images_a_point_where_colmap_does(model, params):
+    """gra-mi's camera of each COLMAP model (its K and lens) images points of the camera's frame at the pixel COLMAP's
+    own model (pycolmap's Camera.img_from_cam) gives, out to the image's corners."""
+    from gra_mi.capture.colmap import ColmapCamera, ColmapImage, calib_camera
+
+    camera = ColmapCamera(1, model, 216, 312, tuple(params))
+    calib = calib_camera(Path("cameras.txt"), camera, ColmapImage(1, (1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 1, "cam/0.png"))
+    k = calib.k_matrix(camera.width)
+    rng = np.random.default_rng(0)
+    xy = rng.uniform([-0.25, -0.4], [0.25, 0.4], (200, 2))  # normalized: about the image's extent
+    distorted = xy if calib.lens is None else calib.lens.distort(xy)
+    ours = distorted @ k[:2, :2].T + k[:2, 2]
+    reference = pycolmap.Camera.create_from_model_name(1, model, 1.0, camera.width, camera.height)
+    reference.params = params
+    np.testing.assert_allclose(ours, reference.img_from_cam(np.c_[xy, np.ones(len(xy))]), atol=1e-6)
