@@ -67,12 +67,15 @@ def test_albedo_headroom_of_the_normal_equations():
     assert "--led-intensity 7.6 or more" in headroom.warning(4.0) and "--bounces 2" not in headroom.warning(4.0)
     assert "set (a floor, walls)" in headroom.warning(4.0, set_left_out=True)  # one bounce in a set: that first
     assert AlbedoHeadroom.of(num * 0.4, den).warning(4.0) is None and AlbedoHeadroom.of(num, den * 0) is None
+    dark = AlbedoHeadroom.of(num * 0.01, den)  # median 0.01: the LEDs stated 30 times too bright
+    assert dark.median == pytest.approx(0.01) and "below 0.01" in dark.warning(4.0) and "--led-intensity 0.133" in dark.warning(4.0)
+    assert AlbedoHeadroom.of(num * 0.05, den).warning(4.0) is None  # median 0.05: dark cloth, said nothing
 
 
 def test_images_brighter_than_the_stage_can_light_are_said(onebounce_capture, tmp_path):
     """Images 10x brighter than the capture's LEDs can light any surface (an import with --led-intensity too low):
     the fit clips the albedo at 1 and used to finish without a word. The report now says so first, with the intensity
-    that would hold the images."""
+    that would hold the images; and of images 100x darker, whose maps come out near black."""
     import shutil
 
     from gra_mi.core.io import read_exr, write_exr
@@ -93,6 +96,16 @@ def test_images_brighter_than_the_stage_can_light_are_said(onebounce_capture, tm
     assert 10 <= scaled["albedo_headroom"]["high"] / plain["albedo_headroom"]["high"] < 11
     assert len(scaled["warnings"]) == 1 and "--led-intensity" in scaled["warnings"][0]
     assert (tmp_path / "fit_bright" / "fit_report.md").read_text().splitlines()[2].startswith("**Warning:** ")
+    dark = tmp_path / "dark"  # and 100x darker (--led-intensity too high): the maps near black, said
+    shutil.copytree(onebounce_capture, dark)
+    for path in (dark / "images").rglob("*.exr"):
+        image = read_exr(path)
+        image[..., :3] *= 0.01
+        write_exr(path, image)
+    run_fit(dark, tmp_path / "fit_dark", config)
+    darkened = json.loads((tmp_path / "fit_dark" / "fit.json").read_text())
+    assert darkened["albedo_headroom"]["median"] == pytest.approx(0.01 * plain["albedo_headroom"]["median"], rel=0.1)
+    assert len(darkened["warnings"]) == 1 and "near black" in darkened["warnings"][0], darkened["warnings"]
 
 
 def test_fit_cli_resumes_from_checkpoint(onebounce_capture, tmp_path):
