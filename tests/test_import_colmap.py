@@ -146,8 +146,9 @@ def test_a_broken_colmap_rig_stops_with_one_line(inputs, tmp_path, capsys):
     cases = [
         (cameras.replace(camera, f"1 FOV {width} {height} {' '.join(params)} 0.1"), images, ["cameras.txt", "camera 1", "FOV is not one gra-mi reads"]),
         (cameras.replace(camera, f"1 OPENCV {width} {height} {' '.join(params)}"), images, ["cameras.txt", "camera 1", "OPENCV has 8 parameters"]),
-        (cameras.replace(camera, f"1 PINHOLE {width} {height} {params[0]} inf {' '.join(params[2:])}"), images, ["cameras.txt", "camera 1", "finite"]),
-        (cameras, images.replace(line, " ".join([fields[0], "nan", *fields[2:]])), ["images.txt", "not finite"]),
+        (cameras.replace(camera, f"1 PINHOLE {width} {height} {params[0]} inf {' '.join(params[2:])}"), images, ["cameras.txt", "camera 1.params[1]", "finite"]),
+        (cameras, images.replace(line, " ".join([fields[0], "nan", *fields[2:]])), ["images.txt", "quaternion", "finite"]),
+        (cameras, images.replace(line, " ".join([fields[0], "0", "0", "0", "0", *fields[5:]])), ["images.txt", "quaternion cannot be 0"]),
         (cameras, images.replace(line, " ".join([*fields[:8], "99", fields[9]])), ["images.txt", "camera 99"]),
         (cameras, images.replace(line, " ".join([*fields[:9], "../01/000000.png"])), ["images.txt", "relative folder"]),
         (cameras, images + moved + "\n\n", ["images.txt", "'01/000001.png' and '01/000000.png'", "a rig's camera stays still"]),
@@ -191,8 +192,9 @@ def test_each_camera_model_images_a_point_where_colmap_does(model, params):
     own model (pycolmap's Camera.img_from_cam) gives, out to the image's corners."""
     from gra_mi.capture.colmap import ColmapCamera, ColmapImage, calib_camera
 
-    camera = ColmapCamera(1, model, 216, 312, tuple(params))
-    calib = calib_camera(Path("cameras.txt"), camera, ColmapImage(1, (1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 1, "cam/0.png"))
+    camera = ColmapCamera(camera_id=1, model=model, width=216, height=312, params=params)
+    image = ColmapImage(image_id=1, quaternion=[1.0, 0.0, 0.0, 0.0], translation=[0.0, 0.0, 0.0], camera_id=1, name="cam/0.png")
+    calib = calib_camera(Path("cameras.txt"), camera, image)
     k = calib.k_matrix(camera.width)
     rng = np.random.default_rng(0)
     xy = rng.uniform([-0.25, -0.4], [0.25, 0.4], (200, 2))  # normalized: about the image's extent

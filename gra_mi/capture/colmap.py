@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from pydantic import field_validator, model_validator
 
 from gra_mi.capture.easymocap import EasymocapOptions, camera_images, lighting_frames
 from gra_mi.capture.importer import import_capture
@@ -36,6 +37,7 @@ from gra_mi.capture.transforms import UNITS, TransformsOptions
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.guard import path_component
 from gra_mi.core.io import read_text
+from gra_mi.core.schema import Finite, PositiveCount, Record, matrix, parse
 
 # COLMAP's camera models by the id its binary files hold: (name, number of parameters)
 CAMERA_MODELS = {
@@ -50,30 +52,48 @@ SAME_PLACE_DEG = 0.05  # one camera registered twice: its two rotations within t
 SAME_PLACE_SHARE = 1e-4  # … and its two centres within this share of the rig's size
 
 
-@dataclass(frozen=True)
-class ColmapCamera:
+class ColmapCamera(Record):
+    """One camera of cameras.txt / .bin: its model, its image's size and the model's parameters."""
+
     camera_id: int
     model: str
-    width: int
-    height: int
-    params: tuple[float, ...]
+    width: PositiveCount
+    height: PositiveCount
+    params: list[Finite]
+
+    @model_validator(mode="after")
+    def _as_many_as_its_model(self) -> ColmapCamera:
+        counts = dict(CAMERA_MODELS.values())
+        if self.model not in counts:
+            raise ValueError(f"camera model {self.model!r} is not one of COLMAP's")
+        if len(self.params) != counts[self.model]:
+            raise ValueError(f"{self.model} has {counts[self.model]} parameters, got {len(self.params)}")
+        return self
 
 
-@dataclass(frozen=True)
-class ColmapImage:
+class ColmapImage(Record):
+    """One registered image of images.txt / .bin: its world-to-camera pose, its camera and its name."""
+
     image_id: int
-    quaternion: tuple[float, float, float, float]  # (w, x, y, z): world-to-camera
-    translation: tuple[float, float, float]
+    quaternion: matrix(4)  # (w, x, y, z): world-to-camera
+    translation: matrix(3)
     camera_id: int
     name: str
 
+    @field_validator("quaternion")
+    @classmethod
+    def _a_rotation(cls, q: np.ndarray) -> np.ndarray:
+        if not np.linalg.norm(q) > 0:
+            raise ValueError("a rotation's quaternion cannot be 0")
+        return q / np.linalg.norm(q)
+
     def camera_to_world(self) -> np.ndarray:
         """(3, 4) OpenCV camera-to-world."""
-        w, x, y, z = np.array(self.quaternion) / np.linalg.norm(self.quaternion)
+        w, x, y, z = self.quaternion
         rot = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
                         [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
                         [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])  # fmt: skip
-        return np.concatenate([rot.T, -rot.T @ np.array(self.translation).reshape(3, 1)], axis=1)
+        return np.concatenate([rot.T, -rot.T @ self.translation.reshape(3, 1)], axis=1)
 
 
 @dataclass(kw_only=True)
@@ -110,37 +130,22 @@ def read_model(place: Path) -> tuple[dict[int, ColmapCamera], list[ColmapImage]]
     for image in images:
         if image.camera_id not in cameras:
             raise GraMiInputError(paths[1], f"image {image.name!r} names camera {image.camera_id}, which {paths[0].name} has not")
-        if not all(math.isfinite(v) for v in (*image.quaternion, *image.translation)) or not any(image.quaternion):
-            raise GraMiInputError(paths[1], f"image {image.name!r}: its pose is not finite numbers with a rotation")
     if not images:
         raise GraMiInputError(paths[1], "no registered images")
     return cameras, images
 
 
-def _camera(path: Path, camera_id: int, model: str, width: int, height: int, params: list[float], count: int) -> ColmapCamera:
-    where = f"camera {camera_id}"
-    if len(params) != count:
-        raise GraMiInputError(path, f"{model} has {count} parameters, got {len(params)}", field=where)
-    if width <= 0 or height <= 0 or not all(math.isfinite(p) for p in params):
-        raise GraMiInputError(path, f"expected a positive size and finite parameters, got {width}×{height}, {params}", field=where)
-    return ColmapCamera(camera_id, model, width, height, tuple(params))
-
-
 def _cameras_txt(path: Path) -> dict[int, ColmapCamera]:
-    counts = dict(CAMERA_MODELS.values())
     cameras = {}
     for number, line in enumerate(read_text(path, "COLMAP's cameras.txt").splitlines(), 1):
         if not line.strip() or line.lstrip().startswith("#"):
             continue
         fields = line.split()
-        try:
-            camera_id, model, width, height = int(fields[0]), fields[1], int(fields[2]), int(fields[3])
-            params = [float(v) for v in fields[4:]]
-        except (ValueError, IndexError):
-            raise GraMiInputError(path, "expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS…", field=f"line {number}") from None
-        if model not in counts:
-            raise GraMiInputError(path, f"camera model {model!r} is not one of COLMAP's", field=f"line {number}")
-        cameras[camera_id] = _camera(path, camera_id, model, width, height, params, counts[model])
+        if len(fields) < 4:
+            raise GraMiInputError(path, "expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS…", field=f"line {number}")
+        record = dict(zip(("camera_id", "model", "width", "height"), fields, strict=False)) | {"params": fields[4:]}
+        camera = parse(ColmapCamera, record, path, f"camera {fields[0]}", line=number)
+        cameras[camera.camera_id] = camera
     return cameras
 
 
@@ -152,11 +157,16 @@ def _images_txt(path: Path) -> list[ColmapImage]:
         if not line.strip() or line.lstrip().startswith("#"):
             continue
         fields = line.split(maxsplit=9)
-        try:
-            numbers = [float(v) for v in fields[1:8]]
-            images.append(ColmapImage(int(fields[0]), tuple(numbers[:4]), tuple(numbers[4:]), int(fields[8]), fields[9].strip()))
-        except (ValueError, IndexError):
-            raise GraMiInputError(path, "expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME", field=f"line {k}") from None
+        if len(fields) < 10:
+            raise GraMiInputError(path, "expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME", field=f"line {k}")
+        record = {
+            "image_id": fields[0],
+            "quaternion": fields[1:5],
+            "translation": fields[5:8],
+            "camera_id": fields[8],
+            "name": fields[9].strip(),
+        }
+        images.append(parse(ColmapImage, record, path, f"image {fields[9].strip()!r}", line=k))
         k += 1  # (its 2D points)
     return images
 
@@ -192,7 +202,8 @@ def _cameras_bin(path: Path) -> dict[int, ColmapCamera]:
                 path, f"camera model id {model_id} is not one COLMAP wrote when gra-mi was made", field=f"camera {camera_id}"
             )
         model, count = CAMERA_MODELS[model_id]
-        cameras[camera_id] = _camera(path, camera_id, model, width, height, list(reader.take(f"{count}d")), count)
+        record = {"camera_id": camera_id, "model": model, "width": width, "height": height, "params": reader.take(f"{count}d")}
+        cameras[camera_id] = parse(ColmapCamera, record, path, f"camera {camera_id}")
     return cameras
 
 
@@ -205,7 +216,8 @@ def _images_bin(path: Path) -> list[ColmapImage]:
         reader.at += points * struct.calcsize("<ddq")  # (its 2D points: x, y, the 3D point's id)
         if reader.at > len(reader.data):
             raise GraMiInputError(path, f"truncated: image {name!r}'s 2D points end past the file")
-        images.append(ColmapImage(image_id, tuple(pose[:4]), tuple(pose[4:]), camera_id, name))
+        record = {"image_id": image_id, "quaternion": pose[:4], "translation": pose[4:], "camera_id": camera_id, "name": name}
+        images.append(parse(ColmapImage, record, path, f"image {name!r}"))
     return images
 
 
