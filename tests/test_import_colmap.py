@@ -17,9 +17,9 @@ from .test_import import write_easymocap
 pycolmap = pytest.importorskip("pycolmap")
 
 
-def write_colmap(native, folder: Path, frames: list, model: str = "PINHOLE", dist=None, binary: bool = False):
+def write_colmap(native, folder: Path, frames: list, model: str = "PINHOLE", dist=None, binary: bool = False, prefix: str = ""):
     """The rig of the capture ``native`` as COLMAP holds it after calibrating it (one registered image per camera, named
-    ``<cam>/000000.png``; pixel centres at +½, as gra-mi's), written by pycolmap into ``folder/sparse/0``, and each
+    ``<prefix><cam>/000000.png``; pixel centres at +½, as gra-mi's), written by pycolmap into ``folder/sparse/0``, and each
     camera's frames (taken through OpenCV's ``dist``, the model's own lens where it states one) in ``images/<cam>/``."""
     from scipy.spatial.transform import Rotation
 
@@ -35,7 +35,9 @@ def write_colmap(native, folder: Path, frames: list, model: str = "PINHOLE", dis
         reconstruction.add_camera_with_trivial_rig(camera)
         rot = cam.rotation.T  # world-to-camera
         pose = pycolmap.Rigid3d(pycolmap.Rotation3d(Rotation.from_matrix(rot).as_quat()), -rot @ cam.position)
-        reconstruction.add_image_with_trivial_frame(pycolmap.Image(name=f"{k + 1:02d}/000000.png", camera_id=k + 1, image_id=k + 1), pose)
+        reconstruction.add_image_with_trivial_frame(
+            pycolmap.Image(name=f"{prefix}{k + 1:02d}/000000.png", camera_id=k + 1, image_id=k + 1), pose
+        )
     (folder / "sparse" / "0").mkdir(parents=True)
     (reconstruction.write_binary if binary else reconstruction.write_text)(str(folder / "sparse" / "0"))
     return reconstruction
@@ -76,14 +78,14 @@ def inputs(path_traced_fit, tmp_path_factory):
 
 @pytest.mark.parametrize("binary", [False, True], ids=["text", "binary"])
 def test_a_colmap_rig_imports_where_colmap_projects_it(inputs, tmp_path, binary):
-    """The model in either of COLMAP's formats: the imported cameras put the subject's vertices where COLMAP's own
+    """The model in either of COLMAP's formats (its image names relative to images/, or to the rig's folder): the imported cameras put the subject's vertices where COLMAP's own
     projection (pycolmap's Image.project_point) puts them in the model's frame, within a thousandth of a pixel; the
     mesh lies on every camera's mask; the lightings are the ones the file names."""
     from gra_mi.capture.dataset import Capture
     from gra_mi.stage.lightstage import load_calibration
 
     native, seq, frames, args = inputs
-    reconstruction = write_colmap(native, tmp_path / "rig", frames, binary=binary)
+    reconstruction = write_colmap(native, tmp_path / "rig", frames, binary=binary, prefix="images/" if binary else "")
     out = tmp_path / "imported"
     assert main(["import", "colmap", str(tmp_path / "rig"), "--out", str(out), *args]) == 0
     report = json.loads((out / "import_report.json").read_text())
@@ -150,7 +152,7 @@ def test_a_broken_colmap_rig_stops_with_one_line(inputs, tmp_path, capsys):
         (cameras, images.replace(line, " ".join([fields[0], "nan", *fields[2:]])), ["images.txt", "quaternion", "finite"]),
         (cameras, images.replace(line, " ".join([fields[0], "0", "0", "0", "0", *fields[5:]])), ["images.txt", "quaternion cannot be 0"]),
         (cameras, images.replace(line, " ".join([*fields[:8], "99", fields[9]])), ["images.txt", "camera 99"]),
-        (cameras, images.replace(line, " ".join([*fields[:9], "../01/000000.png"])), ["images.txt", "relative folder"]),
+        (cameras, images.replace(line, " ".join([*fields[:9], "../000000.png"])), ["images.txt", "relative folder"]),
         (cameras, images + moved + "\n\n", ["images.txt", "'01/000001.png' and '01/000000.png'", "a rig's camera stays still"]),
         (cameras.replace(camera, f"1 PINHOLE {2 * int(width)} {2 * int(height)} {' '.join(params)}"), images, ["images/01", "resize"]),
     ]  # fmt: skip

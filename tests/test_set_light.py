@@ -464,6 +464,35 @@ def test_a_set_bsdf_is_found_in_the_files_a_scene_includes(llvm_variant, tmp_pat
     assert "includes gone.xml, which is not found" in carried_bsdf(tmp_path / "missing.xml", "a", {})
 
 
+def test_a_set_bsdf_finds_its_files_through_the_scenes_paths(llvm_variant, tmp_path):
+    """A scene's <path> folders are searched as Mitsuba's resolver searches them (the last first, then the scene's own
+    folder): a texture and an included file found in one, the same name beside the scene left for the <path>'s; a
+    <path> that is not a folder is said."""
+    import mitsuba as mi
+
+    from gra_mi.capture.scene_bsdf import CarriedBSDF, carried_bsdf
+    from gra_mi.capture.set_albedo import set_material
+    from gra_mi.core.io import write_exr
+
+    (tmp_path / "assets").mkdir()
+    write_exr(tmp_path / "assets" / "wood.exr", np.full((2, 2, 3), 0.3, np.float32))
+    write_exr(tmp_path / "wood.exr", np.full((2, 2, 3), 0.9, np.float32))  # (beside the scene: searched after the <path>)
+    wood = '<bsdf type="diffuse"><texture type="bitmap" name="reflectance"><string name="filename" value="wood.exr"/></texture></bsdf>'
+    (tmp_path / "assets" / "props.xml").write_text(f'<scene version="3.0.0"><shape type="cube" id="crate">{wood}</shape></scene>')
+    main = tmp_path / "main.xml"
+    main.write_text(
+        f'<scene version="3.0.0"><path value="assets"/><include filename="props.xml"/><shape type="sphere" id="ball">{wood}</shape></scene>'
+    )
+    scene = mi.load_file(str(main))
+    for shape in scene.shapes():  # Mitsuba's own choice: the <path>'s wood, 0.3
+        np.testing.assert_allclose(set_material(scene, shape)[0], 0.3, atol=1e-3)
+    for name in ("crate", "ball"):
+        carried = carried_bsdf(main, name, {})
+        assert isinstance(carried, CarriedBSDF) and list(carried.files.values()) == [(tmp_path / "assets" / "wood.exr").resolve()]
+    main.write_text('<scene version="3.0.0"><path value="nowhere"/><shape type="sphere" id="ball"/></scene>')
+    assert "its <path> nowhere is not a folder" in carried_bsdf(main, "ball", {})
+
+
 def test_from_scene_carries_the_bsdfs_of_an_old_mitsuba_file(plugins, tmp_path, capsys):
     """A scene of Mitsuba 0.5 (as many published scenes are): shapes without ids, parameters in camelCase, which
     Mitsuba upgrades as it loads the file. Each set shape's BSDF is carried in the stage's 3.0.0 names, and loads."""

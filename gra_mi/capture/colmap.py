@@ -8,8 +8,8 @@ DIR/images/<cam>/<frame, 6 digits>.{jpg,png,avif,exr}   every frame of each came
 DIR/mask/<cam>/<frame, 6 digits>.png                     optional masks
 ```
 
-Each registered image of the model names its camera: the first folder of its name (``cam01/000000.jpg``), or its stem
-where it has none (``cam01.jpg``). A camera registered more than once (several frames of a fixed rig) must be at one
+Each registered image of the model names its camera: the folder it is in (``cam01/000000.jpg``, or
+``images/cam01/000000.jpg`` where COLMAP was given the parent folder), or its stem where it has none (``cam01.jpg``). A camera registered more than once (several frames of a fixed rig) must be at one
 place and of one COLMAP camera. The model's poses are world-to-camera (x_cam = R(q) x_world + t, OpenCV's axes) and
 its K puts pixel centres at (column + ½, row + ½), as gra-mi's does. Its camera models: SIMPLE_PINHOLE, PINHOLE,
 SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV and OPENCV_FISHEYE, whose distortion is undone at import; the others are
@@ -222,9 +222,9 @@ def _images_bin(path: Path) -> list[ColmapImage]:
 
 
 def camera_name(path: Path, image: ColmapImage) -> str:
-    """The rig camera an image of the model belongs to: its name's first folder, else its stem."""
+    """The rig camera an image of the model belongs to: the folder its name puts it in, else its stem."""
     parts = Path(image.name.replace("\\", "/")).parts
-    name = parts[0] if len(parts) > 1 else Path(image.name).stem
+    name = parts[-2] if len(parts) > 1 else Path(image.name).stem
     return path_component(name, path, f"image {image.name!r}")
 
 

@@ -2,8 +2,9 @@
 mitsuba``): Mitsuba cannot write a loaded BSDF back as XML, so the shape's element is taken from the file as the user
 wrote it. A shape is found there by its id, or, without one, as the one id-less shape of the file that loads alone as
 the same kind of shape in the same place. Its ``<ref>``s are inlined, its ``$names`` replaced by the file's
-``<default>``s and the command's ``--define``s, and the files it reads (textures) found as Mitsuba finds them, to be
-copied beside the stage. The files the scene ``<include>``s are read in their places, as Mitsuba reads them. What
+``<default>``s and the command's ``--define``s, and the files it reads (textures) found as Mitsuba finds them (beside
+the scene file, or in its ``<path>`` folders), to be copied beside the stage. The files the scene ``<include>``s are
+read in their places, as Mitsuba reads them. What
 cannot be carried (id-less twins in one place with different BSDFs, a file that is missing) is said, and a diffuse
 stand-in takes its place (:func:`gra_mi.capture.set_albedo.set_material`).
 """
@@ -58,7 +59,7 @@ def carried_bsdf(scene_file: Path, shape, defines: dict[str, str]) -> CarriedBSD
     try:
         stat = Path(scene_file).stat()
         key = (Path(scene_file).resolve(), stat.st_mtime_ns, stat.st_size, tuple(sorted(defines.items())))
-        root, by_id, defaults = _read(key)
+        root, by_id, defaults, search = _read(key)
     except (OSError, ET.ParseError, ValueError) as error:
         return f"its scene file could not be read again ({error})"
     try:
@@ -78,9 +79,9 @@ def carried_bsdf(scene_file: Path, shape, defines: dict[str, str]) -> CarriedBSD
         if unknown:
             return f"it uses a parameter without a default ({', '.join(unknown)})"
         if node.get("name") == "filename" and node.get("value"):
-            found = _found(scene_file, node.get("value"))
+            found = _found(search, node.get("value"))
             if found is None:
-                return f"it reads {node.get('value')}, which is not found beside the scene file"
+                return f"it reads {node.get('value')}, which is not found beside the scene file or in its <path>s"
             name = f"{len(files):03d}_{found.name}"
             files[name] = found
             node.set("value", name)
@@ -88,28 +89,28 @@ def carried_bsdf(scene_file: Path, shape, defines: dict[str, str]) -> CarriedBSD
     return carried.loads() or carried
 
 
-def _read(key: tuple) -> tuple[ET.Element, dict[str, ET.Element], dict[str, str]]:
+def _read(key: tuple) -> tuple[ET.Element, dict[str, ET.Element], dict[str, str], tuple[Path, ...]]:
     """:func:`_parsed`, parsed again where a file it includes has changed since."""
     parsed = _parsed(*key)
-    if any(_stat(path) != stat for path, stat in parsed[3].items()):
+    if any(_stat(path) != stat for path, stat in parsed[4].items()):
         _parsed.cache_clear()
         _id_less_places.cache_clear()
         parsed = _parsed(*key)
-    return parsed[:3]
+    return parsed[:4]
 
 
 @functools.lru_cache(maxsize=4)
 def _parsed(path: Path, mtime_ns: int, size: int, defines: tuple) -> tuple:
     """The scene file's elements with its ``<include>``s in their places, its objects by id, its parameters (the first
-    ``<default>`` of each name, the command's ``--define``s over them) and the included files' stats; parsed once for
-    all its set shapes (never changed here: :func:`_inlined` copies what it takes)."""
+    ``<default>`` of each name, the command's ``--define``s over them), the folders its files are searched in (its
+    ``<path>``s, the last first, then its own folder) and the included files' stats; parsed once for all its set
+    shapes (never changed here: :func:`_inlined` copies what it takes)."""
     root = _upgraded(ET.parse(path).getroot())
-    defaults = _defaults(root, dict(defines))
-    included: dict[Path, tuple] = {}
-    _include(root, path, defaults, included, 0)
+    reading = _Reading(_defaults(root, dict(defines)), [path.parent], {})
+    _expand(root, path, reading, 0)
     defaults = _defaults(root, dict(defines))  # (an included file's <default>s too)
     by_id = {node.get("id"): node for node in root.iter() if node.get("id") and node.tag != "ref"}
-    return root, by_id, defaults, included
+    return root, by_id, defaults, tuple(reading.search), reading.included
 
 
 def _defaults(root: ET.Element, defines: dict[str, str]) -> dict[str, str]:
@@ -119,24 +120,45 @@ def _defaults(root: ET.Element, defines: dict[str, str]) -> dict[str, str]:
     return found | defines
 
 
-def _include(node: ET.Element, scene_file: Path, defaults: dict, included: dict, depth: int) -> None:
-    """Each ``<include>`` under ``node`` replaced by what its file holds, as Mitsuba includes it: a ``<scene>``'s
-    elements in its place (another root element itself), in that file's own version's names; its file found as
-    Mitsuba's resolver finds it (beside the scene file that is loaded, for an included file's own names too)."""
-    for index, child in reversed(list(enumerate(node))):
+@dataclass
+class _Reading:
+    """What reading a scene file in Mitsuba's order gathers: its parameters, its file resolver's folders (searched in
+    order) and the files it includes (their stats)."""
+
+    defaults: dict[str, str]
+    search: list[Path]
+    included: dict[Path, tuple]
+
+
+def _expand(node: ET.Element, file: Path, reading: _Reading, depth: int) -> None:
+    """``node``'s elements in ``file``, in order, as Mitsuba's parser meets them: a ``<path>`` puts its folder first in
+    the resolver (found beside ``file``, else through the resolver); an ``<include>``'s file (found through the
+    resolver) takes its place, a ``<scene>``'s elements (another root element itself), in that file's own version's
+    names."""
+    children: list[ET.Element] = []
+    for child in list(node):
+        if child.tag == "path":
+            value = _substituted(child.get("value", ""), reading.defaults)
+            beside = file.parent / value
+            folder = beside if beside.is_dir() else _found(reading.search, value, folder=True)
+            if folder is None:
+                raise ValueError(f"its <path> {value} is not a folder beside its file or in its other <path>s")
+            reading.search.insert(0, folder.resolve())
         if child.tag != "include":
-            _include(child, scene_file, defaults, included, depth)
+            _expand(child, file, reading, depth)
+            children.append(child)
             continue
         if depth >= MAX_INCLUDE_DEPTH:
             raise ValueError(f"its <include>s nest deeper than {MAX_INCLUDE_DEPTH} files (one includes itself?)")
-        name = _substituted(child.get("filename", ""), defaults)
-        found = _found(scene_file, name)
+        name = _substituted(child.get("filename", ""), reading.defaults)
+        found = _found(reading.search, name)
         if found is None:
-            raise ValueError(f"it includes {name}, which is not found beside the scene file")
-        included[found] = _stat(found)
+            raise ValueError(f"it includes {name}, which is not found beside the scene file or in its <path>s")
+        reading.included[found] = _stat(found)
         root = _upgraded(ET.parse(found).getroot())
-        _include(root, scene_file, defaults, included, depth + 1)
-        node[index : index + 1] = list(root) if root.tag == "scene" else [root]
+        _expand(root, found, reading, depth + 1)
+        children += list(root) if root.tag == "scene" else [root]
+    node[:] = children
 
 
 def _stat(path: Path) -> tuple[int, int]:
@@ -184,11 +206,11 @@ def _shape_element(key: tuple, root: ET.Element, by_id: dict, shape) -> ET.Eleme
 def _id_less_places(path: Path, mtime_ns: int, size: int, defines: tuple) -> list[tuple[ET.Element, tuple | None]]:
     """Each id-less top-level shape element of the file (its includes' too), and where it is (:func:`_placed`): loaded
     once per file."""
-    root, _, defaults, _ = _parsed(path, mtime_ns, size, defines)
-    return [(s, _placed(s, path, defaults)) for s in root.findall("shape") if not s.get("id")]
+    root, _, defaults, search, _ = _parsed(path, mtime_ns, size, defines)
+    return [(s, _placed(s, search, defaults)) for s in root.findall("shape") if not s.get("id")]
 
 
-def _placed(element: ET.Element, scene_file: Path, defaults: dict) -> tuple | None:
+def _placed(element: ET.Element, search: tuple[Path, ...], defaults: dict) -> tuple | None:
     """(class name, bounds) of the shape ``element`` loaded alone (its own parameters, no BSDF); None where it does not
     load so."""
     import mitsuba as mi
@@ -201,7 +223,7 @@ def _placed(element: ET.Element, scene_file: Path, defaults: dict) -> tuple | No
         for key, value in node.attrib.items():
             node.set(key, _substituted(value, defaults))
         if node.get("name") == "filename" and node.get("value"):
-            node.set("value", str(_found(scene_file, node.get("value")) or node.get("value")))
+            node.set("value", str(_found(search, node.get("value")) or node.get("value")))
     try:
         loaded = mi.load_string(f'<scene version="3.0.0">{ET.tostring(alone, encoding="unicode")}</scene>').shapes()[0]
     except Exception:  # Mitsuba raises RuntimeError, and others from its plugins: this element is not the shape
@@ -253,7 +275,9 @@ def _substituted(value: str, defaults: dict[str, str]) -> str:
     return value
 
 
-def _found(scene_file: Path, value: str) -> Path | None:
-    """A file a scene names, as Mitsuba finds it: as given where absolute, else beside the scene file."""
-    path = Path(value) if Path(value).is_absolute() else scene_file.parent / value
-    return path.resolve() if path.is_file() else None
+def _found(search: tuple[Path, ...] | list[Path], value: str, folder: bool = False) -> Path | None:
+    """A file (or ``folder``) a scene names, as Mitsuba's file resolver finds it: as given where absolute, else in the
+    first of the ``search`` folders that holds it."""
+    exists = Path.is_dir if folder else Path.is_file
+    candidates = [Path(value)] if Path(value).is_absolute() else [base / value for base in search]
+    return next((c.resolve() for c in candidates if exists(c)), None)

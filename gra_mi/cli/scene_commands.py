@@ -306,7 +306,7 @@ class ImportCommand(Restartable):
     transforms: a folder with a NeRF / nerfstudio transforms.json (or transforms_train/_test.json) and --mesh.
     easymocap: a calibrated rig (intri.yml, extri.yml, images/<cam>/) with --mesh, --leds and --lighting.
     colmap: a rig calibrated with COLMAP (sparse/0/cameras and images, .bin or .txt; images/<cam>/, the model's
-    image names' first folder) with --mesh, --leds and --lighting.
+    image names' folders) with --mesh, --leds and --lighting.
     mitsuba: a stage written as a Mitsuba scene (scene.xml: perspective sensors, point-emitter LEDs, the shape
     id="subject"), images/<sensor id>/ and --lighting.
     A lens distortion the calibration states (transforms: camera_model with k1…k4, p1, p2; easymocap: dist_<cam>;
