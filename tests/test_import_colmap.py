@@ -205,3 +205,28 @@ def test_each_camera_model_images_a_point_where_colmap_does(model, params):
     reference = pycolmap.Camera.create_from_model_name(1, model, 1.0, camera.width, camera.height)
     reference.params = params
     np.testing.assert_allclose(ours, reference.img_from_cam(np.c_[xy, np.ones(len(xy))]), atol=1e-6)
+
+
+def test_a_model_kept_elsewhere_is_part_of_the_run(inputs, tmp_path, capsys):
+    """--colmap-model outside the rig's folder: the same import again finds the capture complete; the model's cameras
+    edited before a rerun are another run, refused with the difference named (not resumed on stale intrinsics); an
+    --out inside the rig's folder is refused."""
+    import shutil
+
+    from .test_bad_input import assert_refused
+
+    native, _, frames, args = inputs
+    write_colmap(native, tmp_path / "rig", frames[:1])
+    shutil.move(tmp_path / "rig" / "sparse" / "0", tmp_path / "model")
+    (tmp_path / "one.json").write_text(json.dumps({"frames": [{"frame": frames[0].frame, "uniform": 0.5}]}))
+    args = [*args[:4], "--lighting", str(tmp_path / "one.json"), *args[6:], "--colmap-model", str(tmp_path / "model")]
+    command = ["import", "colmap", str(tmp_path / "rig"), "--out", str(tmp_path / "cap"), *args]
+    assert main(command) == 0 and main(command) == 0
+    cameras = (tmp_path / "model" / "cameras.txt").read_text()
+    line = next(t for t in cameras.splitlines() if t.startswith("1 "))
+    fields = line.split()
+    (tmp_path / "model" / "cameras.txt").write_text(
+        cameras.replace(line, " ".join([*fields[:4], str(float(fields[4]) * 1.01), *fields[5:]]))
+    )
+    assert_refused(command, capsys, "made by another run", "files outside the source")
+    assert_refused([*command[:4], str(tmp_path / "rig" / "images" / "cap"), *args], capsys, "--out")

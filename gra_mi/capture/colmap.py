@@ -297,7 +297,8 @@ def read_colmap(folder: Path, options: ColmapOptions, lighting: EasymocapOptions
     calib = [calib_camera(model_file(place, "cameras"), camera, found[name]) for name, camera in zip(names, stated, strict=True)]
     return Source(
         folder, "colmap", model_file(place, "images"), names, calib, [(c.width, c.height) for c in stated], images, units, leds,
-        meshes, [None] * len(names), frames, mesh_units=UNITS[files.mesh_units], frame_masks=[camera_images(folder, n, "mask", required=False) for n in names], leds_path=files.leds, mesh_files=[files.mesh],
+        meshes, [None] * len(names), frames, mesh_units=UNITS[files.mesh_units], leds_path=files.leds, mesh_files=[files.mesh],
+        frame_masks=[camera_images(folder, n, "mask", required=False) for n in names], calib_files=[model_file(place, "cameras")],
     )  # fmt: skip
 
 

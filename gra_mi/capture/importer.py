@@ -198,7 +198,7 @@ def files_read_outside(source: Source) -> list[Path]:
     found |= {p for p in source.masks if p is not None} | {Path(d) for _, f, d in source.frames if f.kind == "envmap"}
     found |= {p for masks in source.frame_masks or [] for p in masks.values()}
     found |= {Path(d[1]) for _, _, d in source.frames if isinstance(d, tuple) and d[0] == "pattern"}
-    found |= set(source.mesh_files)
+    found |= set(source.mesh_files) | set(source.calib_files)
     return sorted(p for p in found if p is not None and folder not in Path(p).resolve().parents)
 
 
