@@ -273,7 +273,8 @@ def test_a_metals_preview_reflects_as_much_as_the_metal(llvm_variant):
     """glTF's GGX metal's albedos (F = 1, and Schlick's rise (1 − cos)⁵) against their analytic values for a mirror (1 and
     1/21) and against Mitsuba's principled metal (GGX, Schlick; its separable masking a little darker) at base colour 1
     and 0. A GGX metal that reflects all the light its microfacets meet previews white; one that reflects half of it, a
-    little under 0.5 (Schlick's F rises toward grazing, its F does not)."""
+    little under 0.5 (Schlick's F rises toward grazing, its F does not). A rough Beckmann gold, brighter than any GGX
+    metal of its roughness, previews at its own hue's brightest (not red clipped at 1 and the rest left)."""
     import mitsuba as mi
 
     from gra_mi.apps.set_export import metal_albedos, preview_material
@@ -293,3 +294,9 @@ def test_a_metals_preview_reflects_as_much_as_the_metal(llvm_variant):
     assert min(preview_material(*plane(white)).base_color) > 0.98
     half = preview_material(*plane(white | {"specular_reflectance": {"type": "rgb", "value": [0.5] * 3}}))
     assert half.metallic == 1.0 and 0.44 < min(half.base_color) <= max(half.base_color) < 0.5
+    gold = {"type": "roughconductor", "material": "Au", "alpha": 0.3}  # (Beckmann: brighter than a GGX metal can be)
+    scene, shape = plane(gold)
+    every, (full, edge) = shape_albedos(scene, shape)[1], metal_albedos(round(np.sqrt(0.3), 3))
+    unclipped = (every - edge) / (full - edge)
+    assert unclipped.max() > 1.0 and max(preview_material(scene, shape).base_color) == pytest.approx(1.0)
+    np.testing.assert_allclose(preview_material(scene, shape).base_color, unclipped / unclipped.max(), rtol=1e-6)  # its hue

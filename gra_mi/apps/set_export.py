@@ -9,7 +9,8 @@ A BSDF is more than three numbers, so the preview is a summary, said in the expo
   (:func:`~gra_mi.capture.set_albedo.shape_albedos`: a texture's mean colour, a plastic's diffuse lobe under its coat);
   for a metal (no diffuse light, more than 5 % glossy), metallic 1 and the base colour (F0) for which glTF's metal BRDF
   of its roughness reflects as much as all its lobes do (:func:`metal_albedos`: the light its microfacets shadow
-  from each other, and its Fresnel's rise toward grazing, are the renderer's to add);
+  from each other, and its Fresnel's rise toward grazing, are the renderer's to add; one brighter than such a metal can
+  be, a Beckmann metal's often, at its own hue's brightest);
 - roughness: the BSDF's own (``roughness``, perceptual; ``alpha``, ``alpha_u``/``alpha_v`` as √α; a texture's mean), 0
   for a smooth glossy BSDF, 1 for one without a glossy lobe, which also gets no specular (``ior`` 1: F0 = 0).
 
@@ -160,6 +161,7 @@ def preview_material(scene, shape) -> Preview:
         roughness = 0.0 if rough is None else float(np.clip(rough, 0.0, 1.0))
         full, edge = metal_albedos(round(roughness, 3))
         base, metallic, ior = (every - edge) / (full - edge), 1.0, 1.5
+        base = base / max(1.0, float(base.max()))  # (past 1, as bright as it goes in its own hue: gold stays gold)
     else:
         base, roughness, metallic, ior = diffuse, 0.0 if rough is None else rough, 0.0, 1.5
     return Preview(tuple(float(v) for v in np.clip(base, 0.0, 1.0)), float(np.clip(roughness, 0.0, 1.0)), metallic, ior)
