@@ -10,11 +10,12 @@ DIR/mask/<cam>/<frame, 6 digits>.png                     optional masks
 
 Each registered image of the model names its camera: the folder it is in (``cam01/000000.jpg``, or
 ``images/cam01/000000.jpg`` where COLMAP was given the parent folder), or its stem where it has none (``cam01.jpg``).
-A camera registered more than once (several frames of a fixed rig) must be at one place and of one COLMAP camera. The model's poses are world-to-camera (x_cam = R(q) x_world + t, OpenCV's axes) and
-its K puts pixel centres at (column + ½, row + ½), as gra-mi's does. Its camera models: SIMPLE_PINHOLE, PINHOLE,
-SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV and OPENCV_FISHEYE, whose distortion is undone at import; the others are
-refused by name. A binary model is read where both are there, as COLMAP reads one. What the model does not hold comes
-from the user as for EasyMocap: ``--mesh``, ``--leds``, ``--lighting``, in the model's frame and ``--units``.
+A camera registered more than once (several frames of a fixed rig) must be at one place and of one COLMAP camera. The
+model's poses are world-to-camera (x_cam = R(q) x_world + t, OpenCV's axes) and its K puts pixel centres at (column +
+½, row + ½), as gra-mi's does. Its camera models: SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV
+and OPENCV_FISHEYE, whose distortion is undone at import; the others are refused by name. A binary model is read where
+both are there, as COLMAP reads one. What the model does not hold comes from the user as for EasyMocap: ``--mesh``,
+``--leds``, ``--lighting``, in the model's frame and ``--units``.
 """
 
 from __future__ import annotations
