@@ -61,7 +61,8 @@ class TransformsOptions:
     def validate(self) -> None:
         if self.mesh is None:
             raise GraMiParameterError(
-                "mesh", "a transforms.json capture needs the subject's mesh (--mesh FILE.obj|.ply or a folder of them)"
+                "mesh",
+                "the import needs the subject's mesh in the calibration's frame (--mesh FILE.obj|.ply, or a folder of one per frame)",
             )
 
 
