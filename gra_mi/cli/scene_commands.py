@@ -312,7 +312,8 @@ class ImportCommand(Restartable):
     A lens distortion the calibration states (transforms: camera_model with k1…k4, p1, p2; easymocap: dist_<cam>;
     colmap: its camera models) is undone: every image becomes the pinhole camera's with the same K."""
     folder: Path = field(metadata=option(positional=True))
-    """The source folder (humanolat: SUBJECT_<id>, holding shared/ and POSE_<nn>/; transforms: the JSON's folder)."""
+    """The source folder (humanolat: SUBJECT_<id>, holding shared/ and POSE_<nn>/; transforms: the JSON's folder;
+    easymocap, colmap: the rig's folder, holding images/; mitsuba: the stage's folder, holding scene.xml)."""
     out: Path
     """Capture folder to write (layout: docs/data-format.md), with import_report.md. Rerunning resumes."""
     config: ImportConfig = field(default_factory=ImportConfig)
