@@ -17,7 +17,7 @@ import numpy as np
 OVER_SHARE = 0.05  # texels whose least-squares albedo exceeds 1 in a channel: more than this share is not noise
 HIGH_QUANTILE = 0.95
 DARK_MEDIAN = 0.02  # the median texel's brightest channel below this: no skin or cloth is so dark (coal is about 0.04)
-TYPICAL_ALBEDO = 0.3  # what a re-import's --led-intensity is sized for: the median of a person's albedo, about
+TYPICAL_ALBEDO = 0.3  # a person's median albedo, roughly: what the warning sizes a re-import's --led-intensity for
 
 
 @dataclass(frozen=True)
