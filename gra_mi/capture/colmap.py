@@ -28,14 +28,13 @@ from pathlib import Path
 import numpy as np
 from pydantic import field_validator, model_validator
 
-from gra_mi.capture.easymocap import EasymocapOptions, camera_images, lighting_frames
+from gra_mi.capture.easymocap import EasymocapOptions, camera_images, needs_mesh_and_leds, rig_source
 from gra_mi.capture.importer import import_capture
 from gra_mi.capture.lens import LensDistortion
-from gra_mi.capture.mesh_frames import read_meshes
 from gra_mi.capture.source import ImportConfig, Source
-from gra_mi.capture.source_files import CalibCamera, image_size, read_points
-from gra_mi.capture.transforms import UNITS, TransformsOptions
-from gra_mi.core.errors import GraMiInputError, GraMiParameterError
+from gra_mi.capture.source_files import CalibCamera, image_size
+from gra_mi.capture.transforms import TransformsOptions
+from gra_mi.core.errors import GraMiInputError
 from gra_mi.core.guard import path_component
 from gra_mi.core.io import read_text
 from gra_mi.core.schema import Finite, PositiveCount, Record, matrix, parse
@@ -274,8 +273,7 @@ def calib_camera(path: Path, camera: ColmapCamera, image: ColmapImage) -> CalibC
 
 
 def read_colmap(folder: Path, options: ColmapOptions, lighting: EasymocapOptions, files: TransformsOptions) -> Source:
-    if files.mesh is None or files.leds is None:
-        raise GraMiParameterError("mesh" if files.mesh is None else "leds", "a COLMAP rig needs --mesh (a folder of OBJ) and --leds")
+    needs_mesh_and_leds(files, "a COLMAP rig")
     place = model_folder(folder, options)
     cameras, registered = read_model(place)
     found = rig_cameras(model_file(place, "images"), registered)
@@ -291,16 +289,11 @@ def read_colmap(folder: Path, options: ColmapOptions, lighting: EasymocapOptions
         if size != (camera.width, camera.height):
             raise GraMiInputError(folder / "images" / name, f"its images are {size[0]}×{size[1]}, its COLMAP camera "
                                   f"{camera.camera_id} {camera.width}×{camera.height}: resize them together")  # fmt: skip
-    units = UNITS[files.units]
-    leds = read_points(files.leds) * units
-    frames = lighting_frames(lighting.lighting, len(leds))
-    meshes = read_meshes(files.mesh, max(f.mesh_frame for _, f, _ in frames) + 1)
     calib = [calib_camera(model_file(place, "cameras"), camera, found[name]) for name, camera in zip(names, stated, strict=True)]
-    return Source(
-        folder, "colmap", model_file(place, "images"), names, calib, [(c.width, c.height) for c in stated], images, units, leds,
-        meshes, [None] * len(names), frames, mesh_units=UNITS[files.mesh_units], leds_path=files.leds, mesh_files=[files.mesh],
-        frame_masks=[camera_images(folder, n, "mask", required=False) for n in names], calib_files=[model_file(place, "cameras")],
-    )  # fmt: skip
+    calibrated = (names, calib, [(c.width, c.height) for c in stated])
+    return rig_source(
+        folder, "colmap", model_file(place, "images"), names, calibrated, images, lighting.lighting, files, (model_file(place, "cameras"),)
+    )
 
 
 def import_colmap(folder, out, config: ImportConfig, options: ColmapOptions, lighting: EasymocapOptions, files: TransformsOptions,

@@ -220,18 +220,33 @@ def read_easymocap(folder: Path, options: EasymocapOptions, files: TransformsOpt
     names = intri.get("names") or extri.get("names")
     if not names:
         raise GraMiInputError(folder / "intri.yml", "no camera names", field="names")
-    if files.mesh is None or files.leds is None:
-        raise GraMiParameterError("mesh" if files.mesh is None else "leds", "an EasyMocap rig needs --mesh (a folder of OBJ) and --leds")
-    units = UNITS[files.units]
-    leds = read_points(files.leds) * units
+    needs_mesh_and_leds(files, "an EasyMocap rig")
     images = [camera_images(folder, n) for n in names]
     cameras = [_camera(intri, extri, n, found, folder) for n, found in zip(names, images, strict=True)]
-    frames = lighting_frames(options.lighting, len(leds))
+    calibrated = ([f"cam{n}" for n in names], [c for c, _ in cameras], [s for _, s in cameras])
+    return rig_source(folder, "easymocap", folder / "extri.yml", names, calibrated, images, options.lighting, files)
+
+
+def needs_mesh_and_leds(files: TransformsOptions, rig: str) -> None:
+    if files.mesh is None or files.leds is None:
+        raise GraMiParameterError("mesh" if files.mesh is None else "leds", f"{rig} needs --mesh (a folder of OBJ) and --leds")
+
+
+def rig_source(folder: Path, source: str, calib_path: Path, folders: list[str], calibrated: tuple, images: list, lighting: Path,
+               files: TransformsOptions, calib_files: tuple = ()) -> Source:  # fmt: skip
+    """The Source of a calibrated rig (EasyMocap's, COLMAP's) whose cameras are read: ``calibrated`` = (their names in the
+    capture, CalibCameras, image sizes), each camera's ``images/<folder>/`` frames; what the rig does not hold from the
+    user: the LEDs (--leds, --units), each frame's lighting (``lighting``), the mesh frames they show (--mesh), and the
+    per-frame masks of ``mask/<folder>/``."""
+    names, calib, sizes = calibrated
+    units = UNITS[files.units]
+    leds = read_points(files.leds) * units
+    frames = lighting_frames(lighting, len(leds))
     meshes = read_meshes(files.mesh, max(f.mesh_frame for _, f, _ in frames) + 1)
     return Source(
-        folder, "easymocap", folder / "extri.yml", [f"cam{n}" for n in names], [c for c, _ in cameras], [s for _, s in cameras],
-        images, units, leds, meshes, [None] * len(names), frames, mesh_units=UNITS[files.mesh_units],
-        frame_masks=[camera_images(folder, n, "mask", required=False) for n in names], leds_path=files.leds, mesh_files=[files.mesh],
+        folder, source, calib_path, names, calib, sizes, images, units, leds, meshes, [None] * len(names), frames,
+        mesh_units=UNITS[files.mesh_units], frame_masks=[camera_images(folder, n, "mask", required=False) for n in folders],
+        leds_path=files.leds, mesh_files=[files.mesh], calib_files=list(calib_files),
     )  # fmt: skip
 
 
