@@ -390,7 +390,9 @@ def test_an_output_file_named_as_another_format_or_a_folder_is_refused(tmp_path,
 
 def test_a_binary_file_under_a_text_files_name_is_refused_by_name(tmp_path):
     """A source's text files (LED positions, the firing order, a mesh, LED gains, OpenCV YAML, COLMAP's cameras.txt and
-    images.txt) that hold an image or an archive: one line naming the file, not a UnicodeDecodeError traceback."""
+    images.txt, camera places) that hold an image or an archive, or are not there, or are folders: one line naming the
+    file, not a traceback."""
+    from gra_mi.capture.alignment import read_places
     from gra_mi.capture.colmap import _cameras_txt, _images_txt
     from gra_mi.capture.easymocap import read_opencv_yaml
     from gra_mi.capture.humanolat import read_spiral
@@ -399,7 +401,11 @@ def test_a_binary_file_under_a_text_files_name_is_refused_by_name(tmp_path):
     binary = tmp_path / "photo.bin"
     binary.write_bytes(b"\x89PNG\r\n\x1a\n\x00\x80\xff\xfe" * 16)
     readers = [read_points, read_obj, lambda p: read_spiral(p, 4), lambda p: read_led_gains(p, [0, 1, 2, 3]), read_opencv_yaml]
-    readers += [_cameras_txt, _images_txt]  # (COLMAP's text model)
+    readers += [_cameras_txt, _images_txt, read_places]  # (COLMAP's text model, --align-cameras)
     for read in readers:
         with pytest.raises(GraMiInputError, match="photo.bin: not a text file"):
             read(binary)
+        with pytest.raises(GraMiInputError, match="nothing.txt: missing: expected"):
+            read(tmp_path / "nothing.txt")
+        with pytest.raises(GraMiInputError, match=f"{tmp_path.name}: a folder: expected"):
+            read(tmp_path)

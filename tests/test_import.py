@@ -561,6 +561,36 @@ def test_transforms_json_imports_to_the_same_rig(olat_capture, imported, spellin
     np.testing.assert_allclose(mine.led_positions, theirs.led_positions, atol=1e-5)
 
 
+def test_a_transforms_json_in_a_frame_of_its_own_is_aligned_by_camera_places(olat_capture, imported, tmp_path):
+    """A transforms.json whose cameras are in a frame and scale of their own (a reconstruction's; its pl_pos and the mesh
+    in the stage's), with --align-cameras placing four of its cameras by name: the rig imports as the stage's own."""
+    from scipy.spatial.transform import Rotation
+
+    from gra_mi.stage.lightstage import load_calibration
+
+    root, _, subject = olat_capture
+    folder = tmp_path / "json"
+    write_transforms_as_humanolat_tools_do(subject, folder)
+    scale, turn, shift = 2.7, Rotation.from_rotvec([-0.4, 0.9, 1.3]).as_matrix(), np.array([0.3, -4.0, 1.5])
+    placed = {}
+    for path in folder.glob("transforms_*.json"):
+        data = json.loads(path.read_text())
+        for frame in data["frames"]:
+            c2w = np.array(frame["transform_matrix"])
+            placed[f"Cam{frame['cam_idx'] + 1:02d}"] = c2w[:3, 3].copy()
+            c2w[:3] = np.column_stack([turn @ c2w[:3, :3], scale * turn @ c2w[:3, 3] + shift])
+            frame["transform_matrix"] = c2w.tolist()
+        path.write_text(json.dumps(data))
+    (tmp_path / "places.txt").write_text("".join(f"{n} {' '.join(f'{x:.17g}' for x in placed[n])}\n" for n in sorted(placed)[::2]))
+    out = tmp_path / "aligned"
+    args = ["import", "transforms", str(folder), "--out", str(out), "--mesh", str(subject / "POSE_00" / "model" / "model.obj")]
+    assert main([*args, "--mesh-units", "mm", "--uv-resolution", "32", "--align-cameras", str(tmp_path / "places.txt")]) == 0
+    mine, theirs = (load_calibration(p / "rig" / "calibration.json") for p in (out, imported))
+    for a, b in zip(mine.cameras, theirs.cameras, strict=True):
+        np.testing.assert_allclose(a.camera_to_world, b.camera_to_world, atol=1e-5)
+    assert "scaled 0.37037" in (out / "import_report.md").read_text()
+
+
 def test_exif_orientation_is_said_where_the_pixels_do_not_fit(olat_capture, tmp_path, capsys):
     """Photos whose EXIF Orientation tag turns them for display (a phone's, a DSLR's): gra-mi reads pixels as stored,
     as COLMAP does. Turned pixels a calibration made on the shown image does not fit stop the import naming the tag;

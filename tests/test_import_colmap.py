@@ -17,10 +17,12 @@ from .test_import import write_easymocap
 pycolmap = pytest.importorskip("pycolmap")
 
 
-def write_colmap(native, folder: Path, frames: list, model: str = "PINHOLE", dist=None, binary: bool = False, prefix: str = ""):
+def write_colmap(native, folder: Path, frames: list, model: str = "PINHOLE", dist=None, binary: bool = False, prefix: str = "",
+                 moved=None):  # fmt: skip
     """The rig of the capture ``native`` as COLMAP holds it after calibrating it (one registered image per camera, named
     ``<prefix><cam>/000000.png``; pixel centres at +½, as gra-mi's), written by pycolmap into ``folder/sparse/0``, and each
-    camera's frames (taken through OpenCV's ``dist``, the model's own lens where it states one) in ``images/<cam>/``."""
+    camera's frames (taken through OpenCV's ``dist``, the model's own lens where it states one) in ``images/<cam>/``.
+    ``moved``: a pycolmap.Sim3d that takes the model out of the LEDs' frame into one of its own (as a reconstruction is)."""
     from scipy.spatial.transform import Rotation
 
     from gra_mi.stage.lightstage import load_calibration
@@ -38,6 +40,8 @@ def write_colmap(native, folder: Path, frames: list, model: str = "PINHOLE", dis
         reconstruction.add_image_with_trivial_frame(
             pycolmap.Image(name=f"{prefix}{k + 1:02d}/000000.png", camera_id=k + 1, image_id=k + 1), pose
         )
+    if moved is not None:
+        reconstruction.transform(moved)
     (folder / "sparse" / "0").mkdir(parents=True)
     (reconstruction.write_binary if binary else reconstruction.write_text)(str(folder / "sparse" / "0"))
     return reconstruction
@@ -230,3 +234,75 @@ def test_a_model_kept_elsewhere_is_part_of_the_run(inputs, tmp_path, capsys):
     )
     assert_refused(command, capsys, "made by another run", "files outside the source")
     assert_refused([*command[:4], str(tmp_path / "rig" / "images" / "cap"), *args], capsys, "--out")
+
+
+def _own_frame():
+    """A similarity out of the LEDs' frame, as a reconstruction's frame is: scaled, turned about a slanted axis, moved."""
+    from scipy.spatial.transform import Rotation
+
+    return pycolmap.Sim3d(0.37, pycolmap.Rotation3d(Rotation.from_rotvec([0.6, -1.1, 0.4]).as_quat()), [[2.5], [-1.0], [0.7]])
+
+
+def test_a_model_in_its_own_frame_is_aligned_to_the_leds(inputs, tmp_path):
+    """A model in a frame and scale of its own (a reconstruction's) with --align-cameras, COLMAP model_aligner's file
+    of where its images' cameras are in the LEDs' frame: the imported cameras put the subject's vertices where COLMAP's
+    own alignment of the model to those places (pycolmap's align_reconstruction_to_locations) projects them, within a
+    thousandth of a pixel; the mesh lies on the masks; the report says the scale the fit found."""
+    from gra_mi.stage.lightstage import load_calibration
+
+    native, seq, frames, args = inputs
+    reconstruction = write_colmap(native, tmp_path / "rig", frames[:1], moved=_own_frame())
+    (tmp_path / "one.json").write_text(json.dumps({"frames": [{"frame": frames[0].frame, "uniform": 0.5}]}))
+    args = [*args[:4], "--lighting", str(tmp_path / "one.json"), *args[6:]]
+    truth = load_calibration(native.folder / "rig" / "calibration.json").cameras
+    names = [f"{k + 1:02d}/000000.png" for k in range(3)]  # three cameras placed are enough
+    (tmp_path / "places.txt").write_text("# image X Y Z\n" + "".join(f"{n} {' '.join(f'{x:.17g}' for x in c.position)}\n"
+                                                                    for n, c in zip(names, truth, strict=False)))  # fmt: skip
+    out = tmp_path / "imported"
+    assert main(["import", "colmap", str(tmp_path / "rig"), "--out", str(out), *args, "--align-cameras", str(tmp_path / "places.txt")]) == 0
+    options = pycolmap.RANSACOptions(max_error=1e-3)
+    placed = np.array([c.position for c in truth[:3]])
+    reconstruction.transform(pycolmap.align_reconstruction_to_locations(reconstruction, names, placed, 3, options))
+    report = json.loads((out / "import_report.json").read_text())
+    assert all(c["mask_iou"] >= 0.97 for c in report["cameras"]), report["cameras"]
+    assert report["alignment"]["scale"] == pytest.approx(1 / 0.37, rel=1e-6) and report["alignment"]["max"] < 1e-6
+    moved = np.array(json.loads((out / "capture.json").read_text())["source"]["transform"])
+    vertices = seq.vertices[0].astype(np.float64)
+    for k, camera in enumerate(load_calibration(out / "rig" / "calibration.json").cameras):
+        expected = np.array([reconstruction.images[k + 1].project_point(v) for v in vertices])
+        np.testing.assert_allclose(camera.project(vertices @ moved[:3, :3].T + moved[:3, 3])[:, :2], expected, atol=1e-3)
+
+
+def test_camera_places_that_cannot_align_a_rig_stop_with_one_line(inputs, tmp_path, capsys):
+    """Each way a places file can be wrong stops the import before anything is written, naming the file and the line
+    or name: too few cameras, cameras in a line, a name no camera has, one camera placed twice, two cameras' names
+    swapped (they cannot both land), NaN, a line without three numbers; a model without --align-cameras in a frame of
+    its own fails the masks' check rather than importing a rig that misses its subject."""
+    from gra_mi.stage.lightstage import load_calibration
+
+    from .test_bad_input import assert_refused
+
+    native, _, frames, args = inputs
+    rig, out = tmp_path / "rig", tmp_path / "out"
+    write_colmap(native, rig, frames[:1], moved=_own_frame())
+    (tmp_path / "one.json").write_text(json.dumps({"frames": [{"frame": frames[0].frame, "uniform": 0.5}]}))
+    args = [*args[:4], "--lighting", str(tmp_path / "one.json"), *args[6:]]
+    at = [c.position for c in load_calibration(native.folder / "rig" / "calibration.json").cameras]
+    line = lambda name, p: f"{name} {p[0]} {p[1]} {p[2]}\n"  # noqa: E731
+    middle = (at[0] + at[1]) / 2
+    cases = [
+        (line("01", at[0]) + line("02", at[1]), ["2, on one line", "3 cameras or more"]),
+        (line("01", at[0]) + line("02", at[1]) + line("03/000000.png", 2 * middle - at[0]), ["on one line"]),
+        (line("01", at[0]) + line("02", at[1]) + line("cam07", at[2]), ["places.txt", "'cam07' names no camera", "01, 02"]),
+        (line("01", at[0]) + line("01/000000.png", at[0]) + line("03", at[2]), ["'01/000000.png' and '01' both place camera 01"]),
+        (line("01", at[0]) + line("01", at[1]) + line("03", at[2]), ["line 2", "'01' is placed twice"]),
+        (line("01", at[1]) + line("02", at[0]) + line("03", at[2]) + line("04", at[3]), ["lands", "a camera named for another"]),
+        (line("01", at[0]) + "02 nan 0 1\n" + line("03", at[2]), ["line 2", "finite"]),
+        (line("01", at[0]) + "02 1.0 2.0\n" + line("03", at[2]), ["line 2", "expected NAME X Y Z"]),
+    ]
+    for text, needles in cases:
+        (tmp_path / "places.txt").write_text(text)
+        assert_refused(
+            ["import", "colmap", rig, "--out", out, *args, "--align-cameras", tmp_path / "places.txt"], capsys, *needles, out=out
+        )
+    assert_refused(["import", "colmap", rig, "--out", out, *args], capsys, "mask", out=out)

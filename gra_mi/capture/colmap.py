@@ -15,7 +15,8 @@ model's poses are world-to-camera (x_cam = R(q) x_world + t, OpenCV's axes) and 
 ½, row + ½), as gra-mi's does. Its camera models: SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV
 and OPENCV_FISHEYE, whose distortion is undone at import; the others are refused by name. A binary model is read where
 both are there, as COLMAP reads one. What the model does not hold comes from the user as for EasyMocap: ``--mesh``,
-``--leds``, ``--lighting``, in the model's frame and ``--units``.
+``--leds``, ``--lighting``, in the model's frame and ``--units`` (or moved into the LEDs' frame by
+``--align-cameras``, :mod:`gra_mi.capture.alignment`).
 """
 
 from __future__ import annotations

@@ -37,7 +37,7 @@ from gra_mi.capture.lens import LensDistortion
 from gra_mi.capture.mesh_frames import read_meshes
 from gra_mi.capture.source import ImportConfig, Source
 from gra_mi.capture.source_files import CalibCamera, add_numbered, image_size, read_points
-from gra_mi.capture.transforms import UNITS, TransformsOptions
+from gra_mi.capture.transforms import UNITS, TransformsOptions, aligned
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.io import read_json, read_text
 from gra_mi.core.schema import Count, Record, intrinsic_matrix, matrix, parse, rigid_rotation
@@ -60,9 +60,7 @@ class EasymocapOptions:
 
 def read_opencv_yaml(path: Path) -> dict:
     """An OpenCV FileStorage YAML file: ``!!opencv-matrix`` entries as arrays, ``names`` as a list, numbers as floats."""
-    if not path.is_file():
-        raise GraMiInputError(path, "missing: EasyMocap's calibration (intri.yml and extri.yml)")
-    text, values = read_text(path, "an OpenCV FileStorage YAML file"), {}
+    text, values = read_text(path, "EasyMocap's calibration (intri.yml, extri.yml), an OpenCV FileStorage YAML file"), {}
     names = re.search(r"^names:\s*\n((?:\s+-\s*.*\n?)+)", text, re.MULTILINE)
     if names:
         values["names"] = [n.strip().strip("\"'") for n in re.findall(r"-\s*(.+)", names.group(1))]
@@ -239,6 +237,7 @@ def rig_source(folder: Path, source: str, calib_path: Path, folders: list[str], 
     user: the LEDs (--leds, --units), each frame's lighting (``lighting``), the mesh frames they show (--mesh), and the
     per-frame masks of ``mask/<folder>/``."""
     names, calib, sizes = calibrated
+    calib, alignment = aligned(files, names, calib)
     units = UNITS[files.units]
     leds = read_points(files.leds) * units
     frames = lighting_frames(lighting, len(leds))
@@ -246,7 +245,8 @@ def rig_source(folder: Path, source: str, calib_path: Path, folders: list[str], 
     return Source(
         folder, source, calib_path, names, calib, sizes, images, units, leds, meshes, [None] * len(names), frames,
         mesh_units=UNITS[files.mesh_units], frame_masks=[camera_images(folder, n, "mask", required=False) for n in folders],
-        leds_path=files.leds, mesh_files=[files.mesh], calib_files=list(calib_files),
+        leds_path=files.leds, mesh_files=[files.mesh], alignment=alignment,
+        calib_files=[*calib_files, *([files.align_cameras] if files.align_cameras else [])],
     )  # fmt: skip
 
 

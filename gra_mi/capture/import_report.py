@@ -96,6 +96,7 @@ def write_report(
         "frames": {"imported": sum(1 for _ in (out / "images" / plans[0].camera.name).glob("frame_*.exr"))},
         "uv_atlas": record["uv_atlas"],
         "set": [shape.label for shape in source.set_shapes],
+        "alignment": source.alignment,
     }
     atomic_write_text(out / "import_report.json", json.dumps(report, indent=1) + "\n")
     atomic_write_text(out / "import_report.md", import_markdown(report, source.format))
@@ -127,6 +128,10 @@ def import_markdown(r: dict, source_format: str) -> str:
         lines.append(
             f"| {c['camera']} | {c['mask_iou']:.3f} | {100 * c['saturated_fraction']:.2f} % | {c['anisotropy']:.4f} | {error} | {lens} |"
         )
+    if a := r.get("alignment"):
+        lines += ["", f"The calibration moved into the LEDs' frame by {len(a['cameras'])} cameras' places ({a['file']}): scaled "
+                  f"{a['scale']:.6g}×, turned {a['rotation_deg']:.2f}°; they land within {a['rms']:.3g} RMS, {a['max']:.3g} at most, "
+                  "of their places (the LEDs' units)."]  # fmt: skip
     if r.get("set"):
         lines += ["", f"The set (the scene's other shapes, in scene.xml as set_000 …): {', '.join(r['set'])}. They shadow the subject "
                   "and hide it from the cameras in every later stage; the light they reflect onto it is not modelled."]  # fmt: skip

@@ -109,6 +109,7 @@ class Source:
     stated_intensity: float | None = None  # the LEDs' mean W/sr at full drive, where the source states it (a Mitsuba scene)
     mesh_files: list[Path] = field(default_factory=list)  # the mesh file(s) or folder read (for provenance)
     calib_files: list[Path] = field(default_factory=list)  # the calibration's files besides calib_path (for provenance)
+    alignment: dict | None = None  # how --align-cameras moved the calibration into the LEDs' frame (the report says it)
     set_shapes: list = field(default_factory=list)  # a Mitsuba scene's other shapes (scene_stage.SetShape), in the meshes' frame
 
     def check(self) -> None:

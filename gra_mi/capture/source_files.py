@@ -39,8 +39,6 @@ def write_points(path: Path, positions: np.ndarray) -> None:
 
 
 def read_points(path: Path) -> np.ndarray:
-    if not path.is_file():
-        raise GraMiInputError(path, "missing: HumanOLAT's LED positions (shared/LSX_light_positions_aligned.pc)")
     points = []
     for k, line in enumerate(read_text(path, "lines 'v x y z'").splitlines()):
         words = line.split()
@@ -65,9 +63,7 @@ def read_led_gains(path: Path, numbers: list[int]) -> np.ndarray:
     """(L, 3) linear RGB gains of the LEDs the source numbers ``numbers``, from a text file: line k (blank lines and
     ``#`` comments skipped) is LED k's gain, one number for every channel or ``r g b``. Normalised to a mean of 1 over
     those LEDs and channels, so that ``--led-intensity`` stays the mean LED's and only the gains' ratios count."""
-    if not path.is_file():
-        raise GraMiInputError(path, "missing, or not a file: the LED gains (--led-gains)")
-    lines = read_text(path, "LED gains, one line per LED").splitlines()
+    lines = read_text(path, "the LED gains (--led-gains), one line per LED").splitlines()
     gains = []
     for k, line in enumerate(lines):
         words = line.split("#")[0].split()
@@ -139,8 +135,6 @@ class ObjMesh:
 def read_obj(path: Path) -> ObjMesh:
     """Triangles and polygons (fanned) with their ``vt`` corners; a mesh without faces is refused, one without UVs
     read with ``face_uvs`` None."""
-    if not path.is_file():
-        raise GraMiInputError(path, "missing: the pose's mesh (model/model.obj)")
     positions, uvs, faces, face_uvs = [], [], [], []
     for k, line in enumerate(read_text(path, "a Wavefront OBJ mesh").splitlines()):
         words = line.split()

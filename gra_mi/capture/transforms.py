@@ -25,6 +25,7 @@ from typing import Annotated
 import numpy as np
 from pydantic import Field, field_validator
 
+from gra_mi.capture.alignment import align_cameras
 from gra_mi.capture.dataset import FrameLighting
 from gra_mi.capture.importer import import_capture
 from gra_mi.capture.lens import LensDistortion
@@ -57,6 +58,11 @@ class TransformsOptions:
     leds: Path | None = None
     """transforms, easymocap, colmap: the rig's LED positions (`v x y z` per line, in --units; light_idx indexes them). Default: the
     LEDs the frames name with light_idx and pl_pos."""
+    align_cameras: Path | None = None
+    """transforms, easymocap, colmap: where some cameras are in the LEDs' frame (--units), a line `NAME X Y Z` each (COLMAP
+    model_aligner's ref_images; NAME a camera, or an image path whose folder names one): the calibration, in a frame
+    and scale of its own, is moved there by the similarity that fits them (3 cameras or more, not in a line). Default:
+    the calibration is in the LEDs' frame already."""
 
     def validate(self) -> None:
         if self.mesh is None:
@@ -119,6 +125,7 @@ def read_transforms(folder: Path, options: TransformsOptions) -> Source:
     if not leds:
         raise GraMiInputError(files[0][0], "no LEDs: frames with light_idx and pl_pos, or --leds: gra-mi fits materials under known lights")
     names = sorted(calib)
+    cameras, alignment = aligned(options, names, [calib[n] for n in names])
     led_index = {k: n for n, k in enumerate(sorted(leds))}
     groups: dict[tuple, dict] = {}
     for f in frames:
@@ -131,12 +138,20 @@ def read_transforms(folder: Path, options: TransformsOptions) -> Source:
                 images[k][key] = seen[name]
         source_frames.append(_frame_entry(key, lighting, pose, split, led_index))
     return Source(
-        folder, "transforms", files[0][0], names, [calib[n] for n in names], [sizes[n] for n in names], images, UNITS[options.units],
+        folder, "transforms", files[0][0], names, cameras, [sizes[n] for n in names], images, UNITS[options.units],
         np.array([leds[k] for k in sorted(leds)]) * UNITS[options.units], meshes,
         [masks.get(n) if len(meshes) == 1 else None for n in names], source_frames,
         mesh_units=UNITS[options.mesh_units], leds_path=options.leds or files[0][0], mesh_files=[options.mesh], led_numbers=sorted(leds),
-        stated_gains=_stated_gains(stated, sorted(leds)),
+        stated_gains=_stated_gains(stated, sorted(leds)), alignment=alignment,
+        calib_files=[options.align_cameras] if options.align_cameras else [],
     )  # fmt: skip
+
+
+def aligned(options: TransformsOptions, names: list[str], calib: list) -> tuple[list, dict | None]:
+    """The cameras moved into the LEDs' frame where --align-cameras places some of them (:mod:`gra_mi.capture.alignment`)."""
+    if options.align_cameras is None:
+        return calib, None
+    return align_cameras(Path(options.align_cameras), names, calib)
 
 
 def _stated_gains(stated: dict[int, np.ndarray], numbers: list[int]) -> np.ndarray | None:

@@ -47,7 +47,10 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
 
 def read_text(path: Path, what: str) -> str:
     """A text file a source gives (UTF-8, a leading BOM dropped: a spreadsheet's export); a binary file (an image or an
-    archive under a text file's name) is a :class:`GraMiInputError` naming it and ``what`` was expected."""
+    archive under a text file's name), a folder or nothing there is a :class:`GraMiInputError` naming it and ``what`` was
+    expected."""
+    if not path.is_file():
+        raise GraMiInputError(path, f"{'a folder' if path.is_dir() else 'missing'}: expected {what}")
     try:
         return path.read_text(encoding="utf-8-sig")
     except UnicodeDecodeError as exc:
