@@ -58,7 +58,7 @@ class TransformsOptions:
     leds: Path | None = None
     """transforms, easymocap, colmap: the rig's LED positions (`v x y z` per line, in --units; light_idx indexes them). Default: the
     LEDs the frames name with light_idx and pl_pos."""
-    align_cameras: Path | None = None
+    align_cameras: Path | None = field(default=None, metadata=option(metavar="PLACES"))
     """transforms, easymocap, colmap: where some cameras are in the LEDs' frame (--units), a line `NAME X Y Z` each (COLMAP
     model_aligner's ref_images; NAME a camera, or an image path whose folder names one): the calibration, in a frame
     and scale of its own, is moved there by the similarity that fits them (3 cameras or more, not in a line). Default:
