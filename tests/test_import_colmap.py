@@ -266,6 +266,7 @@ def test_a_model_in_its_own_frame_is_aligned_to_the_leds(inputs, tmp_path):
     report = json.loads((out / "import_report.json").read_text())
     assert all(c["mask_iou"] >= 0.97 for c in report["cameras"]), report["cameras"]
     assert report["alignment"]["scale"] == pytest.approx(1 / 0.37, rel=1e-6) and report["alignment"]["max"] < 1e-6
+    assert "Only 3 cameras placed" in (out / "import_report.md").read_text()  # (too few to trust: said)
     moved = np.array(json.loads((out / "capture.json").read_text())["source"]["transform"])
     vertices = seq.vertices[0].astype(np.float64)
     for k, camera in enumerate(load_calibration(out / "rig" / "calibration.json").cameras):

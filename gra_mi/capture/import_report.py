@@ -14,6 +14,7 @@ from gra_mi.capture.source_files import read_image
 from gra_mi.core.io import atomic_write_text, read_exr, write_png
 from gra_mi.core.progress import threaded
 
+FEW_PLACED = 4  # fewer cameras placed by --align-cameras: said (docs/results/align-cameras.md)
 STEADY_CHANGE = 0.05  # full-bright frames this far apart: the subject moved, or the LEDs drifted, during the OLATs
 
 
@@ -132,6 +133,9 @@ def import_markdown(r: dict, source_format: str) -> str:
         lines += ["", f"The calibration moved into the LEDs' frame by {len(a['cameras'])} cameras' places ({a['file']}): scaled "
                   f"{a['scale']:.6g}×, turned {a['rotation_deg']:.2f}°; they land within {a['rms']:.3g} RMS, {a['max']:.3g} at most, "
                   "of their places (the LEDs' units)."]  # fmt: skip
+        if len(a["cameras"]) < FEW_PLACED:
+            lines[-1] += (f" Only {len(a['cameras'])} cameras placed: their places' errors grow several times over the rig, "
+                          "and two names swapped may pass; place 6 or more, spread over it (docs/results/align-cameras.md).")  # fmt: skip
     if r.get("set"):
         lines += ["", f"The set (the scene's other shapes, in scene.xml as set_000 …): {', '.join(r['set'])}. They shadow the subject "
                   "and hide it from the cameras in every later stage; the light they reflect onto it is not modelled."]  # fmt: skip
