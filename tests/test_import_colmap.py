@@ -278,7 +278,7 @@ def test_camera_places_that_cannot_align_a_rig_stop_with_one_line(inputs, tmp_pa
     """Each way a places file can be wrong stops the import before anything is written, naming the file and the line
     or name: too few cameras, cameras in a line, a name no camera has, one camera placed twice, two cameras' names
     swapped (they cannot both land), NaN, a line without three numbers; a model without --align-cameras in a frame of
-    its own fails the masks' check rather than importing a rig that misses its subject."""
+    its own fails the masks' check rather than importing a rig that misses its subject, and the error names the option."""
     from gra_mi.stage.lightstage import load_calibration
 
     from .test_bad_input import assert_refused
@@ -306,4 +306,6 @@ def test_camera_places_that_cannot_align_a_rig_stop_with_one_line(inputs, tmp_pa
         assert_refused(
             ["import", "colmap", rig, "--out", out, *args, "--align-cameras", tmp_path / "places.txt"], capsys, *needles, out=out
         )
-    assert_refused(["import", "colmap", rig, "--out", out, *args], capsys, "mask", out=out)
+    assert_refused(
+        ["import", "colmap", rig, "--out", out, *args], capsys, "mask", "most cameras miss it", "--align-cameras PLACES", out=out
+    )

@@ -28,6 +28,7 @@ MASK_SOURCES = {  # where each source's masks go, for a capture whose images kee
     "transforms": "each frame's mask_path in the JSON",
     "easymocap": "mask/<cam>/<frame>.png",
 }
+ALIGNABLE = ("transforms", "easymocap", "colmap")  # the sources --align-cameras can move
 OUTLIER_IOU = 0.1  # a camera this far below the others' median IoU is wrong even above the threshold
 MIN_CHECK_PIXELS = 16  # images smaller than this on a side cannot be compared with the mesh
 
@@ -184,9 +185,19 @@ def reprojection_checks(
                 source.calib_path,
                 f"camera {plan.camera.name}: the mesh reprojected over its mask overlaps it by IoU {iou:.2f} {below}; "
                 + likely_mistake(source, frame, plan, sequence, mask, pose, plans, masks)
-                + orientation_hint(next(iter(source.images[plan.index].values()))),
+                + orientation_hint(next(iter(source.images[plan.index].values())))
+                + _frame_hint(source, median, min_iou),
             )
     return checks
+
+
+def _frame_hint(source: Source, median: float, min_iou: float) -> str:
+    """Where most cameras miss the mesh and the calibration was taken as it is: it may be in a frame of its own."""
+    if median >= min_iou or source.alignment is not None or source.format not in ALIGNABLE:
+        return ""
+    return (f"; most cameras miss it (median IoU {median:.2f}): a calibration in a frame of its own (a COLMAP "
+            "reconstruction's, a chessboard's) comes into the LEDs' and the mesh's frame with --align-cameras PLACES "
+            "(docs/data-format.md)")  # fmt: skip
 
 
 def _check_mask(source: Source, plan: CameraPlan, mask: np.ndarray) -> None:
