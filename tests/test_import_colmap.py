@@ -309,3 +309,25 @@ def test_camera_places_that_cannot_align_a_rig_stop_with_one_line(inputs, tmp_pa
     assert_refused(
         ["import", "colmap", rig, "--out", out, *args], capsys, "mask", "most cameras miss it", "--align-cameras PLACES", out=out
     )
+
+
+def test_the_written_rig_is_read_by_colmap_where_the_capture_holds_it(inputs, tmp_path):
+    """`gra-mi capture --layout colmap`'s model, read by COLMAP's own library (pycolmap), aligned by COLMAP's own
+    alignment to places.txt, images the capture's mesh where the capture's cameras do (within a thousandth of a pixel):
+    the writer holds COLMAP's conventions, not only gra-mi's reader's."""
+    from gra_mi.capture.colmap import write_colmap_rig
+    from gra_mi.stage.lightstage import load_calibration
+
+    native, seq, _, _ = inputs
+    root = write_colmap_rig(native, tmp_path / "colmap")
+    model = pycolmap.Reconstruction(str(root / "sparse" / "0"))
+    places = [line.split() for line in (root / "places.txt").read_text().splitlines() if not line.startswith("#")]
+    by_camera = {image.name.split("/")[0]: image.name for image in model.images.values()}
+    names, located = [by_camera[p[0]] for p in places], np.array([[float(v) for v in p[1:]] for p in places])
+    model.transform(pycolmap.align_reconstruction_to_locations(model, names, located, 3, pycolmap.RANSACOptions(max_error=1e-3)))
+    vertices = seq.vertices[0].astype(np.float64)
+    images = {image.name.split("/")[0]: image for image in model.images.values()}
+    for camera in load_calibration(native.folder / "rig" / "calibration.json").cameras:
+        expected = camera.project(vertices)[:, :2]
+        np.testing.assert_allclose([images[camera.name].project_point(v) for v in vertices], expected, atol=1e-3)
+    assert len(list((root / "images" / camera.name).glob("*.exr"))) == len(native.frames)

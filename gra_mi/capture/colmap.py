@@ -21,6 +21,7 @@ both are there, as COLMAP reads one. What the model does not hold comes from the
 
 from __future__ import annotations
 
+import json
 import math
 import struct
 from dataclasses import dataclass
@@ -305,3 +306,79 @@ def import_colmap(folder, out, config: ImportConfig, options: ColmapOptions, lig
     return import_capture(
         source, Path(out), config, {"units": files.units, "mesh_units": files.mesh_units}, overwrite, files, shard, estimate_gains
     )
+
+
+# --------------------------------------------------------------------------------------------------------------
+# A capture written as a rig calibrated with COLMAP (`gra-mi capture --layout colmap`): the route tried end to end
+# --------------------------------------------------------------------------------------------------------------
+
+RECONSTRUCTION_FRAME = (0.37, (0.6, -1.1, 0.4), (2.5, -1.0, 0.7))  # (scale, rotation vector, shift) of the written model
+
+
+def _numbers(values) -> str:
+    return " ".join(f"{float(v):.17g}" for v in values)
+
+
+def write_colmap_rig(capture, root: Path) -> Path:
+    """A capture (``gra-mi capture``) as a rig calibrated with COLMAP comes to gra-mi, under ``root``: the sparse model
+    (text; PINHOLE cameras) in a frame and scale of its own, as a reconstruction's is (:data:`RECONSTRUCTION_FRAME`),
+    with ``places.txt`` (every camera's place in the LEDs' frame: ``--align-cameras``); each camera's frames as linear
+    EXR and their masks; the mesh frames (``meshes/frame_NNNN.obj``), the LEDs (``leds.pc``), the lighting file
+    (``lighting.json``, its envmaps and LED patterns beside it; ``led_gains.txt`` where the stage has gains), all in the
+    capture's frame, in metres. Files already
+    there are kept (an interrupted write resumes). Returns ``root``."""
+    import shutil
+
+    from scipy.spatial.transform import Rotation
+
+    from gra_mi.capture.dataset import UNIFORM_FRACTION, load_observation
+    from gra_mi.capture.source_files import write_mask, write_obj, write_points
+    from gra_mi.core.io import atomic_write_text, write_exr
+    from gra_mi.core.progress import progress
+    from gra_mi.stage.lightstage import load_calibration
+    from gra_mi.subject.sequence import load_sequence
+
+    stage, seq = load_calibration(capture.folder / "rig" / "calibration.json"), load_sequence(capture.folder / "subject")
+    scale, turn, shift = (
+        RECONSTRUCTION_FRAME[0],
+        Rotation.from_rotvec(RECONSTRUCTION_FRAME[1]).as_matrix(),
+        np.array(RECONSTRUCTION_FRAME[2]),
+    )
+    first = capture.frames[0].frame
+    cameras, images = ["# CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]"], ["# IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME, then its 2D points"]
+    for k, cam in enumerate(stage.cameras, 1):
+        cameras.append(f"{k} PINHOLE {cam.width} {cam.height} {_numbers([cam.fx, cam.fy, cam.cx, cam.cy])}")
+        rotation = (turn @ cam.rotation).T  # world-to-camera, the model's frame
+        x, y, z, w = Rotation.from_matrix(rotation).as_quat()
+        t = -rotation @ (scale * turn @ cam.position + shift)
+        images += [f"{k} {_numbers([w, x, y, z, *t])} {k} {cam.name}/{first:06d}.exr", ""]
+    for name, lines in (("cameras", cameras), ("images", images), ("points3D", ["# (no points: gra-mi reads cameras and images)"])):
+        atomic_write_text(root / "sparse" / "0" / f"{name}.txt", "\n".join(lines) + "\n")
+    atomic_write_text(root / "places.txt", "# NAME X Y Z: each camera's place in the LEDs' frame (metres)\n"
+                      + "".join(f"{c.name} {' '.join(f'{v:.9f}' for v in c.position)}\n" for c in stage.cameras))  # fmt: skip
+    write_points(root / "leds.pc", stage.led_positions)
+    if stage.led_gains is not None:  # (--led-gains led_gains.txt)
+        atomic_write_text(root / "led_gains.txt", "".join(f"{r:.6g} {g:.6g} {b:.6g}\n" for r, g, b in stage.led_gains))
+    for k in range(seq.num_frames):
+        if not (root / "meshes" / f"frame_{k:04d}.obj").is_file():
+            write_obj(root / "meshes", seq.vertices[k].astype(np.float64), seq.uvs, seq.faces, None)
+            (root / "meshes" / "model.obj").replace(root / "meshes" / f"frame_{k:04d}.obj")
+    entries = []
+    for f in capture.frames:
+        entry = {"frame": f.frame, "split": f.split, "sequence": f.sequence, "mesh_frame": f.mesh_frame}
+        if f.kind == "uniform":
+            entry["uniform"] = UNIFORM_FRACTION  # as the capture lit it
+        else:
+            kind, file = ("envmap", f.envmap) if f.kind == "envmap" else ("pattern", f.pattern)
+            (root / f"{kind}s").mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(capture.folder / file, root / f"{kind}s" / Path(file).name)
+            entry[kind] = f"{kind}s/{Path(file).name}"
+        entries.append(entry)
+    atomic_write_text(root / "lighting.json", json.dumps({"frames": entries}, indent=1) + "\n")
+    jobs = [(cam, f.frame) for f in capture.frames for cam in stage.cameras]
+    for cam, frame in progress(jobs, description="write COLMAP rig"):
+        if not (root / "images" / cam.name / f"{frame:06d}.exr").is_file():
+            image = load_observation(capture, cam.name, frame)
+            write_mask(root / "mask" / cam.name / f"{frame:06d}.png", image[..., 3])
+            write_exr(root / "images" / cam.name / f"{frame:06d}.exr", image[..., :3])  # last: its presence says both are done
+    return root

@@ -177,7 +177,9 @@ def write_spiral(path: Path, order: np.ndarray) -> None:
 
 def read_spiral(path: Path, leds: int) -> np.ndarray:
     """The firing order as 0-based LED indices, checked against the LED count."""
-    text = read_text(path, "HumanOLAT's OLAT firing order (shared/LSX3_light_z_spiral.txt), one LED index per line")  # outside the try: its error is a ValueError too
+    text = read_text(
+        path, "HumanOLAT's OLAT firing order (shared/LSX3_light_z_spiral.txt), one LED index per line"
+    )  # outside the try: its error is a ValueError too
     try:
         order = np.array([int(w) for w in text.split()], int) - 1
     except ValueError:

@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from gra_mi.capture.colmap import ColmapOptions, import_colmap
+from gra_mi.capture.colmap import ColmapOptions, import_colmap, write_colmap_rig
 from gra_mi.capture.easymocap import EasymocapOptions, import_easymocap
 from gra_mi.capture.humanolat import HumanolatOptions, import_humanolat, write_humanolat
 from gra_mi.capture.mitsuba_capture import MitsubaOptions, import_mitsuba
@@ -275,16 +275,21 @@ class CaptureCommand(Restartable):
     """Your own HDR map (OpenEXR or .hdr) as held-out test lighting, in place of a procedural one (repeatable)."""
     envmaps: EnvmapOptions = field(default_factory=EnvmapOptions)
     shards: ShardOptions = field(default_factory=ShardOptions)
-    layout: str = field(default="gra-mi", metadata=option(choices=("gra-mi", "humanolat")))
-    """Also write the capture as HumanOLAT ships a pose (OUT/humanolat/SUBJECT_S001: AVIF images, cameras.calib,
-    LED positions, firing order, the mesh in millimetres in a Z-up frame), for `gra-mi import humanolat`. Needs
-    --preset olat (a static pose)."""
+    layout: str = field(default="gra-mi", metadata=option(choices=("gra-mi", "humanolat", "colmap")))
+    """Also write the capture as a source gra-mi imports, to try that route end to end. humanolat: as HumanOLAT ships a
+    pose (OUT/humanolat/SUBJECT_S001: AVIF images, cameras.calib, LED positions, firing order, the mesh in millimetres
+    in a Z-up frame), for `gra-mi import humanolat`; needs --preset olat (a static pose). colmap: as a rig calibrated
+    with COLMAP (OUT/colmap: sparse/0 in a reconstruction's frame and scale, places.txt, images/<cam>/ EXR, mask/,
+    meshes/, leds.pc, lighting.json), for `gra-mi import colmap … --align-cameras OUT/colmap/places.txt`
+    (docs/guides/your-capture.md). Written by a run over every shard (rerun without --shard once they are done)."""
 
     def validate(self) -> None:
         super().validate()
         if self.layout == "humanolat" and not PRESETS[self.capture.preset].static_olat:
             raise GraMiParameterError("layout", f"the HumanOLAT layout holds a static pose: use --preset olat, not {self.capture.preset}")
         names_of(self.test_envmap, "test_envmap")  # the capture stores them by name
+        if self.layout != "gra-mi" and not self.shards.resolved().whole:  # a shard holds only its frames' images
+            raise GraMiParameterError("layout", "is written from the whole capture: rerun without --shard once every shard is done")
 
 
 def run_capture(c: CaptureCommand) -> None:
@@ -297,6 +302,8 @@ def run_capture(c: CaptureCommand) -> None:
     print(f"wrote {n} images of {len(frames)} frames to {c.out}" + ("" if shard.whole else f" (shard {shard})"))
     if c.layout == "humanolat":
         print(f"wrote the HumanOLAT layout to {write_humanolat(capture, c.out / 'humanolat')}")
+    elif c.layout == "colmap":
+        print(f"wrote the COLMAP rig to {write_colmap_rig(capture, c.out / 'colmap')}; import it with --align-cameras places.txt")
 
 
 @dataclass(kw_only=True)
