@@ -563,7 +563,8 @@ def test_transforms_json_imports_to_the_same_rig(olat_capture, imported, spellin
 
 def test_a_transforms_json_in_a_frame_of_its_own_is_aligned_by_camera_places(olat_capture, imported, tmp_path):
     """A transforms.json whose cameras are in a frame and scale of their own (a reconstruction's; its pl_pos and the mesh
-    in the stage's), with --align-cameras placing four of its cameras by name: the rig imports as the stage's own."""
+    in the stage's), with --align-cameras placing four of its cameras (two by name, two by an image's file_path as the
+    JSON has it): the rig imports as the stage's own."""
     from scipy.spatial.transform import Rotation
 
     from gra_mi.stage.lightstage import load_calibration
@@ -572,16 +573,18 @@ def test_a_transforms_json_in_a_frame_of_its_own_is_aligned_by_camera_places(ola
     folder = tmp_path / "json"
     write_transforms_as_humanolat_tools_do(subject, folder)
     scale, turn, shift = 2.7, Rotation.from_rotvec([-0.4, 0.9, 1.3]).as_matrix(), np.array([0.3, -4.0, 1.5])
-    placed = {}
+    placed, paths = {}, {}
     for path in folder.glob("transforms_*.json"):
         data = json.loads(path.read_text())
         for frame in data["frames"]:
             c2w = np.array(frame["transform_matrix"])
             placed[f"Cam{frame['cam_idx'] + 1:02d}"] = c2w[:3, 3].copy()
+            paths.setdefault(f"Cam{frame['cam_idx'] + 1:02d}", frame["file_path"])
             c2w[:3] = np.column_stack([turn @ c2w[:3, :3], scale * turn @ c2w[:3, 3] + shift])
             frame["transform_matrix"] = c2w.tolist()
         path.write_text(json.dumps(data))
-    (tmp_path / "places.txt").write_text("".join(f"{n} {' '.join(f'{x:.17g}' for x in placed[n])}\n" for n in sorted(placed)[::2]))
+    named = {n: paths[n] if k < 2 else n for k, n in enumerate(sorted(placed)[::2])}  # a camera by name, or by an image's file_path
+    (tmp_path / "places.txt").write_text("".join(f"{named[n]} {' '.join(f'{x:.17g}' for x in placed[n])}\n" for n in named))
     out = tmp_path / "aligned"
     args = ["import", "transforms", str(folder), "--out", str(out), "--mesh", str(subject / "POSE_00" / "model" / "model.obj")]
     assert main([*args, "--mesh-units", "mm", "--uv-resolution", "32", "--align-cameras", str(tmp_path / "places.txt")]) == 0
@@ -590,6 +593,22 @@ def test_a_transforms_json_in_a_frame_of_its_own_is_aligned_by_camera_places(ola
         np.testing.assert_allclose(a.camera_to_world, b.camera_to_world, atol=1e-5)
     said = (out / "import_report.md").read_text()
     assert "scaled 0.37037" in said and "Only" not in said  # (four cameras placed)
+
+
+def test_a_place_names_its_camera_by_any_name_the_source_gives_it():
+    """A places file's NAME: the capture's camera name, the source's own name of it (EasyMocap's `01` for cam01), an
+    image path as the source lists it (transforms.json's file_path, whatever folder it is in), or an image path whose
+    folder or stem is one of those (COLMAP's image names); anything else is refused, naming the cameras."""
+    from gra_mi.capture.alignment import camera_named
+    from gra_mi.core.errors import GraMiInputError
+
+    aliases = {"01": "cam01", "shots/take_0003.png": "cam02"}
+    said = {name: camera_named(Path("places.txt"), name, ["cam01", "cam02"], aliases)
+            for name in ("cam02", "01", "shots/take_0003.png", "images/01/000000.jpg", "cam01.png", "rig\\cam02\\0.png")}  # fmt: skip
+    assert said == {"cam02": "cam02", "01": "cam01", "shots/take_0003.png": "cam02", "images/01/000000.jpg": "cam01",
+                    "cam01.png": "cam01", "rig\\cam02\\0.png": "cam02"}  # fmt: skip
+    with pytest.raises(GraMiInputError, match="'shots/take_0004.png' names no camera of the calibration .its cameras: cam01, cam02"):
+        camera_named(Path("places.txt"), "shots/take_0004.png", ["cam01", "cam02"], aliases)
 
 
 def test_exif_orientation_is_said_where_the_pixels_do_not_fit(olat_capture, tmp_path, capsys):

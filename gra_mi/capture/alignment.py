@@ -46,12 +46,14 @@ def read_places(path: Path) -> list[CameraPlace]:
     return list(places.values())
 
 
-def camera_named(path: Path, name: str, cameras: list[str]) -> str:
-    """The camera a line names: itself, else the folder an image path puts it in, else the path's stem."""
+def camera_named(path: Path, name: str, cameras: list[str], aliases: dict[str, str] | None = None) -> str:
+    """The camera a line names: a camera's name, or another name the source gives it (``aliases``: EasyMocap's own
+    camera names, transforms.json's image paths), or an image path whose folder, else whose stem, is one of those."""
+    known = {camera: camera for camera in cameras} | (aliases or {})
     parts = Path(name.replace("\\", "/")).parts
     for candidate in (name, parts[-2] if len(parts) > 1 else None, Path(parts[-1]).stem if parts else None):
-        if candidate in cameras:
-            return candidate
+        if candidate in known:
+            return known[candidate]
     shown = ", ".join(cameras[:6]) + (" …" if len(cameras) > 6 else "")
     raise GraMiInputError(path, f"{name!r} names no camera of the calibration (its cameras: {shown})", field=name)
 
@@ -77,13 +79,13 @@ def _spread(path: Path, points: np.ndarray, what: str) -> float:
     return float(np.linalg.norm(np.ptp(points, axis=0)))
 
 
-def align_cameras(path: Path, names: list[str], calib: list) -> tuple[list, dict]:
+def align_cameras(path: Path, names: list[str], calib: list, aliases: dict[str, str] | None = None) -> tuple[list, dict]:
     """Each CalibCamera of ``calib`` (camera-to-world, OpenCV axes) moved by the similarity that puts the named cameras'
-    centres at their places in ``path``, and what the import report says of it."""
+    centres at their places in ``path`` (names as :func:`camera_named` reads them), and what the import report says."""
     places = read_places(path)
     index = {}
     for place in places:
-        camera = camera_named(path, place.name, names)
+        camera = camera_named(path, place.name, names, aliases)
         if camera in index:
             raise GraMiInputError(path, f"{place.name!r} and {index[camera][0]!r} both place camera {camera}", field=place.name)
         index[camera] = (place.name, place.position)

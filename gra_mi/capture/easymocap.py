@@ -237,7 +237,7 @@ def rig_source(folder: Path, source: str, calib_path: Path, folders: list[str], 
     user: the LEDs (--leds, --units), each frame's lighting (``lighting``), the mesh frames they show (--mesh), and the
     per-frame masks of ``mask/<folder>/``."""
     names, calib, sizes = calibrated
-    calib, alignment = aligned(files, names, calib)
+    calib, alignment = aligned(files, names, calib, dict(zip(folders, names, strict=True)))
     units = UNITS[files.units]
     leds = read_points(files.leds) * units
     frames = lighting_frames(lighting, len(leds))

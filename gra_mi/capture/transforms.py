@@ -60,7 +60,7 @@ class TransformsOptions:
     LEDs the frames name with light_idx and pl_pos."""
     align_cameras: Path | None = field(default=None, metadata=option(metavar="PLACES"))
     """transforms, easymocap, colmap: where some cameras are in the LEDs' frame (--units), a line `NAME X Y Z` each (COLMAP
-    model_aligner's ref_images; NAME a camera, or an image path whose folder names one): the calibration, in a frame
+    model_aligner's ref_images; NAME a camera, by its name or the source's own, or an image path whose folder names one): the calibration, in a frame
     and scale of its own, is moved there by the similarity that fits them (3 cameras or more, not in a line). Default:
     the calibration is in the LEDs' frame already."""
 
@@ -100,7 +100,7 @@ class _Frame:
 
 def read_transforms(folder: Path, options: TransformsOptions) -> Source:
     files = _json_files(folder)
-    calib, sizes, frames, unnamed, masks = {}, {}, [], {}, {}
+    calib, sizes, frames, unnamed, masks, file_paths = {}, {}, [], {}, {}, []
     leds = {} if options.leds is None else dict(enumerate(read_points(options.leds)))
     stated: dict[int, np.ndarray] = {}  # LED → its pl_intensity
     for path, split in files:
@@ -120,12 +120,15 @@ def read_transforms(folder: Path, options: TransformsOptions) -> Source:
             calib.setdefault(camera, CalibCamera(intrinsic, c2w, [], lens=lens))
             sizes.setdefault(camera, size)
             frames.append(_Frame(image, camera, _lighting(path, entry, where, leds, stated), entry.mesh_frame, split))
+            file_paths.append(entry.file_path)  # (a camera's other name, for --align-cameras)
             if entry.mask_path is not None and camera not in masks:  # nerfstudio's per-frame mask; a static pose needs one per camera
                 masks[camera] = _image_path(path, entry.mask_path, f"{where}.mask_path")
     if not leds:
         raise GraMiInputError(files[0][0], "no LEDs: frames with light_idx and pl_pos, or --leds: gra-mi fits materials under known lights")
     names = sorted(calib)
-    cameras, alignment = aligned(options, names, [calib[n] for n in names])
+    cameras, alignment = aligned(
+        options, names, [calib[n] for n in names], {raw: f.camera for raw, f in zip(file_paths, frames, strict=True)}
+    )
     led_index = {k: n for n, k in enumerate(sorted(leds))}
     groups: dict[tuple, dict] = {}
     for f in frames:
@@ -147,11 +150,12 @@ def read_transforms(folder: Path, options: TransformsOptions) -> Source:
     )  # fmt: skip
 
 
-def aligned(options: TransformsOptions, names: list[str], calib: list) -> tuple[list, dict | None]:
-    """The cameras moved into the LEDs' frame where --align-cameras places some of them (:mod:`gra_mi.capture.alignment`)."""
+def aligned(options: TransformsOptions, names: list[str], calib: list, aliases: dict[str, str]) -> tuple[list, dict | None]:
+    """The cameras moved into the LEDs' frame where --align-cameras places some of them (:mod:`gra_mi.capture.alignment`;
+    ``aliases``: the source's other names of its cameras)."""
     if options.align_cameras is None:
         return calib, None
-    return align_cameras(Path(options.align_cameras), names, calib)
+    return align_cameras(Path(options.align_cameras), names, calib, aliases)
 
 
 def _stated_gains(stated: dict[int, np.ndarray], numbers: list[int]) -> np.ndarray | None:
