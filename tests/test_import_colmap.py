@@ -292,8 +292,8 @@ def test_camera_places_that_cannot_align_a_rig_stop_with_one_line(inputs, tmp_pa
     line = lambda name, p: f"{name} {p[0]} {p[1]} {p[2]}\n"  # noqa: E731
     middle = (at[0] + at[1]) / 2
     cases = [
-        (line("01", at[0]) + line("02", at[1]), ["2, on one line", "3 cameras or more"]),
-        (line("01", at[0]) + line("02", at[1]) + line("03/000000.png", 2 * middle - at[0]), ["on one line"]),
+        (line("01", at[0]) + line("02", at[1]), ["are 2, in a line", "place 3 cameras or more"]),
+        (line("01", at[0]) + line("02", at[1]) + line("03/000000.png", 2 * middle - at[0]), ["in a line or nearly"]),
         (line("01", at[0]) + line("02", at[1]) + line("cam07", at[2]), ["places.txt", "'cam07' names no camera", "01, 02"]),
         (line("01", at[0]) + line("01/000000.png", at[0]) + line("03", at[2]), ["'01/000000.png' and '01' both place camera 01"]),
         (line("01", at[0]) + line("01", at[1]) + line("03", at[2]), ["line 2", "'01' is placed twice"]),

@@ -20,7 +20,8 @@ from gra_mi.core.io import read_text
 from gra_mi.core.schema import Record, matrix, parse
 
 ALIGN_MAX_SHARE = 0.02  # a camera this far (a share of the known cameras' extent) from its stated place: refused
-ON_ONE_LINE = 1e-3  # known cameras whose second principal extent is below this share of the first: a line, no rotation
+ON_ONE_LINE = 0.05  # placed cameras whose second principal extent is below this share of the first are nearly in a line:
+# the turn about it is as uncertain as their places over that small extent (3 neighbours on a ring of 40: 8° per 3 mm)
 
 
 class CameraPlace(Record):
@@ -74,7 +75,7 @@ def _spread(path: Path, points: np.ndarray, what: str) -> float:
     extents = np.linalg.svd(points - points.mean(axis=0), compute_uv=False) if len(points) >= 3 else np.zeros(2)
     if len(points) < 3 or not extents[1] > ON_ONE_LINE * extents[0]:
         raise GraMiInputError(
-            path, f"{what} are {len(points)}, on one line or at one place: a rotation needs 3 cameras or more, not in a line"
+            path, f"{what} are {len(points)}, in a line or nearly: place 3 cameras or more, spread over the rig, not along a line"
         )
     return float(np.linalg.norm(np.ptp(points, axis=0)))
 
@@ -100,7 +101,7 @@ def align_cameras(path: Path, names: list[str], calib: list, aliases: dict[str, 
         worst = int(np.argmax(off))
         raise GraMiInputError(path, f"camera {known[worst]} lands {off[worst]:.4g} from where {index[known[worst]][0]!r} places it "
                               f"({100 * off[worst] / extent:.1f} % of the cameras' extent; at most {100 * ALIGN_MAX_SHARE:g} %): "
-                              "a camera named for another, or places in another unit?", field=index[known[worst]][0])  # fmt: skip
+                              "a camera named for another, or a place mis-measured?", field=index[known[worst]][0])  # fmt: skip
     moved = [replace(c, extrinsic=np.column_stack([rotation @ c.extrinsic[:, :3], scale * rotation @ c.extrinsic[:, 3] + shift]))
              for c in calib]  # fmt: skip
     turned = float(np.degrees(np.arccos(np.clip((np.trace(rotation) - 1) / 2, -1.0, 1.0))))
