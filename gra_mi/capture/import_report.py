@@ -97,10 +97,17 @@ def write_report(
         "frames": {"imported": sum(1 for _ in (out / "images" / plans[0].camera.name).glob("frame_*.exr"))},
         "uv_atlas": record["uv_atlas"],
         "set": [shape.label for shape in source.set_shapes],
-        "alignment": source.alignment,
+        "alignment": _alignment(source),
     }
     atomic_write_text(out / "import_report.json", json.dumps(report, indent=1) + "\n")
     atomic_write_text(out / "import_report.md", import_markdown(report, source.format))
+
+
+def _alignment(source: Source) -> dict | None:
+    """How --align-cameras moved the calibration (in the places' units), with how closely the cameras land in metres."""
+    if source.alignment is None:
+        return None
+    return source.alignment | {f"{k}_m": source.alignment[k] * source.units for k in ("rms", "max")}
 
 
 def import_markdown(r: dict, source_format: str) -> str:
@@ -131,8 +138,8 @@ def import_markdown(r: dict, source_format: str) -> str:
         )
     if a := r.get("alignment"):
         lines += ["", f"The calibration moved into the LEDs' frame by {len(a['cameras'])} cameras' places ({a['file']}): scaled "
-                  f"{a['scale']:.6g}×, turned {a['rotation_deg']:.2f}°; they land within {a['rms']:.3g} RMS, {a['max']:.3g} at most, "
-                  "of their places (the LEDs' units)."]  # fmt: skip
+                  f"{a['scale']:.6g}×, turned {a['rotation_deg']:.2f}°; they land within {1000 * a['rms_m']:.2f} mm RMS, "
+                  f"{1000 * a['max_m']:.2f} mm at most, of their places."]  # fmt: skip
         if len(a["cameras"]) < FEW_PLACED:
             lines[-1] += (f" Only {len(a['cameras'])} cameras placed: their places' errors grow several times over the rig, "
                           "and two names swapped may pass; place 6 or more, spread over it (docs/results/align-cameras.md).")  # fmt: skip
