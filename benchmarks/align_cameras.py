@@ -62,7 +62,7 @@ def one_draw(stage, rng, placed: int, sigma: float, points: np.ndarray, truth_px
         places[a], places[b] = places[b], places[a]
     (work / "places.txt").write_text("".join(f"{n} {' '.join(f'{x:.17g}' for x in p)}\n" for n, p in places.items()))
     try:
-        moved, said = align_cameras(work / "places.txt", names, calibration_in(stage, own_frame(rng)))
+        moved, _, said = align_cameras(work / "places.txt", names, calibration_in(stage, own_frame(rng)))
     except GraMiInputError:
         return None
     centres = np.linalg.norm(np.array([c.extrinsic[:, 3] for c in moved]) - np.array([c.position for c in stage.cameras]), axis=1)

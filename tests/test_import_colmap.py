@@ -274,6 +274,40 @@ def test_a_model_in_its_own_frame_is_aligned_to_the_leds(inputs, tmp_path):
         np.testing.assert_allclose(camera.project(vertices @ moved[:3, :3].T + moved[:3, 3])[:, :2], expected, atol=1e-3)
 
 
+def test_a_mesh_tracked_in_the_models_frame_moves_with_it(inputs, tmp_path, capsys):
+    """The meshes in the model's own frame too (tracked with its calibration, as EasyMocap's and a COLMAP
+    reconstruction's are) and --mesh-frame calibration: they move with the cameras, the subject lands where it stands
+    among the LEDs (its vertices within 10 µm) and on every mask. Without the option the masks' check fails and names
+    it; the option without --align-cameras is refused."""
+    from scipy.spatial import cKDTree
+
+    from gra_mi.capture.source_files import write_obj
+    from gra_mi.stage.lightstage import load_calibration
+    from gra_mi.subject.sequence import load_sequence
+
+    from .test_bad_input import assert_refused
+
+    native, seq, frames, args = inputs
+    write_colmap(native, tmp_path / "rig", frames[:1], moved=_own_frame())
+    (tmp_path / "one.json").write_text(json.dumps({"frames": [{"frame": frames[0].frame, "uniform": 0.5}]}))
+    matrix = np.asarray(_own_frame().matrix())  # s R | t
+    (tmp_path / "meshes").mkdir()
+    write_obj(tmp_path / "meshes", seq.vertices[0].astype(np.float64) @ matrix[:, :3].T + matrix[:, 3], seq.uvs, seq.faces, None)
+    args = ["--mesh", str(tmp_path / "meshes" / "model.obj"), *args[2:4], "--lighting", str(tmp_path / "one.json"), *args[6:]]
+    truth = load_calibration(native.folder / "rig" / "calibration.json").cameras
+    (tmp_path / "places.txt").write_text("".join(f"{k + 1:02d} {' '.join(f'{x:.17g}' for x in c.position)}\n" for k, c in enumerate(truth)))
+    command = ["import", "colmap", tmp_path / "rig", "--out", tmp_path / "out", *args, "--align-cameras", tmp_path / "places.txt"]
+    assert_refused(command, capsys, "most cameras miss it", "--mesh-frame calibration", out=tmp_path / "out")
+    assert_refused([*command[:-2], "--mesh-frame", "calibration"], capsys, "--mesh-frame", "--align-cameras", out=tmp_path / "out")
+    assert main([str(a) for a in command] + ["--mesh-frame", "calibration"]) == 0
+    report = json.loads((tmp_path / "out" / "import_report.json").read_text())
+    assert all(c["mask_iou"] >= 0.97 for c in report["cameras"]) and report["alignment"]["mesh_moved"], report
+    moved = np.array(json.loads((tmp_path / "out" / "capture.json").read_text())["source"]["transform"])
+    expected = seq.vertices[0].astype(np.float64) @ moved[:3, :3].T + moved[:3, 3]
+    imported = load_sequence(tmp_path / "out" / "subject").vertices[0]
+    assert cKDTree(expected).query(imported)[0].max() < 1e-5
+
+
 def test_camera_places_that_cannot_align_a_rig_stop_with_one_line(inputs, tmp_path, capsys):
     """Each way a places file can be wrong stops the import before anything is written, naming the file and the line
     or name: too few cameras, cameras in a line, a name no camera has, one camera placed twice, two cameras' names

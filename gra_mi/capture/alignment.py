@@ -80,9 +80,10 @@ def _spread(path: Path, points: np.ndarray, what: str) -> float:
     return float(np.linalg.norm(np.ptp(points, axis=0)))
 
 
-def align_cameras(path: Path, names: list[str], calib: list, aliases: dict[str, str] | None = None) -> tuple[list, dict]:
+def align_cameras(path: Path, names: list[str], calib: list, aliases: dict[str, str] | None = None) -> tuple[list, tuple, dict]:
     """Each CalibCamera of ``calib`` (camera-to-world, OpenCV axes) moved by the similarity that puts the named cameras'
-    centres at their places in ``path`` (names as :func:`camera_named` reads them), and what the import report says."""
+    centres at their places in ``path`` (names as :func:`camera_named` reads them), that similarity (scale, rotation,
+    translation) and what the import report says of it."""
     places = read_places(path)
     index = {}
     for place in places:
@@ -105,5 +106,5 @@ def align_cameras(path: Path, names: list[str], calib: list, aliases: dict[str, 
     moved = [replace(c, extrinsic=np.column_stack([rotation @ c.extrinsic[:, :3], scale * rotation @ c.extrinsic[:, 3] + shift]))
              for c in calib]  # fmt: skip
     turned = float(np.degrees(np.arccos(np.clip((np.trace(rotation) - 1) / 2, -1.0, 1.0))))
-    return moved, {"file": str(path), "cameras": known, "scale": scale, "rotation_deg": turned, "translation": shift.tolist(),
+    return moved, (scale, rotation, shift), {"file": str(path), "cameras": known, "scale": scale, "rotation_deg": turned, "translation": shift.tolist(),
             "rms": float(np.sqrt(np.mean(off**2))), "max": float(off.max())}  # fmt: skip

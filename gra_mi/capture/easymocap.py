@@ -237,7 +237,7 @@ def rig_source(folder: Path, source: str, calib_path: Path, folders: list[str], 
     user: the LEDs (--leds, --units), each frame's lighting (``lighting``), the mesh frames they show (--mesh), and the
     per-frame masks of ``mask/<folder>/``."""
     names, calib, sizes = calibrated
-    calib, alignment = aligned(files, names, calib, dict(zip(folders, names, strict=True)))
+    calib, moved = aligned(files, names, calib, dict(zip(folders, names, strict=True)))
     units = UNITS[files.units]
     leds = read_points(files.leds) * units
     frames = lighting_frames(lighting, len(leds))
@@ -245,7 +245,7 @@ def rig_source(folder: Path, source: str, calib_path: Path, folders: list[str], 
     return Source(
         folder, source, calib_path, names, calib, sizes, images, units, leds, meshes, [None] * len(names), frames,
         mesh_units=UNITS[files.mesh_units], frame_masks=[camera_images(folder, n, "mask", required=False) for n in folders],
-        leds_path=files.leds, mesh_files=[files.mesh], alignment=alignment,
+        leds_path=files.leds, mesh_files=[files.mesh], **moved,
         calib_files=[*calib_files, *([files.align_cameras] if files.align_cameras else [])],
     )  # fmt: skip
 

@@ -139,7 +139,8 @@ def import_markdown(r: dict, source_format: str) -> str:
     if a := r.get("alignment"):
         lines += ["", f"The calibration moved into the LEDs' frame by {len(a['cameras'])} cameras' places ({a['file']}): scaled "
                   f"{a['scale']:.6g}×, turned {a['rotation_deg']:.2f}°; they land within {1000 * a['rms_m']:.2f} mm RMS, "
-                  f"{1000 * a['max_m']:.2f} mm at most, of their places."]  # fmt: skip
+                  f"{1000 * a['max_m']:.2f} mm at most, of their places"
+                  + ("; the mesh moved with it (--mesh-frame calibration)." if a["mesh_moved"] else ".")]  # fmt: skip
         if len(a["cameras"]) < FEW_PLACED:
             lines[-1] += (f" Only {len(a['cameras'])} cameras placed: their places' errors grow several times over the rig, "
                           "and two names swapped may pass; place 6 or more, spread over it (docs/results/align-cameras.md).")  # fmt: skip

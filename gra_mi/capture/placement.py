@@ -175,7 +175,7 @@ class SubjectPlan:
         """The source's own vertex normals of mesh frame ``k``, turned into the world frame; None where it has none
         (computed from the positions when written)."""
         normals = source.meshes.normals(k)
-        return None if normals is None else (normals[self.position_of] @ frame.rotation.T).astype(np.float32)
+        return None if normals is None else (source.mesh_directions(normals[self.position_of]) @ frame.rotation.T).astype(np.float32)
 
     def posed(self, source: Source, frame: WorldFrame, k: int) -> MeshSequence:
         """Mesh frame ``k`` alone, as a one-frame sequence (what the reprojection check looks at)."""

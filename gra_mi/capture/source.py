@@ -110,6 +110,7 @@ class Source:
     mesh_files: list[Path] = field(default_factory=list)  # the mesh file(s) or folder read (for provenance)
     calib_files: list[Path] = field(default_factory=list)  # the calibration's files besides calib_path (for provenance)
     alignment: dict | None = None  # how --align-cameras moved the calibration into the LEDs' frame (the report says it)
+    mesh_move: tuple | None = None  # (scale, rotation, translation in calibration units): the meshes moved with the cameras
     set_shapes: list = field(default_factory=list)  # a Mitsuba scene's other shapes (scene_stage.SetShape), in the meshes' frame
 
     def check(self) -> None:
@@ -216,4 +217,13 @@ class Source:
         return None if self.stated_gains is None else normalised_gains(self.stated_gains, numbers, self.calib_path)
 
     def mesh_metres(self, positions: np.ndarray) -> np.ndarray:
-        return positions * (self.units if self.mesh_units is None else self.mesh_units)
+        """A mesh frame's positions in metres, in the LEDs' frame (moved with the calibration where it was tracked in it)."""
+        metres = positions * (self.units if self.mesh_units is None else self.mesh_units)
+        if self.mesh_move is None:
+            return metres
+        scale, rotation, translation = self.mesh_move
+        return scale * metres @ rotation.T + translation * self.units
+
+    def mesh_directions(self, normals: np.ndarray) -> np.ndarray:
+        """A mesh frame's normals turned as :meth:`mesh_metres` turns its positions."""
+        return normals if self.mesh_move is None else normals @ self.mesh_move[1].T

@@ -63,8 +63,14 @@ class TransformsOptions:
     model_aligner's ref_images; NAME a camera, by its name or the source's own, or an image path whose folder names one): the calibration, in a frame
     and scale of its own, is moved there by the similarity that fits them (3 cameras or more, not in a line). Default:
     the calibration is in the LEDs' frame already."""
+    mesh_frame: str = field(default="leds", metadata=option(choices=("leds", "calibration")))
+    """transforms, easymocap, colmap, with --align-cameras: the frame --mesh is in. leds: the LEDs' (the stage's);
+    calibration: the calibration's own (a mesh tracked or reconstructed with it: EasyMocap's, COLMAP's), moved with
+    the cameras."""
 
     def validate(self) -> None:
+        if self.mesh_frame != "leds" and self.align_cameras is None:  # the two frames are one without it
+            raise GraMiParameterError("mesh_frame", "moves the mesh with --align-cameras: give it, or leave the mesh in the LEDs' frame")
         if self.mesh is None:
             raise GraMiParameterError(
                 "mesh",
@@ -126,9 +132,7 @@ def read_transforms(folder: Path, options: TransformsOptions) -> Source:
     if not leds:
         raise GraMiInputError(files[0][0], "no LEDs: frames with light_idx and pl_pos, or --leds: gra-mi fits materials under known lights")
     names = sorted(calib)
-    cameras, alignment = aligned(
-        options, names, [calib[n] for n in names], {raw: f.camera for raw, f in zip(file_paths, frames, strict=True)}
-    )
+    cameras, moved = aligned(options, names, [calib[n] for n in names], {raw: f.camera for raw, f in zip(file_paths, frames, strict=True)})
     led_index = {k: n for n, k in enumerate(sorted(leds))}
     groups: dict[tuple, dict] = {}
     for f in frames:
@@ -145,17 +149,20 @@ def read_transforms(folder: Path, options: TransformsOptions) -> Source:
         np.array([leds[k] for k in sorted(leds)]) * UNITS[options.units], meshes,
         [masks.get(n) if len(meshes) == 1 else None for n in names], source_frames,
         mesh_units=UNITS[options.mesh_units], leds_path=options.leds or files[0][0], mesh_files=[options.mesh], led_numbers=sorted(leds),
-        stated_gains=_stated_gains(stated, sorted(leds)), alignment=alignment,
+        stated_gains=_stated_gains(stated, sorted(leds)), **moved,
         calib_files=[options.align_cameras] if options.align_cameras else [],
     )  # fmt: skip
 
 
-def aligned(options: TransformsOptions, names: list[str], calib: list, aliases: dict[str, str]) -> tuple[list, dict | None]:
+def aligned(options: TransformsOptions, names: list[str], calib: list, aliases: dict[str, str]) -> tuple[list, dict]:
     """The cameras moved into the LEDs' frame where --align-cameras places some of them (:mod:`gra_mi.capture.alignment`;
-    ``aliases``: the source's other names of its cameras)."""
+    ``aliases``: the source's other names of its cameras), and the Source fields that say it: the alignment, and the
+    meshes' move where they are in the calibration's frame (--mesh-frame calibration)."""
     if options.align_cameras is None:
-        return calib, None
-    return align_cameras(Path(options.align_cameras), names, calib, aliases)
+        return calib, {}
+    moved, move, said = align_cameras(Path(options.align_cameras), names, calib, aliases)
+    with_mesh = options.mesh_frame == "calibration"
+    return moved, {"alignment": said | {"mesh_moved": with_mesh}, "mesh_move": move if with_mesh else None}
 
 
 def _stated_gains(stated: dict[int, np.ndarray], numbers: list[int]) -> np.ndarray | None:
