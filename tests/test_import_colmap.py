@@ -365,3 +365,33 @@ def test_the_written_rig_is_read_by_colmap_where_the_capture_holds_it(inputs, tm
         expected = camera.project(vertices)[:, :2]
         np.testing.assert_allclose([images[camera.name].project_point(v) for v in vertices], expected, atol=1e-3)
     assert len(list((root / "images" / camera.name).glob("*.exr"))) == len(native.frames)
+
+
+def test_the_written_lighting_file_drives_the_leds_as_the_capture_did(tmp_path):
+    """Each lighting of a capture, as `--layout colmap`'s lighting file states it (uniform, an OLAT as `led`, a pattern
+    at another drive copied beside it), read back by the import's own lighting reader: the same LED intensities."""
+    from types import SimpleNamespace
+
+    from gra_mi.capture.colmap import _lit
+    from gra_mi.capture.dataset import FrameLighting
+    from gra_mi.capture.easymocap import lighting_frames
+    from gra_mi.capture.importer import _drive
+    from gra_mi.stage.lightstage import default_lightstage, olat_pattern, uniform_pattern
+
+    stage = default_lightstage(num_leds=12, num_cameras=2)
+    drives = {"olat_003": olat_pattern(stage, 3), "dim_005": olat_pattern(stage, 5, 0.25 * stage.max_led_intensity)}
+    drives["mixed"] = uniform_pattern(stage, 0.2) * np.linspace(0.1, 1.0, 12)[:, None]
+    (tmp_path / "cap" / "patterns").mkdir(parents=True)
+    for name, drive in drives.items():
+        (tmp_path / "cap" / "patterns" / f"{name}.json").write_text(json.dumps({"intensities": drive.tolist()}))
+    frames = [FrameLighting(0, "train", 0, "uniform", None)]
+    frames += [FrameLighting(k + 1, "test", 1, "pattern", None, f"patterns/{name}.json") for k, name in enumerate(drives)]
+    entries = [
+        {"frame": f.frame, "split": f.split} | _lit(SimpleNamespace(folder=tmp_path / "cap"), stage, f, tmp_path / "rig") for f in frames
+    ]
+    assert [next(k for k in e if k in ("uniform", "led", "pattern")) for e in entries] == ["uniform", "led", "pattern", "pattern"]
+    (tmp_path / "rig" / "lighting.json").write_text(json.dumps({"frames": entries}))
+    read = lighting_frames(tmp_path / "rig" / "lighting.json", stage.num_leds)
+    expected = [uniform_pattern(stage, 0.5), *drives.values()]
+    for (_, _, drive), truth in zip(read, expected, strict=True):
+        np.testing.assert_allclose(_drive(stage, drive), truth, rtol=1e-6)

@@ -319,6 +319,27 @@ def _numbers(values) -> str:
     return " ".join(f"{float(v):.17g}" for v in values)
 
 
+def _lit(capture, stage, frame, root: Path) -> dict:
+    """A capture frame's lighting as the lighting file states it: uniform, an OLAT (``led``: one LED at the stage's
+    maximum), or its envmap or LED pattern copied beside the file."""
+    import shutil
+
+    from gra_mi.capture.dataset import UNIFORM_FRACTION
+    from gra_mi.stage.lightstage import load_pattern
+
+    if frame.kind == "uniform":
+        return {"uniform": UNIFORM_FRACTION}  # as the capture lit it
+    if frame.kind == "pattern":
+        drive = load_pattern(stage, capture.folder / frame.pattern)
+        lit = np.flatnonzero(drive.max(axis=1) > 0)
+        if len(lit) == 1 and np.all(drive[lit[0]] == stage.max_led_intensity):
+            return {"led": int(lit[0])}
+    kind, file = ("envmap", frame.envmap) if frame.kind == "envmap" else ("pattern", frame.pattern)
+    (root / f"{kind}s").mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(capture.folder / file, root / f"{kind}s" / Path(file).name)
+    return {kind: f"{kind}s/{Path(file).name}"}
+
+
 def write_colmap_rig(capture, root: Path) -> Path:
     """A capture (``gra-mi capture``) as a rig calibrated with COLMAP comes to gra-mi, under ``root``: the sparse model
     (text; PINHOLE cameras) in a frame and scale of its own, as a reconstruction's is (:data:`RECONSTRUCTION_FRAME`),
@@ -327,11 +348,9 @@ def write_colmap_rig(capture, root: Path) -> Path:
     (``lighting.json``, its envmaps and LED patterns beside it; ``led_gains.txt`` where the stage has gains), all in the
     capture's frame, in metres. Files already
     there are kept (an interrupted write resumes). Returns ``root``."""
-    import shutil
-
     from scipy.spatial.transform import Rotation
 
-    from gra_mi.capture.dataset import UNIFORM_FRACTION, load_observation
+    from gra_mi.capture.dataset import load_observation
     from gra_mi.capture.source_files import write_mask, write_obj, write_points
     from gra_mi.core.io import atomic_write_text, write_exr
     from gra_mi.core.progress import progress
@@ -363,17 +382,8 @@ def write_colmap_rig(capture, root: Path) -> Path:
         if not (root / "meshes" / f"frame_{k:04d}.obj").is_file():
             write_obj(root / "meshes", seq.vertices[k].astype(np.float64), seq.uvs, seq.faces, None)
             (root / "meshes" / "model.obj").replace(root / "meshes" / f"frame_{k:04d}.obj")
-    entries = []
-    for f in capture.frames:
-        entry = {"frame": f.frame, "split": f.split, "sequence": f.sequence, "mesh_frame": f.mesh_frame}
-        if f.kind == "uniform":
-            entry["uniform"] = UNIFORM_FRACTION  # as the capture lit it
-        else:
-            kind, file = ("envmap", f.envmap) if f.kind == "envmap" else ("pattern", f.pattern)
-            (root / f"{kind}s").mkdir(parents=True, exist_ok=True)
-            shutil.copyfile(capture.folder / file, root / f"{kind}s" / Path(file).name)
-            entry[kind] = f"{kind}s/{Path(file).name}"
-        entries.append(entry)
+    entries = [{"frame": f.frame, "split": f.split, "sequence": f.sequence, "mesh_frame": f.mesh_frame} | _lit(capture, stage, f, root)
+               for f in capture.frames]  # fmt: skip
     atomic_write_text(root / "lighting.json", json.dumps({"frames": entries}, indent=1) + "\n")
     jobs = [(cam, f.frame) for f in capture.frames for cam in stage.cameras]
     for cam, frame in progress(jobs, description="write COLMAP rig"):
