@@ -108,3 +108,14 @@ def align_cameras(path: Path, names: list[str], calib: list, aliases: dict[str, 
     turned = float(np.degrees(np.arccos(np.clip((np.trace(rotation) - 1) / 2, -1.0, 1.0))))
     return moved, (scale, rotation, shift), {"file": str(path), "cameras": known, "scale": scale, "rotation_deg": turned, "translation": shift.tolist(),
             "rms": float(np.sqrt(np.mean(off**2))), "max": float(off.max())}  # fmt: skip
+
+
+def aligned(options, names: list[str], calib: list, aliases: dict[str, str]) -> tuple[list, dict]:
+    """The cameras moved into the LEDs' frame where ``options`` (a rig's TransformsOptions) --align-cameras places some
+    of them (:func:`align_cameras`; ``aliases``: the source's other names of its cameras), and the Source fields that
+    say it: the alignment, and the meshes' move where they are in the calibration's frame (--mesh-frame calibration)."""
+    if options.align_cameras is None:
+        return calib, {}
+    moved, move, said = align_cameras(Path(options.align_cameras), names, calib, aliases)
+    with_mesh = options.mesh_frame == "calibration"
+    return moved, {"alignment": said | {"mesh_moved": with_mesh}, "mesh_move": move if with_mesh else None}

@@ -31,13 +31,14 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import BeforeValidator, Field, field_validator, model_validator
 
+from gra_mi.capture.alignment import aligned
 from gra_mi.capture.dataset import FrameLighting
 from gra_mi.capture.importer import import_capture
 from gra_mi.capture.lens import LensDistortion
 from gra_mi.capture.mesh_frames import read_meshes
 from gra_mi.capture.source import ImportConfig, Source
 from gra_mi.capture.source_files import CalibCamera, add_numbered, image_size, read_points
-from gra_mi.capture.transforms import UNITS, TransformsOptions, aligned
+from gra_mi.capture.transforms import UNITS, TransformsOptions
 from gra_mi.core.errors import GraMiInputError, GraMiParameterError
 from gra_mi.core.io import read_json, read_text
 from gra_mi.core.schema import Count, Record, intrinsic_matrix, matrix, parse, rigid_rotation

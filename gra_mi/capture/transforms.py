@@ -25,7 +25,7 @@ from typing import Annotated
 import numpy as np
 from pydantic import Field, field_validator
 
-from gra_mi.capture.alignment import align_cameras
+from gra_mi.capture.alignment import aligned
 from gra_mi.capture.dataset import FrameLighting
 from gra_mi.capture.importer import import_capture
 from gra_mi.capture.lens import LensDistortion
@@ -152,17 +152,6 @@ def read_transforms(folder: Path, options: TransformsOptions) -> Source:
         stated_gains=_stated_gains(stated, sorted(leds)), **moved,
         calib_files=[options.align_cameras] if options.align_cameras else [],
     )  # fmt: skip
-
-
-def aligned(options: TransformsOptions, names: list[str], calib: list, aliases: dict[str, str]) -> tuple[list, dict]:
-    """The cameras moved into the LEDs' frame where --align-cameras places some of them (:mod:`gra_mi.capture.alignment`;
-    ``aliases``: the source's other names of its cameras), and the Source fields that say it: the alignment, and the
-    meshes' move where they are in the calibration's frame (--mesh-frame calibration)."""
-    if options.align_cameras is None:
-        return calib, {}
-    moved, move, said = align_cameras(Path(options.align_cameras), names, calib, aliases)
-    with_mesh = options.mesh_frame == "calibration"
-    return moved, {"alignment": said | {"mesh_moved": with_mesh}, "mesh_move": move if with_mesh else None}
 
 
 def _stated_gains(stated: dict[int, np.ndarray], numbers: list[int]) -> np.ndarray | None:
