@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import struct
 from pathlib import Path
 
 import numpy as np
@@ -409,3 +410,118 @@ def test_a_binary_file_under_a_text_files_name_is_refused_by_name(tmp_path):
             read(tmp_path / "nothing.txt")
         with pytest.raises(GraMiInputError, match=f"{tmp_path.name}: a folder: expected"):
             read(tmp_path)
+
+
+def _mutations(text: bytes, count: int, seed: int):
+    """``count`` damaged copies of a file: bytes replaced, removed, repeated, cut short, numbers made extreme."""
+    rng = np.random.default_rng(seed)
+    tokens = [b"nan", b"inf", b"-inf", b"1e999", b"-1", b"0", b"99999999999999999999", b"\x00", b"\xff\xfe", b" ", b"\n", b"#", b"x"]
+    for _ in range(count):
+        data = bytearray(text)
+        for _ in range(int(rng.integers(1, 4))):
+            at = int(rng.integers(0, len(data) + 1))
+            kind = int(rng.integers(0, 5))
+            if kind == 0 and data:
+                data[min(at, len(data) - 1)] = int(rng.integers(0, 256))
+            elif kind == 1:
+                del data[at : at + int(rng.integers(1, 12))]
+            elif kind == 2:
+                data[at:at] = tokens[int(rng.integers(0, len(tokens)))]
+            elif kind == 3:
+                data[at:at] = data[max(0, at - 20) : at]
+            else:
+                del data[at:]
+        yield bytes(data)
+
+
+@pytest.mark.filterwarnings("error::RuntimeWarning")  # an overflow on the way is a value silently wrong: a failure too
+def test_damaged_source_files_fail_only_by_name(tmp_path):
+    """Every text file a capture's source hands gra-mi (LED positions, the firing order, LED gains, HumanOLAT's
+    calibration, EasyMocap's YAML, COLMAP's cameras.txt and images.txt, a places file, an OBJ, a lighting file, a
+    calibration.json, transforms.json's records) and COLMAP's binary model, damaged 300 ways each (bytes
+    replaced, cut, repeated, NaN, 1e999, NUL): each is read, or refused with a GraMiInputError naming it; never another
+    exception (a traceback)."""
+    from gra_mi.capture.alignment import read_places
+    from gra_mi.capture.colmap import _cameras_bin, _cameras_txt, _images_bin, _images_txt
+    from gra_mi.capture.easymocap import lighting_frames, read_opencv_yaml
+    from gra_mi.capture.humanolat import read_calib, read_spiral
+    from gra_mi.capture.source_files import read_led_gains, read_obj, read_points
+    from gra_mi.stage.lightstage import default_lightstage, lightstage_to_dict, load_calibration
+
+    matrix = "!!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n   data: [ 500., 0., 160., 0., 500., 120., 0., 0., 1. ]\n"
+    samples = {
+        "leds.pc": (read_points, "v 1.0 2.0 3.0\nv -1.5 0.5 2.25\nv 0 0 1\n"),
+        "spiral.txt": (lambda p: read_spiral(p, 4), "3\n1\n4\n2\n"),
+        "gains.txt": (lambda p: read_led_gains(p, [0, 1, 2]), "1.0\n0.5 0.6 0.7\n# LED 2\n0.9\n"),
+        "cameras.calib": (
+            read_calib,
+            "name Cam01\ndistortionModel opencv\ndistortion 0 0 0 0 0\nfocalLength 50\npixelAspect 1\n"
+            "extrinsic\n1 0 0 0\n0 1 0 0\n0 0 1 2000\nintrinsic\n1.2 0 0.5\n0 1.2 0.4\n0 0 1\n",
+        ),  # fmt: skip
+        "intri.yml": (
+            read_opencv_yaml,
+            f'%YAML:1.0\n---\nnames:\n   - "01"\nK_01: {matrix}dist_01: !!opencv-matrix\n   rows: 1\n'
+            "   cols: 5\n   dt: d\n   data: [ 0., 0., 0., 0., 0. ]\n",
+        ),  # fmt: skip
+        "cameras.txt": (_cameras_txt, "# header\n1 PINHOLE 320 240 500 500 160 120\n2 OPENCV 320 240 500 500 160 120 0.1 0 0 0\n"),
+        "images.txt": (_images_txt, "1 1 0 0 0 0.5 0 2 1 cam01/000000.png\n\n2 0.7 0.7 0 0 0 0 2 2 cam02/000000.png\n1 2 3\n"),
+        "places.txt": (read_places, "# NAME X Y Z\ncam01 1 2 3\ncam02/000000.png 4 5 6\n"),
+        "model.obj": (read_obj, "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\nvt 0 0\nvt 1 0\nvt 0 1\nvt 1 1\nf 1/1 2/2 3/3\nf 2/2 4/4 3/3\n"),
+        "lighting.json": (
+            lambda p: lighting_frames(p, 4),
+            json.dumps(
+                {"frames": [{"frame": 0, "split": "train", "uniform": 0.5}, {"frame": 1, "split": "test", "led": 2, "mesh_frame": 0}]}
+            ),
+        ),  # fmt: skip
+        "calibration.json": (
+            load_calibration,
+            json.dumps(lightstage_to_dict(default_lightstage(num_leds=3, num_cameras=1, width=8, height=6))),
+        ),
+        "transforms.json": (
+            _transforms_frames,
+            json.dumps(
+                {
+                    "fl_x": 500,
+                    "fl_y": 500,
+                    "cx": 160,
+                    "cy": 120,
+                    "w": 320,
+                    "h": 240,
+                    "frames": [{"file_path": "a.png", "transform_matrix": np.eye(4).tolist(), "light_idx": 1, "pl_pos": [0, 2, 0]}],
+                }
+            ),
+        ),  # fmt: skip
+        "cameras.bin": (_cameras_bin, struct.pack("<QiiQQ4d", 1, 1, 1, 320, 240, 500.0, 500.0, 160.0, 120.0)),
+        "images.bin": (
+            _images_bin,
+            struct.pack("<QI7dI", 1, 1, 1, 0, 0, 0, 0.5, 0, 2, 1) + b"cam01/000000.png\0" + struct.pack("<Q2dq", 1, 10.0, 20.0, -1),
+        ),  # fmt: skip
+    }
+    failures, refused = [], dict.fromkeys(samples, 0)
+    for name, (read, text) in samples.items():
+        text = text if isinstance(text, bytes) else text.encode()
+        read(_written(tmp_path / name, text))  # the undamaged file is read
+        for k, damaged in enumerate(_mutations(text, 300, seed=len(name))):
+            try:
+                read(_written(tmp_path / name, damaged))
+            except GraMiInputError:
+                refused[name] += 1
+            except Exception as exc:  # noqa: BLE001 (what the test looks for)
+                failures.append(f"{name} #{k}: {type(exc).__name__}: {exc} ← {damaged[:200]!r}")
+    assert not failures, "\n".join(failures[:20])
+    assert all(count >= 30 for count in refused.values()), refused  # the damage reaches every reader's checks
+
+
+def _transforms_frames(path: Path) -> list:
+    """transforms.json read as the import reads it: the file, its shared intrinsics and each frame, typed."""
+    from gra_mi.capture.transforms import TransformsCamera, TransformsFrame, _read
+    from gra_mi.core.schema import parse
+
+    data = _read(path)
+    parse(TransformsCamera, {k: v for k, v in data.items() if k != "frames"}, path)
+    return [parse(TransformsFrame, raw, path, f"frames[{i}]") for i, raw in enumerate(data["frames"])]
+
+
+def _written(path: Path, data: bytes) -> Path:
+    path.write_bytes(data)
+    return path

@@ -85,8 +85,10 @@ class ColmapImage(Record):
     @field_validator("quaternion")
     @classmethod
     def _a_rotation(cls, q: np.ndarray) -> np.ndarray:
-        if not np.linalg.norm(q) > 0:
+        largest = np.max(np.abs(q))
+        if not largest > 0:
             raise ValueError("a rotation's quaternion cannot be 0")
+        q = q / largest  # (first: the norm of components near 1e300 would overflow to inf, and q / inf to 0)
         return q / np.linalg.norm(q)
 
     def camera_to_world(self) -> np.ndarray:

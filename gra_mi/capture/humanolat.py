@@ -177,12 +177,11 @@ def write_spiral(path: Path, order: np.ndarray) -> None:
 
 def read_spiral(path: Path, leds: int) -> np.ndarray:
     """The firing order as 0-based LED indices, checked against the LED count."""
-    text = read_text(
-        path, "HumanOLAT's OLAT firing order (shared/LSX3_light_z_spiral.txt), one LED index per line"
-    )  # outside the try: its error is a ValueError too
+    # (read outside the try: its error is a ValueError too)
+    text = read_text(path, "HumanOLAT's OLAT firing order (shared/LSX3_light_z_spiral.txt), one LED index per line")
     try:
         order = np.array([int(w) for w in text.split()], int) - 1
-    except ValueError:
+    except (ValueError, OverflowError):  # (an index past int64: no LED)
         raise GraMiInputError(path, "expected one 1-based LED index per line") from None
     if len(order) != leds or order.min(initial=0) < 0 or order.max(initial=0) >= leds:
         raise GraMiInputError(path, f"{len(order)} entries with indices in [1, {leds}] expected (the LED file has {leds} LEDs)")
