@@ -497,19 +497,52 @@ def test_damaged_source_files_fail_only_by_name(tmp_path):
             struct.pack("<QI7dI", 1, 1, 1, 0, 0, 0, 0.5, 0, 2, 1) + b"cam01/000000.png\0" + struct.pack("<Q2dq", 1, 10.0, 20.0, -1),
         ),  # fmt: skip
     }
+    _damaged_reads(samples, tmp_path)
+
+
+def _damaged_reads(samples: dict, folder: Path, copies: int = 300) -> None:
+    """Each sample (file name: (reader, its undamaged bytes or text)) read whole, then ``copies`` damaged copies of it:
+    each read, or refused with a GraMiInputError; and the damage reaches every reader's checks (30 refused at least)."""
     failures, refused = [], dict.fromkeys(samples, 0)
     for name, (read, text) in samples.items():
         text = text if isinstance(text, bytes) else text.encode()
-        read(_written(tmp_path / name, text))  # the undamaged file is read
-        for k, damaged in enumerate(_mutations(text, 300, seed=len(name))):
+        read(_written(folder / name, text))  # the undamaged file is read
+        for k, damaged in enumerate(_mutations(text, copies, seed=len(name))):
             try:
-                read(_written(tmp_path / name, damaged))
+                read(_written(folder / name, damaged))
             except GraMiInputError:
                 refused[name] += 1
             except Exception as exc:  # noqa: BLE001 (what the test looks for)
                 failures.append(f"{name} #{k}: {type(exc).__name__}: {exc} ← {damaged[:200]!r}")
     assert not failures, "\n".join(failures[:20])
-    assert all(count >= 30 for count in refused.values()), refused  # the damage reaches every reader's checks
+    assert all(count >= 30 for count in refused.values()), refused
+
+
+@pytest.mark.filterwarnings("error::RuntimeWarning")
+def test_damaged_images_and_meshes_fail_only_by_name(tmp_path):
+    """A capture's photographs (PNG, JPEG, EXR), masks and a PLY mesh, damaged 300 ways each (an interrupted copy, a
+    flipped byte): each is read, or refused with a GraMiInputError naming it; never another exception."""
+    import io
+
+    from PIL import Image
+
+    from gra_mi.capture.mesh_frames import read_mesh
+    from gra_mi.capture.source_files import image_size, read_image, read_mask
+    from gra_mi.core.io import read_hdr_image, write_exr
+
+    pixels = (np.random.default_rng(0).uniform(0, 1, (12, 16, 3)) * 255).astype(np.uint8)
+    encoded = {}
+    for name, image, kind in (("photo.png", pixels, "PNG"), ("photo.jpg", pixels, "JPEG"), ("mask.png", pixels[..., 0], "PNG")):
+        buffer = io.BytesIO()
+        Image.fromarray(image).save(buffer, format=kind)
+        encoded[name] = buffer.getvalue()
+    write_exr(tmp_path / "source.exr", pixels / 100.0)
+    ply = ("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nelement face 1\n"
+           "property list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n")  # fmt: skip
+    both = lambda p: (read_image(p), image_size(p))  # noqa: E731
+    samples = {"photo.png": (both, encoded["photo.png"]), "photo.jpg": (both, encoded["photo.jpg"]), "mask.png": (read_mask, encoded["mask.png"]),
+               "photo.exr": (lambda p: (both(p), read_hdr_image(p)), (tmp_path / "source.exr").read_bytes()), "mesh.ply": (read_mesh, ply)}  # fmt: skip
+    _damaged_reads(samples, tmp_path)
 
 
 def _transforms_frames(path: Path) -> list:
