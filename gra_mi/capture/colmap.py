@@ -348,8 +348,7 @@ def write_colmap_rig(capture, root: Path) -> Path:
     with ``places.txt`` (every camera's place in the LEDs' frame: ``--align-cameras``); each camera's frames as linear
     EXR and their masks; the mesh frames (``meshes/frame_NNNN.obj``), the LEDs (``leds.pc``), the lighting file
     (``lighting.json``, its envmaps and LED patterns beside it; ``led_gains.txt`` where the stage has gains), all in the
-    capture's frame, in metres. Files already
-    there are kept (an interrupted write resumes). Returns ``root``."""
+    capture's frame, in metres. Files already there are kept (an interrupted write resumes). Returns ``root``."""
     from scipy.spatial.transform import Rotation
 
     from gra_mi.capture.dataset import load_observation
