@@ -278,7 +278,7 @@ def test_a_mesh_tracked_in_the_models_frame_moves_with_it(inputs, tmp_path, caps
     """The meshes in the model's own frame too (tracked with its calibration, as EasyMocap's and a COLMAP
     reconstruction's are) and --mesh-frame calibration: they move with the cameras, the subject lands where it stands
     among the LEDs (its vertices within 10 µm) and on every mask. Without the option the masks' check fails and names
-    it; the option without --align-cameras is refused."""
+    it as the likely mistake (the IoU it would reach); the option without --align-cameras is refused."""
     from scipy.spatial import cKDTree
 
     from gra_mi.capture.source_files import write_obj
@@ -297,8 +297,15 @@ def test_a_mesh_tracked_in_the_models_frame_moves_with_it(inputs, tmp_path, caps
     truth = load_calibration(native.folder / "rig" / "calibration.json").cameras
     (tmp_path / "places.txt").write_text("".join(f"{k + 1:02d} {' '.join(f'{x:.17g}' for x in c.position)}\n" for k, c in enumerate(truth)))
     command = ["import", "colmap", tmp_path / "rig", "--out", tmp_path / "out", *args, "--align-cameras", tmp_path / "places.txt"]
-    assert_refused(command, capsys, "most cameras miss it", "--mesh-frame calibration", out=tmp_path / "out")
+    assert_refused(command, capsys, "likely a mesh tracked in the calibration's own frame (--mesh-frame calibration)", out=tmp_path / "out")
     assert_refused([*command[:-2], "--mesh-frame", "calibration"], capsys, "--mesh-frame", "--align-cameras", out=tmp_path / "out")
+    in_leds_frame = [*command[:5], *inputs[3][:2], *command[7:]]  # the meshes where the LEDs are, said to move
+    assert_refused(
+        [*in_leds_frame, "--mesh-frame", "calibration"],
+        capsys,
+        "likely a mesh in the LEDs' frame (--mesh-frame leds)",
+        out=tmp_path / "out",
+    )
     assert main([str(a) for a in command] + ["--mesh-frame", "calibration"]) == 0
     report = json.loads((tmp_path / "out" / "import_report.json").read_text())
     assert all(c["mask_iou"] >= 0.97 for c in report["cameras"]) and report["alignment"]["mesh_moved"], report

@@ -118,4 +118,4 @@ def aligned(options, names: list[str], calib: list, aliases: dict[str, str]) -> 
         return calib, {}
     moved, move, said = align_cameras(Path(options.align_cameras), names, calib, aliases)
     with_mesh = options.mesh_frame == "calibration"
-    return moved, {"alignment": said | {"mesh_moved": with_mesh}, "mesh_move": move if with_mesh else None}
+    return moved, {"alignment": said | {"mesh_moved": with_mesh}, "alignment_move": move, "mesh_moved": with_mesh}

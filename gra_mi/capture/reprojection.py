@@ -91,6 +91,25 @@ def _rescaled(sequence: MeshSequence, frame: WorldFrame, factor: float) -> MeshS
     return replace(sequence, vertices=vertices.astype(np.float32))
 
 
+def _other_mesh_frame(source: Source, sequence: MeshSequence, frame: WorldFrame) -> tuple[str, MeshSequence] | None:
+    """Where --align-cameras moved the calibration: the sequence as it would be with the mesh in the other frame (moved
+    with the cameras, or left among the LEDs), and those words; None without an alignment."""
+    from dataclasses import replace
+
+    if source.alignment is None:
+        return None
+    scale, rotation, translation = source.alignment_move
+    metres = (np.asarray(sequence.vertices, float) - frame.translation) @ frame.rotation  # back to the source's metres
+    if not source.mesh_moved:
+        said, metres = (
+            "a mesh tracked in the calibration's own frame (--mesh-frame calibration)",
+            scale * metres @ rotation.T + translation * source.units,
+        )
+    else:
+        said, metres = "a mesh in the LEDs' frame (--mesh-frame leds)", (metres - translation * source.units) @ rotation / scale
+    return said, replace(sequence, vertices=(metres @ frame.rotation.T + frame.translation).astype(np.float32))
+
+
 def _mistaken(extrinsic: np.ndarray, kind: str) -> np.ndarray:
     """A source camera-to-world (3 × 4, the source's units) with ``kind``'s mistake undone."""
     m = np.eye(4)
@@ -127,6 +146,8 @@ def likely_mistake(
         calib[plan.index] = replace(calib[plan.index], extrinsic=_mistaken(calib[plan.index].extrinsic, kind))
         camera = plan_camera(replace(source, calib=calib), plan.index, frame, plan.camera.width / plan.square_width).camera
         scores[said] = mask_iou(sequence, camera, mask, pose)[0]
+    if (other := _other_mesh_frame(source, sequence, frame)) is not None:
+        scores[other[0]] = mask_iou(other[1], plan.camera, mask, pose)[0]
     for k, said in (
         (1e-3, "a mesh in millimetres read as metres (--mesh-units mm)"),
         (1e3, "a mesh in metres read as millimetres (--mesh-units m)"),
@@ -199,7 +220,7 @@ def _frame_hint(source: Source, median: float, min_iou: float) -> str:
     if source.alignment is None:
         return said + ("a calibration in a frame of its own (a COLMAP reconstruction's, a chessboard's) comes into the "
                        "LEDs' and the mesh's frame with --align-cameras PLACES (docs/data-format.md)")  # fmt: skip
-    if source.mesh_move is None:
+    if not source.mesh_moved:
         return said + "a mesh tracked in the calibration's own frame moves with it by --mesh-frame calibration"
     return said + "a mesh in the LEDs' frame stays there without --mesh-frame calibration"
 

@@ -110,7 +110,8 @@ class Source:
     mesh_files: list[Path] = field(default_factory=list)  # the mesh file(s) or folder read (for provenance)
     calib_files: list[Path] = field(default_factory=list)  # the calibration's files besides calib_path (for provenance)
     alignment: dict | None = None  # how --align-cameras moved the calibration into the LEDs' frame (the report says it)
-    mesh_move: tuple | None = None  # (scale, rotation, translation in calibration units): the meshes moved with the cameras
+    alignment_move: tuple | None = None  # (scale, rotation, translation in calibration units): what it moved them by
+    mesh_moved: bool = False  # the meshes moved with the cameras (--mesh-frame calibration)
     set_shapes: list = field(default_factory=list)  # a Mitsuba scene's other shapes (scene_stage.SetShape), in the meshes' frame
 
     def check(self) -> None:
@@ -219,11 +220,11 @@ class Source:
     def mesh_metres(self, positions: np.ndarray) -> np.ndarray:
         """A mesh frame's positions in metres, in the LEDs' frame (moved with the calibration where it was tracked in it)."""
         metres = positions * (self.units if self.mesh_units is None else self.mesh_units)
-        if self.mesh_move is None:
+        if not self.mesh_moved:
             return metres
-        scale, rotation, translation = self.mesh_move
+        scale, rotation, translation = self.alignment_move
         return scale * metres @ rotation.T + translation * self.units
 
     def mesh_directions(self, normals: np.ndarray) -> np.ndarray:
         """A mesh frame's normals turned as :meth:`mesh_metres` turns its positions."""
-        return normals if self.mesh_move is None else normals @ self.mesh_move[1].T
+        return normals @ self.alignment_move[1].T if self.mesh_moved else normals
