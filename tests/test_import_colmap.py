@@ -278,7 +278,8 @@ def test_a_mesh_tracked_in_the_models_frame_moves_with_it(inputs, tmp_path, caps
     """The meshes in the model's own frame too (tracked with its calibration, as EasyMocap's and a COLMAP
     reconstruction's are) and --mesh-frame calibration: they move with the cameras, the subject lands where it stands
     among the LEDs (its vertices within 10 µm) and on every mask. Without the option the masks' check fails and names
-    it as the likely mistake (the IoU it would reach); the option without --align-cameras is refused."""
+    it as the likely mistake (the IoU it would reach), or, where the mesh would lie on its side, as the way it stands;
+    the option without --align-cameras is refused."""
     from scipy.spatial import cKDTree
 
     from gra_mi.capture.source_files import write_obj
@@ -313,6 +314,13 @@ def test_a_mesh_tracked_in_the_models_frame_moves_with_it(inputs, tmp_path, caps
     expected = seq.vertices[0].astype(np.float64) @ moved[:3, :3].T + moved[:3, 3]
     imported = load_sequence(tmp_path / "out" / "subject").vertices[0]
     assert cKDTree(expected).query(imported)[0].max() < 1e-5
+    # a model frame that lays the unmoved mesh on its side among the LEDs: the upright check names the same cause
+    side = pycolmap.Sim3d(0.5, pycolmap.Rotation3d(np.array([np.sin(np.pi / 4), 0.0, 0.0, np.cos(np.pi / 4)])), [[0.0], [0.0], [0.0]])
+    write_colmap(native, tmp_path / "side", frames[:1], moved=side)
+    matrix = np.asarray(side.matrix())
+    write_obj(tmp_path / "meshes", seq.vertices[0].astype(np.float64) @ matrix[:, :3].T + matrix[:, 3], seq.uvs, seq.faces, None)
+    lying = ["import", "colmap", tmp_path / "side", "--out", tmp_path / "out2", *command[5:]]
+    assert_refused(lying, capsys, "lying on its side; likely a mesh tracked in the calibration's own frame", out=tmp_path / "out2")
 
 
 def test_camera_places_that_cannot_align_a_rig_stop_with_one_line(inputs, tmp_path, capsys):

@@ -244,14 +244,22 @@ def _check_mask(source: Source, plan: CameraPlan, mask: np.ndarray) -> None:
 
 
 def _check_upright(source: Source, frame: WorldFrame, sequence, pose: int) -> None:
-    """A subject whose height is well below its width along the chosen up axis would import lying on its side."""
-    v = np.asarray(sequence.vertices[pose], float)
-    low, high = np.percentile(v, [1, 99], axis=0)
-    extent = high - low
+    """A subject whose height is well below its width along the chosen up axis would import lying on its side: the
+    source's up axis, or (where --align-cameras moved the calibration) the mesh in the other frame."""
+    extent = _extent(sequence, pose)
     if extent[1] < 0.6 * max(extent[0], extent[2]):
         axis = "the up axis estimated from the cameras" if frame.up_estimated else "--up"
+        other = _other_mesh_frame(source, sequence, frame)
+        upright = other is not None and (e := _extent(other[1], pose))[1] >= 0.6 * max(e[0], e[2])
         raise GraMiInputError(
             source.folder,
             f"the subject is {extent[1]:.2f} m tall and {max(extent[0], extent[2]):.2f} m wide along {axis}: it would import lying "
-            "on its side. Give the source's up axis with --up (e.g. +z for a Z-up source)",
-        )
+            + (f"on its side; likely {other[0]}, where it stands" if upright else
+               "on its side. Give the source's up axis with --up (e.g. +z for a Z-up source)"),
+        )  # fmt: skip
+
+
+def _extent(sequence, pose: int) -> np.ndarray:
+    """The subject's size along each world axis (1st to 99th percentile of its vertices)."""
+    low, high = np.percentile(np.asarray(sequence.vertices[pose], float), [1, 99], axis=0)
+    return high - low
