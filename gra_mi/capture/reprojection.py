@@ -213,16 +213,13 @@ def reprojection_checks(
 
 
 def _frame_hint(source: Source, median: float, min_iou: float) -> str:
-    """Where most cameras miss the mesh: the calibration may be in a frame of its own, or the mesh in the other frame."""
-    if median >= min_iou or source.format not in ALIGNABLE:
+    """Where most cameras miss the mesh and the calibration was taken as it is: it may be in a frame of its own (with
+    --align-cameras, :func:`likely_mistake` tries the mesh in the other frame instead)."""
+    if median >= min_iou or source.format not in ALIGNABLE or source.alignment is not None:
         return ""
-    said = f"; most cameras miss it (median IoU {median:.2f}): "
-    if source.alignment is None:
-        return said + ("a calibration in a frame of its own (a COLMAP reconstruction's, a chessboard's) comes into the "
-                       "LEDs' and the mesh's frame with --align-cameras PLACES (docs/data-format.md)")  # fmt: skip
-    if not source.mesh_moved:
-        return said + "a mesh tracked in the calibration's own frame moves with it by --mesh-frame calibration"
-    return said + "a mesh in the LEDs' frame stays there without --mesh-frame calibration"
+    return (f"; most cameras miss it (median IoU {median:.2f}): a calibration in a frame of its own (a COLMAP "
+            "reconstruction's, a chessboard's) comes into the LEDs' and the mesh's frame with --align-cameras PLACES "
+            "(docs/data-format.md)")  # fmt: skip
 
 
 def _check_mask(source: Source, plan: CameraPlan, mask: np.ndarray) -> None:
