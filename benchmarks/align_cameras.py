@@ -42,11 +42,13 @@ def calibration_in(stage, frame) -> list:
 
 def imaged(stage, cameras: list, points: np.ndarray) -> np.ndarray:
     """(C, P, 2) pixels of ``points`` through each of the stage's cameras posed as ``cameras`` (camera-to-world 3 × 4)."""
-    out = []
-    for cam, moved in zip(stage.cameras, cameras, strict=True):
-        local = (points - moved.extrinsic[:, 3]) @ moved.extrinsic[:, :3]
-        out.append(np.stack([cam.fx * local[:, 0] / local[:, 2] + cam.cx, cam.fy * local[:, 1] / local[:, 2] + cam.cy], axis=-1))
-    return np.array(out)
+    from dataclasses import replace
+
+    posed = [
+        replace(cam, camera_to_world=np.vstack([moved.extrinsic, [0.0, 0.0, 0.0, 1.0]]))
+        for cam, moved in zip(stage.cameras, cameras, strict=True)
+    ]
+    return np.array([cam.project(points)[:, :2] for cam in posed])
 
 
 def one_draw(stage, rng, placed: int, sigma: float, points: np.ndarray, truth_px: np.ndarray, work: Path, swap: bool) -> dict | None:

@@ -243,12 +243,15 @@ def _own_frame():
     return pycolmap.Sim3d(0.37, pycolmap.Rotation3d(Rotation.from_rotvec([0.6, -1.1, 0.4]).as_quat()), [[2.5], [-1.0], [0.7]])
 
 
-def test_a_model_in_its_own_frame_is_aligned_to_the_leds(inputs, tmp_path):
+def test_a_model_in_its_own_frame_is_aligned_to_the_leds(inputs, tmp_path, capsys):
     """A model in a frame and scale of its own (a reconstruction's) with --align-cameras, COLMAP model_aligner's file
     of where its images' cameras are in the LEDs' frame: the imported cameras put the subject's vertices where COLMAP's
     own alignment of the model to those places (pycolmap's align_reconstruction_to_locations) projects them, within a
-    thousandth of a pixel; the mesh lies on the masks; the report says the scale the fit found."""
+    thousandth of a pixel; the mesh lies on the masks; the report says the scale the fit found. The places edited
+    before a rerun are another run, refused (not resumed on the old alignment)."""
     from gra_mi.stage.lightstage import load_calibration
+
+    from .test_bad_input import assert_refused
 
     native, seq, frames, args = inputs
     reconstruction = write_colmap(native, tmp_path / "rig", frames[:1], moved=_own_frame())
@@ -267,6 +270,11 @@ def test_a_model_in_its_own_frame_is_aligned_to_the_leds(inputs, tmp_path):
     assert all(c["mask_iou"] >= 0.97 for c in report["cameras"]), report["cameras"]
     assert report["alignment"]["scale"] == pytest.approx(1 / 0.37, rel=1e-6) and report["alignment"]["max"] < 1e-6
     assert "Only 3 cameras placed" in (out / "import_report.md").read_text()  # (too few to trust: said)
+    remeasured = truth[0].position + [2e-4, 0.0, 0.0]  # a place measured again before a rerun: another run, not a resume
+    (tmp_path / "places.txt").write_text("".join(f"{n} {' '.join(f'{x:.17g}' for x in p)}\n"
+                                                 for n, p in zip(names, [remeasured, truth[1].position, truth[2].position], strict=True)))  # fmt: skip
+    assert_refused(["import", "colmap", tmp_path / "rig", "--out", out, *args, "--align-cameras", tmp_path / "places.txt"], capsys,
+                   "made by another run", "files outside the source")  # fmt: skip
     moved = np.array(json.loads((out / "capture.json").read_text())["source"]["transform"])
     vertices = seq.vertices[0].astype(np.float64)
     for k, camera in enumerate(load_calibration(out / "rig" / "calibration.json").cameras):

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gra_mi.capture.source_files import image_camera
 from gra_mi.core.errors import GraMiInputError
 from gra_mi.core.io import read_text
 from gra_mi.core.schema import Record, matrix, parse
@@ -51,8 +52,7 @@ def camera_named(path: Path, name: str, cameras: list[str], aliases: dict[str, s
     """The camera a line names: a camera's name, or another name the source gives it (``aliases``: EasyMocap's own
     camera names, transforms.json's image paths), or an image path whose folder, else whose stem, is one of those."""
     known = {camera: camera for camera in cameras} | (aliases or {})
-    parts = Path(name.replace("\\", "/")).parts
-    for candidate in (name, parts[-2] if len(parts) > 1 else None, Path(parts[-1]).stem if parts else None):
+    for candidate in (name, *image_camera(name)):
         if candidate in known:
             return known[candidate]
     shown = ", ".join(cameras[:6]) + (" …" if len(cameras) > 6 else "")
@@ -118,4 +118,4 @@ def aligned(options, names: list[str], calib: list, aliases: dict[str, str]) -> 
         return calib, {}
     moved, move, said = align_cameras(Path(options.align_cameras), names, calib, aliases)
     with_mesh = options.mesh_frame == "calibration"
-    return moved, {"alignment": said | {"mesh_moved": with_mesh}, "alignment_move": move, "mesh_moved": with_mesh}
+    return moved, {"alignment": said | {"mesh_moved": with_mesh}, "alignment_move": move}

@@ -34,7 +34,7 @@ from gra_mi.capture.easymocap import EasymocapOptions, camera_images, needs_mesh
 from gra_mi.capture.importer import import_capture
 from gra_mi.capture.lens import LensDistortion
 from gra_mi.capture.source import ImportConfig, Source
-from gra_mi.capture.source_files import CalibCamera, image_size
+from gra_mi.capture.source_files import CalibCamera, image_camera, image_size
 from gra_mi.capture.transforms import TransformsOptions
 from gra_mi.core.errors import GraMiInputError
 from gra_mi.core.guard import path_component
@@ -227,9 +227,8 @@ def _images_bin(path: Path) -> list[ColmapImage]:
 
 def camera_name(path: Path, image: ColmapImage) -> str:
     """The rig camera an image of the model belongs to: the folder its name puts it in, else its stem."""
-    parts = Path(image.name.replace("\\", "/")).parts
-    name = parts[-2] if len(parts) > 1 else Path(image.name).stem
-    return path_component(name, path, f"image {image.name!r}")
+    folder, stem = image_camera(image.name)
+    return path_component(folder or stem, path, f"image {image.name!r}")
 
 
 def rig_cameras(path: Path, images: list[ColmapImage]) -> dict[str, ColmapImage]:

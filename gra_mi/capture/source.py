@@ -111,7 +111,6 @@ class Source:
     calib_files: list[Path] = field(default_factory=list)  # the calibration's files besides calib_path (for provenance)
     alignment: dict | None = None  # how --align-cameras moved the calibration into the LEDs' frame (the report says it)
     alignment_move: tuple | None = None  # (scale, rotation, translation in calibration units): what it moved them by
-    mesh_moved: bool = False  # the meshes moved with the cameras (--mesh-frame calibration)
     set_shapes: list = field(default_factory=list)  # a Mitsuba scene's other shapes (scene_stage.SetShape), in the meshes' frame
 
     def check(self) -> None:
@@ -216,6 +215,11 @@ class Source:
         if path is not None:
             return read_led_gains(path, numbers)
         return None if self.stated_gains is None else normalised_gains(self.stated_gains, numbers, self.calib_path)
+
+    @property
+    def mesh_moved(self) -> bool:
+        """Whether the meshes moved with the cameras (--mesh-frame calibration), as the alignment records it."""
+        return bool(self.alignment and self.alignment["mesh_moved"])
 
     def mesh_metres(self, positions: np.ndarray) -> np.ndarray:
         """A mesh frame's positions in metres, in the LEDs' frame (moved with the calibration where it was tracked in it)."""

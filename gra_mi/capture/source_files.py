@@ -34,6 +34,13 @@ class CalibCamera:
         return self.intrinsic * np.array([[width, width, width], [width, width, width], [1, 1, 1]], float)
 
 
+def image_camera(name: str) -> tuple[str | None, str]:
+    """(the folder an image path puts it in, else None; its stem): the names a rig's image path gives its camera
+    (COLMAP's image names, a places file's lines). Either separator."""
+    parts = Path(name.replace("\\", "/")).parts
+    return (parts[-2] if len(parts) > 1 else None), Path(parts[-1]).stem if parts else ""
+
+
 def write_points(path: Path, positions: np.ndarray) -> None:
     atomic_write_text(path, "".join(f"v {x:.8f} {y:.8f} {z:.8f}\n" for x, y, z in positions))
 
